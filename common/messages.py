@@ -1,0 +1,478 @@
+"""Messages the dataflow carries, and their msgpack codec (no pickle).
+
+Every payload is a msgpack map ``{"schema": NAME, "version": V, "body": {...}}``. numpy arrays
+travel as a msgpack extension (dtype, shape, raw bytes) and round-trip exactly. ``decode``
+validates the schema, version and every field, and raises ``MessageError`` naming the message
+type and the field.
+
+Stereo frames travel as two ``CameraImage`` messages (one per camera) that share ``seq``;
+consumers pair them by ``seq`` (see ``common.pairing``).
+"""
+from __future__ import annotations
+
+import dataclasses
+from dataclasses import dataclass, field
+from typing import Any, Optional
+
+import msgpack
+import numpy as np
+
+_EXT_NDARRAY = 1
+_DTYPES = {"bool", "uint8", "uint16", "int32", "int64", "float32", "float64"}
+
+
+class MessageError(ValueError):
+    """A payload that is not a valid message; the text names the message type and field."""
+
+
+# ---------------------------------------------------------------- ndarray extension
+
+def _default(obj):
+    if isinstance(obj, np.ndarray):
+        if obj.dtype.name not in _DTYPES:
+            raise TypeError(f"ndarray dtype {obj.dtype} cannot be sent")
+        a = np.ascontiguousarray(obj)
+        head = msgpack.packb([a.dtype.name, list(a.shape)])
+        return msgpack.ExtType(_EXT_NDARRAY, head + a.tobytes())
+    if isinstance(obj, np.generic):
+        return obj.item()
+    raise TypeError(f"cannot encode {type(obj).__name__}")
+
+
+def _ext_hook(code, data):
+    if code != _EXT_NDARRAY:
+        raise MessageError(f"unknown msgpack extension type {code}")
+    unpacker = msgpack.Unpacker(raw=False)
+    unpacker.feed(data)
+    try:
+        dtype, shape = next(unpacker)
+    except Exception as exc:  # malformed header
+        raise MessageError(f"malformed ndarray header: {exc}") from None
+    if dtype not in _DTYPES or not isinstance(shape, list):
+        raise MessageError(f"bad ndarray header dtype={dtype!r} shape={shape!r}")
+    offset = unpacker.tell()
+    buf = memoryview(data)[offset:]
+    n = int(np.prod(shape)) * np.dtype(dtype).itemsize
+    if len(buf) != n:
+        raise MessageError(f"ndarray of {dtype}{tuple(shape)} needs {n} bytes, got {len(buf)}")
+    return np.frombuffer(buf, dtype=dtype).reshape(shape).copy()
+
+
+# ---------------------------------------------------------------- field validation
+
+def _check(msg_name: str, fname: str, value, spec):
+    """Validate and normalise one field value against its spec; returns the value to store."""
+    kind = spec[0]
+    where = f"{msg_name}.{fname}"
+    if value is None:
+        if spec[-1] == "optional":
+            return None
+        raise MessageError(f"{where}: required, got null")
+    if kind == "int":
+        if isinstance(value, bool) or not isinstance(value, int):
+            raise MessageError(f"{where}: expected int, got {type(value).__name__}")
+        return value
+    if kind == "float":
+        if isinstance(value, bool) or not isinstance(value, (int, float)):
+            raise MessageError(f"{where}: expected number, got {type(value).__name__}")
+        return float(value)
+    if kind == "bool":
+        if not isinstance(value, bool):
+            raise MessageError(f"{where}: expected bool, got {type(value).__name__}")
+        return value
+    if kind == "str":
+        if not isinstance(value, str):
+            raise MessageError(f"{where}: expected string, got {type(value).__name__}")
+        if len(spec) > 1 and isinstance(spec[1], tuple) and value not in spec[1]:
+            raise MessageError(f"{where}: must be one of {spec[1]}, got {value!r}")
+        return value
+    if kind == "bytes":
+        if not isinstance(value, (bytes, bytearray, memoryview)):
+            raise MessageError(f"{where}: expected bytes, got {type(value).__name__}")
+        return bytes(value)
+    if kind == "dict":
+        if not isinstance(value, dict):
+            raise MessageError(f"{where}: expected map, got {type(value).__name__}")
+        return value
+    if kind == "array":
+        shape = spec[1]
+        if isinstance(value, list):  # tolerate plain lists from other writers
+            try:
+                value = np.asarray(value, dtype=float)
+            except (TypeError, ValueError):
+                raise MessageError(f"{where}: expected numeric array") from None
+        if not isinstance(value, np.ndarray):
+            raise MessageError(f"{where}: expected array, got {type(value).__name__}")
+        if len(value.shape) != len(shape) or any(s is not None and s != v for s, v in zip(shape, value.shape)):
+            want = tuple("N" if s is None else s for s in shape)
+            raise MessageError(f"{where}: expected shape {want}, got {value.shape}")
+        return value
+    if kind == "camera_map":  # {"left": array, "right": array}
+        if not isinstance(value, dict) or set(value) - {"left", "right"}:
+            raise MessageError(f"{where}: expected a map with keys left/right")
+        return {k: (None if v is None else np.asarray(v)) for k, v in value.items()}
+    raise AssertionError(kind)
+
+
+class Message:
+    """Base of all messages: a dataclass with a schema name, a version and field specs."""
+
+    SCHEMA: str = ""
+    VERSION: int = 1
+    FIELDS: dict = {}
+
+    def to_body(self) -> dict:
+        return {f.name: getattr(self, f.name) for f in dataclasses.fields(self)}
+
+
+_REGISTRY: dict[str, type] = {}
+
+
+def register(cls):
+    _REGISTRY[cls.SCHEMA] = cls
+    return cls
+
+
+def encode(msg: Message) -> bytes:
+    """Message -> msgpack bytes."""
+    return msgpack.packb({"schema": msg.SCHEMA, "version": msg.VERSION, "body": msg.to_body()},
+                         default=_default, use_bin_type=True)
+
+
+def decode(payload, expect: type | None = None) -> Message:
+    """msgpack bytes -> validated Message. ``expect`` restricts the accepted message type."""
+    try:
+        data = msgpack.unpackb(bytes(payload), ext_hook=_ext_hook, raw=False, strict_map_key=False)
+    except MessageError:
+        raise
+    except Exception as exc:
+        what = expect.__name__ if expect else "message"
+        raise MessageError(f"{what}: not valid msgpack ({type(exc).__name__}: {exc})") from None
+    if not isinstance(data, dict) or "schema" not in data or "body" not in data:
+        raise MessageError(f"{expect.__name__ if expect else 'message'}: missing schema envelope")
+    cls = _REGISTRY.get(data["schema"])
+    if cls is None:
+        raise MessageError(f"message: unknown schema {data['schema']!r}")
+    if expect is not None and cls is not expect:
+        raise MessageError(f"{expect.__name__}: got a {cls.__name__} instead")
+    if data.get("version") != cls.VERSION:
+        raise MessageError(f"{cls.__name__}.version: expected {cls.VERSION}, got {data.get('version')!r}")
+    body = data["body"]
+    if not isinstance(body, dict):
+        raise MessageError(f"{cls.__name__}: body is not a map")
+    unknown = set(body) - set(cls.FIELDS)
+    if unknown:
+        raise MessageError(f"{cls.__name__}.{sorted(unknown)[0]}: unknown field")
+    kwargs = {}
+    for fname, spec in cls.FIELDS.items():
+        if fname not in body:
+            if spec[-1] == "optional":
+                continue
+            raise MessageError(f"{cls.__name__}.{fname}: missing")
+        kwargs[fname] = _check(cls.__name__, fname, body[fname], spec)
+    msg = cls(**kwargs)
+    msg.validate()
+    return msg
+
+
+# ---------------------------------------------------------------- the messages
+
+CAMERAS = ("left", "right")
+ENCODINGS = ("bgr8", "png", "jpeg")
+
+
+@register
+@dataclass
+class CameraImage(Message):
+    """One camera's image of a stereo frame. ``data`` is raw BGR (h*w*3 bytes) or a PNG/JPEG file."""
+
+    SCHEMA = "needletrack.CameraImage"
+    FIELDS = {"camera": ("str", CAMERAS), "seq": ("int",), "stamp_ns": ("int",),
+              "width": ("int",), "height": ("int",), "encoding": ("str", ENCODINGS),
+              "data": ("bytes",)}
+    camera: str
+    seq: int
+    stamp_ns: int
+    width: int
+    height: int
+    encoding: str
+    data: bytes
+
+    def validate(self):
+        if self.width <= 0 or self.height <= 0:
+            raise MessageError(f"CameraImage.width/height: must be positive, got {self.width}x{self.height}")
+        if self.encoding == "bgr8" and len(self.data) != self.width * self.height * 3:
+            raise MessageError(f"CameraImage.data: bgr8 {self.width}x{self.height} needs "
+                               f"{self.width * self.height * 3} bytes, got {len(self.data)}")
+
+    @classmethod
+    def from_bgr(cls, camera: str, seq: int, stamp_ns: int, img: np.ndarray, encoding: str = "bgr8",
+                 jpeg_quality: int = 95) -> "CameraImage":
+        h, w = img.shape[:2]
+        if encoding == "bgr8":
+            data = np.ascontiguousarray(img, dtype=np.uint8).tobytes()
+        else:
+            import cv2
+            ext = ".png" if encoding == "png" else ".jpg"
+            params = [cv2.IMWRITE_JPEG_QUALITY, jpeg_quality] if encoding == "jpeg" else []
+            ok, buf = cv2.imencode(ext, img, params)
+            if not ok:
+                raise MessageError(f"CameraImage.data: could not encode {encoding}")
+            data = buf.tobytes()
+        return cls(camera, seq, stamp_ns, w, h, encoding, data)
+
+    def to_bgr(self) -> np.ndarray:
+        """The pixels as an (h, w, 3) uint8 BGR array; raises MessageError on corrupt data."""
+        if self.encoding == "bgr8":
+            return np.frombuffer(self.data, np.uint8).reshape(self.height, self.width, 3)
+        import cv2
+        img = cv2.imdecode(np.frombuffer(self.data, np.uint8), cv2.IMREAD_COLOR)
+        if img is None:
+            raise MessageError(f"CameraImage.data: corrupt {self.encoding} ({len(self.data)} bytes)")
+        if img.shape[:2] != (self.height, self.width):
+            raise MessageError(f"CameraImage.data: decoded {img.shape[1]}x{img.shape[0]}, "
+                               f"header says {self.width}x{self.height}")
+        return img
+
+
+@register
+@dataclass
+class EcmJoints(Message):
+    """ECM joint state q = [yaw, pitch, insertion, roll] (rad, rad, m, rad)."""
+
+    SCHEMA = "needletrack.EcmJoints"
+    FIELDS = {"seq": ("int",), "stamp_ns": ("int",), "q": ("array", (4,))}
+    seq: int
+    stamp_ns: int
+    q: np.ndarray
+
+    def validate(self):
+        if not np.all(np.isfinite(self.q)):
+            raise MessageError("EcmJoints.q: not finite")
+
+
+@register
+@dataclass
+class EcmPose(Message):
+    """Endoscope pose from forward kinematics: ``T_world_ecm`` at a joint state."""
+
+    SCHEMA = "needletrack.EcmPose"
+    FIELDS = {"seq": ("int",), "stamp_ns": ("int",), "T_world_ecm": ("array", (4, 4)),
+              "q": ("array", (4,), "optional")}
+    seq: int
+    stamp_ns: int
+    T_world_ecm: np.ndarray
+    q: Optional[np.ndarray] = None
+
+    def validate(self):
+        pass
+
+
+@register
+@dataclass
+class Keypoints(Message):
+    """A detector's output for one camera image.
+
+    ``found`` is False for "no needle" (then ``reason`` says why and ``uv`` is all NaN).
+    ``uv`` (5, 2) pixels of A..E, ``scores`` (5,) in [0, 1], ``confidence`` overall in [0, 1],
+    ``bbox`` [x0, y0, x1, y1] pixels. ``centreline`` optionally carries the dense observation
+    of the needle's projected arc, (N, 2) pixels ordered from A to E, with ``centreline_w`` (N,).
+    """
+
+    SCHEMA = "needletrack.Keypoints"
+    FIELDS = {"camera": ("str", CAMERAS), "seq": ("int",), "stamp_ns": ("int",),
+              "found": ("bool",), "uv": ("array", (5, 2)), "scores": ("array", (5,)),
+              "confidence": ("float",), "bbox": ("array", (4,), "optional"),
+              "detector": ("str",), "reason": ("str", "optional"),
+              "centreline": ("array", (None, 2), "optional"),
+              "centreline_w": ("array", (None,), "optional")}
+    camera: str
+    seq: int
+    stamp_ns: int
+    found: bool
+    uv: np.ndarray
+    scores: np.ndarray
+    confidence: float
+    bbox: Optional[np.ndarray] = None
+    detector: str = ""
+    reason: Optional[str] = None
+    centreline: Optional[np.ndarray] = None
+    centreline_w: Optional[np.ndarray] = None
+
+    def validate(self):
+        pass
+
+    @classmethod
+    def not_found(cls, camera: str, seq: int, stamp_ns: int, detector: str, reason: str,
+                  confidence: float = 0.0) -> "Keypoints":
+        return cls(camera, seq, stamp_ns, False, np.full((5, 2), np.nan), np.zeros(5),
+                   float(confidence), None, detector, reason)
+
+
+@register
+@dataclass
+class PoseEstimate(Message):
+    """A needle pose. ``T_ecm_needle`` maps needle to ECM frame (m). ``residual`` is the
+    method's RMS (reprojection px, or registration m, as ``residual_unit`` says).
+    ``covariance`` (6, 6) over [rotation vector (rad), translation (m)] in the ECM frame, when known.
+    """
+
+    SCHEMA = "needletrack.PoseEstimate"
+    FIELDS = {"seq": ("int",), "stamp_ns": ("int",), "method": ("str",),
+              "T_ecm_needle": ("array", (4, 4)), "T_world_needle": ("array", (4, 4), "optional"),
+              "T_world_ecm": ("array", (4, 4), "optional"),
+              "residual": ("float",), "residual_unit": ("str", "optional"),
+              "n_views": ("int",), "covariance": ("array", (6, 6), "optional"),
+              "ambiguous": ("bool", "optional"), "points_ecm": ("array", (None, 3), "optional"),
+              "sequence": ("int", "optional")}
+    seq: int
+    stamp_ns: int
+    method: str
+    T_ecm_needle: np.ndarray
+    T_world_needle: Optional[np.ndarray] = None
+    T_world_ecm: Optional[np.ndarray] = None
+    residual: float = 0.0
+    residual_unit: Optional[str] = None
+    n_views: int = 1
+    covariance: Optional[np.ndarray] = None
+    ambiguous: Optional[bool] = None
+    points_ecm: Optional[np.ndarray] = None
+    sequence: Optional[int] = None
+
+    def validate(self):
+        if not np.all(np.isfinite(self.T_ecm_needle)):
+            raise MessageError("PoseEstimate.T_ecm_needle: not finite")
+
+
+@register
+@dataclass
+class Points3D(Message):
+    """Triangulated keypoints A..E in the ECM frame (m); NaN rows where a point is missing."""
+
+    SCHEMA = "needletrack.Points3D"
+    FIELDS = {"seq": ("int",), "stamp_ns": ("int",), "points_ecm": ("array", (5, 3)),
+              "valid": ("array", (5,))}
+    seq: int
+    stamp_ns: int
+    points_ecm: np.ndarray
+    valid: np.ndarray
+
+    def validate(self):
+        pass
+
+
+@register
+@dataclass
+class GroundTruth(Message):
+    """Per-frame ground truth, with the dataset spec's optional per-frame fields."""
+
+    SCHEMA = "needletrack.GroundTruth"
+    FIELDS = {"seq": ("int",), "stamp_ns": ("int",), "sequence": ("int", "optional"),
+              "step": ("int", "optional"), "ecm_joints": ("array", (4,), "optional"),
+              "T_world_ecm": ("array", (4, 4), "optional"),
+              "T_world_needle": ("array", (4, 4), "optional"),
+              "keypoints": ("camera_map", "optional"), "visible": ("camera_map", "optional"),
+              "bbox": ("camera_map", "optional")}
+    seq: int
+    stamp_ns: int
+    sequence: Optional[int] = None
+    step: Optional[int] = None
+    ecm_joints: Optional[np.ndarray] = None
+    T_world_ecm: Optional[np.ndarray] = None
+    T_world_needle: Optional[np.ndarray] = None
+    keypoints: Optional[dict] = None
+    visible: Optional[dict] = None
+    bbox: Optional[dict] = None
+
+    def validate(self):
+        pass
+
+
+@register
+@dataclass
+class Command(Message):
+    """A request to a node (e.g. the sim's ``place_needle``); ``args`` is a plain map."""
+
+    SCHEMA = "needletrack.Command"
+    FIELDS = {"name": ("str",), "args": ("dict", "optional")}
+    name: str
+    args: Optional[dict] = None
+
+    def validate(self):
+        pass
+
+
+@register
+@dataclass
+class NodeStats(Message):
+    """A node's periodic statistics, published on its stats key."""
+
+    SCHEMA = "needletrack.NodeStats"
+    FIELDS = {"node": ("str",), "module": ("str",), "pid": ("int",), "stamp_ns": ("int",),
+              "uptime_s": ("float",), "counters": ("dict",), "rates_hz": ("dict",),
+              "proc_ms_p50": ("float",), "proc_ms_p99": ("float",)}
+    node: str
+    module: str
+    pid: int
+    stamp_ns: int
+    uptime_s: float
+    counters: dict
+    rates_hz: dict
+    proc_ms_p50: float
+    proc_ms_p99: float
+
+    def validate(self):
+        pass
+
+
+@register
+@dataclass
+class EndOfStream(Message):
+    """Sent by a finite source (replay) after its last frame: ``frames`` were published."""
+
+    SCHEMA = "needletrack.EndOfStream"
+    FIELDS = {"frames": ("int",), "stamp_ns": ("int",)}
+    frames: int
+    stamp_ns: int
+
+    def validate(self):
+        pass
+
+
+@register
+@dataclass
+class Calibration(Message):
+    """What a camera source knows of its rig, published before its first frame and then once a
+    second: ``cameras`` and ``image_size`` as in dataset.yaml, ``needle`` (radius_m,
+    keypoint_angles_deg) and optionally ``ecm`` (T_world_base, L_rcc, L_scopelen)."""
+
+    SCHEMA = "needletrack.Calibration"
+    FIELDS = {"stamp_ns": ("int",), "image_size": ("array", (2,)), "cameras": ("dict",),
+              "needle": ("dict",), "ecm": ("dict", "optional"), "source": ("str", "optional")}
+    stamp_ns: int
+    image_size: np.ndarray
+    cameras: dict
+    needle: dict
+    ecm: Optional[dict] = None
+    source: Optional[str] = None
+
+    def validate(self):
+        try:
+            self.rig(), self.needle_model()
+        except (KeyError, TypeError, ValueError) as exc:
+            raise MessageError(f"Calibration.cameras/needle: {exc}") from None
+
+    def rig(self):
+        from common.camera import StereoRig
+        return StereoRig.from_dict(self.cameras, self.image_size)
+
+    def needle_model(self):
+        from common.needle import NeedleModel
+        return NeedleModel.from_dict(self.needle)
+
+    def arm(self):
+        from common.ecm_kinematics import EcmArm
+        return None if self.ecm is None else EcmArm.from_dict(self.ecm)
+
+
+MESSAGE_TYPES = dict(_REGISTRY)
