@@ -1,0 +1,560 @@
+"""Dense pose refinement: fit the whole projected needle arc in both cameras at once.
+
+Five keypoints on a small planar arc give an ill-conditioned pose (see
+``shared/notes/pose-sensitivity.md``); the needle's centreline, hundreds of pixels per image,
+carries far more. ``refine_pose`` starts from candidate poses (the stereo PnP's solutions) and
+minimises, over both cameras, a robust (Cauchy) sum of
+
+- the keypoint term: reprojection error of A..E, weighted by the detector's scores (the tip A
+  and the tail E fix the arc's extent along the curve);
+- the curve term: the distance from each observed centreline point to the projected model arc.
+  The closest model point is tracked as an arc angle per observed point (a Newton step per
+  iteration on the exact projected circle, no polyline approximation); the residual is the
+  point-to-tangent distance, or the full distance where the closest point is an arc end (an
+  observation beyond the model's ends pulls the arc to cover it). Observed -> model keeps the
+  fit valid when part of the needle is hidden.
+
+Levenberg-Marquardt runs on all candidates at once (vectorised numpy, no scipy) over six
+parameters: a rotation-vector increment left-multiplied in the ECM frame and a translation
+increment in the ECM frame, ``R <- exp(dr) R``, ``t <- t + dt``. The covariance is in that same
+order and frame: ``[rotation vector (rad), translation (m)]``, as ``PoseEstimate.covariance``.
+
+A planar arc has a two-fold ambiguity (seen edge-on, whether it bulges towards or away from the
+camera); every candidate's mirror image about the line of sight is added and refined too. When
+other candidates end nearly as good as the best, or the arc is seen nearly edge-on, the result
+is flagged ``ambiguous`` and its covariance inflated by the spread of the competitors, so that a
+pose that may be wrong is never reported as a confident one.
+
+Pixels: observations are undistorted first when a camera has distortion; residuals are in
+(undistorted) pixels.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Mapping, Optional, Sequence
+
+import numpy as np
+
+from common.camera import StereoRig
+from common.needle import NeedleModel
+from common.transforms import R_to_rotvec, make_T, rotation_angle
+
+
+class RefineError(ValueError):
+    """The observations or candidates cannot give a pose; the text says why (a short reason
+    first, e.g. ``no_candidates: ...``, usable as a counter name)."""
+
+    def __init__(self, reason: str, detail: str):
+        super().__init__(f"{reason}: {detail}")
+        self.reason = reason
+
+
+@dataclass
+class ArcObservation:
+    """What one camera saw of the needle (pixels).
+
+    ``uv`` (5, 2) keypoints A..E (NaN where missing), ``scores`` (5,) in [0, 1];
+    ``centreline`` (N, 2) points of the needle's projected arc ordered from A to E, with weights
+    ``centreline_w`` (N,) in [0, 1] (all ones when None). Either part may be absent.
+    """
+
+    uv: Optional[np.ndarray] = None
+    scores: Optional[np.ndarray] = None
+    centreline: Optional[np.ndarray] = None
+    centreline_w: Optional[np.ndarray] = None
+
+    @classmethod
+    def from_keypoints(cls, msg) -> "ArcObservation":
+        """From a detector's ``Keypoints`` message (``found`` False gives an empty observation)."""
+        if not msg.found:
+            return cls()
+        return cls(np.asarray(msg.uv, float), np.asarray(msg.scores, float),
+                   None if msg.centreline is None else np.asarray(msg.centreline, float),
+                   None if msg.centreline_w is None else np.asarray(msg.centreline_w, float))
+
+
+@dataclass(frozen=True)
+class RefineConfig:
+    """Tuning of the fit. Pixel sigmas set the relative weight of the two terms; the robust
+    scale is in units of those sigmas."""
+
+    n_model: int = 32               # projected model samples used to find each observed point's arc angle
+    max_curve_points: int = 64      # observed centreline points kept per camera (even in arc length)
+    sigma_kp_px: float = 1.0        # assumed keypoint noise
+    sigma_curve_px: float = 0.5     # assumed centreline noise
+    min_score: float = 0.3          # keypoints scored below are left out
+    min_centreline_w: float = 0.05  # centreline points weighted below are left out
+    cauchy_scale: float = 3.0       # robust loss scale, in sigmas
+    max_iter: int = 30
+    step_tol: float = 0.1           # converged when a step changes the cost by < this many residual variances
+    max_reject: int = 5             # ... or after this many rejected steps in a row
+    coarse_iter: int = 3            # iterations every candidate gets before the worst are pruned
+    prune_chi2: float = 100.0       # then drop those costing more than the best by this many residual variances
+    max_candidates: int = 3         # and refine at most this many to the end
+    add_mirrors: bool = True        # also refine each candidate's mirror image about the line of sight
+    merge_mm: float = 5.0           # starting poses closer than this and merge_deg are refined once
+    merge_deg: float = 10.0
+    ambiguity_chi2: float = 9.0     # competitor within this cost difference (in residual variances) -> ambiguous
+    distinct_mm: float = 1.0        # competitors closer than this and distinct_deg are the same solution
+    distinct_deg: float = 2.0
+    edge_on_deg: float = 10.0       # arc plane within this angle of the line of sight -> ambiguous
+    min_depth_m: float = 1e-3       # every point must be this far in front of both cameras
+
+
+@dataclass
+class RefineResult:
+    """The refined pose ``T_ecm_needle`` (4x4, m) and what the fit says about it.
+
+    ``covariance`` (6, 6) over [rotation vector (rad), translation (m)] in the ECM frame (inflated
+    when ambiguous); ``rms_px`` the RMS of all residuals (px) at the optimum, ``rms_kp_px`` and
+    ``rms_curve_px`` per term (NaN when the term is empty); ``ambiguous`` with ``reasons``
+    (``competing_candidates``, ``edge_on``); ``view_angle_deg`` the smallest angle between the arc's
+    plane and a camera's line of sight (0 = edge-on, 90 = face-on); ``candidates`` every distinct
+    converged solution as ``(T_ecm_needle, cost)``, best first.
+    """
+
+    T_ecm_needle: np.ndarray
+    covariance: np.ndarray
+    rms_px: float
+    rms_kp_px: float
+    rms_curve_px: float
+    cost: float
+    ambiguous: bool
+    reasons: tuple = ()
+    view_angle_deg: float = 90.0
+    n_iter: int = 0
+    n_residuals: int = 0
+    candidates: list = field(default_factory=list)
+
+
+# ------------------------------------------------------------------ the problem, precomputed
+
+
+class _Static:
+    """What does not change between frames: cameras, needle model, constant operands shaped to
+    broadcast over (K poses, C = 2 cameras, N points)."""
+
+    def __init__(self, rig: StereoRig, needle: NeedleModel, cfg: RefineConfig):
+        cams = rig.cameras
+        self.cams = cams
+        self.cfg = cfg
+        self.Rc = np.stack([c.T_cam_ecm[:3, :3] for c in cams])
+        self.tc = np.stack([c.T_cam_ecm[:3, 3] for c in cams])
+        Kp = np.stack([c.K[:2, :2] for c in cams])
+        kc = np.stack([c.K[:2, 2] for c in cams])
+        if np.any(Kp[:, 1, 0] != 0) or np.any(Kp[:, [0, 1], [0, 1]] <= 0):
+            raise RefineError("bad_calibration", "camera K must be upper triangular with positive focal lengths")
+        self.cam_centres = np.stack([c.T_ecm_cam[:3, 3] for c in cams])
+        self.radius = needle.radius_m
+        self.a0, self.a1 = needle.arc_span_rad
+        self.kp_model = needle.keypoints()
+        self.phi_s = np.linspace(self.a0, self.a1, cfg.n_model)
+        self.arc_s = _arc(self.radius, self.phi_s)
+        self.arc_centroid = needle.sample_arc(64).mean(0)
+        self.needle = needle
+        C, M = len(cams), cfg.max_curve_points
+        self.C, self.M = C, M
+        col = lambda a: np.asarray(a, float).reshape(1, C, 1)
+        self._fx, self._sk, self._fy = col(Kp[:, 0, 0]), col(Kp[:, 0, 1]), col(Kp[:, 1, 1])
+        self._cx, self._cy = col(kc[:, 0]), col(kc[:, 1])
+        self._Bc = np.zeros((1, C, 6, 6))
+        self._Bc[0, :, :3, :3] = self.Rc
+        self._Bc[0, :, 3:, 3:] = self.Rc
+        self.is_kp = np.concatenate([np.ones((C, 10), bool), np.zeros((C, M), bool)], axis=1).ravel()
+
+
+class _Problem:
+    """Observations of one stereo frame, arranged for batched evaluation: per camera 5 keypoints
+    and M curve points (zero weight where absent or left out)."""
+
+    def __init__(self, st: _Static, obs: Mapping[str, ArcObservation]):
+        self.__dict__.update(st.__dict__)
+        cfg, C, M = st.cfg, st.C, st.M
+        U, wU = np.zeros((C, 5, 2)), np.zeros((C, 5))
+        O, wO = np.zeros((C, M, 2)), np.zeros((C, M))
+        for i, cam in enumerate(st.cams):
+            o = obs.get(cam.name)
+            if o is None:
+                continue
+            if o.uv is not None:
+                uv = np.asarray(o.uv, float)
+                sc = np.ones(5) if o.scores is None else np.asarray(o.scores, float)
+                if uv.shape != (5, 2) or sc.shape != (5,):
+                    raise RefineError("bad_keypoints", f"{cam.name}: need uv (5, 2) and scores (5,), "
+                                      f"got {uv.shape} and {sc.shape}")
+                ok = np.all(np.isfinite(uv), axis=1) & np.isfinite(sc) & (sc >= cfg.min_score)
+                U[i, ok] = _undistort(cam, uv[ok])
+                wU[i, ok] = np.minimum(sc[ok], 1.0) / cfg.sigma_kp_px ** 2
+            if o.centreline is not None and len(o.centreline):
+                pts, w = _select_curve(cam.name, o.centreline, o.centreline_w, M, cfg.min_centreline_w)
+                O[i, :len(pts)] = _undistort(cam, pts)
+                wO[i, :len(pts)] = w / cfg.sigma_curve_px ** 2
+        self.U, self.wU, self.O, self.wO = U, wU, O, wO
+        self.n_kp = int(np.count_nonzero(wU))
+        self.n_curve = int(np.count_nonzero(wO))
+        self.n_res = 2 * self.n_kp + self.n_curve
+        if self.n_res < 6:
+            raise RefineError("too_few_points", f"{self.n_kp} keypoints and {self.n_curve} centreline "
+                              "points cannot fix 6 pose parameters")
+        # Residual weights in evaluation order: per camera keypoint u (5), v (5), curve (M).
+        self.wp = np.concatenate([wU, wU, wO], axis=1).ravel()
+        self._Uu, self._Uv = U[None, :, :, 0], U[None, :, :, 1]
+        self._Ou, self._Ov = O[None, :, :, 0], O[None, :, :, 1]
+        self._no_weight = (np.concatenate([wU, wO], axis=1) == 0)[None]
+
+    # -------------------------------------------------------------- projection
+    # Everything is evaluated for K poses x C cameras x N points at once, in each camera's frame:
+    # the ECM-frame increment (dr, dt) moves a point by Rc (dr x w + dt) = dr_c x w_c + dt_c, so
+    # camera-frame Jacobians are mapped back by the constant blockdiag(Rc, Rc).
+
+    def _camera_poses(self, R, t):
+        """needle -> camera rotations (K, C, 3, 3) and translations (K, C, 3)."""
+        Rcam = self.Rc[None] @ R[:, None]
+        tcam = (self.Rc[None] @ t[:, None, :, None])[..., 0] + self.tc
+        return Rcam, tcam
+
+    def _pix(self, X):
+        """Camera-frame points (..., 3) -> u, v, 1/z (each (...)), and the clamped depth z."""
+        z = X[..., 2]
+        iz = 1.0 / np.where(z > 1e-9, z, 1e-9)
+        x, y = X[..., 0] * iz, X[..., 1] * iz
+        return self._fx * x + self._sk * y + self._cx, self._fy * y + self._cy, iz, z, x, y
+
+    def associate(self, R, t):
+        """Arc angle (K, C, M) of the projected model sample nearest each observed point."""
+        Rcam, tcam = self._camera_poses(R, t)
+        X = self.arc_s @ np.swapaxes(Rcam, 2, 3) + tcam[:, :, None, :]   # (K, C, S, 3)
+        u, v = self._pix(X)[:2]
+        d2 = (self._Ou[..., None] - u[:, :, None, :]) ** 2 + (self._Ov[..., None] - v[:, :, None, :]) ** 2
+        return self.phi_s[np.argmin(d2, axis=-1)]
+
+    def _arc_cam(self, Rcam, tcam, phi):
+        """Camera-frame arc points and d/dphi tangents (K, C, M, 3) at arc angles phi."""
+        c, s = self.radius * np.cos(phi)[..., None], self.radius * np.sin(phi)[..., None]
+        e0, e1 = Rcam[:, :, None, :, 0], Rcam[:, :, None, :, 1]
+        return c * e0 + s * e1 + tcam[:, :, None, :], c * e1 - s * e0
+
+    def _newton_phi(self, Rcam, tcam, phi):
+        """One Gauss-Newton step of each observed point's arc angle towards its foot point."""
+        X, Tn = self._arc_cam(Rcam, tcam, phi)
+        u, v, iz, _, x, y = self._pix(X)
+        dx, dy = (Tn[..., 0] - x * Tn[..., 2]) * iz, (Tn[..., 1] - y * Tn[..., 2]) * iz
+        tu, tv = self._fx * dx + self._sk * dy, self._fy * dy
+        step = -(tu * (u - self._Ou) + tv * (v - self._Ov)) / np.maximum(tu * tu + tv * tv, 1e-12)
+        return np.clip(phi + np.clip(step, -0.3, 0.3), self.a0, self.a1)
+
+    def evaluate(self, R, t, phi, jac: bool = True):
+        """Residuals (K, R) in px, Jacobians (K, R, 6) w.r.t. the ECM increment [dr, dt], the arc
+        angles used (after one Newton step from ``phi``), and whether each pose keeps every
+        weighted point in front of the cameras. Residual order per camera: keypoint u (5),
+        keypoint v (5), curve (M)."""
+        K, C = len(R), self.C
+        Rcam, tcam = self._camera_poses(R, t)
+        phi = self._newton_phi(Rcam, tcam, phi)
+        Xc, Tn = self._arc_cam(Rcam, tcam, phi)
+        Xk = self.kp_model @ np.swapaxes(Rcam, 2, 3) + tcam[:, :, None, :]
+        X = np.concatenate([Xk, Xc], axis=2)                          # (K, C, N, 3)
+        u, v, iz, z, x, y = self._pix(X)
+        valid = np.all((z > self.cfg.min_depth_m) | self._no_weight, axis=(1, 2))
+
+        # Rows of d(u, v) / dX_cam.
+        zero = np.zeros_like(iz)
+        au = np.stack([self._fx * iz, self._sk * iz, -(self._fx * x + self._sk * y) * iz], -1)
+        av = np.stack([zero, self._fy * iz, -self._fy * y * iz], -1)
+
+        # Curve: distance to the tangent line at the foot, or to the arc's end when the foot
+        # falls beyond it (then the Newton step points out of the arc).
+        tu = (au[:, :, 5:] * Tn).sum(-1)
+        tv = (av[:, :, 5:] * Tn).sum(-1)
+        du, dv = u[:, :, 5:] - self._Ou, v[:, :, 5:] - self._Ov
+        tt = np.maximum(tu * tu + tv * tv, 1e-12)
+        step = -(tu * du + tv * dv) / tt
+        eps = 1e-12
+        clamped = ((phi <= self.a0 + eps) & (step < 0)) | ((phi >= self.a1 - eps) & (step > 0))
+        dist = np.maximum(np.sqrt(du * du + dv * dv), 1e-12)
+        stt = np.sqrt(tt)
+        nx = np.where(clamped, du / dist, -tv / stt)
+        ny = np.where(clamped, dv / dist, tu / stt)
+        r_c = nx * du + ny * dv
+
+        r = np.concatenate([u[:, :, :5] - self._Uu, v[:, :, :5] - self._Uv, r_c], axis=2).reshape(K, -1)
+        if not jac:
+            return r, None, phi, valid
+        ac = nx[..., None] * au[:, :, 5:] + ny[..., None] * av[:, :, 5:]
+        A = np.concatenate([au[:, :, :5], av[:, :, :5], ac], axis=2)  # (K, C, R_c, 3)
+        w = X - tcam[:, :, None, :]                                   # Rcam p
+        W = np.concatenate([w[:, :, :5], w[:, :, :5], w[:, :, 5:]], axis=2)
+        cr = np.stack([W[..., 1] * A[..., 2] - W[..., 2] * A[..., 1],
+                       W[..., 2] * A[..., 0] - W[..., 0] * A[..., 2],
+                       W[..., 0] * A[..., 1] - W[..., 1] * A[..., 0]], -1)
+        J = (np.concatenate([cr, A], axis=-1) @ self._Bc).reshape(K, -1, 6)
+        return r, J, phi, valid
+
+    def robust(self, r):
+        """Per-residual Cauchy cost and IRLS weight (prior weights included)."""
+        c2 = self.cfg.cauchy_scale ** 2
+        s2 = self.wp * r ** 2
+        return c2 * np.log1p(s2 / c2), self.wp / (1.0 + s2 / c2)
+
+
+def _arc(radius, phi):
+    phi = np.asarray(phi, float)
+    return radius * np.stack([np.cos(phi), np.sin(phi), np.zeros_like(phi)], -1)
+
+
+def _undistort(cam, uv):
+    uv = np.asarray(uv, float).reshape(-1, 2)
+    if not np.any(cam.dist) or len(uv) == 0:
+        return uv
+    import cv2
+    return cv2.undistortPoints(uv.reshape(-1, 1, 2), cam.K, cam.dist, P=cam.K).reshape(-1, 2)
+
+
+def _select_curve(name: str, pts, w, m: int, w_min: float):
+    """At most m of the observed centreline points, evenly spaced in arc length. Points are
+    picked, not interpolated, so that an exact observation stays exact."""
+    pts = np.asarray(pts, float)
+    w = np.ones(len(pts)) if w is None else np.asarray(w, float)
+    if pts.ndim != 2 or pts.shape[1] != 2 or w.shape != (len(pts),):
+        raise RefineError("bad_centreline", f"{name}: need centreline (N, 2) and centreline_w (N,), "
+                          f"got {pts.shape} and {w.shape}")
+    ok = np.all(np.isfinite(pts), axis=1) & np.isfinite(w) & (w >= w_min)
+    pts, w = pts[ok], np.clip(w[ok], 0, 1)
+    if len(pts) <= m:
+        return pts, w
+    s = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(pts, axis=0), axis=1))])
+    idx = np.unique(np.clip(np.searchsorted(s, np.linspace(0, s[-1], m)), 0, len(pts) - 1))
+    return pts[idx], w[idx]
+
+
+def _exp_so3(v):
+    """Batched Rodrigues: rotation vectors (K, 3) -> rotations (K, 3, 3)."""
+    th = np.linalg.norm(v, axis=1)
+    small = th < 1e-8
+    ths = np.where(small, 1.0, th)
+    a = np.where(small, 1.0 - th ** 2 / 6, np.sin(ths) / ths)
+    b = np.where(small, 0.5 - th ** 2 / 24, (1 - np.cos(ths)) / ths ** 2)
+    S = np.zeros((len(v), 3, 3))
+    S[:, 0, 1], S[:, 0, 2], S[:, 1, 2] = -v[:, 2], v[:, 1], -v[:, 0]
+    S[:, 1, 0], S[:, 2, 0], S[:, 2, 1] = v[:, 2], -v[:, 1], v[:, 0]
+    return np.eye(3) + a[:, None, None] * S + b[:, None, None] * (S @ S)
+
+
+def _orthonormalise(R):
+    U, _, Vt = np.linalg.svd(R)
+    return U @ Vt
+
+
+def mirror_pose(T_ecm_needle: np.ndarray, needle: NeedleModel, eye_ecm=np.zeros(3)) -> np.ndarray:
+    """The planar arc's mirror solution: reflected about the plane through the arc's centroid
+    normal to the line of sight from ``eye_ecm``. Under weak perspective it projects onto the
+    same image curve (an arc seen edge-on bulging towards instead of away from the camera)."""
+    R, t = T_ecm_needle[:3, :3], T_ecm_needle[:3, 3]
+    m = R @ needle.sample_arc(64).mean(0) + t
+    v = m - eye_ecm
+    v = v / np.linalg.norm(v)
+    Mref = np.eye(3) - 2.0 * np.outer(v, v)
+    return make_T(Mref @ R @ np.diag([1.0, 1.0, -1.0]), m + Mref @ (t - m))
+
+
+def _pose_delta(T, T_ref):
+    """[rotation vector of R R_ref^T, t - t_ref]: T as a left increment of T_ref (ECM frame)."""
+    return np.concatenate([R_to_rotvec(T[:3, :3] @ T_ref[:3, :3].T), T[:3, 3] - T_ref[:3, 3]])
+
+
+# ------------------------------------------------------------------ the solver
+
+
+def _lm(prob: _Problem, R, t, cfg: RefineConfig, n_iter: int, state=None):
+    """Batched Levenberg-Marquardt on K poses; returns the state dict (poses, costs, ...).
+
+    A pose is done when its step is far inside its own uncertainty (the step's cost change
+    ``dx' H dx`` below ``step_tol`` residual variances), when the step is negligible in absolute
+    terms, or after ``max_reject`` rejected steps in a row (a cost at rounding level)."""
+    K = len(R)
+    if state is None:
+        phi = prob.associate(R, t)
+        r, J, phi, valid = prob.evaluate(R, t, phi)
+        rho, _ = prob.robust(r)
+        cost = np.where(valid & np.all(np.isfinite(r), axis=1), rho.sum(1), np.inf)
+        state = dict(R=R, t=t, phi=phi, r=r, J=J, cost=cost, lam=np.full(K, 1e-3),
+                     rej=np.zeros(K, int), done=~np.isfinite(cost), iters=0)
+    s = state
+    dof = max(prob.n_res - 6, 1)
+    I6 = np.eye(6)
+    for _ in range(n_iter):
+        act = np.flatnonzero(~s["done"])
+        if len(act) == 0:
+            break
+        s["iters"] += 1
+        r, J = s["r"][act], s["J"][act]
+        _, wr = prob.robust(r)
+        JtW = np.swapaxes(J * wr[..., None], 1, 2)
+        H = JtW @ J
+        g = (JtW @ r[..., None])[..., 0]
+        dg = np.maximum(np.diagonal(H, axis1=1, axis2=2), 1e-300)
+        # Jacobi scaling: rotation (rad) and translation (m) columns differ by ~1e2.
+        sc = 1.0 / np.sqrt(dg)
+        A = H * sc[:, :, None] * sc[:, None, :] + s["lam"][act, None, None] * I6
+        try:
+            dx = -sc * np.linalg.solve(A, (g * sc)[..., None])[..., 0]
+        except np.linalg.LinAlgError:
+            dx = -sc * np.stack([np.linalg.lstsq(a, b * c, rcond=None)[0] for a, b, c in zip(A, g, sc)])
+        Rn = _exp_so3(dx[:, :3]) @ s["R"][act]
+        tn = s["t"][act] + dx[:, 3:]
+        rn, Jn, phin, validn = prob.evaluate(Rn, tn, s["phi"][act])
+        rho_n, _ = prob.robust(rn)
+        cost_n = np.where(validn & np.all(np.isfinite(rn), axis=1), rho_n.sum(1), np.inf)
+        old = s["cost"][act]
+        acc = cost_n <= old
+        ia = act[acc]
+        for key, val in (("R", Rn), ("t", tn), ("phi", phin), ("r", rn), ("J", Jn), ("cost", cost_n)):
+            s[key][ia] = val[acc]
+        s["lam"][ia] = np.maximum(s["lam"][ia] / 3.0, 1e-9)
+        s["lam"][act[~acc]] *= 4.0
+        s["rej"][ia] = 0
+        s["rej"][act[~acc]] += 1
+        quad = (dx[:, None, :] @ H @ dx[..., None])[:, 0, 0]
+        within = acc & (quad < cfg.step_tol * old / dof)
+        small = (np.linalg.norm(dx[:, :3], axis=1) < 1e-11) & (np.linalg.norm(dx[:, 3:], axis=1) < 1e-12)
+        s["done"][act] |= within | small | (s["rej"][act] >= cfg.max_reject)
+    return s
+
+
+class DenseRefiner:
+    """Dense refinement for one rig and needle model (set up once, then ``refine`` per frame)."""
+
+    def __init__(self, rig: StereoRig, needle: NeedleModel, config: RefineConfig | None = None):
+        self.config = config or RefineConfig()
+        self.rig, self.needle = rig, needle
+        self._static = _Static(rig, needle, self.config)
+
+    def refine(self, observations: Mapping[str, ArcObservation],
+               candidates: Sequence[np.ndarray]) -> RefineResult:
+        """See ``refine_pose``."""
+        cfg, st = self.config, self._static
+        cands = [np.asarray(T, float) for T in candidates
+                 if T is not None and np.shape(T) == (4, 4) and np.all(np.isfinite(T))]
+        if not cands:
+            raise RefineError("no_candidates", "no finite 4x4 initial pose given")
+        prob = _Problem(st, observations)
+
+        # Starts closer than merge_mm / merge_deg would converge to the same minimum: keep one.
+        starts: list[np.ndarray] = []
+        eye = st.cam_centres.mean(0)
+        mirrors = [mirror_pose(T, self.needle, eye) for T in cands] if cfg.add_mirrors else []
+        for T in cands + mirrors:
+            if not _near_any(T, starts, cfg.merge_mm, cfg.merge_deg):
+                starts.append(T)
+        R = _orthonormalise(np.stack([T[:3, :3] for T in starts]))
+        t = np.stack([T[:3, 3] for T in starts])
+
+        s = _lm(prob, R, t, cfg, cfg.coarse_iter)
+        if not np.any(np.isfinite(s["cost"])):
+            raise RefineError("no_valid_candidate", "every candidate puts the needle behind a camera")
+        # Prune: drop candidates far worse than the best, and merge those that met.
+        best = np.min(s["cost"])
+        keep = np.flatnonzero(s["cost"] <= best + cfg.prune_chi2 * max(best, 1e-300) / max(prob.n_res - 6, 1))
+        keep = _dedupe(s, keep, cfg.distinct_mm, cfg.distinct_deg)[:cfg.max_candidates]
+        s = {k: (v[keep] if isinstance(v, np.ndarray) else v) for k, v in s.items()}
+        s = _lm(prob, s["R"], s["t"], cfg, cfg.max_iter - cfg.coarse_iter, state=s)
+        return _result(prob, s, cfg)
+
+
+def refine_pose(rig: StereoRig, needle: NeedleModel, observations: Mapping[str, ArcObservation],
+                candidates: Sequence[np.ndarray], config: RefineConfig | None = None) -> RefineResult:
+    """Refine ``T_ecm_needle`` against the keypoints and centrelines of both cameras.
+
+    ``observations`` maps ``"left"``/``"right"`` to an ``ArcObservation`` (a camera may be left
+    out); ``candidates`` are initial 4x4 ``T_ecm_needle`` (e.g. every solution of the stereo
+    PnP). Every candidate (and its mirror image) is refined; the one with the lowest robust cost
+    is returned. Raises ``RefineError`` when no pose can be computed. For many frames of one rig,
+    build a ``DenseRefiner`` once instead.
+    """
+    return DenseRefiner(rig, needle, config).refine(observations, candidates)
+
+
+def _near_any(T, Ts, mm, deg) -> bool:
+    """Whether T is within mm and deg of any pose in Ts."""
+    return any(np.linalg.norm(T[:3, 3] - T2[:3, 3]) * 1e3 < mm
+               and np.degrees(rotation_angle(T[:3, :3].T @ T2[:3, :3])) < deg for T2 in Ts)
+
+
+def _dedupe(s, idx, mm, deg):
+    order = idx[np.argsort(s["cost"][idx])]
+    kept: list[int] = []
+    for i in order:
+        Ti = make_T(s["R"][i], s["t"][i])
+        if not _near_any(Ti, [make_T(s["R"][j], s["t"][j]) for j in kept], mm, deg):
+            kept.append(int(i))
+    return np.array(kept, int)
+
+
+def _result(prob: _Problem, s, cfg: RefineConfig) -> RefineResult:
+    order = np.argsort(s["cost"])
+    order = order[np.isfinite(s["cost"][order])]
+    b = order[0]
+    T0 = make_T(s["R"][b], s["t"][b])
+    r, J = s["r"][b], s["J"][b]
+    _, wr = prob.robust(r)
+    used = prob.wp > 0
+    n_res = int(used.sum())
+    dof = max(n_res - 6, 1)
+    s2 = float((wr * r ** 2).sum() / dof)
+    H = J.T @ (wr[:, None] * J)
+    cov = s2 * _inv_psd(H)
+
+    def rms(mask):
+        return float(np.sqrt(np.mean(r[mask] ** 2))) if mask.any() else float("nan")
+
+    # Competing solutions: other distinct minima, and how much worse they fit.
+    cands, reasons = [(T0, float(s["cost"][b]))], []
+    competitors = []
+    for j in order[1:]:
+        Tj = make_T(s["R"][j], s["t"][j])
+        if _near_any(Tj, [c[0] for c in cands], cfg.distinct_mm, cfg.distinct_deg):
+            continue
+        cands.append((Tj, float(s["cost"][j])))
+        competitors.append((Tj, (s["cost"][j] - s["cost"][b]) / max(s2, 1e-12)))
+    view = _view_angle_deg(prob, T0)
+    edge_on = view < cfg.edge_on_deg
+    close = [(Tj, dchi) for Tj, dchi in competitors if dchi < cfg.ambiguity_chi2]
+    if close:
+        reasons.append("competing_candidates")
+    if edge_on:
+        reasons.append("edge_on")
+    # Inflate by the spread of the competitors: fully for those nearly as good (all of them when
+    # edge-on), by their relative likelihood for the others.
+    for Tj, dchi in competitors:
+        a = 1.0 if (edge_on or dchi < cfg.ambiguity_chi2) else float(np.exp(-0.5 * dchi))
+        if a > 1e-12:
+            d = _pose_delta(Tj, T0)
+            cov = cov + a * np.outer(d, d)
+    cov = 0.5 * (cov + cov.T)
+    return RefineResult(
+        T_ecm_needle=T0, covariance=cov, rms_px=rms(used), rms_kp_px=rms(used & prob.is_kp),
+        rms_curve_px=rms(used & ~prob.is_kp), cost=float(s["cost"][b]), ambiguous=bool(reasons),
+        reasons=tuple(reasons), view_angle_deg=view, n_iter=int(s["iters"]),
+        n_residuals=n_res, candidates=cands)
+
+
+def _inv_psd(H):
+    """Inverse of a 6x6 normal matrix with Jacobi scaling; unobservable directions get a huge
+    (not infinite) variance."""
+    d = np.sqrt(np.maximum(np.diag(H), 1e-300))
+    Hs = H / np.outer(d, d)
+    w, V = np.linalg.eigh(Hs)
+    w = np.maximum(w, 1e-12 * max(w.max(), 1e-300))
+    return (V / w) @ V.T / np.outer(d, d)
+
+
+def _view_angle_deg(prob: _Problem, T) -> float:
+    """Smallest angle (deg) between the arc's plane and a camera's line of sight to the arc."""
+    m = T[:3, :3] @ prob.arc_centroid + T[:3, 3]
+    n = T[:3, 2]
+    ang = []
+    for c in prob.cam_centres:
+        v = m - c
+        ang.append(np.degrees(np.arcsin(min(1.0, abs(n @ v) / np.linalg.norm(v)))))
+    return float(min(ang))
+
