@@ -7,15 +7,17 @@ minimises, over both cameras, a robust (Cauchy) sum of
 
 - the keypoint term: reprojection error of A..E, weighted by the detector's scores (the tip A
   and the tail E fix the arc's extent along the curve);
-- the curve term: the distance from each observed centreline point to the projected model arc.
-  The closest model point is tracked as an arc angle per observed point (a Newton step per
-  iteration on the exact projected circle, no polyline approximation); the residual is the
-  point-to-tangent distance, or the full distance where the closest point is an arc end (an
-  observation beyond the model's ends pulls the arc to cover it). Observed -> model keeps the
-  fit valid when part of the needle is hidden.
+- the curve term: for each observed centreline point, its distance to the projected model arc.
+  The needle's circle projects to a conic ``C = G^T diag(1, 1, -radius^2) G`` with
+  ``G = adj([r1 r2 t])`` (the needle-plane homography's adjugate); the residual is the point's
+  Sampson (first-order geometric) distance to that conic in pixels, exact on the curve, plus,
+  where the point's back-projection onto the needle plane falls beyond the arc's ends, the
+  excess angle times the projected radius in pixels (the model arc must cover what is seen).
+  Observed -> model, with no association to track, so a hidden part of the needle costs nothing
+  and a partial model cannot shrink to a part of what is seen.
 
-Levenberg-Marquardt runs on all candidates at once (vectorised numpy, no scipy) over six
-parameters: a rotation-vector increment left-multiplied in the ECM frame and a translation
+Levenberg-Marquardt runs on all candidates at once (vectorised numpy, no scipy; Jacobians by
+forward differences, evaluated in the same batch as the residuals) over six parameters: a rotation-vector increment left-multiplied in the ECM frame and a translation
 increment in the ECM frame, ``R <- exp(dr) R``, ``t <- t + dt``. The covariance is in that same
 order and frame: ``[rotation vector (rad), translation (m)]``, as ``PoseEstimate.covariance``.
 
@@ -78,7 +80,6 @@ class RefineConfig:
     """Tuning of the fit. Pixel sigmas set the relative weight of the two terms; the robust
     scale is in units of those sigmas."""
 
-    n_model: int = 32               # projected model samples used to find each observed point's arc angle
     max_curve_points: int = 64      # observed centreline points kept per camera (even in arc length)
     sigma_kp_px: float = 1.0        # assumed keypoint noise
     sigma_curve_px: float = 0.5     # assumed centreline noise
@@ -131,44 +132,47 @@ class RefineResult:
 
 
 class _Static:
-    """What does not change between frames: cameras, needle model, constant operands shaped to
-    broadcast over (K poses, C = 2 cameras, N points)."""
+    """What does not change between frames: cameras and needle model, shaped to broadcast over
+    (P poses, C = 2 cameras, N points)."""
+
+    FD_STEP = np.array([1e-6, 1e-6, 1e-6, 1e-7, 1e-7, 1e-7])   # rad, rad, rad, m, m, m
 
     def __init__(self, rig: StereoRig, needle: NeedleModel, cfg: RefineConfig):
         cams = rig.cameras
-        self.cams = cams
-        self.cfg = cfg
+        self.cams, self.cfg, self.needle = cams, cfg, needle
         self.Rc = np.stack([c.T_cam_ecm[:3, :3] for c in cams])
         self.tc = np.stack([c.T_cam_ecm[:3, 3] for c in cams])
         Kp = np.stack([c.K[:2, :2] for c in cams])
         kc = np.stack([c.K[:2, 2] for c in cams])
-        if np.any(Kp[:, 1, 0] != 0) or np.any(Kp[:, [0, 1], [0, 1]] <= 0):
+        if np.any(Kp[:, 1, 0] != 0) or np.any(Kp[:, [0, 1], [0, 1]] <= 0) or not np.all(np.isfinite(Kp)):
             raise RefineError("bad_calibration", "camera K must be upper triangular with positive focal lengths")
+        self.Kinv = np.stack([np.linalg.inv(c.K) for c in cams])
         self.cam_centres = np.stack([c.T_ecm_cam[:3, 3] for c in cams])
         self.radius = needle.radius_m
-        self.a0, self.a1 = needle.arc_span_rad
+        a0, a1 = needle.arc_span_rad
+        self.mid, self.half = 0.5 * (a0 + a1), 0.5 * (a1 - a0)
         self.kp_model = needle.keypoints()
-        self.phi_s = np.linspace(self.a0, self.a1, cfg.n_model)
-        self.arc_s = _arc(self.radius, self.phi_s)
         self.arc_centroid = needle.sample_arc(64).mean(0)
-        self.needle = needle
         C, M = len(cams), cfg.max_curve_points
         self.C, self.M = C, M
         col = lambda a: np.asarray(a, float).reshape(1, C, 1)
         self._fx, self._sk, self._fy = col(Kp[:, 0, 0]), col(Kp[:, 0, 1]), col(Kp[:, 1, 1])
         self._cx, self._cy = col(kc[:, 0]), col(kc[:, 1])
-        self._Bc = np.zeros((1, C, 6, 6))
-        self._Bc[0, :, :3, :3] = self.Rc
-        self._Bc[0, :, 3:, 3:] = self.Rc
-        self.is_kp = np.concatenate([np.ones((C, 10), bool), np.zeros((C, M), bool)], axis=1).ravel()
+        self._fx2, self._sk2 = self._fx[..., 0], self._sk[..., 0]
+        self._E = _exp_so3(np.diag(self.FD_STEP[:3]))           # the three rotation increments
+        self._Rmid = _exp_so3(np.array([[0.0, 0.0, self.mid]]))[0]
+        self._cos_half, self._sin_half = np.cos(self.half), np.sin(self.half)
+        self._Kinv2 = self.Kinv[None, :, :2, :2]
+        self.is_kp = np.concatenate([np.ones((C, 10), bool), np.zeros((C, 2 * M), bool)], axis=1).ravel()
 
 
 class _Problem:
     """Observations of one stereo frame, arranged for batched evaluation: per camera 5 keypoints
-    and M curve points (zero weight where absent or left out)."""
+    and M centreline points (zero weight where absent or left out)."""
 
     def __init__(self, st: _Static, obs: Mapping[str, ArcObservation]):
         self.__dict__.update(st.__dict__)
+        self.st = st
         cfg, C, M = st.cfg, st.C, st.M
         U, wU = np.zeros((C, 5, 2)), np.zeros((C, 5))
         O, wO = np.zeros((C, M, 2)), np.zeros((C, M))
@@ -196,110 +200,76 @@ class _Problem:
         if self.n_res < 6:
             raise RefineError("too_few_points", f"{self.n_kp} keypoints and {self.n_curve} centreline "
                               "points cannot fix 6 pose parameters")
-        # Residual weights in evaluation order: per camera keypoint u (5), v (5), curve (M).
-        self.wp = np.concatenate([wU, wU, wO], axis=1).ravel()
+        # Residual weights in evaluation order, per camera: keypoint u (5), keypoint v (5),
+        # curve Sampson distance (M), curve excess beyond the arc's ends (M).
+        self.wp = np.concatenate([wU, wU, wO, wO], axis=1).ravel()
         self._Uu, self._Uv = U[None, :, :, 0], U[None, :, :, 1]
-        self._Ou, self._Ov = O[None, :, :, 0], O[None, :, :, 1]
-        self._no_weight = (np.concatenate([wU, wO], axis=1) == 0)[None]
+        # Observed curve points in normalised camera coordinates, (1, C, M, 3) homogeneous.
+        Oh = np.concatenate([O, np.ones((C, M, 1))], axis=2) @ np.swapaxes(st.Kinv, 1, 2)
+        self._On = Oh[None]
 
-    # -------------------------------------------------------------- projection
-    # Everything is evaluated for K poses x C cameras x N points at once, in each camera's frame:
-    # the ECM-frame increment (dr, dt) moves a point by Rc (dr x w + dt) = dr_c x w_c + dt_c, so
-    # camera-frame Jacobians are mapped back by the constant blockdiag(Rc, Rc).
+    def residuals(self, R, t):
+        """Residuals (P, n) in px of P poses ``(R (P,3,3), t (P,3))``, and whether each pose keeps
+        the keypoints and the needle's centre in front of both cameras."""
+        P = len(R)
+        Rcam = self.Rc[None] @ R[:, None]                                  # (P, C, 3, 3)
+        tcam = (self.Rc[None] @ t[:, None, :, None])[..., 0] + self.tc     # (P, C, 3)
 
-    def _camera_poses(self, R, t):
-        """needle -> camera rotations (K, C, 3, 3) and translations (K, C, 3)."""
-        Rcam = self.Rc[None] @ R[:, None]
-        tcam = (self.Rc[None] @ t[:, None, :, None])[..., 0] + self.tc
-        return Rcam, tcam
-
-    def _pix(self, X):
-        """Camera-frame points (..., 3) -> u, v, 1/z (each (...)), and the clamped depth z."""
-        z = X[..., 2]
-        iz = 1.0 / np.where(z > 1e-9, z, 1e-9)
-        x, y = X[..., 0] * iz, X[..., 1] * iz
-        return self._fx * x + self._sk * y + self._cx, self._fy * y + self._cy, iz, z, x, y
-
-    def associate(self, R, t):
-        """Arc angle (K, C, M) of the projected model sample nearest each observed point."""
-        Rcam, tcam = self._camera_poses(R, t)
-        X = self.arc_s @ np.swapaxes(Rcam, 2, 3) + tcam[:, :, None, :]   # (K, C, S, 3)
-        u, v = self._pix(X)[:2]
-        d2 = (self._Ou[..., None] - u[:, :, None, :]) ** 2 + (self._Ov[..., None] - v[:, :, None, :]) ** 2
-        return self.phi_s[np.argmin(d2, axis=-1)]
-
-    def _arc_cam(self, Rcam, tcam, phi):
-        """Camera-frame arc points and d/dphi tangents (K, C, M, 3) at arc angles phi."""
-        c, s = self.radius * np.cos(phi)[..., None], self.radius * np.sin(phi)[..., None]
-        e0, e1 = Rcam[:, :, None, :, 0], Rcam[:, :, None, :, 1]
-        return c * e0 + s * e1 + tcam[:, :, None, :], c * e1 - s * e0
-
-    def _newton_phi(self, Rcam, tcam, phi):
-        """One Gauss-Newton step of each observed point's arc angle towards its foot point."""
-        X, Tn = self._arc_cam(Rcam, tcam, phi)
-        u, v, iz, _, x, y = self._pix(X)
-        dx, dy = (Tn[..., 0] - x * Tn[..., 2]) * iz, (Tn[..., 1] - y * Tn[..., 2]) * iz
-        tu, tv = self._fx * dx + self._sk * dy, self._fy * dy
-        step = -(tu * (u - self._Ou) + tv * (v - self._Ov)) / np.maximum(tu * tu + tv * tv, 1e-12)
-        return np.clip(phi + np.clip(step, -0.3, 0.3), self.a0, self.a1)
-
-    def evaluate(self, R, t, phi, jac: bool = True):
-        """Residuals (K, R) in px, Jacobians (K, R, 6) w.r.t. the ECM increment [dr, dt], the arc
-        angles used (after one Newton step from ``phi``), and whether each pose keeps every
-        weighted point in front of the cameras. Residual order per camera: keypoint u (5),
-        keypoint v (5), curve (M)."""
-        K, C = len(R), self.C
-        Rcam, tcam = self._camera_poses(R, t)
-        phi = self._newton_phi(Rcam, tcam, phi)
-        Xc, Tn = self._arc_cam(Rcam, tcam, phi)
         Xk = self.kp_model @ np.swapaxes(Rcam, 2, 3) + tcam[:, :, None, :]
-        X = np.concatenate([Xk, Xc], axis=2)                          # (K, C, N, 3)
-        u, v, iz, z, x, y = self._pix(X)
-        valid = np.all((z > self.cfg.min_depth_m) | self._no_weight, axis=(1, 2))
+        z = Xk[..., 2]
+        zc = tcam[..., 2]
+        valid = (z.min(axis=(1, 2)) > self.cfg.min_depth_m) & (zc.min(axis=1) > self.cfg.min_depth_m)
+        iz = 1.0 / np.maximum(z, 1e-9)
+        x, y = Xk[..., 0] * iz, Xk[..., 1] * iz
+        ru = self._fx * x + self._sk * y + self._cx - self._Uu
+        rv = self._fy * y + self._cy - self._Uv
 
-        # Rows of d(u, v) / dX_cam.
-        zero = np.zeros_like(iz)
-        au = np.stack([self._fx * iz, self._sk * iz, -(self._fx * x + self._sk * y) * iz], -1)
-        av = np.stack([zero, self._fy * iz, -self._fy * y * iz], -1)
+        # Each observed point's ray, in a needle frame turned so that the arc's middle is on +x,
+        # meets the needle plane at (m1, m2) / m3 (the plane homography's adjugate applied to it).
+        Rm = Rcam @ self._Rmid                                             # (P, C, 3, 3)
+        d = self._On @ Rm                                                  # rays, needle axes
+        abc = (np.swapaxes(Rm, 2, 3) @ tcam[..., None])[..., None, :, 0]   # (P, C, 1, 3)
+        a, b, c = abc[..., 0], abc[..., 1], abc[..., 2]
+        d1, d2, m3 = d[..., 0], d[..., 1], d[..., 2]
+        m1 = c * d1 - a * m3
+        m2 = c * d2 - b * m3
+        rho2 = self.radius ** 2
+        f = m1 * m1 + m2 * m2 - rho2 * m3 * m3
+        # Sampson distance f / |grad_uv f|: grad over normalised image coordinates is
+        # Rm [c m1, c m2, w] with w = -(a m1 + b m2 + rho^2 m3), then through K^-1 to pixels.
+        w = -(a * m1 + b * m2 + rho2 * m3)
+        B = (np.swapaxes(Rm[:, :, :2, :], 2, 3) @ self._Kinv2)[:, :, None]  # (P, C, 1, 3, 2)
+        cm1, cm2 = c * m1, c * m2
+        gx = cm1 * B[..., 0, 0] + cm2 * B[..., 1, 0] + w * B[..., 2, 0]
+        gy = cm1 * B[..., 0, 1] + cm2 * B[..., 1, 1] + w * B[..., 2, 1]
+        r_s = 0.5 * f / np.maximum(np.sqrt(gx * gx + gy * gy), 1e-300)
+        # Beyond the arc's ends (|angle| > half the span about the middle): the sine of the
+        # excess angle times the projected radius in pixels (zero on the arc).
+        sin_ex = (np.abs(m2) * self._cos_half - np.sign(m3) * m1 * self._sin_half) / np.maximum(
+            np.sqrt(m1 * m1 + m2 * m2), 1e-300)
+        rho_px = self._fx2 * self.radius / np.maximum(zc, 1e-9)
+        r_e = np.maximum(sin_ex, 0.0) * rho_px[..., None]
 
-        # Curve: distance to the tangent line at the foot, or to the arc's end when the foot
-        # falls beyond it (then the Newton step points out of the arc).
-        tu = (au[:, :, 5:] * Tn).sum(-1)
-        tv = (av[:, :, 5:] * Tn).sum(-1)
-        du, dv = u[:, :, 5:] - self._Ou, v[:, :, 5:] - self._Ov
-        tt = np.maximum(tu * tu + tv * tv, 1e-12)
-        step = -(tu * du + tv * dv) / tt
-        eps = 1e-12
-        clamped = ((phi <= self.a0 + eps) & (step < 0)) | ((phi >= self.a1 - eps) & (step > 0))
-        dist = np.maximum(np.sqrt(du * du + dv * dv), 1e-12)
-        stt = np.sqrt(tt)
-        nx = np.where(clamped, du / dist, -tv / stt)
-        ny = np.where(clamped, dv / dist, tu / stt)
-        r_c = nx * du + ny * dv
+        r = np.concatenate([ru, rv, r_s, r_e], axis=2).reshape(P, -1)
+        return r, valid
 
-        r = np.concatenate([u[:, :, :5] - self._Uu, v[:, :, :5] - self._Uv, r_c], axis=2).reshape(K, -1)
-        if not jac:
-            return r, None, phi, valid
-        ac = nx[..., None] * au[:, :, 5:] + ny[..., None] * av[:, :, 5:]
-        A = np.concatenate([au[:, :, :5], av[:, :, :5], ac], axis=2)  # (K, C, R_c, 3)
-        w = X - tcam[:, :, None, :]                                   # Rcam p
-        W = np.concatenate([w[:, :, :5], w[:, :, :5], w[:, :, 5:]], axis=2)
-        cr = np.stack([W[..., 1] * A[..., 2] - W[..., 2] * A[..., 1],
-                       W[..., 2] * A[..., 0] - W[..., 0] * A[..., 2],
-                       W[..., 0] * A[..., 1] - W[..., 1] * A[..., 0]], -1)
-        J = (np.concatenate([cr, A], axis=-1) @ self._Bc).reshape(K, -1, 6)
-        return r, J, phi, valid
+    def linearise(self, R, t):
+        """Residuals (K, n), forward-difference Jacobians (K, n, 6) w.r.t. the ECM increment
+        [dr, dt], and validity, of K poses: all 7K evaluations in one batch."""
+        K = len(R)
+        h = _Static.FD_STEP
+        Rs = np.concatenate([R, (self._E[:, None] @ R[None]).reshape(3 * K, 3, 3), np.tile(R, (3, 1, 1))])
+        ts = np.concatenate([np.tile(t, (4, 1)), (t[None] + np.eye(3)[:, None] * h[3:, None, None]).reshape(3 * K, 3)])
+        r, valid = self.residuals(Rs, ts)
+        r = r.reshape(7, K, -1)
+        J = np.moveaxis((r[1:] - r[:1]) / h[:, None, None], 0, 2)
+        return r[0], J, valid[:K]
 
     def robust(self, r):
         """Per-residual Cauchy cost and IRLS weight (prior weights included)."""
         c2 = self.cfg.cauchy_scale ** 2
         s2 = self.wp * r ** 2
         return c2 * np.log1p(s2 / c2), self.wp / (1.0 + s2 / c2)
-
-
-def _arc(radius, phi):
-    phi = np.asarray(phi, float)
-    return radius * np.stack([np.cos(phi), np.sin(phi), np.zeros_like(phi)], -1)
 
 
 def _undistort(cam, uv):
@@ -318,12 +288,16 @@ def _select_curve(name: str, pts, w, m: int, w_min: float):
     if pts.ndim != 2 or pts.shape[1] != 2 or w.shape != (len(pts),):
         raise RefineError("bad_centreline", f"{name}: need centreline (N, 2) and centreline_w (N,), "
                           f"got {pts.shape} and {w.shape}")
-    ok = np.all(np.isfinite(pts), axis=1) & np.isfinite(w) & (w >= w_min)
-    pts, w = pts[ok], np.clip(w[ok], 0, 1)
+    ok = np.isfinite(pts).all(axis=1) & np.isfinite(w) & (w >= w_min)
+    if not ok.all():
+        pts, w = pts[ok], w[ok]
+    w = np.minimum(w, 1.0)
     if len(pts) <= m:
         return pts, w
-    s = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(pts, axis=0), axis=1))])
-    idx = np.unique(np.clip(np.searchsorted(s, np.linspace(0, s[-1], m)), 0, len(pts) - 1))
+    dp = np.diff(pts, axis=0)
+    s = np.concatenate([[0.0], np.cumsum(np.hypot(dp[:, 0], dp[:, 1]))])
+    idx = np.minimum(np.searchsorted(s, s[-1] * np.arange(m) / (m - 1)), len(pts) - 1)
+    idx = idx[np.concatenate([[True], idx[1:] > idx[:-1]])]
     return pts[idx], w[idx]
 
 
@@ -373,11 +347,10 @@ def _lm(prob: _Problem, R, t, cfg: RefineConfig, n_iter: int, state=None):
     terms, or after ``max_reject`` rejected steps in a row (a cost at rounding level)."""
     K = len(R)
     if state is None:
-        phi = prob.associate(R, t)
-        r, J, phi, valid = prob.evaluate(R, t, phi)
+        r, J, valid = prob.linearise(R, t)
         rho, _ = prob.robust(r)
         cost = np.where(valid & np.all(np.isfinite(r), axis=1), rho.sum(1), np.inf)
-        state = dict(R=R, t=t, phi=phi, r=r, J=J, cost=cost, lam=np.full(K, 1e-3),
+        state = dict(R=R, t=t, r=r, J=J, cost=cost, lam=np.full(K, 1e-3),
                      rej=np.zeros(K, int), done=~np.isfinite(cost), iters=0)
     s = state
     dof = max(prob.n_res - 6, 1)
@@ -402,13 +375,13 @@ def _lm(prob: _Problem, R, t, cfg: RefineConfig, n_iter: int, state=None):
             dx = -sc * np.stack([np.linalg.lstsq(a, b * c, rcond=None)[0] for a, b, c in zip(A, g, sc)])
         Rn = _exp_so3(dx[:, :3]) @ s["R"][act]
         tn = s["t"][act] + dx[:, 3:]
-        rn, Jn, phin, validn = prob.evaluate(Rn, tn, s["phi"][act])
+        rn, Jn, validn = prob.linearise(Rn, tn)
         rho_n, _ = prob.robust(rn)
         cost_n = np.where(validn & np.all(np.isfinite(rn), axis=1), rho_n.sum(1), np.inf)
         old = s["cost"][act]
         acc = cost_n <= old
         ia = act[acc]
-        for key, val in (("R", Rn), ("t", tn), ("phi", phin), ("r", rn), ("J", Jn), ("cost", cost_n)):
+        for key, val in (("R", Rn), ("t", tn), ("r", rn), ("J", Jn), ("cost", cost_n)):
             s[key][ia] = val[acc]
         s["lam"][ia] = np.maximum(s["lam"][ia] / 3.0, 1e-9)
         s["lam"][act[~acc]] *= 4.0
@@ -498,14 +471,16 @@ def _result(prob: _Problem, s, cfg: RefineConfig) -> RefineResult:
     r, J = s["r"][b], s["J"][b]
     _, wr = prob.robust(r)
     used = prob.wp > 0
-    n_res = int(used.sum())
+    n_res = prob.n_res
     dof = max(n_res - 6, 1)
     s2 = float((wr * r ** 2).sum() / dof)
     H = J.T @ (wr[:, None] * J)
     cov = s2 * _inv_psd(H)
 
     def rms(mask):
-        return float(np.sqrt(np.mean(r[mask] ** 2))) if mask.any() else float("nan")
+        # a curve point's two residuals (Sampson, excess) make one distance
+        n = int(mask.sum()) - int((mask & ~prob.is_kp).sum()) // 2
+        return float(np.sqrt(np.sum(r[mask] ** 2) / n)) if n else float("nan")
 
     # Competing solutions: other distinct minima, and how much worse they fit.
     cands, reasons = [(T0, float(s["cost"][b]))], []
