@@ -1,0 +1,319 @@
+"""What people look at after an evaluation: ``report.md``, ``error_vs_distance.png``,
+``overlays/`` and ``results.json``, written from a ``common.evaluation.Collected``.
+
+No process, no network. Overlays draw, per chosen frame, a crop of the left and right images
+around the needle: the true arc and keypoints in green, each method's estimated arc in its
+colour, and the detector's keypoints as circles.
+"""
+from __future__ import annotations
+
+import json
+import os
+from pathlib import Path
+from typing import Callable, Optional
+
+import numpy as np
+
+from common.evaluation import (CAMERAS, METHODS, MULTIVIEW_METHODS, PAPER, Collected, Evaluation,
+                               build_results, check_results, evaluate, to_jsonable)
+from common.needle import KEYPOINT_NAMES, NeedleModel
+from common.transforms import transform_points
+
+METHOD_COLOURS = {  # matplotlib colours; BGR for OpenCV below
+    "pnp_average": "#1f77b4", "pnp_joint": "#ff7f0e", "triangulation": "#9467bd",
+    "multiview": "#d62728", "refined": "#17becf", "multiview_refined": "#8c564b",
+}
+TRUTH_BGR = (60, 200, 60)
+
+
+def _bgr(hex_colour: str) -> tuple:
+    h = hex_colour.lstrip("#")
+    r, g, b = (int(h[i:i + 2], 16) for i in (0, 2, 4))
+    return (b, g, r)
+
+
+def _fmt(x, nd=2) -> str:
+    return "—" if x is None else f"{x:.{nd}f}"
+
+
+# ---------------------------------------------------------------- report.md
+
+def report_markdown(res: dict) -> str:
+    """Table II (keypoints) and Table III (poses) beside the paper's figures, with medians."""
+    L = [f"# needletrack evaluation", "",
+         f"- dataset: `{res['dataset']}`",
+         f"- frames: {res['frames']} stereo frames ({res.get('images', 2 * res['frames'])} images)",
+         f"- detector: `{res['detector']}`" + (f" (noise {res['noise_px']} px)"
+                                               if res.get("noise_px") else ""),
+         f"- needle found in {_fmt(100 * res['detection_rate'] if res['detection_rate'] is not None else None, 1)}% "
+         f"of the images; false detections: {res.get('false_detections', 0)} "
+         f"of {res.get('images_without_needle', 0)} images without a needle", ""]
+
+    L += ["## Table II: keypoint errors", "",
+          "2D: pixel distance between detected and true keypoints over both cameras (points the "
+          "truth marks visible). 3D: distance between the triangulated and the true keypoint. "
+          "Correlation: Pearson, over frames, between a keypoint's 2D error (mean of the two "
+          "cameras) and its 3D error.", "",
+          "| keypoint | 2D mean (px) | 2D std | 2D median | 3D mean (mm) | 3D std | 3D median "
+          "| 2D-3D corr. | paper 2D mean (px) |",
+          "| --- | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: |"]
+    paper2d = PAPER["keypoints_2d_px"]
+    for name in (*KEYPOINT_NAMES, "all"):
+        k2, k3 = res["keypoints_2d_px"][name], res["keypoints_3d_mm"][name]
+        c = res.get("correlation_2d_3d", {}).get(name)
+        L.append(f"| {name} | {_fmt(k2['mean'])} | {_fmt(k2['std'])} | {_fmt(k2.get('median'))} "
+                 f"| {_fmt(k3['mean'])} | {_fmt(k3['std'])} | {_fmt(k3.get('median'))} "
+                 f"| {_fmt(c)} | {_fmt(paper2d.get(name))} |")
+    L += ["", "The paper reports only the overall mean 2D error (5.58 px, Keypoint R-CNN at "
+          "1920x1080).", ""]
+
+    L += ["## Table III: pose errors", "",
+          "Position: distance between estimated and true needle origins. Orientation: angle of "
+          "R_est^T R_true. Single-frame methods are scored on every frame, multi-view ones on the "
+          "last endoscope step of every sequence; a frame without a pose is a failure.", "",
+          "| method | n / counted | failures | position mean (mm) | median | std | max "
+          "| orientation mean (deg) | median | std | max | paper (mm / deg) |",
+          "| --- | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: |"]
+    for m, d in res["pose"].items():
+        p, o = d["position_mm"], d["orientation_deg"]
+        paper = PAPER["pose"].get(m)
+        fr = d.get("failure_rate")
+        L.append(f"| {m} | {d['n']} / {d.get('expected', d['n'])} | "
+                 f"{_fmt(100 * fr if fr is not None else None, 1)}% "
+                 f"| {_fmt(p['mean'])} | {_fmt(p['median'])} | {_fmt(p['std'])} | {_fmt(p['max'])} "
+                 f"| {_fmt(o['mean'])} | {_fmt(o['median'])} | {_fmt(o['std'])} | {_fmt(o['max'])} "
+                 f"| {f'{paper[0]:.2f} / {paper[1]:.2f}' if paper else '—'} |")
+    L += ["", "![error vs distance](error_vs_distance.png)", ""]
+
+    t = res["timing"]
+    L += ["## Speed", "",
+          f"- end to end: {_fmt(t['throughput_hz'], 1)} frames/s "
+          f"(final output `{t.get('final_method')}`; the paper: {PAPER['rate_hz']:.0f} Hz on an RTX 3080)",
+          f"- latency from frame publish to pose: p50 {_fmt(t['latency_ms']['p50'], 1)} ms, "
+          f"p99 {_fmt(t['latency_ms']['p99'], 1)} ms",
+          "- per node (median processing time per message):", ""]
+    if t["per_node_ms"]:
+        L += ["| node | ms |", "| --- | ---: |"]
+        L += [f"| {n} | {_fmt(v)} |" for n, v in t["per_node_ms"].items()]
+    else:
+        L.append("(no node statistics received)")
+    L += ["", "Overlays of chosen frames, worst cases included, are in `overlays/`.", ""]
+    return "\n".join(L)
+
+
+# ---------------------------------------------------------------- Fig. 8
+
+def plot_error_vs_distance(ev: Evaluation, path) -> None:
+    """Position (mm) and orientation (deg) error against camera distance (cm), one series per
+    method: the paper's Fig. 8. Failed frames are marked on the x axis with a cross."""
+    import matplotlib
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, axes = plt.subplots(1, 2, figsize=(12, 4.5))
+    for m, t in ev.pose.items():
+        d = t["distance_m"] * 100
+        colour = METHOD_COLOURS.get(m)
+        ok = np.isfinite(t["position_m"])
+        order = np.argsort(d[ok])
+        for ax, vals in ((axes[0], t["position_m"] * 1e3), (axes[1], np.degrees(t["orientation_rad"]))):
+            ax.plot(d[ok][order], vals[ok][order], "o-", ms=3.5, lw=0.8, alpha=0.8, color=colour,
+                    label=f"{m} (n={int(ok.sum())}/{len(ok)})")
+            if (~ok).any():
+                ax.plot(d[~ok], np.zeros((~ok).sum()), "x", color=colour, ms=7, clip_on=False)
+    for ax, what in ((axes[0], "position error (mm)"), (axes[1], "orientation error (deg)")):
+        ax.set_xlabel("camera distance (cm)")
+        ax.set_ylabel(what)
+        ax.grid(alpha=0.3)
+        ax.set_ylim(bottom=0)
+    axes[0].legend(fontsize=8)
+    fig.suptitle("Pose error vs camera distance (x on the axis: no pose)")
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+
+
+# ---------------------------------------------------------------- overlays
+
+def select_overlay_frames(ev: Evaluation, k_worst: int = 3) -> list[tuple[int, str]]:
+    """Frames worth looking at: the worst ``k_worst`` of the best-scored single-frame method and
+    of the multi-view method, failures first, plus a typical (median) and the best frame."""
+    chosen: dict[int, str] = {}
+
+    def pick(m):
+        t = ev.pose.get(m)
+        if not t or not t["seqs"]:
+            return
+        pos = np.where(np.isfinite(t["position_m"]), t["position_m"], np.inf)
+        order = np.argsort(-pos, kind="stable")
+        for i in order[:k_worst]:
+            s = t["seqs"][i]
+            why = "no pose" if not np.isfinite(pos[i]) else f"{pos[i] * 1e3:.2f} mm"
+            chosen.setdefault(s, f"worst_{m}_{why.replace(' ', '')}")
+        fin = [i for i in order if np.isfinite(pos[i])]
+        if fin:
+            chosen.setdefault(t["seqs"][fin[len(fin) // 2]], f"median_{m}")
+            chosen.setdefault(t["seqs"][fin[-1]], f"best_{m}")
+
+    single = [m for m in ("refined", "pnp_joint", "pnp_average", "triangulation") if m in ev.pose]
+    if single:
+        pick(single[0])
+    for m in ("multiview_refined", "multiview"):
+        if m in ev.pose and ev.pose[m]["seqs"]:
+            pick(m)
+            break
+    return sorted(chosen.items(), key=lambda kv: kv[0])
+
+
+def _crop_box(uv_list, w, h, min_size=40, margin=0.2):
+    pts = np.concatenate([u for u in uv_list if u is not None and len(u)], axis=0)
+    pts = pts[np.all(np.isfinite(pts), axis=1)]
+    if not len(pts):
+        return 0, 0, w, h
+    (x0, y0), (x1, y1) = pts.min(0), pts.max(0)
+    size = max(x1 - x0, y1 - y0, min_size) * (1 + 2 * margin)
+    cx, cy = (x0 + x1) / 2, (y0 + y1) / 2
+    x0, y0 = int(max(0, cx - size / 2)), int(max(0, cy - size / 2))
+    x1, y1 = int(min(w, cx + size / 2)), int(min(h, cy + size / 2))
+    return x0, y0, max(x1, x0 + 2), max(y1, y0 + 2)
+
+
+def draw_overlay(images: dict, rig, needle: NeedleModel, T_true, estimates: dict,
+                 detections: dict, title: str = "", panel_px: int = 480) -> np.ndarray:
+    """One picture: for each camera a zoomed crop around the needle with the true arc and
+    keypoints (green, crosses), every method's estimated arc (its colour) and the detector's
+    keypoints (circles, labelled A..E). ``estimates``: method -> T_ecm_needle;
+    ``detections``: camera -> (5, 2) px or None; ``images``: camera -> BGR image or None."""
+    import cv2
+
+    arc = needle.sample_arc(64)
+    kps = needle.keypoints()
+    panels = []
+    for cam_name in CAMERAS:
+        cam = rig[cam_name]
+        img = images.get(cam_name)
+        if img is None:
+            img = np.zeros((cam.height, cam.width, 3), np.uint8)
+        h, w = img.shape[:2]
+
+        def proj(T, pts):
+            p = transform_points(cam.T_cam_ecm @ T, pts)
+            uv = cam.project(p)
+            uv[p[:, 2] <= 0] = np.nan
+            return uv
+
+        true_arc, true_kp = proj(T_true, arc), proj(T_true, kps)
+        est = {m: proj(T, arc) for m, T in estimates.items() if T is not None}
+        det = detections.get(cam_name)
+        x0, y0, x1, y1 = _crop_box([true_arc, true_kp, det], w, h)
+        scale = panel_px / max(x1 - x0, y1 - y0)
+        crop = cv2.resize(np.ascontiguousarray(img[y0:y1, x0:x1]),
+                          (max(1, int((x1 - x0) * scale)), max(1, int((y1 - y0) * scale))),
+                          interpolation=cv2.INTER_LINEAR)
+        canvas = np.zeros((panel_px, panel_px, 3), np.uint8)
+        canvas[:crop.shape[0], :crop.shape[1]] = crop
+
+        def to_px(uv):
+            return np.round((np.asarray(uv) - [x0 - 0.5, y0 - 0.5]) * scale - 0.5).astype(np.int64)
+
+        def polyline(uv, colour, thick):
+            ok = np.all(np.isfinite(uv), axis=1)
+            if ok.sum() >= 2:
+                cv2.polylines(canvas, [to_px(uv[ok]).reshape(-1, 1, 2).astype(np.int32)], False,
+                              colour, thick, cv2.LINE_AA)
+
+        polyline(true_arc, TRUTH_BGR, 2)
+        for p in true_kp:
+            if np.all(np.isfinite(p)):
+                cv2.drawMarker(canvas, tuple(int(c) for c in to_px(p)), TRUTH_BGR,
+                               cv2.MARKER_CROSS, 14, 2)
+        for m, uv in est.items():
+            polyline(uv, _bgr(METHOD_COLOURS.get(m, "#ffffff")), 1)
+        if det is not None:
+            for name, p in zip(KEYPOINT_NAMES, np.asarray(det, float).reshape(5, 2)):
+                if np.all(np.isfinite(p)):
+                    q = tuple(int(c) for c in to_px(p))
+                    cv2.circle(canvas, q, 6, (0, 220, 255), 1, cv2.LINE_AA)
+                    cv2.putText(canvas, name, (q[0] + 7, q[1] - 7), cv2.FONT_HERSHEY_SIMPLEX, 0.45,
+                                (0, 220, 255), 1, cv2.LINE_AA)
+        cv2.putText(canvas, cam_name, (8, 20), cv2.FONT_HERSHEY_SIMPLEX, 0.6, (255, 255, 255), 1,
+                    cv2.LINE_AA)
+        panels.append(canvas)
+    body = np.concatenate([panels[0], np.full((panel_px, 4, 3), 255, np.uint8), panels[1]], axis=1)
+    rows = [("truth (arc, + keypoints)", TRUTH_BGR), ("detector keypoints (o)", (0, 220, 255))]
+    rows += [(m, _bgr(METHOD_COLOURS.get(m, "#ffffff"))) for m in estimates]
+    legend = np.zeros((30 + 20 * ((len(rows) + 2) // 3), body.shape[1], 3), np.uint8)
+    cv2.putText(legend, title, (8, 18), cv2.FONT_HERSHEY_SIMPLEX, 0.5, (255, 255, 255), 1,
+                cv2.LINE_AA)
+    for i, (label, colour) in enumerate(rows):
+        x, y = 8 + (i % 3) * 300, 40 + (i // 3) * 20
+        cv2.line(legend, (x, y - 4), (x + 24, y - 4), colour, 2)
+        cv2.putText(legend, label, (x + 30, y), cv2.FONT_HERSHEY_SIMPLEX, 0.45, colour, 1,
+                    cv2.LINE_AA)
+    return np.concatenate([legend, body], axis=0)
+
+
+def write_overlays(outdir, col: Collected, ev: Evaluation, rig, needle: NeedleModel,
+                   load_images: Callable[[int], dict], k_worst: int = 3) -> list[str]:
+    """Write ``overlays/NNNNNN_<why>.png`` for the frames ``select_overlay_frames`` picks.
+    ``load_images(seq)`` returns {camera: BGR image or None}. Returns the file names."""
+    import cv2
+
+    out = Path(outdir) / "overlays"
+    out.mkdir(parents=True, exist_ok=True)
+    names = []
+    for seq, why in select_overlay_frames(ev, k_worst):
+        if seq not in ev.T_true:
+            continue
+        estimates = {m: col.poses.get(m, {}).get(seq).T_ecm_needle
+                     for m in ev.pose if col.poses.get(m, {}).get(seq) is not None}
+        dets = {}
+        for cam in CAMERAS:
+            kp = col.keypoints.get((cam, seq))
+            dets[cam] = kp.uv if kp is not None and kp.found else None
+        errs = []
+        for m in estimates:
+            t = ev.pose[m]
+            if seq in t["seqs"]:
+                i = t["seqs"].index(seq)
+                errs.append(f"{m} {t['position_m'][i] * 1e3:.2f}mm/"
+                            f"{np.degrees(t['orientation_rad'][i]):.1f}deg")
+        title = f"frame {seq}  ({why})  " + "  ".join(errs)
+        try:
+            images = load_images(seq)
+        except Exception as exc:  # a missing image still gives an overlay on black
+            images = {}
+            title += f"  [image not loaded: {exc}]"
+        pic = draw_overlay(images, rig, needle, ev.T_true[seq], estimates, dets, title)
+        name = f"{seq:06d}_{why}.png"
+        cv2.imwrite(str(out / name), pic)
+        names.append(name)
+    return names
+
+
+# ---------------------------------------------------------------- everything
+
+def write_outputs(outdir, col: Collected, *, dataset: str, detector: str,
+                  load_images: Optional[Callable[[int], dict]] = None,
+                  extra: Optional[dict] = None) -> dict:
+    """Write results.json, report.md, error_vs_distance.png and overlays/ into ``outdir``;
+    returns the results document. ``load_images`` as in ``write_overlays`` (None: black)."""
+    from common.camera import StereoRig
+
+    outdir = Path(outdir)
+    outdir.mkdir(parents=True, exist_ok=True)
+    ev = evaluate(col)
+    res = to_jsonable(build_results(col, dataset=dataset, detector=detector, ev=ev, extra=extra))
+    problems = check_results(res)
+    if problems:  # a bug here, not bad input: say so rather than write a broken file
+        raise AssertionError("results.json would break its contract: " + "; ".join(problems))
+    rig = col.calib.rig() if col.calib is not None else StereoRig.default()
+    needle = col.calib.needle_model() if col.calib is not None else NeedleModel()
+    overlays = write_overlays(outdir, col, ev, rig, needle, load_images or (lambda seq: {}))
+    res["overlays"] = overlays
+    tmp = outdir / "results.json.tmp"
+    tmp.write_text(json.dumps(res, indent=2, allow_nan=False) + "\n")
+    os.replace(tmp, outdir / "results.json")
+    (outdir / "report.md").write_text(report_markdown(res))
+    plot_error_vs_distance(ev, outdir / "error_vs_distance.png")
+    return res

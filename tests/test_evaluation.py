@@ -1,0 +1,219 @@
+"""Evaluation library on synthetic messages: known errors in, the same errors out."""
+import json
+
+import numpy as np
+import pytest
+
+from common.camera import StereoRig
+from common.evaluation import (METHODS, RESULT_KEYS, Collected, build_results, check_results,
+                               evaluate, keypoint_errors_2d, last_steps, pearson, summary,
+                               to_jsonable)
+from common.evaluation_report import report_markdown, select_overlay_frames, write_outputs
+from common.messages import (Calibration, EndOfStream, GroundTruth, Keypoints, NodeStats,
+                             Points3D, PoseEstimate, decode, encode)
+from common.needle import NeedleModel
+from common.transforms import inv_T, make_T, rotvec_to_R, transform_points
+
+RIG = StereoRig.default(480, 270)
+NEEDLE = NeedleModel()
+
+
+def random_rotation(rng):
+    v = rng.normal(size=3)
+    return rotvec_to_R(v / np.linalg.norm(v) * rng.uniform(0, np.pi))
+
+
+def needle_in_view(rng, dist):
+    """A needle pose in the ECM frame ``dist`` m in front of the endoscope (along -z_ecm),
+    tilted at most 60 deg from facing the cameras."""
+    axis = rng.normal(size=3)
+    axis /= np.linalg.norm(axis)
+    R = np.diag([1.0, -1.0, -1.0]) @ rotvec_to_R(axis * rng.uniform(0, np.radians(60)))
+    return make_T(R, [rng.uniform(-0.01, 0.01), rng.uniform(-0.01, 0.01), -dist])
+
+
+def perturb(T, d_m, angle_rad, rng):
+    """T moved by exactly d_m and rotated by exactly angle_rad (about a random axis)."""
+    u = rng.normal(size=3)
+    u /= np.linalg.norm(u)
+    a = rng.normal(size=3)
+    a /= np.linalg.norm(a)
+    return make_T(T[:3, :3] @ rotvec_to_R(a * angle_rad), T[:3, 3] + u * d_m)
+
+
+def synthetic(n_seq=4, steps=3, pos_err=0.001, ang_err=np.radians(2.0), px_noise=0.0,
+              p3_err=0.0005, drop=(), seed=0):
+    """A Collected as the evaluator would gather it, with exact known errors.
+
+    Every single-frame method is off by ``pos_err`` m and ``ang_err`` rad, multiview by half of
+    that; detector keypoints are the truth plus ``px_noise`` px (exact distance); triangulated
+    points are off by ``p3_err`` m. ``drop``: (method, seq) pairs with no pose.
+    """
+    rng = np.random.default_rng(seed)
+    col = Collected()
+    col.add_calib(Calibration(0, np.array([RIG.left.width, RIG.left.height]), RIG.to_dict(),
+                              NEEDLE.to_dict()))
+    seq = 0
+    for sq in range(n_seq):
+        T_world_needle = make_T(random_rotation(rng), rng.normal(size=3) * 0.05)
+        for st in range(steps):
+            T_ecm_needle = needle_in_view(rng, rng.uniform(0.10, 0.25))
+            T_world_ecm = T_world_needle @ inv_T(T_ecm_needle)
+            kps, vis = {}, {}
+            for cam in ("left", "right"):
+                kps[cam] = RIG[cam].project_from_ecm(transform_points(T_ecm_needle, NEEDLE.keypoints()))
+                vis[cam] = np.ones(5, bool)
+            gt = GroundTruth(seq, 1000 + seq, sq, st, None, T_world_ecm, T_world_needle, kps, vis)
+            col.add_truth(decode(encode(gt), GroundTruth), 0)
+            for cam in ("left", "right"):
+                d = rng.normal(size=(5, 2))
+                d = d / np.linalg.norm(d, axis=1, keepdims=True) * px_noise
+                col.add_keypoints(Keypoints(cam, seq, gt.stamp_ns, True, kps[cam] + d, np.ones(5),
+                                            1.0, None, "oracle"), 0)
+            truth_pts = transform_points(T_ecm_needle, NEEDLE.keypoints())
+            off = rng.normal(size=(5, 3))
+            off = off / np.linalg.norm(off, axis=1, keepdims=True) * p3_err
+            col.add_points3d(Points3D(seq, gt.stamp_ns, truth_pts + off, np.ones(5, bool)), 0)
+            for m in ("pnp_average", "pnp_joint", "triangulation", "multiview"):
+                if (m, seq) in drop:
+                    continue
+                scale = 0.5 if m == "multiview" else 1.0
+                T = perturb(T_ecm_needle, pos_err * scale, ang_err * scale, rng)
+                col.add_pose(m, PoseEstimate(seq, gt.stamp_ns, m, T, n_views=st + 1),
+                             gt.stamp_ns + 20_000_000)
+            seq += 1
+    col.add_eos(EndOfStream(seq, 0))
+    col.add_stats(NodeStats("epnp", "epnp", 1, 0, 1.0, {}, {}, 1.5, 3.0))
+    return col
+
+
+def test_summary_and_pearson():
+    s = summary([1.0, 2.0, np.nan, 6.0])
+    assert s == pytest.approx({"mean": 3.0, "median": 2.0, "std": np.std([1, 2, 6]), "max": 6.0})
+    assert summary([]) == {"mean": None, "median": None, "std": None, "max": None}
+    assert pearson([1, 2, 3, 4], [2, 4, 6, 8.5]) > 0.99
+    assert pearson([1, 2, 3, 4], [4, 3, 2, 1]) == pytest.approx(-1.0)
+    assert pearson([1, 1, 1, 1], [1, 2, 3, 4]) is None
+    assert pearson([1, 2], [1, 2]) is None
+
+
+def test_known_pose_errors_are_recovered():
+    col = synthetic(pos_err=0.001, ang_err=np.radians(2.0))
+    ev = evaluate(col)
+    for m in ("pnp_average", "pnp_joint", "triangulation"):
+        t = ev.pose[m]
+        assert len(t["seqs"]) == 12
+        np.testing.assert_allclose(t["position_m"], 0.001, rtol=1e-9)
+        np.testing.assert_allclose(np.degrees(t["orientation_rad"]), 2.0, rtol=1e-6)
+    mv = ev.pose["multiview"]
+    assert mv["seqs"] == [2, 5, 8, 11]  # the last step of each sequence
+    np.testing.assert_allclose(mv["position_m"], 0.0005, rtol=1e-9)
+    np.testing.assert_allclose(np.degrees(mv["orientation_rad"]), 1.0, rtol=1e-6)
+    assert np.all((mv["distance_m"] > 0.099) & (mv["distance_m"] < 0.26))
+
+
+def test_zero_error_inputs_give_zero():
+    col = synthetic(pos_err=0.0, ang_err=0.0, px_noise=0.0, p3_err=0.0)
+    res = build_results(col, dataset="d", detector="oracle")
+    for m in METHODS:
+        assert res["pose"][m]["position_mm"]["max"] < 1e-9
+        assert res["pose"][m]["orientation_deg"]["max"] < 1e-5
+    assert res["keypoints_2d_px"]["all"]["mean"] < 1e-9
+    assert res["keypoints_3d_mm"]["all"]["mean"] < 1e-9
+    assert res["correlation_2d_3d"]["all"] is None  # no spread: no correlation
+
+
+def test_keypoint_and_point_errors():
+    col = synthetic(px_noise=0.75, p3_err=0.0005)
+    res = build_results(col, dataset="d", detector="oracle")
+    for k in ("A", "B", "C", "D", "E", "all"):
+        assert res["keypoints_2d_px"][k]["mean"] == pytest.approx(0.75, rel=1e-9)
+        assert res["keypoints_2d_px"][k]["std"] == pytest.approx(0.0, abs=1e-9)
+        assert res["keypoints_3d_mm"][k]["mean"] == pytest.approx(0.5, rel=1e-9)
+    assert res["keypoints_2d_px"]["all"]["n"] == 12 * 2 * 5
+    assert res["detection_rate"] == 1.0
+
+
+def test_invisible_and_missing_keypoints_are_left_out():
+    uv_true = np.arange(10.0).reshape(5, 2)
+    kp = Keypoints("left", 0, 0, True, uv_true + [3.0, 4.0], np.ones(5), 1.0)
+    kp.uv[1] = np.nan
+    err = keypoint_errors_2d(kp, uv_true, [True, True, True, False, True])
+    np.testing.assert_allclose(err, [5, np.nan, 5, np.nan, 5])
+    assert np.all(np.isnan(keypoint_errors_2d(Keypoints.not_found("left", 0, 0, "x", "r"), uv_true)))
+
+
+def test_failures_are_counted():
+    drop = {("pnp_joint", 0), ("pnp_joint", 4), ("multiview", 5), ("triangulation", 1)}
+    col = synthetic(drop=drop)
+    del col.keypoints[("right", 3)]
+    res = build_results(col, dataset="d", detector="oracle")
+    assert res["pose"]["pnp_joint"]["n"] == 10 and res["pose"]["pnp_joint"]["failures"] == 2
+    assert res["pose"]["multiview"]["n"] == 3 and res["pose"]["multiview"]["expected"] == 4
+    assert res["failure_rate"]["multiview"] == pytest.approx(0.25)
+    assert res["pose"]["pnp_average"]["failure_rate"] == 0.0
+    assert res["detection_rate"] == pytest.approx(23 / 24)
+
+
+def test_no_pose_at_all_still_gives_typed_results():
+    col = synthetic(n_seq=1, steps=2)
+    col.poses.clear()
+    col.arrivals_ns.clear()
+    res = to_jsonable(build_results(col, dataset="d", detector="learned"))
+    assert check_results(res) == []
+    assert res["pose"]["multiview"]["n"] == 0
+    assert res["pose"]["pnp_joint"]["position_mm"]["mean"] is None
+    assert res["timing"]["throughput_hz"] is None
+
+
+def test_results_keys_and_types(tmp_path):
+    col = synthetic(px_noise=0.3)
+    col.add_pose("refined", PoseEstimate(0, 1000, "refined", col.truths[0].T_world_needle), 1)
+    res = write_outputs(tmp_path, col, dataset="data/x", detector="oracle")
+    on_disk = json.loads((tmp_path / "results.json").read_text())
+    assert on_disk == res
+    for k in RESULT_KEYS:
+        assert k in on_disk
+    assert check_results(on_disk) == []
+    assert isinstance(on_disk["frames"], int) and on_disk["frames"] == 12
+    assert set(on_disk["pose"]) == {*METHODS, "refined"}
+    assert on_disk["pose"]["refined"]["n"] == 1 and on_disk["pose"]["refined"]["expected"] == 12
+    t = on_disk["timing"]
+    assert t["final_method"] == "multiview"
+    assert t["latency_ms"]["p50"] == pytest.approx(20.0)
+    assert t["per_node_ms"] == {"epnp": 1.5}
+    assert (tmp_path / "error_vs_distance.png").stat().st_size > 10_000
+    assert len(list((tmp_path / "overlays").glob("*.png"))) >= 3
+    md = (tmp_path / "report.md").read_text()
+    assert "Table II" in md and "Table III" in md and "2.26 / 6.74" in md and "5.58" in md
+
+
+def test_check_results_catches_wrong_types():
+    res = to_jsonable(build_results(synthetic(n_seq=1), dataset="d", detector="oracle"))
+    assert check_results(res) == []
+    bad = json.loads(json.dumps(res))
+    bad["frames"] = "12"
+    del bad["pose"]["multiview"]["position_mm"]["median"]
+    bad["timing"]["latency_ms"] = None
+    problems = check_results(bad)
+    assert any(p.startswith("frames") for p in problems)
+    assert any("pose.multiview.position_mm.median" in p for p in problems)
+    assert any("timing.latency_ms" in p for p in problems)
+
+
+def test_last_steps_and_overlay_choice():
+    col = synthetic(n_seq=3, steps=4, drop={("pnp_joint", 6)})
+    truths = col.truths
+    assert last_steps(truths) == [3, 7, 11]
+    ev = evaluate(col)
+    chosen = dict(select_overlay_frames(ev))
+    assert chosen[6].startswith("worst_pnp_joint_nopose")
+    assert any(v.startswith("worst_multiview") for v in chosen.values())
+
+
+def test_report_lists_every_method():
+    res = to_jsonable(build_results(synthetic(n_seq=2), dataset="d", detector="classical"))
+    md = report_markdown(res)
+    for m in METHODS:
+        assert f"| {m} |" in md
+    assert "| all |" in md
