@@ -1,0 +1,165 @@
+"""Dataset generation from the built-in scene: N needle poses x K endoscope poses.
+
+Sequence ``s`` of a run seeded ``seed`` depends only on (seed, s, steps, preset, image size), so a
+run is reproducible, resumable after an interruption (finished sequences are kept) and can be
+extended with more sequences. Sequences are rendered by worker processes (spawned, one GL
+context each); the parent writes frames.jsonl in order.
+"""
+from __future__ import annotations
+
+import json
+import os
+from dataclasses import dataclass
+
+import numpy as np
+
+FPS = 30.0
+GENERATE_FILE = "generate.json"
+
+
+@dataclass(frozen=True)
+class GenerateConfig:
+    sequences: int
+    steps: int
+    seed: int = 0
+    randomise: str = "train"
+    width: int = 1920
+    height: int = 1080
+    image_format: str = "jpg"
+    jpeg_quality: int = 95
+
+    def stable(self) -> dict:
+        """What must match for a folder to be resumed or extended."""
+        d = dict(self.__dict__)
+        d.pop("sequences")
+        return d
+
+
+def scene_meta(width: int, height: int, source: str):
+    """dataset.yaml contents of the built-in scene."""
+    from common.camera import StereoRig
+    from common.dataset import DatasetMeta
+    from common.needle import NeedleModel
+    from common.sim_randomise import default_arm
+    return DatasetMeta((width, height), StereoRig.default(width, height), NeedleModel(), default_arm(), source)
+
+
+def render_sequence(renderer, cfg: GenerateConfig, sequence: int) -> list[tuple[dict, dict]]:
+    """Plan and render one sequence: a list of (BGR images by camera, frame fields) per step."""
+    from common.sim_randomise import degrade_stereo, get_preset, plan_sequence
+    meta = scene_meta(cfg.width, cfg.height, "")
+    preset = get_preset(cfg.randomise)
+    tex = 1024 if cfg.height <= 720 else 2048
+    plan = plan_sequence(cfg.seed, sequence, cfg.steps, preset, meta.rig, meta.needle, meta.arm, tex)
+    renderer.load(plan.spec)
+    rng = np.random.default_rng(plan.image_seed)
+    out = []
+    for step, q in enumerate(plan.joints):
+        T_world_ecm = meta.arm.T_world_ecm(q)
+        renders = renderer.render(T_world_ecm)
+        gt = renderer.ground_truth(T_world_ecm, renders)
+        images = degrade_stereo({c: r.bgr for c, r in renders.items()}, rng, preset)
+        fields = {"sequence": sequence, "step": step, "ecm_joints": np.asarray(q, float),
+                  "T_world_ecm": T_world_ecm, "T_world_needle": plan.spec.T_world_needle,
+                  "keypoints": gt["keypoints"], "visible": gt["visible"], "bbox": gt["bbox"]}
+        out.append((images, fields))
+    return out
+
+
+# ---------------------------------------------------------------- worker processes
+
+_WORKER = {}
+
+
+def _init_worker(cfg: GenerateConfig, folder: str) -> None:
+    from common.sim_render import SceneRenderer
+    _WORKER["renderer"] = SceneRenderer()
+    _WORKER["cfg"], _WORKER["folder"] = cfg, folder
+
+
+def _work(sequence: int) -> list[dict]:
+    """Render sequence ``sequence``, write its images; returns its frames.jsonl objects."""
+    from common.dataset import Frame, write_frame_images
+    cfg, folder = _WORKER["cfg"], _WORKER["folder"]
+    frames = []
+    for images, fields in render_sequence(_WORKER["renderer"], cfg, sequence):
+        index = sequence * cfg.steps + fields["step"]
+        paths = write_frame_images(folder, index, images, cfg.image_format, cfg.jpeg_quality)
+        fr = Frame(index=index, stamp_ns=int(round(index * 1e9 / FPS)), left=paths["left"],
+                   right=paths["right"], **fields)
+        frames.append(fr.to_json())
+    return frames
+
+
+def generate(folder: str, cfg: GenerateConfig, jobs: int = 2, progress: bool = True,
+             overwrite: bool = False) -> int:
+    """Generate (or resume, or extend) a dataset folder; returns the number of frames in it."""
+    import multiprocessing as mp
+
+    import mujoco
+    from tqdm import tqdm
+
+    from common.dataset import DatasetWriter, parse_frame, truncate_frames, truncate_torn_tail
+    if cfg.sequences < 1 or cfg.steps < 1:
+        raise ValueError("generate: --sequences and --steps must be >= 1")
+    os.makedirs(folder, exist_ok=True)
+    gpath = os.path.join(folder, GENERATE_FILE)
+    fpath = os.path.join(folder, "frames.jsonl")
+    resume = False
+    if os.path.isfile(gpath) and not overwrite:
+        with open(gpath) as f:
+            old = json.load(f)
+        if old.get("config") != json.loads(json.dumps(cfg.stable())):
+            raise ValueError(f"{folder} holds a generation with other settings {old.get('config')}; "
+                             f"use another --out or --overwrite")
+        resume = True
+    elif os.path.exists(fpath) and not overwrite:
+        raise ValueError(f"{folder} already holds a dataset not made by `dataset generate`; "
+                         f"use another --out or --overwrite")
+    source = (f"needletrack dataset generate (MuJoCo {mujoco.__version__} built-in suturing scene): "
+              f"randomise={cfg.randomise} seed={cfg.seed} steps={cfg.steps}")
+    meta = scene_meta(cfg.width, cfg.height, source)
+    done = 0
+    if resume:
+        n = truncate_torn_tail(fpath)
+        done = min(n // cfg.steps, cfg.sequences)
+        truncate_frames(fpath, done * cfg.steps)
+        if done:  # the last kept line must be the end of sequence done-1
+            with open(fpath) as f:
+                last = json.loads(f.read().splitlines()[-1])
+            fr = parse_frame(last)
+            if fr.sequence != done - 1 or fr.index != done * cfg.steps - 1:
+                raise ValueError(f"{fpath}: cannot resume, the last frame is not the end of sequence {done - 1}")
+    with open(gpath, "w") as f:
+        json.dump({"config": cfg.stable(), "sequences": cfg.sequences}, f, indent=1)
+    writer = DatasetWriter(folder, meta, cfg.image_format, cfg.jpeg_quality, resume=resume)
+    todo = list(range(done, cfg.sequences))
+    bar = tqdm(total=cfg.sequences * cfg.steps, initial=done * cfg.steps, unit="frame",
+               desc="generate", disable=not progress, smoothing=0.1)
+    try:
+        if jobs <= 1 or len(todo) <= 1:
+            _init_worker(cfg, folder)
+            results = map(_work, todo)
+            _consume(results, writer, bar)
+        else:
+            ctx = mp.get_context("spawn")
+            env_threads = os.environ.get("LP_NUM_THREADS")
+            os.environ["LP_NUM_THREADS"] = env_threads or str(max(1, (os.cpu_count() or 2) // jobs))
+            try:
+                with ctx.Pool(jobs, initializer=_init_worker, initargs=(cfg, folder)) as pool:
+                    _consume(pool.imap(_work, todo), writer, bar)
+            finally:
+                if env_threads is None:
+                    os.environ.pop("LP_NUM_THREADS", None)
+    finally:
+        bar.close()
+        writer.close()
+    return writer.n_frames
+
+
+def _consume(results, writer, bar) -> None:
+    from common.dataset import parse_frame
+    for frames in results:
+        for obj in frames:
+            writer.append(parse_frame(obj))
+            bar.update(1)
