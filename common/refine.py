@@ -81,6 +81,8 @@ class RefineConfig:
     scale is in units of those sigmas."""
 
     max_curve_points: int = 64      # observed centreline points kept per camera (even in arc length)
+    n_samples: int = 16             # projected arc samples that start each point's foot search
+    newton_steps: int = 2           # then Newton steps along the projected arc
     sigma_kp_px: float = 1.0        # assumed keypoint noise
     sigma_curve_px: float = 0.5     # assumed centreline noise
     min_score: float = 0.3          # keypoints scored below are left out
@@ -146,7 +148,6 @@ class _Static:
         kc = np.stack([c.K[:2, 2] for c in cams])
         if np.any(Kp[:, 1, 0] != 0) or np.any(Kp[:, [0, 1], [0, 1]] <= 0) or not np.all(np.isfinite(Kp)):
             raise RefineError("bad_calibration", "camera K must be upper triangular with positive focal lengths")
-        self.Kinv = np.stack([np.linalg.inv(c.K) for c in cams])
         self.cam_centres = np.stack([c.T_ecm_cam[:3, 3] for c in cams])
         self.radius = needle.radius_m
         a0, a1 = needle.arc_span_rad
@@ -162,8 +163,10 @@ class _Static:
         self._E = _exp_so3(np.diag(self.FD_STEP[:3]))           # the three rotation increments
         self._Rmid = _exp_so3(np.array([[0.0, 0.0, self.mid]]))[0]
         self._cos_half, self._sin_half = np.cos(self.half), np.sin(self.half)
-        self._Kinv2 = self.Kinv[None, :, :2, :2]
-        self.is_kp = np.concatenate([np.ones((C, 10), bool), np.zeros((C, 2 * M), bool)], axis=1).ravel()
+        self._flip = np.array([1.0, -1.0])
+        ang = np.linspace(-self.half, self.half, cfg.n_samples)
+        self._samples = np.stack([np.cos(ang), np.sin(ang)], axis=1)       # (S, 2)
+        self.is_kp = np.concatenate([np.ones((C, 10), bool), np.zeros((C, M), bool)], axis=1).ravel()
 
 
 class _Problem:
@@ -201,20 +204,38 @@ class _Problem:
             raise RefineError("too_few_points", f"{self.n_kp} keypoints and {self.n_curve} centreline "
                               "points cannot fix 6 pose parameters")
         # Residual weights in evaluation order, per camera: keypoint u (5), keypoint v (5),
-        # curve Sampson distance (M), curve excess beyond the arc's ends (M).
-        self.wp = np.concatenate([wU, wU, wO, wO], axis=1).ravel()
+        # curve distance (M).
+        self.wp = np.concatenate([wU, wU, wO], axis=1).ravel()
         self._Uu, self._Uv = U[None, :, :, 0], U[None, :, :, 1]
-        # Observed curve points in normalised camera coordinates, (1, C, M, 3) homogeneous.
-        Oh = np.concatenate([O, np.ones((C, M, 1))], axis=2) @ np.swapaxes(st.Kinv, 1, 2)
-        self._On = Oh[None]
+        self._Ou, self._Ov = O[None, :, :, 0], O[None, :, :, 1]
 
-    def residuals(self, R, t):
-        """Residuals (P, n) in px of P poses ``(R (P,3,3), t (P,3))``, and whether each pose keeps
-        the keypoints and the needle's centre in front of both cameras."""
-        P = len(R)
+    def _axes(self, R, t):
+        """Needle pose in each camera (P, C, ...): rotation, translation, and E stacking
+        radius * [e1, e2, e2, -e1] of needle axes turned so that the arc's middle is on +x."""
         Rcam = self.Rc[None] @ R[:, None]                                  # (P, C, 3, 3)
         tcam = (self.Rc[None] @ t[:, None, :, None])[..., 0] + self.tc     # (P, C, 3)
+        Rm = Rcam @ self._Rmid
+        E = self.radius * np.concatenate([Rm[..., :2], Rm[..., 1::-1] * self._flip], axis=3)
+        return Rcam, tcam, np.swapaxes(E, 2, 3)
 
+    def nearest_samples(self, R, t):
+        """Start of each observed point's foot on the arc, (cos, sin) (P, C, M) of its angle from
+        the arc's middle: the nearest of ``n_samples`` projected arc points."""
+        _, tcam, E = self._axes(R, t)
+        X = self._samples @ E[:, :, :2] + tcam[:, :, None, :]            # (P, C, S, 3)
+        iz = 1.0 / np.maximum(X[..., 2], 1e-9)
+        x, y = X[..., 0] * iz, X[..., 1] * iz
+        u = (self._fx * x + self._sk * y + self._cx)[:, :, None, :]
+        v = (self._fy * y + self._cy)[:, :, None, :]
+        k = np.argmin((u - self._Ou[..., None]) ** 2 + (v - self._Ov[..., None]) ** 2, axis=3)
+        return self._samples[k, 0], self._samples[k, 1]
+
+    def residuals(self, R, t, foot):
+        """Residuals (P, n) in px of P poses ``(R (P,3,3), t (P,3))`` with the observed points'
+        foot starts ``foot`` (see ``nearest_samples``), and whether each pose keeps the
+        keypoints and the needle's centre in front of both cameras."""
+        P = len(R)
+        Rcam, tcam, E = self._axes(R, t)
         Xk = self.kp_model @ np.swapaxes(Rcam, 2, 3) + tcam[:, :, None, :]
         z = Xk[..., 2]
         zc = tcam[..., 2]
@@ -224,34 +245,45 @@ class _Problem:
         ru = self._fx * x + self._sk * y + self._cx - self._Uu
         rv = self._fy * y + self._cy - self._Uv
 
-        # Each observed point's ray, in a needle frame turned so that the arc's middle is on +x,
-        # meets the needle plane at (m1, m2) / m3 (the plane homography's adjugate applied to it).
-        Rm = Rcam @ self._Rmid                                             # (P, C, 3, 3)
-        d = self._On @ Rm                                                  # rays, needle axes
-        abc = (np.swapaxes(Rm, 2, 3) @ tcam[..., None])[..., None, :, 0]   # (P, C, 1, 3)
-        a, b, c = abc[..., 0], abc[..., 1], abc[..., 2]
-        d1, d2, m3 = d[..., 0], d[..., 1], d[..., 2]
-        m1 = c * d1 - a * m3
-        m2 = c * d2 - b * m3
-        rho2 = self.radius ** 2
-        f = m1 * m1 + m2 * m2 - rho2 * m3 * m3
-        # Sampson distance f / |grad_uv f|: grad over normalised image coordinates is
-        # Rm [c m1, c m2, w] with w = -(a m1 + b m2 + rho^2 m3), then through K^-1 to pixels.
-        w = -(a * m1 + b * m2 + rho2 * m3)
-        B = (np.swapaxes(Rm[:, :, :2, :], 2, 3) @ self._Kinv2)[:, :, None]  # (P, C, 1, 3, 2)
-        cm1, cm2 = c * m1, c * m2
-        gx = cm1 * B[..., 0, 0] + cm2 * B[..., 1, 0] + w * B[..., 2, 0]
-        gy = cm1 * B[..., 0, 1] + cm2 * B[..., 1, 1] + w * B[..., 2, 1]
-        r_s = 0.5 * f / np.maximum(np.sqrt(gx * gx + gy * gy), 1e-300)
-        # Beyond the arc's ends (|angle| > half the span about the middle): the sine of the
-        # excess angle times the projected radius in pixels (zero on the arc).
-        sin_ex = (np.abs(m2) * self._cos_half - np.sign(m3) * m1 * self._sin_half) / np.maximum(
-            np.sqrt(m1 * m1 + m2 * m2), 1e-300)
-        rho_px = self._fx2 * self.radius / np.maximum(zc, 1e-9)
-        r_e = np.maximum(sin_ex, 0.0) * rho_px[..., None]
+        # Curve: the distance of each observed point to the projected arc. Its foot takes
+        # Newton steps along the projected arc from the given start; the residual is the
+        # distance to the tangent there: signed, or unsigned to an end of the arc when the foot
+        # lies beyond it.
+        co, si = foot
+        t4 = tcam[:, :, None, :]
+        beyond = None
+        for _ in range(self.cfg.newton_steps):
+            u, v, tu, tv = self._project_arc(co, si, E, t4)
+            du, dv = u - self._Ou, v - self._Ov
+            step = np.clip(-(tu * du + tv * dv) / np.maximum(tu * tu + tv * tv, 1e-300), -0.5, 0.5)
+            inv = 1.0 / np.sqrt(1.0 + step * step)
+            co, si, beyond = self._clamp((co - si * step) * inv, (si + co * step) * inv)
+        u, v, tu, tv = self._project_arc(co, si, E, t4)
+        du, dv = u - self._Ou, v - self._Ov
+        signed = (tu * dv - tv * du) / np.maximum(np.sqrt(tu * tu + tv * tv), 1e-300)
+        r_c = signed if beyond is None else np.where(beyond, np.sqrt(du * du + dv * dv), signed)
 
-        r = np.concatenate([ru, rv, r_s, r_e], axis=2).reshape(P, -1)
+        r = np.concatenate([ru, rv, r_c], axis=2).reshape(P, -1)
         return r, valid
+
+    def _clamp(self, co, si):
+        """Arc points (cos, sin of the angle from the arc's middle) clamped to the arc's span;
+        also whether each was beyond an end."""
+        beyond = co < self._cos_half
+        return (np.where(beyond, self._cos_half, co),
+                np.where(beyond, np.copysign(self._sin_half, si), si), beyond)
+
+    def _project_arc(self, co, si, E, t4):
+        """Pixels (u, v) of arc points (P, C, M) at angle (co, si) and their derivatives
+        (du, dv) along the arc (per radian); E stacks radius * [e1, e2, e2, -e1] (needle axes
+        in the camera frame), t4 the camera-frame needle origin."""
+        X = np.stack([co, si], axis=-1) @ E[:, :, :2] + t4
+        T = np.stack([co, si], axis=-1) @ E[:, :, 2:]
+        iz = 1.0 / np.maximum(X[..., 2], 1e-9)
+        x, y = X[..., 0] * iz, X[..., 1] * iz
+        dx, dy = (T[..., 0] - x * T[..., 2]) * iz, (T[..., 1] - y * T[..., 2]) * iz
+        return (self._fx * x + self._sk * y + self._cx, self._fy * y + self._cy,
+                self._fx * dx + self._sk * dy, self._fy * dy)
 
     def linearise(self, R, t):
         """Residuals (K, n), forward-difference Jacobians (K, n, 6) w.r.t. the ECM increment
@@ -260,7 +292,8 @@ class _Problem:
         h = _Static.FD_STEP
         Rs = np.concatenate([R, (self._E[:, None] @ R[None]).reshape(3 * K, 3, 3), np.tile(R, (3, 1, 1))])
         ts = np.concatenate([np.tile(t, (4, 1)), (t[None] + np.eye(3)[:, None] * h[3:, None, None]).reshape(3 * K, 3)])
-        r, valid = self.residuals(Rs, ts)
+        co, si = self.nearest_samples(R, t)
+        r, valid = self.residuals(Rs, ts, (np.tile(co, (7, 1, 1)), np.tile(si, (7, 1, 1))))
         r = r.reshape(7, K, -1)
         J = np.moveaxis((r[1:] - r[:1]) / h[:, None, None], 0, 2)
         return r[0], J, valid[:K]
@@ -478,9 +511,7 @@ def _result(prob: _Problem, s, cfg: RefineConfig) -> RefineResult:
     cov = s2 * _inv_psd(H)
 
     def rms(mask):
-        # a curve point's two residuals (Sampson, excess) make one distance
-        n = int(mask.sum()) - int((mask & ~prob.is_kp).sum()) // 2
-        return float(np.sqrt(np.sum(r[mask] ** 2) / n)) if n else float("nan")
+        return float(np.sqrt(np.mean(r[mask] ** 2))) if mask.any() else float("nan")
 
     # Competing solutions: other distinct minima, and how much worse they fit.
     cands, reasons = [(T0, float(s["cost"][b]))], []
