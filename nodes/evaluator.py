@@ -1,0 +1,174 @@
+"""Evaluator: collects truth, keypoints, triangulated points and every pose output by frame
+``seq``; after the source's EndOfStream (plus a drain timeout for outputs still in flight) it
+writes results.json, report.md, error_vs_distance.png and overlays/ into ``params.out`` and
+exits 0.
+
+Params: ``out`` (folder, required), ``dataset`` (the folder replayed: named in the results and
+read for the overlays' images; frame ``seq`` = frames.jsonl ``index``), ``detector`` (name for
+the results), ``noise_px`` (oracle noise, reported), ``drain_s`` (default 3: how long to wait
+after EndOfStream when some poses never come), ``quiet``.
+
+Inputs named after the pose methods (``pnp_average``, ``pnp_joint``, ``triangulation``,
+``multiview``, ``refined``, ``multiview_refined``) carry ``PoseEstimate``; wire any subset.
+Processing times of every node come from the graph's ``@stats`` key.
+"""
+from __future__ import annotations
+
+import threading
+import time
+from pathlib import Path
+
+from common.evaluation import EXTRA_METHODS, METHODS, Collected
+from common.messages import (Calibration, EndOfStream, GroundTruth, Keypoints, MessageError,
+                             NodeStats, Points3D, PoseEstimate, decode)
+from common.node import Node, run
+
+POSE_INPUTS = METHODS + EXTRA_METHODS
+
+
+class EvaluatorNode(Node):
+    """Compares every output of the graph with the ground truth and writes the evaluation."""
+
+    INPUTS = {"truth": GroundTruth, "left": Keypoints, "right": Keypoints, "points3d": Points3D,
+              "calib": Calibration, "eos": EndOfStream,
+              "pnp_average": PoseEstimate, "pnp_joint": PoseEstimate,
+              "triangulation": PoseEstimate, "multiview": PoseEstimate,
+              "refined": PoseEstimate, "multiview_refined": PoseEstimate}
+    OUTPUTS = ()
+    KEEP_ALL = tuple(INPUTS)
+
+    def setup(self):
+        if not self.params.get("out"):
+            raise ValueError("evaluator: params.out (the output folder) is required")
+        self.out = Path(self.params["out"])
+        self.dataset_path = self.params.get("dataset")
+        self.detector = str(self.params.get("detector", "unknown"))
+        self.drain_s = float(self.params.get("drain_s", 3.0))
+        self.col = Collected()
+        self.methods = [m for m in POSE_INPUTS if self.wired(m)]
+        self._eos_at = None
+        self._last_msg = time.monotonic()
+        self._stats_lock = threading.Lock()
+        self._stats: dict = {}
+        self._stats_sub = None
+        self._subscribe_stats()
+
+    # ---------------------------------------------------------------- node statistics
+    def _subscribe_stats(self):
+        """Every node's NodeStats, straight from ``<graph>/@stats/*`` on this node's session."""
+        rt = getattr(self, "_runtime", None)
+        if rt is None or getattr(rt, "session", None) is None:
+            return
+        from common.graph import stats_key
+
+        def on_stats(sample):
+            try:
+                msg = decode(sample.payload.to_bytes(), NodeStats)
+            except MessageError:
+                return
+            with self._stats_lock:
+                self._stats[msg.node] = msg
+        self._stats_sub = rt.session.declare_subscriber(stats_key(rt.graph.name), on_stats)
+
+    # ---------------------------------------------------------------- handlers
+    def _seen(self):
+        self._last_msg = time.monotonic()
+        return time.time_ns()
+
+    def on_truth(self, msg):
+        self.col.add_truth(msg, self._seen())
+
+    def on_left(self, msg):
+        self.col.add_keypoints(msg, self._seen())
+
+    def on_right(self, msg):
+        self.col.add_keypoints(msg, self._seen())
+
+    def on_points3d(self, msg):
+        self.col.add_points3d(msg, self._seen())
+
+    def on_calib(self, msg):
+        self.col.add_calib(msg)
+
+    def on_eos(self, msg):
+        self._seen()
+        self.col.add_eos(msg)
+        self._eos_at = time.monotonic()
+        self.log.info("end of stream after %d frames; waiting for the outputs in flight", msg.frames)
+
+    def _pose(self, method, msg):
+        self.col.add_pose(method, msg, self._seen())
+
+    def on_pnp_average(self, msg):
+        self._pose("pnp_average", msg)
+
+    def on_pnp_joint(self, msg):
+        self._pose("pnp_joint", msg)
+
+    def on_triangulation(self, msg):
+        self._pose("triangulation", msg)
+
+    def on_multiview(self, msg):
+        self._pose("multiview", msg)
+
+    def on_refined(self, msg):
+        self._pose("refined", msg)
+
+    def on_multiview_refined(self, msg):
+        self._pose("multiview_refined", msg)
+
+    # ---------------------------------------------------------------- the end
+    def step(self):
+        """Runs between input batches: finishes once the stream ended and everything came (or
+        the drain timeout passed since the last message)."""
+        time.sleep(0.02)
+        if self._eos_at is None:
+            return True
+        if self.col.complete(self.methods):
+            self.finish("every output arrived")
+            return False
+        if time.monotonic() - self._last_msg > self.drain_s:
+            self.finish(f"no message for {self.drain_s:.1f} s after the end of the stream")
+            return False
+        return True
+
+    def finish(self, why: str):
+        from common.evaluation_report import write_outputs
+
+        self.log.info("evaluating (%s)", why)
+        with self._stats_lock:
+            for msg in self._stats.values():
+                if msg.node != self.node_id:
+                    self.col.add_stats(msg)
+        loader = self._image_loader()
+        extra = {"noise_px": float(self.params.get("noise_px", 0.0)),
+                 "graph_methods": self.methods}
+        res = write_outputs(self.out, self.col, dataset=str(self.dataset_path or ""),
+                            detector=self.detector, load_images=loader, extra=extra)
+        self.log.info("wrote %s (frames %d)", self.out, res["frames"])
+
+    def _image_loader(self):
+        if not self.dataset_path:
+            return None
+        try:
+            from common.dataset import Dataset
+            ds = Dataset(self.dataset_path, check_files=False)
+        except Exception as exc:  # overlays then draw on black; the numbers do not need images
+            self.log.warning("overlays without images: %s", exc)
+            return None
+
+        def load(seq):
+            return {c: ds.image(seq, c) for c in ("left", "right")}
+        return load
+
+    def teardown(self):
+        if self._stats_sub is not None:
+            try:
+                self._stats_sub.undeclare()
+            except Exception:
+                pass
+
+
+NODE = EvaluatorNode
+if __name__ == "__main__":
+    run(NODE)
