@@ -1,0 +1,211 @@
+"""Multi-view fusion: the needle pose from the last k estimates made while the endoscope moves.
+
+Each estimate ``T_ecm_needle_i`` is kept with the endoscope pose ``T_world_ecm_i`` at which it
+was made. At every new estimate all queued ones are mapped into the current ECM frame,
+``inv(T_world_ecm_now) @ T_world_ecm_i @ T_ecm_needle_i``, outliers are removed (farther than
+``max_dist_m`` or ``max_angle_rad`` from a robust centre, the medoid), and the inliers are
+averaged: chordal rotation mean and mean translation, or, when every inlier carries a 6x6
+covariance, their information-weighted mean (Gauss-Newton on the Mahalanobis distances).
+
+Covariances follow ``common.pnp``: over ``[w, v]`` with ``R = exp([w]x) R0``, ``t = t0 + v``
+(rotation in ECM axes about the needle origin, translation of the origin, rad and m). Moving
+one to another ECM frame rotates both blocks: ``Sigma' = blkdiag(R, R) Sigma blkdiag(R, R)^T``.
+
+The queue resets when the needle has moved in the world: when the last ``reset_after``
+estimates agree with one another but are all farther than ``reset_dist_m`` or
+``reset_angle_rad`` from the fused pose of the older ones (a single wild estimate is only an
+outlier), or when the estimate's ``sequence`` label changes.
+"""
+from __future__ import annotations
+
+from collections import deque
+from dataclasses import dataclass
+
+import numpy as np
+
+from common.transforms import (R_to_rotvec, inv_T, make_T, pose_error, pose_mean,
+                               rotvec_to_R)
+
+
+@dataclass
+class QueuedEstimate:
+    """One estimate in the queue; ``covariance`` is in its own ECM frame (or None)."""
+
+    T_ecm_needle: np.ndarray
+    T_world_ecm: np.ndarray
+    covariance: np.ndarray | None = None
+    seq: int | None = None
+
+    @property
+    def T_world_needle(self) -> np.ndarray:
+        return self.T_world_ecm @ self.T_ecm_needle
+
+
+@dataclass
+class FusedPose:
+    """The fused pose in the current ECM frame and in the world.
+
+    ``n_views``: estimates averaged (the inliers); ``n_queued``: estimates in the queue;
+    ``inliers``: mask over the queue, oldest first; ``covariance`` (6, 6) in the current ECM
+    frame when the inputs carried covariances; ``reset``: this estimate started a new queue.
+    """
+
+    T_ecm_needle: np.ndarray
+    T_world_needle: np.ndarray
+    n_views: int
+    n_queued: int
+    inliers: np.ndarray
+    covariance: np.ndarray | None = None
+    reset: bool = False
+
+
+def covariance_to_frame(cov: np.ndarray, R_a_b: np.ndarray) -> np.ndarray:
+    """A [w, v] pose covariance expressed in frame b -> the same in frame a."""
+    A = np.zeros((6, 6))
+    A[:3, :3] = A[3:, 3:] = R_a_b
+    return A @ cov @ A.T
+
+
+def _within(T1, T2, max_dist_m, max_angle_rad) -> bool:
+    dt, dr = pose_error(T1, T2)
+    return dt <= max_dist_m and dr <= max_angle_rad
+
+
+def robust_centre(Ts, max_dist_m: float, max_angle_rad: float) -> int:
+    """Index of the medoid: the pose with the smallest sum of truncated normalised distances
+    ``min(2, max(dt / max_dist_m, dr / max_angle_rad))`` to all the others."""
+    n = len(Ts)
+    D = np.zeros((n, n))
+    for i in range(n):
+        for j in range(i + 1, n):
+            dt, dr = pose_error(Ts[i], Ts[j])
+            D[i, j] = D[j, i] = min(2.0, max(dt / max_dist_m, dr / max_angle_rad))
+    return int(np.argmin(D.sum(axis=1)))
+
+
+def information_mean(Ts, covariances, T0=None, iterations: int = 10):
+    """Information-weighted mean of poses with [w, v] covariances (all in one frame).
+
+    Minimises sum_i r_i^T inv(Sigma_i) r_i, r_i = [log(R_i R^T), t_i - t], by Gauss-Newton from
+    ``T0`` (default the chordal mean). Returns (T, covariance of the mean) or None when a
+    covariance is singular.
+    """
+    try:
+        infos = [np.linalg.inv(0.5 * (C + C.T)) for C in covariances]
+    except np.linalg.LinAlgError:
+        return None
+    H = np.sum(infos, axis=0)
+    try:
+        H_inv = np.linalg.inv(H)
+    except np.linalg.LinAlgError:
+        return None
+    T = pose_mean(Ts) if T0 is None else T0.copy()
+    for _ in range(iterations):
+        b = np.zeros(6)
+        for Ti, Wi in zip(Ts, infos):
+            r = np.concatenate([R_to_rotvec(Ti[:3, :3] @ T[:3, :3].T), Ti[:3, 3] - T[:3, 3]])
+            b += Wi @ r
+        delta = H_inv @ b
+        T = make_T(rotvec_to_R(delta[:3]) @ T[:3, :3], T[:3, 3] + delta[3:])
+        if np.linalg.norm(delta[:3]) < 1e-12 and np.linalg.norm(delta[3:]) < 1e-13:
+            break
+    return T, 0.5 * (H_inv + H_inv.T)
+
+
+def fuse_poses(Ts, covariances=None, max_dist_m: float = 0.005,
+               max_angle_rad: float = np.deg2rad(15.0)):
+    """Robust mean of poses given in one frame -> (T, inlier mask, covariance or None).
+
+    Inliers lie within ``max_dist_m`` and ``max_angle_rad`` of the medoid; they are averaged by
+    ``information_mean`` when every inlier has a covariance, else chordal/arithmetic mean.
+    """
+    Ts = [np.asarray(T, dtype=float) for T in Ts]
+    if not Ts:
+        raise ValueError("fuse_poses: no poses")
+    c = robust_centre(Ts, max_dist_m, max_angle_rad)
+    inl = np.array([_within(T, Ts[c], max_dist_m, max_angle_rad) for T in Ts])
+    sel = [T for T, ok in zip(Ts, inl) if ok]
+    T = pose_mean(sel)
+    cov = None
+    if covariances is not None:
+        covs = [C for C, ok in zip(covariances, inl) if ok]
+        if all(C is not None for C in covs):
+            res = information_mean(sel, covs, T)
+            if res is not None:
+                T, cov = res
+    return T, inl, cov
+
+
+class MultiViewFusion:
+    """The fusion queue (see the module docstring). Thresholds in metres and radians."""
+
+    def __init__(self, k: int = 5, max_dist_m: float = 0.005, max_angle_rad: float = np.deg2rad(15.0),
+                 reset_dist_m: float = 0.010, reset_angle_rad: float = np.deg2rad(45.0),
+                 reset_after: int = 3, use_covariance: bool = True):
+        if k < 1 or reset_after < 1:
+            raise ValueError(f"fusion: k and reset_after must be >= 1, got {k}, {reset_after}")
+        self.k = k
+        self.max_dist_m, self.max_angle_rad = max_dist_m, max_angle_rad
+        self.reset_dist_m, self.reset_angle_rad = reset_dist_m, reset_angle_rad
+        self.reset_after = reset_after
+        self.use_covariance = use_covariance
+        self.queue: deque[QueuedEstimate] = deque()
+        self.sequence: int | None = None
+        self.resets = 0
+
+    def __len__(self) -> int:
+        return len(self.queue)
+
+    def reset(self) -> None:
+        self.queue.clear()
+        self.sequence = None
+
+    def add(self, T_ecm_needle, T_world_ecm=None, covariance=None, seq: int | None = None,
+            sequence: int | None = None) -> FusedPose:
+        """Queue an estimate made at ``T_world_ecm`` (identity when unknown: a still endoscope)
+        and return the fused pose in the current ECM frame."""
+        T_world_ecm = np.eye(4) if T_world_ecm is None else np.asarray(T_world_ecm, dtype=float)
+        est = QueuedEstimate(np.asarray(T_ecm_needle, dtype=float), T_world_ecm,
+                             None if covariance is None else np.asarray(covariance, dtype=float), seq)
+        reset = False
+        if sequence is not None and self.sequence is not None and sequence != self.sequence:
+            self.queue.clear()
+            reset = True
+        if sequence is not None:
+            self.sequence = sequence
+        self.queue.append(est)
+        if not reset and self._moved():
+            for _ in range(len(self.queue) - self.reset_after):
+                self.queue.popleft()
+            reset = True
+        while len(self.queue) > self.k:
+            self.queue.popleft()
+        if reset:
+            self.resets += 1
+        return self._fuse(T_world_ecm, reset)
+
+    def _moved(self) -> bool:
+        n = self.reset_after
+        if len(self.queue) <= n:
+            return False
+        items = list(self.queue)
+        recent, older = items[-n:], items[:-n]
+        centre, _, _ = fuse_poses([e.T_world_needle for e in older], None,
+                                  self.max_dist_m, self.max_angle_rad)
+        far = all(not _within(e.T_world_needle, centre, self.reset_dist_m, self.reset_angle_rad)
+                  for e in recent)
+        agree = all(_within(a.T_world_needle, b.T_world_needle, self.max_dist_m, self.max_angle_rad)
+                    for i, a in enumerate(recent) for b in recent[i + 1:])
+        return far and agree
+
+    def _fuse(self, T_world_ecm_now, reset: bool) -> FusedPose:
+        T_now_world = inv_T(T_world_ecm_now)
+        Ts, covs = [], []
+        for e in self.queue:
+            T_now_i = T_now_world @ e.T_world_ecm
+            Ts.append(T_now_i @ e.T_ecm_needle)
+            covs.append(None if e.covariance is None
+                        else covariance_to_frame(e.covariance, T_now_i[:3, :3]))
+        T, inl, cov = fuse_poses(Ts, covs if self.use_covariance else None,
+                                 self.max_dist_m, self.max_angle_rad)
+        return FusedPose(T, T_world_ecm_now @ T, int(inl.sum()), len(Ts), inl, cov, reset)

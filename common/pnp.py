@@ -1,0 +1,541 @@
+"""Pipeline I: the needle pose ``T_ecm_needle`` from its keypoints by Perspective-n-Point.
+
+Two methods, both in the ECM frame (m, rad), both on ideal (undistorted) pixels:
+
+- ``pnp_average`` (the paper): per camera, OpenCV EPnP (``SOLVEPNP_EPNP``) on the usable
+  keypoints, mapped through ``T_ecm_cam``; the left and right poses are then averaged (chordal
+  rotation mean, score-weighted mean translation). The five keypoints are coplanar and EPnP is
+  not exact on them even without noise (see ../shared/notes/pose-sensitivity.md), so by default
+  each camera's EPnP pose is refined by Levenberg-Marquardt in that camera, together with
+  the two IPPE solutions of the planar two-fold ambiguity, and the camera keeps the refined
+  candidate with the lowest reprojection error in its own image. ``refine=False`` gives raw
+  EPnP (the paper as published).
+- ``pnp_joint``: one pose refined by Levenberg-Marquardt on the reprojection error in both
+  cameras at once, started from every camera's EPnP pose and both IPPE solutions; the local
+  minima are kept, deduplicated and sorted by cost, and the best one (the candidate consistent
+  with both views) is the pose. ``candidates`` lets a later refinement stage start from all.
+
+Fits are weighted by keypoint score (cost = sum_i w_i |r_i|^2, r_i the pixel residual of point
+i); points scoring below ``min_score`` are left out. The reprojection RMS is the weighted RMS of
+|r_i| in pixels over the points used.
+
+Perturbation convention (Jacobians, covariances): ``delta = [w, v]`` (rad, m) acts as
+``R = exp([w]x) R0``, ``t = t0 + v``: a rotation vector in ECM axes about the needle origin and
+a translation of the needle origin in the ECM frame, the order of ``PoseEstimate.covariance``.
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+from typing import Sequence
+
+import numpy as np
+
+from common.camera import StereoRig
+from common.observations import CameraObs, NoPose, check_spread, stereo_observations
+from common.transforms import make_T, pose_error, pose_mean, rotvec_to_R, skew
+
+MIN_POINTS = 4
+
+
+# ------------------------------------------------------------------ reprojection and its Jacobian
+
+class ReprojectionProblem:
+    """The weighted reprojection error of a needle pose in one or more cameras.
+
+    Holds every observation flattened to per-point arrays so residuals and their Jacobian are a
+    handful of vectorised operations. Internally a pose is ``(R, t')`` with ``t' = R c + t``:
+    rotations act about ``c``, the centroid of the observed model points, which decouples
+    rotation from translation far better than the arc centre (off the points) does. ``refine``
+    and ``evaluate`` take and return public ``T_ecm_needle`` and Jacobians in the module's
+    [w, v] convention.
+    """
+
+    def __init__(self, observations: Sequence[CameraObs]):
+        obs = [o for o in observations if o.n > 0]
+        self.n = sum(o.n for o in obs)
+        P = np.concatenate([o.points for o in obs]) if obs else np.zeros((0, 3))
+        self.centre = P.mean(axis=0) if len(P) else np.zeros(3)
+        self.P = P - self.centre
+        self.size = float(np.max(np.linalg.norm(self.P, axis=1))) if len(P) else 0.0
+        KRc, Ktc, r3 = [], [], []
+        for o in obs:
+            T_cam_ecm = o.camera.T_cam_ecm
+            KR = o.camera.K @ T_cam_ecm[:3]                 # K [R_cam_ecm | t_cam_ecm]
+            KRc.append(np.broadcast_to(KR[:, :3], (o.n, 3, 3)))
+            Ktc.append(np.broadcast_to(KR[:, 3], (o.n, 3)))
+            r3.append(np.broadcast_to(T_cam_ecm[2, :3], (o.n, 3)))   # camera z axis in ECM
+        self.KRc = np.concatenate(KRc) if obs else np.zeros((0, 3, 3))
+        self.Ktc = np.concatenate(Ktc) if obs else np.zeros((0, 3))
+        self.r3 = np.concatenate(r3) if obs else np.zeros((0, 3))
+        self.Sp = np.zeros((self.n, 3, 3))                  # -[p]x of the centred points
+        x, y, z = self.P.T
+        self.Sp[:, 0, 1], self.Sp[:, 0, 2], self.Sp[:, 1, 2] = z, -y, x
+        self.Sp[:, 1, 0], self.Sp[:, 2, 0], self.Sp[:, 2, 1] = -z, y, -x
+        self.uv = np.concatenate([o.uv for o in obs]) if obs else np.zeros((0, 2))
+        w = np.concatenate([o.weights for o in obs]) if obs else np.zeros(0)
+        self.sw = np.sqrt(w)
+        self.sw2 = np.repeat(self.sw[:, None], 2, axis=1)
+        self.w_sum = float(np.sum(w))
+
+    def _residuals(self, R: np.ndarray, t: np.ndarray, jacobian: bool = True):
+        """Internal pose (R, t'): weighted residuals (2n,) and Jacobian (2n, 6) w.r.t. the
+        internal [w, v']; None when a point is not in front of its camera."""
+        h = (self.KRc @ (self.P @ R.T + t)[:, :, None])[:, :, 0] + self.Ktc   # K p_cam
+        z = h[:, 2]
+        if min(z.tolist()) <= 1e-9:     # (a Python min: numpy reductions are slow on 10 numbers)
+            return None
+        iz = 1.0 / z
+        uvp = h[:, :2] * iz[:, None]
+        r = ((uvp - self.uv) * self.sw2).reshape(-1)
+        if not jacobian:
+            return r, None
+        # d(u, v)/d(ECM point) = (K[:2] R_cam_ecm - uv r3^T) / z, r3 = the camera's z axis
+        B = self.KRc[:, :2, :] - uvp[:, :, None] * self.r3[:, None, :]
+        B *= (self.sw * iz)[:, None, None]
+        # d(exp([w]x) R p)/dw = -[R p]x = R (-[p]x) R^T
+        Jw = (B @ R) @ self.Sp @ R.T
+        return r, np.concatenate([Jw, B], axis=2).reshape(-1, 6)
+
+    def _to_internal(self, T):
+        return T[:3, :3].copy(), T[:3, 3] + T[:3, :3] @ self.centre
+
+    def _to_public(self, R, t, J):
+        """Back to ``T_ecm_needle`` and the public Jacobian: t = t' - R c and v = v' + [R c]x w,
+        so J = J' M^-1 with M^-1 = [[I, 0], [-[R c]x, I]]."""
+        qc = R @ self.centre
+        if J is not None:
+            J = J.copy()
+            J[:, :3] -= J[:, 3:] @ skew(qc)
+        return make_T(R, t - qc), J
+
+    def evaluate(self, T_ecm_needle: np.ndarray, jacobian: bool = True):
+        """(weighted residuals (2n,), Jacobian (2n, 6) or None) at a pose; None when a point
+        is behind its camera. Residual pairs follow the observations' point order."""
+        R, t = self._to_internal(T_ecm_needle)
+        out = self._residuals(R, t, jacobian)
+        if out is None:
+            return None
+        return out[0], self._to_public(R, t, out[1])[1]
+
+    def rms_px(self, T_ecm_needle: np.ndarray) -> float:
+        """Weighted reprojection RMS (px) at a pose; inf when a point is behind its camera."""
+        out = self.evaluate(T_ecm_needle, jacobian=False)
+        return math.inf if out is None else float(np.sqrt(out[0] @ out[0] / self.w_sum))
+
+    def refine(self, T0: np.ndarray, max_iter: int = 60, tol_m: float = 1e-11,
+               rel_tol: float = 1e-9, known: Sequence[np.ndarray] = (),
+               merge_m: float = 1e-3, merge_rad: float = np.deg2rad(1.0)) -> "LMResult | None":
+        """Levenberg-Marquardt from ``T0`` (``T_ecm_needle``); see ``refine_pose_lm``.
+
+        ``known``: minima already found (``T_ecm_needle``). When the iterate comes within
+        ``merge_m`` and ``merge_rad`` of one, the fit stops early and its result has
+        ``merged_into`` set to that minimum's index (it would converge there).
+        """
+        if self.n < 3:
+            return None
+        known_int = [self._to_internal(K) for K in known]
+        cos_merge = math.cos(merge_rad)
+        R, t = self._to_internal(T0)
+        out = self._residuals(R, t)
+        if out is None:
+            return None
+        r, J = out
+        cost = float(r @ r)
+        lam, nu = 1e-3, 2.0                     # Marquardt-scaled damping, Nielsen's update
+        converged = False
+        it = 0
+        for it in range(1, max_iter + 1):
+            g = J.T @ r
+            H = J.T @ J
+            D = H.diagonal() + 1e-30
+            try:
+                delta = -np.linalg.solve(H + np.diag(lam * D), g)
+            except np.linalg.LinAlgError:
+                lam, nu = lam * nu, nu * 2.0
+                continue
+            step_m = math.sqrt(delta[0] ** 2 + delta[1] ** 2 + delta[2] ** 2) * self.size + \
+                math.sqrt(delta[3] ** 2 + delta[4] ** 2 + delta[5] ** 2)
+            pred = float(lam * (delta * D) @ delta - g @ delta)   # decrease the model predicts
+            R1, t1 = _exp_so3(delta[:3]) @ R, t + delta[3:]
+            trial = self._residuals(R1, t1)
+            new_cost = float(trial[0] @ trial[0]) if trial is not None else math.inf
+            if new_cost <= cost:
+                rho = (cost - new_cost) / pred if pred > 0 else 1.0
+                r, J = trial
+                R, t = R1, t1
+                cost = new_cost
+                lam *= max(1.0 / 3.0, 1.0 - (2.0 * rho - 1.0) ** 3)
+                nu = 2.0
+                if step_m < tol_m or pred <= rel_tol * cost or cost < 1e-26:
+                    converged = True
+                    break
+                for k, (Rk, tk) in enumerate(known_int):
+                    if (abs(t[0] - tk[0]) < merge_m and abs(t[1] - tk[1]) < merge_m
+                            and abs(t[2] - tk[2]) < merge_m
+                            and (float(R.ravel() @ Rk.ravel()) - 1.0) / 2.0 > cos_merge):
+                        T, J = self._to_public(R, t, J)
+                        rms = float(np.sqrt(cost / self.w_sum))
+                        return LMResult(T, cost, rms, J, r, it, False, merged_into=k)
+            else:
+                if step_m < tol_m or pred <= 1e-3 * rel_tol * cost:   # nothing left to gain
+                    converged = True
+                    break
+                lam, nu = lam * nu, nu * 2.0
+        rms = float(np.sqrt(cost / self.w_sum)) if self.w_sum > 0 else float("nan")
+        T, J = self._to_public(R, t, J)
+        return LMResult(T, cost, rms, J, r, it, converged)
+
+
+def _exp_so3(w: np.ndarray) -> np.ndarray:
+    """Rodrigues for small-step updates (scalar math; faster than the general helper)."""
+    x, y, z = float(w[0]), float(w[1]), float(w[2])
+    th2 = x * x + y * y + z * z
+    if th2 < 1e-16:
+        a, b = 1.0 - th2 / 6.0, 0.5 - th2 / 24.0
+    else:
+        th = math.sqrt(th2)
+        a, b = math.sin(th) / th, (1.0 - math.cos(th)) / th2
+    return np.array([
+        [1 - b * (y * y + z * z), -a * z + b * x * y, a * y + b * x * z],
+        [a * z + b * x * y, 1 - b * (x * x + z * z), -a * x + b * y * z],
+        [-a * y + b * x * z, a * x + b * y * z, 1 - b * (x * x + y * y)],
+    ])
+
+
+@dataclass
+class LMResult:
+    """A converged (or stopped) Levenberg-Marquardt fit."""
+
+    T_ecm_needle: np.ndarray
+    cost: float          # sum_i w_i |r_i|^2 (px^2)
+    rms_px: float        # sqrt(cost / sum_i w_i)
+    jacobian: np.ndarray  # (2n, 6) weighted residual Jacobian at the optimum, [w, v] order
+    residuals: np.ndarray  # (2n,) weighted residuals (px * sqrt(weight))
+    iterations: int
+    converged: bool
+    merged_into: int | None = None   # index of the known minimum this fit was heading to
+
+
+def refine_pose_lm(T0: np.ndarray, observations: Sequence[CameraObs], max_iter: int = 60,
+                   tol_m: float = 1e-11, rel_tol: float = 1e-9) -> LMResult | None:
+    """Levenberg-Marquardt (numpy, analytic Jacobian) on the weighted reprojection error of all
+    ``observations``, from ``T0`` = ``T_ecm_needle``.
+
+    Stops when a step moves no model point by more than ``tol_m`` (m) or the decrease it
+    predicts is below ``rel_tol`` times the cost. Steps that would put a point behind a camera
+    are rejected. Returns None when T0 puts a point behind its camera or fewer than 3 points
+    are given. Build a ``ReprojectionProblem`` once to refine many starting poses.
+    """
+    return ReprojectionProblem(observations).refine(T0, max_iter, tol_m, rel_tol)
+
+
+def pose_covariance(jacobian: np.ndarray, cost: float, min_sigma_px: float = 0.25) -> np.ndarray | None:
+    """(6, 6) covariance of [w, v] from the weighted Jacobian at the optimum.
+
+    ``sigma^2 (J^T J)^-1`` with sigma^2 the residual variance ``cost / (2n - 6)``, floored at
+    ``min_sigma_px^2`` so an exact (noise-free) fit does not claim infinite certainty.
+    """
+    m = jacobian.shape[0]
+    dof = m - 6
+    s2 = max(cost / dof if dof > 0 else 0.0, min_sigma_px ** 2)
+    try:
+        cov = s2 * np.linalg.inv(jacobian.T @ jacobian)
+    except np.linalg.LinAlgError:
+        return None
+    if not np.all(np.isfinite(cov)):
+        return None
+    return 0.5 * (cov + cov.T)
+
+
+# ------------------------------------------------------------------ per-camera initial poses
+
+# OpenCV returns rotations as rotation vectors, which it computes with a precision loss near a
+# half turn (at exactly pi the result can be any rotation; a needle lying face-on and upside
+# down in the image is such a pose). IPPE is therefore also run on the model points turned by
+# a fixed rotation _Q and its solutions turned back: a pose cannot be a half turn in both
+# frames unless its axis is perpendicular to _Q's, a single direction.
+_Q = rotvec_to_R(np.array([0.3, 0.5, 0.81]) / np.linalg.norm([0.3, 0.5, 0.81]) * (np.pi / 2))
+
+
+def _opencv_poses(obj, img, K, epnp: bool, ippe: bool):
+    import cv2
+    out = []
+    if epnp:
+        try:
+            ok, rvec, tvec = cv2.solvePnP(obj, img, K, None, flags=cv2.SOLVEPNP_EPNP)
+            if ok:
+                out.append(("epnp", rvec, tvec))
+        except cv2.error:
+            pass
+    if ippe:
+        try:
+            n, rvecs, tvecs, _ = cv2.solvePnPGeneric(obj, img, K, None, flags=cv2.SOLVEPNP_IPPE)
+            out += [(f"ippe{k}", rvecs[k], tvecs[k]) for k in range(n)]
+        except cv2.error:
+            pass
+    return out
+
+
+def initial_poses(obs: CameraObs, epnp: bool = True, ippe: bool = True) -> list[tuple[str, np.ndarray]]:
+    """``[(label, T_ecm_needle)]`` from one camera (n >= 4): both IPPE solutions, the same from
+    the turned model (see ``_Q``), then EPnP; near-duplicates (0.5 mm, 0.5 deg) left out.
+
+    Labels: ``ippe0:<camera>``, ``ippe1:<camera>``, ``ippe0q:...``, ``ippe1q:...``,
+    ``epnp:<camera>``. Solutions that are not finite or put a point behind the camera are
+    left out.
+    """
+    if obs.n < MIN_POINTS:
+        return []
+    cam = obs.camera
+    K = np.ascontiguousarray(cam.K, dtype=np.float64)
+    img = np.ascontiguousarray(obs.uv, dtype=np.float64).reshape(-1, 1, 2)
+    sols = []
+    for suffix, Q in (("", None), ("q", _Q)):
+        pts = obs.points if Q is None else obs.points @ Q.T
+        obj = np.ascontiguousarray(pts, dtype=np.float64).reshape(-1, 1, 3)
+        for lab, rvec, tvec in _opencv_poses(obj, img, K, epnp and Q is None, ippe):
+            sols.append((lab + suffix, rvec, tvec, Q))
+    order = {"ippe0": 0, "ippe1": 1, "ippe0q": 2, "ippe1q": 3, "epnp": 4}
+    sols.sort(key=lambda s: order[s[0]])
+    out: list[tuple[str, np.ndarray]] = []
+    for label, rvec, tvec, Q in sols:
+        rvec, tvec = np.asarray(rvec, float).reshape(3), np.asarray(tvec, float).reshape(3)
+        if not (np.all(np.isfinite(rvec)) and np.all(np.isfinite(tvec))):
+            continue
+        R = rotvec_to_R(rvec) if Q is None else rotvec_to_R(rvec) @ Q
+        if np.any(obs.points @ R[2] + tvec[2] <= 0):
+            continue
+        T = cam.T_ecm_cam @ make_T(R, tvec)
+        if _distinct(T, [o[1] for o in out], 5e-4, np.deg2rad(0.5)):
+            out.append((f"{label}:{cam.name}", T))
+    return out
+
+
+def _distinct(T, others, tol_m, tol_rad) -> bool:
+    for T2 in others:
+        dt, dr = pose_error(T, T2)
+        if dt <= tol_m and dr <= tol_rad:
+            return False
+    return True
+
+
+# ------------------------------------------------------------------ results
+
+@dataclass
+class PoseCandidate:
+    """One local minimum of the joint fit (or one camera's solution for ``average``)."""
+
+    T_ecm_needle: np.ndarray
+    cost: float
+    rms_px: float
+    source: str                        # the initial pose it came from, e.g. "ippe1:left"
+    jacobian: np.ndarray | None = None
+
+
+@dataclass
+class PnpResult:
+    """A PnP pose in the ECM frame.
+
+    ``candidates``: for ``pnp_joint`` every distinct local minimum sorted by cost (best first,
+    ``candidates[0]`` is the pose); for ``pnp_average`` each camera's own solution.
+    ``jacobian``/``covariance``: weighted residual Jacobian (2n, 6) and covariance (6, 6) of
+    [w, v] at the pose (joint only). ``ambiguous``: another distinct minimum is nearly as good.
+    ``used``: camera -> indices (into A..E) of the keypoints used.
+    """
+
+    T_ecm_needle: np.ndarray
+    rms_px: float
+    method: str
+    candidates: list = field(default_factory=list)
+    jacobian: np.ndarray | None = None
+    covariance: np.ndarray | None = None
+    ambiguous: bool = False
+    used: dict = field(default_factory=dict)
+    per_camera: dict = field(default_factory=dict)
+
+
+def _check_observations(obs: dict[str, CameraObs], need_one_camera: bool = True) -> None:
+    if not obs or sum(o.n for o in obs.values()) < MIN_POINTS:
+        n = sum(o.n for o in obs.values())
+        raise NoPose("too_few_points", f"{n} usable keypoints, need {MIN_POINTS}")
+    if need_one_camera and max(o.n for o in obs.values()) < MIN_POINTS:
+        raise NoPose("too_few_points", f"no camera has {MIN_POINTS} usable keypoints")
+    for name, o in obs.items():
+        if o.n >= 2:
+            check_spread(o.uv, name)
+    _check_in_front(obs)
+
+
+def _check_in_front(obs: dict[str, CameraObs]) -> None:
+    """With both cameras, triangulate the shared keypoints: a needle whose median depth is not
+    positive is behind the cameras (a single image cannot tell; its pose would be mirrored)."""
+    if "left" not in obs or "right" not in obs:
+        return
+    from common.triangulation import triangulate_dlt
+    L, Rr = obs["left"], obs["right"]
+    common_idx, il, ir = np.intersect1d(L.index, Rr.index, return_indices=True)
+    if len(common_idx) == 0:
+        return
+    X = triangulate_dlt(L.uv[il], Rr.uv[ir], L.camera.P_ecm, Rr.camera.P_ecm)
+    depth = (X @ L.camera.T_cam_ecm[:3, :3].T + L.camera.T_cam_ecm[:3, 3])[:, 2]
+    depth = depth[np.isfinite(depth)]
+    if len(depth) and np.median(depth) <= 0:
+        raise NoPose("behind_camera", "keypoints triangulate behind the cameras")
+
+
+def _residual_check(rms, max_rms_px):
+    if not np.isfinite(rms):
+        raise NoPose("non_finite", "reprojection error is not finite")
+    if max_rms_px is not None and rms > max_rms_px:
+        raise NoPose("high_residual", f"reprojection RMS {rms:.2f} px > {max_rms_px} px")
+
+
+# ------------------------------------------------------------------ Pipeline I, the paper's way
+
+def pnp_camera(obs: CameraObs, refine: bool = True) -> PoseCandidate:
+    """One camera's pose ``T_ecm_needle``: EPnP, then (``refine``) LM over EPnP and both IPPE
+    solutions in this camera, keeping the lowest reprojection error. Raises NoPose."""
+    if obs.n < MIN_POINTS:
+        raise NoPose("too_few_points", f"{obs.camera.name}: {obs.n} usable keypoints")
+    if not refine:
+        inits = initial_poses(obs, epnp=True, ippe=False)
+        if not inits:
+            raise NoPose("solver_failed", f"{obs.camera.name}: EPnP failed")
+        lab, T = inits[0]
+        rms = ReprojectionProblem([obs]).rms_px(T)
+        return PoseCandidate(T, rms ** 2 * obs.weights.sum(), rms, lab)
+    inits = initial_poses(obs)
+    problem = ReprojectionProblem([obs])
+    best = None
+    for lab, T in inits:
+        fit = problem.refine(T)
+        if fit is not None and (best is None or fit.cost < best.cost):
+            best = PoseCandidate(fit.T_ecm_needle, fit.cost, fit.rms_px, lab, fit.jacobian)
+    if best is None:
+        raise NoPose("solver_failed", f"{obs.camera.name}: no PnP solution in front of the camera")
+    return best
+
+
+def pnp_average(uv: dict, rig: StereoRig, model_points, scores: dict | None = None,
+                min_score: float = 0.5, refine: bool = True,
+                max_rms_px: float | None = None) -> PnpResult:
+    """Pipeline I as in the paper: per-camera EPnP poses averaged (see module docstring).
+
+    ``uv``: ``{"left": (5, 2), "right": (5, 2)}`` pixels (a camera may be absent; NaN rows are
+    missing points), ``scores`` likewise (5,). A camera with fewer than 4 usable keypoints is
+    left out of the mean; with none left, NoPose. Each camera's pose is weighted by the sum of
+    its scores. ``rms_px`` is the averaged pose's reprojection RMS in the cameras used.
+    """
+    obs = stereo_observations(uv, rig, model_points, scores, min_score)
+    _check_observations(obs)
+    per_cam = {}
+    for name, o in obs.items():
+        if o.n >= MIN_POINTS:
+            per_cam[name] = pnp_camera(o, refine)
+    Ts = [c.T_ecm_needle for c in per_cam.values()]
+    w = [obs[n].weights.sum() for n in per_cam]
+    T = pose_mean(Ts, w) if len(Ts) > 1 else Ts[0]
+    rms = ReprojectionProblem([obs[n] for n in per_cam]).rms_px(T)
+    if not np.isfinite(rms):
+        raise NoPose("behind_camera", "averaged pose puts a keypoint behind a camera")
+    _residual_check(rms, max_rms_px)
+    return PnpResult(T, rms, "pnp_average", list(per_cam.values()),
+                     used={n: obs[n].index for n in per_cam},
+                     per_camera={n: c.T_ecm_needle for n, c in per_cam.items()})
+
+
+# ------------------------------------------------------------------ Pipeline I, joint stereo LM
+
+def joint_candidates(obs: dict[str, CameraObs], inits: Sequence[tuple[str, np.ndarray]] | None = None,
+                     dedup_m: float = 1e-4, dedup_rad: float = np.deg2rad(0.05)) -> list[PoseCandidate]:
+    """Refine initial poses jointly in all cameras; distinct minima sorted by cost (best first).
+
+    ``inits`` defaults to every camera's ``initial_poses`` (EPnP, IPPE x2). Near-identical
+    initial poses (within 0.5 mm and 0.5 deg) are refined once, and a fit that comes within
+    1 mm / 1 deg of a minimum already found stops there (``ReprojectionProblem.refine``).
+    """
+    if inits is None:
+        inits = [p for o in obs.values() for p in initial_poses(o)]
+        # the likeliest minima first, so later seeds heading to them stop early
+        order = {"ippe0": 0, "ippe1": 1, "ippe0q": 2, "ippe1q": 3, "epnp": 4}
+        inits.sort(key=lambda p: order.get(p[0].split(":")[0], 5))
+    seeds: list[tuple[str, np.ndarray]] = []
+    for lab, T in inits:
+        if _distinct(T, [s[1] for s in seeds], 5e-4, np.deg2rad(0.5)):
+            seeds.append((lab, T))
+    problem = ReprojectionProblem(list(obs.values()))
+    cands: list[PoseCandidate] = []
+    for lab, T in seeds:
+        fit = problem.refine(T, known=[c.T_ecm_needle for c in cands])
+        if fit is None or not np.isfinite(fit.cost) or fit.merged_into is not None:
+            continue
+        cands.append(PoseCandidate(fit.T_ecm_needle, fit.cost, fit.rms_px, lab, fit.jacobian))
+    cands.sort(key=lambda c: c.cost)
+    distinct: list[PoseCandidate] = []
+    for c in cands:
+        if _distinct(c.T_ecm_needle, [d.T_ecm_needle for d in distinct], dedup_m, dedup_rad):
+            distinct.append(c)
+    return distinct
+
+
+def _is_ambiguous(cands: list[PoseCandidate], n_points: int, ratio: float = 2.0,
+                  floor_px: float = 0.1) -> bool:
+    """A second minimum at least 1 mm / 2 deg away whose cost is within ``ratio`` of the best
+    (plus a floor of ``floor_px`` RMS over the points, so exact fits are never ambiguous)."""
+    if len(cands) < 2:
+        return False
+    best = cands[0]
+    for c in cands[1:]:
+        dt, dr = pose_error(c.T_ecm_needle, best.T_ecm_needle)
+        if (dt > 1e-3 or dr > np.deg2rad(2.0)) and c.cost <= ratio * best.cost + n_points * floor_px ** 2:
+            return True
+    return False
+
+
+def pnp_joint(uv: dict, rig: StereoRig, model_points, scores: dict | None = None,
+              min_score: float = 0.5, outlier_px: float | None = None,
+              max_rms_px: float | None = None, min_sigma_px: float = 0.25) -> PnpResult:
+    """Pipeline I, joint: one pose fitted to the keypoints of both cameras (module docstring).
+
+    ``uv``/``scores`` as in ``pnp_average``. At least one camera needs 4 usable keypoints (to
+    start from); the other camera's usable keypoints all join the fit. ``outlier_px``: while the
+    worst point's residual exceeds it and more than 6 points remain, that point is dropped and
+    the fit redone from the previous minima. ``max_rms_px``: a larger RMS raises NoPose
+    ("high_residual"). Covariance: ``pose_covariance`` with ``min_sigma_px``.
+    """
+    obs = stereo_observations(uv, rig, model_points, scores, min_score)
+    _check_observations(obs)
+    cands = joint_candidates(obs)
+    if not cands:
+        raise NoPose("solver_failed", "no PnP solution in front of the cameras")
+    while outlier_px is not None:
+        views = [o for o in obs.values() if o.n > 0]
+        r, _ = ReprojectionProblem(views).evaluate(cands[0].T_ecm_needle, jacobian=False)
+        err = np.linalg.norm(r.reshape(-1, 2), axis=1) / np.concatenate([np.sqrt(o.weights) for o in views])
+        worst = int(np.argmax(err))
+        if err[worst] <= outlier_px or len(err) <= 6:
+            break
+        obs = _drop_point(obs, worst)
+        cands = joint_candidates(obs, [(c.source, c.T_ecm_needle) for c in cands])
+        if not cands:
+            raise NoPose("solver_failed", "no PnP solution after dropping outliers")
+    best = cands[0]
+    _residual_check(best.rms_px, max_rms_px)
+    n_pts = sum(o.n for o in obs.values())
+    return PnpResult(best.T_ecm_needle, best.rms_px, "pnp_joint", cands, best.jacobian,
+                     pose_covariance(best.jacobian, best.cost, min_sigma_px),
+                     _is_ambiguous(cands, n_pts), used={n: o.index for n, o in obs.items()})
+
+
+def _drop_point(obs: dict[str, CameraObs], k: int) -> dict[str, CameraObs]:
+    """Remove the k-th point in stacked order (the cameras' points one after the other)."""
+    out = {}
+    for name, o in obs.items():
+        if 0 <= k < o.n:
+            keep = np.arange(o.n) != k
+            out[name] = CameraObs(o.camera, o.uv[keep], o.points[keep], o.weights[keep], o.index[keep])
+        else:
+            out[name] = o
+        k -= o.n
+    return out
