@@ -1,0 +1,275 @@
+"""Inference with the learned keypoint detector: image -> ``Keypoints`` (A..E, scores, centreline).
+
+Two stages (see ``common.keypoint_model``): stage 1 on the image downscaled by 8 finds the needle
+and its box and gives the confidence; stage 2 on a full-resolution crop around the box gives A..E
+at sub-pixel precision, per-point scores, a presence confidence and the centreline. Cold frames
+run stage 2 twice: the second time on the box of the first pass's keypoints, which puts the crop
+at the scale and centring the network knows best. In tracking mode (per camera) the previous
+frame's box is reused and stage 1 is skipped while stage 2's presence confidence stays at or above
+the threshold; otherwise the frame is processed cold. Below the threshold (0.5 by default, as in
+the paper) the result is "no needle" (``Keypoints.not_found``) with a reason; points are never
+guessed.
+
+Weights are loaded with ``torch.load(..., weights_only=True)``; a missing, corrupt or mismatched
+file raises ``ModelFileError`` saying how to retrain.
+"""
+from __future__ import annotations
+
+import logging
+import os
+from pathlib import Path
+
+import cv2
+import numpy as np
+import torch
+
+from common.keypoint_model import (KeypointModel, ModelConfig, apply_affine, crop_affine, crop_side,
+                                   decode_global, decode_heatmaps, fuse_conv_bn, invert_affine)
+from common.messages import CameraImage, Keypoints, MessageError
+
+MODEL_FORMAT = "needletrack-keypoint-detector"
+MODEL_VERSION = 1
+REPO = Path(__file__).resolve().parent.parent
+DEFAULT_WEIGHTS = REPO / "models" / "keypoint" / "model.pt"
+RETRAIN = ("retrain with `needletrack train --data DATASET --config models/train.yaml "
+           "--out models/keypoint` (models/README.md gives the full recipe)")
+CENTRELINE_POINTS = 48
+log = logging.getLogger("needletrack.keypoint_detector")
+
+
+class ModelFileError(RuntimeError):
+    """A weights file that is missing, unreadable or made for another model."""
+
+
+def load_model(path=None, device="cpu") -> tuple[KeypointModel, dict]:
+    """(model in eval mode with BN folded, the file's meta) from a weights file."""
+    path = Path(path or DEFAULT_WEIGHTS)
+    if not path.is_file():
+        raise ModelFileError(f"{path}: no such weights file; {RETRAIN}")
+    try:
+        blob = torch.load(path, map_location="cpu", weights_only=True)
+    except Exception as exc:  # zip/unpickling errors of a truncated or foreign file
+        first = str(exc).split(". ")[0][:160]
+        raise ModelFileError(f"{path}: not a readable weights file, truncated or corrupt "
+                             f"({type(exc).__name__}: {first}); {RETRAIN}") from None
+    if not isinstance(blob, dict) or blob.get("format") != MODEL_FORMAT:
+        raise ModelFileError(f"{path}: not a needletrack keypoint-detector weights file "
+                             f"(format {blob.get('format') if isinstance(blob, dict) else type(blob).__name__!r}); {RETRAIN}")
+    if blob.get("version") != MODEL_VERSION:
+        raise ModelFileError(f"{path}: weights format version {blob.get('version')!r}, this code reads "
+                             f"version {MODEL_VERSION}; {RETRAIN}")
+    try:
+        cfg = ModelConfig.from_dict(dict(blob["config"]))
+        model = KeypointModel(cfg)
+        model.load_state_dict(blob["state_dict"], strict=True)
+    except (KeyError, TypeError, ValueError, RuntimeError) as exc:
+        raise ModelFileError(f"{path}: weights do not match the network ({str(exc)[:300]}); {RETRAIN}") from None
+    model.eval()
+    fuse_conv_bn(model)
+    model = model.to(device=device, memory_format=torch.channels_last)
+    return model, dict(blob.get("meta") or {})
+
+
+def pick_device(device: str = "auto") -> torch.device:
+    if device == "auto":
+        return torch.device("cuda" if torch.cuda.is_available() else "cpu")
+    if device.startswith("cuda") and not torch.cuda.is_available():
+        raise ValueError(f"device {device!r} asked for, but CUDA is not available")
+    return torch.device(device)
+
+
+def image_problem(img) -> str | None:
+    """Why an array cannot be a camera image (None if it can be)."""
+    if not isinstance(img, np.ndarray):
+        return f"image is a {type(img).__name__}, not an array"
+    if img.size == 0:
+        return f"empty image (shape {img.shape})"
+    if img.dtype != np.uint8:
+        return f"image dtype {img.dtype}, expected uint8"
+    if img.ndim == 2:
+        return None
+    if img.ndim != 3 or img.shape[2] not in (1, 3, 4):
+        return f"image shape {img.shape}, expected (h, w, 3) BGR"
+    if min(img.shape[:2]) < 16:
+        return f"image too small ({img.shape[1]}x{img.shape[0]})"
+    return None
+
+
+def _as_bgr(img: np.ndarray) -> np.ndarray:
+    if img.ndim == 2:
+        return cv2.cvtColor(img, cv2.COLOR_GRAY2BGR)
+    if img.shape[2] == 1:
+        return cv2.cvtColor(img[:, :, 0], cv2.COLOR_GRAY2BGR)
+    if img.shape[2] == 4:
+        return cv2.cvtColor(img, cv2.COLOR_BGRA2BGR)
+    return img
+
+
+def _curve_through(pts: np.ndarray, n: int) -> np.ndarray:
+    """n points on a Catmull-Rom curve through the 5 points (from the first to the last)."""
+    P = np.vstack([2 * pts[0] - pts[1], pts, 2 * pts[-1] - pts[-2]])
+    t = np.linspace(0, len(pts) - 1, n)
+    i = np.minimum(t.astype(int), len(pts) - 2)
+    u = (t - i)[:, None]
+    p0, p1, p2, p3 = P[i], P[i + 1], P[i + 2], P[i + 3]
+    return 0.5 * (2 * p1 + (-p0 + p2) * u + (2 * p0 - 5 * p1 + 4 * p2 - p3) * u * u
+                  + (-p0 + 3 * p1 - 3 * p2 + p3) * u ** 3)
+
+
+def decode_centreline(line_logit: np.ndarray, kp_cells: np.ndarray, n: int = CENTRELINE_POINTS,
+                      search: float = 4.0, min_prob: float = 0.25):
+    """The needle's centreline from the centreline heatmap (m, m logits), ordered A..E.
+
+    A curve through the decoded keypoints (cell coordinates) seeds ``n`` stations; at each, the
+    ridge is searched along the curve's normal within +-``search`` cells and located at sub-cell
+    precision by a parabola fit to the log-probability. Returns (points (n, 2) in cells,
+    weights (n,) = ridge probability, 0 where no ridge was found)."""
+    prob = 1.0 / (1.0 + np.exp(-line_logit.astype(np.float32)))
+    logp = np.log(prob + 1e-6)
+    seed = _curve_through(kp_cells, n)
+    tang = np.gradient(seed, axis=0)
+    tang /= np.maximum(np.linalg.norm(tang, axis=1, keepdims=True), 1e-9)
+    normal = np.stack([-tang[:, 1], tang[:, 0]], 1)
+    steps = np.arange(-search, search + 1e-9, 0.5)
+    pts = seed[:, None, :] + steps[None, :, None] * normal[:, None, :]
+    mx = pts[..., 0].astype(np.float32)
+    my = pts[..., 1].astype(np.float32)
+    prof_p = cv2.remap(prob, mx, my, cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT, borderValue=0)
+    prof_l = cv2.remap(logp, mx, my, cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT, borderValue=-14)
+    j = np.clip(prof_p.argmax(1), 1, len(steps) - 2)
+    r = np.arange(n)
+    a, b, c = prof_l[r, j - 1], prof_l[r, j], prof_l[r, j + 1]
+    den = a - 2 * b + c
+    off = np.where(den < -1e-6, 0.5 * (a - c) / np.minimum(den, -1e-6), 0.0).clip(-0.5, 0.5)
+    t = steps[j] + 0.5 * off
+    out = seed + t[:, None] * normal
+    w = prof_p[r, j]
+    w = np.where(w >= min_prob, w, 0.0)
+    return out, w.astype(np.float64)
+
+
+class KeypointDetector:
+    """The learned two-stage detector; one instance keeps a tracking state per camera name."""
+
+    name = "learned"
+
+    def __init__(self, weights=None, device: str = "auto", threshold: float = 0.5,
+                 tracking: bool = True, threads: int | None = None, refine: bool = True,
+                 centreline: bool = True):
+        self.device = pick_device(device)
+        if threads:
+            torch.set_num_threads(int(threads))
+        self.weights = Path(weights or DEFAULT_WEIGHTS)
+        self.model, self.meta = load_model(self.weights, self.device)
+        self.cfg = self.model.cfg
+        self.threshold = float(threshold)
+        self.tracking = bool(tracking)
+        self.refine = bool(refine)
+        self.centreline = bool(centreline)
+        self._track: dict[str, tuple] = {}
+        self.last_mode = ""
+
+    def reset(self, camera: str | None = None) -> None:
+        """Forget the tracking box (of one camera, or all)."""
+        if camera is None:
+            self._track.clear()
+        else:
+            self._track.pop(camera, None)
+
+    # ------------------------------------------------------------ stages
+    def _tensor(self, arr: np.ndarray) -> torch.Tensor:
+        t = torch.from_numpy(np.ascontiguousarray(arr)).permute(2, 0, 1)[None]
+        return t.to(self.device).contiguous(memory_format=torch.channels_last)
+
+    def _stage1(self, img: np.ndarray):
+        from common.keypoint_data import global_input
+        h, w = img.shape[:2]
+        ds = self.cfg.global_downscale
+        small = cv2.resize(img, (max(1, round(w / ds)), max(1, round(h / ds))), interpolation=cv2.INTER_AREA)
+        out = self.model.glob(self._tensor(global_input(small)))
+        return decode_global(out.float().cpu(), ds)
+
+    def _stage2(self, img: np.ndarray, box):
+        cx, cy, bw, bh = box
+        M = crop_affine(cx, cy, crop_side(self.cfg, bw, bh), self.cfg.crop)
+        crop = cv2.warpAffine(img, M, (self.cfg.crop, self.cfg.crop), flags=cv2.INTER_LINEAR,
+                              borderMode=cv2.BORDER_REPLICATE)
+        heat, pres = self.model.crop(self._tensor(crop))
+        heat = heat.float().cpu()
+        uv, score = decode_heatmaps(heat[:, :5], self.cfg.out_stride)
+        Minv = invert_affine(M)
+        uv_img = apply_affine(Minv, uv[0].numpy())
+        return {"M": M, "Minv": Minv, "uv": uv_img, "uv_crop": uv[0].numpy(), "scores": score[0].numpy(),
+                "presence": float(torch.sigmoid(pres[0])), "line": heat[0, 5].numpy()}
+
+    def _box_of(self, res) -> tuple:
+        pts = res["uv"]
+        if res.get("centreline") is not None:
+            cl, cw = res["centreline"], res["centreline_w"]
+            pts = np.vstack([pts, cl[cw > 0]])
+        lo, hi = pts.min(0), pts.max(0)
+        return ((lo[0] + hi[0]) / 2, (lo[1] + hi[1]) / 2, hi[0] - lo[0] + 4, hi[1] - lo[1] + 4)
+
+    def _finish(self, res) -> None:
+        if not self.centreline:
+            res["centreline"], res["centreline_w"] = None, None
+            return
+        s = self.cfg.out_stride
+        kp_cells = (res["uv_crop"] - (s - 1) / 2.0) / s
+        pts_cells, w = decode_centreline(res["line"], kp_cells)
+        res["centreline"] = apply_affine(res["Minv"], pts_cells * s + (s - 1) / 2.0)
+        res["centreline_w"] = w
+
+    # ------------------------------------------------------------ public
+    @torch.inference_mode()
+    def detect(self, image, camera: str = "left", seq: int = 0, stamp_ns: int = 0) -> Keypoints:
+        """Keypoints of one BGR image (h, w, 3) uint8; "no needle" with a reason when the image is
+        unusable or the confidence is below the threshold."""
+        problem = image_problem(image)
+        if problem:
+            self.reset(camera)
+            log.warning("camera %s seq %d: bad image: %s", camera, seq, problem)
+            return Keypoints.not_found(camera, seq, stamp_ns, self.name, f"bad image: {problem}")
+        img = _as_bgr(image)
+        res, conf = None, 0.0
+        box = self._track.get(camera) if self.tracking else None
+        if box is not None:
+            res = self._stage2(img, box)
+            conf = res["presence"]
+            self.last_mode = "tracking"
+            if conf < self.threshold:
+                res = None
+        if res is None:
+            self.last_mode = "cold"
+            c1, cx, cy, bw, bh = self._stage1(img)
+            if c1 < self.threshold:
+                self.reset(camera)
+                return Keypoints.not_found(camera, seq, stamp_ns, self.name,
+                                           f"no needle: confidence {c1:.2f} < {self.threshold:.2f}", c1)
+            res = self._stage2(img, (cx, cy, bw, bh))
+            if self.refine and res["presence"] >= self.threshold:
+                res = self._stage2(img, self._box_of(res))
+            conf = min(c1, res["presence"])
+            if conf < self.threshold:
+                self.reset(camera)
+                return Keypoints.not_found(camera, seq, stamp_ns, self.name,
+                                           f"no needle: crop confidence {res['presence']:.2f} < "
+                                           f"{self.threshold:.2f}", conf)
+        self._finish(res)
+        box = self._box_of(res)
+        self._track[camera] = box
+        cx, cy, bw, bh = box
+        return Keypoints(camera, seq, stamp_ns, True, res["uv"].astype(np.float64),
+                         res["scores"].astype(np.float64), float(conf),
+                         np.array([cx - bw / 2, cy - bh / 2, cx + bw / 2, cy + bh / 2]), self.name, None,
+                         res["centreline"], res["centreline_w"])
+
+    def detect_message(self, msg: CameraImage) -> Keypoints:
+        """Keypoints of a ``CameraImage``; corrupt or inconsistent image data -> "no needle"."""
+        try:
+            img = msg.to_bgr()
+        except (MessageError, ValueError) as exc:
+            self.reset(msg.camera)
+            log.warning("camera %s seq %d: %s", msg.camera, msg.seq, exc)
+            return Keypoints.not_found(msg.camera, msg.seq, msg.stamp_ns, self.name, f"bad image: {exc}")
+        return self.detect(img, msg.camera, msg.seq, msg.stamp_ns)

@@ -1,0 +1,370 @@
+"""``needletrack train``: train the learned keypoint detector on a needle dataset, on the CPU.
+
+    needletrack train --data DIR [--data DIR2 ...] [--config models/train.yaml] --out models/NAME
+
+Writes into ``--out`` (a folder): ``model.pt`` (the best weights by validation keypoint error,
+what the detector loads), ``checkpoint.pt`` (everything needed to resume: the same command
+continues where it stopped), ``train.yaml`` (the configuration used), ``metrics.jsonl`` (one line
+per epoch) and ``curves.png``. Seeded: the same data, config and seed give the same model.
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import os
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import torch
+import torch.nn.functional as F
+import yaml
+
+from common.keypoint_data import (AugConfig, DatasetError, crop_from, crop_sample, global_input,
+                                  global_sample, load_cached, load_records, save_records)
+from common.keypoint_model import (ModelConfig, KeypointModel, apply_affine, centreline_target,
+                                   crop_affine, crop_side, decode_global, decode_heatmaps,
+                                   focal_heatmap_loss, gaussian_targets, invert_affine,
+                                   keypoint_loss)
+
+MODEL_FORMAT = "needletrack-keypoint-detector"
+MODEL_VERSION = 1
+
+DEFAULT_TRAIN = {
+    "epochs": 20,
+    "batch": 32,              # stage-2 crops per step
+    "global_batch": 16,       # stage-1 images per step
+    "optimizer": "adamw",     # adamw | sgd (the paper's: lr 0.01, momentum 0.9, wd 0.0005)
+    "lr": 0.002,
+    "momentum": 0.9,
+    "weight_decay": 0.0005,
+    "warmup_steps": 100,
+    "steps_per_epoch": 0,     # 0: one crop per training image per epoch
+    "val_fraction": 0.1,
+    "threads": 2,
+    "time_budget_min": 0,     # stop (resumably) after the epoch that passes this; 0 = none
+    "loss_weights": {"kp": 1.0, "line": 4.0, "presence": 0.3, "global": 1.0, "box": 1.0},
+}
+
+
+def load_config(path: str | None) -> dict:
+    """Training configuration: defaults overridden by the YAML file (sections seed, model,
+    augment, train); raises ValueError naming the file and field."""
+    cfg = {"seed": 0, "model": {}, "augment": {}, "train": dict(DEFAULT_TRAIN)}
+    if path:
+        try:
+            user = yaml.safe_load(Path(path).read_text()) or {}
+        except (OSError, yaml.YAMLError) as exc:
+            raise ValueError(f"{path}: cannot read config: {exc}") from None
+        if not isinstance(user, dict):
+            raise ValueError(f"{path}: expected a mapping at the top level")
+        unknown = set(user) - set(cfg)
+        if unknown:
+            raise ValueError(f"{path}: unknown section(s) {sorted(unknown)} (known: {sorted(cfg)})")
+        cfg["seed"] = int(user.get("seed", 0))
+        cfg["model"] = dict(user.get("model") or {})
+        cfg["augment"] = dict(user.get("augment") or {})
+        t = dict(user.get("train") or {})
+        bad = set(t) - set(DEFAULT_TRAIN)
+        if bad:
+            raise ValueError(f"{path}: train: unknown field(s) {sorted(bad)}")
+        lw = dict(DEFAULT_TRAIN["loss_weights"])
+        lw.update(t.pop("loss_weights", {}) or {})
+        cfg["train"].update(t)
+        cfg["train"]["loss_weights"] = lw
+    try:
+        ModelConfig.from_dict(cfg["model"])
+        AugConfig.from_dict(cfg["augment"])
+    except (TypeError, ValueError) as exc:
+        raise ValueError(f"{path or 'config'}: {exc}") from None
+    return cfg
+
+
+# ---------------------------------------------------------------- batches
+
+def crop_batch(records, idx, cfg: ModelConfig, aug, rng):
+    items = [crop_sample(records[i], cfg, aug, rng) for i in idx]
+    x = torch.from_numpy(np.stack([it[0] for it in items])).permute(0, 3, 1, 2).contiguous()
+    kpc = torch.from_numpy(np.stack([it[1] for it in items]))
+    valid = torch.from_numpy(np.stack([it[2] for it in items]))
+    line = centreline_target([it[3] for it in items], cfg.heat, cfg.line_sigma)
+    pres = torch.tensor([it[4] for it in items], dtype=torch.float32)
+    return x, kpc, valid, line, pres
+
+
+def global_batch(records, idx, cfg: ModelConfig, aug, rng):
+    items = [global_sample(records[i], cfg, aug, rng) for i in idx]
+    shapes = {it[0].shape for it in items}
+    if len(shapes) > 1:  # mixed image sizes: train on the most common one only
+        common = max(shapes, key=lambda s: sum(it[0].shape == s for it in items))
+        items = [it for it in items if it[0].shape == common]
+    x = torch.from_numpy(np.stack([it[0] for it in items])).permute(0, 3, 1, 2).contiguous()
+    heat = torch.from_numpy(np.stack([it[1] for it in items]))
+    reg = torch.from_numpy(np.stack([it[2] for it in items]))
+    mask = torch.from_numpy(np.stack([it[3] for it in items]))
+    return x, heat, reg, mask
+
+
+def losses(model: KeypointModel, cb, gb, w: dict) -> dict:
+    cfg = model.cfg
+    x, kpc, valid, line, pres = cb
+    heat, p = model.crop(x)
+    out = {}
+    out["kp"] = keypoint_loss(heat[:, :5], gaussian_targets(kpc, valid, cfg.heat, cfg.kp_sigma))
+    out["line"] = F.binary_cross_entropy_with_logits(heat[:, 5], line)
+    out["presence"] = F.binary_cross_entropy_with_logits(p, pres)
+    gx, gheat, greg, gmask = gb
+    g = model.glob(gx)
+    out["global"] = focal_heatmap_loss(g[:, 0], gheat)
+    m = gmask[:, None]
+    out["box"] = (F.smooth_l1_loss(g[:, 1:5], greg, reduction="none", beta=0.1) * m).sum() / m.sum().clamp_min(1) / 4
+    out["total"] = sum(w[k] * out[k] for k in ("kp", "line", "presence", "global", "box"))
+    return out
+
+
+# ---------------------------------------------------------------- validation
+
+@torch.inference_mode()
+def validate(model: KeypointModel, records, threshold: float = 0.5) -> dict:
+    """Validation figures on prepared records: stage 2 with the ground-truth box, and the whole
+    two-stage pipeline (stage-1 box -> crop); per-keypoint pixel errors at full resolution."""
+    model.eval()
+    cfg = model.cfg
+    err_gt, err_pipe = [], []
+    found, n_pos, fp, n_neg = 0, 0, 0, 0
+    for rec in records:
+        gx = torch.from_numpy(global_input(rec.small)).permute(2, 0, 1)[None].contiguous()
+        conf, cx, cy, bw, bh = decode_global(model.glob(gx), cfg.global_downscale)
+        if not rec.has_needle:
+            n_neg += 1
+            if conf >= threshold:
+                M = crop_affine(cx, cy, crop_side(cfg, bw, bh), cfg.crop)
+                _, pres = model.crop(torch.from_numpy(crop_from(rec.neg if rec.neg.size else rec.region,
+                                     rec.neg_origin if rec.neg.size else rec.origin, M, cfg.crop)
+                                     ).permute(2, 0, 1)[None].contiguous())
+                fp += int(float(torch.sigmoid(pres[0])) >= threshold)
+            continue
+        if rec.vis.sum() < 5:
+            continue
+        n_pos += 1
+        boxes = [("gt", rec.box)]
+        if conf >= threshold:
+            boxes.append(("pipe", (cx, cy, bw, bh)))
+        for kind, (bx, by, bw_, bh_) in boxes:
+            M = crop_affine(bx, by, crop_side(cfg, bw_, bh_), cfg.crop)
+            crop = crop_from(rec.region, rec.origin, M, cfg.crop)
+            heat, pres = model.crop(torch.from_numpy(crop).permute(2, 0, 1)[None].contiguous())
+            if kind == "pipe" and float(torch.sigmoid(pres[0])) < threshold:
+                continue
+            uv, _ = decode_heatmaps(heat[:, :5], cfg.out_stride)
+            uv_img = apply_affine(invert_affine(M), uv[0].numpy())
+            e = np.linalg.norm(uv_img - rec.kp, axis=1)
+            (err_gt if kind == "gt" else err_pipe).append(e)
+            if kind == "pipe":
+                found += 1
+    res = {"n_pos": n_pos, "n_neg": n_neg, "found": found,
+           "detection_rate": found / max(1, n_pos), "false_positives": fp}
+    for name, errs in (("gtbox", err_gt), ("pipe", err_pipe)):
+        if errs:
+            e = np.asarray(errs)
+            res[f"{name}_mean_px"] = float(e.mean())
+            res[f"{name}_median_px"] = float(np.median(e))
+            res[f"{name}_per_kp_px"] = [float(v) for v in e.mean(0)]
+    model.train()
+    return res
+
+
+# ---------------------------------------------------------------- files
+
+def save_model(path, model: KeypointModel, meta: dict) -> None:
+    """The weights file the detector loads (tensors and plain types only: weights_only=True)."""
+    blob = {"format": MODEL_FORMAT, "version": MODEL_VERSION, "config": model.cfg.to_dict(),
+            "state_dict": {k: v.detach().clone() for k, v in model.state_dict().items()},
+            "meta": json.loads(json.dumps(meta))}
+    tmp = str(path) + ".tmp"
+    torch.save(blob, tmp)
+    os.replace(tmp, path)
+
+
+def plot_curves(metrics: list[dict], path) -> None:
+    import matplotlib
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    ep = [m["epoch"] for m in metrics]
+    fig, ax = plt.subplots(1, 2, figsize=(10, 4))
+    ax[0].plot(ep, [m["train_loss"] for m in metrics], "o-", label="train loss")
+    ax[0].set_xlabel("epoch"); ax[0].set_yscale("log"); ax[0].legend()
+    for key, lab in (("gtbox_mean_px", "val, ground-truth box"), ("pipe_mean_px", "val, two-stage")):
+        ax[1].plot(ep, [m["val"].get(key, np.nan) for m in metrics], "o-", label=lab)
+    ax[1].set_xlabel("epoch"); ax[1].set_ylabel("mean keypoint error (px)"); ax[1].set_yscale("log")
+    ax[1].grid(True, which="both", alpha=0.3); ax[1].legend()
+    fig.tight_layout()
+    fig.savefig(path, dpi=90)
+    plt.close(fig)
+
+
+def prepare_records(data_dirs, out: Path, mcfg: ModelConfig, seed: int, progress: bool = True):
+    """Records of all data folders, cached in ``out/records.npz`` keyed by the folders."""
+    cache = out / "records.npz"
+    key_path = out / "records.key"
+    key = json.dumps({"data": [str(Path(d).resolve()) for d in data_dirs],
+                      "downscale": mcfg.global_downscale, "seed": seed})
+    if cache.is_file() and key_path.is_file() and key_path.read_text() == key:
+        return load_cached(cache)
+    records = []
+    for i, d in enumerate(data_dirs):
+        records += load_records(d, mcfg, seed=seed + i, progress=progress)
+    save_records(cache, records)
+    key_path.write_text(key)
+    return records
+
+
+def split(records, fraction: float, seed: int):
+    """Train/validation split by frame (both cameras of a frame on the same side)."""
+    keys = sorted({(r.image_size, r.frame) for r in records})
+    rng = np.random.default_rng(seed)
+    order = rng.permutation(len(keys))
+    n_val = int(round(fraction * len(keys)))
+    val_keys = {keys[i] for i in order[:n_val]}
+    tr = [r for r in records if (r.image_size, r.frame) not in val_keys]
+    va = [r for r in records if (r.image_size, r.frame) in val_keys]
+    return tr, va
+
+
+# ---------------------------------------------------------------- main
+
+def train(data_dirs, out, config_path=None, log=print, progress=True) -> dict:
+    """Train (or resume) into the folder ``out``; returns the last epoch's metrics."""
+    cfg = load_config(config_path)
+    tcfg = cfg["train"]
+    mcfg = ModelConfig.from_dict(cfg["model"])
+    aug = AugConfig.from_dict(cfg["augment"])
+    seed = int(cfg["seed"])
+    out = Path(out)
+    out.mkdir(parents=True, exist_ok=True)
+    torch.set_num_threads(max(1, int(tcfg["threads"])))
+    (out / "train.yaml").write_text(yaml.safe_dump(cfg, sort_keys=False))
+
+    records = prepare_records(data_dirs, out, mcfg, seed, progress)
+    tr, va = split(records, float(tcfg["val_fraction"]), seed)
+    pos = [i for i, r in enumerate(tr) if r.has_needle]
+    if not pos:
+        raise DatasetError(f"{data_dirs}: no image with a visible needle to train on")
+    log(f"train: {len(tr)} images ({len(pos)} with a needle), validation: {len(va)}")
+
+    torch.manual_seed(seed)
+    model = KeypointModel(mcfg)
+    steps_per_epoch = int(tcfg["steps_per_epoch"]) or max(1, len(tr) // int(tcfg["batch"]))
+    total = steps_per_epoch * int(tcfg["epochs"])
+    if tcfg["optimizer"] == "sgd":
+        opt = torch.optim.SGD(model.parameters(), lr=tcfg["lr"], momentum=tcfg["momentum"],
+                              weight_decay=tcfg["weight_decay"])
+    elif tcfg["optimizer"] == "adamw":
+        opt = torch.optim.AdamW(model.parameters(), lr=tcfg["lr"], weight_decay=tcfg["weight_decay"])
+    else:
+        raise ValueError(f"{config_path}: train.optimizer must be adamw or sgd, got {tcfg['optimizer']!r}")
+    warm = int(tcfg["warmup_steps"])
+    sched = torch.optim.lr_scheduler.LambdaLR(
+        opt, lambda s: min(1.0, (s + 1) / max(1, warm)) * 0.5 * (1 + math.cos(math.pi * min(1.0, s / max(1, total)))))
+
+    start_epoch, best, elapsed, metrics = 0, float("inf"), 0.0, []
+    ckpt_path = out / "checkpoint.pt"
+    if ckpt_path.is_file():
+        ck = torch.load(ckpt_path, map_location="cpu", weights_only=True)
+        if ck.get("config") != mcfg.to_dict():
+            raise ValueError(f"{ckpt_path}: was trained with another model config; "
+                             f"delete it or use another --out")
+        model.load_state_dict(ck["state_dict"])
+        opt.load_state_dict(ck["optimizer"])
+        sched.load_state_dict(ck["scheduler"])
+        start_epoch, best, elapsed = int(ck["epoch"]), float(ck["best"]), float(ck["elapsed_s"])
+        log(f"resuming from {ckpt_path} after epoch {start_epoch}")
+    mpath = out / "metrics.jsonl"
+    if mpath.is_file() and start_epoch:
+        metrics = [json.loads(l) for l in mpath.read_text().splitlines() if l.strip()][:start_epoch]
+
+    from tqdm import tqdm
+    w = tcfg["loss_weights"]
+    budget = float(tcfg["time_budget_min"]) * 60.0
+    last = {}
+    model.train()
+    for epoch in range(start_epoch, int(tcfg["epochs"])):
+        if budget and elapsed >= budget:
+            log(f"time budget of {tcfg['time_budget_min']} min used up; run again to continue")
+            break
+        t0 = time.time()
+        rng = np.random.default_rng([seed, epoch])
+        torch.manual_seed(seed * 1000 + epoch)
+        order = rng.permutation(np.resize(rng.permutation(len(tr)), steps_per_epoch * int(tcfg["batch"])))
+        running = None
+        bar = tqdm(range(steps_per_epoch), desc=f"epoch {epoch + 1}/{tcfg['epochs']}", disable=not progress,
+                   unit="step", dynamic_ncols=True)
+        for step in bar:
+            idx = order[step * int(tcfg["batch"]):(step + 1) * int(tcfg["batch"])]
+            gidx = rng.integers(0, len(tr), int(tcfg["global_batch"]))
+            cb = crop_batch(tr, idx, mcfg, aug, rng)
+            gb = global_batch(tr, gidx, mcfg, aug, rng)
+            L = losses(model, cb, gb, w)
+            opt.zero_grad(set_to_none=True)
+            L["total"].backward()
+            torch.nn.utils.clip_grad_norm_(model.parameters(), 5.0)
+            opt.step()
+            sched.step()
+            vals = {k: float(v.detach()) for k, v in L.items()}
+            running = vals if running is None else {k: 0.95 * running[k] + 0.05 * vals[k] for k in vals}
+            bar.set_postfix(loss=f"{running['total']:.3f}", kp=f"{running['kp']:.3f}",
+                            glob=f"{running['global']:.3f}", lr=f"{sched.get_last_lr()[0]:.1e}")
+        bar.close()
+        val = validate(model, va) if va else {}
+        elapsed += time.time() - t0
+        last = {"epoch": epoch + 1, "train_loss": running["total"], "train": running, "val": val,
+                "elapsed_s": round(elapsed, 1)}
+        metrics.append(last)
+        score = val.get("pipe_mean_px", val.get("gtbox_mean_px", running["total"]))
+        if val and val.get("detection_rate", 1.0) < 0.9:
+            score = score + 100.0   # a model that misses needles is never "best"
+        msg = (f"epoch {epoch + 1}: loss {running['total']:.4f}  val gt-box {val.get('gtbox_mean_px', float('nan')):.3f} px"
+               f"  two-stage {val.get('pipe_mean_px', float('nan')):.3f} px  detected {val.get('found', 0)}/{val.get('n_pos', 0)}"
+               f"  fp {val.get('false_positives', 0)}/{val.get('n_neg', 0)}  ({elapsed / 60:.1f} min)")
+        log(msg)
+        meta = {"epoch": epoch + 1, "val": val, "train_seconds": round(elapsed, 1),
+                "data": [str(d) for d in data_dirs], "seed": seed}
+        if score <= best or not (out / "model.pt").is_file():
+            best = min(best, score)
+            save_model(out / "model.pt", model, meta)
+        with open(mpath, "w") as f:
+            f.write("".join(json.dumps(m) + "\n" for m in metrics))
+        ck = {"config": mcfg.to_dict(), "state_dict": model.state_dict(), "optimizer": opt.state_dict(),
+              "scheduler": sched.state_dict(), "epoch": epoch + 1, "best": best, "elapsed_s": elapsed}
+        torch.save(ck, str(ckpt_path) + ".tmp")
+        os.replace(str(ckpt_path) + ".tmp", ckpt_path)
+        try:
+            plot_curves(metrics, out / "curves.png")
+        except Exception as exc:  # a plotting problem must not stop training
+            log(f"could not plot curves: {exc}")
+    return last
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(prog="needletrack train",
+                                 description="Train the learned needle keypoint detector (CPU).")
+    ap.add_argument("--data", action="append", required=True, help="dataset folder (repeatable)")
+    ap.add_argument("--config", default=None, help="training YAML (e.g. models/train.yaml)")
+    ap.add_argument("--out", required=True, help="output folder, e.g. models/keypoint")
+    ap.add_argument("--no-progress", action="store_true", help="no progress bar")
+    a = ap.parse_args(argv)
+    try:
+        train(a.data, a.out, a.config, progress=not a.no_progress)
+    except (DatasetError, ValueError, OSError) as exc:
+        print(f"needletrack train: error: {exc}", file=sys.stderr)
+        return 2
+    except KeyboardInterrupt:
+        print("needletrack train: interrupted; run the same command again to resume", file=sys.stderr)
+        return 130
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
