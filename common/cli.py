@@ -1,0 +1,83 @@
+"""``needletrack``: the command line. Subcommands are dispatched lazily from ``COMMANDS``.
+
+Each target is ``"module:function"`` with ``function(argv: list[str]) -> int``; add a line to
+``COMMANDS`` (or ``BENCHES`` for ``needletrack bench NAME``) to add a command. A module is
+imported only when its command runs.
+"""
+from __future__ import annotations
+
+import importlib
+import sys
+from typing import Optional
+
+COMMANDS = {
+    # name: (target, one-line help)
+    "launch": ("common.launcher:launch_main", "run a graph, one process per node (default dataflow.yaml)"),
+    "ps": ("common.tools:ps_main", "live nodes of a graph with rates and error counts"),
+    "echo": ("common.tools:echo_main", "print decoded messages on a key"),
+    "hz": ("common.tools:hz_main", "print the rate of messages on a key"),
+    "swap": ("common.tools:swap_main", "replace a running node (make-before-break)"),
+    "cmd": ("common.tools:cmd_main", "send a Command to a node"),
+    "validate": ("common.tools:validate_main", "check a graph YAML and list every error"),
+    "bench": ("common.cli:bench_main", "benchmarks: transport, sim, detector, graph"),
+    "dataset": ("common.dataset_cli:main", "make and check datasets"),
+    "train": ("common.keypoint_train:main", "train the keypoint detector"),
+    "eval": ("common.evaluation_cli:main", "evaluate pose pipelines"),
+}
+
+BENCHES = {
+    "transport": ("common.bench_transport:main", "1080p stereo frames between two node processes"),
+    "sim": ("common.sim_bench:main", "simulator rendering"),
+    "detector": ("common.keypoint_bench:main", "keypoint detector speed and accuracy"),
+    "graph": ("common.graph_bench:main", "the full graph end to end"),
+}
+
+
+def _call(target: str, argv: list) -> int:
+    mod_name, func = target.split(":")
+    try:
+        mod = importlib.import_module(mod_name)
+    except ModuleNotFoundError as exc:
+        if exc.name and (exc.name == mod_name or mod_name.startswith(exc.name + ".")):
+            print(f"needletrack: {mod_name} is not available yet ({exc})", file=sys.stderr)
+            return 1
+        raise
+    rc = getattr(mod, func)(list(argv))
+    return 0 if rc is None else int(rc)
+
+
+def _usage(table: dict, prog: str) -> str:
+    w = max(len(k) for k in table)
+    return f"usage: {prog} COMMAND [ARGS...]\n\ncommands:\n" + "\n".join(
+        f"  {k.ljust(w)}  {h}" for k, (_, h) in table.items()) + f"\n\n'{prog} COMMAND --help' for a command's options."
+
+
+def bench_main(argv: list) -> int:
+    """``needletrack bench [NAME] [ARGS]``; no NAME (or options first, e.g. ``--dataset DIR``) runs ``graph``."""
+    if argv and argv[0] in ("-h", "--help"):
+        print(_usage(BENCHES, "needletrack bench"))
+        return 0
+    if not argv or argv[0].startswith("-"):
+        name, rest = "graph", argv
+    else:
+        name, rest = argv[0], argv[1:]
+    if name not in BENCHES:
+        print(f"needletrack bench: unknown benchmark {name!r}\n\n" + _usage(BENCHES, "needletrack bench"), file=sys.stderr)
+        return 2
+    return _call(BENCHES[name][0], rest)
+
+
+def main(argv: Optional[list] = None) -> int:
+    argv = sys.argv[1:] if argv is None else list(argv)
+    if not argv or argv[0] in ("-h", "--help", "help"):
+        print(_usage(COMMANDS, "needletrack"))
+        return 0 if argv else 2
+    name, rest = argv[0], argv[1:]
+    if name not in COMMANDS:
+        print(f"needletrack: unknown command {name!r}\n\n" + _usage(COMMANDS, "needletrack"), file=sys.stderr)
+        return 2
+    return _call(COMMANDS[name][0], rest)
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,61 @@
+"""Synthetic stereo camera: publishes ``CameraImage`` pairs (outputs ``left``/``right``,
+sharing ``seq``) of a fixed test pattern at ``rate_hz``; ``stamp_ns`` is the wall-clock time
+just before encoding, so receivers on this machine can measure latency.
+
+params: ``rate_hz`` (30; 0 = as fast as possible), ``width`` (1920), ``height`` (1080),
+``encoding`` (bgr8 | png | jpeg), ``count`` (stop after this many frames; 0 = forever).
+"""
+import time
+
+import numpy as np
+
+from common.messages import CameraImage
+from common.node import Node, run
+
+
+def test_pattern(width: int, height: int, shift: int = 0) -> np.ndarray:
+    """An (h, w, 3) uint8 BGR gradient with a grid, shifted ``shift`` px right."""
+    x = (np.arange(width) + shift) % 256
+    y = np.arange(height) % 256
+    img = np.empty((height, width, 3), np.uint8)
+    img[..., 0] = x[None, :]
+    img[..., 1] = y[:, None]
+    img[..., 2] = 128
+    img[::64, :, :] = 255
+    img[:, ::64, :] = 255
+    return img
+
+
+class TestPattern(Node):
+    """Stereo test-pattern source."""
+
+    OUTPUTS = ("left", "right")
+
+    def setup(self):
+        rate = float(self.params.get("rate_hz", 30.0))
+        self.period = 1.0 / rate if rate > 0 else 0.0
+        self.w, self.h = int(self.params.get("width", 1920)), int(self.params.get("height", 1080))
+        self.encoding = str(self.params.get("encoding", "bgr8"))
+        self.count_max = int(self.params.get("count", 0))
+        self.images = {"left": test_pattern(self.w, self.h, 0), "right": test_pattern(self.w, self.h, 8)}
+        self.seq = 0
+        self.next_t = time.monotonic()
+
+    def step(self):
+        if self.count_max and self.seq >= self.count_max:
+            return False
+        if self.period:
+            delay = self.next_t - time.monotonic()
+            if delay > 0:
+                time.sleep(delay)
+            self.next_t = max(self.next_t + self.period, time.monotonic() - self.period)
+        for cam in ("left", "right"):
+            msg = CameraImage.from_bgr(cam, self.seq, time.time_ns(), self.images[cam], self.encoding)
+            self.publish(cam, msg)
+        self.seq += 1
+        return True
+
+
+NODE = TestPattern
+if __name__ == "__main__":
+    run(NODE)
