@@ -1,0 +1,165 @@
+"""Multi-view fusion (common/fusion.py)."""
+import numpy as np
+import pytest
+
+from common.camera import StereoRig
+from common.ecm_kinematics import EcmArm
+from common.fusion import (MultiViewFusion, covariance_to_frame, fuse_poses, information_mean,
+                           robust_centre)
+from common.geometry_eval import multiview_scenario
+from common.needle import NeedleModel
+from common.oracle import Oracle
+from common.pnp import pnp_joint
+from common.transforms import R_to_rotvec, make_T, pose_error, rotvec_to_R
+
+RIG = StereoRig.default()
+MODEL = NeedleModel()
+P = MODEL.keypoints()
+
+
+def jitter(T, rng, mm=1.0, deg=1.0):
+    return make_T(rotvec_to_R(rng.normal(size=3) * np.deg2rad(deg)) @ T[:3, :3],
+                  T[:3, 3] + rng.normal(size=3) * mm * 1e-3)
+
+
+def test_covariance_to_frame_matches_moving_the_perturbation():
+    """Sigma in frame b -> frame a: the same random perturbations seen from a."""
+    rng = np.random.default_rng(0)
+    A = rng.normal(size=(6, 6))
+    cov_b = A @ A.T * 1e-6
+    T_a_b = make_T(rotvec_to_R([0.3, -1.0, 0.4]), [0.1, 0.2, -0.3])
+    T_b = make_T(rotvec_to_R([0.2, 0.1, 0.0]), [0.01, 0.0, -0.15])
+    samples = rng.multivariate_normal(np.zeros(6), cov_b, 4000)
+    deltas_a = []
+    T_a = T_a_b @ T_b
+    for d in samples:
+        Tp_b = make_T(rotvec_to_R(d[:3]) @ T_b[:3, :3], T_b[:3, 3] + d[3:])
+        Tp_a = T_a_b @ Tp_b
+        deltas_a.append(np.concatenate([R_to_rotvec(Tp_a[:3, :3] @ T_a[:3, :3].T), Tp_a[:3, 3] - T_a[:3, 3]]))
+    emp = np.cov(np.array(deltas_a).T)
+    pred = covariance_to_frame(cov_b, T_a_b[:3, :3])
+    assert np.allclose(emp, pred, atol=0.1 * np.abs(pred).max())
+
+
+def test_robust_centre_and_outlier_removal():
+    rng = np.random.default_rng(1)
+    T0 = make_T(rotvec_to_R([0.4, 0.2, -1.0]), [0.01, 0.02, -0.15])
+    Ts = [jitter(T0, rng) for _ in range(4)]
+    wild = make_T(rotvec_to_R([2.0, 0, 0]) @ T0[:3, :3], T0[:3, 3] + [0.02, 0, 0])
+    Ts.insert(2, wild)
+    assert robust_centre(Ts, 0.005, np.deg2rad(15)) != 2
+    T, inl, cov = fuse_poses(Ts)
+    assert list(inl) == [True, True, False, True, True]
+    assert cov is None
+    dt, dr = pose_error(T, T0)
+    assert dt < 2e-3 and dr < np.deg2rad(2)
+
+
+def test_information_mean_with_equal_covariances_is_the_mean():
+    rng = np.random.default_rng(2)
+    T0 = make_T(rotvec_to_R([0.1, 0.2, 0.3]), [0.0, 0.01, -0.2])
+    Ts = [jitter(T0, rng, 0.5, 0.5) for _ in range(5)]
+    cov = np.diag([1e-4] * 3 + [1e-6] * 3)
+    T, C = information_mean(Ts, [cov] * 5)
+    assert np.allclose(T[:3, 3], np.mean([t[:3, 3] for t in Ts], axis=0), atol=1e-12)
+    assert np.allclose(C, cov / 5)
+    # an estimate certain along x only pulls x
+    sharp = np.diag([1e-4] * 3 + [1e-10, 1e-6, 1e-6])
+    T2, _ = information_mean(Ts, [sharp] + [cov] * 4)
+    assert abs(T2[0, 3] - Ts[0][0, 3]) < 1e-6
+    assert information_mean(Ts, [np.zeros((6, 6))] * 5) is None
+
+
+def test_views_are_mapped_into_the_current_ecm_frame():
+    """A still needle seen from a moving endoscope: exact estimates fuse to the exact pose."""
+    arm = EcmArm(make_T(rotvec_to_R([0, 0, 0.3]), [0.1, 0, 0.2]), 0.0, 0.0)
+    rng = np.random.default_rng(3)
+    T_wn, T_we, T_en = multiview_scenario(rng, RIG, MODEL, arm)
+    f = MultiViewFusion(k=5)
+    for T_w, T_e in zip(T_we, T_en):
+        out = f.add(T_e, T_w)
+    assert out.n_views == 5 and out.n_queued == 5 and not out.reset
+    assert np.allclose(out.T_ecm_needle, T_en[-1], atol=1e-12)
+    assert np.allclose(out.T_world_needle, T_wn, atol=1e-12)
+    # without the ECM poses the views disagree (the endoscope moved 0.05 rad each time)
+    g = MultiViewFusion(k=5, max_dist_m=1.0, max_angle_rad=np.pi)
+    for T_e in T_en:
+        bad = g.add(T_e)
+    assert pose_error(bad.T_ecm_needle, T_en[-1])[0] > 1e-3
+
+
+def test_fusion_over_five_views_beats_one_view_at_1px():
+    """The ECM yaw joint moves 0.05 rad between views; one joint PnP estimate per view."""
+    rng = np.random.default_rng(4)
+    oracle = Oracle(noise_px=1.0, seed=5)
+    e_one, e_fused = [], []
+    seq = 0
+    for _ in range(40):
+        _, T_we, T_en = multiview_scenario(rng, RIG, MODEL, EcmArm(), n_views=5, joint=0, step_rad=0.05)
+        f = MultiViewFusion(k=5)
+        for T_w, T_e in zip(T_we, T_en):
+            uv, sc = oracle.stereo(RIG, T_e, MODEL, seq=seq)
+            seq += 1
+            res = pnp_joint(uv, RIG, P, sc)
+            fused = f.add(res.T_ecm_needle, T_w, res.covariance)
+        e_one.append(pose_error(res.T_ecm_needle, T_en[-1]))
+        e_fused.append(pose_error(fused.T_ecm_needle, T_en[-1]))
+    e_one, e_fused = np.array(e_one), np.array(e_fused)
+    assert e_fused[:, 0].mean() < e_one[:, 0].mean()
+    assert e_fused[:, 1].mean() < e_one[:, 1].mean()
+
+
+def test_queue_keeps_the_last_k():
+    rng = np.random.default_rng(6)
+    T0 = make_T(rotvec_to_R([0.1, 0.2, 0.3]), [0.0, 0.01, -0.2])
+    f = MultiViewFusion(k=3)
+    for i in range(7):
+        out = f.add(jitter(T0, rng, 0.2, 0.2), seq=i)
+    assert len(f) == 3 and out.n_queued == 3
+    assert [e.seq for e in f.queue] == [4, 5, 6]
+
+
+def test_reset_when_the_needle_moves_not_on_one_outlier():
+    rng = np.random.default_rng(7)
+    A = make_T(rotvec_to_R([0.1, 0.2, 0.3]), [0.0, 0.01, -0.2])
+    B = make_T(A[:3, :3], A[:3, 3] + [0.03, 0.0, 0.0])       # the needle moved by 3 cm
+    f = MultiViewFusion(k=5, reset_after=3)
+    for _ in range(5):
+        f.add(jitter(A, rng, 0.2, 0.2))
+    out = f.add(jitter(B, rng, 0.2, 0.2))                   # one estimate far away: an outlier
+    assert not out.reset and out.n_views == 4
+    assert pose_error(out.T_ecm_needle, A)[0] < 1e-3
+    out = f.add(jitter(B, rng, 0.2, 0.2))
+    assert not out.reset
+    out = f.add(jitter(B, rng, 0.2, 0.2))                   # third in a row that agree: moved
+    assert out.reset and out.n_queued == 3 and out.n_views == 3
+    assert pose_error(out.T_ecm_needle, B)[0] < 1e-3
+    assert f.resets == 1
+
+
+def test_reset_on_sequence_change_and_explicit_reset():
+    rng = np.random.default_rng(8)
+    A = make_T(rotvec_to_R([0.1, 0.2, 0.3]), [0.0, 0.01, -0.2])
+    f = MultiViewFusion()
+    for _ in range(3):
+        f.add(jitter(A, rng, 0.2, 0.2), sequence=1)
+    out = f.add(jitter(A, rng, 0.2, 0.2), sequence=2)
+    assert out.reset and out.n_queued == 1
+    f.reset()
+    assert len(f) == 0
+    with pytest.raises(ValueError):
+        MultiViewFusion(k=0)
+
+
+def test_covariance_weighting_is_used_when_every_view_has_one():
+    rng = np.random.default_rng(9)
+    T0 = make_T(rotvec_to_R([0.1, 0.2, 0.3]), [0.0, 0.01, -0.2])
+    cov = np.diag([1e-4] * 3 + [1e-6] * 3)
+    f = MultiViewFusion()
+    for _ in range(4):
+        out = f.add(jitter(T0, rng, 0.3, 0.3), covariance=cov)
+    assert out.covariance is not None and np.allclose(out.covariance, cov / 4)
+    out = f.add(jitter(T0, rng, 0.3, 0.3))                 # one without: plain mean
+    assert out.covariance is None
+    off = MultiViewFusion(use_covariance=False)
+    assert off.add(T0, covariance=cov).covariance is None
