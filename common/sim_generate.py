@@ -44,12 +44,12 @@ def scene_meta(width: int, height: int, source: str):
     return DatasetMeta((width, height), StereoRig.default(width, height), NeedleModel(), default_arm(), source)
 
 
-def render_sequence(renderer, cfg: GenerateConfig, sequence: int) -> list[tuple[dict, dict]]:
-    """Plan and render one sequence: a list of (BGR images by camera, frame fields) per step."""
-    from common.sim_randomise import degrade_stereo, get_preset, plan_sequence
+def render_sequence(renderer, cfg: GenerateConfig, sequence: int) -> list[tuple[dict, dict, int]]:
+    """Plan and render one sequence: per step (BGR images by camera, frame fields, JPEG quality)."""
+    from common.sim_randomise import degrade_stereo, get_preset, jpeg_quality, plan_sequence
     meta = scene_meta(cfg.width, cfg.height, "")
     preset = get_preset(cfg.randomise)
-    tex = 1024 if cfg.height <= 720 else 2048
+    tex = 1024
     plan = plan_sequence(cfg.seed, sequence, cfg.steps, preset, meta.rig, meta.needle, meta.arm, tex)
     renderer.load(plan.spec)
     rng = np.random.default_rng(plan.image_seed)
@@ -58,11 +58,14 @@ def render_sequence(renderer, cfg: GenerateConfig, sequence: int) -> list[tuple[
         T_world_ecm = meta.arm.T_world_ecm(q)
         renders = renderer.render(T_world_ecm)
         gt = renderer.ground_truth(T_world_ecm, renders)
-        images = degrade_stereo({c: r.bgr for c, r in renders.items()}, rng, preset)
+        # JPEG artefacts come from the file's own compression when writing JPEG
+        images = degrade_stereo({c: r.bgr for c, r in renders.items()}, rng, preset,
+                                jpeg=cfg.image_format != "jpg")
+        quality = min(cfg.jpeg_quality, jpeg_quality(rng, preset))
         fields = {"sequence": sequence, "step": step, "ecm_joints": np.asarray(q, float),
                   "T_world_ecm": T_world_ecm, "T_world_needle": plan.spec.T_world_needle,
                   "keypoints": gt["keypoints"], "visible": gt["visible"], "bbox": gt["bbox"]}
-        out.append((images, fields))
+        out.append((images, fields, quality))
     return out
 
 
@@ -82,9 +85,9 @@ def _work(sequence: int) -> list[dict]:
     from common.dataset import Frame, write_frame_images
     cfg, folder = _WORKER["cfg"], _WORKER["folder"]
     frames = []
-    for images, fields in render_sequence(_WORKER["renderer"], cfg, sequence):
+    for images, fields, quality in render_sequence(_WORKER["renderer"], cfg, sequence):
         index = sequence * cfg.steps + fields["step"]
-        paths = write_frame_images(folder, index, images, cfg.image_format, cfg.jpeg_quality)
+        paths = write_frame_images(folder, index, images, cfg.image_format, quality)
         fr = Frame(index=index, stamp_ns=int(round(index * 1e9 / FPS)), left=paths["left"],
                    right=paths["right"], **fields)
         frames.append(fr.to_json())

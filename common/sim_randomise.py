@@ -75,9 +75,9 @@ def get_preset(name: str) -> Preset:
 
 # ---------------------------------------------------------------- appearance
 
-def sample_appearance(rng: np.random.Generator, preset: Preset, texture_size: int = 1024) -> Appearance:
+def sample_appearance(rng: np.random.Generator, preset: Preset) -> Appearance:
     j = preset.appearance_jitter
-    a = Appearance(texture_seed=int(rng.integers(1 << 30)), texture_size=texture_size)
+    a = Appearance(texture_seed=int(rng.integers(1 << 30)))
     if j == 0:
         return a
 
@@ -108,15 +108,14 @@ def sample_appearance(rng: np.random.Generator, preset: Preset, texture_size: in
 
 # ---------------------------------------------------------------- needle and instruments
 
-def _rest_height(T: np.ndarray, needle: NeedleModel, wire_r: float, seed: int) -> float:
+def _rest_height(T: np.ndarray, needle: NeedleModel, wire_r: float) -> float:
     """z translation that puts the lowest part of the wire on the phantom's surface."""
     p = transform_points(T, needle.sample_arc(48))
-    gap = phantom_height(p[:, 0], p[:, 1], seed) - p[:, 2]
+    gap = phantom_height(p[:, 0], p[:, 1]) - p[:, 2]
     return float(np.max(gap)) + wire_r
 
 
-def sample_needle_pose(rng: np.random.Generator, needle: NeedleModel, wire_r: float, held: bool,
-                       surface_seed: int = 0) -> np.ndarray:
+def sample_needle_pose(rng: np.random.Generator, needle: NeedleModel, wire_r: float, held: bool) -> np.ndarray:
     """T_world_needle resting flat on the phantom (held=False) or held 3-25 mm above it."""
     hx, hy = PHANTOM_SIZE[0] / 2 - 0.025, PHANTOM_SIZE[1] / 2 - 0.022
     xy = rng.uniform([-hx, -hy], [hx, hy])
@@ -129,7 +128,7 @@ def sample_needle_pose(rng: np.random.Generator, needle: NeedleModel, wire_r: fl
         R = rotvec_to_R([0, 0, rng.uniform(-np.pi, np.pi)]) @ rotvec_to_R(
             np.append(rng.normal(0, 0.08, 2), 0.0)) @ flip
     T = make_T(R, [xy[0], xy[1], 0.0])
-    T[2, 3] = _rest_height(T, needle, wire_r, surface_seed)
+    T[2, 3] = _rest_height(T, needle, wire_r)
     if held:
         T[2, 3] += rng.uniform(0.003, 0.025)
     return T
@@ -143,7 +142,7 @@ def _shaft_towards(tip: np.ndarray, side: float, rng: np.random.Generator) -> np
 
 
 def sample_instruments(rng: np.random.Generator, T_world_needle: np.ndarray, needle: NeedleModel,
-                       held: bool, preset: Preset, surface_seed: int = 0) -> list[Instrument]:
+                       held: bool, preset: Preset) -> list[Instrument]:
     """Two instruments around the needle: one holds it (when held), one may lie across it."""
     if not preset.instruments:
         return []
@@ -165,7 +164,7 @@ def sample_instruments(rng: np.random.Generator, T_world_needle: np.ndarray, nee
             off = rng.uniform(0.018, 0.04) * np.array([np.cos(ang), np.sin(ang)])
             lift = rng.uniform(0.004, 0.025)
         xy = centre[:2] + off
-        tip = np.array([xy[0], xy[1], float(phantom_height(xy[0], xy[1], surface_seed)) + lift])
+        tip = np.array([xy[0], xy[1], float(phantom_height(xy[0], xy[1])) + lift])
         tip[2] = max(tip[2], centre[2] + 0.003) if np.linalg.norm(off) < 0.012 else tip[2]
         out.append(Instrument(tuple(tip), tuple(_shaft_towards(tip, side, rng)),
                               float(rng.uniform(-np.pi, np.pi)), float(rng.uniform(0.0, 0.7))))
@@ -280,15 +279,15 @@ def plan_sequence(seed: int, sequence: int, steps: int, preset: Preset, rig: Ste
     """Deterministic plan of sequence ``sequence`` for a run seeded ``seed``."""
     rng = np.random.default_rng([seed, sequence])
     for _ in range(100):
-        ap = sample_appearance(rng, preset, texture_size)
+        ap = sample_appearance(rng, preset)
         held = preset.instruments and rng.random() < preset.p_held
-        T = sample_needle_pose(rng, needle, ap.wire_diameter_m / 2, held, ap.texture_seed)
+        T = sample_needle_pose(rng, needle, ap.wire_diameter_m / 2, held)
         q0 = sample_ecm(rng, arm, rig, needle, T, preset)
         if q0 is None:
             continue
-        inst = sample_instruments(rng, T, needle, held, preset, ap.texture_seed)
+        inst = sample_instruments(rng, T, needle, held, preset)
         spec = SceneSpec(rig=rig, needle=needle, T_world_needle=T, appearance=ap, instruments=inst,
-                         thread_seed=int(rng.integers(1 << 30)))
+                         thread_seed=int(rng.integers(1 << 30)), texture_size=texture_size)
         qs = multiview_joints(rng, arm, rig, needle, T, q0, steps)
         return SequencePlan(spec, qs, int(rng.integers(1 << 30)))
     raise RuntimeError(f"sim: could not place the needle in view for sequence {sequence}")
@@ -297,31 +296,42 @@ def plan_sequence(seed: int, sequence: int, steps: int, preset: Preset, rig: Ste
 # ---------------------------------------------------------------- image degradations
 
 def degrade(img: np.ndarray, rng: np.random.Generator, preset: Preset, gain: float = 1.0,
-            contrast: float = 1.0) -> np.ndarray:
-    """Sensor-like degradations of a BGR uint8 image: gain/contrast, blur, noise, JPEG."""
-    out = img.astype(np.float32)
+            contrast: float = 1.0, jpeg: bool = True) -> np.ndarray:
+    """Sensor-like degradations of a BGR uint8 image: gain/contrast (about the image mean), blur,
+    Gaussian noise and, if ``jpeg``, a JPEG round trip at a random quality."""
+    out = img
     if gain != 1.0 or contrast != 1.0:
-        mean = out.mean()
-        out = (out - mean) * contrast + mean * gain
+        mean = float(np.mean(cv2.mean(img)[:3]))
+        lut = np.clip((np.arange(256) - mean) * contrast + mean * gain + 0.5, 0, 255).astype(np.uint8)
+        out = cv2.LUT(out, lut)
     if preset.blur_sigma[1] > 0:
         s = rng.uniform(*preset.blur_sigma)
         if s > 0.05:
             out = cv2.GaussianBlur(out, (0, 0), s)
     if preset.noise_sigma[1] > 0:
-        out += rng.normal(0, rng.uniform(*preset.noise_sigma), out.shape).astype(np.float32)
-    out = np.clip(out + 0.5, 0, 255).astype(np.uint8)
-    if preset.jpeg_quality[0] < 100:
-        q = int(rng.integers(preset.jpeg_quality[0], preset.jpeg_quality[1] + 1))
+        sigma = rng.uniform(*preset.noise_sigma)
+        noise = np.empty(out.shape, np.int16)
+        cv2.setRNGSeed(int(rng.integers(1 << 31)))
+        cv2.randn(noise, 0, sigma)
+        out = np.clip(out.astype(np.int16) + noise, 0, 255).astype(np.uint8)
+    if jpeg:
+        q = jpeg_quality(rng, preset)
         if q < 100:
             out = cv2.imdecode(cv2.imencode(".jpg", out, [cv2.IMWRITE_JPEG_QUALITY, q])[1], cv2.IMREAD_COLOR)
     return out
 
 
-def degrade_stereo(images: dict, rng: np.random.Generator, preset: Preset) -> dict:
+def jpeg_quality(rng: np.random.Generator, preset: Preset) -> int:
+    """A JPEG quality from the preset's range (100 = no artefacts)."""
+    lo, hi = preset.jpeg_quality
+    return 100 if lo >= 100 else int(rng.integers(lo, hi + 1))
+
+
+def degrade_stereo(images: dict, rng: np.random.Generator, preset: Preset, jpeg: bool = True) -> dict:
     """Degrade both images of a frame alike (one gain/contrast), with independent noise."""
     gain = 1.0 + rng.uniform(-preset.brightness, preset.brightness)
     contrast = 1.0 + rng.uniform(-preset.contrast, preset.contrast)
-    return {c: degrade(img, rng, preset, gain, contrast) for c, img in images.items()}
+    return {c: degrade(img, rng, preset, gain, contrast, jpeg) for c, img in images.items()}
 
 
 def rotate_with_keypoints(img: np.ndarray, uv: np.ndarray, angle_rad: float):

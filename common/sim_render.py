@@ -19,12 +19,13 @@ os.environ.setdefault("MUJOCO_GL", "egl")
 
 from dataclasses import dataclass  # noqa: E402
 
+import cv2  # noqa: E402
 import mujoco  # noqa: E402
 import numpy as np  # noqa: E402
 
 from common.camera import StereoRig  # noqa: E402
-from common.sim_scene import SceneSpec, build_mjcf  # noqa: E402
-from common.transforms import R_to_quat, inv_T, transform_points  # noqa: E402
+from common.sim_scene import SceneModel, SceneSpec, structure_key  # noqa: E402
+from common.transforms import inv_T, transform_points  # noqa: E402
 
 LABELS = {"other": 0, "needle": 1, "thread": 2, "instrument": 3}
 CAMERAS = ("left", "right")
@@ -34,12 +35,13 @@ CAMERAS = ("left", "right")
 class CameraRender:
     """One camera's render: ``bgr`` (h, w, 3) uint8, ``label`` (h, w) uint8 of LABELS,
     ``depth`` (h, w) float32 distance along the optical axis (m), ``geom`` (h, w) int32 MuJoCo
-    geom id (-1 where nothing is)."""
+    geom id (-1 where nothing is). Outside ``window`` labels are 0, depth inf, geom -1."""
 
     bgr: np.ndarray
     label: np.ndarray
     depth: np.ndarray
     geom: np.ndarray
+    window: tuple | None = None  # [x0, y0, x1, y1) where label/depth/geom were rendered
 
 
 _GL = {}
@@ -61,53 +63,68 @@ def _gl_context(width: int, height: int):
 class SceneRenderer:
     """Renders a ``SceneSpec`` from the stereo endoscope at any ECM pose.
 
-    ``load(spec)`` builds the MuJoCo model; ``render(T_world_ecm)`` returns both cameras'
-    ``CameraRender``; ``ground_truth(T_world_ecm, renders)`` the spec's per-frame fields.
+    ``load(spec)`` sets the scene (a spec with the same structure reuses the compiled model and
+    render context: only meshes, textures, colours and poses change); ``render(T_world_ecm)``
+    returns both cameras' ``CameraRender``; ``ground_truth(T_world_ecm, renders)`` the spec's
+    per-frame fields. The segmentation/depth pass covers only the window around the needle
+    (``CameraRender.window``) unless ``full_segmentation`` is set.
     """
 
-    def __init__(self, spec: SceneSpec | None = None):
+    def __init__(self, spec: SceneSpec | None = None, full_segmentation: bool = False):
         self.spec = None
-        self.model = None
+        self.scene = None
         self._ctx = None
+        self.full_segmentation = full_segmentation
         if spec is not None:
             self.load(spec)
 
+    @property
+    def model(self):
+        return self.scene.model if self.scene is not None else None
+
     def load(self, spec: SceneSpec) -> None:
-        xml, assets = build_mjcf(spec)
-        model = mujoco.MjModel.from_xml_string(xml, assets)
         w, h = spec.rig.left.width, spec.rig.left.height
         _gl_context(w, h)
-        self.close()
-        self.model, self.data, self.spec = model, mujoco.MjData(model), spec
-        self._ctx = mujoco.MjrContext(model, mujoco.mjtFontScale.mjFONTSCALE_100)
-        mujoco.mjr_setBuffer(mujoco.mjtFramebuffer.mjFB_OFFSCREEN, self._ctx)
-        self._ctx.readDepthMap = mujoco.mjtDepthMap.mjDEPTH_ZEROFAR
-        self._scene = mujoco.MjvScene(model, maxgeom=256)
-        self._opt = mujoco.MjvOption()
-        self._rect = mujoco.MjrRect(0, 0, w, h)
-        self._cams = {}
-        for name in CAMERAS:
-            cam = mujoco.MjvCamera()
-            cam.type = mujoco.mjtCamera.mjCAMERA_FIXED
-            cam.fixedcamid = mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_CAMERA, name)
-            self._cams[name] = cam
-        self._geom_label = np.zeros(model.ngeom, np.uint8)
-        for g in range(model.ngeom):
-            name = mujoco.mj_id2name(model, mujoco.mjtObj.mjOBJ_GEOM, g) or ""
-            for key in ("needle", "thread", "instrument"):
-                if name.startswith(key):
-                    self._geom_label[g] = LABELS[key]
-        self._mocap = {b: int(model.body_mocapid[mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_BODY, b)])
-                       for b in ("needle", "ecm")}
-        self._rgb = np.empty((h, w, 3), np.uint8)
-        self._ids = np.empty((h, w, 3), np.uint8)
-        self._zbuf = np.empty((h, w), np.float32)
-        self.set_needle(spec.T_world_needle)
+        if self.scene is not None and self.scene.key == structure_key(spec):
+            meshes, textures = self.scene.apply(spec)
+            for k in meshes:
+                mujoco.mjr_uploadMesh(self.model, self._ctx, k)
+            for k in textures:
+                mujoco.mjr_uploadTexture(self.model, self._ctx, k)
+        else:
+            self.close()
+            self.scene = SceneModel(spec)
+            self.scene.apply(spec)
+            model = self.model
+            self.data = mujoco.MjData(model)
+            self._ctx = mujoco.MjrContext(model, mujoco.mjtFontScale.mjFONTSCALE_100)
+            mujoco.mjr_setBuffer(mujoco.mjtFramebuffer.mjFB_OFFSCREEN, self._ctx)
+            self._ctx.readDepthMap = mujoco.mjtDepthMap.mjDEPTH_ZEROFAR
+            self._scene = mujoco.MjvScene(model, maxgeom=256)
+            self._opt = mujoco.MjvOption()
+            self._rect = mujoco.MjrRect(0, 0, w, h)
+            self._cams = {}
+            for name in CAMERAS:
+                cam = mujoco.MjvCamera()
+                cam.type = mujoco.mjtCamera.mjCAMERA_FIXED
+                cam.fixedcamid = mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_CAMERA, name)
+                self._cams[name] = cam
+            self._geom_label = np.zeros(model.ngeom, np.uint8)
+            for g in range(model.ngeom):
+                name = mujoco.mj_id2name(model, mujoco.mjtObj.mjOBJ_GEOM, g) or ""
+                for key in ("needle", "thread", "instrument"):
+                    if name.startswith(key):
+                        self._geom_label[g] = LABELS[key]
+            self._rgb = np.empty((h, w, 3), np.uint8)
+        self.spec = spec
+        self.scene.set_poses(self.data, spec)
+        self._T_world_needle = np.asarray(spec.T_world_needle, dtype=float)
 
     def close(self) -> None:
         if self._ctx is not None:
             self._ctx.free()
             self._ctx = None
+        self.scene = None
 
     def __del__(self):
         try:
@@ -115,52 +132,90 @@ class SceneRenderer:
         except Exception:
             pass
 
-    # -- poses
-    def _set_mocap(self, body: str, T: np.ndarray) -> None:
-        i = self._mocap[body]
-        self.data.mocap_pos[i] = T[:3, 3]
-        self.data.mocap_quat[i] = R_to_quat(T[:3, :3])
-
     def set_needle(self, T_world_needle: np.ndarray) -> None:
         """Move the needle body (the thread is part of the static scene and does not follow)."""
         self._T_world_needle = np.asarray(T_world_needle, dtype=float)
-        self._set_mocap("needle", self._T_world_needle)
+        self.scene.set_mocap(self.data, "needle", self._T_world_needle)
 
-    # -- rendering
+    def needle_window(self, camera: str, T_world_ecm: np.ndarray, margin_px: int = 4):
+        """Pixel window [x0, y0, x1, y1) (exclusive ends) holding the needle's image, or None."""
+        cam = self.spec.rig[camera]
+        needle = self.spec.needle
+        p = transform_points(cam.T_cam_ecm @ inv_T(T_world_ecm) @ self._T_world_needle,
+                             needle.sample_arc(64))
+        if np.any(p[:, 2] <= 1e-3):
+            return (0, 0, cam.width, cam.height)  # partly behind the camera: everything
+        uv = cam.project(p)
+        pad = margin_px + self.spec.appearance.wire_diameter_m * cam.K[0, 0] / p[:, 2].min()
+        x0 = int(np.floor(uv[:, 0].min() - pad))
+        y0 = int(np.floor(uv[:, 1].min() - pad))
+        x1 = int(np.ceil(uv[:, 0].max() + pad)) + 1
+        y1 = int(np.ceil(uv[:, 1].max() + pad)) + 1
+        x0, y0, x1, y1 = max(x0, 0), max(y0, 0), min(x1, cam.width), min(y1, cam.height)
+        if x1 <= x0 or y1 <= y0:
+            return None
+        return (x0, y0, x1, y1)
+
     def render(self, T_world_ecm: np.ndarray, cameras=CAMERAS) -> dict[str, CameraRender]:
         """Colour, labels and depth of each camera at the ECM pose ``T_world_ecm``."""
         _gl_context(self._rect.width, self._rect.height)
-        self._set_mocap("ecm", np.asarray(T_world_ecm, dtype=float))
+        T_world_ecm = np.asarray(T_world_ecm, dtype=float)
+        self.scene.set_mocap(self.data, "ecm", T_world_ecm)
         mujoco.mj_forward(self.model, self.data)
         out = {}
         m = self.model
+        W, H = self._rect.width, self._rect.height
         near = m.vis.map.znear * m.stat.extent
         far = m.vis.map.zfar * m.stat.extent
+        flags = self._scene.flags
         for name in cameras:
             mujoco.mjv_updateScene(m, self.data, self._opt, None, self._cams[name],
                                    mujoco.mjtCatBit.mjCAT_ALL, self._scene)
-            flags = self._scene.flags
             flags[mujoco.mjtRndFlag.mjRND_SHADOW] = 1
             flags[mujoco.mjtRndFlag.mjRND_SEGMENT] = 0
             flags[mujoco.mjtRndFlag.mjRND_IDCOLOR] = 0
             mujoco.mjr_render(self._rect, self._scene, self._ctx)
             mujoco.mjr_readPixels(self._rgb, None, self._rect, self._ctx)
-            bgr = np.ascontiguousarray(self._rgb[::-1, :, ::-1])
-            flags[mujoco.mjtRndFlag.mjRND_SEGMENT] = 1
-            flags[mujoco.mjtRndFlag.mjRND_IDCOLOR] = 1
-            mujoco.mjr_render(self._rect, self._scene, self._ctx)
-            mujoco.mjr_readPixels(self._ids, self._zbuf, self._rect, self._ctx)
-            seg = (self._ids[::-1, :, 0].astype(np.int32) + (self._ids[::-1, :, 1].astype(np.int32) << 8)
-                   + (self._ids[::-1, :, 2].astype(np.int32) << 16))
-            lut = np.zeros(self._scene.ngeom + 2, np.uint8)
-            gid = np.full(self._scene.ngeom + 2, -1, np.int32)
-            for g in range(self._scene.ngeom):
-                sg = self._scene.geoms[g]
-                if sg.segid >= 0 and sg.objtype == mujoco.mjtObj.mjOBJ_GEOM:
-                    lut[sg.segid + 1] = self._geom_label[sg.objid]
-                    gid[sg.segid + 1] = sg.objid
-            seg = np.clip(seg, 0, len(lut) - 1)
-            out[name] = CameraRender(bgr, lut[seg], _linear_depth(self._zbuf[::-1], near, far), gid[seg])
+            bgr = cv2.flip(cv2.cvtColor(self._rgb, cv2.COLOR_RGB2BGR), 0)
+            label = np.zeros((H, W), np.uint8)
+            depth = np.full((H, W), np.inf, np.float32)
+            geom = np.full((H, W), -1, np.int32)
+            win = (0, 0, W, H) if self.full_segmentation else self.needle_window(name, T_world_ecm)
+            if win is not None:
+                x0, y0, x1, y1 = win
+                # off-axis frustum of the window: pixel edges at integers in GL window coordinates
+                cam0 = self._scene.camera[0]
+                ht = cam0.frustum_top
+                hw = ht * W / H
+                for c in self._scene.camera:
+                    left, right = -hw + 2 * hw * x0 / W, -hw + 2 * hw * x1 / W
+                    c.frustum_center = (left + right) / 2
+                    c.frustum_width = (right - left) / 2
+                    c.frustum_bottom = -ht + 2 * ht * (H - y1) / H
+                    c.frustum_top = -ht + 2 * ht * (H - y0) / H
+                flags[mujoco.mjtRndFlag.mjRND_SHADOW] = 0
+                flags[mujoco.mjtRndFlag.mjRND_SEGMENT] = 1
+                flags[mujoco.mjtRndFlag.mjRND_IDCOLOR] = 1
+                rect = mujoco.MjrRect(0, 0, x1 - x0, y1 - y0)
+                ids = np.empty((y1 - y0, x1 - x0, 3), np.uint8)
+                zbuf = np.empty((y1 - y0, x1 - x0), np.float32)
+                mujoco.mjr_render(rect, self._scene, self._ctx)
+                mujoco.mjr_readPixels(ids, zbuf, rect, self._ctx)
+                ids, zbuf = ids[::-1], zbuf[::-1]
+                seg = (ids[..., 0].astype(np.int32) + (ids[..., 1].astype(np.int32) << 8)
+                       + (ids[..., 2].astype(np.int32) << 16))
+                lut = np.zeros(self._scene.ngeom + 2, np.uint8)
+                gid = np.full(self._scene.ngeom + 2, -1, np.int32)
+                for g in range(self._scene.ngeom):
+                    sg = self._scene.geoms[g]
+                    if sg.segid >= 0 and sg.objtype == mujoco.mjtObj.mjOBJ_GEOM:
+                        lut[sg.segid + 1] = self._geom_label[sg.objid]
+                        gid[sg.segid + 1] = sg.objid
+                seg = np.clip(seg, 0, len(lut) - 1)
+                label[y0:y1, x0:x1] = lut[seg]
+                geom[y0:y1, x0:x1] = gid[seg]
+                depth[y0:y1, x0:x1] = _linear_depth(zbuf, near, far)
+            out[name] = CameraRender(bgr, label, depth, geom, win)
         return out
 
     def ground_truth(self, T_world_ecm: np.ndarray, renders: dict[str, CameraRender]) -> dict:

@@ -49,7 +49,7 @@ def test_known_points_render_at_K_projection(size):
     radii = depths * 8.0 / rig.left.K[0, 0]  # about 8 px in the image
     spec = SceneSpec(rig=rig, T_world_needle=make_T(np.eye(3), [0, 0, -1.0]),
                      markers=[(*p, rad) for p, rad in zip(pts_world, radii)])
-    r = SceneRenderer(spec)
+    r = SceneRenderer(spec, full_segmentation=True)
     renders = r.render(T_world_ecm)
     for cam in ("left", "right"):
         c = rig[cam]
