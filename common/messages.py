@@ -89,7 +89,7 @@ def _check(msg_name: str, fname: str, value, spec):
     if kind == "bytes":
         if not isinstance(value, (bytes, bytearray, memoryview)):
             raise MessageError(f"{where}: expected bytes, got {type(value).__name__}")
-        return bytes(value)
+        return value if isinstance(value, (bytes, memoryview)) else bytes(value)
     if kind == "dict":
         if not isinstance(value, dict):
             raise MessageError(f"{where}: expected map, got {type(value).__name__}")
@@ -133,16 +133,66 @@ def register(cls):
     return cls
 
 
+_TAIL_MIN = 1 << 16     # a bytes field at least this large travels as the payload's tail
+
+
 def encode(msg: Message) -> bytes:
-    """Message -> msgpack bytes."""
-    return msgpack.packb({"schema": msg.SCHEMA, "version": msg.VERSION, "body": msg.to_body()},
-                         default=_default, use_bin_type=True)
+    """Message -> msgpack bytes.
+
+    The largest bytes field of at least 64 KiB (an image) is packed last, as a bin32 after the
+    rest, and joined in one copy: the result is plain msgpack, and ``decode`` can hand that
+    field out as a view of the payload instead of copying it.
+    """
+    body = msg.to_body()
+    tail_key, tail = None, None
+    for k, v in body.items():
+        if isinstance(v, (bytes, bytearray, memoryview)) and len(v) >= _TAIL_MIN and (tail is None or len(v) > len(tail)):
+            tail_key, tail = k, v
+    if tail_key is None:
+        return msgpack.packb({"schema": msg.SCHEMA, "version": msg.VERSION, "body": body},
+                             default=_default, use_bin_type=True)
+    tail = memoryview(tail).cast("B") if not isinstance(tail, bytes) else tail
+    del body[tail_key]
+    packer = msgpack.Packer(default=_default, use_bin_type=True, autoreset=False)
+    packer.pack_map_header(3)
+    packer.pack("schema"), packer.pack(msg.SCHEMA), packer.pack("version"), packer.pack(msg.VERSION)
+    packer.pack("body")
+    packer.pack_map_header(len(body) + 1)
+    for k, v in body.items():
+        packer.pack(k), packer.pack(v)
+    packer.pack(tail_key)
+    head = packer.bytes() + b"\xc6" + len(tail).to_bytes(4, "big")
+    return b"".join((head, tail))
+
+
+def _unpack_with_tail(buf: bytes):
+    """Fast path for payloads made by ``encode`` with a tail field: unpack the small head and
+    return the tail as a memoryview of ``buf``; None if ``buf`` does not have that layout."""
+    n = len(buf)
+    limit = min(n - 5, _TAIL_MIN)
+    p = buf.find(b"\xc6", 0, limit)
+    while p != -1:
+        if int.from_bytes(buf[p + 1:p + 5], "big") == n - p - 5:
+            try:
+                data = msgpack.unpackb(buf[:p] + b"\xc0", ext_hook=_ext_hook, raw=False, strict_map_key=False)
+            except Exception:
+                return None
+            body = data.get("body") if isinstance(data, dict) else None
+            if not isinstance(body, dict) or not body or list(body.values())[-1] is not None:
+                return None
+            body[list(body)[-1]] = memoryview(buf)[p + 5:]
+            return data
+        p = buf.find(b"\xc6", p + 1, limit)
+    return None
 
 
 def decode(payload, expect: type | None = None) -> Message:
     """msgpack bytes -> validated Message. ``expect`` restricts the accepted message type."""
     try:
-        data = msgpack.unpackb(bytes(payload), ext_hook=_ext_hook, raw=False, strict_map_key=False)
+        buf = payload if isinstance(payload, bytes) else bytes(payload)
+        data = _unpack_with_tail(buf) if len(buf) > _TAIL_MIN else None
+        if data is None:
+            data = msgpack.unpackb(buf, ext_hook=_ext_hook, raw=False, strict_map_key=False)
     except MessageError:
         raise
     except Exception as exc:
@@ -184,7 +234,11 @@ ENCODINGS = ("bgr8", "png", "jpeg")
 @register
 @dataclass
 class CameraImage(Message):
-    """One camera's image of a stereo frame. ``data`` is raw BGR (h*w*3 bytes) or a PNG/JPEG file."""
+    """One camera's image of a stereo frame. ``data`` is raw BGR (h*w*3 bytes) or a PNG/JPEG file.
+
+    A decoded image's ``data`` may be a read-only memoryview of the payload (no copy); use
+    ``to_bgr()`` or ``bytes(msg.data)``.
+    """
 
     SCHEMA = "needletrack.CameraImage"
     FIELDS = {"camera": ("str", CAMERAS), "seq": ("int",), "stamp_ns": ("int",),
@@ -207,10 +261,13 @@ class CameraImage(Message):
 
     @classmethod
     def from_bgr(cls, camera: str, seq: int, stamp_ns: int, img: np.ndarray, encoding: str = "bgr8",
-                 jpeg_quality: int = 95) -> "CameraImage":
+                 jpeg_quality: int = 95, copy: bool = True) -> "CameraImage":
+        """``copy=False`` (bgr8) keeps a view of ``img`` instead of copying it: only for an
+        array the caller will not modify while the message is in use."""
         h, w = img.shape[:2]
         if encoding == "bgr8":
-            data = np.ascontiguousarray(img, dtype=np.uint8).tobytes()
+            arr = np.ascontiguousarray(img, dtype=np.uint8)
+            data = arr.tobytes() if copy else memoryview(arr.reshape(-1))
         else:
             import cv2
             ext = ".png" if encoding == "png" else ".jpg"
