@@ -311,15 +311,19 @@ class EcmJoints(Message):
 @register
 @dataclass
 class EcmPose(Message):
-    """Endoscope pose from forward kinematics: ``T_world_ecm`` at a joint state."""
+    """Endoscope pose from forward kinematics: ``T_world_ecm`` at a joint state, and the
+    cameras' poses ``T_world_left``/``T_world_right`` when the calibration is known."""
 
     SCHEMA = "needletrack.EcmPose"
     FIELDS = {"seq": ("int",), "stamp_ns": ("int",), "T_world_ecm": ("array", (4, 4)),
-              "q": ("array", (4,), "optional")}
+              "q": ("array", (4,), "optional"), "T_world_left": ("array", (4, 4), "optional"),
+              "T_world_right": ("array", (4, 4), "optional")}
     seq: int
     stamp_ns: int
     T_world_ecm: np.ndarray
     q: Optional[np.ndarray] = None
+    T_world_left: Optional[np.ndarray] = None
+    T_world_right: Optional[np.ndarray] = None
 
     def validate(self):
         pass
