@@ -47,7 +47,8 @@ class FusedPose:
 
     ``n_views``: estimates averaged (the inliers); ``n_queued``: estimates in the queue;
     ``inliers``: mask over the queue, oldest first; ``covariance`` (6, 6) in the current ECM
-    frame when the inputs carried covariances; ``reset``: this estimate started a new queue.
+    frame when the inputs carried covariances; ``reset``: this estimate started a new queue;
+    ``rms_m``: RMS distance of the inliers' positions to the fused one.
     """
 
     T_ecm_needle: np.ndarray
@@ -57,6 +58,7 @@ class FusedPose:
     inliers: np.ndarray
     covariance: np.ndarray | None = None
     reset: bool = False
+    rms_m: float = 0.0
 
 
 def covariance_to_frame(cov: np.ndarray, R_a_b: np.ndarray) -> np.ndarray:
@@ -208,4 +210,6 @@ class MultiViewFusion:
                         else covariance_to_frame(e.covariance, T_now_i[:3, :3]))
         T, inl, cov = fuse_poses(Ts, covs if self.use_covariance else None,
                                  self.max_dist_m, self.max_angle_rad)
-        return FusedPose(T, T_world_ecm_now @ T, int(inl.sum()), len(Ts), inl, cov, reset)
+        d = np.array([Ti[:3, 3] - T[:3, 3] for Ti, ok in zip(Ts, inl) if ok])
+        rms = float(np.sqrt(np.mean(np.sum(d * d, axis=1))))
+        return FusedPose(T, T_world_ecm_now @ T, int(inl.sum()), len(Ts), inl, cov, reset, rms)

@@ -1,0 +1,106 @@
+"""Shared wiring of the pose nodes: calibration, ECM poses by frame, stereo keypoint pairing.
+
+``StereoPoseNode`` is a ``Node`` base for nodes that turn the two ``Keypoints`` of a stereo
+frame into a pose (``epnp``, ``triangulate``): it keeps the latest ``Calibration``, remembers
+recent ``EcmPose`` messages by ``seq``, pairs left/right keypoints by ``seq`` and calls
+``on_pair(left, right)``; it counts why a frame gave no pose (``no_pose.<reason>``) and builds
+the ``PoseEstimate`` with ``T_world_needle`` when the ECM pose of that frame is known.
+"""
+from __future__ import annotations
+
+from collections import OrderedDict
+
+import numpy as np
+
+from common.messages import Calibration, EcmPose, Keypoints, PoseEstimate
+from common.node import Node
+from common.pairing import StereoPairer
+
+
+class SeqCache(OrderedDict):
+    """A dict keyed by frame ``seq`` that keeps only the newest ``size`` entries."""
+
+    def __init__(self, size: int = 256):
+        super().__init__()
+        self.size = size
+
+    def put(self, seq: int, value) -> None:
+        self[seq] = value
+        self.move_to_end(seq)
+        while len(self) > self.size:
+            self.popitem(last=False)
+
+
+class StereoPoseNode(Node):
+    """Base of the stereo keypoint -> pose nodes (see the module docstring).
+
+    Params read here: ``min_score`` (0.5, keypoints scoring lower are not used).
+    """
+
+    INPUTS = {"left": Keypoints, "right": Keypoints, "calib": Calibration, "ecm": EcmPose}
+    KEEP_ALL = ("calib", "ecm")
+
+    def setup(self):
+        self.min_score = float(self.params.get("min_score", 0.5))
+        self.calib: Calibration | None = None
+        self.rig = None
+        self.model_points = None
+        self.ecm_poses = SeqCache()
+        self.pairer = StereoPairer()
+
+    # ---------------------------------------------------------------- inputs
+    def on_calib(self, msg: Calibration):
+        if self.calib is None or msg.cameras != self.calib.cameras or msg.needle != self.calib.needle:
+            self.rig = msg.rig()
+            self.model_points = msg.needle_model().keypoints()
+        self.calib = msg
+
+    def on_ecm(self, msg: EcmPose):
+        self.ecm_poses.put(msg.seq, np.asarray(msg.T_world_ecm, dtype=float))
+
+    def on_left(self, msg: Keypoints):
+        self._push(msg)
+
+    def on_right(self, msg: Keypoints):
+        self._push(msg)
+
+    def _push(self, msg: Keypoints):
+        if msg.camera not in ("left", "right"):
+            self.count("bad_input")
+            return
+        dropped = self.pairer.dropped
+        pair = self.pairer.push(msg.camera, msg.seq, msg)
+        if self.pairer.dropped > dropped:
+            self.count("unpaired", self.pairer.dropped - dropped)
+        if pair is None:
+            return
+        if self.rig is None:
+            self.count("no_pose.no_calibration")
+            return
+        self.on_pair(*pair)
+
+    def on_pair(self, left: Keypoints, right: Keypoints) -> None:
+        raise NotImplementedError
+
+    # ---------------------------------------------------------------- helpers
+    @staticmethod
+    def stereo_arrays(left: Keypoints, right: Keypoints) -> tuple[dict, dict]:
+        """(uv, scores) maps for the solvers; a camera whose detector found nothing is left out."""
+        uv, sc = {}, {}
+        for kp in (left, right):
+            if kp.found:
+                uv[kp.camera] = np.asarray(kp.uv, dtype=float)
+                sc[kp.camera] = np.asarray(kp.scores, dtype=float)
+        return uv, sc
+
+    def no_pose(self, reason: str, seq: int, detail: str = "") -> None:
+        self.count(f"no_pose.{reason}")
+        self.log.debug("seq %d: no pose (%s) %s", seq, reason, detail)
+
+    def pose_message(self, seq: int, stamp_ns: int, method: str, T_ecm_needle, residual: float,
+                     residual_unit: str, **extra) -> PoseEstimate:
+        """A PoseEstimate, with T_world_ecm/T_world_needle when the frame's ECM pose is known."""
+        T_world_ecm = self.ecm_poses.get(seq)
+        T_world_needle = None if T_world_ecm is None else T_world_ecm @ T_ecm_needle
+        return PoseEstimate(seq, stamp_ns, method, np.asarray(T_ecm_needle, dtype=float),
+                            T_world_needle, T_world_ecm, float(residual), residual_unit, **extra)

@@ -1,0 +1,86 @@
+"""ECM kinematics node: joint states -> endoscope pose ``T_world_ecm`` (common/ecm_kinematics.py).
+
+Inputs: ``joints`` (EcmJoints, every message is used), ``calib`` (Calibration, optional).
+Output: ``pose`` (EcmPose with the same ``seq``/``stamp_ns`` and ``q``; with a calibration, also
+the cameras' poses ``T_world_left`` and ``T_world_right``).
+
+The arm model (``T_world_base`` 4x4, ``L_rcc`` m, ``L_scopelen`` m) comes from the node's params
+when any of them is given, else from the calibration's ``ecm`` mapping (the dataset's), else the
+default arm (base at the world origin, zero lengths). With ``calib`` wired, joint states that
+arrive before the first calibration are counted ``no_pose.no_calibration`` and skipped.
+"""
+from __future__ import annotations
+
+import numpy as np
+
+from common.ecm_kinematics import EcmArm
+from common.messages import Calibration, EcmJoints, EcmPose
+from common.node import Node, run
+from common.transforms import is_rigid
+
+ARM_KEYS = ("T_world_base", "L_rcc", "L_scopelen")
+
+
+def arm_from_params(params: dict) -> EcmArm | None:
+    """The arm from node params, or None when they give none of its keys; raises ValueError."""
+    if not any(k in params for k in ARM_KEYS):
+        return None
+    try:
+        arm = EcmArm.from_dict({k: params[k] for k in ARM_KEYS if k in params})
+    except (TypeError, ValueError) as exc:
+        raise ValueError(f"ecm: bad arm params: {exc}") from None
+    if not is_rigid(arm.T_world_base):
+        raise ValueError(f"ecm: params.T_world_base is not a 4x4 rigid transform: {arm.T_world_base.tolist()}")
+    if not (np.isfinite(arm.L_rcc) and np.isfinite(arm.L_scopelen)):
+        raise ValueError("ecm: params.L_rcc / L_scopelen must be finite")
+    return arm
+
+
+class EcmNode(Node):
+    """Forward kinematics of the endoscope arm at the rate joint states arrive."""
+
+    INPUTS = {"joints": EcmJoints, "calib": Calibration}
+    OUTPUTS = ("pose",)
+    KEEP_ALL = ("joints", "calib")
+
+    def setup(self):
+        self.param_arm = arm_from_params(self.params)
+        self.calib_arm = None
+        self.have_calib = False
+        self.T_ecm_cams: dict = {}
+
+    def on_calib(self, msg: Calibration):
+        self.have_calib = True
+        self.T_ecm_cams = {c.name: c.T_ecm_cam for c in msg.rig().cameras}
+        if msg.ecm is not None:
+            try:
+                self.calib_arm = msg.arm()
+            except (KeyError, TypeError, ValueError) as exc:
+                self.count("bad_calibration")
+                self.log.error("calibration ecm mapping unusable: %s", exc)
+
+    def arm(self) -> EcmArm | None:
+        if self.param_arm is not None:
+            return self.param_arm
+        if self.wired("calib") and not self.have_calib:
+            return None
+        return self.calib_arm or EcmArm()
+
+    def on_joints(self, msg: EcmJoints):
+        arm = self.arm()
+        if arm is None:
+            self.count("no_pose.no_calibration")
+            return
+        try:
+            T = arm.T_world_ecm(msg.q)
+        except ValueError as exc:
+            self.count("no_pose.bad_joints")
+            self.log.warning("seq %d: %s", msg.seq, exc)
+            return
+        cams = {f"T_world_{name}": T @ T_cam for name, T_cam in self.T_ecm_cams.items()}
+        self.publish("pose", EcmPose(msg.seq, msg.stamp_ns, T, np.asarray(msg.q, dtype=float), **cams))
+
+
+NODE = EcmNode
+if __name__ == "__main__":
+    run(NODE)

@@ -1,0 +1,66 @@
+"""Pipeline I node: needle pose from the stereo keypoints by PnP (common/pnp.py).
+
+Inputs: ``left``, ``right`` (Keypoints, paired by ``seq``), ``calib`` (Calibration), ``ecm``
+(EcmPose, optional: adds ``T_world_needle``). Output: ``pose`` (PoseEstimate, method
+``pnp_average`` or ``pnp_joint``, residual = reprojection RMS in px).
+
+Params: ``method`` (``joint`` | ``average``, default joint); ``min_score`` (0.5);
+``max_rms_px`` (20: a fit worse than this is not published); ``outlier_px`` (joint only,
+default 10: the worst keypoint is dropped and the fit redone while its residual exceeds this);
+``refine`` (average only, default true: false gives raw EPnP as published, see common/pnp.py).
+A frame that gives no pose is counted as ``no_pose.<reason>``.
+"""
+from __future__ import annotations
+
+from common.messages import Calibration, EcmPose, Keypoints
+from common.node import run
+from common.observations import NoPose
+from common.pnp import pnp_average, pnp_joint
+from common.pose_node import StereoPoseNode
+
+METHODS = {"joint": "pnp_joint", "average": "pnp_average"}
+
+
+class EpnpNode(StereoPoseNode):
+    """Pipeline I: PnP per camera (average) or jointly in both cameras -> T_ecm_needle."""
+
+    INPUTS = {"left": Keypoints, "right": Keypoints, "calib": Calibration, "ecm": EcmPose}
+    OUTPUTS = ("pose",)
+    KEEP_ALL = StereoPoseNode.KEEP_ALL
+
+    def setup(self):
+        super().setup()
+        method = str(self.params.get("method", "joint"))
+        if method not in METHODS:
+            raise ValueError(f"epnp: params.method must be one of {sorted(METHODS)}, got {method!r}")
+        self.method = method
+        self.max_rms_px = _opt_float(self.params.get("max_rms_px", 20.0))
+        self.outlier_px = _opt_float(self.params.get("outlier_px", 10.0))
+        self.refine = bool(self.params.get("refine", True))
+
+    def on_pair(self, left, right):
+        uv, sc = self.stereo_arrays(left, right)
+        try:
+            if self.method == "joint":
+                res = pnp_joint(uv, self.rig, self.model_points, sc, self.min_score,
+                                outlier_px=self.outlier_px, max_rms_px=self.max_rms_px)
+            else:
+                res = pnp_average(uv, self.rig, self.model_points, sc, self.min_score,
+                                  refine=self.refine, max_rms_px=self.max_rms_px)
+        except NoPose as exc:
+            self.no_pose(exc.reason, left.seq, exc.detail)
+            return
+        extra = {}
+        if self.method == "joint":
+            extra = {"covariance": res.covariance, "ambiguous": bool(res.ambiguous)}
+        self.publish("pose", self.pose_message(left.seq, left.stamp_ns, METHODS[self.method],
+                                               res.T_ecm_needle, res.rms_px, "px", **extra))
+
+
+def _opt_float(v):
+    return None if v is None else float(v)
+
+
+NODE = EpnpNode
+if __name__ == "__main__":
+    run(NODE)

@@ -1,0 +1,118 @@
+"""Multi-view fusion node (common/fusion.py): a queue of the last k pose estimates, each mapped
+into the current ECM frame through the ECM poses at which they were made, outliers removed,
+averaged.
+
+Inputs: ``pose`` (PoseEstimate from a single-frame method), ``ecm`` (EcmPose; when not wired the
+endoscope is taken to be still), ``truth`` (GroundTruth, optional: only its ``sequence`` label
+is used, to reset the queue when a recording starts a new multi-view group).
+Output: ``pose`` (PoseEstimate, method ``params.method``, default ``multiview``; ``n_views`` =
+estimates averaged; residual = RMS distance of those to the fused position, m; covariance when
+every input carried one).
+
+Params: ``k`` (5), ``max_dist_mm`` (5), ``max_angle_deg`` (15) for outliers; ``reset_dist_mm``
+(10), ``reset_angle_deg`` (45), ``reset_after`` (3) for detecting a moved needle;
+``use_covariance`` (true); ``reset_on_sequence`` (true); ``method``; ``max_wait`` (30: frames
+an estimate waits for its ECM pose or truth before it is dropped, ``no_pose.no_ecm_pose``).
+Command ``reset`` empties the queue.
+"""
+from __future__ import annotations
+
+import numpy as np
+
+from common.fusion import MultiViewFusion
+from common.messages import EcmPose, GroundTruth, PoseEstimate
+from common.node import Node, run
+from common.pose_node import SeqCache
+
+
+class FusionNode(Node):
+    """Multi-view fusion of the last k estimates, in the current ECM frame."""
+
+    INPUTS = {"pose": PoseEstimate, "ecm": EcmPose, "truth": GroundTruth}
+    OUTPUTS = ("pose",)
+    KEEP_ALL = ("pose", "ecm", "truth")
+
+    def setup(self):
+        p = self.params
+        self.fusion = MultiViewFusion(
+            k=int(p.get("k", 5)),
+            max_dist_m=float(p.get("max_dist_mm", 5.0)) * 1e-3,
+            max_angle_rad=np.deg2rad(float(p.get("max_angle_deg", 15.0))),
+            reset_dist_m=float(p.get("reset_dist_mm", 10.0)) * 1e-3,
+            reset_angle_rad=np.deg2rad(float(p.get("reset_angle_deg", 45.0))),
+            reset_after=int(p.get("reset_after", 3)),
+            use_covariance=bool(p.get("use_covariance", True)))
+        self.method = str(p.get("method", "multiview"))
+        self.reset_on_sequence = bool(p.get("reset_on_sequence", True))
+        self.max_wait = int(p.get("max_wait", 30))
+        self.ecm_poses = SeqCache()
+        self.sequences = SeqCache()
+        self.pending: list[PoseEstimate] = []
+        self.newest_seq = -1
+
+    # ---------------------------------------------------------------- inputs
+    def on_ecm(self, msg: EcmPose):
+        self.ecm_poses.put(msg.seq, np.asarray(msg.T_world_ecm, dtype=float))
+        self._drain()
+
+    def on_truth(self, msg: GroundTruth):
+        self.sequences.put(msg.seq, msg.sequence)
+        self._drain()
+
+    def on_pose(self, msg: PoseEstimate):
+        self.newest_seq = max(self.newest_seq, msg.seq)
+        self.pending.append(msg)
+        self.pending.sort(key=lambda m: m.seq)
+        self._drain()
+
+    def on_command(self, msg):
+        if msg.name == "reset":
+            self.fusion.reset()
+            self.count("resets.command")
+        else:
+            super().on_command(msg)
+
+    # ---------------------------------------------------------------- fusion
+    def _needs(self, msg: PoseEstimate) -> tuple[bool, bool]:
+        """(waiting for the ECM pose, waiting for the truth) of a queued estimate."""
+        ecm = msg.T_world_ecm is None and self.wired("ecm") and msg.seq not in self.ecm_poses
+        truth = (self.reset_on_sequence and msg.sequence is None and self.wired("truth")
+                 and msg.seq not in self.sequences)
+        return ecm, truth
+
+    def _drain(self):
+        while self.pending:
+            msg = self.pending[0]
+            wait_ecm, wait_truth = self._needs(msg)
+            stale = self.newest_seq - msg.seq >= self.max_wait
+            if (wait_ecm or wait_truth) and not stale:
+                return
+            self.pending.pop(0)
+            if wait_ecm:
+                self.count("no_pose.no_ecm_pose")
+                continue
+            if wait_truth:
+                self.count("no_sequence")
+            self._fuse(msg)
+
+    def _fuse(self, msg: PoseEstimate):
+        T_world_ecm = msg.T_world_ecm
+        if T_world_ecm is None:
+            T_world_ecm = self.ecm_poses.get(msg.seq) if self.wired("ecm") else np.eye(4)
+        sequence = msg.sequence
+        if sequence is None and self.reset_on_sequence:
+            sequence = self.sequences.get(msg.seq)
+        out = self.fusion.add(msg.T_ecm_needle, T_world_ecm, msg.covariance, seq=msg.seq,
+                              sequence=sequence if self.reset_on_sequence else None)
+        if out.reset:
+            self.count("resets")
+        self.count("outliers", int(out.n_queued - out.n_views))
+        self.publish("pose", PoseEstimate(
+            msg.seq, msg.stamp_ns, self.method, out.T_ecm_needle, out.T_world_needle,
+            np.asarray(T_world_ecm, dtype=float), out.rms_m, "m", out.n_views, out.covariance,
+            sequence=sequence))
+
+
+NODE = FusionNode
+if __name__ == "__main__":
+    run(NODE)

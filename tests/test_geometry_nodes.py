@@ -1,0 +1,262 @@
+"""The geometry nodes (detector/oracle, epnp, triangulate, ecm, fusion): offline, message in,
+message out, matching the library functions; bad input counted, never a wrong pose."""
+import numpy as np
+import pytest
+
+from common.camera import StereoRig
+from common.ecm_kinematics import EcmArm
+from common.geometry_eval import multiview_scenario
+from common.messages import (Calibration, CameraImage, Command, EcmJoints, EcmPose, GroundTruth, Keypoints,
+                             Points3D, PoseEstimate, decode, encode)
+from common.needle import NeedleModel
+from common.oracle import Oracle, random_needle_pose
+from common.pnp import pnp_average, pnp_joint
+from common.transforms import inv_T, make_T, pose_error, rotvec_to_R
+from common.triangulation import triangulation_pose
+from nodes.detector import DetectorNode
+from nodes.ecm import EcmNode
+from nodes.epnp import EpnpNode
+from nodes.fusion import FusionNode
+from nodes.triangulate import TriangulateNode
+
+RIG = StereoRig.default()
+MODEL = NeedleModel()
+P = MODEL.keypoints()
+ARM = EcmArm(make_T(rotvec_to_R([0, 0, 0.2]), [0.1, 0.0, 0.3]), 0.01, 0.02)
+CALIB = Calibration(0, np.array([1920, 1080]), RIG.to_dict(), MODEL.to_dict(), ARM.to_dict())
+
+
+def roundtrip(msg):
+    """What a node receives: the message after encoding and decoding."""
+    return decode(encode(msg), type(msg))
+
+
+def outputs(node, name):
+    return [m for o, m in node.published if o == name]
+
+
+def frame(seq, T_ecm_needle, q=(0.0, 0.0, 0.05, 0.0)):
+    T_world_ecm = ARM.T_world_ecm(q)
+    truth = GroundTruth(seq, seq * 1000, sequence=0, step=seq, ecm_joints=np.array(q),
+                        T_world_ecm=T_world_ecm, T_world_needle=T_world_ecm @ T_ecm_needle)
+    return truth, EcmJoints(seq, seq * 1000, np.array(q, dtype=float))
+
+
+def detect(truths, noise_px=0.0, seed=0):
+    """Keypoints from the detector node (oracle backend) run on ground truth alone."""
+    det = DetectorNode.offline({"backend": "oracle", "noise_px": noise_px, "seed": seed},
+                               wired=["truth", "calib"])
+    det.on_calib(roundtrip(CALIB))
+    for t in truths:
+        det.on_truth(roundtrip(t))
+    return outputs(det, "left"), outputs(det, "right")
+
+
+def test_detector_oracle_matches_the_library_and_needs_no_image():
+    rng = np.random.default_rng(0)
+    T = random_needle_pose(rng, RIG, MODEL)
+    truth, _ = frame(7, T)
+    left, right = detect([truth], noise_px=0.7, seed=3)
+    uv, sc = Oracle(noise_px=0.7, seed=3).stereo(RIG, T, MODEL, seq=7)
+    assert np.allclose(left[0].uv, uv["left"]) and np.allclose(right[0].uv, uv["right"])
+    assert left[0].seq == 7 and left[0].stamp_ns == 7000 and left[0].detector == "oracle"
+    # with images wired: an image triggers detection; a corrupt image is never decoded by the oracle
+    det = DetectorNode.offline({"backend": "oracle"})
+    det.on_calib(CALIB)
+    bad = CameraImage("left", 7, 7000, 4, 4, "png", b"not a png")
+    det.on_left(bad)                                   # truth not here yet: waits
+    assert det.published == []
+    det.on_truth(truth)
+    (out, kp), = det.published
+    assert out == "left" and kp.found and np.allclose(kp.uv, Oracle().stereo(RIG, T, MODEL, 7)[0]["left"])
+
+
+def test_detector_waits_bounded_and_counts():
+    det = DetectorNode.offline({"backend": "oracle", "max_wait": 3})
+    img = CameraImage("right", 1, 0, 2, 2, "bgr8", bytes(12))
+    det.on_right(img)                                  # no calibration yet, no truth yet
+    for s in range(2, 6):
+        det.on_right(CameraImage("right", s, 0, 2, 2, "bgr8", bytes(12)))
+    assert det.counters["no_calibration"] >= 1
+    det.on_calib(CALIB)
+    for s in range(6, 10):
+        det.on_right(CameraImage("right", s, 0, 2, 2, "bgr8", bytes(12)))
+    kps = outputs(det, "right")
+    assert kps and all(not k.found for k in kps)     # gave up waiting for truth: not found
+    with pytest.raises(Exception):
+        DetectorNode.offline({"backend": "no-such-backend"})
+
+
+def test_ecm_node_from_params_and_from_calibration():
+    q = np.array([0.1, -0.05, 0.08, 0.3])
+    node = EcmNode.offline({}, wired=["joints", "calib"])
+    node.on_joints(EcmJoints(1, 10, q))
+    assert node.published == [] and node.counters["no_pose.no_calibration"] == 1
+    node.on_calib(roundtrip(CALIB))
+    node.on_joints(roundtrip(EcmJoints(2, 20, q)))
+    (out, pose), = node.published
+    assert out == "pose" and pose.seq == 2 and np.allclose(pose.T_world_ecm, ARM.T_world_ecm(q))
+    assert np.allclose(pose.T_world_left, ARM.T_world_ecm(q) @ RIG.left.T_ecm_cam)
+    roundtrip(pose)
+    base = make_T(rotvec_to_R([0.3, 0, 0]), [0, 1, 2])
+    node = EcmNode.offline({"T_world_base": base.tolist(), "L_rcc": 0.0}, wired=["joints"])
+    node.on_joints(EcmJoints(3, 30, q))
+    assert np.allclose(node.published[0][1].T_world_ecm, EcmArm(base).T_world_ecm(q))
+    with pytest.raises(ValueError, match="rigid"):
+        EcmNode.offline({"T_world_base": np.eye(4).tolist()[:3]})
+    with pytest.raises(ValueError):
+        EcmNode.offline({"T_world_base": (2 * np.eye(4)).tolist()})
+
+
+@pytest.mark.parametrize("method", ["joint", "average"])
+def test_epnp_node_matches_the_library(method):
+    rng = np.random.default_rng(1)
+    truths = [frame(s, random_needle_pose(rng, RIG, MODEL))[0] for s in range(4)]
+    left, right = detect(truths, noise_px=0.5, seed=1)
+    node = EpnpNode.offline({"method": method}, wired=["left", "right", "calib", "ecm"])
+    node.on_calib(roundtrip(CALIB))
+    for t in truths:
+        node.on_ecm(roundtrip(EcmPose(t.seq, t.stamp_ns, t.T_world_ecm)))
+    for l, r in zip(left, right):
+        node.on_right(roundtrip(r))                   # order within a frame does not matter
+        node.on_left(roundtrip(l))
+    poses = outputs(node, "pose")
+    assert [p.seq for p in poses] == [0, 1, 2, 3]
+    f = pnp_joint if method == "joint" else pnp_average
+    for p, l, r, t in zip(poses, left, right, truths):
+        ref = f({"left": l.uv, "right": r.uv}, RIG, P, {"left": l.scores, "right": r.scores})
+        assert np.allclose(p.T_ecm_needle, ref.T_ecm_needle, atol=1e-9)
+        assert p.method == f"pnp_{method}" and p.residual_unit == "px"
+        assert p.residual == pytest.approx(ref.rms_px)
+        assert np.allclose(p.T_world_needle, t.T_world_ecm @ p.T_ecm_needle)
+        assert (p.covariance is not None) == (method == "joint")
+        roundtrip(p)
+
+
+def test_epnp_node_counts_no_pose_and_never_publishes_one():
+    node = EpnpNode.offline({"method": "joint"}, wired=["left", "right", "calib"])
+    kp = Keypoints("left", 0, 0, True, np.full((5, 2), 100.0), np.ones(5), 1.0)
+    node.on_left(kp)
+    node.on_right(Keypoints("right", 0, 0, True, np.full((5, 2), 100.0), np.ones(5), 1.0))
+    assert node.counters["no_pose.no_calibration"] == 1
+    node.on_calib(CALIB)
+    cases = [
+        (np.full((5, 2), 100.0), "coincident"),
+        (np.stack([np.linspace(100, 400, 5), np.linspace(100, 200, 5)], 1), "collinear"),
+        (np.array([[1, 2], [3, 4], [5, 6], [np.nan, 0], [np.nan, np.nan]], float), "too_few_points"),
+    ]
+    for seq, (uv, reason) in enumerate(cases, start=1):
+        node.on_left(Keypoints("left", seq, 0, True, uv, np.ones(5), 1.0))
+        node.on_right(Keypoints("right", seq, 0, True, uv, np.ones(5), 1.0))
+        assert node.counters[f"no_pose.{reason}"] == 1, reason
+    node.on_left(Keypoints.not_found("left", 9, 0, "oracle", "x"))
+    node.on_right(Keypoints.not_found("right", 9, 0, "oracle", "x"))
+    assert node.counters["no_pose.too_few_points"] == 2
+    assert outputs(node, "pose") == []
+    with pytest.raises(ValueError, match="method"):
+        EpnpNode.offline({"method": "median"})
+
+
+def test_triangulate_node_matches_the_library_and_publishes_points():
+    rng = np.random.default_rng(2)
+    truths = [frame(s, random_needle_pose(rng, RIG, MODEL))[0] for s in range(3)]
+    left, right = detect(truths, noise_px=0.3, seed=2)
+    node = TriangulateNode.offline({}, wired=["left", "right", "calib"])
+    node.on_calib(roundtrip(CALIB))
+    for l, r in zip(left, right):
+        node.on_left(roundtrip(l))
+        node.on_right(roundtrip(r))
+    poses, pts = outputs(node, "pose"), outputs(node, "points")
+    assert len(poses) == 3 and len(pts) == 3
+    for p, q, l, r in zip(poses, pts, left, right):
+        ref = triangulation_pose({"left": l.uv, "right": r.uv}, RIG, P, {"left": l.scores, "right": r.scores})
+        assert np.allclose(p.T_ecm_needle, ref.T_ecm_needle, atol=1e-12)
+        assert p.method == "triangulation" and p.residual_unit == "m" and p.T_world_needle is None
+        assert isinstance(q, Points3D) and q.valid.all() and np.allclose(q.points_ecm, ref.points_ecm)
+        roundtrip(p), roundtrip(q)
+    # three usable points: the points go out, the pose does not
+    l, r = left[0], right[0]
+    uv = l.uv.copy()
+    uv[:2] = np.nan
+    node.on_left(Keypoints("left", 50, 0, True, uv, np.ones(5), 1.0))
+    node.on_right(Keypoints("right", 50, 0, True, r.uv, np.ones(5), 1.0))
+    assert node.counters["no_pose.too_few_points"] == 1
+    assert outputs(node, "points")[-1].valid.sum() == 3 and len(outputs(node, "pose")) == 3
+
+
+def test_fusion_node_maps_views_through_the_ecm_and_resets_on_sequence():
+    rng = np.random.default_rng(3)
+    T_wn, T_we, T_en = multiview_scenario(rng, RIG, MODEL, ARM)
+    node = FusionNode.offline({}, wired=["pose", "ecm", "truth"])
+    for s, (T_w, T_e) in enumerate(zip(T_we, T_en)):
+        node.on_pose(PoseEstimate(s, s, "pnp_joint", T_e))           # before its ECM pose and truth
+        assert len(outputs(node, "pose")) == s
+        node.on_ecm(EcmPose(s, s, T_w))
+        node.on_truth(GroundTruth(s, s, sequence=4))
+    fused = outputs(node, "pose")
+    assert [p.n_views for p in fused] == [1, 2, 3, 4, 5]
+    last = fused[-1]
+    assert last.method == "multiview" and last.sequence == 4 and last.residual_unit == "m"
+    assert np.allclose(last.T_ecm_needle, T_en[-1], atol=1e-12)
+    assert np.allclose(last.T_world_needle, T_wn, atol=1e-12)
+    roundtrip(last)
+    # a new sequence starts a new queue
+    node.on_truth(GroundTruth(5, 5, sequence=5))
+    node.on_ecm(EcmPose(5, 5, T_we[-1]))
+    node.on_pose(PoseEstimate(5, 5, "pnp_joint", T_en[-1]))
+    assert outputs(node, "pose")[-1].n_views == 1 and node.counters["resets"] == 1
+    node.on_command(Command("reset"))
+    assert len(node.fusion) == 0
+
+
+def test_fusion_node_drops_estimates_whose_ecm_pose_never_comes():
+    node = FusionNode.offline({"max_wait": 2}, wired=["pose", "ecm"])
+    T = make_T(np.eye(3), [0, 0, -0.15])
+    node.on_pose(PoseEstimate(0, 0, "pnp_joint", T))
+    node.on_ecm(EcmPose(1, 1, np.eye(4)))
+    node.on_pose(PoseEstimate(1, 1, "pnp_joint", T))
+    node.on_ecm(EcmPose(2, 2, np.eye(4)))
+    node.on_pose(PoseEstimate(2, 2, "pnp_joint", T))
+    assert node.counters["no_pose.no_ecm_pose"] == 1
+    assert [p.seq for p in outputs(node, "pose")] == [1, 2]
+
+
+def test_fusion_node_uses_the_estimate_own_ecm_pose():
+    node = FusionNode.offline({}, wired=["pose"])
+    T = make_T(np.eye(3), [0, 0, -0.15])
+    Tw = make_T(rotvec_to_R([0, 0.1, 0]), [0.01, 0, 0])
+    node.on_pose(PoseEstimate(0, 0, "pnp_joint", T, T_world_ecm=Tw))
+    p, = outputs(node, "pose")
+    assert np.allclose(p.T_world_needle, Tw @ T)
+
+
+def test_pipeline_offline_end_to_end_five_views():
+    """detector -> epnp (joint) -> fusion with the ecm node, on a 5-view oracle sequence."""
+    rng = np.random.default_rng(4)
+    arm_calib = CALIB
+    ecm = EcmNode.offline({}, wired=["joints", "calib"])
+    ecm.on_calib(arm_calib)
+    epnp = EpnpNode.offline({"method": "joint"}, wired=["left", "right", "calib", "ecm"])
+    epnp.on_calib(arm_calib)
+    fusion = FusionNode.offline({}, wired=["pose", "ecm"])
+    T_wn = ARM.T_world_ecm([0, 0, 0.05, 0]) @ random_needle_pose(rng, RIG, MODEL, max_offaxis=0.2)
+    truths = []
+    for s in range(5):
+        q = np.array([-0.1 + 0.05 * s, 0.0, 0.05, 0.0])
+        T_w = ARM.T_world_ecm(q)
+        truths.append(GroundTruth(s, s, sequence=0, step=s, ecm_joints=q, T_world_ecm=T_w, T_world_needle=T_wn))
+        ecm.on_joints(EcmJoints(s, s, q))
+    for out, pose in ecm.published:
+        epnp.on_ecm(roundtrip(pose))
+        fusion.on_ecm(roundtrip(pose))
+    left, right = detect(truths)
+    for l, r in zip(left, right):
+        epnp.on_left(l)
+        epnp.on_right(r)
+    for out, pose in epnp.published:
+        fusion.on_pose(roundtrip(pose))
+    fused = outputs(fusion, "pose")
+    assert len(fused) == 5 and fused[-1].n_views == 5
+    T_en_last = inv_T(truths[-1].T_world_ecm) @ T_wn
+    dt, dr = pose_error(fused[-1].T_ecm_needle, T_en_last)
+    assert dt < 1e-6 and dr < np.deg2rad(1e-4)
