@@ -1,0 +1,112 @@
+"""``sim``: the built-in MuJoCo suturing scene as a live stereo camera source.
+
+Outputs: ``left``/``right`` (``CameraImage``, sharing ``seq``), ``joints`` (``EcmJoints``),
+``truth`` (``GroundTruth``: poses, keypoints, visibility, boxes; ``sequence``/``step`` of the
+multi-view protocol), ``calib`` (``Calibration``: before the first frame, then once a second).
+``stamp_ns`` is the wall-clock time of the frame.
+
+params: ``width``/``height`` (1920x1080), ``rate_hz`` (30; a maximum: rendering 1080p on the CPU
+is slower; 0 = as fast as possible), ``randomise`` (none|test|train, default test), ``seed`` (0),
+``motion`` (static|multiview|sweep, default sweep), ``steps`` (5) and ``hold_frames`` (15) of the
+multi-view protocol, ``sweep_period_s`` (8), ``sweep_amplitude_rad`` (0.06), ``encoding``
+(jpeg|png|bgr8, default jpeg), ``jpeg_quality`` (95), ``count`` (stop after this many frames;
+0 = never).
+
+Commands: ``place_needle`` (args: optional ``seed`` int, or ``T_world_needle`` 4x4), ``set_motion``
+(args: ``motion``).
+"""
+import time
+
+import numpy as np
+
+from common.messages import Calibration, CameraImage, Command, EcmJoints, GroundTruth
+from common.node import Node, run
+
+
+class SimNode(Node):
+    """Live simulator source."""
+
+    OUTPUTS = ("left", "right", "joints", "truth", "calib")
+
+    def setup(self):
+        import common.sim_render  # noqa: F401  (headless GL before mujoco)
+        from common.sim_live import LiveSim
+        p = self.params
+        rate = float(p.get("rate_hz", 30.0))
+        self.period = 1.0 / rate if rate > 0 else 0.0
+        self.encoding = str(p.get("encoding", "jpeg"))
+        if self.encoding not in ("jpeg", "png", "bgr8"):
+            raise ValueError(f"sim: encoding must be jpeg, png or bgr8, got {self.encoding!r}")
+        self.jpeg_quality = int(p.get("jpeg_quality", 95))
+        self.count_max = int(p.get("count", 0))
+        self.sim = LiveSim(width=int(p.get("width", 1920)), height=int(p.get("height", 1080)),
+                           randomise=str(p.get("randomise", "test")), seed=int(p.get("seed", 0)),
+                           motion=str(p.get("motion", "sweep")), steps=int(p.get("steps", 5)),
+                           hold_frames=int(p.get("hold_frames", 15)),
+                           sweep_period_s=float(p.get("sweep_period_s", 8.0)),
+                           sweep_amplitude_rad=float(p.get("sweep_amplitude_rad", 0.06)), rate_hz=rate)
+        self.seq = 0
+        self.next_t = time.monotonic()
+        self.last_calib = None
+        self.calib = Calibration(stamp_ns=0, image_size=np.array([self.sim.rig.left.width, self.sim.rig.left.height]),
+                                 cameras=self.sim.rig.to_dict(), needle=self.sim.needle.to_dict(),
+                                 ecm=self.sim.arm.to_dict(), source="needletrack sim (MuJoCo built-in scene)")
+
+    def _publish_calib(self, force: bool = False) -> None:
+        now = time.monotonic()
+        if force or self.last_calib is None or now - self.last_calib >= 1.0:
+            self.calib.stamp_ns = time.time_ns()
+            self.publish("calib", self.calib)
+            self.last_calib = now
+
+    def step(self):
+        if self.count_max and self.seq >= self.count_max:
+            return False
+        if self.seq == 0:
+            self._publish_calib(force=True)
+        if self.period:
+            delay = self.next_t - time.monotonic()
+            if delay > 0:
+                time.sleep(delay)
+            self.next_t = max(self.next_t + self.period, time.monotonic() - self.period)
+        fr = self.sim.next_frame()
+        stamp = time.time_ns()
+        for cam in ("left", "right"):
+            self.publish(cam, CameraImage.from_bgr(cam, self.seq, stamp, fr.images[cam], self.encoding,
+                                                   self.jpeg_quality))
+        self.publish("joints", EcmJoints(self.seq, stamp, np.asarray(fr.q, float)))
+        t = fr.truth
+        self.publish("truth", GroundTruth(
+            seq=self.seq, stamp_ns=stamp, sequence=fr.sequence, step=fr.step, ecm_joints=np.asarray(fr.q, float),
+            T_world_ecm=fr.T_world_ecm, T_world_needle=fr.T_world_needle,
+            keypoints={c: np.asarray(t["keypoints"][c], float) for c in ("left", "right")},
+            visible={c: np.asarray(t["visible"][c], bool) for c in ("left", "right")},
+            bbox={c: None if t["bbox"][c] is None else np.asarray(t["bbox"][c], float) for c in ("left", "right")}))
+        self.seq += 1
+        self._publish_calib()
+        return True
+
+    def on_command(self, msg: Command):
+        args = msg.args or {}
+        if msg.name == "place_needle":
+            T = args.get("T_world_needle")
+            self.sim.place_needle(seed=args.get("seed"), T_world_needle=None if T is None else np.asarray(T, float))
+            self.count("needle_placed")
+        elif msg.name == "set_motion":
+            from common.sim_live import MOTIONS
+            motion = args.get("motion")
+            if motion not in MOTIONS:
+                raise ValueError(f"set_motion: motion must be one of {MOTIONS}, got {motion!r}")
+            self.sim.motion = motion
+        else:
+            self.count("commands_ignored")
+            self.log.warning("sim: unknown command %r", msg.name)
+
+    def teardown(self):
+        if hasattr(self, "sim"):
+            self.sim.close()
+
+
+NODE = SimNode
+if __name__ == "__main__":
+    run(NODE)

@@ -1,0 +1,139 @@
+"""The camera source nodes, offline (no process, no network): sim and replay."""
+import common.sim_render  # noqa: F401  (headless GL before mujoco)
+
+import os
+
+import numpy as np
+import pytest
+
+from common.dataset import Dataset, DatasetMeta, DatasetWriter, Frame, project_keypoints
+from common.messages import Calibration, CameraImage, Command, EcmJoints, EndOfStream, GroundTruth, decode, encode
+from common.sim_randomise import default_arm
+from common.camera import StereoRig
+from common.needle import NeedleModel
+from common.transforms import inv_T, make_T, rotvec_to_R, transform_points
+from nodes.replay import ReplayNode, parse_rate
+from nodes.sim import SimNode
+
+W, H = 160, 90
+
+
+def _dataset(folder, n=3, truth=True):
+    meta = DatasetMeta((W, H), StereoRig.default(W, H), NeedleModel(), default_arm(), "test")
+    img = np.full((H, W, 3), 90, np.uint8)
+    with DatasetWriter(folder, meta, image_format="png") as w:
+        for i in range(n):
+            paths = w.write_images(i, {"left": img, "right": img})
+            q = np.array([0.01 * i, 0.0, 0.12, 0.0])
+            T_we = meta.arm.T_world_ecm(q)
+            T_wn = T_we @ make_T(rotvec_to_R([2.8, 0.1, 0.2]), [0.0, 0.0, -0.12])
+            extra = dict(sequence=0, step=i, ecm_joints=q, T_world_ecm=T_we, T_world_needle=T_wn,
+                         keypoints=project_keypoints(meta, T_we, T_wn),
+                         visible={c: np.ones(5, bool) for c in ("left", "right")},
+                         bbox={"left": [1.0, 2.0, 3.0, 4.0], "right": None}) if truth else {}
+            w.append(Frame(index=i, stamp_ns=1000 + i * 10_000_000, left=paths["left"], right=paths["right"], **extra))
+    return meta
+
+
+def _run(node, max_steps=100):
+    for _ in range(max_steps):
+        if node.step() is False:
+            return True
+    return False
+
+
+def _roundtrip(msg):
+    return decode(encode(msg), type(msg))
+
+
+def test_replay_publishes_calib_frames_truth_and_eos(tmp_path):
+    meta = _dataset(tmp_path, 3)
+    node = ReplayNode.offline(params={"path": str(tmp_path), "rate": "max"})
+    assert _run(node)
+    outs = [o for o, _ in node.published]
+    assert outs[0] == "calib"
+    assert outs[-1] == "eos"
+    msgs = [(o, _roundtrip(m)) for o, m in node.published]
+    frames = [m for o, m in msgs if o == "left"]
+    assert [m.seq for m in frames] == [0, 1, 2]
+    assert all(m.encoding == "png" and m.to_bgr().shape == (H, W, 3) for m in frames)
+    truths = [m for o, m in msgs if o == "truth"]
+    assert len(truths) == 3 and truths[1].step == 1
+    assert np.allclose(truths[2].keypoints["left"], project_keypoints(meta, truths[2].T_world_ecm, truths[2].T_world_needle)["left"])
+    joints = [m for o, m in msgs if o == "joints"]
+    assert isinstance(joints[0], EcmJoints) and np.allclose(joints[1].q, [0.01, 0, 0.12, 0])
+    eos = msgs[-1][1]
+    assert isinstance(eos, EndOfStream) and eos.frames == 3
+    calib = msgs[0][1]
+    assert isinstance(calib, Calibration) and np.allclose(calib.rig().left.K, meta.rig.left.K)
+    assert calib.arm() is not None
+
+
+def test_replay_loop_and_no_truth(tmp_path):
+    _dataset(tmp_path, 2, truth=False)
+    node = ReplayNode.offline(params={"path": str(tmp_path), "rate": 1000, "loop": True})
+    assert not _run(node, 5)  # looping never ends
+    seqs = [m.seq for o, m in node.published if o == "left"]
+    assert seqs == [0, 1, 2, 3, 4]
+    assert not any(o in ("truth", "joints", "eos") for o, _ in node.published)
+
+
+def test_replay_skips_an_unreadable_frame(tmp_path):
+    _dataset(tmp_path, 3)
+    node = ReplayNode.offline(params={"path": str(tmp_path), "rate": "max"})
+    os.remove(tmp_path / "images" / "right" / "000001.png")
+    assert _run(node)
+    assert node.counters["image_errors"] == 1
+    assert [m.seq for o, m in node.published if o == "left"] == [0, 2]
+    assert node.published[-1][1].frames == 2
+
+
+def test_replay_params_are_checked(tmp_path):
+    assert parse_rate("recorded") is None and parse_rate("max") == 0.0 and parse_rate("12.5") == 12.5
+    for bad in ("fast", -1, 0):
+        with pytest.raises(ValueError):
+            parse_rate(bad)
+    with pytest.raises(ValueError):
+        ReplayNode.offline(params={})
+
+
+def test_sim_node_publishes_consistent_frames_and_obeys_commands():
+    node = SimNode.offline(params={"width": 320, "height": 180, "rate_hz": 0, "count": 4, "motion": "multiview",
+                                   "steps": 2, "hold_frames": 1, "randomise": "none", "encoding": "png"})
+    try:
+        assert _run(node)
+        msgs = [(o, _roundtrip(m)) for o, m in node.published]
+        assert msgs[0][0] == "calib"
+        calib = msgs[0][1]
+        rig, needle, arm = calib.rig(), calib.needle_model(), calib.arm()
+        lefts = [m for o, m in msgs if o == "left"]
+        assert [m.seq for m in lefts] == [0, 1, 2, 3]
+        assert lefts[0].to_bgr().shape == (180, 320, 3)
+        truths = [m for o, m in msgs if o == "truth"]
+        joints = [m for o, m in msgs if o == "joints"]
+        # multiview: 2 steps of 1 frame per needle pose, then a new pose
+        assert [(t.sequence, t.step) for t in truths] == [(0, 0), (0, 1), (1, 0), (1, 1)]
+        assert np.allclose(truths[0].T_world_needle, truths[1].T_world_needle)
+        assert not np.allclose(truths[1].T_world_needle, truths[2].T_world_needle)
+        moved = np.abs(joints[1].q - joints[0].q)
+        assert np.isclose(moved.max(), 0.05) and np.sum(moved > 1e-12) == 1
+        for t, j in zip(truths, joints):
+            T_we = arm.T_world_ecm(j.q)
+            assert np.allclose(T_we, t.T_world_ecm)
+            p = transform_points(inv_T(T_we) @ t.T_world_needle, needle.keypoints())
+            for cam in ("left", "right"):
+                assert np.allclose(rig[cam].project_from_ecm(p), t.keypoints[cam], atol=1e-9)
+            assert t.visible["left"].sum() >= 3
+        # the needle can be re-placed on command
+        node.count_max = 0
+        T = truths[-1].T_world_needle.copy()
+        T[:3, 3] += [0.005, 0.0, 0.002]
+        node.on_command(Command("place_needle", {"T_world_needle": T.tolist()}))
+        node.published.clear()
+        node.step()
+        t = [m for o, m in node.published if o == "truth"][0]
+        assert np.allclose(t.T_world_needle, T)
+        with pytest.raises(ValueError):
+            node.on_command(Command("set_motion", {"motion": "dance"}))
+    finally:
+        node.teardown()
