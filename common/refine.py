@@ -37,9 +37,9 @@ from typing import Mapping, Optional, Sequence
 
 import numpy as np
 
-from common.camera import StereoRig
+from common.camera import Camera, StereoRig
 from common.needle import NeedleModel
-from common.transforms import R_to_rotvec, make_T, rotation_angle
+from common.transforms import R_to_rotvec, make_T, rotation_angle, transform_points
 
 
 class RefineError(ValueError):
@@ -82,7 +82,8 @@ class RefineConfig:
 
     max_curve_points: int = 64      # observed centreline points kept per camera (even in arc length)
     n_samples: int = 16             # projected arc samples that start each point's foot search
-    newton_steps: int = 2           # then Newton steps along the projected arc
+    foot_steps: int = 2             # then Newton steps along the projected arc, once per pose
+    newton_steps: int = 1           # and per evaluated pose (the Jacobian's perturbed ones too)
     sigma_kp_px: float = 1.0        # assumed keypoint noise
     sigma_curve_px: float = 0.5     # assumed centreline noise
     min_score: float = 0.3          # keypoints scored below are left out
@@ -92,7 +93,7 @@ class RefineConfig:
     step_tol: float = 0.1           # converged when a step changes the cost by < this many residual variances
     max_reject: int = 5             # ... or after this many rejected steps in a row
     coarse_iter: int = 3            # iterations every candidate gets before the worst are pruned
-    prune_chi2: float = 100.0       # then drop those costing more than the best by this many residual variances
+    prune_ratio: float = 10.0       # then drop those costing more than this many times the best
     max_candidates: int = 3         # and refine at most this many to the end
     add_mirrors: bool = True        # also refine each candidate's mirror image about the line of sight
     merge_mm: float = 5.0           # starting poses closer than this and merge_deg are refined once
@@ -102,6 +103,20 @@ class RefineConfig:
     distinct_deg: float = 2.0
     edge_on_deg: float = 10.0       # arc plane within this angle of the line of sight -> ambiguous
     min_depth_m: float = 1e-3       # every point must be this far in front of both cameras
+    hinge_px: float = 0.05          # a point this close inside an arc end still pins the end in the linear model
+
+    def __post_init__(self):
+        positive = ("sigma_kp_px", "sigma_curve_px", "cauchy_scale", "step_tol", "merge_mm", "hinge_px",
+                    "merge_deg", "distinct_mm", "distinct_deg", "ambiguity_chi2", "prune_ratio")
+        for name in positive:
+            v = getattr(self, name)
+            if not (np.isfinite(v) and v > 0):
+                raise ValueError(f"RefineConfig.{name}: must be a positive number, got {v}")
+        for name, lo in (("max_curve_points", 2), ("n_samples", 2), ("max_iter", 1),
+                         ("max_candidates", 1), ("max_reject", 1), ("coarse_iter", 0),
+                         ("newton_steps", 1), ("foot_steps", 0)):
+            if int(getattr(self, name)) < lo:
+                raise ValueError(f"RefineConfig.{name}: must be at least {lo}, got {getattr(self, name)}")
 
 
 @dataclass
@@ -128,6 +143,24 @@ class RefineResult:
     n_iter: int = 0
     n_residuals: int = 0
     candidates: list = field(default_factory=list)
+
+
+def project_centreline(camera: Camera, needle: NeedleModel, T_ecm_needle: np.ndarray,
+                       spacing_px: float = 1.0, max_points: int = 1024) -> np.ndarray:
+    """The exact dense observation of a needle pose in one camera: its arc projected to pixels,
+    (N, 2) ordered from A to E, about ``spacing_px`` apart (distortion applied as the camera
+    has it). Points behind the camera or outside the image are left out, so N may be 0."""
+    p = transform_points(camera.T_cam_ecm @ T_ecm_needle, needle.sample_arc(64))
+    front = p[:, 2] > 1e-6
+    if not front.any():
+        return np.zeros((0, 2))
+    uv = camera.project(p[front])
+    gap = float(np.max(np.linalg.norm(np.diff(uv, axis=0), axis=1))) if len(uv) > 1 else 0.0
+    n = int(np.clip(np.ceil(1.05 * 63 * gap / spacing_px) + 1, 2, max_points))   # even in angle
+    p = transform_points(camera.T_cam_ecm @ T_ecm_needle, needle.sample_arc(n))
+    p = p[p[:, 2] > 1e-6]
+    uv = camera.project(p) if len(p) else np.zeros((0, 2))
+    return uv[camera.in_image(uv)]
 
 
 # ------------------------------------------------------------------ the problem, precomputed
@@ -164,9 +197,12 @@ class _Static:
         self._Rmid = _exp_so3(np.array([[0.0, 0.0, self.mid]]))[0]
         self._cos_half, self._sin_half = np.cos(self.half), np.sin(self.half)
         self._flip = np.array([1.0, -1.0])
+        self._ends = (np.full((1, 1, 2), np.cos(self.half)), np.array([[[-1.0, 1.0]]]) * np.sin(self.half))
+        self._out = np.array([-1.0, 1.0])                       # outward along the arc at A, E
         ang = np.linspace(-self.half, self.half, cfg.n_samples)
         self._samples = np.stack([np.cos(ang), np.sin(ang)], axis=1)       # (S, 2)
-        self.is_kp = np.concatenate([np.ones((C, 10), bool), np.zeros((C, M), bool)], axis=1).ravel()
+        self.is_kp = np.concatenate([np.ones((C, 10), bool), np.zeros((C, 2 * M), bool)], axis=1).ravel()
+        self._is_over = np.concatenate([np.zeros((C, 10 + M), bool), np.ones((C, M), bool)], axis=1).ravel()
 
 
 class _Problem:
@@ -204,8 +240,8 @@ class _Problem:
             raise RefineError("too_few_points", f"{self.n_kp} keypoints and {self.n_curve} centreline "
                               "points cannot fix 6 pose parameters")
         # Residual weights in evaluation order, per camera: keypoint u (5), keypoint v (5),
-        # curve distance (M).
-        self.wp = np.concatenate([wU, wU, wO], axis=1).ravel()
+        # curve normal distance (M), curve overshoot beyond the arc's ends (M).
+        self.wp = np.concatenate([wU, wU, wO, wO], axis=1).ravel()
         self._Uu, self._Uv = U[None, :, :, 0], U[None, :, :, 1]
         self._Ou, self._Ov = O[None, :, :, 0], O[None, :, :, 1]
 
@@ -246,25 +282,47 @@ class _Problem:
         rv = self._fy * y + self._cy - self._Uv
 
         # Curve: the distance of each observed point to the projected arc. Its foot takes
-        # Newton steps along the projected arc from the given start; the residual is the
-        # distance to the tangent there: signed, or unsigned to an end of the arc when the foot
-        # lies beyond it.
-        co, si = foot
+        # Newton steps along the projected arc from the given start (see ``feet``); the
+        # residuals are the signed distance to the tangent there and, for a point past an end,
+        # its overshoot along the arc (together: the distance to that end).
         t4 = tcam[:, :, None, :]
+        co, si, _ = self._newton(foot, E, t4, self.cfg.newton_steps)
+        u, v, tu, tv = self._project_arc(co, si, E, t4)
+        du, dv = u - self._Ou, v - self._Ov
+        r_n = (tu * dv - tv * du) / np.maximum(np.sqrt(tu * tu + tv * tv), 1e-300)
+        # Overshoot of each point past the nearer end (A at -half, E at +half), along the
+        # outward tangent there: signed here; ``linearise`` makes it a hinge (zero inside).
+        ue, ve, tue, tve = self._project_arc(self._ends[0], self._ends[1], E, t4)   # (P, C, 2)
+        ne = 1.0 / np.maximum(np.sqrt(tue * tue + tve * tve), 1e-300)
+        tue, tve = tue * ne * self._out, tve * ne * self._out
+        atE = si > 0
+        ov = np.where(atE, (self._Ou - ue[..., 1:]) * tue[..., 1:] + (self._Ov - ve[..., 1:]) * tve[..., 1:],
+                      (self._Ou - ue[..., :1]) * tue[..., :1] + (self._Ov - ve[..., :1]) * tve[..., :1])
+        r_t = ov
+
+        r = np.concatenate([ru, rv, r_n, r_t], axis=2).reshape(P, -1)
+        return r, valid
+
+    def _newton(self, co_si, E, t4, steps):
+        """``steps`` Newton steps of the feet (cos, sin) along the projected arc towards the
+        observed points; also whether each foot ended clamped beyond an end (None: no step)."""
+        co, si = co_si
         beyond = None
-        for _ in range(self.cfg.newton_steps):
+        for _ in range(steps):
             u, v, tu, tv = self._project_arc(co, si, E, t4)
             du, dv = u - self._Ou, v - self._Ov
             step = np.clip(-(tu * du + tv * dv) / np.maximum(tu * tu + tv * tv, 1e-300), -0.5, 0.5)
             inv = 1.0 / np.sqrt(1.0 + step * step)
             co, si, beyond = self._clamp((co - si * step) * inv, (si + co * step) * inv)
-        u, v, tu, tv = self._project_arc(co, si, E, t4)
-        du, dv = u - self._Ou, v - self._Ov
-        signed = (tu * dv - tv * du) / np.maximum(np.sqrt(tu * tu + tv * tv), 1e-300)
-        r_c = signed if beyond is None else np.where(beyond, np.sqrt(du * du + dv * dv), signed)
+        return co, si, beyond
 
-        r = np.concatenate([ru, rv, r_c], axis=2).reshape(P, -1)
-        return r, valid
+    def feet(self, R, t):
+        """Feet on the arc (cos, sin) (P, C, M) of every observed point for poses (R, t): the
+        nearest of ``n_samples`` projected arc points, then ``foot_steps`` Newton steps."""
+        _, tcam, E = self._axes(R, t)
+        co, si = self.nearest_samples(R, t)
+        co, si, _ = self._newton((co, si), E, tcam[:, :, None, :], self.cfg.foot_steps)
+        return co, si
 
     def _clamp(self, co, si):
         """Arc points (cos, sin of the angle from the arc's middle) clamped to the arc's span;
@@ -292,11 +350,17 @@ class _Problem:
         h = _Static.FD_STEP
         Rs = np.concatenate([R, (self._E[:, None] @ R[None]).reshape(3 * K, 3, 3), np.tile(R, (3, 1, 1))])
         ts = np.concatenate([np.tile(t, (4, 1)), (t[None] + np.eye(3)[:, None] * h[3:, None, None]).reshape(3 * K, 3)])
-        co, si = self.nearest_samples(R, t)
+        co, si = self.feet(R, t)
         r, valid = self.residuals(Rs, ts, (np.tile(co, (7, 1, 1)), np.tile(si, (7, 1, 1))))
         r = r.reshape(7, K, -1)
         J = np.moveaxis((r[1:] - r[:1]) / h[:, None, None], 0, 2)
-        return r[0], J, valid[:K]
+        # The overshoot is a hinge, max(ov, 0). Its kink sits exactly at a point that lies at an
+        # arc end (an exact observation's first and last points), so the Jacobian takes the
+        # smooth ov's slope wherever ov is above -hinge_px: the linear model then sees the end.
+        r0 = r[0]
+        ov = np.where(self._is_over, r0, 0.0)
+        J *= (~self._is_over | (ov > -self.cfg.hinge_px))[..., None]
+        return np.where(self._is_over, np.maximum(r0, 0.0), r0), J, valid[:K]
 
     def robust(self, r):
         """Per-residual Cauchy cost and IRLS weight (prior weights included)."""
@@ -460,7 +524,7 @@ class DenseRefiner:
             raise RefineError("no_valid_candidate", "every candidate puts the needle behind a camera")
         # Prune: drop candidates far worse than the best, and merge those that met.
         best = np.min(s["cost"])
-        keep = np.flatnonzero(s["cost"] <= best + cfg.prune_chi2 * max(best, 1e-300) / max(prob.n_res - 6, 1))
+        keep = np.flatnonzero(s["cost"] <= cfg.prune_ratio * best + 1e-12)
         keep = _dedupe(s, keep, cfg.distinct_mm, cfg.distinct_deg)[:cfg.max_candidates]
         s = {k: (v[keep] if isinstance(v, np.ndarray) else v) for k, v in s.items()}
         s = _lm(prob, s["R"], s["t"], cfg, cfg.max_iter - cfg.coarse_iter, state=s)
@@ -511,7 +575,9 @@ def _result(prob: _Problem, s, cfg: RefineConfig) -> RefineResult:
     cov = s2 * _inv_psd(H)
 
     def rms(mask):
-        return float(np.sqrt(np.mean(r[mask] ** 2))) if mask.any() else float("nan")
+        # a curve point's two residuals (normal, overshoot) make one distance
+        n = int(mask.sum()) - int((mask & ~prob.is_kp).sum()) // 2
+        return float(np.sqrt(np.sum(r[mask] ** 2) / n)) if n else float("nan")
 
     # Competing solutions: other distinct minima, and how much worse they fit.
     cands, reasons = [(T0, float(s["cost"][b]))], []
