@@ -14,6 +14,7 @@ are each a sequence of their own). A counted frame without a pose is a failure.
 from __future__ import annotations
 
 import math
+import warnings
 from dataclasses import dataclass, field
 from typing import Callable, Optional
 
@@ -336,7 +337,8 @@ def keypoint_table(ev: Evaluation) -> dict:
     e2 = np.stack([ev.err2d_px[s] for s in seqs]) if seqs else np.full((0, 2, 5), np.nan)
     s3 = [s for s in seqs if s in ev.err3d_m]
     e3 = np.stack([ev.err3d_m[s] for s in s3]) * 1e3 if s3 else np.full((0, 5), np.nan)
-    with np.errstate(invalid="ignore"):
+    with warnings.catch_warnings():   # frames with no 2D error in either camera give NaN
+        warnings.simplefilter("ignore", RuntimeWarning)
         e2_frame = np.nanmean(e2, axis=1) if len(seqs) else np.full((0, 5), np.nan)  # (F, 5)
     e2_for3 = np.stack([e2_frame[seqs.index(s)] for s in s3]) if s3 else np.full((0, 5), np.nan)
     out2, out3, corr = {}, {}, {}
@@ -410,6 +412,10 @@ def build_results(col: Collected, *, dataset: str, detector: str, ev: Optional[E
         "false_detections": ev.false_detections,
         "images_without_needle": ev.empty_images,
         "frames_with_truth": len(ev.T_true),
+        "node_counters": {n: {k: v for k, v in c.items()
+                              if k.startswith(("no_pose", "handler_errors", "decode_errors", "dropped",
+                                               "bad_image", "image_errors"))}
+                          for n, c in sorted(col.node_counters.items())},
         "paper": {"keypoints_2d_px": PAPER["keypoints_2d_px"],
                   "pose": {m: {"position_mm": p, "orientation_deg": o}
                            for m, (p, o) in PAPER["pose"].items()},

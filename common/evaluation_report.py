@@ -97,6 +97,11 @@ def report_markdown(res: dict) -> str:
         L += [f"| {n} | {_fmt(v)} |" for n, v in t["per_node_ms"].items()]
     else:
         L.append("(no node statistics received)")
+    why = {n: c for n, c in res.get("node_counters", {}).items() if any(c.values())}
+    if why:
+        L += ["", "## Why frames gave no pose (node counters)", "",
+              "| node | counter | count |", "| --- | --- | ---: |"]
+        L += [f"| {n} | {k} | {v} |" for n, c in why.items() for k, v in sorted(c.items()) if v]
     L += ["", "Overlays of chosen frames, worst cases included, are in `overlays/`.", ""]
     return "\n".join(L)
 

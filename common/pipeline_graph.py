@@ -1,0 +1,210 @@
+"""The standard pose pipeline as a graph, and running it with its source started last.
+
+``pipeline_graph`` builds, from the repository's node modules::
+
+    replay -> detector -> epnp_average, epnp_joint -> triangulate -> ecm -> fusion
+                       -> refine -> fusion_refined        (when nodes/refine.py exists)
+                       -> evaluator / anything passed as ``sinks``
+
+``GraphRun`` launches every node but the source through ``common.launcher``, waits until each
+one is live (its subscriptions are declared before its liveliness token), then starts the
+source in a second launcher joined to the first, so no frame is published before its
+consumers listen. The launchers' output (every node's log) goes to ``log`` (a file).
+"""
+from __future__ import annotations
+
+import socket
+import threading
+import time
+from typing import Optional
+
+from common.graph import graph_from_dict, live_key, module_info
+
+SOURCE = "replay"
+
+
+def free_port() -> int:
+    """A free TCP port on 127.0.0.1 (the OS picks it)."""
+    with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+def has_module(name: str) -> bool:
+    info = module_info(name)
+    return info is not None and info["has_node"] and not info["syntax_error"]
+
+
+def pipeline_graph(dataset: str, *, detector: str = "learned", detector_params: Optional[dict] = None,
+                   rate="max", port: Optional[int] = None, name: str = "needletrack-eval",
+                   refine: Optional[bool] = None, loop: bool = False, count: int = 0,
+                   sinks: Optional[list] = None) -> dict:
+    """The graph document of the whole pipeline on a replayed dataset folder.
+
+    ``refine``: include the refinement node and a fusion over refined poses (default: when
+    nodes/refine.py exists). ``sinks``: extra node dicts (e.g. the evaluator), wired by the
+    caller with the ids used here. Every node runs with ``restart: never``: a run that loses a
+    node is a failed run, not one to patch up silently.
+    """
+    if refine is None:
+        refine = has_module("refine")
+    port = port or free_port()
+    one = {"OMP_NUM_THREADS": "1"}
+    det_params = {"backend": detector, **(detector_params or {})}
+    nodes = [
+        {"id": SOURCE, "module": "replay",
+         "params": {"path": str(dataset), "rate": rate, "loop": bool(loop), "count": int(count)},
+         "outputs": ["left", "right", "joints", "truth", "calib", "eos"]},
+        {"id": "detector", "module": "detector", "params": det_params,
+         "inputs": {"left": "replay/left", "right": "replay/right", "truth": "replay/truth",
+                    "calib": "replay/calib"},
+         "outputs": ["left", "right"]},
+        {"id": "ecm", "module": "ecm", "inputs": {"joints": "replay/joints", "calib": "replay/calib"},
+         "outputs": ["pose"], "env": one},
+    ]
+    stereo = {"left": "detector/left", "right": "detector/right", "calib": "replay/calib",
+              "ecm": "ecm/pose"}
+    for method in ("average", "joint"):
+        nodes.append({"id": f"epnp_{method}", "module": "epnp", "params": {"method": method},
+                      "inputs": dict(stereo), "outputs": ["pose"], "env": one})
+    nodes.append({"id": "triangulate", "module": "triangulate", "inputs": dict(stereo),
+                  "outputs": ["pose", "points"], "env": one})
+    nodes.append({"id": "fusion", "module": "fusion", "params": {"method": "multiview"},
+                  "inputs": {"pose": "epnp_joint/pose", "ecm": "ecm/pose", "truth": "replay/truth"},
+                  "outputs": ["pose"], "env": one})
+    if refine:
+        nodes.append({"id": "refine", "module": "refine",
+                      "inputs": {**stereo, "pose": "epnp_joint/pose"}, "outputs": ["pose"], "env": one})
+        nodes.append({"id": "fusion_refined", "module": "fusion",
+                      "params": {"method": "multiview_refined"},
+                      "inputs": {"pose": "refine/pose", "ecm": "ecm/pose", "truth": "replay/truth"},
+                      "outputs": ["pose"], "env": one})
+    nodes += list(sinks or [])
+    for n in nodes:
+        n.setdefault("restart", "never")
+    return {"graph": name, "zenoh": {"mode": "peer", "listen": [f"tcp/127.0.0.1:{port}"]},
+            "nodes": nodes}
+
+
+POSE_OUTPUTS = {"pnp_average": "epnp_average/pose", "pnp_joint": "epnp_joint/pose",
+                "triangulation": "triangulate/pose", "multiview": "fusion/pose",
+                "refined": "refine/pose", "multiview_refined": "fusion_refined/pose"}
+"""Where each pose method comes out of ``pipeline_graph``."""
+
+
+def pose_inputs(doc: dict) -> dict:
+    """Input wiring ``method -> node/output`` for the pose methods present in a graph doc."""
+    ids = {n["id"] for n in doc["nodes"]}
+    return {m: src for m, src in POSE_OUTPUTS.items() if src.split("/")[0] in ids}
+
+
+class GraphRunError(RuntimeError):
+    """A graph run that failed: a node died, never came up, or the run timed out."""
+
+
+class GraphRun:
+    """Run a graph with its source started last (see the module docstring).
+
+    ``wait_for``: node ids whose exit ends the run (e.g. ``["evaluator"]``); ``run(timeout)``
+    returns when they all exited with status 0 and raises ``GraphRunError`` when any node exits
+    with another status, a node is not live within ``ready_timeout`` or ``timeout`` passes.
+    """
+
+    def __init__(self, doc: dict, log, source: str = SOURCE, ready_timeout: float = 120.0):
+        from common.launcher import Launcher
+        self.graph = graph_from_dict(doc)
+        self.source = source
+        self.ready_timeout = ready_timeout
+        self.log = log
+        rest = [i for i in self.graph.ids() if i != source]
+        self.main = Launcher(self.graph, only=rest, out=log)
+        self.src = None
+        self.session = None
+        self._threads: list = []
+
+    def _session(self):
+        if self.session is None:
+            from common.tools import open_session
+            self.session = open_session(self.graph, wait_s=5.0)
+        return self.session
+
+    def live_nodes(self) -> set:
+        live = set()
+        for reply in self._session().liveliness().get(live_key(self.graph.name), timeout=1.0):
+            if reply.ok is not None:
+                live.add(str(reply.ok.key_expr).rsplit("/", 1)[-1])
+        return live
+
+    def dead_nodes(self, launcher) -> dict:
+        """Nodes of ``launcher`` that exited with a status other than 0: id -> status."""
+        return {nid: s.last_status for nid, s in list(launcher.slots.items())
+                if s.done and s.last_status not in (0, None)}
+
+    def start(self) -> None:
+        from common.launcher import Launcher
+        self.main.start()
+        self._threads.append(threading.Thread(target=self.main.run, name="launcher", daemon=True))
+        self._threads[-1].start()
+        want = set(self.main.only)
+        deadline = time.monotonic() + self.ready_timeout
+        while True:
+            dead = self.dead_nodes(self.main)
+            if dead:
+                raise GraphRunError(f"node(s) failed while starting: {_fmt_dead(dead)}")
+            missing = want - self.live_nodes()
+            if not missing:
+                break
+            if time.monotonic() > deadline:
+                raise GraphRunError(f"node(s) not up after {self.ready_timeout:.0f} s: {', '.join(sorted(missing))}")
+            time.sleep(0.2)
+        time.sleep(0.3)   # let the declarations settle across the peers
+        self.src = Launcher(self.graph, only=[self.source], out=self.log)
+        self.src.start()
+        self._threads.append(threading.Thread(target=self.src.run, name="launcher-src", daemon=True))
+        self._threads[-1].start()
+
+    def wait(self, until: list, timeout: float) -> None:
+        """Block until every node in ``until`` exited with 0 (see the class docstring)."""
+        deadline = time.monotonic() + timeout
+        launchers = [l for l in (self.main, self.src) if l is not None]
+        while True:
+            dead = {}
+            for l in launchers:
+                dead.update(self.dead_nodes(l))
+            if dead:
+                raise GraphRunError(f"node(s) failed: {_fmt_dead(dead)}")
+            done = True
+            for nid in until:
+                l = self.main if nid in self.main.slots else self.src
+                s = l.slots[nid]
+                done &= s.done and s.last_status == 0
+            if done:
+                return
+            if time.monotonic() > deadline:
+                raise GraphRunError(f"timed out after {timeout:.0f} s waiting for {', '.join(until)}")
+            time.sleep(0.1)
+
+    def stop(self) -> None:
+        if self.session is not None:
+            try:
+                self.session.close()
+            except Exception:
+                pass
+            self.session = None
+        for l in (self.src, self.main):
+            if l is not None:
+                l.stop()
+        for t in self._threads:
+            t.join(15.0)
+
+    def __enter__(self):
+        return self
+
+    def __exit__(self, *exc):
+        self.stop()
+
+
+def _fmt_dead(dead: dict) -> str:
+    from common.launcher import describe_status
+    return ", ".join(f"{nid} ({describe_status(code)}{'; bad configuration' if code == 2 else ''})"
+                     for nid, code in sorted(dead.items()))
