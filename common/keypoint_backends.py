@@ -89,7 +89,9 @@ def load_backend(name: str, params: Optional[dict] = None) -> KeypointBackend:
 class OracleBackend(KeypointBackend):
     """Keypoints from the frame's ground truth (``common.oracle``): params ``noise_px``,
     ``missing_prob``, ``outlier_prob``, ``outlier_px``, ``seed``. Uses the true poses when the
-    ground truth has them (``T_world_ecm`` and ``T_world_needle``), else its ``keypoints``."""
+    ground truth has them (``T_world_ecm`` and ``T_world_needle``), else its ``keypoints``.
+    With the poses it also gives the dense ``centreline`` (params ``centreline``, default true,
+    and ``centreline_noise_px``, default noise_px / 2)."""
 
     name = "oracle"
     needs_image = False
@@ -112,9 +114,12 @@ class OracleBackend(KeypointBackend):
         vis = None if truth.visible is None else truth.visible.get(camera)
         T = truth_T_ecm_needle(truth)
         bbox = None
+        line = line_w = None
         if T is not None:
             uv, scores = self.oracle.keypoints(cam, T, model, seq, vis)
             bbox = arc_bbox(cam, T, model)
+            if self.params.get("centreline", True):
+                line, line_w = self.oracle.centreline(cam, T, model, seq)
         elif truth.keypoints is not None and truth.keypoints.get(camera) is not None:
             uv_true = np.asarray(truth.keypoints[camera], dtype=float).reshape(5, 2)
             v = np.all(np.isfinite(uv_true), axis=1)
@@ -128,4 +133,5 @@ class OracleBackend(KeypointBackend):
             bbox = np.asarray(truth.bbox[camera], dtype=float).reshape(4)
         if not np.any(scores > 0):
             return Keypoints.not_found(camera, seq, stamp_ns, self.name, "needle not visible")
-        return Keypoints(camera, seq, stamp_ns, True, uv, scores, float(scores.mean()), bbox, self.name)
+        return Keypoints(camera, seq, stamp_ns, True, uv, scores, float(scores.mean()), bbox, self.name,
+                         centreline=line, centreline_w=line_w)

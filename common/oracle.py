@@ -10,6 +10,11 @@ missing or invisible ones are NaN with score 0.
 
 Randomness is seeded per frame and camera (``seed``, ``seq``, camera), so a frame gives the same
 keypoints whatever the order or number of frames processed before it.
+
+The dense observation (``centreline``): the needle's arc projected about one point per pixel
+(``common.refine.project_centreline``), each point moved along the curve's normal by Gaussian
+noise of ``centreline_noise_px`` (default: half of ``noise_px``), on a random stream of its own
+(the keypoints do not change when it is used).
 """
 from __future__ import annotations
 
@@ -58,9 +63,11 @@ class Oracle:
     outlier_prob: float = 0.0
     outlier_px: float = 30.0
     seed: int = 0
+    centreline_noise_px: float | None = None      # None: noise_px / 2
 
     def __post_init__(self):
-        for name in ("noise_px", "outlier_px"):
+        for name in ("noise_px", "outlier_px") + (() if self.centreline_noise_px is None
+                                                  else ("centreline_noise_px",)):
             v = getattr(self, name)
             if not (np.isfinite(v) and v >= 0):
                 raise ValueError(f"oracle: {name} must be >= 0, got {v}")
@@ -72,8 +79,8 @@ class Oracle:
     @classmethod
     def from_params(cls, params: dict) -> "Oracle":
         """From a node's params (unknown keys are ignored)."""
-        keys = ("noise_px", "missing_prob", "outlier_prob", "outlier_px")
-        kw = {k: float(params[k]) for k in keys if k in params}
+        keys = ("noise_px", "missing_prob", "outlier_prob", "outlier_px", "centreline_noise_px")
+        kw = {k: float(params[k]) for k in keys if params.get(k) is not None}
         if "seed" in params:
             kw["seed"] = int(params["seed"])
         return cls(**kw)
@@ -104,6 +111,21 @@ class Oracle:
         if visible is not None:
             vis &= np.asarray(visible, dtype=bool)
         return self.corrupt(np.nan_to_num(uv), vis, seq, camera.name)
+
+    def centreline(self, camera: Camera, T_ecm_needle, model: NeedleModel, seq: int):
+        """(points (N, 2), weights (N,)): the projected arc A..E in this camera with noise along
+        its normal (see the module docstring); N is 0 when none of it is in the image."""
+        from common.refine import project_centreline
+        c = project_centreline(camera, model, np.asarray(T_ecm_needle, dtype=float))
+        sigma = self.noise_px / 2 if self.centreline_noise_px is None else self.centreline_noise_px
+        if sigma > 0 and len(c) > 1:
+            rng = np.random.default_rng([abs(int(self.seed)), abs(int(seq)),
+                                         CAMERA_INDEX.get(camera.name, 2), 1])
+            tang = np.gradient(c, axis=0)
+            nrm = np.stack([-tang[:, 1], tang[:, 0]], axis=1)
+            nrm /= np.maximum(np.linalg.norm(nrm, axis=1, keepdims=True), 1e-12)
+            c = c + nrm * rng.normal(0.0, sigma, (len(c), 1))
+        return c, np.ones(len(c))
 
     def stereo(self, rig: StereoRig, T_ecm_needle, model: NeedleModel, seq: int) -> tuple[dict, dict]:
         """``({camera: uv}, {camera: scores})`` for both cameras, as the pose solvers take them."""

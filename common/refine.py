@@ -86,7 +86,7 @@ class RefineConfig:
     newton_steps: int = 1           # and per evaluated pose (the Jacobian's perturbed ones too)
     sigma_kp_px: float = 1.0        # assumed keypoint noise
     sigma_curve_px: float = 0.5     # assumed centreline noise
-    min_score: float = 0.3          # keypoints scored below are left out
+    min_score: float = 0.5          # keypoints scored below are left out (as the PnP does)
     min_centreline_w: float = 0.05  # centreline points weighted below are left out
     cauchy_scale: float = 3.0       # robust loss scale, in sigmas
     max_iter: int = 30
@@ -199,6 +199,7 @@ class _Static:
         self._flip = np.array([1.0, -1.0])
         self._ends = (np.full((1, 1, 2), np.cos(self.half)), np.array([[[-1.0, 1.0]]]) * np.sin(self.half))
         self._out = np.array([-1.0, 1.0])                       # outward along the arc at A, E
+        self._cos_end_zone = np.cos(self.half - np.deg2rad(1.0))  # feet within 1 deg of an end
         ang = np.linspace(-self.half, self.half, cfg.n_samples)
         self._samples = np.stack([np.cos(ang), np.sin(ang)], axis=1)       # (S, 2)
         self.is_kp = np.concatenate([np.ones((C, 10), bool), np.zeros((C, 2 * M), bool)], axis=1).ravel()
@@ -291,7 +292,8 @@ class _Problem:
         du, dv = u - self._Ou, v - self._Ov
         r_n = (tu * dv - tv * du) / np.maximum(np.sqrt(tu * tu + tv * tv), 1e-300)
         # Overshoot of each point past the nearer end (A at -half, E at +half), along the
-        # outward tangent there: signed here; ``linearise`` makes it a hinge (zero inside).
+        # outward tangent there: signed here; ``linearise`` keeps it for points whose foot is at
+        # an end and makes it a hinge (zero inside).
         ue, ve, tue, tve = self._project_arc(self._ends[0], self._ends[1], E, t4)   # (P, C, 2)
         ne = 1.0 / np.maximum(np.sqrt(tue * tue + tve * tve), 1e-300)
         tue, tve = tue * ne * self._out, tve * ne * self._out
@@ -354,13 +356,16 @@ class _Problem:
         r, valid = self.residuals(Rs, ts, (np.tile(co, (7, 1, 1)), np.tile(si, (7, 1, 1))))
         r = r.reshape(7, K, -1)
         J = np.moveaxis((r[1:] - r[:1]) / h[:, None, None], 0, 2)
-        # The overshoot is a hinge, max(ov, 0). Its kink sits exactly at a point that lies at an
-        # arc end (an exact observation's first and last points), so the Jacobian takes the
-        # smooth ov's slope wherever ov is above -hinge_px: the linear model then sees the end.
+        # The overshoot counts only for points whose foot is at an end (elsewhere the projected
+        # arc may curve back past an end's tangent), as a hinge max(ov, 0). Its kink sits
+        # exactly at a point lying at an end (an exact observation's first and last points), so
+        # the Jacobian takes the smooth ov's slope wherever ov is above -hinge_px: the linear
+        # model then sees the end.
+        at_end = np.zeros((K, self.C, 10 + self.M), bool)
+        at_end = np.concatenate([at_end, co < self._cos_end_zone], axis=2).reshape(K, -1)
         r0 = r[0]
-        ov = np.where(self._is_over, r0, 0.0)
-        J *= (~self._is_over | (ov > -self.cfg.hinge_px))[..., None]
-        return np.where(self._is_over, np.maximum(r0, 0.0), r0), J, valid[:K]
+        J *= (~self._is_over | (at_end & (r0 > -self.cfg.hinge_px)))[..., None]
+        return np.where(self._is_over, np.where(at_end, np.maximum(r0, 0.0), 0.0), r0), J, valid[:K]
 
     def robust(self, r):
         """Per-residual Cauchy cost and IRLS weight (prior weights included)."""

@@ -1,0 +1,99 @@
+"""Dense refinement node: the needle pose fitted to its whole visible arc in both cameras, with
+an uncertainty (common/refine.py).
+
+Inputs: ``left``, ``right`` (Keypoints, paired by ``seq``; their ``centreline`` is the dense
+observation), ``calib`` (Calibration), ``ecm`` (EcmPose, optional: adds ``T_world_needle``).
+Output: ``pose`` (PoseEstimate, method ``refined``; ``residual`` = RMS in px over the keypoints
+and centreline points used; ``covariance`` over [rotation vector (rad), translation (m)] in the
+ECM frame; ``ambiguous`` when competing solutions fit nearly as well or the arc is seen
+edge-on, and then the covariance spans them).
+
+Per frame: the joint stereo PnP (``common.pnp.pnp_joint``) on the keypoints gives the starting
+poses (every local minimum it finds); ``DenseRefiner.refine`` fits them, and their mirror
+images, to keypoints and centrelines together and keeps the best. A camera whose detector
+found nothing is left out. Frames without any centreline are refined on the keypoints alone
+(counted ``keypoints_only``).
+
+Params: ``min_score`` (0.5: keypoints scoring lower are not used, by the PnP nor the fit);
+``max_rms_px`` (20: a worse fit is not published); ``outlier_px`` (10, the joint PnP's outlier
+rejection); any ``RefineConfig`` field (e.g. ``sigma_kp_px``, ``sigma_curve_px``,
+``max_curve_points``, ``edge_on_deg``). A frame that gives no pose is counted as
+``no_pose.<reason>`` (the PnP's reasons, or the refinement's: ``too_few_points``,
+``no_valid_candidate``, ``bad_centreline``, ``bad_keypoints``, ``high_residual``).
+"""
+from __future__ import annotations
+
+import dataclasses
+
+from common.messages import Calibration, EcmPose, Keypoints
+from common.node import run
+from common.observations import NoPose
+from common.pnp import pnp_joint
+from common.pose_node import StereoPoseNode
+from common.refine import ArcObservation, DenseRefiner, RefineConfig, RefineError
+
+CONFIG_FIELDS = {f.name for f in dataclasses.fields(RefineConfig)}
+
+
+def refine_config(params: dict) -> RefineConfig:
+    """A RefineConfig from node params: its own fields, and ``min_score`` shared with the PnP."""
+    kw = {k: v for k, v in params.items() if k in CONFIG_FIELDS}
+    if "min_score" in params:
+        kw["min_score"] = float(params["min_score"])
+    else:
+        kw.setdefault("min_score", 0.5)
+    return RefineConfig(**kw)
+
+
+class RefineNode(StereoPoseNode):
+    """Keypoints + centrelines of a stereo frame -> refined T_ecm_needle with covariance."""
+
+    INPUTS = {"left": Keypoints, "right": Keypoints, "calib": Calibration, "ecm": EcmPose}
+    OUTPUTS = ("pose",)
+    KEEP_ALL = StereoPoseNode.KEEP_ALL
+
+    def setup(self):
+        super().setup()
+        self.config = refine_config(self.params)
+        self.min_score = self.config.min_score
+        mr = self.params.get("max_rms_px", 20.0)
+        self.max_rms_px = None if mr is None else float(mr)
+        op = self.params.get("outlier_px", 10.0)
+        self.outlier_px = None if op is None else float(op)
+        self.refiner: DenseRefiner | None = None
+
+    def on_calib(self, msg: Calibration):
+        changed = self.calib is None or msg.cameras != self.calib.cameras or msg.needle != self.calib.needle
+        super().on_calib(msg)
+        if changed or self.refiner is None:
+            self.refiner = DenseRefiner(self.rig, msg.needle_model(), self.config)
+
+    def on_pair(self, left: Keypoints, right: Keypoints):
+        uv, sc = self.stereo_arrays(left, right)
+        try:
+            pj = pnp_joint(uv, self.rig, self.model_points, sc, self.min_score,
+                           outlier_px=self.outlier_px)
+        except NoPose as exc:
+            self.no_pose(exc.reason, left.seq, exc.detail)
+            return
+        obs = {kp.camera: ArcObservation.from_keypoints(kp) for kp in (left, right) if kp.found}
+        if not any(o.centreline is not None and len(o.centreline) for o in obs.values()):
+            self.count("keypoints_only")
+        try:
+            res = self.refiner.refine(obs, [c.T_ecm_needle for c in pj.candidates])
+        except RefineError as exc:
+            self.no_pose(exc.reason, left.seq, str(exc))
+            return
+        if self.max_rms_px is not None and not res.rms_px <= self.max_rms_px:
+            self.no_pose("high_residual", left.seq, f"RMS {res.rms_px:.2f} px > {self.max_rms_px} px")
+            return
+        if res.ambiguous:
+            self.count("ambiguous")
+        self.publish("pose", self.pose_message(left.seq, left.stamp_ns, "refined", res.T_ecm_needle,
+                                               res.rms_px, "px", covariance=res.covariance,
+                                               ambiguous=bool(res.ambiguous)))
+
+
+NODE = RefineNode
+if __name__ == "__main__":
+    run(NODE)
