@@ -1,0 +1,171 @@
+"""The ``refine`` node: offline (message in, message out) and in a launched graph; its poses are
+the library's (common/refine.py on the joint PnP's candidates)."""
+import numpy as np
+import pytest
+
+from common.camera import StereoRig
+from common.ecm_kinematics import EcmArm
+from common.messages import Calibration, EcmPose, GroundTruth, Keypoints, PoseEstimate, decode, encode
+from common.needle import NeedleModel
+from common.oracle import Oracle, random_needle_pose
+from common.pnp import pnp_joint
+from common.refine import ArcObservation, DenseRefiner, RefineConfig
+from common.transforms import make_T, pose_error, rotvec_to_R
+from nodes.refine import RefineNode, refine_config
+
+RIG = StereoRig.default()
+MODEL = NeedleModel()
+ARM = EcmArm(make_T(rotvec_to_R([0, 0, 0.2]), [0.1, 0.0, 0.3]), 0.01, 0.02)
+CALIB = Calibration(0, np.array([1920, 1080]), RIG.to_dict(), MODEL.to_dict(), ARM.to_dict())
+Q = (0.0, 0.0, 0.05, 0.0)
+
+
+def roundtrip(msg):
+    return decode(encode(msg), type(msg))
+
+
+def oracle_frames(n, noise_px=0.5, seed=3):
+    """Keypoints messages with centrelines from the oracle, and the true poses."""
+    rng = np.random.default_rng(seed)
+    oracle = Oracle(noise_px=noise_px, seed=seed)
+    frames = []
+    for seq in range(n):
+        T = random_needle_pose(rng, RIG, MODEL)
+        kps = []
+        for cam in RIG.cameras:
+            uv, sc = oracle.keypoints(cam, T, MODEL, seq)
+            c, w = oracle.centreline(cam, T, MODEL, seq)
+            kps.append(Keypoints(cam.name, seq, seq * 1000, True, uv, sc, 1.0, detector="oracle",
+                                 centreline=c, centreline_w=w))
+        frames.append((T, *kps))
+    return frames
+
+
+def library(left, right, config=RefineConfig()):
+    uv = {k.camera: k.uv for k in (left, right)}
+    sc = {k.camera: k.scores for k in (left, right)}
+    pj = pnp_joint(uv, RIG, MODEL.keypoints(), sc, config.min_score, outlier_px=10.0)
+    obs = {k.camera: ArcObservation.from_keypoints(k) for k in (left, right)}
+    return DenseRefiner(RIG, MODEL, config).refine(obs, [c.T_ecm_needle for c in pj.candidates])
+
+
+def poses(node):
+    return [m for o, m in node.published if o == "pose"]
+
+
+def test_node_matches_the_library_and_adds_the_world_pose():
+    frames = oracle_frames(4)
+    node = RefineNode.offline({}, wired=["left", "right", "calib", "ecm"])
+    node.on_calib(roundtrip(CALIB))
+    T_world_ecm = ARM.T_world_ecm(Q)
+    for T, left, right in frames:
+        node.on_ecm(roundtrip(EcmPose(left.seq, left.stamp_ns, T_world_ecm)))
+        node.on_right(roundtrip(right))
+        node.on_left(roundtrip(left))
+    out = poses(node)
+    assert [p.seq for p in out] == [0, 1, 2, 3]
+    for p, (T, left, right) in zip(out, frames):
+        ref = library(left, right)
+        assert p.method == "refined" and p.residual_unit == "px"
+        assert np.allclose(p.T_ecm_needle, ref.T_ecm_needle, atol=1e-12)
+        assert np.allclose(p.covariance, ref.covariance)
+        assert p.residual == pytest.approx(ref.rms_px) and p.ambiguous == ref.ambiguous
+        assert np.allclose(p.T_world_needle, T_world_ecm @ p.T_ecm_needle)
+        dt, dr = pose_error(p.T_ecm_needle, T)
+        assert dt < 5e-3 and np.degrees(dr) < 5.0
+        roundtrip(p)
+    assert node.counters.get("keypoints_only", 0) == 0
+
+
+def test_node_params_reach_the_fit():
+    cfg = refine_config({"sigma_curve_px": 0.3, "min_score": 0.7, "max_rms_px": 5, "other": 1})
+    assert cfg.sigma_curve_px == 0.3 and cfg.min_score == 0.7
+    assert refine_config({}).min_score == 0.5
+    with pytest.raises(ValueError):
+        RefineNode.offline({"sigma_kp_px": -1.0})
+
+
+def test_node_without_centreline_refines_keypoints_and_counts_it():
+    (T, left, right), = oracle_frames(1)
+    node = RefineNode.offline({}, wired=["left", "right", "calib"])
+    node.on_calib(CALIB)
+    for kp in (left, right):
+        kp.centreline = kp.centreline_w = None
+        getattr(node, f"on_{kp.camera}")(kp)
+    assert len(poses(node)) == 1 and node.counters["keypoints_only"] == 1
+    assert poses(node)[0].T_world_needle is None
+
+
+def test_node_counts_why_there_is_no_pose_and_never_publishes_one():
+    node = RefineNode.offline({}, wired=["left", "right", "calib"])
+    kp = Keypoints("left", 0, 0, True, np.full((5, 2), 100.0), np.ones(5), 1.0)
+    node.on_left(kp)
+    node.on_right(Keypoints("right", 0, 0, True, np.full((5, 2), 100.0), np.ones(5), 1.0))
+    assert node.counters["no_pose.no_calibration"] == 1
+    node.on_calib(CALIB)
+    cases = [(np.full((5, 2), 100.0), "coincident"),
+             (np.array([[1, 2], [3, 4], [5, 6], [np.nan, 0], [np.nan, np.nan]], float), "too_few_points")]
+    for seq, (uv, reason) in enumerate(cases, start=1):
+        node.on_left(Keypoints("left", seq, 0, True, uv, np.ones(5), 1.0))
+        node.on_right(Keypoints("right", seq, 0, True, uv, np.ones(5), 1.0))
+        assert node.counters[f"no_pose.{reason}"] == 1, reason
+    node.on_left(Keypoints.not_found("left", 9, 0, "oracle", "x"))
+    node.on_right(Keypoints.not_found("right", 9, 0, "oracle", "x"))
+    assert node.counters["no_pose.too_few_points"] == 2
+    # a malformed centreline: a reason, not a crash
+    (T, left, right), = oracle_frames(1)
+    left.seq = right.seq = 10
+    left.centreline_w = np.ones(3)
+    node.on_left(left)
+    node.on_right(right)
+    assert node.counters["no_pose.bad_centreline"] == 1
+    # a fit worse than max_rms_px is not published
+    strict = RefineNode.offline({"max_rms_px": 1e-9}, wired=["left", "right", "calib"])
+    strict.on_calib(CALIB)
+    (T, left, right), = oracle_frames(1, noise_px=1.0)
+    strict.on_left(left)
+    strict.on_right(right)
+    assert strict.counters["no_pose.high_residual"] == 1 and poses(strict) == []
+    assert poses(node) == []
+
+
+def test_refine_node_in_a_launched_graph_matches_the_library(run_graph):
+    """sim (truth and calibration) -> detector (oracle, with centreline) -> refine."""
+    g = run_graph({"nodes": [
+        {"id": "camera", "module": "sim",
+         "params": {"width": 640, "height": 360, "rate_hz": 5, "randomise": "none",
+                    "motion": "static", "encoding": "jpeg", "count": 40},
+         "outputs": ["left", "right", "joints", "truth", "calib"]},
+        {"id": "detector", "module": "detector", "params": {"backend": "oracle", "noise_px": 0.3, "seed": 2},
+         "inputs": {"truth": "camera/truth", "calib": "camera/calib"}, "outputs": ["left", "right"]},
+        {"id": "refine", "module": "refine",
+         "inputs": {"left": "detector/left", "right": "detector/right", "calib": "camera/calib"},
+         "outputs": ["pose"]},
+    ]}, timeout=90)
+    kp_sub = g.subscribe("detector/*")
+    calib = g.collect("camera/calib", n=1, timeout=30)[0]
+    out = g.collect("refine/pose", n=3, timeout=60)
+    rig, model = calib.rig(), calib.needle_model()
+    kp_sub.wait(2, timeout=10)
+    kps = {}
+    for m in kp_sub.messages:
+        kps.setdefault(m.seq, {})[m.camera] = m
+    checked = 0
+    for p in out:
+        pair = kps.get(p.seq)
+        if not pair or len(pair) < 2:
+            continue
+        uv = {c: k.uv for c, k in pair.items()}
+        sc = {c: k.scores for c, k in pair.items()}
+        pj = pnp_joint(uv, rig, model.keypoints(), sc, 0.5, outlier_px=10.0)
+        obs = {c: ArcObservation.from_keypoints(k) for c, k in pair.items()}
+        ref = DenseRefiner(rig, model, RefineConfig(min_score=0.5)).refine(
+            obs, [c.T_ecm_needle for c in pj.candidates])
+        assert isinstance(p, PoseEstimate) and p.method == "refined"
+        assert np.allclose(p.T_ecm_needle, ref.T_ecm_needle, atol=1e-12)
+        assert np.allclose(p.covariance, ref.covariance)
+        assert all(k.centreline is not None and len(k.centreline) > 10 for k in pair.values())
+        checked += 1
+    assert checked >= 1
+    st = g.stats("refine")
+    assert st.counters.get("handler_errors", 0) == 0 and st.counters.get("decode_errors", 0) == 0
