@@ -383,7 +383,7 @@ def graph_from_dict(data: dict, path: Optional[Path] = None, source: str = "grap
         nodes.append(NodeSpec(id=n["id"], module=n.get("module"),
                               command=[str(a) for a in n["command"]] if n.get("command") else None,
                               params=dict(n.get("params") or {}), inputs=dict(n.get("inputs") or {}),
-                              outputs=list(outs), restart=n.get("restart", "on-failure"),
+                              outputs=list(outs or []), restart=n.get("restart", "on-failure"),
                               env={k: str(v) for k, v in (n.get("env") or {}).items()}))
     return Graph(name=data["graph"], zenoh=zs, nodes=nodes, path=path)
 

@@ -299,6 +299,9 @@ class Runtime:
         if errors:
             raise NodeError("; ".join(errors))
         self.node = cls(self.node_id, spec.params, wired=spec.inputs.keys(), runtime=self)
+        for name in ["decode_errors", "handler_errors"] + [f"in.{i}" for i in spec.inputs] + \
+                [f"out.{o}" for o in cls.OUTPUTS]:
+            self.stats.add(name, 0)
         self.queue = InputQueue(keep_all=set(cls.KEEP_ALL) | {"@cmd"})
         return self.node
 

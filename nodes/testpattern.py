@@ -3,7 +3,8 @@ sharing ``seq``) of a fixed test pattern at ``rate_hz``; ``stamp_ns`` is the wal
 just before encoding, so receivers on this machine can measure latency.
 
 params: ``rate_hz`` (30; 0 = as fast as possible), ``width`` (1920), ``height`` (1080),
-``encoding`` (bgr8 | png | jpeg), ``count`` (stop after this many frames; 0 = forever).
+``encoding`` (bgr8 | png | jpeg), ``count`` (stop after this many frames; 0 = forever),
+``start_delay_s`` (wait before the first frame, so that subscribers are connected; default 0).
 """
 import time
 
@@ -39,18 +40,19 @@ class TestPattern(Node):
         self.count_max = int(self.params.get("count", 0))
         self.images = {"left": test_pattern(self.w, self.h, 0), "right": test_pattern(self.w, self.h, 8)}
         self.seq = 0
-        self.next_t = time.monotonic()
+        self.next_t = time.monotonic() + float(self.params.get("start_delay_s", 0.0))
 
     def step(self):
         if self.count_max and self.seq >= self.count_max:
             return False
-        if self.period:
+        if self.period or self.seq == 0:
             delay = self.next_t - time.monotonic()
             if delay > 0:
                 time.sleep(delay)
             self.next_t = max(self.next_t + self.period, time.monotonic() - self.period)
         for cam in ("left", "right"):
-            msg = CameraImage.from_bgr(cam, self.seq, time.time_ns(), self.images[cam], self.encoding)
+            msg = CameraImage.from_bgr(cam, self.seq, time.time_ns(), self.images[cam], self.encoding,
+                                      copy=False)   # the pattern is never modified
             self.publish(cam, msg)
         self.seq += 1
         return True

@@ -1,0 +1,37 @@
+"""Shared fixtures. ``run_graph`` launches real graphs (see tests/graphtools.py)."""
+import sys
+from pathlib import Path
+
+import pytest
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
+
+from graphtools import free_port as _free_port, launch_graph  # noqa: E402
+
+
+@pytest.fixture
+def free_port():
+    """A free TCP port on 127.0.0.1."""
+    return _free_port()
+
+
+@pytest.fixture
+def run_graph(tmp_path):
+    """``run_graph(graph, args=(), wait=True, timeout=40) -> RunningGraph``: launch a graph (dict,
+    YAML text or path) on a free port through ``needletrack launch``; every graph started is
+    stopped at teardown, and the test fails if a node process outlives its launcher."""
+    started = []
+
+    def start(graph, **kw):
+        g = launch_graph(graph, tmp_path / f"graph{len(started)}", **kw)
+        started.append(g)
+        return g
+    yield start
+    errors = []
+    for g in started:
+        try:
+            g.stop()
+        except AssertionError as exc:
+            errors.append(str(exc))
+    assert not errors, "\n".join(errors)
