@@ -14,6 +14,7 @@ also reads the depth buffer. Ground truth follows ``../shared/specs/dataset.md``
 from __future__ import annotations
 
 import os
+import time
 
 os.environ.setdefault("MUJOCO_GL", "egl")
 
@@ -165,58 +166,69 @@ class SceneRenderer:
         out = {}
         m = self.model
         W, H = self._rect.width, self._rect.height
-        near = m.vis.map.znear * m.stat.extent
-        far = m.vis.map.zfar * m.stat.extent
         flags = self._scene.flags
+        self.last_timings = {"colour": 0.0, "window": 0.0}
         for name in cameras:
             mujoco.mjv_updateScene(m, self.data, self._opt, None, self._cams[name],
                                    mujoco.mjtCatBit.mjCAT_ALL, self._scene)
+            t0 = time.perf_counter()
             flags[mujoco.mjtRndFlag.mjRND_SHADOW] = 1
             flags[mujoco.mjtRndFlag.mjRND_SEGMENT] = 0
             flags[mujoco.mjtRndFlag.mjRND_IDCOLOR] = 0
             mujoco.mjr_render(self._rect, self._scene, self._ctx)
             mujoco.mjr_readPixels(self._rgb, None, self._rect, self._ctx)
             bgr = cv2.flip(cv2.cvtColor(self._rgb, cv2.COLOR_RGB2BGR), 0)
+            t1 = time.perf_counter()
             label = np.zeros((H, W), np.uint8)
             depth = np.full((H, W), np.inf, np.float32)
             geom = np.full((H, W), -1, np.int32)
             win = (0, 0, W, H) if self.full_segmentation else self.needle_window(name, T_world_ecm)
             if win is not None:
-                x0, y0, x1, y1 = win
-                # off-axis frustum of the window: pixel edges at integers in GL window coordinates
-                cam0 = self._scene.camera[0]
-                ht = cam0.frustum_top
-                hw = ht * W / H
-                for c in self._scene.camera:
-                    left, right = -hw + 2 * hw * x0 / W, -hw + 2 * hw * x1 / W
-                    c.frustum_center = (left + right) / 2
-                    c.frustum_width = (right - left) / 2
-                    c.frustum_bottom = -ht + 2 * ht * (H - y1) / H
-                    c.frustum_top = -ht + 2 * ht * (H - y0) / H
-                flags[mujoco.mjtRndFlag.mjRND_SHADOW] = 0
-                flags[mujoco.mjtRndFlag.mjRND_SEGMENT] = 1
-                flags[mujoco.mjtRndFlag.mjRND_IDCOLOR] = 1
-                rect = mujoco.MjrRect(0, 0, x1 - x0, y1 - y0)
-                ids = np.empty((y1 - y0, x1 - x0, 3), np.uint8)
-                zbuf = np.empty((y1 - y0, x1 - x0), np.float32)
-                mujoco.mjr_render(rect, self._scene, self._ctx)
-                mujoco.mjr_readPixels(ids, zbuf, rect, self._ctx)
-                ids, zbuf = ids[::-1], zbuf[::-1]
-                seg = (ids[..., 0].astype(np.int32) + (ids[..., 1].astype(np.int32) << 8)
-                       + (ids[..., 2].astype(np.int32) << 16))
-                lut = np.zeros(self._scene.ngeom + 2, np.uint8)
-                gid = np.full(self._scene.ngeom + 2, -1, np.int32)
-                for g in range(self._scene.ngeom):
-                    sg = self._scene.geoms[g]
-                    if sg.segid >= 0 and sg.objtype == mujoco.mjtObj.mjOBJ_GEOM:
-                        lut[sg.segid + 1] = self._geom_label[sg.objid]
-                        gid[sg.segid + 1] = sg.objid
-                seg = np.clip(seg, 0, len(lut) - 1)
-                label[y0:y1, x0:x1] = lut[seg]
-                geom[y0:y1, x0:x1] = gid[seg]
-                depth[y0:y1, x0:x1] = _linear_depth(zbuf, near, far)
+                self._window_pass(win, label, depth, geom)
+            self.last_timings["colour"] += t1 - t0
+            self.last_timings["window"] += time.perf_counter() - t1
             out[name] = CameraRender(bgr, label, depth, geom, win)
         return out
+
+    def _window_pass(self, win, label, depth, geom) -> None:
+        """Segmentation + depth of the pixel window [x0, x1) x [y0, y1) into the full-size arrays."""
+        m = self.model
+        W, H = self._rect.width, self._rect.height
+        near = m.vis.map.znear * m.stat.extent
+        far = m.vis.map.zfar * m.stat.extent
+        x0, y0, x1, y1 = win
+        # off-axis frustum of the window: pixel edges at integers in GL window coordinates
+        ht = self._scene.camera[0].frustum_top
+        hw = ht * W / H
+        for c in self._scene.camera:
+            left, right = -hw + 2 * hw * x0 / W, -hw + 2 * hw * x1 / W
+            c.frustum_center = (left + right) / 2
+            c.frustum_width = (right - left) / 2
+            c.frustum_bottom = -ht + 2 * ht * (H - y1) / H
+            c.frustum_top = -ht + 2 * ht * (H - y0) / H
+        flags = self._scene.flags
+        flags[mujoco.mjtRndFlag.mjRND_SHADOW] = 0
+        flags[mujoco.mjtRndFlag.mjRND_SEGMENT] = 1
+        flags[mujoco.mjtRndFlag.mjRND_IDCOLOR] = 1
+        rect = mujoco.MjrRect(0, 0, x1 - x0, y1 - y0)
+        ids = np.empty((y1 - y0, x1 - x0, 3), np.uint8)
+        zbuf = np.empty((y1 - y0, x1 - x0), np.float32)
+        mujoco.mjr_render(rect, self._scene, self._ctx)
+        mujoco.mjr_readPixels(ids, zbuf, rect, self._ctx)
+        ids, zbuf = ids[::-1], zbuf[::-1]
+        seg = (ids[..., 0].astype(np.int32) + (ids[..., 1].astype(np.int32) << 8)
+               + (ids[..., 2].astype(np.int32) << 16))
+        lut = np.zeros(self._scene.ngeom + 2, np.uint8)
+        gid = np.full(self._scene.ngeom + 2, -1, np.int32)
+        for g in range(self._scene.ngeom):
+            sg = self._scene.geoms[g]
+            if sg.segid >= 0 and sg.objtype == mujoco.mjtObj.mjOBJ_GEOM:
+                lut[sg.segid + 1] = self._geom_label[sg.objid]
+                gid[sg.segid + 1] = sg.objid
+        seg = np.clip(seg, 0, len(lut) - 1)
+        label[y0:y1, x0:x1] = lut[seg]
+        geom[y0:y1, x0:x1] = gid[seg]
+        depth[y0:y1, x0:x1] = _linear_depth(zbuf, near, far)
 
     def ground_truth(self, T_world_ecm: np.ndarray, renders: dict[str, CameraRender]) -> dict:
         """The spec's ``keypoints``, ``visible`` and ``bbox`` for both cameras."""
