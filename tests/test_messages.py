@@ -1,0 +1,166 @@
+"""The message codec: exact round trips, the image fast path, and clear errors on bad payloads."""
+import msgpack
+import numpy as np
+import pytest
+from hypothesis import HealthCheck, given, settings
+from hypothesis import strategies as st
+from hypothesis.extra import numpy as hnp
+
+from common.camera import StereoRig
+from common.messages import (MESSAGE_TYPES, CameraImage, Calibration, Command, EcmJoints, EcmPose, EndOfStream,
+                             GroundTruth, Keypoints, MessageError, NodeStats, Points3D, PoseEstimate, decode, encode)
+from common.needle import NeedleModel
+
+
+def _calib():
+    return Calibration(stamp_ns=5, image_size=np.array([1920, 1080]), cameras=StereoRig.default().to_dict(),
+                       needle=NeedleModel().to_dict(), source="test")
+
+
+def examples():
+    T = np.eye(4)
+    T[:3, 3] = [0.01, -0.02, 0.15]
+    return [
+        CameraImage.from_bgr("left", 7, 123, np.arange(4 * 6 * 3, dtype=np.uint8).reshape(4, 6, 3)),
+        EcmJoints(seq=3, stamp_ns=10, q=np.array([0.1, -0.2, 0.05, 0.0])),
+        EcmPose(seq=3, stamp_ns=10, T_world_ecm=T, q=np.zeros(4)),
+        Keypoints("right", 9, 11, True, np.arange(10, dtype=float).reshape(5, 2), np.linspace(0, 1, 5), 0.9,
+                  np.array([1.0, 2.0, 30.0, 40.0]), "oracle", None, np.zeros((7, 2)), np.ones(7)),
+        Keypoints.not_found("left", 2, 3, "learned", "low confidence", 0.2),
+        PoseEstimate(seq=4, stamp_ns=12, method="pnp_joint", T_ecm_needle=T, T_world_needle=T, residual=0.4,
+                     residual_unit="px", n_views=2, covariance=np.eye(6) * 1e-6, ambiguous=False,
+                     points_ecm=np.zeros((5, 3)), sequence=1),
+        Points3D(seq=1, stamp_ns=2, points_ecm=np.full((5, 3), np.nan), valid=np.zeros(5, dtype=bool)),
+        GroundTruth(seq=1, stamp_ns=2, sequence=0, step=1, ecm_joints=np.zeros(4), T_world_ecm=T,
+                    T_world_needle=T, keypoints={"left": np.zeros((5, 2)), "right": np.ones((5, 2))},
+                    visible={"left": np.ones(5, dtype=bool), "right": np.zeros(5, dtype=bool)}),
+        Command("place_needle", {"distance_m": 0.15, "seed": 3}),
+        NodeStats("det", "detector", 42, 1, 2.5, {"in.left": 3, "state": "active"}, {"in.left": 29.9}, 1.0, 2.0),
+        EndOfStream(frames=30, stamp_ns=9),
+    ]
+
+
+def _equal(a, b):
+    if isinstance(a, np.ndarray):
+        return isinstance(b, np.ndarray) and a.dtype == b.dtype and a.shape == b.shape and \
+            np.array_equal(a, b, equal_nan=a.dtype.kind == "f")
+    if isinstance(a, dict):
+        return isinstance(b, dict) and a.keys() == b.keys() and all(_equal(a[k], b[k]) for k in a)
+    if isinstance(a, (bytes, memoryview)):
+        return bytes(a) == bytes(b)
+    return a == b
+
+
+@pytest.mark.parametrize("msg", examples(), ids=lambda m: type(m).__name__)
+def test_every_message_round_trips_exactly(msg):
+    back = decode(encode(msg), type(msg))
+    assert type(back) is type(msg)
+    for name, value in msg.to_body().items():
+        assert _equal(value, getattr(back, name)), name
+
+
+def test_calibration_round_trips():
+    c = _calib()
+    back = decode(encode(c), Calibration)
+    assert back.rig() is not None and back.source == "test"
+
+
+def test_all_message_types_are_registered():
+    assert {c.__name__ for c in MESSAGE_TYPES.values()} >= {
+        "CameraImage", "EcmJoints", "EcmPose", "Keypoints", "PoseEstimate", "Points3D", "GroundTruth",
+        "Calibration", "Command", "NodeStats", "EndOfStream"}
+
+
+@settings(max_examples=60, deadline=None, suppress_health_check=[HealthCheck.too_slow])
+@given(hnp.arrays(st.sampled_from([np.float64, np.float32]), (5, 2),
+                  elements=st.floats(allow_nan=True, allow_infinity=True, width=32)),
+       st.integers(0, 2 ** 63 - 1))
+def test_arrays_round_trip_with_dtype_shape_and_values(uv, seq):
+    k = Keypoints("left", seq, 0, True, uv, np.ones(5, dtype=np.float32), 1.0)
+    back = decode(encode(k), Keypoints)
+    assert back.seq == seq and _equal(uv, back.uv) and back.scores.dtype == np.float32
+
+
+def test_a_1080p_image_travels_as_a_view_of_the_payload():
+    img = np.random.default_rng(0).integers(0, 255, (1080, 1920, 3), dtype=np.uint8)
+    msg = CameraImage.from_bgr("right", 5, 99, img)
+    payload = encode(msg)
+    back = decode(payload, CameraImage)
+    assert isinstance(back.data, memoryview)                      # no copy of the pixels
+    assert np.array_equal(back.to_bgr(), img) and back.seq == 5 and back.camera == "right"
+    plain = msgpack.unpackb(payload, raw=False)                   # still plain msgpack
+    assert plain["schema"] == CameraImage.SCHEMA and plain["body"]["data"] == img.tobytes()
+    view = CameraImage.from_bgr("left", 1, 2, img, copy=False)
+    assert np.array_equal(decode(encode(view)).to_bgr(), img)
+
+
+def test_encoded_images_decode_and_corrupt_ones_raise():
+    img = np.zeros((20, 30, 3), np.uint8)
+    img[5:10, 5:20] = 200
+    for enc in ("png", "jpeg"):
+        msg = decode(encode(CameraImage.from_bgr("left", 1, 2, img, enc)), CameraImage)
+        assert msg.encoding == enc and msg.to_bgr().shape == img.shape
+    bad = CameraImage("left", 1, 2, 30, 20, "png", b"\x89PNG not really")
+    with pytest.raises(MessageError, match="CameraImage.data: corrupt png"):
+        decode(encode(bad), CameraImage).to_bgr()
+
+
+def test_truncated_large_payload_is_an_error_naming_the_field():
+    img = np.zeros((300, 400, 3), np.uint8)
+    payload = encode(CameraImage.from_bgr("left", 1, 2, img))
+    with pytest.raises(MessageError):
+        decode(payload[:-1000], CameraImage)
+    wrong = msgpack.packb({"schema": CameraImage.SCHEMA, "version": 1, "body": {
+        "camera": "left", "seq": 1, "stamp_ns": 2, "width": 400, "height": 300, "encoding": "bgr8",
+        "data": b"\x00" * 1000}})
+    with pytest.raises(MessageError, match=r"CameraImage.data: bgr8 400x300 needs 360000 bytes, got 1000"):
+        decode(wrong)
+
+
+@pytest.mark.parametrize("body,text", [
+    ({"seq": "1", "stamp_ns": 0, "q": [0, 0, 0, 0]}, "EcmJoints.seq: expected int, got str"),
+    ({"seq": 1, "stamp_ns": 0}, "EcmJoints.q: missing"),
+    ({"seq": 1, "stamp_ns": 0, "q": [0, 0, 0]}, r"EcmJoints.q: expected shape \(4,\), got \(3,\)"),
+    ({"seq": 1, "stamp_ns": 0, "q": [0, 0, 0, float("nan")]}, "EcmJoints.q: not finite"),
+    ({"seq": 1, "stamp_ns": 0, "q": [0, 0, 0, 0], "extra": 1}, "EcmJoints.extra: unknown field"),
+])
+def test_decode_errors_name_the_message_and_the_field(body, text):
+    payload = msgpack.packb({"schema": EcmJoints.SCHEMA, "version": 1, "body": body})
+    with pytest.raises(MessageError, match=text):
+        decode(payload, EcmJoints)
+
+
+def test_envelope_errors():
+    with pytest.raises(MessageError, match="Keypoints: got a EcmJoints instead"):
+        decode(encode(EcmJoints(1, 2, np.zeros(4))), Keypoints)
+    with pytest.raises(MessageError, match="unknown schema 'x.Y'"):
+        decode(msgpack.packb({"schema": "x.Y", "version": 1, "body": {}}))
+    with pytest.raises(MessageError, match="EcmJoints.version: expected 1, got 7"):
+        decode(msgpack.packb({"schema": EcmJoints.SCHEMA, "version": 7, "body": {}}))
+    with pytest.raises(MessageError, match="missing schema envelope"):
+        decode(msgpack.packb([1, 2]))
+    with pytest.raises(MessageError, match="not valid msgpack"):
+        decode(b"\xc1\xc1")
+
+
+@settings(max_examples=300, deadline=None)
+@given(st.binary(max_size=300))
+def test_random_bytes_never_crash_the_decoder(data):
+    try:
+        decode(data)
+    except MessageError:
+        pass
+
+
+@settings(max_examples=300, deadline=None)
+@given(st.data())
+def test_corrupted_messages_decode_or_raise_message_error(data):
+    msg = data.draw(st.sampled_from(examples()))
+    payload = bytearray(encode(msg))
+    for _ in range(data.draw(st.integers(1, 4))):
+        i = data.draw(st.integers(0, len(payload) - 1))
+        payload[i] = data.draw(st.integers(0, 255))
+    try:
+        decode(bytes(payload))
+    except MessageError:
+        pass
