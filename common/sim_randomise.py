@@ -157,7 +157,9 @@ def sample_instruments(rng: np.random.Generator, T_world_needle: np.ndarray, nee
                                   float(rng.uniform(-np.pi, np.pi)), 0.06))
             continue
         if rng.random() < preset.p_occlude:
-            off = rng.normal(0, 0.004, 2)
+            # jaws over part of the needle, the shaft leading away from it: a partial occlusion
+            ang = np.arctan2(0.0, side) + rng.uniform(-0.6, 0.6)
+            off = rng.uniform(0.005, 0.009) * np.array([np.cos(ang), np.sin(ang)])
             lift = rng.uniform(0.004, 0.012)
         else:
             ang = rng.uniform(0, 2 * np.pi)

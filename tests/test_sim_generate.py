@@ -1,0 +1,110 @@
+"""Scene randomisation (no rendering) and dataset generation: determinism, resume, CLI."""
+import common.sim_render  # noqa: F401  (headless GL before mujoco)
+
+import json
+
+import numpy as np
+import pytest
+
+from common.camera import StereoRig
+from common.dataset import Dataset, check_dataset
+from common.dataset_cli import main as dataset_main
+from common.needle import NeedleModel
+from common.sim_generate import GenerateConfig, generate
+from common.sim_randomise import (DISTANCE_RANGE_M, MULTIVIEW_STEP_RAD, PRESETS, default_arm,
+                                  keypoints_in_view, plan_sequence, rotate_with_keypoints)
+from common.sim_scene import PHANTOM_SIZE, phantom_height
+from common.transforms import inv_T, transform_points
+
+
+@pytest.mark.parametrize("preset", sorted(PRESETS))
+def test_planned_sequences_are_physical_and_in_view(preset):
+    rig, needle, arm = StereoRig.default(), NeedleModel(), default_arm()
+    held_seen = rest_seen = 0
+    for s in range(25):
+        plan = plan_sequence(3, s, 5, PRESETS[preset], rig, needle, arm)
+        T = plan.spec.T_world_needle
+        wire_r = plan.spec.appearance.wire_diameter_m / 2
+        arc = transform_points(T, needle.sample_arc(64))
+        assert np.all(np.abs(arc[:, 0]) < PHANTOM_SIZE[0] / 2) and np.all(np.abs(arc[:, 1]) < PHANTOM_SIZE[1] / 2)
+        gap = arc[:, 2] - phantom_height(arc[:, 0], arc[:, 1])
+        assert gap.min() >= wire_r - 2e-6, "the needle sinks into the tissue"
+        if gap.min() < wire_r + 2e-6:
+            rest_seen += 1  # resting: touching the surface
+        else:
+            held_seen += 1
+            assert gap.min() <= 0.025 + wire_r + 1e-6
+        centre = transform_points(T, needle.keypoints()).mean(axis=0)
+        T0 = arm.T_world_ecm(plan.joints[0])
+        d = np.linalg.norm(centre - T0[:3, 3])
+        assert DISTANCE_RANGE_M[0] - 1e-6 <= d <= DISTANCE_RANGE_M[1] + 1e-6
+        assert keypoints_in_view(rig, needle, T, T0, margin=0.1)
+        assert len(plan.joints) == 5
+        for qa, qb in zip(plan.joints, plan.joints[1:]):
+            dq = np.abs(qb - qa)
+            assert np.sum(dq > 1e-12) == 1 and np.isclose(dq.max(), MULTIVIEW_STEP_RAD)
+            assert dq[2] == 0  # insertion never moves
+    assert rest_seen > 0
+    if PRESETS[preset].p_held > 0:
+        assert held_seen > 0
+
+
+def test_rotate_with_keypoints_maps_pixels_along():
+    img = np.zeros((90, 160, 3), np.uint8)
+    img[30, 100] = 255
+    out, uv = rotate_with_keypoints(img, [[100, 30]], 0.4)
+    v, u = np.unravel_index(np.argmax(out[..., 0]), out.shape[:2])
+    assert np.hypot(u - uv[0, 0], v - uv[0, 1]) < 1.0
+
+
+def _lines(folder):
+    return (folder / "frames.jsonl").read_text().splitlines()
+
+
+def test_generate_is_deterministic_resumable_and_parallel(tmp_path):
+    cfg = GenerateConfig(sequences=2, steps=2, seed=5, randomise="train", width=320, height=180)
+    a, b = tmp_path / "a", tmp_path / "b"
+    assert generate(str(a), cfg, jobs=1, progress=False) == 4
+    # interrupted run: one sequence done, a torn line after it; then the full command again
+    assert generate(str(b), GenerateConfig(1, 2, 5, "train", 320, 180), jobs=1, progress=False) == 2
+    with open(b / "frames.jsonl", "a") as f:
+        f.write('{"index": 2, "stamp_ns": 6666')
+    assert generate(str(b), cfg, jobs=2, progress=False) == 4  # resumes with 2 processes
+    assert _lines(a) == _lines(b)
+    for i in range(4):
+        for cam in ("left", "right"):
+            pa = a / "images" / cam / f"{i:06d}.jpg"
+            pb = b / "images" / cam / f"{i:06d}.jpg"
+            assert pa.read_bytes() == pb.read_bytes()
+    ds = Dataset(a)
+    rep = check_dataset(ds)
+    assert rep.ok, rep.errors
+    assert rep.with_truth == 4 and rep.max_reproj_px < 1e-6
+    assert [(f.sequence, f.step) for f in ds] == [(0, 0), (0, 1), (1, 0), (1, 1)]
+    # other settings in the same folder are refused
+    with pytest.raises(ValueError):
+        generate(str(a), GenerateConfig(2, 3, 5, "train", 320, 180), jobs=1, progress=False)
+
+
+def test_dataset_cli_generate_check_show(tmp_path, capsys):
+    out = tmp_path / "d"
+    assert dataset_main(["generate", "--out", str(out), "--sequences", "1", "--steps", "2", "--width", "320",
+                         "--height", "180", "--randomise", "none", "--format", "png", "--jobs", "1", "--quiet"]) == 0
+    assert dataset_main(["check", str(out)]) == 0
+    assert "OK" in capsys.readouterr().out
+    sheet = tmp_path / "sheet.png"
+    assert dataset_main(["show", str(out), "--out", str(sheet), "--frames", "2"]) == 0
+    import cv2
+    img = cv2.imread(str(sheet))
+    assert img is not None and img.shape[0] > 100
+    # a broken ground truth fails the check with the line named
+    lines = _lines(out)
+    obj = json.loads(lines[1])
+    obj["T_world_needle"][2][3] += 0.002
+    lines[1] = json.dumps(obj)
+    (out / "frames.jsonl").write_text("\n".join(lines) + "\n")
+    assert dataset_main(["check", str(out), "--no-images"]) == 1
+    text = capsys.readouterr().out
+    assert "frames.jsonl:2: keypoints" in text and "FAILED" in text
+    # an unreadable folder is an error, not a traceback
+    assert dataset_main(["check", str(tmp_path / "nope")]) == 1
