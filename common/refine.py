@@ -197,7 +197,9 @@ class _Static:
         self._Rmid = _exp_so3(np.array([[0.0, 0.0, self.mid]]))[0]
         self._cos_half, self._sin_half = np.cos(self.half), np.sin(self.half)
         self._flip = np.array([1.0, -1.0])
-        self._ends = (np.full((1, 1, 2), np.cos(self.half)), np.array([[[-1.0, 1.0]]]) * np.sin(self.half))
+        kp_ang = needle.keypoint_angles_rad - self.mid               # A..E about the middle
+        self._kp_co = np.broadcast_to(np.cos(kp_ang), (1, C, 5))
+        self._kp_si = np.broadcast_to(np.sin(kp_ang), (1, C, 5))
         self._out = np.array([-1.0, 1.0])                       # outward along the arc at A, E
         self._cos_end_zone = np.cos(self.half - np.deg2rad(1.0))  # feet within 1 deg of an end
         ang = np.linspace(-self.half, self.half, cfg.n_samples)
@@ -247,19 +249,34 @@ class _Problem:
         self._Ou, self._Ov = O[None, :, :, 0], O[None, :, :, 1]
 
     def _axes(self, R, t):
-        """Needle pose in each camera (P, C, ...): rotation, translation, and E stacking
-        radius * [e1, e2, e2, -e1] of needle axes turned so that the arc's middle is on +x."""
+        """Needle pose in each camera (P, C, ...): rotation, translation, and E (P, C, 2, 6)
+        with rows radius * [e1 e2] and radius * [e2 -e1] (needle axes turned so that the arc's
+        middle is on +x): [cos, sin] @ E gives an arc point (less the origin) and its tangent."""
         Rcam = self.Rc[None] @ R[:, None]                                  # (P, C, 3, 3)
         tcam = (self.Rc[None] @ t[:, None, :, None])[..., 0] + self.tc     # (P, C, 3)
         Rm = Rcam @ self._Rmid
-        E = self.radius * np.concatenate([Rm[..., :2], Rm[..., 1::-1] * self._flip], axis=3)
-        return Rcam, tcam, np.swapaxes(E, 2, 3)
+        e1, e2 = Rm[..., 0], Rm[..., 1]
+        E = self.radius * np.stack([np.concatenate([e1, e2], -1), np.concatenate([e2, -e1], -1)], 2)
+        return Rcam, tcam, E
 
-    def nearest_samples(self, R, t):
+    def _project_arc(self, co, si, E, t4, depth: bool = False):
+        """Pixels (u, v) of arc points (P, C, N) at angle (co, si) and their derivatives
+        (du, dv) along the arc (per radian), and with ``depth`` their camera-frame z;
+        ``t4`` the camera-frame origin (P, C, 1, 3)."""
+        XT = np.stack([co, si], axis=-1) @ E
+        X = XT[..., :3] + t4
+        z = X[..., 2]
+        iz = 1.0 / np.maximum(z, 1e-9)
+        x, y = X[..., 0] * iz, X[..., 1] * iz
+        dx, dy = (XT[..., 3] - x * XT[..., 5]) * iz, (XT[..., 4] - y * XT[..., 5]) * iz
+        out = (self._fx * x + self._sk * y + self._cx, self._fy * y + self._cy,
+               self._fx * dx + self._sk * dy, self._fy * dy)
+        return out + (z,) if depth else out
+
+    def nearest_samples(self, E, t4):
         """Start of each observed point's foot on the arc, (cos, sin) (P, C, M) of its angle from
         the arc's middle: the nearest of ``n_samples`` projected arc points."""
-        _, tcam, E = self._axes(R, t)
-        X = self._samples @ E[:, :, :2] + tcam[:, :, None, :]            # (P, C, S, 3)
+        X = self._samples @ E[..., :3] + t4                                # (P, C, S, 3)
         iz = 1.0 / np.maximum(X[..., 2], 1e-9)
         x, y = X[..., 0] * iz, X[..., 1] * iz
         u = (self._fx * x + self._sk * y + self._cx)[:, :, None, :]
@@ -267,93 +284,79 @@ class _Problem:
         k = np.argmin((u - self._Ou[..., None]) ** 2 + (v - self._Ov[..., None]) ** 2, axis=3)
         return self._samples[k, 0], self._samples[k, 1]
 
-    def residuals(self, R, t, foot):
-        """Residuals (P, n) in px of P poses ``(R (P,3,3), t (P,3))`` with the observed points'
-        foot starts ``foot`` (see ``nearest_samples``), and whether each pose keeps the
-        keypoints and the needle's centre in front of both cameras."""
-        P = len(R)
-        Rcam, tcam, E = self._axes(R, t)
-        Xk = self.kp_model @ np.swapaxes(Rcam, 2, 3) + tcam[:, :, None, :]
-        z = Xk[..., 2]
-        zc = tcam[..., 2]
-        valid = (z.min(axis=(1, 2)) > self.cfg.min_depth_m) & (zc.min(axis=1) > self.cfg.min_depth_m)
-        iz = 1.0 / np.maximum(z, 1e-9)
-        x, y = Xk[..., 0] * iz, Xk[..., 1] * iz
-        ru = self._fx * x + self._sk * y + self._cx - self._Uu
-        rv = self._fy * y + self._cy - self._Uv
-
-        # Curve: the distance of each observed point to the projected arc. Its foot takes
-        # Newton steps along the projected arc from the given start (see ``feet``); the
-        # residuals are the signed distance to the tangent there and, for a point past an end,
-        # its overshoot along the arc (together: the distance to that end).
-        t4 = tcam[:, :, None, :]
-        co, si, _ = self._newton(foot, E, t4, self.cfg.newton_steps)
-        u, v, tu, tv = self._project_arc(co, si, E, t4)
-        du, dv = u - self._Ou, v - self._Ov
-        r_n = (tu * dv - tv * du) / np.maximum(np.sqrt(tu * tu + tv * tv), 1e-300)
-        # Overshoot of each point past the nearer end (A at -half, E at +half), along the
-        # outward tangent there: signed here; ``linearise`` keeps it for points whose foot is at
-        # an end and makes it a hinge (zero inside).
-        ue, ve, tue, tve = self._project_arc(self._ends[0], self._ends[1], E, t4)   # (P, C, 2)
-        ne = 1.0 / np.maximum(np.sqrt(tue * tue + tve * tve), 1e-300)
-        tue, tve = tue * ne * self._out, tve * ne * self._out
-        atE = si > 0
-        ov = np.where(atE, (self._Ou - ue[..., 1:]) * tue[..., 1:] + (self._Ov - ve[..., 1:]) * tve[..., 1:],
-                      (self._Ou - ue[..., :1]) * tue[..., :1] + (self._Ov - ve[..., :1]) * tve[..., :1])
-        r_t = ov
-
-        r = np.concatenate([ru, rv, r_n, r_t], axis=2).reshape(P, -1)
-        return r, valid
-
-    def _newton(self, co_si, E, t4, steps):
+    def _newton(self, co, si, E, t4, steps):
         """``steps`` Newton steps of the feet (cos, sin) along the projected arc towards the
-        observed points; also whether each foot ended clamped beyond an end (None: no step)."""
-        co, si = co_si
-        beyond = None
+        observed points, clamped to the arc."""
         for _ in range(steps):
             u, v, tu, tv = self._project_arc(co, si, E, t4)
             du, dv = u - self._Ou, v - self._Ov
             step = np.clip(-(tu * du + tv * dv) / np.maximum(tu * tu + tv * tv, 1e-300), -0.5, 0.5)
             inv = 1.0 / np.sqrt(1.0 + step * step)
-            co, si, beyond = self._clamp((co - si * step) * inv, (si + co * step) * inv)
-        return co, si, beyond
-
-    def feet(self, R, t):
-        """Feet on the arc (cos, sin) (P, C, M) of every observed point for poses (R, t): the
-        nearest of ``n_samples`` projected arc points, then ``foot_steps`` Newton steps."""
-        _, tcam, E = self._axes(R, t)
-        co, si = self.nearest_samples(R, t)
-        co, si, _ = self._newton((co, si), E, tcam[:, :, None, :], self.cfg.foot_steps)
+            co, si = self._clamp((co - si * step) * inv, (si + co * step) * inv)
         return co, si
 
     def _clamp(self, co, si):
-        """Arc points (cos, sin of the angle from the arc's middle) clamped to the arc's span;
-        also whether each was beyond an end."""
+        """Arc points (cos, sin of the angle from the arc's middle) clamped to the arc's span."""
         beyond = co < self._cos_half
         return (np.where(beyond, self._cos_half, co),
-                np.where(beyond, np.copysign(self._sin_half, si), si), beyond)
+                np.where(beyond, np.copysign(self._sin_half, si), si))
 
-    def _project_arc(self, co, si, E, t4):
-        """Pixels (u, v) of arc points (P, C, M) at angle (co, si) and their derivatives
-        (du, dv) along the arc (per radian); E stacks radius * [e1, e2, e2, -e1] (needle axes
-        in the camera frame), t4 the camera-frame needle origin."""
-        X = np.stack([co, si], axis=-1) @ E[:, :, :2] + t4
-        T = np.stack([co, si], axis=-1) @ E[:, :, 2:]
-        iz = 1.0 / np.maximum(X[..., 2], 1e-9)
-        x, y = X[..., 0] * iz, X[..., 1] * iz
-        dx, dy = (T[..., 0] - x * T[..., 2]) * iz, (T[..., 1] - y * T[..., 2]) * iz
-        return (self._fx * x + self._sk * y + self._cx, self._fy * y + self._cy,
-                self._fx * dx + self._sk * dy, self._fy * dy)
+    def residuals(self, R, t, feet):
+        """Residuals (P, n) in px of P poses ``(R (P,3,3), t (P,3))`` given starts ``feet``
+        (cos, sin) (P, C, M) of the observed points' feet on the arc; also the feet used, and
+        whether each pose keeps the keypoints and the needle's centre in front of both cameras."""
+        P, C, M = len(R), self.C, self.M
+        Rcam, tcam, E = self._axes(R, t)
+        t4 = tcam[:, :, None, :]
+        # Curve: the distance of each observed point to the projected arc. Its foot takes
+        # Newton steps along the projected arc from the given start; the residuals are the
+        # signed distance to the tangent there and, for a point past an end, its overshoot
+        # along the arc (together: the distance to that end). The keypoints A..E (A and E are
+        # the arc's ends) are projected in the same batch.
+        co, si = self._newton(feet[0], feet[1], E, t4, self.cfg.newton_steps)
+        kp = (P, C, 5)
+        u, v, tu, tv, z = self._project_arc(np.concatenate([np.broadcast_to(self._kp_co, kp), co], axis=2),
+                                            np.concatenate([np.broadcast_to(self._kp_si, kp), si], axis=2),
+                                            E, t4, depth=True)
+        zc = tcam[..., 2]
+        valid = (z[..., :5].min(axis=(1, 2)) > self.cfg.min_depth_m) & (zc.min(axis=1) > self.cfg.min_depth_m)
+        ru, rv = u[..., :5] - self._Uu, v[..., :5] - self._Uv
+        du, dv = u[..., 5:] - self._Ou, v[..., 5:] - self._Ov
+        tu_, tv_ = tu[..., 5:], tv[..., 5:]
+        r_n = (tu_ * dv - tv_ * du) / np.maximum(np.sqrt(tu_ * tu_ + tv_ * tv_), 1e-300)
+        # Overshoot past the nearer end (A at -half, E at +half) along its outward tangent:
+        # signed here; ``linearise`` keeps it only where the foot is at an end, as a hinge.
+        ue, ve, tue, tve = u[..., 0:5:4], v[..., 0:5:4], tu[..., 0:5:4], tv[..., 0:5:4]
+        ne = self._out / np.maximum(np.sqrt(tue * tue + tve * tve), 1e-300)
+        tue, tve = tue * ne, tve * ne
+        e = (si > 0).astype(np.intp)
+        ue, ve = np.take_along_axis(ue, e, 2), np.take_along_axis(ve, e, 2)
+        tue, tve = np.take_along_axis(tue, e, 2), np.take_along_axis(tve, e, 2)
+        r_t = (self._Ou - ue) * tue + (self._Ov - ve) * tve
 
-    def linearise(self, R, t):
+        r = np.concatenate([ru, rv, r_n, r_t], axis=2).reshape(P, -1)
+        return r, (co, si), valid
+
+    def feet(self, R, t, start=None):
+        """Feet on the arc (cos, sin) (K, C, M) of the observed points for poses (R, t): from
+        ``start`` (e.g. the feet at a nearby pose) or else the nearest of ``n_samples``
+        projected arc points, then ``foot_steps`` Newton steps."""
+        _, tcam, E = self._axes(R, t)
+        t4 = tcam[:, :, None, :]
+        co, si = self.nearest_samples(E, t4) if start is None else start
+        return self._newton(co, si, E, t4, self.cfg.foot_steps if start is None else 0)
+
+    def linearise(self, R, t, start=None):
         """Residuals (K, n), forward-difference Jacobians (K, n, 6) w.r.t. the ECM increment
-        [dr, dt], and validity, of K poses: all 7K evaluations in one batch."""
+        [dr, dt], the observed points' feet (start for the next poses) and validity, of K
+        poses: all 7K evaluations in one batch. ``start``: see ``feet``."""
         K = len(R)
         h = _Static.FD_STEP
         Rs = np.concatenate([R, (self._E[:, None] @ R[None]).reshape(3 * K, 3, 3), np.tile(R, (3, 1, 1))])
         ts = np.concatenate([np.tile(t, (4, 1)), (t[None] + np.eye(3)[:, None] * h[3:, None, None]).reshape(3 * K, 3)])
-        co, si = self.feet(R, t)
-        r, valid = self.residuals(Rs, ts, (np.tile(co, (7, 1, 1)), np.tile(si, (7, 1, 1))))
+        co, si = self.feet(R, t, start)
+        r, (co, si), valid = self.residuals(Rs, ts, (np.tile(co, (7, 1, 1)), np.tile(si, (7, 1, 1))))
+        co, si = co[:K], si[:K]
         r = r.reshape(7, K, -1)
         J = np.moveaxis((r[1:] - r[:1]) / h[:, None, None], 0, 2)
         # The overshoot counts only for points whose foot is at an end (elsewhere the projected
@@ -361,11 +364,11 @@ class _Problem:
         # exactly at a point lying at an end (an exact observation's first and last points), so
         # the Jacobian takes the smooth ov's slope wherever ov is above -hinge_px: the linear
         # model then sees the end.
-        at_end = np.zeros((K, self.C, 10 + self.M), bool)
-        at_end = np.concatenate([at_end, co < self._cos_end_zone], axis=2).reshape(K, -1)
+        at_end = np.concatenate([np.zeros((K, self.C, 10 + self.M), bool), co < self._cos_end_zone],
+                                axis=2).reshape(K, -1)
         r0 = r[0]
         J *= (~self._is_over | (at_end & (r0 > -self.cfg.hinge_px)))[..., None]
-        return np.where(self._is_over, np.where(at_end, np.maximum(r0, 0.0), 0.0), r0), J, valid[:K]
+        return np.where(self._is_over, np.where(at_end, np.maximum(r0, 0.0), 0.0), r0), J, (co, si), valid[:K]
 
     def robust(self, r):
         """Per-residual Cauchy cost and IRLS weight (prior weights included)."""
@@ -441,7 +444,7 @@ def _pose_delta(T, T_ref):
 # ------------------------------------------------------------------ the solver
 
 
-def _lm(prob: _Problem, R, t, cfg: RefineConfig, n_iter: int, state=None):
+def _lm(prob: _Problem, R, t, cfg: RefineConfig, n_iter: int, state=None, search: bool = True):
     """Batched Levenberg-Marquardt on K poses; returns the state dict (poses, costs, ...).
 
     A pose is done when its step is far inside its own uncertainty (the step's cost change
@@ -449,10 +452,10 @@ def _lm(prob: _Problem, R, t, cfg: RefineConfig, n_iter: int, state=None):
     terms, or after ``max_reject`` rejected steps in a row (a cost at rounding level)."""
     K = len(R)
     if state is None:
-        r, J, valid = prob.linearise(R, t)
+        r, J, (co, si), valid = prob.linearise(R, t)
         rho, _ = prob.robust(r)
         cost = np.where(valid & np.all(np.isfinite(r), axis=1), rho.sum(1), np.inf)
-        state = dict(R=R, t=t, r=r, J=J, cost=cost, lam=np.full(K, 1e-3),
+        state = dict(R=R, t=t, r=r, J=J, co=co, si=si, cost=cost, lam=np.full(K, 1e-3),
                      rej=np.zeros(K, int), done=~np.isfinite(cost), iters=0)
     s = state
     dof = max(prob.n_res - 6, 1)
@@ -477,13 +480,16 @@ def _lm(prob: _Problem, R, t, cfg: RefineConfig, n_iter: int, state=None):
             dx = -sc * np.stack([np.linalg.lstsq(a, b * c, rcond=None)[0] for a, b, c in zip(A, g, sc)])
         Rn = _exp_so3(dx[:, :3]) @ s["R"][act]
         tn = s["t"][act] + dx[:, 3:]
-        rn, Jn, validn = prob.linearise(Rn, tn)
+        # Feet: searched afresh while poses move a lot (the coarse phase), else carried over.
+        warm = None if search else (s["co"][act], s["si"][act])
+        rn, Jn, (con, sin_), validn = prob.linearise(Rn, tn, warm)
         rho_n, _ = prob.robust(rn)
         cost_n = np.where(validn & np.all(np.isfinite(rn), axis=1), rho_n.sum(1), np.inf)
         old = s["cost"][act]
         acc = cost_n <= old
         ia = act[acc]
-        for key, val in (("R", Rn), ("t", tn), ("r", rn), ("J", Jn), ("cost", cost_n)):
+        for key, val in (("R", Rn), ("t", tn), ("r", rn), ("J", Jn), ("co", con), ("si", sin_),
+                         ("cost", cost_n)):
             s[key][ia] = val[acc]
         s["lam"][ia] = np.maximum(s["lam"][ia] / 3.0, 1e-9)
         s["lam"][act[~acc]] *= 4.0
@@ -532,7 +538,7 @@ class DenseRefiner:
         keep = np.flatnonzero(s["cost"] <= cfg.prune_ratio * best + 1e-12)
         keep = _dedupe(s, keep, cfg.distinct_mm, cfg.distinct_deg)[:cfg.max_candidates]
         s = {k: (v[keep] if isinstance(v, np.ndarray) else v) for k, v in s.items()}
-        s = _lm(prob, s["R"], s["t"], cfg, cfg.max_iter - cfg.coarse_iter, state=s)
+        s = _lm(prob, s["R"], s["t"], cfg, cfg.max_iter - cfg.coarse_iter, state=s, search=False)
         return _result(prob, s, cfg)
 
 
