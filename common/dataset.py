@@ -369,7 +369,7 @@ def read_frames(folder: str) -> list[Frame]:
     if not os.path.isfile(path):
         raise DatasetError(_where(FRAMES_FILE, None, f"file missing in {folder}"))
     frames = []
-    with open(path, "r", encoding="utf-8") as f:
+    with open(path, "r", encoding="utf-8-sig") as f:
         for lineno, text in enumerate(f, start=1):
             if not text.strip():
                 continue
@@ -399,7 +399,7 @@ class Dataset:
         mpath = os.path.join(self.path, META_FILE)
         if not os.path.isfile(mpath):
             raise DatasetError(_where(META_FILE, None, f"file missing in {self.path}"))
-        with open(mpath, "r", encoding="utf-8") as f:
+        with open(mpath, "r", encoding="utf-8-sig") as f:
             self.meta = parse_meta(f.read())
         self.frames = read_frames(self.path)
         if check_files:
@@ -475,7 +475,7 @@ class DatasetWriter:
         fpath = os.path.join(self.path, FRAMES_FILE)
         self.n_frames = 0
         if resume and os.path.isfile(mpath):
-            with open(mpath, encoding="utf-8") as f:
+            with open(mpath, encoding="utf-8-sig") as f:
                 old = parse_meta(f.read())
             if yaml.safe_dump(old.to_dict()) != yaml.safe_dump(meta.to_dict()):
                 raise DatasetError(f"{mpath}: describes a different rig/needle/arm than this run; "

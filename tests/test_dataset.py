@@ -90,6 +90,9 @@ def test_foreign_folder_loads(tmp_path):
         {"index": 1, "stamp_ns": 5, "left": "img/a.png", "right": "img/b.JPG", "sequence": None,
          "keypoints": None, "T_world_needle": None, "bbox": {"left": None, "right": None}},
     ])
+    for name in ("dataset.yaml", "frames.jsonl"):  # Windows tools: BOM and CRLF
+        p = tmp_path / name
+        p.write_bytes(b"\xef\xbb\xbf" + p.read_bytes().replace(b"\n", b"\r\n"))
     ds = Dataset(tmp_path)
     assert ds.arm is None and len(ds) == 2
     assert ds[0].keypoints is None and ds[1].sequence is None
