@@ -25,6 +25,8 @@ from common.messages import Calibration, GroundTruth, Keypoints
 
 BACKENDS: dict[str, str] = {
     "oracle": "common.keypoint_backends:OracleBackend",
+    "learned": "common.keypoint_detector:LearnedBackend",
+    "classical": "common.classical_detector:ClassicalBackend",
 }
 
 

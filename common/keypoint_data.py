@@ -145,7 +145,7 @@ def make_record(img: np.ndarray, kp, vis, arc, cfg: ModelConfig, rng: np.random.
     else:
         arc = np.full((ARC_SAMPLES, 2), np.nan)
     good = np.isfinite(arc).all(1)
-    if good.sum() >= 2 and vis.sum() >= 1:
+    if good.sum() >= 2 and vis.sum() >= 2:
         lo, hi = arc[good].min(0), arc[good].max(0)
         box = np.array([(lo[0] + hi[0]) / 2, (lo[1] + hi[1]) / 2, hi[0] - lo[0] + 4, hi[1] - lo[1] + 4])
     else:
@@ -314,8 +314,8 @@ def crop_from(region: np.ndarray, origin: np.ndarray, M_img_to_crop: np.ndarray,
 
 
 def crop_sample(rec: ImageRecord, cfg: ModelConfig, aug: AugConfig | None, rng: np.random.Generator,
-                negative: bool | None = None):
-    """One stage-2 training sample: (crop uint8 HxWx3, kp_cells (5,2), kp_valid (5,),
+                negative: bool | None = None, occluded_weight: float = 0.3):
+    """One stage-2 training sample: (crop uint8 HxWx3, kp_cells (5,2), kp_weight (5,),
     arc_cells (P,2) or None, presence 0/1). With ``aug`` None: the ground-truth box, no jitter."""
     c = cfg.crop
     s = cfg.out_stride
@@ -332,7 +332,7 @@ def crop_sample(rec: ImageRecord, cfg: ModelConfig, aug: AugConfig | None, rng: 
         img = crop_from(src, org, M, c)
         if aug is not None:
             img = photometric(img, aug, rng)
-        return img, np.zeros((5, 2), np.float32), np.zeros(5, bool), None, 0.0
+        return img, np.zeros((5, 2), np.float32), np.zeros(5, np.float32), None, 0.0
     cx, cy, bw, bh = rec.box
     side = crop_side(cfg, bw, bh)
     angle, flip = 0.0, False
@@ -348,14 +348,18 @@ def crop_sample(rec: ImageRecord, cfg: ModelConfig, aug: AugConfig | None, rng: 
     if aug is not None:
         img = photometric(img, aug, rng)
     kp_c = apply_affine(M, np.nan_to_num(rec.kp, nan=-1e6))
-    valid = rec.vis & (kp_c >= -0.5).all(1) & (kp_c <= c - 0.5).all(1)
+    in_crop = np.isfinite(rec.kp).all(1) & (kp_c >= -0.5).all(1) & (kp_c <= c - 0.5).all(1)
+    in_image = ((rec.kp[:, 0] >= -0.5) & (rec.kp[:, 0] <= rec.image_size[0] - 0.5)
+                & (rec.kp[:, 1] >= -0.5) & (rec.kp[:, 1] <= rec.image_size[1] - 0.5))
+    # occluded points are still learnt (from the arc's shape), with a lower weight
+    valid = np.where(rec.vis, 1.0, np.where(in_image, occluded_weight, 0.0)) * in_crop
     kp_cells = (kp_c - (s - 1) / 2.0) / s
     good = np.isfinite(rec.arc).all(1)
     arc_cells = None
     if good.sum() >= 2:
         arc_cells = (apply_affine(M, rec.arc[good]) - (s - 1) / 2.0) / s
-    presence = 1.0 if valid.sum() >= 2 else 0.0
-    return img, kp_cells.astype(np.float32), valid, arc_cells, presence
+    presence = 1.0 if (valid >= 1.0).sum() >= 2 else 0.0
+    return img, kp_cells.astype(np.float32), valid.astype(np.float32), arc_cells, presence
 
 
 def global_input(small: np.ndarray) -> np.ndarray:

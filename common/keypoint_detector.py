@@ -273,3 +273,36 @@ class KeypointDetector:
             log.warning("camera %s seq %d: %s", msg.camera, msg.seq, exc)
             return Keypoints.not_found(msg.camera, msg.seq, msg.stamp_ns, self.name, f"bad image: {exc}")
         return self.detect(img, msg.camera, msg.seq, msg.stamp_ns)
+
+
+# ---------------------------------------------------------------- detector-node backend
+
+from common.keypoint_backends import BackendError, KeypointBackend  # noqa: E402
+
+
+class LearnedBackend(KeypointBackend):
+    """Backend ``learned`` of the detector node. Params: ``weights`` (default
+    models/keypoint/model.pt), ``device`` (auto | cpu | cuda), ``threshold`` (0.5), ``tracking``
+    (true), ``threads`` (torch threads; default 1 when one process serves one camera is the
+    sensible choice on a 2-core machine, so the default leaves torch's own), ``refine`` (true),
+    ``centreline`` (true)."""
+
+    name = "learned"
+    needs_image = True
+
+    def __init__(self, params=None):
+        super().__init__(params)
+        p = self.params
+        known = {"weights", "device", "threshold", "tracking", "threads", "refine", "centreline"}
+        try:
+            self.detector = KeypointDetector(
+                p.get("weights"), device=str(p.get("device", "auto")),
+                threshold=float(p.get("threshold", 0.5)), tracking=bool(p.get("tracking", True)),
+                threads=p.get("threads"), refine=bool(p.get("refine", True)),
+                centreline=bool(p.get("centreline", True)))
+        except (ModelFileError, ValueError, TypeError) as exc:
+            raise BackendError(f"learned backend: {exc}") from exc
+        self.ignored = sorted(set(p) - known)
+
+    def detect(self, image, camera, truth, calib, *, seq=0, stamp_ns=0) -> Keypoints:
+        return self.detector.detect(image, camera, seq, stamp_ns)

@@ -121,7 +121,7 @@ class CropNet(nn.Module):
         self.d1 = cbr(w0, w0)
         n_out = N_KP + 1
         if out_stride == 1:   # sub-cell structure learned by a pixel shuffle back to crop res
-            self.head = nn.Sequential(nn.Conv2d(w0, n_out * 4, 3, padding=1), nn.PixelShuffle(2))
+            self.head = nn.Sequential(nn.Conv2d(w0, n_out * 4, 1), nn.PixelShuffle(2))
         elif out_stride == 2:
             self.head = nn.Conv2d(w0, n_out, 3, padding=1)
         else:
@@ -190,8 +190,8 @@ def _fold(conv: nn.Conv2d, bn: nn.BatchNorm2d) -> nn.Conv2d:
 # ---------------------------------------------------------------- targets and losses
 
 def gaussian_targets(uv_cells: torch.Tensor, valid: torch.Tensor, m: int, sigma: float) -> torch.Tensor:
-    """Soft targets (N, K, m, m) summing to 1 per valid keypoint: a Gaussian of ``sigma`` cells
-    centred on ``uv_cells`` (N, K, 2) = (x, y) in cell coordinates. Rows not ``valid`` are 0."""
+    """Soft targets (N, K, m, m): a Gaussian of ``sigma`` cells centred on ``uv_cells`` (N, K, 2)
+    = (x, y) in cell coordinates, summing to ``valid`` (N, K): a weight, 0 for no target."""
     g = torch.arange(m, dtype=torch.float32, device=uv_cells.device)
     gx = torch.exp(-0.5 * ((g[None, None, :] - uv_cells[..., 0:1]) / sigma) ** 2)   # N,K,m
     gy = torch.exp(-0.5 * ((g[None, None, :] - uv_cells[..., 1:2]) / sigma) ** 2)
@@ -202,15 +202,16 @@ def gaussian_targets(uv_cells: torch.Tensor, valid: torch.Tensor, m: int, sigma:
 
 def keypoint_loss(logits: torch.Tensor, targets: torch.Tensor) -> torch.Tensor:
     """Keypoint R-CNN's keypoint loss with soft labels: cross-entropy of an m*m-way softmax per
-    keypoint, averaged over the keypoints that have a target (their target sums to 1)."""
+    keypoint. A target sums to the keypoint's weight (1, less for an occluded point, 0 for none);
+    the loss is the weighted mean over keypoints."""
     n, k = logits.shape[:2]
     logp = F.log_softmax(logits.reshape(n, k, -1), dim=-1)
     t = targets.reshape(n, k, -1)
-    has = t.sum(-1) > 0.5
+    w = t.sum(-1)
     ce = -(t * logp).sum(-1)
     # subtract the target's entropy so that a perfect prediction scores 0 (same gradients)
     ent = -(t * torch.log(t.clamp_min(1e-12))).sum(-1)
-    return ((ce - ent) * has).sum() / has.sum().clamp_min(1)
+    return (ce - ent).sum() / w.sum().clamp_min(1e-6)
 
 
 def centreline_target(polys_cells: list, m: int, sigma: float) -> torch.Tensor:

@@ -146,7 +146,7 @@ def validate(model: KeypointModel, records, threshold: float = 0.5) -> dict:
                                      ).permute(2, 0, 1)[None].contiguous())
                 fp += int(float(torch.sigmoid(pres[0])) >= threshold)
             continue
-        if rec.vis.sum() < 5:
+        if rec.vis.sum() < 2:
             continue
         n_pos += 1
         boxes = [("gt", rec.box)]
@@ -160,7 +160,7 @@ def validate(model: KeypointModel, records, threshold: float = 0.5) -> dict:
                 continue
             uv, _ = decode_heatmaps(heat[:, :5], cfg.out_stride)
             uv_img = apply_affine(invert_affine(M), uv[0].numpy())
-            e = np.linalg.norm(uv_img - rec.kp, axis=1)
+            e = np.where(rec.vis, np.linalg.norm(uv_img - rec.kp, axis=1), np.nan)  # visible points only
             (err_gt if kind == "gt" else err_pipe).append(e)
             if kind == "pipe":
                 found += 1
@@ -169,9 +169,9 @@ def validate(model: KeypointModel, records, threshold: float = 0.5) -> dict:
     for name, errs in (("gtbox", err_gt), ("pipe", err_pipe)):
         if errs:
             e = np.asarray(errs)
-            res[f"{name}_mean_px"] = float(e.mean())
-            res[f"{name}_median_px"] = float(np.median(e))
-            res[f"{name}_per_kp_px"] = [float(v) for v in e.mean(0)]
+            res[f"{name}_mean_px"] = float(np.nanmean(e))
+            res[f"{name}_median_px"] = float(np.nanmedian(e))
+            res[f"{name}_per_kp_px"] = [float(v) for v in np.nanmean(e, 0)]
     model.train()
     return res
 
