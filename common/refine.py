@@ -83,6 +83,9 @@ class RefineConfig:
     max_curve_points: int = 64      # observed centreline points kept per camera (even in arc length)
     n_samples: int = 16             # projected arc samples that start each point's foot search
     foot_steps: int = 2             # then Newton steps along the projected arc, once per pose
+    warm_steps: int = 1             # Newton steps from feet carried over from the previous pose
+    research_rad: float = 0.02      # after a step this large (rotation, rad) the feet are searched
+    research_m: float = 0.001       # afresh (or translation, m); smaller steps carry them over
     newton_steps: int = 1           # and per evaluated pose (the Jacobian's perturbed ones too)
     sigma_kp_px: float = 1.0        # assumed keypoint noise
     sigma_curve_px: float = 0.5     # assumed centreline noise
@@ -90,7 +93,7 @@ class RefineConfig:
     min_centreline_w: float = 0.05  # centreline points weighted below are left out
     cauchy_scale: float = 3.0       # robust loss scale, in sigmas
     max_iter: int = 30
-    step_tol: float = 0.1           # converged when a step changes the cost by < this many residual variances
+    step_tol: float = 1.0           # converged when a step changes the cost by < this many residual variances
     max_reject: int = 5             # ... or after this many rejected steps in a row
     coarse_iter: int = 3            # iterations every candidate gets before the worst are pruned
     prune_ratio: float = 10.0       # then drop those costing more than this many times the best
@@ -106,7 +109,7 @@ class RefineConfig:
     hinge_px: float = 0.05          # a point this close inside an arc end still pins the end in the linear model
 
     def __post_init__(self):
-        positive = ("sigma_kp_px", "sigma_curve_px", "cauchy_scale", "step_tol", "merge_mm", "hinge_px",
+        positive = ("sigma_kp_px", "sigma_curve_px", "cauchy_scale", "step_tol", "merge_mm", "hinge_px", "research_rad", "research_m",
                     "merge_deg", "distinct_mm", "distinct_deg", "ambiguity_chi2", "prune_ratio")
         for name in positive:
             v = getattr(self, name)
@@ -114,7 +117,7 @@ class RefineConfig:
                 raise ValueError(f"RefineConfig.{name}: must be a positive number, got {v}")
         for name, lo in (("max_curve_points", 2), ("n_samples", 2), ("max_iter", 1),
                          ("max_candidates", 1), ("max_reject", 1), ("coarse_iter", 0),
-                         ("newton_steps", 1), ("foot_steps", 0)):
+                         ("newton_steps", 1), ("foot_steps", 0), ("warm_steps", 0)):
             if int(getattr(self, name)) < lo:
                 raise ValueError(f"RefineConfig.{name}: must be at least {lo}, got {getattr(self, name)}")
 
@@ -195,6 +198,9 @@ class _Static:
         self._fx2, self._sk2 = self._fx[..., 0], self._sk[..., 0]
         self._E = _exp_so3(np.diag(self.FD_STEP[:3]))           # the three rotation increments
         self._Rmid = _exp_so3(np.array([[0.0, 0.0, self.mid]]))[0]
+        # radius * [e1, e2, e2, -e1] of the needle axes turned so the arc's middle is on +x
+        self._W = self.radius * np.stack([self._Rmid[:, 0], self._Rmid[:, 1], self._Rmid[:, 1],
+                                          -self._Rmid[:, 0]], axis=1)
         self._cos_half, self._sin_half = np.cos(self.half), np.sin(self.half)
         self._flip = np.array([1.0, -1.0])
         kp_ang = needle.keypoint_angles_rad - self.mid               # A..E about the middle
@@ -249,15 +255,14 @@ class _Problem:
         self._Ou, self._Ov = O[None, :, :, 0], O[None, :, :, 1]
 
     def _axes(self, R, t):
-        """Needle pose in each camera (P, C, ...): rotation, translation, and E (P, C, 2, 6)
-        with rows radius * [e1 e2] and radius * [e2 -e1] (needle axes turned so that the arc's
-        middle is on +x): [cos, sin] @ E gives an arc point (less the origin) and its tangent."""
-        Rcam = self.Rc[None] @ R[:, None]                                  # (P, C, 3, 3)
+        """Needle pose in each camera (P, C, ...): translation, and E (P, C, 2, 6) with rows
+        radius * [e1 e2] and radius * [e2 -e1] (needle axes turned so that the arc's middle is
+        on +x): [cos, sin] @ E gives an arc point (less the origin) and its tangent."""
         tcam = (self.Rc[None] @ t[:, None, :, None])[..., 0] + self.tc     # (P, C, 3)
-        Rm = Rcam @ self._Rmid
-        e1, e2 = Rm[..., 0], Rm[..., 1]
-        E = self.radius * np.stack([np.concatenate([e1, e2], -1), np.concatenate([e2, -e1], -1)], 2)
-        return Rcam, tcam, E
+        # camera-frame columns [e1, e2, e2, -e1] (times radius); transposed and reshaped: the
+        # rows [e1 e2] and [e2 -e1]
+        E = np.swapaxes(self.Rc[None] @ (R @ self._W)[:, None], 2, 3).reshape(len(R), self.C, 2, 6)
+        return tcam, E
 
     def _project_arc(self, co, si, E, t4, depth: bool = False):
         """Pixels (u, v) of arc points (P, C, N) at angle (co, si) and their derivatives
@@ -306,7 +311,7 @@ class _Problem:
         (cos, sin) (P, C, M) of the observed points' feet on the arc; also the feet used, and
         whether each pose keeps the keypoints and the needle's centre in front of both cameras."""
         P, C, M = len(R), self.C, self.M
-        Rcam, tcam, E = self._axes(R, t)
+        tcam, E = self._axes(R, t)
         t4 = tcam[:, :, None, :]
         # Curve: the distance of each observed point to the projected arc. Its foot takes
         # Newton steps along the projected arc from the given start; the residuals are the
@@ -329,10 +334,9 @@ class _Problem:
         ue, ve, tue, tve = u[..., 0:5:4], v[..., 0:5:4], tu[..., 0:5:4], tv[..., 0:5:4]
         ne = self._out / np.maximum(np.sqrt(tue * tue + tve * tve), 1e-300)
         tue, tve = tue * ne, tve * ne
-        e = (si > 0).astype(np.intp)
-        ue, ve = np.take_along_axis(ue, e, 2), np.take_along_axis(ve, e, 2)
-        tue, tve = np.take_along_axis(tue, e, 2), np.take_along_axis(tve, e, 2)
-        r_t = (self._Ou - ue) * tue + (self._Ov - ve) * tve
+        ov_a = (self._Ou - ue[..., :1]) * tue[..., :1] + (self._Ov - ve[..., :1]) * tve[..., :1]
+        ov_e = (self._Ou - ue[..., 1:]) * tue[..., 1:] + (self._Ov - ve[..., 1:]) * tve[..., 1:]
+        r_t = np.where(si > 0, ov_e, ov_a)
 
         r = np.concatenate([ru, rv, r_n, r_t], axis=2).reshape(P, -1)
         return r, (co, si), valid
@@ -341,10 +345,10 @@ class _Problem:
         """Feet on the arc (cos, sin) (K, C, M) of the observed points for poses (R, t): from
         ``start`` (e.g. the feet at a nearby pose) or else the nearest of ``n_samples``
         projected arc points, then ``foot_steps`` Newton steps."""
-        _, tcam, E = self._axes(R, t)
+        tcam, E = self._axes(R, t)
         t4 = tcam[:, :, None, :]
         co, si = self.nearest_samples(E, t4) if start is None else start
-        return self._newton(co, si, E, t4, self.cfg.foot_steps if start is None else 0)
+        return self._newton(co, si, E, t4, self.cfg.foot_steps if start is None else self.cfg.warm_steps)
 
     def linearise(self, R, t, start=None):
         """Residuals (K, n), forward-difference Jacobians (K, n, 6) w.r.t. the ECM increment
@@ -444,7 +448,7 @@ def _pose_delta(T, T_ref):
 # ------------------------------------------------------------------ the solver
 
 
-def _lm(prob: _Problem, R, t, cfg: RefineConfig, n_iter: int, state=None, search: bool = True):
+def _lm(prob: _Problem, R, t, cfg: RefineConfig, n_iter: int, state=None):
     """Batched Levenberg-Marquardt on K poses; returns the state dict (poses, costs, ...).
 
     A pose is done when its step is far inside its own uncertainty (the step's cost change
@@ -480,8 +484,9 @@ def _lm(prob: _Problem, R, t, cfg: RefineConfig, n_iter: int, state=None, search
             dx = -sc * np.stack([np.linalg.lstsq(a, b * c, rcond=None)[0] for a, b, c in zip(A, g, sc)])
         Rn = _exp_so3(dx[:, :3]) @ s["R"][act]
         tn = s["t"][act] + dx[:, 3:]
-        # Feet: searched afresh while poses move a lot (the coarse phase), else carried over.
-        warm = None if search else (s["co"][act], s["si"][act])
+        # Feet: carried over from the current poses, searched afresh after a large step.
+        big = np.max(np.abs(dx[:, :3])) > cfg.research_rad or np.max(np.abs(dx[:, 3:])) > cfg.research_m
+        warm = None if big else (s["co"][act], s["si"][act])
         rn, Jn, (con, sin_), validn = prob.linearise(Rn, tn, warm)
         rho_n, _ = prob.robust(rn)
         cost_n = np.where(validn & np.all(np.isfinite(rn), axis=1), rho_n.sum(1), np.inf)
@@ -538,7 +543,7 @@ class DenseRefiner:
         keep = np.flatnonzero(s["cost"] <= cfg.prune_ratio * best + 1e-12)
         keep = _dedupe(s, keep, cfg.distinct_mm, cfg.distinct_deg)[:cfg.max_candidates]
         s = {k: (v[keep] if isinstance(v, np.ndarray) else v) for k, v in s.items()}
-        s = _lm(prob, s["R"], s["t"], cfg, cfg.max_iter - cfg.coarse_iter, state=s, search=False)
+        s = _lm(prob, s["R"], s["t"], cfg, cfg.max_iter - cfg.coarse_iter, state=s)
         return _result(prob, s, cfg)
 
 

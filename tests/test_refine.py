@@ -329,3 +329,15 @@ def test_config_is_checked():
                 {"n_samples": 1}, {"max_iter": 0}):
         with pytest.raises(ValueError):
             RefineConfig(**bad)
+
+
+def test_bench_reports_errors_and_times():
+    from common.refine_bench import run, table
+    rows = run([0.0, 0.5], frames=4, progress=False)
+    assert [r["noise_px"] for r in rows] == [0.0, 0.5] and all(r["failed"] == 0 for r in rows)
+    assert rows[0]["refined"]["position_mm"]["mean"] < 1e-6
+    assert rows[0]["refined"]["orientation_deg"]["mean"] < 1e-6
+    assert 0 < rows[1]["refined"]["position_mm"]["mean"] < 5.0
+    assert rows[1]["wall_ms"]["p50"] > 0 and rows[1]["cpu_ms"]["max"] >= rows[1]["cpu_ms"]["p50"]
+    text = table(rows)
+    assert text.count("\n") == 3 and "n/a" in text.splitlines()[2]
