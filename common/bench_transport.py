@@ -33,13 +33,14 @@ def run_once(rate_hz: float, frames: int, width: int, height: int, shm: bool, en
     from common.launcher import Launcher
     with tempfile.TemporaryDirectory(prefix="nt-bench-") as tmp:
         report = Path(tmp) / "sink.json"
+        sender = Path(tmp) / "camera.json"
         graph = load_graph({
             "graph": f"bench{free_port()}",
             "zenoh": {"listen": [f"tcp/127.0.0.1:{free_port()}"], "shm_pool_mb": 96 if shm else 0},
             "nodes": [
                 {"id": "camera", "module": "testpattern", "restart": "never",
                  "params": {"rate_hz": rate_hz, "width": width, "height": height, "count": frames + warmup,
-                            "encoding": encoding, "start_delay_s": 1.0}},
+                            "encoding": encoding, "start_delay_s": 1.0, "report": str(sender)}},
                 {"id": "sink", "module": "framesink", "restart": "never",
                  "inputs": {"left": "camera/left", "right": "camera/right"},
                  "params": {"report": str(report), "log_every_s": 0}}]})
@@ -57,6 +58,7 @@ def run_once(rate_hz: float, frames: int, width: int, height: int, shm: bool, en
         if not report.exists():
             raise RuntimeError("the sink wrote no report:\n" + (out.getvalue() if quiet else ""))
         rep = json.loads(report.read_text())
+        sent = json.loads(sender.read_text()) if sender.exists() else {}
     seqs = np.asarray(rep["seqs"])
     keep = seqs >= warmup
     lat = np.asarray(rep["latency_ms"])[keep]
@@ -67,7 +69,9 @@ def run_once(rate_hz: float, frames: int, width: int, height: int, shm: bool, en
             "lost": frames - got, "fps": round(fps, 1),
             "latency_ms_p50": round(float(np.percentile(lat, 50)), 2) if got else None,
             "latency_ms_p99": round(float(np.percentile(lat, 99)), 2) if got else None,
-            "latency_ms_max": round(float(lat.max()), 2) if got else None}
+            "latency_ms_max": round(float(lat.max()), 2) if got else None,
+            "cpu_ms_per_frame_sender": round(1e3 * sent["cpu_s"] / max(1, sent["frames"]), 2) if sent else None,
+            "cpu_ms_per_frame_receiver": round(1e3 * rep["cpu_s"] / max(1, rep["frames"]), 2)}
 
 
 def main(argv: list) -> int:
@@ -86,13 +90,15 @@ def main(argv: list) -> int:
     rows = []
     print(f"transport: {args.width}x{args.height} {args.encoding} stereo frames, testpattern -> framesink "
           f"(two processes, Zenoh on loopback), {args.frames} frames per run")
-    print(f"{'rate':>8} {'shm':>4} {'fps':>7} {'p50 ms':>8} {'p99 ms':>8} {'max ms':>8} {'lost':>5}")
+    print(f"{'rate':>8} {'shm':>4} {'fps':>7} {'p50 ms':>8} {'p99 ms':>8} {'max ms':>8} {'lost':>5} "
+          f"{'cpu ms/frame send':>18} {'recv':>6}")
     for shm in shms:
         for rate in rates:
             r = run_once(rate, args.frames, args.width, args.height, shm, args.encoding, quiet=not args.verbose)
             rows.append(r)
             print(f"{('max' if rate == 0 else f'{rate:g} Hz'):>8} {'on' if shm else 'off':>4} {r['fps']:>7.1f} "
-                  f"{r['latency_ms_p50']:>8.1f} {r['latency_ms_p99']:>8.1f} {r['latency_ms_max']:>8.1f} {r['lost']:>5}",
+                  f"{r['latency_ms_p50']:>8.1f} {r['latency_ms_p99']:>8.1f} {r['latency_ms_max']:>8.1f} {r['lost']:>5} "
+                  f"{r['cpu_ms_per_frame_sender'] or float('nan'):>18.1f} {r['cpu_ms_per_frame_receiver']:>6.1f}",
                   flush=True)
     if args.json:
         Path(args.json).write_text(json.dumps(rows, indent=1))

@@ -143,6 +143,13 @@ def encode(msg: Message) -> bytes:
     rest, and joined in one copy: the result is plain msgpack, and ``decode`` can hand that
     field out as a view of the payload instead of copying it.
     """
+    head, tail = encode_parts(msg)
+    return head if tail is None else b"".join((head, tail))
+
+
+def encode_parts(msg: Message) -> tuple:
+    """``(head, tail)`` with ``encode(msg) == head + tail``; ``tail`` is None or the large bytes
+    field (not copied), so a transport can write both into one buffer of its own."""
     body = msg.to_body()
     tail_key, tail = None, None
     for k, v in body.items():
@@ -150,7 +157,7 @@ def encode(msg: Message) -> bytes:
             tail_key, tail = k, v
     if tail_key is None:
         return msgpack.packb({"schema": msg.SCHEMA, "version": msg.VERSION, "body": body},
-                             default=_default, use_bin_type=True)
+                             default=_default, use_bin_type=True), None
     tail = memoryview(tail).cast("B") if not isinstance(tail, bytes) else tail
     del body[tail_key]
     packer = msgpack.Packer(default=_default, use_bin_type=True, autoreset=False)
@@ -162,7 +169,7 @@ def encode(msg: Message) -> bytes:
         packer.pack(k), packer.pack(v)
     packer.pack(tail_key)
     head = packer.bytes() + b"\xc6" + len(tail).to_bytes(4, "big")
-    return b"".join((head, tail))
+    return head, tail
 
 
 def _unpack_with_tail(buf: bytes):

@@ -48,7 +48,7 @@ import threading
 import time
 from typing import Any, Iterable, Optional
 
-from common.messages import Command, Message, MessageError, NodeStats, decode, encode
+from common.messages import Command, Message, MessageError, NodeStats, decode, encode, encode_parts
 
 STATS_PERIOD_S = 1.0
 KEEP_ALL_LIMIT = 1000          # a KEEP_ALL input queues at most this many (then drops the oldest)
@@ -247,6 +247,32 @@ class _RateLimitedLog:
             self._suppressed[kind] += 1
 
 
+class ShmWriter:
+    """Puts large payloads into Zenoh shared memory: the receiving processes on this machine
+    map them instead of reading them from a socket (remote peers get a copy, transparently).
+    Returns None (send normally) when the pool is full, so a slow consumer never blocks us."""
+
+    MIN_BYTES = 1 << 16
+
+    def __init__(self, pool_bytes: int):
+        from zenoh import shm
+        self._shm = shm
+        self.provider = shm.ShmProvider.default_backend(pool_bytes)
+        self.failures = 0
+
+    def payload(self, head: bytes, tail):
+        import zenoh
+        n = len(head) + len(tail)
+        try:
+            buf = self.provider.alloc(n, self._shm.GarbageCollect())
+        except zenoh.ZError:
+            self.failures += 1
+            return None
+        buf[0:len(head)] = head
+        buf[len(head):n] = tail if isinstance(tail, (bytes, bytearray)) else bytes(tail)
+        return zenoh.ZBytes(buf)
+
+
 def _seq_of(msg) -> Optional[int]:
     seq = getattr(msg, "seq", None)
     return seq if isinstance(seq, int) else None
@@ -279,6 +305,7 @@ class Runtime:
         self._pubs: dict = {}
         self.exit_status = 0
         self._ready = threading.Event()
+        self._shm: Optional[ShmWriter] = None
 
     # ---------------------------------------------------------------- setup
     def build(self, cls: type) -> Node:
@@ -330,12 +357,33 @@ class Runtime:
         return cb
 
     # ---------------------------------------------------------------- publishing and swap
+    def _payload(self, msg, shm: bool):
+        if isinstance(msg, (bytes, bytearray, memoryview)):
+            return bytes(msg)
+        head, tail = encode_parts(msg)
+        if tail is None:
+            return head
+        if shm and len(tail) >= ShmWriter.MIN_BYTES and self.graph.zenoh.shm_pool_mb > 0:
+            if self._shm is None:
+                try:
+                    self._shm = ShmWriter(self.graph.zenoh.shm_pool_mb << 20)
+                except Exception as exc:  # no shared memory on this system: use the socket
+                    self.log.warning("no Zenoh shared memory (%s); large payloads go by socket", exc)
+                    self.graph.zenoh.shm_pool_mb = 0
+            if self._shm is not None:
+                zb = self._shm.payload(head, tail)
+                if zb is not None:
+                    self.stats.add("out_shm")
+                    return zb
+                self.stats.add("shm_pool_full")
+        return b"".join((head, tail))
+
     def publish(self, output: str, msg) -> None:
-        payload = msg if isinstance(msg, (bytes, bytearray, memoryview)) else encode(msg)
         seq = _seq_of(msg)
         with self._pub_lock:
             self._produced = True
             if self.state == "standby":
+                payload = self._payload(msg, shm=False)
                 self._held.append((output, seq, payload))
                 self.stats.add("held")
                 return
@@ -346,7 +394,7 @@ class Runtime:
             if cut is not None and seq is not None and seq < cut:
                 self.stats.add("swap_suppressed")
                 return
-            self._put(output, payload, seq)
+            self._put(output, self._payload(msg, shm=True), seq)
 
     def _put(self, output, payload, seq):
         self._pubs[output].put(payload)

@@ -29,6 +29,7 @@ class FrameSink(Node):
         self.report = self.params.get("report")
         self.log_every = float(self.params.get("log_every_s", 5.0))
         self.last_log = time.monotonic()
+        self.cpu0 = time.process_time()
 
     def _half(self, msg: CameraImage):
         img = msg.to_bgr()          # a view of the payload: proves the pixels are usable
@@ -57,7 +58,8 @@ class FrameSink(Node):
         missing = (seqs[-1] - seqs[0] + 1 - len(seqs)) if seqs else 0
         with open(self.report, "w") as f:
             json.dump({"latency_ms": self.lat_ms, "arrival_s": self.arrivals, "seqs": self.seqs,
-                       "frames": len(self.seqs), "missing": missing, "unpaired": self.pairer.dropped}, f)
+                       "frames": len(self.seqs), "missing": missing, "unpaired": self.pairer.dropped,
+                       "cpu_s": time.process_time() - self.cpu0}, f)
 
 
 NODE = FrameSink

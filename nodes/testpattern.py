@@ -4,8 +4,10 @@ just before encoding, so receivers on this machine can measure latency.
 
 params: ``rate_hz`` (30; 0 = as fast as possible), ``width`` (1920), ``height`` (1080),
 ``encoding`` (bgr8 | png | jpeg), ``count`` (stop after this many frames; 0 = forever),
-``start_delay_s`` (wait before the first frame, so that subscribers are connected; default 0).
+``start_delay_s`` (wait before the first frame, so that subscribers are connected; default 0),
+``report`` (a JSON path: frames sent and the process's CPU seconds, written at shutdown).
 """
+import json
 import time
 
 import numpy as np
@@ -40,6 +42,7 @@ class TestPattern(Node):
         self.count_max = int(self.params.get("count", 0))
         self.images = {"left": test_pattern(self.w, self.h, 0), "right": test_pattern(self.w, self.h, 8)}
         self.seq = 0
+        self.cpu0 = time.process_time()
         self.next_t = time.monotonic() + float(self.params.get("start_delay_s", 0.0))
 
     def step(self):
@@ -56,6 +59,11 @@ class TestPattern(Node):
             self.publish(cam, msg)
         self.seq += 1
         return True
+
+    def teardown(self):
+        if self.params.get("report"):
+            with open(self.params["report"], "w") as f:
+                json.dump({"frames": self.seq, "cpu_s": time.process_time() - self.cpu0}, f)
 
 
 NODE = TestPattern
