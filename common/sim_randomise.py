@@ -58,12 +58,13 @@ class Preset:
     jpeg_quality: tuple           # re-compression quality range; (100, 100) = none
     brightness: float             # +- relative gain
     contrast: float               # +- relative contrast
+    p_shadows: float = 0.0        # probability of cast shadows (they make a frame ~3x slower to render)
 
 
 PRESETS = {
     "none": Preset("none", 0.0, False, 0.0, 0.0, 0.3, 0.05, (0, 0), (0, 0), (100, 100), 0.0, 0.0),
     "test": Preset("test", 0.5, True, 0.3, 0.1, 0.4, 0.07, (0.5, 2.0), (0, 0.4), (100, 100), 0.1, 0.1),
-    "train": Preset("train", 1.0, True, 0.35, 0.25, 0.8, 0.09, (0, 5.0), (0, 1.2), (55, 100), 0.3, 0.3),
+    "train": Preset("train", 1.0, True, 0.35, 0.25, 0.8, 0.09, (0, 5.0), (0, 1.2), (55, 100), 0.3, 0.3, 0.25),
 }
 
 
@@ -80,6 +81,7 @@ def sample_appearance(rng: np.random.Generator, preset: Preset) -> Appearance:
     a = Appearance(texture_seed=int(rng.integers(1 << 30)))
     if j == 0:
         return a
+    shadows = bool(rng.random() < preset.p_shadows) if preset.p_shadows > 0 else False
 
     def jit(v, s, lo=0.0, hi=1.0):
         return float(np.clip(v + rng.uniform(-s, s) * j, lo, hi))
@@ -103,6 +105,7 @@ def sample_appearance(rng: np.random.Generator, preset: Preset) -> Appearance:
         light_rgb=tuple(np.clip(1.0 + rng.normal(0, 0.05 * j, 3), 0.8, 1.0)),
         light_offset=tuple(rng.uniform(-0.006, 0.006, 3) * j + np.array([0, 0.004, 0])),
         ambient=jit(0.12, 0.08, 0.02, 0.3),
+        shadows=shadows,
     )
 
 

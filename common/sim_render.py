@@ -172,7 +172,7 @@ class SceneRenderer:
             mujoco.mjv_updateScene(m, self.data, self._opt, None, self._cams[name],
                                    mujoco.mjtCatBit.mjCAT_ALL, self._scene)
             t0 = time.perf_counter()
-            flags[mujoco.mjtRndFlag.mjRND_SHADOW] = 1
+            flags[mujoco.mjtRndFlag.mjRND_SHADOW] = int(bool(self.spec.appearance.shadows))
             flags[mujoco.mjtRndFlag.mjRND_SEGMENT] = 0
             flags[mujoco.mjtRndFlag.mjRND_IDCOLOR] = 0
             mujoco.mjr_render(self._rect, self._scene, self._ctx)
