@@ -362,7 +362,8 @@ def pose_table(ev: Evaluation) -> dict:
         out[m] = {"position_mm": summary(t["position_m"] * 1e3),
                   "orientation_deg": summary(np.degrees(t["orientation_rad"])),
                   "n": n, "expected": expected, "failures": expected - n,
-                  "failure_rate": (expected - n) / expected if expected else None}
+                  "failure_rate": (expected - n) / expected if expected else None,
+                  "failed_seqs": [int(s) for s, good in zip(t["seqs"], ok) if not good]}
         if m in MULTIVIEW_METHODS:
             out[m]["mean_views"] = float(np.nanmean(t["n_views"])) if n else None
     return out

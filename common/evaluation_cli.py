@@ -3,7 +3,8 @@
 Checks the folder against the dataset spec (exit 2 with file, line and field when it breaks
 it, or when it has no ground truth to compare with), then runs the real graph on it: replay ->
 detector -> epnp (average, joint) -> triangulate -> ecm -> fusion (-> refine -> fusion) ->
-evaluator, on a free loopback port. The evaluator writes OUTDIR (results.json, report.md,
+evaluator, on a free loopback port. Every node queues all its inputs (none keeps only the
+newest, as in a live graph), so every frame is scored whatever the load. The evaluator writes OUTDIR (results.json, report.md,
 error_vs_distance.png, overlays/); this command prints the summary. The graph's log is
 OUTDIR/graph.log and the graph itself OUTDIR/graph.yaml.
 """
@@ -31,8 +32,9 @@ def _parser() -> argparse.ArgumentParser:
     p.add_argument("--seed", type=int, default=0, help="oracle only: noise seed")
     p.add_argument("--model", help="learned only: weights file (default: the detector's shipped model)")
     p.add_argument("--rate", default=None,
-                   help="replay rate in Hz, or 'max' (default: 30 for the oracle, 8 otherwise, so that "
-                        "no frame is dropped; `needletrack bench` measures speed)")
+                   help="replay rate in Hz, or 'max' (default: 30 for the oracle, 10 otherwise). Every "
+                        "frame is scored whatever the rate (the nodes queue their inputs here); "
+                        "`needletrack bench` measures speed")
     p.add_argument("--no-refine", action="store_true", help="leave out the refinement node")
     p.add_argument("--timeout", type=float, default=None, help="give up after this many seconds")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
@@ -118,10 +120,10 @@ def main(argv=None) -> int:
         det_params = {"noise_px": args.noise_px, "seed": args.seed}
     elif args.model:
         det_params = {"model": str(Path(args.model).resolve())}
-    rate = args.rate or (30 if args.detector == "oracle" else 8)
+    rate = args.rate or (30 if args.detector == "oracle" else 10)
     rate = rate if str(rate) == "max" else float(rate)
     doc = pipeline_graph(dataset, detector=args.detector, detector_params=det_params, rate=rate,
-                         refine=False if args.no_refine else None)
+                         refine=False if args.no_refine else None, lossless=True)
     evaluator = {"id": "evaluator", "module": "evaluator",
                  "params": {"out": str(out.resolve()), "dataset": str(Path(dataset).resolve()),
                             "detector": args.detector, "noise_px": args.noise_px},

@@ -160,21 +160,24 @@ def fuse_conv_bn(module: nn.Module) -> nn.Module:
     Only valid in eval mode; speeds up CPU inference."""
     for name, child in module.named_children():
         if isinstance(child, nn.Sequential):
-            items = list(child)
-            out, i = [], 0
-            while i < len(items):
-                m = items[i]
-                if (isinstance(m, nn.Conv2d) and i + 1 < len(items)
-                        and isinstance(items[i + 1], nn.BatchNorm2d)):
-                    out.append(_fold(m, items[i + 1]))
-                    i += 2
-                else:
-                    out.append(fuse_conv_bn(m))
-                    i += 1
-            setattr(module, name, nn.Sequential(*out))
+            setattr(module, name, _fuse_sequence(child))
         else:
             fuse_conv_bn(child)
     return module
+
+
+def _fuse_sequence(seq: nn.Sequential) -> nn.Sequential:
+    items = list(seq)
+    out, i = [], 0
+    while i < len(items):
+        m = items[i]
+        if isinstance(m, nn.Conv2d) and i + 1 < len(items) and isinstance(items[i + 1], nn.BatchNorm2d):
+            out.append(_fold(m, items[i + 1]))
+            i += 2
+            continue
+        out.append(_fuse_sequence(m) if isinstance(m, nn.Sequential) else fuse_conv_bn(m))
+        i += 1
+    return nn.Sequential(*out)
 
 
 def _fold(conv: nn.Conv2d, bn: nn.BatchNorm2d) -> nn.Conv2d:
@@ -209,8 +212,9 @@ def keypoint_loss(logits: torch.Tensor, targets: torch.Tensor) -> torch.Tensor:
     t = targets.reshape(n, k, -1)
     w = t.sum(-1)
     ce = -(t * logp).sum(-1)
-    # subtract the target's entropy so that a perfect prediction scores 0 (same gradients)
-    ent = -(t * torch.log(t.clamp_min(1e-12))).sum(-1)
+    # subtract the (weighted) target entropy so that a perfect prediction scores 0 (same gradients)
+    tn = t / w[..., None].clamp_min(1e-12)
+    ent = -(t * torch.log(tn.clamp_min(1e-12))).sum(-1)
     return (ce - ent).sum() / w.sum().clamp_min(1e-6)
 
 

@@ -13,7 +13,10 @@ consumers listen. The launchers' output (every node's log) goes to ``log`` (a fi
 """
 from __future__ import annotations
 
+import importlib
+import os
 import socket
+import sys
 import threading
 import time
 from typing import Optional
@@ -38,13 +41,19 @@ def has_module(name: str) -> bool:
 def pipeline_graph(dataset: str, *, detector: str = "learned", detector_params: Optional[dict] = None,
                    rate="max", port: Optional[int] = None, name: str = "needletrack-eval",
                    refine: Optional[bool] = None, loop: bool = False, count: int = 0,
-                   sinks: Optional[list] = None) -> dict:
+                   sinks: Optional[list] = None, lossless: bool = False,
+                   start_delay_s: float = 1.0) -> dict:
     """The graph document of the whole pipeline on a replayed dataset folder.
 
     ``refine``: include the refinement node and a fusion over refined poses (default: when
     nodes/refine.py exists). ``sinks``: extra node dicts (e.g. the evaluator), wired by the
     caller with the ids used here. Every node runs with ``restart: never``: a run that loses a
     node is a failed run, not one to patch up silently.
+
+    ``lossless``: every pipeline node runs through ``lossless_command``: each of its inputs
+    queues every message instead of keeping the newest (an evaluation scores every frame,
+    whatever the machine's load), and the source waits ``start_delay_s`` after joining the
+    graph before its first frame, so that its links to every consumer are up.
     """
     if refine is None:
         refine = has_module("refine")
@@ -73,12 +82,19 @@ def pipeline_graph(dataset: str, *, detector: str = "learned", detector_params: 
                   "inputs": {"pose": "epnp_joint/pose", "ecm": "ecm/pose", "truth": "replay/truth"},
                   "outputs": ["pose"], "env": one})
     if refine:
-        nodes.append({"id": "refine", "module": "refine",
-                      "inputs": {**stereo, "pose": "epnp_joint/pose"}, "outputs": ["pose"], "env": one})
+        nodes.append({"id": "refine", "module": "refine", "inputs": dict(stereo),
+                      "outputs": ["pose"], "env": one})
         nodes.append({"id": "fusion_refined", "module": "fusion",
                       "params": {"method": "multiview_refined"},
                       "inputs": {"pose": "refine/pose", "ecm": "ecm/pose", "truth": "replay/truth"},
                       "outputs": ["pose"], "env": one})
+    for n in nodes:   # wire only what a module declares (optional inputs come and go)
+        info = module_info(n["module"])
+        if info and info["inputs"] is not None:
+            n["inputs"] = {k: v for k, v in n.get("inputs", {}).items() if k in info["inputs"]}
+    if lossless:
+        for n in nodes:
+            n["command"] = lossless_command(n.pop("module"), start_delay_s if n["id"] == SOURCE else 0.0)
     nodes += list(sinks or [])
     for n in nodes:
         n.setdefault("restart", "never")
@@ -208,3 +224,48 @@ def _fmt_dead(dead: dict) -> str:
     from common.launcher import describe_status
     return ", ".join(f"{nid} ({describe_status(code)}{'; bad configuration' if code == 2 else ''})"
                      for nid, code in sorted(dead.items()))
+
+
+# ---------------------------------------------------------------- lossless nodes
+
+def lossless_command(module: str, start_delay_s: float = 0.0) -> list:
+    """The ``command`` that runs ``nodes/<module>.py`` with every input keeping every message."""
+    cmd = [sys.executable, "-m", "common.pipeline_graph", "--module", module]
+    if start_delay_s > 0:
+        cmd += ["--start-delay", f"{start_delay_s:g}"]
+    return cmd
+
+
+def lossless_class(base: type, start_delay_s: float = 0.0) -> type:
+    """A subclass of a node class whose inputs are all keep-all; a source also waits
+    ``start_delay_s`` after its setup (its session is open by then) before its first step."""
+    attrs = {"KEEP_ALL": tuple(base.INPUTS), "__module__": base.__module__,
+             "__doc__": f"{base.__name__}, every input keeping every message."}
+    if start_delay_s > 0:
+        def setup(self):
+            base.setup(self)
+            time.sleep(start_delay_s)
+        attrs["setup"] = setup
+    return type(base.__name__, (base,), attrs)
+
+
+def _lossless_main(argv=None) -> int:
+    """``python -m common.pipeline_graph --module M [--start-delay S]``, started by the launcher
+    as a command node (graph file and node id from NEEDLETRACK_GRAPH / NEEDLETRACK_NODE)."""
+    import argparse
+    ap = argparse.ArgumentParser(prog="python -m common.pipeline_graph")
+    ap.add_argument("--module", required=True)
+    ap.add_argument("--start-delay", type=float, default=0.0)
+    args = ap.parse_args(argv)
+    from common.node import run
+    graph, node = os.environ.get("NEEDLETRACK_GRAPH"), os.environ.get("NEEDLETRACK_NODE")
+    if not graph or not node:
+        print("common.pipeline_graph: NEEDLETRACK_GRAPH and NEEDLETRACK_NODE must be set "
+              "(run by the launcher)", file=sys.stderr)
+        return 2
+    base = importlib.import_module(f"nodes.{args.module}").NODE
+    return run(lossless_class(base, args.start_delay), ["--graph", graph, "--node", node])
+
+
+if __name__ == "__main__":
+    sys.exit(_lossless_main())

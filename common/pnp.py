@@ -68,10 +68,6 @@ class ReprojectionProblem:
         self.KRc = np.concatenate(KRc) if obs else np.zeros((0, 3, 3))
         self.Ktc = np.concatenate(Ktc) if obs else np.zeros((0, 3))
         self.r3 = np.concatenate(r3) if obs else np.zeros((0, 3))
-        self.Sp = np.zeros((self.n, 3, 3))                  # -[p]x of the centred points
-        x, y, z = self.P.T
-        self.Sp[:, 0, 1], self.Sp[:, 0, 2], self.Sp[:, 1, 2] = z, -y, x
-        self.Sp[:, 1, 0], self.Sp[:, 2, 0], self.Sp[:, 2, 1] = -z, y, -x
         self.uv = np.concatenate([o.uv for o in obs]) if obs else np.zeros((0, 2))
         w = np.concatenate([o.weights for o in obs]) if obs else np.zeros(0)
         self.sw = np.sqrt(w)
@@ -79,30 +75,34 @@ class ReprojectionProblem:
         self.w_sum = float(np.sum(w))
 
     def _residuals(self, R: np.ndarray, t: np.ndarray, jacobian: bool = True):
-        """Internal pose (R, t'): weighted residuals (2n,) and Jacobian (2n, 6) w.r.t. the
-        internal [w, v']; None when a point is not in front of its camera."""
-        h = (self.KRc @ (self.P @ R.T + t)[:, :, None])[:, :, 0] + self.Ktc   # K p_cam
-        z = h[:, 2]
-        if min(z.tolist()) <= 1e-9:     # (a Python min: numpy reductions are slow on 10 numbers)
-            return None
-        iz = 1.0 / z
-        uvp = h[:, :2] * iz[:, None]
-        r = ((uvp - self.uv) * self.sw2).reshape(-1)
+        """Internal poses (R (k, 3, 3), t' (k, 3)) -> weighted residuals (k, 2n), Jacobians
+        (k, 2n, 6) w.r.t. the internal [w, v'] (or None), and (k,) whether every point is in
+        front of its camera (residuals of the others are meaningless)."""
+        q = self.P @ R.transpose(0, 2, 1)                                   # (k, n, 3) rotated
+        h = (self.KRc @ (q + t[:, None, :])[..., None])[..., 0] + self.Ktc  # K p_cam
+        z = h[..., 2]
+        front = z > 1e-9
+        ok = front.all(axis=1)
+        iz = 1.0 / np.where(front, z, 1.0)
+        uvp = h[..., :2] * iz[..., None]
+        r = ((uvp - self.uv) * self.sw2).reshape(len(R), -1)
         if not jacobian:
-            return r, None
+            return r, None, ok
         # d(u, v)/d(ECM point) = (K[:2] R_cam_ecm - uv r3^T) / z, r3 = the camera's z axis
-        B = self.KRc[:, :2, :] - uvp[:, :, None] * self.r3[:, None, :]
-        B *= (self.sw * iz)[:, None, None]
-        # d(exp([w]x) R p)/dw = -[R p]x = R (-[p]x) R^T
-        Jw = (B @ R) @ self.Sp @ R.T
-        return r, np.concatenate([Jw, B], axis=2).reshape(-1, 6)
+        B = self.KRc[:, :2, :] - uvp[..., None] * self.r3[:, None, :]
+        B *= (self.sw * iz)[..., None, None]
+        # d(exp([w]x) q)/dw = -[q]x = [-q]x
+        Jw = B @ (-q @ _SKEW).reshape(q.shape + (3,))
+        return r, np.concatenate([Jw, B], axis=3).reshape(len(R), -1, 6), ok
 
-    def _to_internal(self, T):
-        return T[:3, :3].copy(), T[:3, 3] + T[:3, :3] @ self.centre
+    def _to_internal(self, Ts):
+        Ts = np.asarray(Ts, dtype=float).reshape(-1, 4, 4)
+        R = Ts[:, :3, :3].copy()
+        return R, Ts[:, :3, 3] + R @ self.centre
 
     def _to_public(self, R, t, J):
-        """Back to ``T_ecm_needle`` and the public Jacobian: t = t' - R c and v = v' + [R c]x w,
-        so J = J' M^-1 with M^-1 = [[I, 0], [-[R c]x, I]]."""
+        """Back to ``T_ecm_needle`` and the public Jacobian (one pose): t = t' - R c and
+        v = v' + [R c]x w, so J = J' M^-1 with M^-1 = [[I, 0], [-[R c]x, I]]."""
         qc = R @ self.centre
         if J is not None:
             J = J.copy()
@@ -113,94 +113,121 @@ class ReprojectionProblem:
         """(weighted residuals (2n,), Jacobian (2n, 6) or None) at a pose; None when a point
         is behind its camera. Residual pairs follow the observations' point order."""
         R, t = self._to_internal(T_ecm_needle)
-        out = self._residuals(R, t, jacobian)
-        if out is None:
+        r, J, ok = self._residuals(R, t, jacobian)
+        if not ok[0]:
             return None
-        return out[0], self._to_public(R, t, out[1])[1]
+        return r[0], None if J is None else self._to_public(R[0], t[0], J[0])[1]
 
     def rms_px(self, T_ecm_needle: np.ndarray) -> float:
         """Weighted reprojection RMS (px) at a pose; inf when a point is behind its camera."""
         out = self.evaluate(T_ecm_needle, jacobian=False)
         return math.inf if out is None else float(np.sqrt(out[0] @ out[0] / self.w_sum))
 
-    def refine(self, T0: np.ndarray, max_iter: int = 60, tol_m: float = 1e-11,
-               rel_tol: float = 1e-9, known: Sequence[np.ndarray] = (),
-               merge_m: float = 1e-3, merge_rad: float = np.deg2rad(1.0)) -> "LMResult | None":
-        """Levenberg-Marquardt from ``T0`` (``T_ecm_needle``); see ``refine_pose_lm``.
+    def refine(self, T0: np.ndarray, **kw) -> "LMResult | None":
+        """Levenberg-Marquardt from ``T0`` (``T_ecm_needle``); see ``refine_many``."""
+        return self.refine_many([T0], **kw)[0]
 
-        ``known``: minima already found (``T_ecm_needle``). When the iterate comes within
-        ``merge_m`` and ``merge_rad`` of one, the fit stops early and its result has
-        ``merged_into`` set to that minimum's index (it would converge there).
+    def refine_many(self, T0s: Sequence[np.ndarray], max_iter: int = 60, tol_m: float = 1e-11,
+                    rel_tol: float = 1e-9, merge_m: float = 1e-3,
+                    merge_rad: float = np.deg2rad(1.0)) -> "list[LMResult | None]":
+        """Levenberg-Marquardt from several starting poses at once (vectorised over them).
+
+        Each fit stops when a step moves no model point by more than ``tol_m`` (m) or the
+        decrease it predicts is below ``rel_tol`` times its cost; steps that would put a point
+        behind a camera are rejected. A fit that comes within ``merge_m`` and ``merge_rad`` of
+        one already converged stops there with ``merged_into`` set to that one's index (it
+        would converge to the same minimum). None for a start that puts a point behind its
+        camera (or with fewer than 3 points).
         """
-        if self.n < 3:
-            return None
-        known_int = [self._to_internal(K) for K in known]
+        k = len(T0s)
+        if self.n < 3 or k == 0:
+            return [None] * k
+        R, t = self._to_internal(T0s)
+        r, J, ok = self._residuals(R, t)
+        cost = np.where(ok, np.einsum("km,km->k", r, r), np.inf)
+        active = ok.copy()
+        lam, nu = np.full(k, 1e-3), np.full(k, 2.0)   # Marquardt-scaled damping, Nielsen's update
+        iters = np.zeros(k, dtype=int)
+        converged = np.zeros(k, dtype=bool)
+        merged = np.full(k, -1)
         cos_merge = math.cos(merge_rad)
-        R, t = self._to_internal(T0)
-        out = self._residuals(R, t)
-        if out is None:
-            return None
-        r, J = out
-        cost = float(r @ r)
-        lam, nu = 1e-3, 2.0                     # Marquardt-scaled damping, Nielsen's update
-        converged = False
-        it = 0
-        for it in range(1, max_iter + 1):
-            g = J.T @ r
-            H = J.T @ J
-            D = H.diagonal() + 1e-30
+        eye = np.eye(6)
+        for _ in range(max_iter):
+            idx = np.flatnonzero(active)
+            if len(idx) == 0:
+                break
+            iters[idx] += 1
+            Ja, ra = J[idx], r[idx]
+            g = np.einsum("kmi,km->ki", Ja, ra)
+            H = Ja.transpose(0, 2, 1) @ Ja
+            D = np.einsum("kii->ki", H) + 1e-30
             try:
-                delta = -np.linalg.solve(H + np.diag(lam * D), g)
+                delta = -np.linalg.solve(H + (lam[idx, None] * D)[:, :, None] * eye, g[..., None])[..., 0]
             except np.linalg.LinAlgError:
-                lam, nu = lam * nu, nu * 2.0
+                lam[idx] *= nu[idx]
+                nu[idx] *= 2.0
                 continue
-            step_m = math.sqrt(delta[0] ** 2 + delta[1] ** 2 + delta[2] ** 2) * self.size + \
-                math.sqrt(delta[3] ** 2 + delta[4] ** 2 + delta[5] ** 2)
-            pred = float(lam * (delta * D) @ delta - g @ delta)   # decrease the model predicts
-            R1, t1 = _exp_so3(delta[:3]) @ R, t + delta[3:]
-            trial = self._residuals(R1, t1)
-            new_cost = float(trial[0] @ trial[0]) if trial is not None else math.inf
-            if new_cost <= cost:
-                rho = (cost - new_cost) / pred if pred > 0 else 1.0
-                r, J = trial
-                R, t = R1, t1
-                cost = new_cost
-                lam *= max(1.0 / 3.0, 1.0 - (2.0 * rho - 1.0) ** 3)
-                nu = 2.0
-                if step_m < tol_m or pred <= rel_tol * cost or cost < 1e-26:
-                    converged = True
-                    break
-                for k, (Rk, tk) in enumerate(known_int):
-                    if (abs(t[0] - tk[0]) < merge_m and abs(t[1] - tk[1]) < merge_m
-                            and abs(t[2] - tk[2]) < merge_m
-                            and (float(R.ravel() @ Rk.ravel()) - 1.0) / 2.0 > cos_merge):
-                        T, J = self._to_public(R, t, J)
-                        rms = float(np.sqrt(cost / self.w_sum))
-                        return LMResult(T, cost, rms, J, r, it, False, merged_into=k)
-            else:
-                if step_m < tol_m or pred <= 1e-3 * rel_tol * cost:   # nothing left to gain
-                    converged = True
-                    break
-                lam, nu = lam * nu, nu * 2.0
-        rms = float(np.sqrt(cost / self.w_sum)) if self.w_sum > 0 else float("nan")
-        T, J = self._to_public(R, t, J)
-        return LMResult(T, cost, rms, J, r, it, converged)
+            step_m = (np.linalg.norm(delta[:, :3], axis=1) * self.size
+                      + np.linalg.norm(delta[:, 3:], axis=1))
+            pred = lam[idx] * np.einsum("ki,ki->k", delta * D, delta) - np.einsum("ki,ki->k", g, delta)
+            R1 = _exp_so3_many(delta[:, :3]) @ R[idx]
+            t1 = t[idx] + delta[:, 3:]
+            r1, J1, ok1 = self._residuals(R1, t1)
+            c1 = np.where(ok1, np.einsum("km,km->k", r1, r1), np.inf)
+            acc = c1 <= cost[idx]
+            a, ia = idx[acc], np.flatnonzero(acc)
+            if len(a):
+                rho = np.where(pred[ia] > 0, (cost[a] - c1[ia]) / np.where(pred[ia] > 0, pred[ia], 1.0), 1.0)
+                R[a], t[a], r[a], J[a], cost[a] = R1[ia], t1[ia], r1[ia], J1[ia], c1[ia]
+                lam[a] *= np.maximum(1.0 / 3.0, 1.0 - (2.0 * rho - 1.0) ** 3)
+                nu[a] = 2.0
+                done = (step_m[ia] < tol_m) | (pred[ia] <= rel_tol * cost[a]) | (cost[a] < 1e-26)
+                converged[a[done]] = True
+                active[a[done]] = False
+            rej, ir = idx[~acc], np.flatnonzero(~acc)
+            if len(rej):
+                done = (step_m[ir] < tol_m) | (pred[ir] <= 1e-3 * rel_tol * cost[rej])   # nothing to gain
+                converged[rej[done]] = True
+                active[rej[done]] = False
+                grow = rej[~done]
+                lam[grow] *= nu[grow]
+                nu[grow] *= 2.0
+            # fits heading to a minimum already found stop there
+            conv_idx = np.flatnonzero(converged & (merged < 0))
+            act = np.flatnonzero(active)
+            if len(conv_idx) and len(act):
+                near_t = np.all(np.abs(t[act, None, :] - t[None, conv_idx, :]) < merge_m, axis=2)
+                cosang = (np.einsum("aij,cij->ac", R[act], R[conv_idx]) - 1.0) / 2.0
+                near = near_t & (cosang > cos_merge)
+                hit = near.any(axis=1)
+                merged[act[hit]] = conv_idx[np.argmax(near[hit], axis=1)]
+                active[act[hit]] = False
+        out: list = []
+        for i in range(k):
+            if not ok[i]:
+                out.append(None)
+                continue
+            T, Ji = self._to_public(R[i], t[i], J[i])
+            rms = float(np.sqrt(cost[i] / self.w_sum)) if self.w_sum > 0 else float("nan")
+            out.append(LMResult(T, float(cost[i]), rms, Ji, r[i], int(iters[i]), bool(converged[i]),
+                                None if merged[i] < 0 else int(merged[i])))
+        return out
 
 
-def _exp_so3(w: np.ndarray) -> np.ndarray:
-    """Rodrigues for small-step updates (scalar math; faster than the general helper)."""
-    x, y, z = float(w[0]), float(w[1]), float(w[2])
-    th2 = x * x + y * y + z * z
-    if th2 < 1e-16:
-        a, b = 1.0 - th2 / 6.0, 0.5 - th2 / 24.0
-    else:
-        th = math.sqrt(th2)
-        a, b = math.sin(th) / th, (1.0 - math.cos(th)) / th2
-    return np.array([
-        [1 - b * (y * y + z * z), -a * z + b * x * y, a * y + b * x * z],
-        [a * z + b * x * y, 1 - b * (x * x + z * z), -a * x + b * y * z],
-        [-a * y + b * x * z, a * x + b * y * z, 1 - b * (x * x + y * y)],
-    ])
+# [w]x = (w @ _SKEW).reshape(3, 3) for any vector w
+_SKEW = np.array([[0, 0, 0, 0, 0, -1, 0, 1, 0],
+                  [0, 0, 1, 0, 0, 0, -1, 0, 0],
+                  [0, -1, 0, 1, 0, 0, 0, 0, 0]], dtype=float)
+
+
+def _exp_so3_many(w: np.ndarray) -> np.ndarray:
+    """Rodrigues for (k, 3) rotation vectors -> (k, 3, 3)."""
+    th2 = np.einsum("ki,ki->k", w, w) + 1e-300     # (at 0 the K terms vanish anyway)
+    th = np.sqrt(th2)
+    a = (np.sin(th) / th)[:, None, None]
+    b = ((1.0 - np.cos(th)) / th2)[:, None, None]
+    K = (w @ _SKEW).reshape(-1, 3, 3)
+    return np.eye(3) + a * K + b * (K @ K)
 
 
 @dataclass
@@ -227,7 +254,7 @@ def refine_pose_lm(T0: np.ndarray, observations: Sequence[CameraObs], max_iter: 
     are rejected. Returns None when T0 puts a point behind its camera or fewer than 3 points
     are given. Build a ``ReprojectionProblem`` once to refine many starting poses.
     """
-    return ReprojectionProblem(observations).refine(T0, max_iter, tol_m, rel_tol)
+    return ReprojectionProblem(observations).refine(T0, max_iter=max_iter, tol_m=tol_m, rel_tol=rel_tol)
 
 
 def pose_covariance(jacobian: np.ndarray, cost: float, min_sigma_px: float = 0.25) -> np.ndarray | None:
@@ -313,9 +340,11 @@ def initial_poses(obs: CameraObs, epnp: bool = True, ippe: bool = True) -> list[
 
 
 def _distinct(T, others, tol_m, tol_rad) -> bool:
+    """No pose in ``others`` within ``tol_m`` (origin distance) and ``tol_rad`` (rotation)."""
+    cos_tol = math.cos(tol_rad)
     for T2 in others:
-        dt, dr = pose_error(T, T2)
-        if dt <= tol_m and dr <= tol_rad:
+        d = T[:3, 3] - T2[:3, 3]
+        if d @ d <= tol_m * tol_m and (float(T[:3, :3].ravel() @ T2[:3, :3].ravel()) - 1.0) / 2.0 >= cos_tol:
             return False
     return True
 
@@ -406,11 +435,10 @@ def pnp_camera(obs: CameraObs, refine: bool = True) -> PoseCandidate:
         rms = ReprojectionProblem([obs]).rms_px(T)
         return PoseCandidate(T, rms ** 2 * obs.weights.sum(), rms, lab)
     inits = initial_poses(obs)
-    problem = ReprojectionProblem([obs])
+    fits = ReprojectionProblem([obs]).refine_many([T for _, T in inits])
     best = None
-    for lab, T in inits:
-        fit = problem.refine(T)
-        if fit is not None and (best is None or fit.cost < best.cost):
+    for (lab, _), fit in zip(inits, fits):
+        if fit is not None and fit.merged_into is None and (best is None or fit.cost < best.cost):
             best = PoseCandidate(fit.T_ecm_needle, fit.cost, fit.rms_px, lab, fit.jacobian)
     if best is None:
         raise NoPose("solver_failed", f"{obs.camera.name}: no PnP solution in front of the camera")
@@ -451,23 +479,20 @@ def joint_candidates(obs: dict[str, CameraObs], inits: Sequence[tuple[str, np.nd
                      dedup_m: float = 1e-4, dedup_rad: float = np.deg2rad(0.05)) -> list[PoseCandidate]:
     """Refine initial poses jointly in all cameras; distinct minima sorted by cost (best first).
 
-    ``inits`` defaults to every camera's ``initial_poses`` (EPnP, IPPE x2). Near-identical
-    initial poses (within 0.5 mm and 0.5 deg) are refined once, and a fit that comes within
-    1 mm / 1 deg of a minimum already found stops there (``ReprojectionProblem.refine``).
+    ``inits`` defaults to every camera's ``initial_poses`` (IPPE x2, EPnP). Near-identical
+    initial poses (within 0.5 mm and 0.5 deg) are refined once; all are refined together
+    (``ReprojectionProblem.refine_many``), a fit heading to a minimum already found stopping
+    there; minima closer than ``dedup_m`` and ``dedup_rad`` count once.
     """
     if inits is None:
         inits = [p for o in obs.values() for p in initial_poses(o)]
-        # the likeliest minima first, so later seeds heading to them stop early
-        order = {"ippe0": 0, "ippe1": 1, "ippe0q": 2, "ippe1q": 3, "epnp": 4}
-        inits.sort(key=lambda p: order.get(p[0].split(":")[0], 5))
     seeds: list[tuple[str, np.ndarray]] = []
     for lab, T in inits:
         if _distinct(T, [s[1] for s in seeds], 5e-4, np.deg2rad(0.5)):
             seeds.append((lab, T))
-    problem = ReprojectionProblem(list(obs.values()))
+    fits = ReprojectionProblem(list(obs.values())).refine_many([T for _, T in seeds])
     cands: list[PoseCandidate] = []
-    for lab, T in seeds:
-        fit = problem.refine(T, known=[c.T_ecm_needle for c in cands])
+    for (lab, _), fit in zip(seeds, fits):
         if fit is None or not np.isfinite(fit.cost) or fit.merged_into is not None:
             continue
         cands.append(PoseCandidate(fit.T_ecm_needle, fit.cost, fit.rms_px, lab, fit.jacobian))

@@ -86,7 +86,8 @@ class RefineConfig:
     warm_steps: int = 1             # Newton steps from feet carried over from the previous pose
     research_rad: float = 0.02      # after a step this large (rotation, rad) the feet are searched
     research_m: float = 0.001       # afresh (or translation, m); smaller steps carry them over
-    newton_steps: int = 1           # and per evaluated pose (the Jacobian's perturbed ones too)
+    newton_steps: int = 0           # and per evaluated pose (the Jacobian's perturbed ones too; at a
+                                    # foot the distance's derivative needs none: envelope theorem)
     sigma_kp_px: float = 1.0        # assumed keypoint noise
     sigma_curve_px: float = 0.5     # assumed centreline noise
     min_score: float = 0.5          # keypoints scored below are left out (as the PnP does)
@@ -117,7 +118,7 @@ class RefineConfig:
                 raise ValueError(f"RefineConfig.{name}: must be a positive number, got {v}")
         for name, lo in (("max_curve_points", 2), ("n_samples", 2), ("max_iter", 1),
                          ("max_candidates", 1), ("max_reject", 1), ("coarse_iter", 0),
-                         ("newton_steps", 1), ("foot_steps", 0), ("warm_steps", 0)):
+                         ("newton_steps", 0), ("foot_steps", 1), ("warm_steps", 1)):
             if int(getattr(self, name)) < lo:
                 raise ValueError(f"RefineConfig.{name}: must be at least {lo}, got {getattr(self, name)}")
 

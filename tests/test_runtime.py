@@ -312,3 +312,25 @@ def test_cli_tools_see_the_running_graph(run_graph):
     assert echo.returncode == 0 and echo.stdout.count("EcmJoints(seq=") == 2
     hz = g.cli("hz", "count/out", "--duration", "2.5")
     assert hz.returncode == 0 and f"{g.name}/count/out:" in hz.stdout and "Hz" in hz.stdout
+
+
+def test_shared_memory_pool_full_falls_back_to_the_socket():
+    from common.node import ShmWriter
+    w = ShmWriter(1 << 20)
+    held = [w.payload(b"h", b"x" * 400_000), w.payload(b"h", b"x" * 400_000)]
+    assert all(h is not None for h in held) and bytes(held[0].to_bytes())[:2] == b"hx"
+    assert w.payload(b"h", b"x" * 400_000) is None and w.failures == 1
+
+
+def test_images_cross_processes_through_shared_memory_intact(run_graph):
+    from common.messages import CameraImage
+    from nodes.testpattern import test_pattern
+    g = run_graph({"nodes": [
+        {"id": "camera", "module": "testpattern", "params": {"rate_hz": 20, "width": 320, "height": 240}},
+        {"id": "sink", "module": "framesink", "inputs": {"left": "camera/left", "right": "camera/right"}}]})
+    msgs = g.collect("camera/right", n=3, timeout=10, expect=CameraImage)
+    assert all(np.array_equal(m.to_bgr(), test_pattern(320, 240, 8)) for m in msgs)
+    st = g.wait_stats("camera", lambda st: st.counters.get("out_shm", 0) > 0)
+    assert st.counters.get("shm_pool_full", 0) == 0
+    sink = g.wait_stats("sink", lambda st: st.counters.get("frames", 0) >= 5)
+    assert sink.counters["decode_errors"] == 0 and sink.counters["handler_errors"] == 0
