@@ -16,7 +16,7 @@ from common.messages import CameraImage
 from common.node import Node, run
 
 
-def test_pattern(width: int, height: int, shift: int = 0) -> np.ndarray:
+def pattern_image(width: int, height: int, shift: int = 0) -> np.ndarray:
     """An (h, w, 3) uint8 BGR gradient with a grid, shifted ``shift`` px right."""
     x = (np.arange(width) + shift) % 256
     y = np.arange(height) % 256
@@ -40,7 +40,7 @@ class TestPattern(Node):
         self.w, self.h = int(self.params.get("width", 1920)), int(self.params.get("height", 1080))
         self.encoding = str(self.params.get("encoding", "bgr8"))
         self.count_max = int(self.params.get("count", 0))
-        self.images = {"left": test_pattern(self.w, self.h, 0), "right": test_pattern(self.w, self.h, 8)}
+        self.images = {"left": pattern_image(self.w, self.h, 0), "right": pattern_image(self.w, self.h, 8)}
         self.seq = 0
         self.cpu0 = time.process_time()
         self.next_t = time.monotonic() + float(self.params.get("start_delay_s", 0.0))

@@ -324,12 +324,12 @@ def test_shared_memory_pool_full_falls_back_to_the_socket():
 
 def test_images_cross_processes_through_shared_memory_intact(run_graph):
     from common.messages import CameraImage
-    from nodes.testpattern import test_pattern
+    from nodes.testpattern import pattern_image
     g = run_graph({"nodes": [
         {"id": "camera", "module": "testpattern", "params": {"rate_hz": 20, "width": 320, "height": 240}},
         {"id": "sink", "module": "framesink", "inputs": {"left": "camera/left", "right": "camera/right"}}]})
     msgs = g.collect("camera/right", n=3, timeout=10, expect=CameraImage)
-    assert all(np.array_equal(m.to_bgr(), test_pattern(320, 240, 8)) for m in msgs)
+    assert all(np.array_equal(m.to_bgr(), pattern_image(320, 240, 8)) for m in msgs)
     st = g.wait_stats("camera", lambda st: st.counters.get("out_shm", 0) > 0)
     assert st.counters.get("shm_pool_full", 0) == 0
     sink = g.wait_stats("sink", lambda st: st.counters.get("frames", 0) >= 5)
