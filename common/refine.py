@@ -86,8 +86,6 @@ class RefineConfig:
     warm_steps: int = 1             # Newton steps from feet carried over from the previous pose
     research_rad: float = 0.02      # after a step this large (rotation, rad) the feet are searched
     research_m: float = 0.001       # afresh (or translation, m); smaller steps carry them over
-    newton_steps: int = 0           # and per evaluated pose (the Jacobian's perturbed ones too; at a
-                                    # foot the distance's derivative needs none: envelope theorem)
     sigma_kp_px: float = 1.0        # assumed keypoint noise
     sigma_curve_px: float = 0.5     # assumed centreline noise
     min_score: float = 0.5          # keypoints scored below are left out (as the PnP does)
@@ -118,7 +116,7 @@ class RefineConfig:
                 raise ValueError(f"RefineConfig.{name}: must be a positive number, got {v}")
         for name, lo in (("max_curve_points", 2), ("n_samples", 2), ("max_iter", 1),
                          ("max_candidates", 1), ("max_reject", 1), ("coarse_iter", 0),
-                         ("newton_steps", 0), ("foot_steps", 1), ("warm_steps", 1)):
+                         ("foot_steps", 1), ("warm_steps", 1)):
             if int(getattr(self, name)) < lo:
                 raise ValueError(f"RefineConfig.{name}: must be at least {lo}, got {getattr(self, name)}")
 
@@ -174,8 +172,6 @@ class _Static:
     """What does not change between frames: cameras and needle model, shaped to broadcast over
     (P poses, C = 2 cameras, N points)."""
 
-    FD_STEP = np.array([1e-6, 1e-6, 1e-6, 1e-7, 1e-7, 1e-7])   # rad, rad, rad, m, m, m
-
     def __init__(self, rig: StereoRig, needle: NeedleModel, cfg: RefineConfig):
         cams = rig.cameras
         self.cams, self.cfg, self.needle = cams, cfg, needle
@@ -197,7 +193,6 @@ class _Static:
         self._fx, self._sk, self._fy = col(Kp[:, 0, 0]), col(Kp[:, 0, 1]), col(Kp[:, 1, 1])
         self._cx, self._cy = col(kc[:, 0]), col(kc[:, 1])
         self._fx2, self._sk2 = self._fx[..., 0], self._sk[..., 0]
-        self._E = _exp_so3(np.diag(self.FD_STEP[:3]))           # the three rotation increments
         self._Rmid = _exp_so3(np.array([[0.0, 0.0, self.mid]]))[0]
         # radius * [e1, e2, e2, -e1] of the needle axes turned so the arc's middle is on +x
         self._W = self.radius * np.stack([self._Rmid[:, 0], self._Rmid[:, 1], self._Rmid[:, 1],
@@ -207,12 +202,14 @@ class _Static:
         kp_ang = needle.keypoint_angles_rad - self.mid               # A..E about the middle
         self._kp_co = np.broadcast_to(np.cos(kp_ang), (1, C, 5))
         self._kp_si = np.broadcast_to(np.sin(kp_ang), (1, C, 5))
+        self._Bc = np.zeros((1, C, 6, 6))                            # camera -> ECM increments
+        self._Bc[0, :, :3, :3] = self.Rc
+        self._Bc[0, :, 3:, 3:] = self.Rc
         self._out = np.array([-1.0, 1.0])                       # outward along the arc at A, E
         self._cos_end_zone = np.cos(self.half - np.deg2rad(1.0))  # feet within 1 deg of an end
         ang = np.linspace(-self.half, self.half, cfg.n_samples)
         self._samples = np.stack([np.cos(ang), np.sin(ang)], axis=1)       # (S, 2)
         self.is_kp = np.concatenate([np.ones((C, 10), bool), np.zeros((C, 2 * M), bool)], axis=1).ravel()
-        self._is_over = np.concatenate([np.zeros((C, 10 + M), bool), np.ones((C, M), bool)], axis=1).ravel()
 
 
 class _Problem:
@@ -265,19 +262,19 @@ class _Problem:
         E = np.swapaxes(self.Rc[None] @ (R @ self._W)[:, None], 2, 3).reshape(len(R), self.C, 2, 6)
         return tcam, E
 
-    def _project_arc(self, co, si, E, t4, depth: bool = False):
+    def _project_arc(self, co, si, E, t4, full: bool = False):
         """Pixels (u, v) of arc points (P, C, N) at angle (co, si) and their derivatives
-        (du, dv) along the arc (per radian), and with ``depth`` their camera-frame z;
-        ``t4`` the camera-frame origin (P, C, 1, 3)."""
+        (du, dv) along the arc (per radian); ``t4`` the camera-frame origin (P, C, 1, 3). With
+        ``full`` also the depth z, 1/z, normalised x, y and the points less the origin."""
         XT = np.stack([co, si], axis=-1) @ E
-        X = XT[..., :3] + t4
-        z = X[..., 2]
+        W = XT[..., :3]
+        z = W[..., 2] + t4[..., 2]
         iz = 1.0 / np.maximum(z, 1e-9)
-        x, y = X[..., 0] * iz, X[..., 1] * iz
+        x, y = (W[..., 0] + t4[..., 0]) * iz, (W[..., 1] + t4[..., 1]) * iz
         dx, dy = (XT[..., 3] - x * XT[..., 5]) * iz, (XT[..., 4] - y * XT[..., 5]) * iz
         out = (self._fx * x + self._sk * y + self._cx, self._fy * y + self._cy,
                self._fx * dx + self._sk * dy, self._fy * dy)
-        return out + (z,) if depth else out
+        return out + (z, iz, x, y, W) if full else out
 
     def nearest_samples(self, E, t4):
         """Start of each observed point's foot on the arc, (cos, sin) (P, C, M) of its angle from
@@ -307,73 +304,80 @@ class _Problem:
         return (np.where(beyond, self._cos_half, co),
                 np.where(beyond, np.copysign(self._sin_half, si), si))
 
-    def residuals(self, R, t, feet):
-        """Residuals (P, n) in px of P poses ``(R (P,3,3), t (P,3))`` given starts ``feet``
-        (cos, sin) (P, C, M) of the observed points' feet on the arc; also the feet used, and
-        whether each pose keeps the keypoints and the needle's centre in front of both cameras."""
-        P, C, M = len(R), self.C, self.M
-        tcam, E = self._axes(R, t)
-        t4 = tcam[:, :, None, :]
-        # Curve: the distance of each observed point to the projected arc. Its foot takes
-        # Newton steps along the projected arc from the given start; the residuals are the
-        # signed distance to the tangent there and, for a point past an end, its overshoot
-        # along the arc (together: the distance to that end). The keypoints A..E (A and E are
-        # the arc's ends) are projected in the same batch.
-        co, si = self._newton(feet[0], feet[1], E, t4, self.cfg.newton_steps)
-        kp = (P, C, 5)
-        u, v, tu, tv, z = self._project_arc(np.concatenate([np.broadcast_to(self._kp_co, kp), co], axis=2),
-                                            np.concatenate([np.broadcast_to(self._kp_si, kp), si], axis=2),
-                                            E, t4, depth=True)
-        zc = tcam[..., 2]
-        valid = (z[..., :5].min(axis=(1, 2)) > self.cfg.min_depth_m) & (zc.min(axis=1) > self.cfg.min_depth_m)
-        ru, rv = u[..., :5] - self._Uu, v[..., :5] - self._Uv
-        du, dv = u[..., 5:] - self._Ou, v[..., 5:] - self._Ov
-        tu_, tv_ = tu[..., 5:], tv[..., 5:]
-        r_n = (tu_ * dv - tv_ * du) / np.maximum(np.sqrt(tu_ * tu_ + tv_ * tv_), 1e-300)
-        # Overshoot past the nearer end (A at -half, E at +half) along its outward tangent:
-        # signed here; ``linearise`` keeps it only where the foot is at an end, as a hinge.
-        ue, ve, tue, tve = u[..., 0:5:4], v[..., 0:5:4], tu[..., 0:5:4], tv[..., 0:5:4]
-        ne = self._out / np.maximum(np.sqrt(tue * tue + tve * tve), 1e-300)
-        tue, tve = tue * ne, tve * ne
-        ov_a = (self._Ou - ue[..., :1]) * tue[..., :1] + (self._Ov - ve[..., :1]) * tve[..., :1]
-        ov_e = (self._Ou - ue[..., 1:]) * tue[..., 1:] + (self._Ov - ve[..., 1:]) * tve[..., 1:]
-        r_t = np.where(si > 0, ov_e, ov_a)
-
-        r = np.concatenate([ru, rv, r_n, r_t], axis=2).reshape(P, -1)
-        return r, (co, si), valid
-
     def feet(self, R, t, start=None):
         """Feet on the arc (cos, sin) (K, C, M) of the observed points for poses (R, t): from
-        ``start`` (e.g. the feet at a nearby pose) or else the nearest of ``n_samples``
-        projected arc points, then ``foot_steps`` Newton steps."""
+        ``start`` (the feet at a nearby pose: ``warm_steps`` Newton steps) or else from the
+        nearest of ``n_samples`` projected arc points (``foot_steps`` Newton steps)."""
         tcam, E = self._axes(R, t)
         t4 = tcam[:, :, None, :]
         co, si = self.nearest_samples(E, t4) if start is None else start
         return self._newton(co, si, E, t4, self.cfg.foot_steps if start is None else self.cfg.warm_steps)
 
+    def evaluate(self, R, t, feet, jacobian: bool = True):
+        """Residuals (P, n) in px of P poses ``(R (P,3,3), t (P,3))`` with the observed points'
+        feet (cos, sin) (P, C, M) on the arc held fixed, their Jacobians (P, n, 6) w.r.t. the
+        ECM increment [dr, dt] (None unless ``jacobian``), and whether each pose keeps the
+        keypoints and the needle's centre in front of both cameras.
+
+        Per camera: keypoint u (5) and v (5) errors; for each observed point the signed
+        distance to the arc's tangent at its foot, and its overshoot past the nearer end of the
+        arc along the outward tangent there (a hinge, kept only where the foot is at that end:
+        elsewhere the projected arc may curve back past an end's tangent). Together they are
+        the point's distance to the arc. The distance's derivative at a foot needs no foot
+        derivative (envelope theorem); the overshoot's leaves out the turn of the end's tangent.
+        """
+        P, C, M = len(R), self.C, self.M
+        tcam, E = self._axes(R, t)
+        t4 = tcam[:, :, None, :]
+        co, si = feet
+        kp = (P, C, 5)
+        u, v, tu, tv, z, iz, x, y, W = self._project_arc(
+            np.concatenate([np.broadcast_to(self._kp_co, kp), co], axis=2),
+            np.concatenate([np.broadcast_to(self._kp_si, kp), si], axis=2), E, t4, full=True)
+        valid = (z[..., :5].min(axis=(1, 2)) > self.cfg.min_depth_m) & \
+            (tcam[..., 2].min(axis=1) > self.cfg.min_depth_m)
+        ru, rv = u[..., :5] - self._Uu, v[..., :5] - self._Uv
+        du, dv = u[..., 5:] - self._Ou, v[..., 5:] - self._Ov
+        itn = 1.0 / np.maximum(np.sqrt(tu * tu + tv * tv), 1e-300)
+        nx, ny = -tv[..., 5:] * itn[..., 5:], tu[..., 5:] * itn[..., 5:]
+        r_n = nx * du + ny * dv
+        # outward unit tangents at A (index 0, towards -angle) and E (index 4)
+        ox, oy = tu[..., 0:5:4] * itn[..., 0:5:4] * self._out, tv[..., 0:5:4] * itn[..., 0:5:4] * self._out
+        at_e = si > 0
+        ex = np.where(at_e, ox[..., 1:], ox[..., :1])
+        ey = np.where(at_e, oy[..., 1:], oy[..., :1])
+        ov = np.where(at_e, (self._Ou - u[..., 4:5]) * ox[..., 1:] + (self._Ov - v[..., 4:5]) * oy[..., 1:],
+                      (self._Ou - u[..., 0:1]) * ox[..., :1] + (self._Ov - v[..., 0:1]) * oy[..., :1])
+        at_end = co < self._cos_end_zone
+        active = at_end & (ov > -self.cfg.hinge_px)
+        r_t = np.where(at_end, np.maximum(ov, 0.0), 0.0)
+        r = np.concatenate([ru, rv, r_n, r_t], axis=2).reshape(P, -1)
+        if not jacobian:
+            return r, None, valid
+
+        # d(u, v)/d(camera-frame point) rows: a_u = [fx, sk, -(fx x + sk y)] / z, a_v = [0, fy, -fy y] / z
+        au = np.stack([self._fx * iz, self._sk * iz, -(self._fx * x + self._sk * y) * iz], axis=-1)
+        av = np.stack([np.zeros_like(iz), self._fy * iz, -self._fy * y * iz], axis=-1)
+        ac = nx[..., None] * au[..., 5:, :] + ny[..., None] * av[..., 5:, :]
+        a_end = np.where(at_e[..., None], -(ex[..., None] * au[..., 4:5, :] + ey[..., None] * av[..., 4:5, :]),
+                         -(ex[..., None] * au[..., 0:1, :] + ey[..., None] * av[..., 0:1, :]))
+        a_end = a_end * active[..., None]
+        w_end = np.where(at_e[..., None], W[..., 4:5, :], W[..., 0:1, :])
+        A = np.concatenate([au[..., :5, :], av[..., :5, :], ac, a_end], axis=2)     # (P, C, n_c, 3)
+        Wr = np.concatenate([W[..., :5, :], W[..., :5, :], W[..., 5:, :], w_end], axis=2)
+        # a point moves by dr_c x w + dt_c (camera-frame increments): d/d dr_c = w x a
+        cr = np.stack([Wr[..., 1] * A[..., 2] - Wr[..., 2] * A[..., 1],
+                       Wr[..., 2] * A[..., 0] - Wr[..., 0] * A[..., 2],
+                       Wr[..., 0] * A[..., 1] - Wr[..., 1] * A[..., 0]], axis=-1)
+        J = (np.concatenate([cr, A], axis=-1) @ self._Bc).reshape(P, -1, 6)
+        return r, J, valid
+
     def linearise(self, R, t, start=None):
-        """Residuals (K, n), forward-difference Jacobians (K, n, 6) w.r.t. the ECM increment
-        [dr, dt], the observed points' feet (start for the next poses) and validity, of K
-        poses: all 7K evaluations in one batch. ``start``: see ``feet``."""
-        K = len(R)
-        h = _Static.FD_STEP
-        Rs = np.concatenate([R, (self._E[:, None] @ R[None]).reshape(3 * K, 3, 3), np.tile(R, (3, 1, 1))])
-        ts = np.concatenate([np.tile(t, (4, 1)), (t[None] + np.eye(3)[:, None] * h[3:, None, None]).reshape(3 * K, 3)])
+        """Residuals (K, n), Jacobians (K, n, 6) w.r.t. the ECM increment [dr, dt], the observed
+        points' feet (a start for nearby poses) and validity of K poses. ``start``: see ``feet``."""
         co, si = self.feet(R, t, start)
-        r, (co, si), valid = self.residuals(Rs, ts, (np.tile(co, (7, 1, 1)), np.tile(si, (7, 1, 1))))
-        co, si = co[:K], si[:K]
-        r = r.reshape(7, K, -1)
-        J = np.moveaxis((r[1:] - r[:1]) / h[:, None, None], 0, 2)
-        # The overshoot counts only for points whose foot is at an end (elsewhere the projected
-        # arc may curve back past an end's tangent), as a hinge max(ov, 0). Its kink sits
-        # exactly at a point lying at an end (an exact observation's first and last points), so
-        # the Jacobian takes the smooth ov's slope wherever ov is above -hinge_px: the linear
-        # model then sees the end.
-        at_end = np.concatenate([np.zeros((K, self.C, 10 + self.M), bool), co < self._cos_end_zone],
-                                axis=2).reshape(K, -1)
-        r0 = r[0]
-        J *= (~self._is_over | (at_end & (r0 > -self.cfg.hinge_px)))[..., None]
-        return np.where(self._is_over, np.where(at_end, np.maximum(r0, 0.0), 0.0), r0), J, (co, si), valid[:K]
+        r, J, valid = self.evaluate(R, t, (co, si))
+        return r, J, (co, si), valid
 
     def robust(self, r):
         """Per-residual Cauchy cost and IRLS weight (prior weights included)."""

@@ -260,3 +260,85 @@ def test_pipeline_offline_end_to_end_five_views():
     T_en_last = inv_T(truths[-1].T_world_ecm) @ T_wn
     dt, dr = pose_error(fused[-1].T_ecm_needle, T_en_last)
     assert dt < 1e-6 and dr < np.deg2rad(1e-4)
+
+
+# ---------------------------------------------------------------------- in a launched graph
+
+def _multiview_dataset(folder, n_frames=10):
+    """A still needle, the ECM yawing 0.05 rad per frame (back and forth), as a dataset folder."""
+    from common.dataset import DatasetMeta, DatasetWriter, Frame, project_keypoints
+    w, h = 1920, 1080
+    meta = DatasetMeta((w, h), StereoRig.default(w, h), MODEL, ARM, "geometry graph test")
+    img = np.full((h, w, 3), 90, np.uint8)
+    rng = np.random.default_rng(11)
+    T_wn = ARM.T_world_ecm([0, 0, 0.05, 0]) @ random_needle_pose(rng, RIG, MODEL, max_offaxis=0.15)
+    with DatasetWriter(folder, meta) as wr:
+        for i in range(n_frames):
+            k = i % 8 if i % 8 < 5 else 8 - i % 8          # 0 1 2 3 4 3 2 1 0 ...
+            q = np.array([-0.1 + 0.05 * k, 0.0, 0.05, 0.0])
+            paths = wr.write_images(i, {"left": img, "right": img})
+            T_we = ARM.T_world_ecm(q)
+            wr.append(Frame(index=i, stamp_ns=i * 100_000_000, left=paths["left"], right=paths["right"],
+                            sequence=0, step=i, ecm_joints=q, T_world_ecm=T_we, T_world_needle=T_wn,
+                            keypoints=project_keypoints(meta, T_we, T_wn)))
+    return T_wn
+
+
+def test_nodes_in_a_launched_graph_match_the_library(run_graph, tmp_path):
+    T_wn = _multiview_dataset(tmp_path / "ds")
+    stereo = {"left": "detector/left", "right": "detector/right", "calib": "camera/calib", "ecm": "ecm/pose"}
+    g = run_graph({"nodes": [
+        {"id": "camera", "module": "replay", "outputs": ["left", "right", "joints", "truth", "calib", "eos"],
+         "params": {"path": str(tmp_path / "ds"), "rate": 10, "loop": True}},
+        {"id": "detector", "module": "detector", "params": {"backend": "oracle", "noise_px": 0.3, "seed": 2},
+         "inputs": {"left": "camera/left", "right": "camera/right", "truth": "camera/truth",
+                    "calib": "camera/calib"}, "outputs": ["left", "right"]},
+        {"id": "ecm", "module": "ecm", "inputs": {"joints": "camera/joints", "calib": "camera/calib"},
+         "outputs": ["pose"]},
+        {"id": "epnp_joint", "module": "epnp", "params": {"method": "joint"}, "inputs": stereo, "outputs": ["pose"]},
+        {"id": "epnp_average", "module": "epnp", "params": {"method": "average"}, "inputs": stereo,
+         "outputs": ["pose"]},
+        {"id": "triangulate", "module": "triangulate", "inputs": stereo, "outputs": ["pose", "points"]},
+        {"id": "fusion", "module": "fusion", "inputs": {"pose": "epnp_joint/pose", "ecm": "ecm/pose",
+                                                        "truth": "camera/truth"}, "outputs": ["pose"]},
+    ]}, timeout=90)
+    subs = {k: g.subscribe(k) for k in ("detector/left", "detector/right", "ecm/pose", "epnp_joint/pose",
+                                         "epnp_average/pose", "triangulate/pose", "triangulate/points",
+                                         "fusion/pose")}
+    fused = subs["fusion/pose"].wait(8, timeout=90)
+    kps = {(m.camera, m.seq): m for k in ("detector/left", "detector/right") for m in subs[k].messages}
+    ecm = {m.seq: m for m in subs["ecm/pose"].messages}
+    joint = {m.seq: m for m in subs["epnp_joint/pose"].messages}
+    checked = 0
+    for key, f in (("epnp_joint/pose", pnp_joint), ("epnp_average/pose", pnp_average),
+                   ("triangulate/pose", triangulation_pose)):
+        for p in subs[key].messages:
+            if ("left", p.seq) not in kps or ("right", p.seq) not in kps:
+                continue
+            l, r = kps["left", p.seq], kps["right", p.seq]
+            ref = f({"left": l.uv, "right": r.uv}, RIG, P, {"left": l.scores, "right": r.scores})
+            assert np.allclose(p.T_ecm_needle, ref.T_ecm_needle, atol=1e-9), key
+            if p.seq in ecm:
+                assert np.allclose(p.T_world_needle, ecm[p.seq].T_world_ecm @ p.T_ecm_needle)
+                assert pose_error(p.T_world_needle, T_wn)[0] < 0.02
+            checked += 1
+    assert checked >= 9
+    for s, m in ecm.items():
+        assert np.allclose(m.T_world_ecm, ARM.T_world_ecm(m.q), atol=1e-12)
+    # the fused pose: the library's fusion of the same joint estimates, mapped by the same ECM poses
+    from common.fusion import MultiViewFusion
+    done = 0
+    for fp in fused[5:]:
+        seqs = list(range(fp.seq - 4, fp.seq + 1))
+        if not all(s in joint and s in ecm for s in seqs):
+            continue
+        lib = MultiViewFusion(k=5)
+        for s in seqs:
+            out = lib.add(joint[s].T_ecm_needle, ecm[s].T_world_ecm, joint[s].covariance)
+        assert np.allclose(fp.T_ecm_needle, out.T_ecm_needle, atol=1e-9)
+        assert fp.n_views == out.n_views and fp.method == "multiview" and fp.sequence == 0
+        done += 1
+    assert done >= 1
+    for node in ("detector", "ecm", "epnp_joint", "epnp_average", "triangulate", "fusion"):
+        st = g.stats(node)
+        assert st.counters.get("handler_errors", 0) == 0 and st.counters.get("decode_errors", 0) == 0, node
