@@ -1,0 +1,94 @@
+"""``needletrack eval`` through the real graph on a small generated dataset (480x270)."""
+import json
+import shutil
+
+import numpy as np
+import pytest
+
+from common.dataset_cli import main as dataset_main
+from common.evaluation import METHODS, check_results
+from common.evaluation_cli import main as eval_main
+
+
+@pytest.fixture(scope="module")
+def small_dataset(tmp_path_factory):
+    path = tmp_path_factory.mktemp("eval") / "ds"
+    rc = dataset_main(["generate", "--out", str(path), "--sequences", "3", "--steps", "3",
+                       "--width", "480", "--height", "270", "--seed", "3", "--randomise", "none",
+                       "--jobs", "1", "--quiet"])
+    assert rc == 0
+    return path
+
+
+def run_eval(dataset, out, *extra):
+    rc = eval_main(["--dataset", str(dataset), "--detector", "oracle", "--out", str(out), "--quiet",
+                    "--timeout", "120", *extra])
+    assert rc == 0
+    return json.loads((out / "results.json").read_text())
+
+
+def test_oracle_without_noise_gives_zero_errors(small_dataset, tmp_path):
+    res = run_eval(small_dataset, tmp_path)
+    assert check_results(res) == []
+    assert res["frames"] == 9 and res["detector"] == "oracle"
+    assert res["detection_rate"] == 1.0
+    assert res["keypoints_2d_px"]["all"]["mean"] < 1e-6
+    assert res["keypoints_3d_mm"]["all"]["mean"] < 1e-6
+    for m in ("pnp_joint", "triangulation", "multiview"):
+        d = res["pose"][m]
+        assert d["n"] == d["expected"] == (3 if m == "multiview" else 9), m
+        assert d["position_mm"]["max"] < 1e-4, m
+        assert d["orientation_deg"]["max"] < 1e-3, m
+    assert res["pose"]["pnp_average"]["n"] >= 1
+    t = res["timing"]
+    assert t["throughput_hz"] > 0 and t["latency_ms"]["p50"] > 0
+    assert {"detector", "epnp_joint", "fusion"} <= set(t["per_node_ms"])
+    assert (tmp_path / "report.md").read_text().count("| pnp_joint |") == 1
+    assert (tmp_path / "error_vs_distance.png").stat().st_size > 10_000
+    assert any((tmp_path / "overlays").glob("*worst*.png"))
+
+
+def test_oracle_with_noise_gives_errors_of_the_expected_size(small_dataset, tmp_path):
+    res = run_eval(small_dataset, tmp_path, "--noise-px", "1.0", "--seed", "7")
+    assert check_results(res) == []
+    # Gaussian noise of 1 px per coordinate: radial error of mean sqrt(pi/2) = 1.25 px
+    k2 = res["keypoints_2d_px"]["all"]
+    assert k2["n"] == 90
+    assert 1.0 < k2["mean"] < 1.5 and 0.4 < k2["std"] < 0.9
+    # a pixel of noise moves a triangulated point by millimetres at 10-25 cm with a 4 mm baseline
+    assert 1.0 < res["keypoints_3d_mm"]["all"]["mean"] < 100.0
+    # shared/notes/pose-sensitivity.md: the joint stereo fit at 1 px averages a few mm
+    joint = res["pose"]["pnp_joint"]
+    assert joint["n"] == 9
+    assert 0.3 < joint["position_mm"]["mean"] < 50.0 and 0.3 < joint["orientation_deg"]["mean"] < 90.0
+    # triangulation may refuse frames (registration RMS above its bound): failures, counted
+    tri = res["pose"]["triangulation"]
+    assert tri["n"] + tri["failures"] == 9 and tri["failure_rate"] == tri["failures"] / 9
+
+
+def test_broken_folder_fails_clearly(small_dataset, tmp_path, capsys):
+    broken = tmp_path / "broken"
+    shutil.copytree(small_dataset, broken)
+    lines = (broken / "frames.jsonl").read_text().splitlines()
+    frame = json.loads(lines[4])
+    frame["T_world_needle"] = [[1, 0, 0], [0, 1, 0]]
+    lines[4] = json.dumps(frame)
+    (broken / "frames.jsonl").write_text("\n".join(lines) + "\n")
+    rc = eval_main(["--dataset", str(broken), "--detector", "oracle", "--out", str(tmp_path / "o"), "--quiet"])
+    err = capsys.readouterr().err
+    assert rc == 2
+    assert "frames.jsonl:5" in err and "T_world_needle" in err
+    assert not (tmp_path / "o" / "results.json").exists()
+
+
+def test_folder_without_ground_truth_is_refused(small_dataset, tmp_path, capsys):
+    bare = tmp_path / "bare"
+    shutil.copytree(small_dataset, bare)
+    lines = [json.loads(l) for l in (bare / "frames.jsonl").read_text().splitlines()]
+    for d in lines:
+        for k in ("T_world_needle", "keypoints", "visible", "bbox"):
+            d.pop(k, None)
+    (bare / "frames.jsonl").write_text("".join(json.dumps(d) + "\n" for d in lines))
+    rc = eval_main(["--dataset", str(bare), "--detector", "oracle", "--out", str(tmp_path / "o"), "--quiet"])
+    err = capsys.readouterr().err
+    assert rc == 2 and "frames.jsonl:1" in err and "T_world_needle: missing" in err
