@@ -200,8 +200,10 @@ class _Static:
         self._cos_half, self._sin_half = np.cos(self.half), np.sin(self.half)
         self._flip = np.array([1.0, -1.0])
         kp_ang = needle.keypoint_angles_rad - self.mid               # A..E about the middle
-        self._kp_co = np.broadcast_to(np.cos(kp_ang), (1, C, 5))
-        self._kp_si = np.broadcast_to(np.sin(kp_ang), (1, C, 5))
+        self._kp_cs = np.stack([np.cos(kp_ang), np.sin(kp_ang)], axis=1)   # (5, 2)
+        self._end_cs = np.array([[np.cos(self.half), -np.sin(self.half)],
+                                 [np.cos(self.half), np.sin(self.half)]])  # A, E
+        self._perp = np.array([-1.0, 1.0])           # (cos, sin)[::-1] * perp = d/d angle
         self._Bc = np.zeros((1, C, 6, 6))                            # camera -> ECM increments
         self._Bc[0, :, :3, :3] = self.Rc
         self._Bc[0, :, 3:, 3:] = self.Rc
@@ -251,6 +253,10 @@ class _Problem:
         self.wp = np.concatenate([wU, wU, wO, wO], axis=1).ravel()
         self._Uu, self._Uv = U[None, :, :, 0], U[None, :, :, 1]
         self._Ou, self._Ov = O[None, :, :, 0], O[None, :, :, 1]
+        # the same padded in front with the keypoints, for the feet's Newton steps (which
+        # leave the keypoints' angles alone)
+        self._Opu = np.concatenate([U[None, :, :, 0], self._Ou], axis=2)
+        self._Opv = np.concatenate([U[None, :, :, 1], self._Ov], axis=2)
 
     def _axes(self, R, t):
         """Needle pose in each camera (P, C, ...): translation, and E (P, C, 2, 6) with rows
@@ -262,11 +268,12 @@ class _Problem:
         E = np.swapaxes(self.Rc[None] @ (R @ self._W)[:, None], 2, 3).reshape(len(R), self.C, 2, 6)
         return tcam, E
 
-    def _project_arc(self, co, si, E, t4, full: bool = False):
-        """Pixels (u, v) of arc points (P, C, N) at angle (co, si) and their derivatives
-        (du, dv) along the arc (per radian); ``t4`` the camera-frame origin (P, C, 1, 3). With
-        ``full`` also the depth z, 1/z, normalised x, y and the points less the origin."""
-        XT = np.stack([co, si], axis=-1) @ E
+    def _project_arc(self, cs, E, t4, full: bool = False):
+        """Pixels (u, v) of arc points (P, C, N) at angles given as (cos, sin) ``cs`` (P, C, N, 2)
+        and their derivatives (du, dv) along the arc (per radian); ``t4`` the camera-frame
+        origin (P, C, 1, 3). With ``full`` also the depth z, 1/z, normalised x, y and the
+        points less the origin."""
+        XT = cs @ E
         W = XT[..., :3]
         z = W[..., 2] + t4[..., 2]
         iz = 1.0 / np.maximum(z, 1e-9)
@@ -277,45 +284,47 @@ class _Problem:
         return out + (z, iz, x, y, W) if full else out
 
     def nearest_samples(self, E, t4):
-        """Start of each observed point's foot on the arc, (cos, sin) (P, C, M) of its angle from
-        the arc's middle: the nearest of ``n_samples`` projected arc points."""
+        """Starts (P, C, 5 + M, 2) of the feet: (cos, sin) of the angle from the arc's middle of
+        the keypoints A..E, then for each observed point the nearest of ``n_samples`` projected
+        arc points."""
         X = self._samples @ E[..., :3] + t4                                # (P, C, S, 3)
         iz = 1.0 / np.maximum(X[..., 2], 1e-9)
         x, y = X[..., 0] * iz, X[..., 1] * iz
         u = (self._fx * x + self._sk * y + self._cx)[:, :, None, :]
         v = (self._fy * y + self._cy)[:, :, None, :]
-        k = np.argmin((u - self._Ou[..., None]) ** 2 + (v - self._Ov[..., None]) ** 2, axis=3)
-        return self._samples[k, 0], self._samples[k, 1]
+        k = ((u - self._Ou[..., None]) ** 2 + (v - self._Ov[..., None]) ** 2).argmin(axis=3)
+        cs = np.empty(k.shape[:2] + (5 + self.M, 2))
+        cs[:, :, :5] = self._kp_cs
+        cs[:, :, 5:] = self._samples[k]
+        return cs
 
-    def _newton(self, co, si, E, t4, steps):
-        """``steps`` Newton steps of the feet (cos, sin) along the projected arc towards the
-        observed points, clamped to the arc."""
+    def _newton(self, cs, E, t4, steps):
+        """``steps`` Newton steps of the feet ``cs`` (the part after the 5 keypoints) along the
+        projected arc towards the observed points, clamped to the arc."""
         for _ in range(steps):
-            u, v, tu, tv = self._project_arc(co, si, E, t4)
-            du, dv = u - self._Ou, v - self._Ov
-            step = np.clip(-(tu * du + tv * dv) / np.maximum(tu * tu + tv * tv, 1e-300), -0.5, 0.5)
-            inv = 1.0 / np.sqrt(1.0 + step * step)
-            co, si = self._clamp((co - si * step) * inv, (si + co * step) * inv)
-        return co, si
-
-    def _clamp(self, co, si):
-        """Arc points (cos, sin of the angle from the arc's middle) clamped to the arc's span."""
-        beyond = co < self._cos_half
-        return (np.where(beyond, self._cos_half, co),
-                np.where(beyond, np.copysign(self._sin_half, si), si))
+            u, v, tu, tv = self._project_arc(cs, E, t4)
+            du, dv = u - self._Opu, v - self._Opv
+            step = -(tu * du + tv * dv) / np.maximum(tu * tu + tv * tv, 1e-300)
+            step = np.minimum(np.maximum(step, -0.5), 0.5)[..., None]
+            cs = (cs + step * cs[..., ::-1] * self._perp) / np.sqrt(1.0 + step * step)
+            beyond = cs[..., :1] < self._cos_half
+            cs = np.where(beyond, np.where(cs[..., 1:] > 0, self._end_cs[1], self._end_cs[0]), cs)
+            cs[:, :, :5] = self._kp_cs
+        return cs
 
     def feet(self, R, t, start=None):
-        """Feet on the arc (cos, sin) (K, C, M) of the observed points for poses (R, t): from
+        """Feet (K, C, 5 + M, 2) for poses (R, t): (cos, sin) of the arc angles (from the arc's
+        middle) of the keypoints and of each observed point's nearest arc point. From
         ``start`` (the feet at a nearby pose: ``warm_steps`` Newton steps) or else from the
         nearest of ``n_samples`` projected arc points (``foot_steps`` Newton steps)."""
         tcam, E = self._axes(R, t)
         t4 = tcam[:, :, None, :]
-        co, si = self.nearest_samples(E, t4) if start is None else start
-        return self._newton(co, si, E, t4, self.cfg.foot_steps if start is None else self.cfg.warm_steps)
+        cs = self.nearest_samples(E, t4) if start is None else start
+        return self._newton(cs, E, t4, self.cfg.foot_steps if start is None else self.cfg.warm_steps)
 
     def evaluate(self, R, t, feet, jacobian: bool = True):
-        """Residuals (P, n) in px of P poses ``(R (P,3,3), t (P,3))`` with the observed points'
-        feet (cos, sin) (P, C, M) on the arc held fixed, their Jacobians (P, n, 6) w.r.t. the
+        """Residuals (P, n) in px of P poses ``(R (P,3,3), t (P,3))`` with the ``feet`` (P, C,
+        5 + M, 2) (see ``feet``) held fixed, their Jacobians (P, n, 6) w.r.t. the
         ECM increment [dr, dt] (None unless ``jacobian``), and whether each pose keeps the
         keypoints and the needle's centre in front of both cameras.
 
@@ -326,14 +335,11 @@ class _Problem:
         the point's distance to the arc. The distance's derivative at a foot needs no foot
         derivative (envelope theorem); the overshoot's leaves out the turn of the end's tangent.
         """
-        P, C, M = len(R), self.C, self.M
+        P = len(R)
         tcam, E = self._axes(R, t)
         t4 = tcam[:, :, None, :]
-        co, si = feet
-        kp = (P, C, 5)
-        u, v, tu, tv, z, iz, x, y, W = self._project_arc(
-            np.concatenate([np.broadcast_to(self._kp_co, kp), co], axis=2),
-            np.concatenate([np.broadcast_to(self._kp_si, kp), si], axis=2), E, t4, full=True)
+        co, si = feet[:, :, 5:, 0], feet[:, :, 5:, 1]
+        u, v, tu, tv, z, iz, x, y, W = self._project_arc(feet, E, t4, full=True)
         valid = (z[..., :5].min(axis=(1, 2)) > self.cfg.min_depth_m) & \
             (tcam[..., 2].min(axis=1) > self.cfg.min_depth_m)
         ru, rv = u[..., :5] - self._Uu, v[..., :5] - self._Uv
@@ -375,9 +381,9 @@ class _Problem:
     def linearise(self, R, t, start=None):
         """Residuals (K, n), Jacobians (K, n, 6) w.r.t. the ECM increment [dr, dt], the observed
         points' feet (a start for nearby poses) and validity of K poses. ``start``: see ``feet``."""
-        co, si = self.feet(R, t, start)
-        r, J, valid = self.evaluate(R, t, (co, si))
-        return r, J, (co, si), valid
+        cs = self.feet(R, t, start)
+        r, J, valid = self.evaluate(R, t, cs)
+        return r, J, cs, valid
 
     def robust(self, r):
         """Per-residual Cauchy cost and IRLS weight (prior weights included)."""
@@ -433,12 +439,14 @@ def _orthonormalise(R):
     return U @ Vt
 
 
-def mirror_pose(T_ecm_needle: np.ndarray, needle: NeedleModel, eye_ecm=np.zeros(3)) -> np.ndarray:
+def mirror_pose(T_ecm_needle: np.ndarray, needle: NeedleModel, eye_ecm=np.zeros(3),
+                _centroid=None) -> np.ndarray:
     """The planar arc's mirror solution: reflected about the plane through the arc's centroid
     normal to the line of sight from ``eye_ecm``. Under weak perspective it projects onto the
     same image curve (an arc seen edge-on bulging towards instead of away from the camera)."""
     R, t = T_ecm_needle[:3, :3], T_ecm_needle[:3, 3]
-    m = R @ needle.sample_arc(64).mean(0) + t
+    c = needle.sample_arc(64).mean(0) if _centroid is None else _centroid
+    m = R @ c + t
     v = m - eye_ecm
     v = v / np.linalg.norm(v)
     Mref = np.eye(3) - 2.0 * np.outer(v, v)
@@ -461,10 +469,10 @@ def _lm(prob: _Problem, R, t, cfg: RefineConfig, n_iter: int, state=None):
     terms, or after ``max_reject`` rejected steps in a row (a cost at rounding level)."""
     K = len(R)
     if state is None:
-        r, J, (co, si), valid = prob.linearise(R, t)
-        rho, _ = prob.robust(r)
+        r, J, cs, valid = prob.linearise(R, t)
+        rho, wr = prob.robust(r)
         cost = np.where(valid & np.all(np.isfinite(r), axis=1), rho.sum(1), np.inf)
-        state = dict(R=R, t=t, r=r, J=J, co=co, si=si, cost=cost, lam=np.full(K, 1e-3),
+        state = dict(R=R, t=t, r=r, J=J, cs=cs, wr=wr, cost=cost, lam=np.full(K, 1e-3),
                      rej=np.zeros(K, int), done=~np.isfinite(cost), iters=0)
     s = state
     dof = max(prob.n_res - 6, 1)
@@ -474,8 +482,7 @@ def _lm(prob: _Problem, R, t, cfg: RefineConfig, n_iter: int, state=None):
         if len(act) == 0:
             break
         s["iters"] += 1
-        r, J = s["r"][act], s["J"][act]
-        _, wr = prob.robust(r)
+        r, J, wr = s["r"][act], s["J"][act], s["wr"][act]
         JtW = np.swapaxes(J * wr[..., None], 1, 2)
         H = JtW @ J
         g = (JtW @ r[..., None])[..., 0]
@@ -491,14 +498,14 @@ def _lm(prob: _Problem, R, t, cfg: RefineConfig, n_iter: int, state=None):
         tn = s["t"][act] + dx[:, 3:]
         # Feet: carried over from the current poses, searched afresh after a large step.
         big = np.max(np.abs(dx[:, :3])) > cfg.research_rad or np.max(np.abs(dx[:, 3:])) > cfg.research_m
-        warm = None if big else (s["co"][act], s["si"][act])
-        rn, Jn, (con, sin_), validn = prob.linearise(Rn, tn, warm)
-        rho_n, _ = prob.robust(rn)
+        warm = None if big else s["cs"][act]
+        rn, Jn, csn, validn = prob.linearise(Rn, tn, warm)
+        rho_n, wr_n = prob.robust(rn)
         cost_n = np.where(validn & np.all(np.isfinite(rn), axis=1), rho_n.sum(1), np.inf)
         old = s["cost"][act]
         acc = cost_n <= old
         ia = act[acc]
-        for key, val in (("R", Rn), ("t", tn), ("r", rn), ("J", Jn), ("co", con), ("si", sin_),
+        for key, val in (("R", Rn), ("t", tn), ("r", rn), ("J", Jn), ("cs", csn), ("wr", wr_n),
                          ("cost", cost_n)):
             s[key][ia] = val[acc]
         s["lam"][ia] = np.maximum(s["lam"][ia] / 3.0, 1e-9)
@@ -507,7 +514,7 @@ def _lm(prob: _Problem, R, t, cfg: RefineConfig, n_iter: int, state=None):
         s["rej"][act[~acc]] += 1
         quad = (dx[:, None, :] @ H @ dx[..., None])[:, 0, 0]
         within = acc & (quad < cfg.step_tol * old / dof)
-        small = (np.linalg.norm(dx[:, :3], axis=1) < 1e-11) & (np.linalg.norm(dx[:, 3:], axis=1) < 1e-12)
+        small = (np.abs(dx[:, :3]).max(axis=1) < 1e-11) & (np.abs(dx[:, 3:]).max(axis=1) < 1e-12)
         s["done"][act] |= within | small | (s["rej"][act] >= cfg.max_reject)
     return s
 
@@ -533,7 +540,8 @@ class DenseRefiner:
         # Starts closer than merge_mm / merge_deg would converge to the same minimum: keep one.
         starts: list[np.ndarray] = []
         eye = st.cam_centres.mean(0)
-        mirrors = [mirror_pose(T, self.needle, eye) for T in cands] if cfg.add_mirrors else []
+        mirrors = ([mirror_pose(T, self.needle, eye, st.arc_centroid) for T in cands]
+                   if cfg.add_mirrors else [])
         for T in cands + mirrors:
             if not _near_any(T, starts, cfg.merge_mm, cfg.merge_deg):
                 starts.append(T)

@@ -235,6 +235,33 @@ def test_competing_minima_inflate_the_covariance_to_cover_each_other():
 
 # ------------------------------------------------------------------ pieces and bad input
 
+def test_analytic_jacobian_matches_finite_differences():
+    """With the feet held, keypoint and curve-distance rows are the residuals' exact
+    derivatives (at a foot the distance needs no foot derivative)."""
+    from common.refine import _Problem
+    rng = np.random.default_rng(21)
+    T = random_pose(rng)
+    obs = observe(T, rng, kp_px=1.0, curve_px=0.5)
+    prob = _Problem(REFINER._static, obs)
+    T0 = perturb(T, rng, deg=0.5, mm=0.3)
+    R0, t0 = T0[None, :3, :3], T0[None, :3, 3]
+    cs = prob.feet(R0, t0)
+    r, J, valid = prob.evaluate(R0, t0, cs)
+    assert valid[0]
+    Jfd = np.zeros_like(J)
+    for i, h in enumerate([1e-6] * 3 + [1e-7] * 3):
+        d = np.zeros(6)
+        d[i] = h
+        rp = prob.evaluate(rotvec_to_R(d[:3])[None] @ R0, t0 + d[3:], cs, jacobian=False)[0]
+        rm = prob.evaluate(rotvec_to_R(-d[:3])[None] @ R0, t0 - d[3:], cs, jacobian=False)[0]
+        Jfd[..., i] = (rp - rm) / (2 * h)
+    M = prob.M
+    rows = np.concatenate([np.ones((2, 10 + M), bool), np.zeros((2, M), bool)], axis=1).ravel()
+    rows &= prob.wp > 0
+    err = np.abs(J[0, rows] - Jfd[0, rows]) / np.abs(Jfd[0, rows]).max(axis=0)
+    assert err.max() < 1e-4, err.max()
+
+
 def test_mirror_pose_is_an_involution_and_looks_alike_far_away():
     rng = np.random.default_rng(8)
     T = random_pose(rng, dist=(0.24, 0.25))
