@@ -4,7 +4,7 @@ Each line: the frame ``seq`` and, per wired pose method, the position of the nee
 the ECM frame (mm) and its rotation vector (deg); when the truth is wired and known, each
 method's error against it (position mm / orientation deg), e.g.::
 
-    seq   412 | pnp_joint  t=[ 3.1 -7.9 -152.0]mm r=[ 171.2  12.0  -3.3]deg err 0.84mm 1.9deg | ...
+    seq   412 | pnp_joint t=[3.1 -7.9 -152.0]mm r=[171.2 12.0 -3.3]deg err 0.84mm 1.9deg | ...
 
 Params: ``every_s`` (default 1.0; 0 prints every frame), ``methods`` (list: which wired inputs to
 print, in order; default all wired).
@@ -30,8 +30,7 @@ def format_pose(T: np.ndarray) -> str:
     """``t=[x y z]mm r=[rx ry rz]deg``: origin (mm) and rotation vector (deg) of a pose."""
     t = T[:3, 3] * 1e3
     r = np.degrees(R_to_rotvec(T[:3, :3]))
-    return (f"t=[{t[0]:6.1f} {t[1]:6.1f} {t[2]:7.1f}]mm "
-            f"r=[{r[0]:6.1f} {r[1]:6.1f} {r[2]:6.1f}]deg")
+    return f"t=[{t[0]:.1f} {t[1]:.1f} {t[2]:.1f}]mm r=[{r[0]:.1f} {r[1]:.1f} {r[2]:.1f}]deg"
 
 
 def format_line(seq: int, poses: dict, T_true, methods) -> str:
