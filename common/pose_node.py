@@ -5,6 +5,10 @@ frame into a pose (``epnp``, ``triangulate``): it keeps the latest ``Calibration
 recent ``EcmPose`` messages by ``seq``, pairs left/right keypoints by ``seq`` and calls
 ``on_pair(left, right)``; it counts why a frame gave no pose (``no_pose.<reason>``) and builds
 the ``PoseEstimate`` with ``T_world_needle`` when the ECM pose of that frame is known.
+
+``publish_pose`` publishes a pose once its frame's ECM pose is in (with ``ecm`` wired): a pose
+computed before the ECM pose arrived waits for it, at most ``max_wait`` frames (param, default
+30), and then goes out without the world pose (counted ``no_ecm_pose``).
 """
 from __future__ import annotations
 
@@ -42,6 +46,9 @@ class StereoPoseNode(Node):
 
     def setup(self):
         self.min_score = float(self.params.get("min_score", 0.5))
+        self.max_wait = int(self.params.get("max_wait", 30))
+        self.waiting: list[tuple[str, PoseEstimate]] = []     # poses waiting for their ECM pose
+        self.newest_seq = -1
         self.calib: Calibration | None = None
         self.rig = None
         self.model_points = None
@@ -57,6 +64,7 @@ class StereoPoseNode(Node):
 
     def on_ecm(self, msg: EcmPose):
         self.ecm_poses.put(msg.seq, np.asarray(msg.T_world_ecm, dtype=float))
+        self._release()
 
     def on_left(self, msg: Keypoints):
         self._push(msg)
@@ -72,6 +80,8 @@ class StereoPoseNode(Node):
         pair = self.pairer.push(msg.camera, msg.seq, msg)
         if self.pairer.dropped > dropped:
             self.count("unpaired", self.pairer.dropped - dropped)
+        self.newest_seq = max(self.newest_seq, msg.seq)
+        self._release()
         if pair is None:
             return
         if self.rig is None:
@@ -96,6 +106,29 @@ class StereoPoseNode(Node):
     def no_pose(self, reason: str, seq: int, detail: str = "") -> None:
         self.count(f"no_pose.{reason}")
         self.log.debug("seq %d: no pose (%s) %s", seq, reason, detail)
+
+    def publish_pose(self, pose: PoseEstimate, output: str = "pose") -> None:
+        """Publish ``pose`` now, or once its frame's ECM pose is in (module docstring)."""
+        if pose.T_world_ecm is None and self.wired("ecm"):
+            self.waiting.append((output, pose))
+            self._release()
+        else:
+            self.publish(output, pose)
+
+    def _release(self) -> None:
+        keep = []
+        for output, pose in self.waiting:
+            T_world_ecm = self.ecm_poses.get(pose.seq)
+            if T_world_ecm is not None:
+                pose.T_world_ecm = T_world_ecm
+                pose.T_world_needle = T_world_ecm @ pose.T_ecm_needle
+                self.publish(output, pose)
+            elif self.newest_seq - pose.seq >= self.max_wait:
+                self.count("no_ecm_pose")
+                self.publish(output, pose)
+            else:
+                keep.append((output, pose))
+        self.waiting = keep
 
     def pose_message(self, seq: int, stamp_ns: int, method: str, T_ecm_needle, residual: float,
                      residual_unit: str, **extra) -> PoseEstimate:

@@ -1,7 +1,8 @@
 """Pipeline I node: needle pose from the stereo keypoints by PnP (common/pnp.py).
 
 Inputs: ``left``, ``right`` (Keypoints, paired by ``seq``), ``calib`` (Calibration), ``ecm``
-(EcmPose, optional: adds ``T_world_needle``). Output: ``pose`` (PoseEstimate, method
+(EcmPose, optional: adds ``T_world_ecm``/``T_world_needle``; when wired, a pose waits for its
+frame's ECM pose, at most ``max_wait`` frames, default 30). Output: ``pose`` (PoseEstimate, method
 ``pnp_average`` or ``pnp_joint``, residual = reprojection RMS in px).
 
 Params: ``method`` (``joint`` | ``average``, default joint); ``min_score`` (0.5);
@@ -53,7 +54,7 @@ class EpnpNode(StereoPoseNode):
         extra = {}
         if self.method == "joint":
             extra = {"covariance": res.covariance, "ambiguous": bool(res.ambiguous)}
-        self.publish("pose", self.pose_message(left.seq, left.stamp_ns, METHODS[self.method],
+        self.publish_pose(self.pose_message(left.seq, left.stamp_ns, METHODS[self.method],
                                                res.T_ecm_needle, res.rms_px, "px", **extra))
 
 

@@ -2,7 +2,8 @@
 (common/triangulation.py).
 
 Inputs: ``left``, ``right`` (Keypoints, paired by ``seq``), ``calib``, ``ecm`` (EcmPose,
-optional: adds ``T_world_needle``). Outputs: ``pose`` (PoseEstimate, method
+optional: adds ``T_world_ecm``/``T_world_needle``; when wired, a pose waits for its frame's ECM
+pose, at most ``max_wait`` frames, default 30). Outputs: ``pose`` (PoseEstimate, method
 ``triangulation``, residual = registration RMS in m, ``points_ecm`` the triangulated points)
 and ``points`` (Points3D, published for every frame with a valid calibration, NaN rows where a
 keypoint was not triangulated).
@@ -44,7 +45,7 @@ class TriangulateNode(StereoPoseNode):
             self.no_pose(exc.reason, left.seq, exc.detail)
         self.publish("points", Points3D(left.seq, left.stamp_ns, pts, np.asarray(valid, dtype=bool)))
         if res is not None:
-            self.publish("pose", self.pose_message(left.seq, left.stamp_ns, "triangulation",
+            self.publish_pose(self.pose_message(left.seq, left.stamp_ns, "triangulation",
                                                    res.T_ecm_needle, res.rms_m, "m",
                                                    points_ecm=res.points_ecm))
 

@@ -133,6 +133,28 @@ def test_epnp_node_matches_the_library(method):
         roundtrip(p)
 
 
+def test_a_pose_waits_for_its_ecm_pose():
+    rng = np.random.default_rng(5)
+    truths = [frame(s, random_needle_pose(rng, RIG, MODEL))[0] for s in range(3)]
+    left, right = detect(truths)
+    node = EpnpNode.offline({"method": "joint", "max_wait": 2}, wired=["left", "right", "calib", "ecm"])
+    node.on_calib(CALIB)
+    node.on_left(left[0])
+    node.on_right(right[0])
+    assert outputs(node, "pose") == []                       # computed, waiting for the ECM pose
+    node.on_ecm(EcmPose(0, 0, truths[0].T_world_ecm))
+    p, = outputs(node, "pose")
+    assert np.allclose(p.T_world_needle, truths[0].T_world_needle, atol=1e-9)
+    node.on_left(left[1])
+    node.on_right(right[1])                                  # its ECM pose never comes
+    node.on_left(left[2])
+    node.on_right(right[2])
+    assert len(outputs(node, "pose")) == 1
+    node.on_left(Keypoints.not_found("left", 3, 0, "oracle", "x"))   # frame 3: seq 1 is now stale
+    assert [q.seq for q in outputs(node, "pose")] == [0, 1]
+    assert outputs(node, "pose")[1].T_world_needle is None and node.counters["no_ecm_pose"] == 1
+
+
 def test_epnp_node_counts_no_pose_and_never_publishes_one():
     node = EpnpNode.offline({"method": "joint"}, wired=["left", "right", "calib"])
     kp = Keypoints("left", 0, 0, True, np.full((5, 2), 100.0), np.ones(5), 1.0)
