@@ -165,7 +165,8 @@ def sample_instruments(rng: np.random.Generator, T_world_needle: np.ndarray, nee
             off = rng.uniform(0.005, 0.009) * np.array([np.cos(ang), np.sin(ang)])
             lift = rng.uniform(0.004, 0.012)
         else:
-            ang = rng.uniform(0, 2 * np.pi)
+            # beside the needle on the trocar's side, so the shaft does not cross the needle
+            ang = np.arctan2(0.0, side) + rng.uniform(-1.2, 1.2)
             off = rng.uniform(0.018, 0.04) * np.array([np.cos(ang), np.sin(ang)])
             lift = rng.uniform(0.004, 0.025)
         xy = centre[:2] + off
