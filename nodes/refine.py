@@ -2,7 +2,8 @@
 an uncertainty (common/refine.py).
 
 Inputs: ``left``, ``right`` (Keypoints, paired by ``seq``; their ``centreline`` is the dense
-observation), ``calib`` (Calibration), ``ecm`` (EcmPose, optional: adds ``T_world_needle``).
+observation), ``calib`` (Calibration), ``ecm`` (EcmPose, optional: adds ``T_world_needle``; a
+pose then waits, at most ``max_wait`` frames, for its frame's ECM pose).
 Output: ``pose`` (PoseEstimate, method ``refined``; ``residual`` = RMS in px over the keypoints
 and centreline points used; ``covariance`` over [rotation vector (rad), translation (m)] in the
 ECM frame; ``ambiguous`` when competing solutions fit nearly as well or the arc is seen
@@ -89,9 +90,9 @@ class RefineNode(StereoPoseNode):
             return
         if res.ambiguous:
             self.count("ambiguous")
-        self.publish("pose", self.pose_message(left.seq, left.stamp_ns, "refined", res.T_ecm_needle,
-                                               res.rms_px, "px", covariance=res.covariance,
-                                               ambiguous=bool(res.ambiguous)))
+        self.publish_pose(self.pose_message(left.seq, left.stamp_ns, "refined", res.T_ecm_needle,
+                                            res.rms_px, "px", covariance=res.covariance,
+                                            ambiguous=bool(res.ambiguous)))
 
 
 NODE = RefineNode
