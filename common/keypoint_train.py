@@ -209,8 +209,12 @@ def prepare_records(data_dirs, out: Path, mcfg: ModelConfig, seed: int, progress
     """Records of all data folders, cached in ``out/records.npz`` keyed by the folders."""
     cache = out / "records.npz"
     key_path = out / "records.key"
-    key = json.dumps({"data": [str(Path(d).resolve()) for d in data_dirs],
-                      "downscale": mcfg.global_downscale, "seed": seed})
+    def stamp(d):  # a folder that grew (or changed) invalidates the cache
+        f = Path(d) / "frames.jsonl"
+        return [str(Path(d).resolve()), f.stat().st_size if f.is_file() else -1,
+                f.stat().st_mtime_ns if f.is_file() else -1]
+    key = json.dumps({"data": [stamp(d) for d in data_dirs], "downscale": mcfg.global_downscale,
+                      "seed": seed})
     if cache.is_file() and key_path.is_file() and key_path.read_text() == key:
         return load_cached(cache)
     records = []
