@@ -19,7 +19,7 @@ COMMANDS = {
     "swap": ("common.tools:swap_main", "replace a running node (make-before-break)"),
     "cmd": ("common.tools:cmd_main", "send a Command to a node"),
     "validate": ("common.tools:validate_main", "check a graph YAML and list every error"),
-    "bench": ("common.cli:bench_main", "benchmarks: transport, sim, detector, graph, refine"),
+    "bench": ("common.cli:bench_main", "benchmarks: transport, sim, detector, graph, refine, geometry"),
     "dataset": ("common.dataset_cli:main", "make and check datasets"),
     "train": ("common.keypoint_train:main", "train the keypoint detector"),
     "eval": ("common.evaluation_cli:main", "evaluate pose pipelines"),
@@ -31,6 +31,7 @@ BENCHES = {
     "detector": ("common.keypoint_bench:main", "keypoint detector speed and accuracy"),
     "graph": ("common.graph_bench:main", "the full graph end to end"),
     "refine": ("common.refine_bench:main", "dense pose refinement speed and accuracy (synthetic)"),
+    "geometry": ("common.geometry_eval:main", "pose methods (PnP, triangulation, fusion) vs keypoint noise, on the oracle"),
 }
 
 
