@@ -132,6 +132,10 @@ class Launcher:
         env["PYTHONPATH"] = os.pathsep.join([str(REPO_ROOT)] + [p for p in env.get("PYTHONPATH", "").split(os.pathsep) if p])
         env.update(PYTHONUNBUFFERED="1", NEEDLETRACK_GRAPH=str(self.graph_file), NEEDLETRACK_NODE=spec.id,
                    NEEDLETRACK_RESTARTS=str(restarts), NEEDLETRACK_STANDBY="1" if standby else "0")
+        # glibc would map and unmap every image-sized buffer (page faults on each frame: ~2x the
+        # CPU of a receiver); keep freed memory in the heap for reuse instead
+        env.setdefault("MALLOC_MMAP_THRESHOLD_", str(1 << 30))
+        env.setdefault("MALLOC_TRIM_THRESHOLD_", str(1 << 30))
         env.update(spec.env)
         if spec.module:
             argv = [sys.executable, "-m", "common.node", "--graph", str(self.graph_file), "--node", spec.id]
