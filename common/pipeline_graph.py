@@ -19,6 +19,7 @@ import socket
 import sys
 import threading
 import time
+from pathlib import Path
 from typing import Optional
 
 from common.graph import graph_from_dict, live_key, module_info
@@ -42,6 +43,7 @@ def pipeline_graph(dataset: str, *, detector: str = "learned", detector_params: 
                    rate="max", port: Optional[int] = None, name: str = "needletrack-eval",
                    refine: Optional[bool] = None, loop: bool = False, count: int = 0,
                    sinks: Optional[list] = None, lossless: bool = False,
+                   split_detector: bool = False,
                    start_delay_s: float = 1.0) -> dict:
     """The graph document of the whole pipeline on a replayed dataset folder.
 
@@ -50,6 +52,7 @@ def pipeline_graph(dataset: str, *, detector: str = "learned", detector_params: 
     caller with the ids used here. Every node runs with ``restart: never``: a run that loses a
     node is a failed run, not one to patch up silently.
 
+    ``split_detector``: one detector process per camera (``detector_left``, ``detector_right``).
     ``lossless``: every pipeline node runs through ``lossless_command``: each of its inputs
     queues every message instead of keeping the newest (an evaluation scores every frame,
     whatever the machine's load), and the source waits ``start_delay_s`` after joining the
@@ -62,17 +65,26 @@ def pipeline_graph(dataset: str, *, detector: str = "learned", detector_params: 
     det_params = {"backend": detector, **(detector_params or {})}
     nodes = [
         {"id": SOURCE, "module": "replay",
-         "params": {"path": str(dataset), "rate": rate, "loop": bool(loop), "count": int(count)},
-         "outputs": ["left", "right", "joints", "truth", "calib", "eos"]},
-        {"id": "detector", "module": "detector", "params": det_params,
-         "inputs": {"left": "replay/left", "right": "replay/right", "truth": "replay/truth",
-                    "calib": "replay/calib"},
-         "outputs": ["left", "right"]},
+         "params": {"path": str(Path(dataset).resolve()), "rate": rate, "loop": bool(loop),
+                    "count": int(count)},
+         "outputs": ["left", "right", "joints", "truth", "calib", "eos"]}]
+    if split_detector:   # one process per camera: the two images are detected in parallel
+        for cam in ("left", "right"):
+            nodes.append({"id": f"detector_{cam}", "module": "detector", "params": dict(det_params),
+                          "inputs": {cam: f"replay/{cam}", "truth": "replay/truth",
+                                     "calib": "replay/calib"},
+                          "outputs": [cam]})
+    else:
+        nodes.append({"id": "detector", "module": "detector", "params": det_params,
+                      "inputs": {"left": "replay/left", "right": "replay/right",
+                                 "truth": "replay/truth", "calib": "replay/calib"},
+                      "outputs": ["left", "right"]})
+    kp = keypoint_sources(split_detector)
+    nodes += [
         {"id": "ecm", "module": "ecm", "inputs": {"joints": "replay/joints", "calib": "replay/calib"},
          "outputs": ["pose"], "env": one},
     ]
-    stereo = {"left": "detector/left", "right": "detector/right", "calib": "replay/calib",
-              "ecm": "ecm/pose"}
+    stereo = {**kp, "calib": "replay/calib", "ecm": "ecm/pose"}
     for method in ("average", "joint"):
         nodes.append({"id": f"epnp_{method}", "module": "epnp", "params": {"method": method},
                       "inputs": dict(stereo), "outputs": ["pose"], "env": one})
@@ -100,6 +112,13 @@ def pipeline_graph(dataset: str, *, detector: str = "learned", detector_params: 
         n.setdefault("restart", "never")
     return {"graph": name, "zenoh": {"mode": "peer", "listen": [f"tcp/127.0.0.1:{port}"]},
             "nodes": nodes}
+
+
+def keypoint_sources(split_detector: bool) -> dict:
+    """``{"left": "node/output", "right": ...}``: where the detector's keypoints come out."""
+    if split_detector:
+        return {"left": "detector_left/left", "right": "detector_right/right"}
+    return {"left": "detector/left", "right": "detector/right"}
 
 
 POSE_OUTPUTS = {"pnp_average": "epnp_average/pose", "pnp_joint": "epnp_joint/pose",

@@ -8,6 +8,7 @@ import pytest
 from common.dataset_cli import main as dataset_main
 from common.evaluation import METHODS, check_results
 from common.evaluation_cli import main as eval_main
+from common.graph_bench import main as bench_main
 
 
 @pytest.fixture(scope="module")
@@ -92,3 +93,18 @@ def test_folder_without_ground_truth_is_refused(small_dataset, tmp_path, capsys)
     rc = eval_main(["--dataset", str(bare), "--detector", "oracle", "--out", str(tmp_path / "o"), "--quiet"])
     err = capsys.readouterr().err
     assert rc == 2 and "frames.jsonl:1" in err and "T_world_needle: missing" in err
+
+
+def test_bench_reports_throughput_latency_and_nodes(small_dataset, tmp_path, capsys):
+    """``needletrack bench graph`` on the live graph: figures printed, none asserted on time."""
+    out = tmp_path / "bench.json"
+    rc = bench_main(["graph", "--dataset", str(small_dataset), "--detector", "oracle",
+                     "--duration", "3", "--warmup", "1.5", "--json", str(out)])
+    assert rc == 0
+    r = json.loads(out.read_text())
+    assert r["published_hz"] > 5 and r["throughput_hz"] > 0
+    assert r["latency_ms"]["p50"] > 0 and r["latency_ms"]["p99"] >= r["latency_ms"]["p50"]
+    assert {"replay", "detector_left", "detector_right", "epnp_joint", "fusion"} <= set(r["per_node"])
+    assert r["stages"]["pnp_joint"]["rate_hz"] > 0
+    text = capsys.readouterr().out
+    assert "end to end" in text and "latency" in text and "epnp_joint" in text

@@ -1,0 +1,277 @@
+"""``needletrack bench [graph] [--dataset DIR]``: the live pipeline's speed, end to end.
+
+The whole graph (``common.pipeline_graph``: replay -> detector -> epnp, triangulate, ecm,
+fusion, refine) as deployed, i.e. with newest-only inputs, fed by the replay source looping over
+a 1920x1080 stereo dataset at the endoscope's 30 Hz (``--rate``; ``max``: as fast as it goes). After a warm-up it measures
+for ``--duration`` seconds:
+
+- frames/s published by the source and frames/s that come out as a fused pose (end to end);
+- latency from frame publish (``CameraImage.stamp_ns``, wall clock) to the fused pose, p50/p99,
+  and to each stage's output (keypoints, each pose method);
+- each node's CPU share and CPU time per published frame (from /proc over the window), its
+  handler times (its stats: p50/p99 over every message it handled, calibration and ECM poses
+  included) and dropped inputs.
+
+Prints a table; ``--json FILE`` also writes the figures. Without ``--dataset`` it uses
+``data/test`` when present, else generates ``data/bench`` once (30 frames).
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import sys
+import threading
+import time
+from pathlib import Path
+
+import numpy as np
+
+BENCH_DATA = "data/bench"
+BENCH_GENERATE = ["generate", "--out", BENCH_DATA, "--sequences", "6", "--steps", "5",
+                  "--seed", "2000", "--randomise", "test"]
+TARGET_HZ, TARGET_P50_MS = 30.0, 50.0
+
+
+def _parser() -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(prog="needletrack bench graph", description=__doc__,
+                                formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("--dataset", help="dataset folder to loop over (default data/test, else data/bench)")
+    p.add_argument("--detector", default="learned", choices=("learned", "classical", "oracle"))
+    p.add_argument("--rate", default="30",
+                   help="replay rate in Hz (default 30, the endoscope's), or 'max': as fast as the "
+                        "replay can read the files (then every node's keep-all inputs, e.g. the ECM "
+                        "poses, flood it and the figures show an overloaded graph)")
+    p.add_argument("--duration", type=float, default=20.0, help="measured seconds (default 20)")
+    p.add_argument("--warmup", type=float, default=4.0, help="seconds ignored after the first frame")
+    p.add_argument("--one-detector", action="store_true",
+                   help="one detector process for both cameras (default: one per camera)")
+    p.add_argument("--no-refine", action="store_true", help="leave out the refinement node")
+    p.add_argument("--json", help="also write the figures to this JSON file")
+    p.add_argument("--log", help="write the graph's log here (default: a temporary file)")
+    return p
+
+
+class Recorder:
+    """Arrival times (wall clock, ns) of the messages the bench subscribes to, by stream."""
+
+    def __init__(self):
+        self.lock = threading.Lock()
+        self.rows: dict = {}          # stream -> list of (seq, stamp_ns, arrival_ns)
+        self.stats: dict = {}         # node -> newest NodeStats
+
+    def callback(self, stream: str, msg_type):
+        from common.messages import MessageError, decode
+
+        def cb(sample):
+            now = time.time_ns()
+            try:
+                msg = decode(sample.payload.to_bytes(), msg_type)
+            except MessageError:
+                return
+            with self.lock:
+                if stream == "@stats":
+                    self.stats[msg.node] = msg
+                else:
+                    self.rows.setdefault(stream, []).append((msg.seq, msg.stamp_ns, now))
+        return cb
+
+    def window(self, stream: str, t0_ns: int, t1_ns: int) -> list:
+        """Rows of ``stream`` whose frame was published within [t0, t1)."""
+        with self.lock:
+            return [r for r in self.rows.get(stream, []) if t0_ns <= r[1] < t1_ns]
+
+
+def cpu_seconds(pid: int):
+    """CPU time (user + system, s) a process has used, from /proc; None if unknown."""
+    try:
+        with open(f"/proc/{pid}/stat") as f:
+            fields = f.read().rsplit(")", 1)[1].split()
+        return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
+    except (OSError, IndexError, ValueError):
+        return None
+
+
+def latency_ms(rows) -> dict:
+    lat = [(a - s) / 1e6 for _, s, a in rows]
+    if not lat:
+        return {"p50": None, "p99": None, "n": 0}
+    return {"p50": float(np.percentile(lat, 50)), "p99": float(np.percentile(lat, 99)), "n": len(lat)}
+
+
+def ensure_dataset(path) -> str:
+    if path:
+        return path
+    if Path("data/test/frames.jsonl").is_file():
+        return "data/test"
+    if not Path(BENCH_DATA, "frames.jsonl").is_file():
+        from common.dataset_cli import main as dataset_main
+        print(f"bench: generating {BENCH_DATA} (30 stereo frames at 1920x1080, once)", file=sys.stderr)
+        if dataset_main(BENCH_GENERATE) != 0:
+            raise RuntimeError(f"could not generate {BENCH_DATA}")
+    return BENCH_DATA
+
+
+def measure(args, dataset: str, log) -> dict:
+    from common.dataset import Dataset
+    from common.graph import output_key, stats_key
+    from common.messages import GroundTruth, Keypoints, NodeStats, PoseEstimate
+    from common.pipeline_graph import GraphRun, keypoint_sources, pipeline_graph, pose_inputs
+
+    ds = Dataset(dataset, check_files=False)
+    rate = args.rate if str(args.rate) == "max" else float(args.rate)
+    split = not args.one_detector
+    doc = pipeline_graph(dataset, detector=args.detector, rate=rate, loop=True,
+                         refine=False if args.no_refine else None, split_detector=split,
+                         name="needletrack-bench")
+    poses = pose_inputs(doc)
+    final = next(m for m in ("multiview_refined", "multiview") if m in poses)
+    rec = Recorder()
+    streams = {"published": ("replay/truth", GroundTruth)}
+    for cam, src in keypoint_sources(split).items():
+        streams[f"keypoints_{cam}"] = (src, Keypoints)
+    for m, src in poses.items():
+        streams[m] = (src, PoseEstimate)
+
+    with GraphRun(doc, log) as run:
+        session = run._session()
+        subs = [session.declare_subscriber(output_key(run.graph.name, *src.split("/")),
+                                           rec.callback(name, typ))
+                for name, (src, typ) in streams.items()]
+        subs.append(session.declare_subscriber(stats_key(run.graph.name), rec.callback("@stats", NodeStats)))
+        run.start()
+        # the first frame's publish time starts the clock
+        deadline = time.monotonic() + 60
+        while not rec.rows.get("published"):
+            if time.monotonic() > deadline:
+                raise RuntimeError("the replay published no frame within 60 s")
+            _check_alive(run)
+            time.sleep(0.05)
+        first_ns = rec.rows["published"][0][1]
+        w0 = first_ns + int(args.warmup * 1e9)
+        while time.time_ns() < w0:
+            _check_alive(run)
+            time.sleep(0.1)
+        with rec.lock:
+            pids = {n: st.pid for n, st in rec.stats.items()}
+            drops0 = {n: _dropped(st) for n, st in rec.stats.items()}
+        cpu0 = {n: cpu_seconds(p) for n, p in pids.items()}
+        w1 = w0 + int(args.duration * 1e9)
+        while time.time_ns() < w1:
+            _check_alive(run)
+            time.sleep(0.1)
+        cpu1 = {n: cpu_seconds(p) for n, p in pids.items()}
+        time.sleep(0.5)  # outputs of the window's last frames still in flight
+        for s in subs:
+            s.undeclare()
+
+    span = (w1 - w0) / 1e9
+    published = rec.window("published", w0, w1)
+    out = {"dataset": dataset, "frames_in_dataset": len(ds), "image_size": list(ds.meta.image_size),
+           "detector": args.detector, "detector_processes": 2 if split else 1,
+           "rate": str(rate), "duration_s": span, "final_method": final,
+           "published_hz": len(published) / span}
+    fused = rec.window(final, w0, w1)
+    seqs = {r[0] for r in fused}
+    out["throughput_hz"] = len(seqs) / span
+    out["frames_through"] = (len(seqs) / len(published)) if published else None
+    out["latency_ms"] = latency_ms(fused)
+    stages = {}
+    for name in streams:
+        if name == "published":
+            continue
+        stages[name] = {**latency_ms(rec.window(name, w0, w1)),
+                        "rate_hz": len({r[0] for r in rec.window(name, w0, w1)}) / span}
+    out["stages"] = stages
+    nodes = {}
+    with rec.lock:
+        stats = dict(rec.stats)
+    for n, st in sorted(stats.items()):
+        c0, c1 = cpu0.get(n), cpu1.get(n)
+        share = (c1 - c0) / span if c0 is not None and c1 is not None else None
+        nodes[n] = {"proc_ms_p50": st.proc_ms_p50, "proc_ms_p99": st.proc_ms_p99,
+                    "cpu_share": share,
+                    "cpu_ms_per_frame": (1e3 * share / out["published_hz"]
+                                         if share is not None and out["published_hz"] else None),
+                    "dropped": _dropped(st) - drops0.get(n, 0),
+                    "in_hz": {k[3:]: v for k, v in st.rates_hz.items() if k.startswith("in.")}}
+    out["per_node"] = nodes
+    out["per_node_ms"] = {n: v["proc_ms_p50"] for n, v in nodes.items()}
+    out["cpu_total"] = sum(v["cpu_share"] or 0.0 for v in nodes.values())
+    out["cpus"] = os.cpu_count()
+    return out
+
+
+def _dropped(st) -> int:
+    v = st.counters.get("dropped", 0)
+    return v if isinstance(v, int) else 0
+
+
+def _check_alive(run) -> None:
+    from common.pipeline_graph import GraphRunError
+    dead = {}
+    for l in (run.main, run.src):
+        if l is not None:
+            dead.update(run.dead_nodes(l))
+    if dead:
+        raise GraphRunError(f"node(s) failed: {dead}")
+
+
+def report(r: dict) -> str:
+    f = lambda x, nd=1: "n/a" if x is None else f"{x:.{nd}f}"
+    w, h = r["image_size"]
+    L = [f"needletrack bench graph: {r['dataset']} ({w}x{h} stereo, {r['frames_in_dataset']} frames looped), "
+         f"detector {r['detector']} ({r['detector_processes']} process(es)), replay rate {r['rate']}, "
+         f"{r['duration_s']:.0f} s measured on {r['cpus']} CPU(s)",
+         f"  frames published      {f(r['published_hz'])} /s",
+         f"  end to end            {f(r['throughput_hz'])} /s fused poses ({r['final_method']}); "
+         f"{f(None if r['frames_through'] is None else 100 * r['frames_through'])}% of the published frames"
+         f"   [target >= {TARGET_HZ:.0f}; paper 10 Hz on an RTX 3080]",
+         f"  latency               p50 {f(r['latency_ms']['p50'])} ms, p99 {f(r['latency_ms']['p99'])} ms "
+         f"from frame publish to fused pose   [target p50 <= {TARGET_P50_MS:.0f} ms]",
+         "", f"  {'stage output':<22}{'frames/s':>9}{'p50 ms':>9}{'p99 ms':>9}   (latency from frame publish)"]
+    for name, s in r["stages"].items():
+        L.append(f"  {name:<22}{f(s['rate_hz']):>9}{f(s['p50']):>9}{f(s['p99']):>9}")
+    L += ["", f"  {'node':<18}{'cpu %':>7}{'cpu ms/frame':>14}{'handler p50':>13}{'p99 ms':>9}"
+               f"{'dropped':>9}   inputs Hz"]
+    for n, v in r["per_node"].items():
+        cpu = None if v["cpu_share"] is None else 100 * v["cpu_share"]
+        ins = " ".join(f"{k}={val:g}" for k, val in sorted(v["in_hz"].items()))
+        L.append(f"  {n:<18}{f(cpu, 0):>7}{f(v['cpu_ms_per_frame'], 2):>14}{f(v['proc_ms_p50'], 2):>13}"
+                 f"{f(v['proc_ms_p99'], 2):>9}"
+                 f"{v['dropped']:>9}   {ins}")
+    L.append(f"  total CPU {f(100 * r['cpu_total'], 0)}% of {100 * (r['cpus'] or 1)}%")
+    return "\n".join(L)
+
+
+def main(argv=None) -> int:
+    argv = list(argv or [])
+    if argv and argv[0] == "graph":
+        argv = argv[1:]
+    args = _parser().parse_args(argv)
+    from common.dataset import DatasetError
+    from common.pipeline_graph import GraphRunError
+    try:
+        dataset = ensure_dataset(args.dataset)
+    except (DatasetError, RuntimeError) as exc:
+        print(f"needletrack bench: {exc}", file=sys.stderr)
+        return 2
+    import tempfile
+    log_path = args.log or tempfile.mktemp(prefix="needletrack-bench-", suffix=".log")
+    try:
+        with open(log_path, "w") as log:
+            r = measure(args, dataset, log)
+    except DatasetError as exc:
+        print(f"needletrack bench: {dataset}: {exc}", file=sys.stderr)
+        return 2
+    except (GraphRunError, RuntimeError) as exc:
+        print(f"needletrack bench: {exc}; last lines of {log_path}:", file=sys.stderr)
+        print("".join(Path(log_path).read_text().splitlines(True)[-25:]), file=sys.stderr)
+        return 1
+    print(report(r))
+    if args.json:
+        Path(args.json).write_text(json.dumps(r, indent=2) + "\n")
+        print(f"wrote {args.json}")
+    if not args.log:
+        os.unlink(log_path)
+    return 0
