@@ -428,6 +428,8 @@ class Runtime:
         except (ValueError, AttributeError):
             cuts = {}
         flushed = 0
+        if self.node is not None and self.node.is_source():
+            cuts = {}      # a new source starts its own sequence: nothing to line up with
         with self._pub_lock:
             self._cuts = {k: int(v) for k, v in cuts.items()}
             newest = {}

@@ -168,6 +168,25 @@ def test_handover_never_publishes_a_seq_twice_and_leaves_no_gap():
     assert q2.answer["flushed"] == 2
 
 
+class _Source(_DoublerAny):
+    def step(self):
+        return True
+
+
+def test_a_swapped_source_starts_its_own_sequence():
+    sent = []
+    g = _graph([{"id": "c", "module": "counter"}, {"id": "d", "command": ["true"], "inputs": {"in": "c/out"}}])
+    rt = Runtime(g, "d", standby=True)
+    rt.build(_Source)
+    rt._pubs = {"y": _FakePub(sent, "y")}
+    for s in (0, 1):
+        rt.publish("y", EcmJoints(s, 0, np.zeros(4)))
+    rt._q_takeover(_FakeQuery(json.dumps({"cuts": {"y": 500}}).encode()))
+    rt.publish("y", EcmJoints(2, 0, np.zeros(4)))
+    from common.messages import decode
+    assert [decode(p).seq for _, p in sent] == [1, 2]
+
+
 # ------------------------------------------------------------------ real graphs
 
 def test_graph_delivers_messages_end_to_end(run_graph):
