@@ -166,7 +166,7 @@ def summarize(value, width: int = 120) -> str:
         if value.size <= 16:
             return np.array2string(value, precision=4, suppress_small=True, max_line_width=10_000).replace("\n", "")
         return f"<{value.dtype}{list(value.shape)}>"
-    if isinstance(value, (bytes, bytearray)):
+    if isinstance(value, (bytes, bytearray, memoryview)):
         return f"<{len(value)} bytes>"
     if isinstance(value, dict):
         return "{" + ", ".join(f"{k}: {summarize(v, 40)}" for k, v in value.items()) + "}"
