@@ -185,7 +185,6 @@ class _Static:
         self.radius = needle.radius_m
         a0, a1 = needle.arc_span_rad
         self.mid, self.half = 0.5 * (a0 + a1), 0.5 * (a1 - a0)
-        self.kp_model = needle.keypoints()
         self.arc_centroid = needle.sample_arc(64).mean(0)
         C, M = len(cams), cfg.max_curve_points
         self.C, self.M = C, M

@@ -11,7 +11,7 @@ from common.needle import NeedleModel
 from common.pnp import pnp_joint
 from common.refine import (ArcObservation, DenseRefiner, RefineConfig, RefineError, mirror_pose,
                            project_centreline, refine_pose)
-from common.transforms import inv_T, make_T, pose_error, quat_to_R, rotvec_to_R, transform_points
+from common.transforms import make_T, pose_error, quat_to_R, rotvec_to_R, transform_points
 
 RIG = StereoRig.default()
 NEEDLE = NeedleModel()

@@ -5,7 +5,7 @@ import pytest
 
 from common.camera import StereoRig
 from common.ecm_kinematics import EcmArm
-from common.messages import Calibration, EcmPose, GroundTruth, Keypoints, PoseEstimate, decode, encode
+from common.messages import Calibration, EcmPose, Keypoints, PoseEstimate, decode, encode
 from common.needle import NeedleModel
 from common.oracle import Oracle, random_needle_pose
 from common.pnp import pnp_joint
