@@ -1,8 +1,8 @@
 """The classical needle detector (OpenCV only, no learning): the baseline that shows what the
 learned detector buys.
 
-1. Segment thin bright metal: white top-hat of the image's darkest channel (the needle is grey
-   or white on reddish tissue; the top-hat keeps structures thinner than its kernel, which
+1. Segment thin bright metal: white top-hat of a whiteness image, 2 min(B,G,R) - max(B,G,R)
+   (the needle is grey or white on reddish tissue; the top-hat keeps structures thinner than its kernel, which
    removes instrument bodies), thresholded relative to the strongest response, at half size.
 2. Fit each connected component's projection: the image of a circular arc under a (near)
    affine camera is an elliptical arc; fit an ellipse to its pixels (``cv2.fitEllipseDirect``),
@@ -73,7 +73,9 @@ class ClassicalDetector:
     def segment(self, img: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """(binary mask, top-hat response) of thin bright structures at ``scale``."""
         small = cv2.resize(img, None, fx=self.scale, fy=self.scale, interpolation=cv2.INTER_AREA)
-        g = small.min(axis=2)
+        lo = small.min(axis=2).astype(np.int16)
+        hi = small.max(axis=2).astype(np.int16)
+        g = np.clip(2 * lo - hi, 0, 255).astype(np.uint8)   # bright and unsaturated: metal
         k = max(5, int(round(22 * self.scale)) | 1)
         th = cv2.morphologyEx(g, cv2.MORPH_TOPHAT, cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (k, k)))
         # the needle is the brightest thin thing: a threshold relative to the strongest response

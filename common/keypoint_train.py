@@ -44,7 +44,7 @@ DEFAULT_TRAIN = {
     "steps_per_epoch": 0,     # 0: one crop per training image per epoch
     "val_fraction": 0.1,
     "threads": 2,
-    "time_budget_min": 0,     # stop (resumably) after the epoch that passes this; 0 = none
+    "time_budget_min": 0,     # the cosine schedule ends at this training time if it comes first; 0 = none
     "loss_weights": {"kp": 1.0, "line": 4.0, "presence": 0.3, "global": 1.0, "box": 1.0},
 }
 
@@ -152,14 +152,18 @@ def validate(model: KeypointModel, records, threshold: float = 0.5) -> dict:
         boxes = [("gt", rec.box)]
         if conf >= threshold:
             boxes.append(("pipe", (cx, cy, bw, bh)))
-        for kind, (bx, by, bw_, bh_) in boxes:
-            M = crop_affine(bx, by, crop_side(cfg, bw_, bh_), cfg.crop)
-            crop = crop_from(rec.region, rec.origin, M, cfg.crop)
-            heat, pres = model.crop(torch.from_numpy(crop).permute(2, 0, 1)[None].contiguous())
+        for kind, box in boxes:
+            for rep in range(2 if kind == "pipe" else 1):   # the detector's second, re-centred pass
+                bx, by, bw_, bh_ = box
+                M = crop_affine(bx, by, crop_side(cfg, bw_, bh_), cfg.crop)
+                crop = crop_from(rec.region, rec.origin, M, cfg.crop)
+                heat, pres = model.crop(torch.from_numpy(crop).permute(2, 0, 1)[None].contiguous())
+                uv, _ = decode_heatmaps(heat[:, :5], cfg.out_stride)
+                uv_img = apply_affine(invert_affine(M), uv[0].numpy())
+                lo, hi = uv_img.min(0), uv_img.max(0)
+                box = ((lo[0] + hi[0]) / 2, (lo[1] + hi[1]) / 2, hi[0] - lo[0] + 4, hi[1] - lo[1] + 4)
             if kind == "pipe" and float(torch.sigmoid(pres[0])) < threshold:
                 continue
-            uv, _ = decode_heatmaps(heat[:, :5], cfg.out_stride)
-            uv_img = apply_affine(invert_affine(M), uv[0].numpy())
             e = np.where(rec.vis, np.linalg.norm(uv_img - rec.kp, axis=1), np.nan)  # visible points only
             (err_gt if kind == "gt" else err_pipe).append(e)
             if kind == "pipe":
@@ -270,10 +274,16 @@ def train(data_dirs, out, config_path=None, log=print, progress=True) -> dict:
     else:
         raise ValueError(f"{config_path}: train.optimizer must be adamw or sgd, got {tcfg['optimizer']!r}")
     warm = int(tcfg["warmup_steps"])
-    sched = torch.optim.lr_scheduler.LambdaLR(
-        opt, lambda s: min(1.0, (s + 1) / max(1, warm)) * 0.5 * (1 + math.cos(math.pi * min(1.0, s / max(1, total)))))
+    base_lr = float(tcfg["lr"])
+    budget = float(tcfg["time_budget_min"]) * 60.0
 
-    start_epoch, best, elapsed, metrics = 0, float("inf"), 0.0, []
+    def progress_of(step: int, seconds: float) -> float:
+        """Fraction of the schedule done: by steps, or by training time when a budget is set
+        and runs out first (a shared machine can be much slower than planned)."""
+        frac = step / max(1, total)
+        return min(1.0, max(frac, seconds / budget) if budget else frac)
+
+    start_epoch, best, elapsed, metrics, step_count = 0, float("inf"), 0.0, [], 0
     ckpt_path = out / "checkpoint.pt"
     if ckpt_path.is_file():
         ck = torch.load(ckpt_path, map_location="cpu", weights_only=True)
@@ -282,8 +292,8 @@ def train(data_dirs, out, config_path=None, log=print, progress=True) -> dict:
                              f"delete it or use another --out")
         model.load_state_dict(ck["state_dict"])
         opt.load_state_dict(ck["optimizer"])
-        sched.load_state_dict(ck["scheduler"])
         start_epoch, best, elapsed = int(ck["epoch"]), float(ck["best"]), float(ck["elapsed_s"])
+        step_count = int(ck["step"])
         log(f"resuming from {ckpt_path} after epoch {start_epoch}")
     mpath = out / "metrics.jsonl"
     if mpath.is_file() and start_epoch:
@@ -291,12 +301,11 @@ def train(data_dirs, out, config_path=None, log=print, progress=True) -> dict:
 
     from tqdm import tqdm
     w = tcfg["loss_weights"]
-    budget = float(tcfg["time_budget_min"]) * 60.0
     last = {}
     model.train()
     for epoch in range(start_epoch, int(tcfg["epochs"])):
-        if budget and elapsed >= budget:
-            log(f"time budget of {tcfg['time_budget_min']} min used up; run again to continue")
+        if progress_of(step_count, elapsed) >= 1.0:
+            log(f"schedule finished after {step_count} steps, {elapsed / 60:.1f} min of training")
             break
         t0 = time.time()
         rng = np.random.default_rng([seed, epoch])
@@ -306,21 +315,29 @@ def train(data_dirs, out, config_path=None, log=print, progress=True) -> dict:
         bar = tqdm(range(steps_per_epoch), desc=f"epoch {epoch + 1}/{tcfg['epochs']}", disable=not progress,
                    unit="step", dynamic_ncols=True)
         for step in bar:
+            frac = progress_of(step_count, elapsed + time.time() - t0)
+            if frac >= 1.0:
+                break
             idx = order[step * int(tcfg["batch"]):(step + 1) * int(tcfg["batch"])]
             gidx = rng.integers(0, len(tr), int(tcfg["global_batch"]))
             cb = crop_batch(tr, idx, mcfg, aug, rng)
             gb = global_batch(tr, gidx, mcfg, aug, rng)
             L = losses(model, cb, gb, w)
+            lr = base_lr * min(1.0, (step_count + 1) / max(1, warm)) * 0.5 * (1 + math.cos(math.pi * frac))
+            for g in opt.param_groups:
+                g["lr"] = lr
             opt.zero_grad(set_to_none=True)
             L["total"].backward()
             torch.nn.utils.clip_grad_norm_(model.parameters(), 5.0)
             opt.step()
-            sched.step()
+            step_count += 1
             vals = {k: float(v.detach()) for k, v in L.items()}
             running = vals if running is None else {k: 0.95 * running[k] + 0.05 * vals[k] for k in vals}
             bar.set_postfix(loss=f"{running['total']:.3f}", kp=f"{running['kp']:.3f}",
-                            glob=f"{running['global']:.3f}", lr=f"{sched.get_last_lr()[0]:.1e}")
+                            glob=f"{running['global']:.3f}", lr=f"{lr:.1e}")
         bar.close()
+        if running is None:
+            break
         val = validate(model, va) if va else {}
         elapsed += time.time() - t0
         last = {"epoch": epoch + 1, "train_loss": running["total"], "train": running, "val": val,
@@ -341,7 +358,7 @@ def train(data_dirs, out, config_path=None, log=print, progress=True) -> dict:
         with open(mpath, "w") as f:
             f.write("".join(json.dumps(m) + "\n" for m in metrics))
         ck = {"config": mcfg.to_dict(), "state_dict": model.state_dict(), "optimizer": opt.state_dict(),
-              "scheduler": sched.state_dict(), "epoch": epoch + 1, "best": best, "elapsed_s": elapsed}
+              "step": step_count, "epoch": epoch + 1, "best": best, "elapsed_s": elapsed}
         torch.save(ck, str(ckpt_path) + ".tmp")
         os.replace(str(ckpt_path) + ".tmp", ckpt_path)
         try:

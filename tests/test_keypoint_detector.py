@@ -1,0 +1,129 @@
+"""The learned detector at inference: the shipped model on a freshly rendered frame, bad input,
+bad weight files, tracking, and the detector-node backend."""
+import logging
+
+import numpy as np
+import pytest
+import torch
+
+from common.keypoint_backends import BackendError, load_backend
+from common.keypoint_detector import (DEFAULT_WEIGHTS, KeypointDetector, ModelFileError,
+                                      decode_centreline, load_model)
+from common.keypoint_model import KeypointModel, ModelConfig
+from common.keypoint_train import save_model
+from common.messages import CameraImage, Keypoints
+
+
+@pytest.fixture(scope="module")
+def detector():
+    return KeypointDetector(device="cpu")
+
+
+@pytest.fixture(scope="module")
+def rendered():
+    """One stereo frame freshly rendered by the simulator (test look, a seed used nowhere else)."""
+    from common.sim_generate import GenerateConfig, render_sequence
+    from common.sim_render import SceneRenderer
+    cfg = GenerateConfig(sequences=1, steps=1, seed=987_654, randomise="test", image_format="png")
+    out = render_sequence(SceneRenderer(), cfg, 0)
+    images, fields = out[0][0], out[0][1]
+    return images, fields
+
+
+def test_shipped_model_finds_the_needle_in_a_rendered_frame(detector, rendered):
+    images, fields = rendered
+    for cam in ("left", "right"):
+        kp = detector.detect(images[cam], cam, seq=1)
+        vis = np.asarray(fields["visible"][cam], bool)
+        truth = np.asarray(fields["keypoints"][cam], float)
+        assert kp.found, kp.reason
+        assert 0.5 <= kp.confidence <= 1.0 and kp.scores.shape == (5,)
+        err = np.linalg.norm(kp.uv - truth, axis=1)[vis]
+        assert err.mean() <= 2.0, f"{cam}: keypoint errors {np.round(err, 2)} px"
+        # the dense centreline lies on the needle, ordered from A to E
+        w = kp.centreline_w > 0
+        assert kp.centreline.shape[1] == 2 and w.sum() >= 10
+        assert np.linalg.norm(kp.centreline[0] - kp.uv[0]) < np.linalg.norm(kp.centreline[0] - kp.uv[4])
+
+
+def test_tracking_reuses_the_box_and_gives_the_same_answer(rendered):
+    images, _ = rendered
+    det = KeypointDetector(device="cpu", tracking=True)
+    a = det.detect(images["left"], "left")
+    assert det.last_mode == "cold"
+    b = det.detect(images["left"], "left")
+    assert det.last_mode == "tracking" and b.found
+    assert np.abs(a.uv - b.uv).max() < 0.5
+    # a blank frame ends tracking with "no needle"
+    c = det.detect(np.full_like(images["left"], 128), "left")
+    assert not c.found and "no needle" in c.reason and np.isnan(c.uv).all()
+
+
+def test_needle_free_image_is_no_needle(detector):
+    rng = np.random.default_rng(0)
+    img = np.clip(rng.normal(150, 20, (1080, 1920, 3)), 0, 255).astype(np.uint8)
+    img[..., 2] = 200   # pinkish noise, no needle
+    detector.reset()
+    kp = detector.detect(img, "left")
+    assert not kp.found and kp.confidence < 0.5 and np.isnan(kp.uv).all()
+
+
+@pytest.mark.parametrize("bad", [np.zeros((0, 0, 3), np.uint8), np.zeros((1080, 1920, 3), np.float32),
+                                 np.zeros((1080, 1920, 2), np.uint8), np.zeros((4, 4, 3), np.uint8),
+                                 None, "image"])
+def test_bad_arrays_give_no_needle_with_a_logged_reason(detector, bad, caplog):
+    with caplog.at_level(logging.WARNING, logger="needletrack.keypoint_detector"):
+        kp = detector.detect(bad, "right", seq=4)
+    assert isinstance(kp, Keypoints) and not kp.found and kp.reason.startswith("bad image")
+    assert kp.seq == 4 and kp.camera == "right"
+    assert "bad image" in caplog.text
+
+
+def test_corrupt_image_bytes_give_no_needle(detector, caplog):
+    msg = CameraImage("left", 9, 0, 1920, 1080, "jpeg", b"\xff\xd8 definitely not a jpeg")
+    with caplog.at_level(logging.WARNING, logger="needletrack.keypoint_detector"):
+        kp = detector.detect_message(msg)
+    assert not kp.found and "corrupt" in kp.reason and "corrupt" in caplog.text
+
+
+def test_weight_file_errors_say_how_to_retrain(tmp_path):
+    with pytest.raises(ModelFileError, match=r"no such weights file.*needletrack train"):
+        load_model(tmp_path / "missing.pt")
+    bad = tmp_path / "corrupt.pt"
+    bad.write_bytes(DEFAULT_WEIGHTS.read_bytes()[:5000])
+    with pytest.raises(ModelFileError, match=r"corrupt.*needletrack train"):
+        load_model(bad)
+    other = tmp_path / "other.pt"
+    torch.save({"weights": torch.zeros(3)}, other)
+    with pytest.raises(ModelFileError, match=r"not a needletrack.*needletrack train"):
+        load_model(other)
+    # right format, different architecture than its config says
+    mismatched = tmp_path / "mismatched.pt"
+    save_model(mismatched, KeypointModel(ModelConfig(crop_widths=(8, 8, 8, 8))), {})
+    blob = torch.load(mismatched, weights_only=True)
+    blob["config"]["crop_widths"] = [16, 32, 48, 80]
+    torch.save(blob, mismatched)
+    with pytest.raises(ModelFileError, match=r"do not match.*needletrack train"):
+        load_model(mismatched)
+    with pytest.raises(BackendError, match="needletrack train"):
+        load_backend("learned", {"weights": str(tmp_path / "missing.pt")})
+
+
+def test_backend_runs_through_the_registry(rendered):
+    images, fields = rendered
+    b = load_backend("learned", {"device": "cpu", "threshold": 0.5})
+    kp = b.detect(images["right"], "right", None, None, seq=3, stamp_ns=5)
+    assert kp.found and kp.seq == 3 and kp.stamp_ns == 5 and kp.detector == "learned"
+
+
+def test_centreline_decoding_finds_a_ridge_at_subcell_precision():
+    m = 64
+    yy, xx = np.mgrid[0:m, 0:m].astype(np.float32)
+    ridge_y = 30.3 + 0.1 * (xx - 32)              # a straight ridge, off the pixel grid
+    p = np.exp(-0.5 * ((yy - ridge_y) / 1.0) ** 2) * 0.999
+    logit = np.log(p + 1e-7) - np.log(1 - p + 1e-7)
+    kp = np.stack([np.linspace(10, 54, 5), 30.3 + 0.1 * (np.linspace(10, 54, 5) - 32) + 1.5], 1)
+    pts, w = decode_centreline(logit, kp, n=20)
+    assert np.all(w > 0.5)
+    assert np.abs(pts[:, 1] - (30.3 + 0.1 * (pts[:, 0] - 32))).max() < 0.1
+    assert pts[0, 0] < pts[-1, 0]                  # ordered like the keypoints
