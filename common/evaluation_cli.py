@@ -96,7 +96,8 @@ def print_summary(res: dict, out=sys.stdout) -> None:
 def main(argv=None) -> int:
     args = _parser().parse_args(argv)
     from common.dataset import DatasetError
-    from common.pipeline_graph import GraphRun, GraphRunError, pipeline_graph, pose_inputs
+    from common.pipeline_graph import (GraphRun, GraphRunError, keypoint_sources, pipeline_graph,
+                                       pose_inputs)
 
     dataset = str(Path(args.dataset))
     try:
@@ -119,16 +120,18 @@ def main(argv=None) -> int:
     if args.detector == "oracle":
         det_params = {"noise_px": args.noise_px, "seed": args.seed}
     elif args.model:
-        det_params = {"model": str(Path(args.model).resolve())}
+        det_params = {"weights": str(Path(args.model).resolve())}
+    split = args.detector != "oracle"   # one process per camera: images detected in parallel
     rate = args.rate or (30 if args.detector == "oracle" else 10)
     rate = rate if str(rate) == "max" else float(rate)
     doc = pipeline_graph(dataset, detector=args.detector, detector_params=det_params, rate=rate,
-                         refine=False if args.no_refine else None, lossless=True)
+                         refine=False if args.no_refine else None, lossless=True,
+                         split_detector=split)
     evaluator = {"id": "evaluator", "module": "evaluator",
                  "params": {"out": str(out.resolve()), "dataset": str(Path(dataset).resolve()),
                             "detector": args.detector, "noise_px": args.noise_px},
                  "inputs": {"truth": "replay/truth", "calib": "replay/calib", "eos": "replay/eos",
-                            "left": "detector/left", "right": "detector/right",
+                            **keypoint_sources(split),
                             "points3d": "triangulate/points", **pose_inputs(doc)},
                  "restart": "never"}
     doc["nodes"].append(evaluator)
@@ -146,8 +149,11 @@ def main(argv=None) -> int:
         except GraphRunError as exc:
             log.flush()
             print(f"needletrack eval: the graph failed: {exc}", file=sys.stderr)
-            print(f"last lines of {log_path}:", file=sys.stderr)
-            print("".join(log_path.read_text().splitlines(True)[-25:]), file=sys.stderr)
+            text = log_path.read_text().splitlines()
+            errors = [l for l in text if " ERROR " in l]
+            if errors:
+                print("first errors:\n" + "\n".join(errors[:5]), file=sys.stderr)
+            print(f"last lines of {log_path}:\n" + "\n".join(text[-15:]), file=sys.stderr)
             return 1
     res_path = out / "results.json"
     if not res_path.is_file():

@@ -300,14 +300,15 @@ def write_overlays(outdir, col: Collected, ev: Evaluation, rig, needle: NeedleMo
 
 def write_outputs(outdir, col: Collected, *, dataset: str, detector: str,
                   load_images: Optional[Callable[[int], dict]] = None,
-                  extra: Optional[dict] = None) -> dict:
+                  extra: Optional[dict] = None, methods: Optional[list] = None) -> dict:
     """Write results.json, report.md, error_vs_distance.png and overlays/ into ``outdir``;
-    returns the results document. ``load_images`` as in ``write_overlays`` (None: black)."""
+    returns the results document. ``load_images`` as in ``write_overlays`` (None: black);
+    ``methods`` as in ``evaluate``."""
     from common.camera import StereoRig
 
     outdir = Path(outdir)
     outdir.mkdir(parents=True, exist_ok=True)
-    ev = evaluate(col)
+    ev = evaluate(col, methods)
     res = to_jsonable(build_results(col, dataset=dataset, detector=detector, ev=ev, extra=extra))
     problems = check_results(res)
     if problems:  # a bug here, not bad input: say so rather than write a broken file

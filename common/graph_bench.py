@@ -38,6 +38,7 @@ def _parser() -> argparse.ArgumentParser:
                                 formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--dataset", help="dataset folder to loop over (default data/test, else data/bench)")
     p.add_argument("--detector", default="learned", choices=("learned", "classical", "oracle"))
+    p.add_argument("--model", help="learned only: weights file (default: the shipped model)")
     p.add_argument("--rate", default="30",
                    help="replay rate in Hz (default 30, the endoscope's), or 'max': as fast as the "
                         "replay can read the files (then every node's keep-all inputs, e.g. the ECM "
@@ -121,7 +122,8 @@ def measure(args, dataset: str, log) -> dict:
     ds = Dataset(dataset, check_files=False)
     rate = args.rate if str(args.rate) == "max" else float(args.rate)
     split = not args.one_detector
-    doc = pipeline_graph(dataset, detector=args.detector, rate=rate, loop=True,
+    det_params = {"weights": str(Path(args.model).resolve())} if args.model else {}
+    doc = pipeline_graph(dataset, detector=args.detector, detector_params=det_params, rate=rate, loop=True,
                          refine=False if args.no_refine else None, split_detector=split,
                          name="needletrack-bench")
     poses = pose_inputs(doc)

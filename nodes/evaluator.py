@@ -144,7 +144,9 @@ class EvaluatorNode(Node):
         extra = {"noise_px": float(self.params.get("noise_px", 0.0)),
                  "graph_methods": self.methods}
         res = write_outputs(self.out, self.col, dataset=str(self.dataset_path or ""),
-                            detector=self.detector, load_images=loader, extra=extra)
+                            detector=self.detector, load_images=loader, extra=extra,
+                            methods=list(METHODS) + [m for m in EXTRA_METHODS
+                                                     if m in self.methods or self.col.poses.get(m)])
         self.log.info("wrote %s (frames %d)", self.out, res["frames"])
 
     def _image_loader(self):
