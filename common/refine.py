@@ -7,19 +7,19 @@ minimises, over both cameras, a robust (Cauchy) sum of
 
 - the keypoint term: reprojection error of A..E, weighted by the detector's scores (the tip A
   and the tail E fix the arc's extent along the curve);
-- the curve term: for each observed centreline point, its distance to the projected model arc.
-  The needle's circle projects to a conic ``C = G^T diag(1, 1, -radius^2) G`` with
-  ``G = adj([r1 r2 t])`` (the needle-plane homography's adjugate); the residual is the point's
-  Sampson (first-order geometric) distance to that conic in pixels, exact on the curve, plus,
-  where the point's back-projection onto the needle plane falls beyond the arc's ends, the
-  excess angle times the projected radius in pixels (the model arc must cover what is seen).
-  Observed -> model, with no association to track, so a hidden part of the needle costs nothing
-  and a partial model cannot shrink to a part of what is seen.
+- the curve term: for each observed centreline point (up to ``max_curve_points`` per camera,
+  even in arc length), its distance to the projected model arc. The point's foot on the arc
+  starts at the nearest of a few projected arc samples and takes Newton steps along the exact
+  projected circle (no polyline approximation); the residuals are the signed distance to the
+  tangent at the foot and, for a point past an end of the arc, its overshoot along the arc
+  (together: the distance to that end). Observed -> model: a hidden part of the needle costs
+  nothing, and the model arc must cover everything seen, so the curve alone pins its extent.
 
-Levenberg-Marquardt runs on all candidates at once (vectorised numpy, no scipy; Jacobians by
-forward differences, evaluated in the same batch as the residuals) over six parameters: a rotation-vector increment left-multiplied in the ECM frame and a translation
-increment in the ECM frame, ``R <- exp(dr) R``, ``t <- t + dt``. The covariance is in that same
-order and frame: ``[rotation vector (rad), translation (m)]``, as ``PoseEstimate.covariance``.
+Levenberg-Marquardt runs on all candidates at once (vectorised numpy, no scipy, analytic
+Jacobians) over six parameters: a rotation-vector increment left-multiplied in the ECM frame and
+a translation increment in the ECM frame, ``R <- exp(dr) R``, ``t <- t + dt``. The covariance,
+``s^2 (J^T W J)^-1`` at the optimum with ``s^2`` the residual variance, is in that same order
+and frame: ``[rotation vector (rad), translation (m)]``, as ``PoseEstimate.covariance``.
 
 A planar arc has a two-fold ambiguity (seen edge-on, whether it bulges towards or away from the
 camera); every candidate's mirror image about the line of sight is added and refined too. When
@@ -92,7 +92,7 @@ class RefineConfig:
     min_centreline_w: float = 0.05  # centreline points weighted below are left out
     cauchy_scale: float = 3.0       # robust loss scale, in sigmas
     max_iter: int = 30
-    step_tol: float = 1.0           # converged when a step changes the cost by < this many residual variances
+    step_tol: float = 1.0           # converged after a step worth < this many residual variances
     max_reject: int = 5             # ... or after this many rejected steps in a row
     coarse_iter: int = 3            # iterations every candidate gets before the worst are pruned
     prune_ratio: float = 10.0       # then drop those costing more than this many times the best
@@ -100,16 +100,17 @@ class RefineConfig:
     add_mirrors: bool = True        # also refine each candidate's mirror image about the line of sight
     merge_mm: float = 5.0           # starting poses closer than this and merge_deg are refined once
     merge_deg: float = 10.0
-    ambiguity_chi2: float = 9.0     # competitor within this cost difference (in residual variances) -> ambiguous
+    ambiguity_chi2: float = 9.0     # a competitor costing < this many residual variances more: ambiguous
     distinct_mm: float = 1.0        # competitors closer than this and distinct_deg are the same solution
     distinct_deg: float = 2.0
     edge_on_deg: float = 10.0       # arc plane within this angle of the line of sight -> ambiguous
     min_depth_m: float = 1e-3       # every point must be this far in front of both cameras
-    hinge_px: float = 0.05          # a point this close inside an arc end still pins the end in the linear model
+    hinge_px: float = 0.05          # a point this close inside an arc end still pins it (linear model)
 
     def __post_init__(self):
-        positive = ("sigma_kp_px", "sigma_curve_px", "cauchy_scale", "step_tol", "merge_mm", "hinge_px", "research_rad", "research_m",
-                    "merge_deg", "distinct_mm", "distinct_deg", "ambiguity_chi2", "prune_ratio")
+        positive = ("sigma_kp_px", "sigma_curve_px", "cauchy_scale", "step_tol", "merge_mm",
+                    "merge_deg", "distinct_mm", "distinct_deg", "ambiguity_chi2", "prune_ratio",
+                    "hinge_px", "research_rad", "research_m")
         for name in positive:
             v = getattr(self, name)
             if not (np.isfinite(v) and v > 0):
@@ -180,7 +181,8 @@ class _Static:
         Kp = np.stack([c.K[:2, :2] for c in cams])
         kc = np.stack([c.K[:2, 2] for c in cams])
         if np.any(Kp[:, 1, 0] != 0) or np.any(Kp[:, [0, 1], [0, 1]] <= 0) or not np.all(np.isfinite(Kp)):
-            raise RefineError("bad_calibration", "camera K must be upper triangular with positive focal lengths")
+            raise RefineError("bad_calibration",
+                              "camera K must be upper triangular with positive focal lengths")
         self.cam_centres = np.stack([c.T_ecm_cam[:3, 3] for c in cams])
         self.radius = needle.radius_m
         a0, a1 = needle.arc_span_rad
@@ -191,13 +193,11 @@ class _Static:
         col = lambda a: np.asarray(a, float).reshape(1, C, 1)
         self._fx, self._sk, self._fy = col(Kp[:, 0, 0]), col(Kp[:, 0, 1]), col(Kp[:, 1, 1])
         self._cx, self._cy = col(kc[:, 0]), col(kc[:, 1])
-        self._fx2, self._sk2 = self._fx[..., 0], self._sk[..., 0]
         self._Rmid = _exp_so3(np.array([[0.0, 0.0, self.mid]]))[0]
         # radius * [e1, e2, e2, -e1] of the needle axes turned so the arc's middle is on +x
         self._W = self.radius * np.stack([self._Rmid[:, 0], self._Rmid[:, 1], self._Rmid[:, 1],
                                           -self._Rmid[:, 0]], axis=1)
         self._cos_half, self._sin_half = np.cos(self.half), np.sin(self.half)
-        self._flip = np.array([1.0, -1.0])
         kp_ang = needle.keypoint_angles_rad - self.mid               # A..E about the middle
         self._kp_cs = np.stack([np.cos(kp_ang), np.sin(kp_ang)], axis=1)   # (5, 2)
         self._end_cs = np.array([[np.cos(self.half), -np.sin(self.half)],
@@ -219,7 +219,6 @@ class _Problem:
 
     def __init__(self, st: _Static, obs: Mapping[str, ArcObservation]):
         self.__dict__.update(st.__dict__)
-        self.st = st
         cfg, C, M = st.cfg, st.C, st.M
         U, wU = np.zeros((C, 5, 2)), np.zeros((C, 5))
         O, wO = np.zeros((C, M, 2)), np.zeros((C, M))
@@ -347,11 +346,13 @@ class _Problem:
         nx, ny = -tv[..., 5:] * itn[..., 5:], tu[..., 5:] * itn[..., 5:]
         r_n = nx * du + ny * dv
         # outward unit tangents at A (index 0, towards -angle) and E (index 4)
-        ox, oy = tu[..., 0:5:4] * itn[..., 0:5:4] * self._out, tv[..., 0:5:4] * itn[..., 0:5:4] * self._out
+        ox = tu[..., 0:5:4] * itn[..., 0:5:4] * self._out
+        oy = tv[..., 0:5:4] * itn[..., 0:5:4] * self._out
         at_e = si > 0
         ex = np.where(at_e, ox[..., 1:], ox[..., :1])
         ey = np.where(at_e, oy[..., 1:], oy[..., :1])
-        ov = np.where(at_e, (self._Ou - u[..., 4:5]) * ox[..., 1:] + (self._Ov - v[..., 4:5]) * oy[..., 1:],
+        ov = np.where(at_e,
+                      (self._Ou - u[..., 4:5]) * ox[..., 1:] + (self._Ov - v[..., 4:5]) * oy[..., 1:],
                       (self._Ou - u[..., 0:1]) * ox[..., :1] + (self._Ov - v[..., 0:1]) * oy[..., :1])
         at_end = co < self._cos_end_zone
         active = at_end & (ov > -self.cfg.hinge_px)
@@ -360,11 +361,12 @@ class _Problem:
         if not jacobian:
             return r, None, valid
 
-        # d(u, v)/d(camera-frame point) rows: a_u = [fx, sk, -(fx x + sk y)] / z, a_v = [0, fy, -fy y] / z
+        # d(u, v)/d(camera-frame point): a_u = [fx, sk, -(fx x + sk y)] / z, a_v = [0, fy, -fy y] / z
         au = np.stack([self._fx * iz, self._sk * iz, -(self._fx * x + self._sk * y) * iz], axis=-1)
         av = np.stack([np.zeros_like(iz), self._fy * iz, -self._fy * y * iz], axis=-1)
         ac = nx[..., None] * au[..., 5:, :] + ny[..., None] * av[..., 5:, :]
-        a_end = np.where(at_e[..., None], -(ex[..., None] * au[..., 4:5, :] + ey[..., None] * av[..., 4:5, :]),
+        a_end = np.where(at_e[..., None],
+                         -(ex[..., None] * au[..., 4:5, :] + ey[..., None] * av[..., 4:5, :]),
                          -(ex[..., None] * au[..., 0:1, :] + ey[..., None] * av[..., 0:1, :]))
         a_end = a_end * active[..., None]
         w_end = np.where(at_e[..., None], W[..., 4:5, :], W[..., 0:1, :])
