@@ -17,7 +17,7 @@ import numpy as np
 
 from common.camera import StereoRig
 from common.needle import NeedleModel
-from common.transforms import R_to_quat, inv_T, make_T, transform_points
+from common.transforms import R_to_quat, make_T, transform_points
 
 # Phantom pad: size (x, y) and nominal top height above the table (m).
 PHANTOM_SIZE = (0.12, 0.10)

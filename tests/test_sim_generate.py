@@ -14,7 +14,7 @@ from common.sim_generate import GenerateConfig, generate
 from common.sim_randomise import (DISTANCE_RANGE_M, MULTIVIEW_STEP_RAD, PRESETS, default_arm,
                                   keypoints_in_view, plan_sequence, rotate_with_keypoints)
 from common.sim_scene import PHANTOM_SIZE, phantom_height
-from common.transforms import inv_T, transform_points
+from common.transforms import transform_points
 
 
 @pytest.mark.parametrize("preset", sorted(PRESETS))

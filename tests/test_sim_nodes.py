@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 
 from common.dataset import Dataset, DatasetMeta, DatasetWriter, Frame, project_keypoints
-from common.messages import Calibration, CameraImage, Command, EcmJoints, EndOfStream, GroundTruth, decode, encode
+from common.messages import Calibration, Command, EcmJoints, EndOfStream, decode, encode
 from common.sim_randomise import default_arm
 from common.camera import StereoRig
 from common.needle import NeedleModel
