@@ -23,8 +23,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from common.transforms import (R_to_rotvec, inv_T, make_T, pose_error, pose_mean,
-                               rotvec_to_R)
+from common.transforms import inv_T, make_T, pose_mean, rotvec_to_R
 
 
 @dataclass
@@ -68,21 +67,31 @@ def covariance_to_frame(cov: np.ndarray, R_a_b: np.ndarray) -> np.ndarray:
     return A @ cov @ A.T
 
 
-def _within(T1, T2, max_dist_m, max_angle_rad) -> bool:
-    dt, dr = pose_error(T1, T2)
-    return dt <= max_dist_m and dr <= max_angle_rad
+def pairwise_errors(Ts, Us=None):
+    """(position m, angle rad) matrices between poses ``Ts`` (n) and ``Us`` (m, default Ts)."""
+    Ts = np.asarray(Ts, dtype=float).reshape(-1, 4, 4)
+    Us = Ts if Us is None else np.asarray(Us, dtype=float).reshape(-1, 4, 4)
+    dt = np.linalg.norm(Ts[:, None, :3, 3] - Us[None, :, :3, 3], axis=2)
+    tr = np.einsum("aij,bij->ab", Ts[:, :3, :3], Us[:, :3, :3])      # trace(R_a^T R_b)
+    return dt, np.arccos(np.clip((tr - 1.0) / 2.0, -1.0, 1.0))
 
 
 def robust_centre(Ts, max_dist_m: float, max_angle_rad: float) -> int:
     """Index of the medoid: the pose with the smallest sum of truncated normalised distances
     ``min(2, max(dt / max_dist_m, dr / max_angle_rad))`` to all the others."""
-    n = len(Ts)
-    D = np.zeros((n, n))
-    for i in range(n):
-        for j in range(i + 1, n):
-            dt, dr = pose_error(Ts[i], Ts[j])
-            D[i, j] = D[j, i] = min(2.0, max(dt / max_dist_m, dr / max_angle_rad))
+    dt, dr = pairwise_errors(Ts)
+    D = np.minimum(2.0, np.maximum(dt / max_dist_m, dr / max_angle_rad))
     return int(np.argmin(D.sum(axis=1)))
+
+
+def _log_so3_many(R: np.ndarray) -> np.ndarray:
+    """(m, 3, 3) rotations -> (m, 3) rotation vectors; for angles well below pi (inliers)."""
+    c = np.clip((np.einsum("mii->m", R) - 1.0) / 2.0, -1.0, 1.0)
+    th = np.arccos(c)
+    v = np.stack([R[:, 2, 1] - R[:, 1, 2], R[:, 0, 2] - R[:, 2, 0], R[:, 1, 0] - R[:, 0, 1]], axis=1) / 2.0
+    s = np.sin(th)
+    scale = np.where(s > 1e-12, th / np.where(s > 1e-12, s, 1.0), 1.0)
+    return v * scale[:, None]
 
 
 def information_mean(Ts, covariances, T0=None, iterations: int = 10):
@@ -90,24 +99,21 @@ def information_mean(Ts, covariances, T0=None, iterations: int = 10):
 
     Minimises sum_i r_i^T inv(Sigma_i) r_i, r_i = [log(R_i R^T), t_i - t], by Gauss-Newton from
     ``T0`` (default the chordal mean). Returns (T, covariance of the mean) or None when a
-    covariance is singular.
+    covariance is singular. The poses must lie well within a half turn of one another.
     """
+    Ts = np.asarray(Ts, dtype=float).reshape(-1, 4, 4)
+    C = np.asarray(covariances, dtype=float).reshape(-1, 6, 6)
     try:
-        infos = [np.linalg.inv(0.5 * (C + C.T)) for C in covariances]
+        infos = np.linalg.inv(0.5 * (C + C.transpose(0, 2, 1)))
+        H_inv = np.linalg.inv(infos.sum(axis=0))
     except np.linalg.LinAlgError:
         return None
-    H = np.sum(infos, axis=0)
-    try:
-        H_inv = np.linalg.inv(H)
-    except np.linalg.LinAlgError:
+    if not (np.all(np.isfinite(infos)) and np.all(np.isfinite(H_inv))):
         return None
-    T = pose_mean(Ts) if T0 is None else T0.copy()
+    T = pose_mean(Ts) if T0 is None else np.array(T0, dtype=float)
     for _ in range(iterations):
-        b = np.zeros(6)
-        for Ti, Wi in zip(Ts, infos):
-            r = np.concatenate([R_to_rotvec(Ti[:3, :3] @ T[:3, :3].T), Ti[:3, 3] - T[:3, 3]])
-            b += Wi @ r
-        delta = H_inv @ b
+        r = np.concatenate([_log_so3_many(Ts[:, :3, :3] @ T[:3, :3].T), Ts[:, :3, 3] - T[:3, 3]], axis=1)
+        delta = H_inv @ np.einsum("mij,mj->i", infos, r)
         T = make_T(rotvec_to_R(delta[:3]) @ T[:3, :3], T[:3, 3] + delta[3:])
         if np.linalg.norm(delta[:3]) < 1e-12 and np.linalg.norm(delta[3:]) < 1e-13:
             break
@@ -124,8 +130,10 @@ def fuse_poses(Ts, covariances=None, max_dist_m: float = 0.005,
     Ts = [np.asarray(T, dtype=float) for T in Ts]
     if not Ts:
         raise ValueError("fuse_poses: no poses")
-    c = robust_centre(Ts, max_dist_m, max_angle_rad)
-    inl = np.array([_within(T, Ts[c], max_dist_m, max_angle_rad) for T in Ts])
+    dt, dr = pairwise_errors(Ts)
+    D = np.minimum(2.0, np.maximum(dt / max_dist_m, dr / max_angle_rad))
+    c = int(np.argmin(D.sum(axis=1)))                       # the medoid (robust_centre)
+    inl = (dt[c] <= max_dist_m) & (dr[c] <= max_angle_rad)
     sel = [T for T, ok in zip(Ts, inl) if ok]
     T = pose_mean(sel)
     cov = None
@@ -194,10 +202,11 @@ class MultiViewFusion:
         recent, older = items[-n:], items[:-n]
         centre, _, _ = fuse_poses([e.T_world_needle for e in older], None,
                                   self.max_dist_m, self.max_angle_rad)
-        far = all(not _within(e.T_world_needle, centre, self.reset_dist_m, self.reset_angle_rad)
-                  for e in recent)
-        agree = all(_within(a.T_world_needle, b.T_world_needle, self.max_dist_m, self.max_angle_rad)
-                    for i, a in enumerate(recent) for b in recent[i + 1:])
+        Tr = [e.T_world_needle for e in recent]
+        dt, dr = pairwise_errors(Tr, [centre])
+        far = bool(np.all((dt > self.reset_dist_m) | (dr > self.reset_angle_rad)))
+        dt, dr = pairwise_errors(Tr)
+        agree = bool(np.all((dt <= self.max_dist_m) & (dr <= self.max_angle_rad)))
         return far and agree
 
     def _fuse(self, T_world_ecm_now, reset: bool) -> FusedPose:

@@ -8,9 +8,10 @@ one estimate per view, the fused pose scored at the last view.
 
     needletrack bench geometry [--poses 200] [--noise 0 0.25 0.5 1 2] [--seed 0]
 
-(or ``python -m common.geometry_eval``) prints a Markdown table: mean and median errors, frames
-without a pose, and the median wall-clock time per stereo frame (per fused frame for fusion,
-excluding the PnP it fuses).
+(or ``python -m common.geometry_eval``) prints two Markdown tables: the CPU time per stereo frame
+of each method (``--speed-only``: just that), then mean and median errors, frames without a
+pose, and the median wall-clock time per frame (per fused frame for fusion, excluding the PnP it
+fuses; wall-clock times suffer from other processes' load, the CPU times much less).
 """
 from __future__ import annotations
 
@@ -147,12 +148,55 @@ def multi_view(noise_px: float, n_scenes: int, seed: int = 0, n_views: int = 5, 
     return out
 
 
+def speed(n_frames: int = 100, noise_px: float = 1.0, repeats: int = 3, seed: int = 0) -> dict:
+    """CPU time per stereo frame (ms) of each method: the best of ``repeats`` passes over the
+    same ``n_frames`` oracle frames (process time, so other processes' load counts little);
+    ``multiview`` is one ``MultiViewFusion.add`` into a full queue of 5 with covariances."""
+    rig, model = StereoRig.default(), NeedleModel()
+    P = model.keypoints()
+    rng = np.random.default_rng(seed)
+    oracle = Oracle(noise_px=noise_px, seed=seed)
+    frames = []
+    for i in range(n_frames):
+        T = random_needle_pose(rng, rig, model)
+        frames.append(oracle.stereo(rig, T, model, seq=i))
+    out = {}
+    for name, f in METHODS.items():
+        best = np.inf
+        for _ in range(repeats):
+            t0 = time.process_time()
+            for uv, sc in frames:
+                _timed(f, uv, sc, rig, P)
+            best = min(best, (time.process_time() - t0) / n_frames)
+        out[name] = best * 1e3
+    joint = [pnp_joint(uv, rig, P, sc) for uv, sc in frames[:10]]
+    arm = EcmArm()
+    best = np.inf
+    for _ in range(repeats):
+        fusion = MultiViewFusion(k=5)
+        t0 = time.process_time()
+        for i in range(n_frames):
+            r = joint[i % len(joint)]
+            fusion.add(r.T_ecm_needle, arm.T_world_ecm([0.0, 0.0, 0.05, 0.0]), r.covariance)
+        best = min(best, (time.process_time() - t0) / n_frames)
+    out["multiview (fusion step)"] = best * 1e3
+    return out
+
+
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(prog="needletrack bench geometry", description=__doc__.split("\n")[0])
     ap.add_argument("--poses", type=int, default=200, help="random poses (and multi-view scenes) per noise level")
     ap.add_argument("--noise", type=float, nargs="+", default=[0.0, 0.25, 0.5, 1.0, 2.0], help="pixel noise sigmas")
     ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--speed-only", action="store_true", help="only the CPU time per frame")
     args = ap.parse_args(argv)
+    sp = speed(seed=args.seed)
+    print("\nCPU time per stereo frame at 1 px (best of 3 passes over 100 frames):\n")
+    print("| method | ms/frame |\n| --- | --- |")
+    for name, ms in sp.items():
+        print(f"| {name} | {ms:.2f} |")
+    if args.speed_only:
+        return 0
     from tqdm import tqdm
     rows = []
     with tqdm(total=2 * args.poses * len(args.noise), desc="geometry eval", unit="pose") as bar:

@@ -326,14 +326,20 @@ def initial_poses(obs: CameraObs, epnp: bool = True, ippe: bool = True) -> list[
     order = {"ippe0": 0, "ippe1": 1, "ippe0q": 2, "ippe1q": 3, "epnp": 4}
     sols.sort(key=lambda s: order[s[0]])
     out: list[tuple[str, np.ndarray]] = []
-    for label, rvec, tvec, Q in sols:
-        rvec, tvec = np.asarray(rvec, float).reshape(3), np.asarray(tvec, float).reshape(3)
-        if not (np.all(np.isfinite(rvec)) and np.all(np.isfinite(tvec))):
+    if not sols:
+        return out
+    rv = np.array([np.asarray(s[1], float).reshape(3) for s in sols])
+    tv = np.array([np.asarray(s[2], float).reshape(3) for s in sols])
+    finite = np.all(np.isfinite(rv), axis=1) & np.all(np.isfinite(tv), axis=1)
+    Rs = _exp_so3_many(np.where(finite[:, None], rv, 0.0))
+    for (label, _, _, Q), R, t, ok in zip(sols, Rs, tv, finite):
+        if not ok:
             continue
-        R = rotvec_to_R(rvec) if Q is None else rotvec_to_R(rvec) @ Q
-        if np.any(obs.points @ R[2] + tvec[2] <= 0):
+        if Q is not None:
+            R = R @ Q
+        if np.any(obs.points @ R[2] + t[2] <= 0):
             continue
-        T = cam.T_ecm_cam @ make_T(R, tvec)
+        T = cam.T_ecm_cam @ make_T(R, t)
         if _distinct(T, [o[1] for o in out], 5e-4, np.deg2rad(0.5)):
             out.append((f"{label}:{cam.name}", T))
     return out
