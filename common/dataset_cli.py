@@ -27,6 +27,8 @@ def _parser() -> argparse.ArgumentParser:
     g.add_argument("--format", default="jpg", choices=["jpg", "png"], help="image files (default jpg)")
     g.add_argument("--quality", type=int, default=95, help="JPEG quality (default 95)")
     g.add_argument("--jobs", type=int, default=2, help="render processes (default 2)")
+    g.add_argument("--msaa", type=int, default=4, choices=[0, 2, 4, 8],
+                   help="anti-aliasing samples (default 4; 0 renders ~2.5x faster with jagged thin wires)")
     g.add_argument("--overwrite", action="store_true", help="start over in a folder made with other settings")
     g.add_argument("--quiet", action="store_true", help="no progress bar")
 
@@ -70,7 +72,7 @@ def _generate(args) -> int:
     import common.sim_render  # noqa: F401  (selects the headless GL backend first)
     from common.sim_generate import GenerateConfig, generate
     cfg = GenerateConfig(args.sequences, args.steps, args.seed, args.randomise, args.width, args.height,
-                         args.format, args.quality)
+                         args.format, args.quality, args.msaa)
     t0 = time.time()
     n = generate(args.out, cfg, jobs=args.jobs, progress=not args.quiet, overwrite=args.overwrite)
     print(f"{args.out}: {n} frames ({args.sequences} sequences x {args.steps} steps, "

@@ -23,6 +23,7 @@ def main(argv=None) -> int:
     ap.add_argument("--steps", type=int, default=5, help="endoscope poses per needle pose (default 5)")
     ap.add_argument("--randomise", default="test", choices=["none", "test", "train"])
     ap.add_argument("--format", default="jpg", choices=["jpg", "png"])
+    ap.add_argument("--msaa", type=int, default=4, help="anti-aliasing samples (default 4; 0 = off)")
     ap.add_argument("--skip-breakdown", action="store_true")
     args = ap.parse_args(argv)
 
@@ -34,7 +35,7 @@ def main(argv=None) -> int:
     from common.sim_randomise import degrade_stereo, get_preset, plan_sequence
     from common.sim_render import SceneRenderer
 
-    print(f"sim bench: {args.width}x{args.height} stereo, randomise={args.randomise}, "
+    print(f"sim bench: {args.width}x{args.height} stereo, randomise={args.randomise}, msaa={args.msaa}, "
           f"{os.cpu_count()} CPUs, load average {os.getloadavg()[0]:.2f}")
     if not args.skip_breakdown:
         meta = scene_meta(args.width, args.height, "")
@@ -45,8 +46,12 @@ def main(argv=None) -> int:
         n_seq = max(2, args.frames // args.steps)
         rng = np.random.default_rng(0)
         plan_sequence(0, 0, 1, preset, meta.rig, meta.needle, meta.arm)  # warm caches
+        cpu0 = wall0 = None
+        frames_timed = 0
         for s in range(n_seq + 1):
-            plan = plan_sequence(1, s, args.steps, preset, meta.rig, meta.needle, meta.arm)
+            if s == 1:
+                cpu0, wall0 = time.process_time(), time.perf_counter()
+            plan = plan_sequence(1, s, args.steps, preset, meta.rig, meta.needle, meta.arm, msaa=args.msaa)
             t0 = time.perf_counter()
             r.load(plan.spec)
             t1 = time.perf_counter()
@@ -64,6 +69,7 @@ def main(argv=None) -> int:
                     cv2.imencode(".jpg", img, [cv2.IMWRITE_JPEG_QUALITY, 95])
                 e = time.perf_counter()
                 if s > 0:
+                    frames_timed += 1
                     t["colour render, 2 cameras"].append(r.last_timings["colour"])
                     t["segmentation window, 2 cameras"].append(r.last_timings["window"])
                     t["ground truth"].append(c - b)
@@ -76,12 +82,17 @@ def main(argv=None) -> int:
         per_frame += float(np.median(t["new needle pose (load)"])) / args.steps
         print(f"  {'per stereo frame (steps=%d)' % args.steps:34s} {1000 * per_frame:8.1f} ms "
               f"-> {1 / per_frame:.2f} frames/s in one process")
+        cpu = (time.process_time() - cpu0) / frames_timed
+        wall = (time.perf_counter() - wall0) / frames_timed
+        print(f"  CPU time per stereo frame (all threads): {1000 * cpu:.0f} ms (wall {1000 * wall:.0f} ms) "
+              f"-> at most {(os.cpu_count() or 1) / cpu:.1f} frames/s on {os.cpu_count()} idle cores")
         r.close()
 
     tmp = tempfile.mkdtemp(prefix="needletrack_bench_sim_")
     try:
         n_seq = max(1, args.frames // args.steps)
-        cfg = GenerateConfig(n_seq, args.steps, 12345, args.randomise, args.width, args.height, args.format)
+        cfg = GenerateConfig(n_seq, args.steps, 12345, args.randomise, args.width, args.height, args.format,
+                             msaa=args.msaa)
         t0 = time.perf_counter()
         n = generate(tmp, cfg, jobs=args.jobs, progress=False)
         dt = time.perf_counter() - t0

@@ -27,6 +27,7 @@ class GenerateConfig:
     height: int = 1080
     image_format: str = "jpg"
     jpeg_quality: int = 95
+    msaa: int = 4
 
     def stable(self) -> dict:
         """What must match for a folder to be resumed or extended."""
@@ -50,7 +51,7 @@ def render_sequence(renderer, cfg: GenerateConfig, sequence: int) -> list[tuple[
     meta = scene_meta(cfg.width, cfg.height, "")
     preset = get_preset(cfg.randomise)
     tex = 1024
-    plan = plan_sequence(cfg.seed, sequence, cfg.steps, preset, meta.rig, meta.needle, meta.arm, tex)
+    plan = plan_sequence(cfg.seed, sequence, cfg.steps, preset, meta.rig, meta.needle, meta.arm, tex, cfg.msaa)
     renderer.load(plan.spec)
     rng = np.random.default_rng(plan.image_seed)
     out = []
@@ -112,7 +113,9 @@ def generate(folder: str, cfg: GenerateConfig, jobs: int = 2, progress: bool = T
     if os.path.isfile(gpath) and not overwrite:
         with open(gpath) as f:
             old = json.load(f)
-        if old.get("config") != json.loads(json.dumps(cfg.stable())):
+        defaults = GenerateConfig(1, 1).stable()  # settings added later default to their old behaviour
+        if {**defaults, **dict(old.get("config") or {}), "steps": (old.get("config") or {}).get("steps")} \
+                != json.loads(json.dumps(cfg.stable())):
             raise ValueError(f"{folder} holds a generation with other settings {old.get('config')}; "
                              f"use another --out or --overwrite")
         resume = True

@@ -41,7 +41,8 @@ class LiveSim:
 
     def __init__(self, width: int = 1920, height: int = 1080, randomise: str = "test", seed: int = 0,
                  motion: str = "sweep", steps: int = 5, hold_frames: int = 15, sweep_period_s: float = 8.0,
-                 sweep_amplitude_rad: float = 0.06, rate_hz: float = 30.0, texture_size: int = 1024):
+                 sweep_amplitude_rad: float = 0.06, rate_hz: float = 30.0, texture_size: int = 1024,
+                 msaa: int = 4):
         if motion not in MOTIONS:
             raise ValueError(f"sim: motion must be one of {MOTIONS}, got {motion!r}")
         self.rig = StereoRig.default(width, height)
@@ -52,7 +53,7 @@ class LiveSim:
         self.hold_frames = max(1, int(hold_frames))
         self.sweep_period_s, self.sweep_amplitude = float(sweep_period_s), float(sweep_amplitude_rad)
         self.dt = 1.0 / rate_hz if rate_hz > 0 else 1.0 / 30.0
-        self.texture_size = texture_size
+        self.texture_size, self.msaa = texture_size, int(msaa)
         self.renderer = SceneRenderer()
         self.sequence = -1
         self.frame_in_sequence = 0
@@ -65,7 +66,7 @@ class LiveSim:
         self.sequence += 1
         key = self.sequence if seed is None else int(seed)
         plan = plan_sequence(self.seed, key, self.steps, self.preset, self.rig, self.needle, self.arm,
-                             self.texture_size)
+                             self.texture_size, self.msaa)
         if T_world_needle is not None:
             T = np.asarray(T_world_needle, dtype=float)
             if T.shape != (4, 4) or not np.all(np.isfinite(T)):

@@ -281,7 +281,7 @@ class SequencePlan:
 
 
 def plan_sequence(seed: int, sequence: int, steps: int, preset: Preset, rig: StereoRig,
-                  needle: NeedleModel, arm: EcmArm, texture_size: int = 1024) -> SequencePlan:
+                  needle: NeedleModel, arm: EcmArm, texture_size: int = 1024, msaa: int = 4) -> SequencePlan:
     """Deterministic plan of sequence ``sequence`` for a run seeded ``seed``."""
     rng = np.random.default_rng([seed, sequence])
     for _ in range(100):
@@ -293,7 +293,7 @@ def plan_sequence(seed: int, sequence: int, steps: int, preset: Preset, rig: Ste
             continue
         inst = sample_instruments(rng, T, needle, held, preset)
         spec = SceneSpec(rig=rig, needle=needle, T_world_needle=T, appearance=ap, instruments=inst,
-                         thread_seed=int(rng.integers(1 << 30)), texture_size=texture_size)
+                         thread_seed=int(rng.integers(1 << 30)), texture_size=texture_size, msaa=msaa)
         qs = multiview_joints(rng, arm, rig, needle, T, q0, steps)
         return SequencePlan(spec, qs, int(rng.integers(1 << 30)))
     raise RuntimeError(f"sim: could not place the needle in view for sequence {sequence}")

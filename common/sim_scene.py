@@ -306,6 +306,7 @@ class SceneSpec:
     thread_seed: int = 0
     markers: list = field(default_factory=list)  # (x, y, z, radius) world spheres, for calibration tests
     texture_size: int = 1024
+    msaa: int = 4  # multisample anti-aliasing (0 = off: ~2.5x faster on the CPU, jagged thin wires)
 
 
 MAX_INSTRUMENTS = 2
@@ -354,7 +355,7 @@ def structure_key(spec: SceneSpec) -> tuple:
     rig = spec.rig
     return (rig.left.width, rig.left.height, float(rig.left.K[1, 1]),
             tuple(rig.left.T_ecm_cam[:3, 3]), tuple(rig.right.T_ecm_cam[:3, 3]),
-            len(spec.markers), spec.texture_size, spec.needle)
+            len(spec.markers), spec.texture_size, spec.needle, int(spec.msaa))
 
 
 def build_mjcf(spec: SceneSpec) -> str:
@@ -392,7 +393,7 @@ def build_mjcf(spec: SceneSpec) -> str:
   <visual>
     <global offwidth="{w}" offheight="{h}"/>
     <map znear="0.002" zfar="3"/>
-    <quality shadowsize="2048" offsamples="4"/>
+    <quality shadowsize="2048" offsamples="{int(spec.msaa)}"/>
     <headlight ambient="0.1 0.1 0.1" diffuse="0 0 0" specular="0 0 0"/>
   </visual>
   <asset>

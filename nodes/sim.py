@@ -8,7 +8,8 @@ multi-view protocol), ``calib`` (``Calibration``: before the first frame, then o
 params: ``width``/``height`` (1920x1080), ``rate_hz`` (30; a maximum: rendering 1080p on the CPU
 is slower; 0 = as fast as possible), ``randomise`` (none|test|train, default test), ``seed`` (0),
 ``motion`` (static|multiview|sweep, default sweep), ``steps`` (5) and ``hold_frames`` (15) of the
-multi-view protocol, ``sweep_period_s`` (8), ``sweep_amplitude_rad`` (0.06), ``encoding``
+multi-view protocol, ``sweep_period_s`` (8), ``sweep_amplitude_rad`` (0.06), ``msaa`` (anti-aliasing
+samples, 4; 0 renders ~2.5x faster), ``encoding``
 (jpeg|png|bgr8, default jpeg), ``jpeg_quality`` (95), ``count`` (stop after this many frames;
 0 = never).
 
@@ -44,7 +45,8 @@ class SimNode(Node):
                            motion=str(p.get("motion", "sweep")), steps=int(p.get("steps", 5)),
                            hold_frames=int(p.get("hold_frames", 15)),
                            sweep_period_s=float(p.get("sweep_period_s", 8.0)),
-                           sweep_amplitude_rad=float(p.get("sweep_amplitude_rad", 0.06)), rate_hz=rate)
+                           sweep_amplitude_rad=float(p.get("sweep_amplitude_rad", 0.06)), rate_hz=rate,
+                           msaa=int(p.get("msaa", 4)))
         self.seq = 0
         self.next_t = time.monotonic()
         self.last_calib = None
