@@ -32,6 +32,7 @@ Pixels: observations are undistorted first when a camera has distortion; residua
 """
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, field
 from typing import Mapping, Optional, Sequence
 
@@ -86,6 +87,8 @@ class RefineConfig:
     warm_steps: int = 1             # Newton steps from feet carried over from the previous pose
     research_rad: float = 0.02      # after a step this large (rotation, rad) the feet are searched
     research_m: float = 0.001       # afresh (or translation, m); smaller steps carry them over
+    max_step_rad: float = 0.1       # a step turns at most this much (rad) ...
+    max_step_m: float = 0.005       # ... and moves at most this much (m)
     sigma_kp_px: float = 1.0        # assumed keypoint noise
     sigma_curve_px: float = 0.5     # assumed centreline noise
     min_score: float = 0.5          # keypoints scored below are left out (as the PnP does)
@@ -94,9 +97,8 @@ class RefineConfig:
     max_iter: int = 30
     step_tol: float = 1.0           # converged after a step worth < this many residual variances
     max_reject: int = 5             # ... or after this many rejected steps in a row
-    coarse_iter: int = 3            # iterations every candidate gets before the worst are pruned
-    prune_ratio: float = 10.0       # then drop those costing more than this many times the best
-    max_candidates: int = 3         # and refine at most this many to the end
+    coarse_iter: int = 3            # iterations every candidate gets before those that met merge
+    max_candidates: int = 3         # and the best this many are refined to the end
     add_mirrors: bool = True        # also refine each candidate's mirror image about the line of sight
     merge_mm: float = 5.0           # starting poses closer than this and merge_deg are refined once
     merge_deg: float = 10.0
@@ -105,12 +107,11 @@ class RefineConfig:
     distinct_deg: float = 2.0
     edge_on_deg: float = 10.0       # arc plane within this angle of the line of sight -> ambiguous
     min_depth_m: float = 1e-3       # every point must be this far in front of both cameras
-    hinge_px: float = 0.05          # a point this close inside an arc end still pins it (linear model)
 
     def __post_init__(self):
         positive = ("sigma_kp_px", "sigma_curve_px", "cauchy_scale", "step_tol", "merge_mm",
-                    "merge_deg", "distinct_mm", "distinct_deg", "ambiguity_chi2", "prune_ratio",
-                    "hinge_px", "research_rad", "research_m")
+                    "merge_deg", "distinct_mm", "distinct_deg", "ambiguity_chi2",
+                    "research_rad", "research_m", "max_step_rad", "max_step_m")
         for name in positive:
             v = getattr(self, name)
             if not (np.isfinite(v) and v > 0):
@@ -355,7 +356,7 @@ class _Problem:
                       (self._Ou - u[..., 4:5]) * ox[..., 1:] + (self._Ov - v[..., 4:5]) * oy[..., 1:],
                       (self._Ou - u[..., 0:1]) * ox[..., :1] + (self._Ov - v[..., 0:1]) * oy[..., :1])
         at_end = co < self._cos_end_zone
-        active = at_end & (ov > -self.cfg.hinge_px)
+        active = at_end & (ov > 0.0)
         r_t = np.where(at_end, np.maximum(ov, 0.0), 0.0)
         r = np.concatenate([ru, rv, r_n, r_t], axis=2).reshape(P, -1)
         if not jacobian:
@@ -423,16 +424,20 @@ def _select_curve(name: str, pts, w, m: int, w_min: float):
 
 
 def _exp_so3(v):
-    """Batched Rodrigues: rotation vectors (K, 3) -> rotations (K, 3, 3)."""
-    th = np.linalg.norm(v, axis=1)
-    small = th < 1e-8
-    ths = np.where(small, 1.0, th)
-    a = np.where(small, 1.0 - th ** 2 / 6, np.sin(ths) / ths)
-    b = np.where(small, 0.5 - th ** 2 / 24, (1 - np.cos(ths)) / ths ** 2)
-    S = np.zeros((len(v), 3, 3))
-    S[:, 0, 1], S[:, 0, 2], S[:, 1, 2] = -v[:, 2], v[:, 1], -v[:, 0]
-    S[:, 1, 0], S[:, 2, 0], S[:, 2, 1] = v[:, 2], -v[:, 1], v[:, 0]
-    return np.eye(3) + a[:, None, None] * S + b[:, None, None] * (S @ S)
+    """Batched Rodrigues: rotation vectors (K, 3) -> rotations (K, 3, 3). (Scalar math per
+    vector: K is a handful of candidates, where numpy's per-call cost dominates.)"""
+    out = np.empty((len(v), 3, 3))
+    for k, (x, y, z) in enumerate(v.tolist()):
+        th2 = x * x + y * y + z * z
+        if th2 < 1e-16:
+            a, b = 1.0 - th2 / 6.0, 0.5 - th2 / 24.0
+        else:
+            th = math.sqrt(th2)
+            a, b = math.sin(th) / th, (1.0 - math.cos(th)) / th2
+        out[k] = ((1 - b * (y * y + z * z), -a * z + b * x * y, a * y + b * x * z),
+                  (a * z + b * x * y, 1 - b * (x * x + z * z), -a * x + b * y * z),
+                  (-a * y + b * x * z, a * x + b * y * z, 1 - b * (x * x + y * y)))
+    return out
 
 
 def _orthonormalise(R):
@@ -461,6 +466,8 @@ def _pose_delta(T, T_ref):
 
 # ------------------------------------------------------------------ the solver
 
+_I6 = np.eye(6)
+
 
 def _lm(prob: _Problem, R, t, cfg: RefineConfig, n_iter: int, state=None):
     """Batched Levenberg-Marquardt on K poses; returns the state dict (poses, costs, ...).
@@ -477,7 +484,6 @@ def _lm(prob: _Problem, R, t, cfg: RefineConfig, n_iter: int, state=None):
                      rej=np.zeros(K, int), done=~np.isfinite(cost), iters=0)
     s = state
     dof = max(prob.n_res - 6, 1)
-    I6 = np.eye(6)
     for _ in range(n_iter):
         act = np.flatnonzero(~s["done"])
         if len(act) == 0:
@@ -490,11 +496,17 @@ def _lm(prob: _Problem, R, t, cfg: RefineConfig, n_iter: int, state=None):
         dg = np.maximum(np.diagonal(H, axis1=1, axis2=2), 1e-300)
         # Jacobi scaling: rotation (rad) and translation (m) columns differ by ~1e2.
         sc = 1.0 / np.sqrt(dg)
-        A = H * sc[:, :, None] * sc[:, None, :] + s["lam"][act, None, None] * I6
+        A = H * sc[:, :, None] * sc[:, None, :] + s["lam"][act, None, None] * _I6
         try:
             dx = -sc * np.linalg.solve(A, (g * sc)[..., None])[..., 0]
         except np.linalg.LinAlgError:
             dx = -sc * np.stack([np.linalg.lstsq(a, b * c, rcond=None)[0] for a, b, c in zip(A, g, sc)])
+        # Trust region: no step turns more than max_step_rad or moves more than max_step_m (a
+        # nearly face-on arc leaves its tilt weakly determined; a full step may leap far).
+        shrink = np.minimum(1.0, np.minimum(
+            cfg.max_step_rad / np.maximum(np.abs(dx[:, :3]).max(axis=1), 1e-300),
+            cfg.max_step_m / np.maximum(np.abs(dx[:, 3:]).max(axis=1), 1e-300)))
+        dx = dx * shrink[:, None]
         Rn = _exp_so3(dx[:, :3]) @ s["R"][act]
         tn = s["t"][act] + dx[:, 3:]
         # Feet: carried over from the current poses, searched afresh after a large step.
@@ -514,7 +526,7 @@ def _lm(prob: _Problem, R, t, cfg: RefineConfig, n_iter: int, state=None):
         s["rej"][ia] = 0
         s["rej"][act[~acc]] += 1
         quad = (dx[:, None, :] @ H @ dx[..., None])[:, 0, 0]
-        within = acc & (quad < cfg.step_tol * old / dof)
+        within = acc & (shrink == 1.0) & (quad < cfg.step_tol * old / dof)
         small = (np.abs(dx[:, :3]).max(axis=1) < 1e-11) & (np.abs(dx[:, 3:]).max(axis=1) < 1e-12)
         s["done"][act] |= within | small | (s["rej"][act] >= cfg.max_reject)
     return s
@@ -552,9 +564,8 @@ class DenseRefiner:
         s = _lm(prob, R, t, cfg, cfg.coarse_iter)
         if not np.any(np.isfinite(s["cost"])):
             raise RefineError("no_valid_candidate", "every candidate puts the needle behind a camera")
-        # Prune: drop candidates far worse than the best, and merge those that met.
-        best = np.min(s["cost"])
-        keep = np.flatnonzero(s["cost"] <= cfg.prune_ratio * best + 1e-12)
+        # Merge the candidates that met; go on with the best max_candidates.
+        keep = np.flatnonzero(np.isfinite(s["cost"]))
         keep = _dedupe(s, keep, cfg.distinct_mm, cfg.distinct_deg)[:cfg.max_candidates]
         s = {k: (v[keep] if isinstance(v, np.ndarray) else v) for k, v in s.items()}
         s = _lm(prob, s["R"], s["t"], cfg, cfg.max_iter - cfg.coarse_iter, state=s)
