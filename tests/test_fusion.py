@@ -1,6 +1,8 @@
 """Multi-view fusion (common/fusion.py)."""
 import numpy as np
 import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
 from common.camera import StereoRig
 from common.ecm_kinematics import EcmArm
@@ -86,6 +88,23 @@ def test_views_are_mapped_into_the_current_ecm_frame():
     for T_e in T_en:
         bad = g.add(T_e)
     assert pose_error(bad.T_ecm_needle, T_en[-1])[0] > 1e-3
+
+
+@settings(max_examples=25, deadline=None)
+@given(st.integers(0, 2**31 - 1), st.sampled_from([0, 1, 3]))
+def test_multiview_exact_at_zero_noise(seed, joint):
+    """Noise-free oracle keypoints -> pnp_joint per view -> fusion: the exact pose, for random
+    needle poses and ECM motions (yaw, pitch or roll stepping 0.05 rad)."""
+    rng = np.random.default_rng(seed)
+    _, T_we, T_en = multiview_scenario(rng, RIG, MODEL, EcmArm(), joint=joint)
+    f = MultiViewFusion(k=5)
+    for i, (T_w, T_e) in enumerate(zip(T_we, T_en)):
+        uv, sc = Oracle().stereo(RIG, T_e, MODEL, seq=i)
+        res = pnp_joint(uv, RIG, P, sc)
+        out = f.add(res.T_ecm_needle, T_w, res.covariance)
+    assert out.n_views == 5
+    dt, dr = pose_error(out.T_ecm_needle, T_en[-1])
+    assert dt < 1e-6 and dr < np.deg2rad(1e-4)
 
 
 def test_fusion_over_five_views_beats_one_view_at_1px():
