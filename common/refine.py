@@ -107,11 +107,13 @@ class RefineConfig:
     distinct_deg: float = 2.0
     edge_on_deg: float = 10.0       # arc plane within this angle of the line of sight -> ambiguous
     min_depth_m: float = 1e-3       # every point must be this far in front of both cameras
+    min_sigma_ratio: float = 0.25   # the covariance assumes at least this fraction of the sigmas
 
     def __post_init__(self):
         positive = ("sigma_kp_px", "sigma_curve_px", "cauchy_scale", "step_tol", "merge_mm",
                     "merge_deg", "distinct_mm", "distinct_deg", "ambiguity_chi2",
-                    "research_rad", "research_m", "max_step_rad", "max_step_m")
+                    "research_rad", "research_m", "max_step_rad", "max_step_m",
+                    "min_sigma_ratio")
         for name in positive:
             v = getattr(self, name)
             if not (np.isfinite(v) and v > 0):
@@ -613,6 +615,9 @@ def _result(prob: _Problem, s, cfg: RefineConfig) -> RefineResult:
     dof = max(n_res - 6, 1)
     s2 = float((wr * r ** 2).sum() / dof)
     H = J.T @ (wr[:, None] * J)
+    # Residuals are in units of the assumed sigmas: s2 ~ 1 when they hold. An exact fit does
+    # not claim infinite certainty: at least min_sigma_ratio of the assumed sigmas.
+    s2 = max(s2, cfg.min_sigma_ratio ** 2)
     cov = s2 * _inv_psd(H)
 
     def rms(mask):
@@ -628,7 +633,7 @@ def _result(prob: _Problem, s, cfg: RefineConfig) -> RefineResult:
         if _near_any(Tj, [c[0] for c in cands], cfg.distinct_mm, cfg.distinct_deg):
             continue
         cands.append((Tj, float(s["cost"][j])))
-        competitors.append((Tj, (s["cost"][j] - s["cost"][b]) / max(s2, 1e-12)))
+        competitors.append((Tj, (s["cost"][j] - s["cost"][b]) / s2))
     view = _view_angle_deg(prob, T0)
     edge_on = view < cfg.edge_on_deg
     close = [(Tj, dchi) for Tj, dchi in competitors if dchi < cfg.ambiguity_chi2]
