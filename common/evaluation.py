@@ -414,8 +414,7 @@ def build_results(col: Collected, *, dataset: str, detector: str, ev: Optional[E
         "images_without_needle": ev.empty_images,
         "frames_with_truth": len(ev.T_true),
         "node_counters": {n: {k: v for k, v in c.items()
-                              if k.startswith(("no_pose", "handler_errors", "decode_errors", "dropped",
-                                               "bad_image", "image_errors"))}
+                              if isinstance(v, int) and not isinstance(v, bool) and k != "restarts"}
                           for n, c in sorted(col.node_counters.items())},
         "paper": {"keypoints_2d_px": PAPER["keypoints_2d_px"],
                   "pose": {m: {"position_mm": p, "orientation_deg": o}

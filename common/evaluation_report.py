@@ -97,7 +97,9 @@ def report_markdown(res: dict) -> str:
         L += [f"| {n} | {_fmt(v)} |" for n, v in t["per_node_ms"].items()]
     else:
         L.append("(no node statistics received)")
-    why = {n: c for n, c in res.get("node_counters", {}).items() if any(c.values())}
+    why = {n: {k: v for k, v in c.items() if not k.startswith(("in.", "out."))}
+           for n, c in res.get("node_counters", {}).items()}
+    why = {n: c for n, c in why.items() if any(c.values())}
     if why:
         L += ["", "## Why frames gave no pose (node counters)", "",
               "| node | counter | count |", "| --- | --- | ---: |"]

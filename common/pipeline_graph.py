@@ -104,10 +104,16 @@ def pipeline_graph(dataset: str, *, detector: str = "learned", detector_params: 
         info = module_info(n["module"])
         if info and info["inputs"] is not None:
             n["inputs"] = {k: v for k, v in n.get("inputs", {}).items() if k in info["inputs"]}
-    if lossless:
-        for n in nodes:
-            n["command"] = lossless_command(n.pop("module"), start_delay_s if n["id"] == SOURCE else 0.0)
+    wrapped = nodes if lossless else []
     nodes += list(sinks or [])
+    # every process of the graph but the source, plus the launcher that hosts them
+    n_main = len(nodes) - 1
+    for n in wrapped:
+        source = n["id"] == SOURCE
+        # a node waits for its links to every other node (and the hub, and for the source its
+        # own launcher) before it goes live; the source then also waits start_delay_s
+        n["command"] = lossless_command(n.pop("module"), start_delay_s if source else 0.0,
+                                        peers=n_main + 2 if source else n_main)
     for n in nodes:
         n.setdefault("restart", "never")
     return {"graph": name, "zenoh": {"mode": "peer", "listen": [f"tcp/127.0.0.1:{port}"]},
@@ -158,9 +164,17 @@ class GraphRun:
         self._threads: list = []
 
     def _session(self):
+        """A client session on the hub: it sees the graph's liveliness and data, and, unlike a
+        peer, is no link the nodes wait for."""
         if self.session is None:
-            from common.tools import open_session
-            self.session = open_session(self.graph, wait_s=5.0)
+            import json
+
+            import zenoh
+            c = zenoh.Config()
+            c.insert_json5("mode", '"client"')
+            c.insert_json5("scouting/multicast/enabled", "false")
+            c.insert_json5("connect/endpoints", json.dumps(list(self.graph.zenoh.listen)))
+            self.session = zenoh.open(c)
         return self.session
 
     def live_nodes(self) -> set:
@@ -247,24 +261,46 @@ def _fmt_dead(dead: dict) -> str:
 
 # ---------------------------------------------------------------- lossless nodes
 
-def lossless_command(module: str, start_delay_s: float = 0.0) -> list:
-    """The ``command`` that runs ``nodes/<module>.py`` with every input keeping every message."""
+PEER_WAIT_S = 30.0
+
+
+def lossless_command(module: str, start_delay_s: float = 0.0, peers: int = 0) -> list:
+    """The ``command`` that runs ``nodes/<module>.py`` with every input keeping every message
+    (see ``lossless_class``)."""
     cmd = [sys.executable, "-m", "common.pipeline_graph", "--module", module]
     if start_delay_s > 0:
         cmd += ["--start-delay", f"{start_delay_s:g}"]
+    if peers > 0:
+        cmd += ["--peers", str(peers)]
     return cmd
 
 
-def lossless_class(base: type, start_delay_s: float = 0.0) -> type:
-    """A subclass of a node class whose inputs are all keep-all; a source also waits
-    ``start_delay_s`` after its setup (its session is open by then) before its first step."""
+def lossless_class(base: type, start_delay_s: float = 0.0, peers: int = 0) -> type:
+    """A subclass of a node class whose inputs are all keep-all.
+
+    After its setup (its Zenoh session is open by then; its liveliness token is declared after)
+    it waits until the session has direct links to ``peers`` peers (at most PEER_WAIT_S): peers
+    find each other by gossip through the hub, and a message published before the link to a
+    subscriber is up never reaches it. Then it waits ``start_delay_s`` more.
+    """
     attrs = {"KEEP_ALL": tuple(base.INPUTS), "__module__": base.__module__,
              "__doc__": f"{base.__name__}, every input keeping every message."}
-    if start_delay_s > 0:
-        def setup(self):
-            base.setup(self)
+
+    def setup(self):
+        base.setup(self)
+        rt = getattr(self, "_runtime", None)
+        session = getattr(rt, "session", None)
+        if peers > 0 and session is not None:
+            deadline = time.monotonic() + PEER_WAIT_S
+            while len(list(session.info.peers_zid())) < peers:
+                if time.monotonic() > deadline:
+                    self.log.warning("linked to %d of %d peers after %.0f s; going on",
+                                     len(list(session.info.peers_zid())), peers, PEER_WAIT_S)
+                    break
+                time.sleep(0.05)
+        if start_delay_s > 0:
             time.sleep(start_delay_s)
-        attrs["setup"] = setup
+    attrs["setup"] = setup
     return type(base.__name__, (base,), attrs)
 
 
@@ -275,6 +311,7 @@ def _lossless_main(argv=None) -> int:
     ap = argparse.ArgumentParser(prog="python -m common.pipeline_graph")
     ap.add_argument("--module", required=True)
     ap.add_argument("--start-delay", type=float, default=0.0)
+    ap.add_argument("--peers", type=int, default=0)
     args = ap.parse_args(argv)
     from common.node import run
     graph, node = os.environ.get("NEEDLETRACK_GRAPH"), os.environ.get("NEEDLETRACK_NODE")
@@ -283,7 +320,7 @@ def _lossless_main(argv=None) -> int:
               "(run by the launcher)", file=sys.stderr)
         return 2
     base = importlib.import_module(f"nodes.{args.module}").NODE
-    return run(lossless_class(base, args.start_delay), ["--graph", graph, "--node", node])
+    return run(lossless_class(base, args.start_delay, args.peers), ["--graph", graph, "--node", node])
 
 
 if __name__ == "__main__":
