@@ -73,7 +73,7 @@ def test_raw_epnp_is_not_exact_on_coplanar_keypoints():
     assert np.max(errs[:, 0]) > 1e-4 or np.max(errs[:, 1]) > np.deg2rad(1.0)
 
 
-def _noisy_errors(method, sigma, n=120, seed=0):
+def _noisy_errors(method, sigma, n=80, seed=0):
     rng = np.random.default_rng(seed)
     oracle = Oracle(noise_px=sigma, seed=seed)
     out = []
