@@ -106,14 +106,16 @@ class RefineConfig:
     distinct_mm: float = 1.0        # competitors closer than this and distinct_deg are the same solution
     distinct_deg: float = 2.0
     edge_on_deg: float = 10.0       # arc plane within this angle of the line of sight -> ambiguous
+    edge_on_chi2: float = 100.0     # and then competitors costing < this many variances more count
     min_depth_m: float = 1e-3       # every point must be this far in front of both cameras
+    max_depth_m: float = 2.0        # and the needle nearer than this (a PnP start may run off)
     min_sigma_ratio: float = 0.25   # the covariance assumes at least this fraction of the sigmas
 
     def __post_init__(self):
         positive = ("sigma_kp_px", "sigma_curve_px", "cauchy_scale", "step_tol", "merge_mm",
                     "merge_deg", "distinct_mm", "distinct_deg", "ambiguity_chi2",
                     "research_rad", "research_m", "max_step_rad", "max_step_m",
-                    "min_sigma_ratio")
+                    "min_sigma_ratio", "max_depth_m", "edge_on_chi2")
         for name in positive:
             v = getattr(self, name)
             if not (np.isfinite(v) and v > 0):
@@ -341,8 +343,9 @@ class _Problem:
         t4 = tcam[:, :, None, :]
         co, si = feet[:, :, 5:, 0], feet[:, :, 5:, 1]
         u, v, tu, tv, z, iz, x, y, W = self._project_arc(feet, E, t4, full=True)
-        valid = (z[..., :5].min(axis=(1, 2)) > self.cfg.min_depth_m) & \
-            (tcam[..., 2].min(axis=1) > self.cfg.min_depth_m)
+        zc = tcam[..., 2]
+        valid = ((z[..., :5].min(axis=(1, 2)) > self.cfg.min_depth_m) & (zc.min(axis=1) > self.cfg.min_depth_m)
+                 & (zc.max(axis=1) < self.cfg.max_depth_m))
         ru, rv = u[..., :5] - self._Uu, v[..., :5] - self._Uv
         du, dv = u[..., 5:] - self._Ou, v[..., 5:] - self._Ov
         itn = 1.0 / np.maximum(np.sqrt(tu * tu + tv * tv), 1e-300)
@@ -641,10 +644,11 @@ def _result(prob: _Problem, s, cfg: RefineConfig) -> RefineResult:
         reasons.append("competing_candidates")
     if edge_on:
         reasons.append("edge_on")
-    # Inflate by the spread of the competitors: fully for those nearly as good (all of them when
-    # edge-on), by their relative likelihood for the others.
+    # Inflate by the spread of the competitors: fully for those nearly as good (more leniently
+    # judged when edge-on), by their relative likelihood for the others.
+    full = cfg.edge_on_chi2 if edge_on else cfg.ambiguity_chi2
     for Tj, dchi in competitors:
-        a = 1.0 if (edge_on or dchi < cfg.ambiguity_chi2) else float(np.exp(-0.5 * dchi))
+        a = 1.0 if dchi < full else float(np.exp(-0.5 * dchi))
         if a > 1e-12:
             d = _pose_delta(Tj, T0)
             cov = cov + a * np.outer(d, d)
