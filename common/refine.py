@@ -484,7 +484,8 @@ def _lm(prob: _Problem, R, t, cfg: RefineConfig, n_iter: int, state=None):
     if state is None:
         r, J, cs, valid = prob.linearise(R, t)
         rho, wr = prob.robust(r)
-        cost = np.where(valid & np.all(np.isfinite(r), axis=1), rho.sum(1), np.inf)
+        cost = rho.sum(1)
+        cost[~(valid & np.isfinite(cost))] = np.inf
         state = dict(R=R, t=t, r=r, J=J, cs=cs, wr=wr, cost=cost, lam=np.full(K, 1e-3),
                      rej=np.zeros(K, int), done=~np.isfinite(cost), iters=0)
     s = state
@@ -519,7 +520,8 @@ def _lm(prob: _Problem, R, t, cfg: RefineConfig, n_iter: int, state=None):
         warm = None if big else s["cs"][act]
         rn, Jn, csn, validn = prob.linearise(Rn, tn, warm)
         rho_n, wr_n = prob.robust(rn)
-        cost_n = np.where(validn & np.all(np.isfinite(rn), axis=1), rho_n.sum(1), np.inf)
+        cost_n = rho_n.sum(1)
+        cost_n[~(validn & np.isfinite(cost_n))] = np.inf
         old = s["cost"][act]
         acc = cost_n <= old
         ia = act[acc]
