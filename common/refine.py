@@ -525,9 +525,12 @@ def _lm(prob: _Problem, R, t, cfg: RefineConfig, n_iter: int, state=None):
         old = s["cost"][act]
         acc = cost_n <= old
         ia = act[acc]
-        for key, val in (("R", Rn), ("t", tn), ("r", rn), ("J", Jn), ("cs", csn), ("wr", wr_n),
-                         ("cost", cost_n)):
-            s[key][ia] = val[acc]
+        new = (("R", Rn), ("t", tn), ("r", rn), ("J", Jn), ("cs", csn), ("wr", wr_n), ("cost", cost_n))
+        if len(ia) == K:                       # every pose active and accepted: take them all
+            s.update(new)
+        else:
+            for key, val in new:
+                s[key][ia] = val[acc]
         s["lam"][ia] = np.maximum(s["lam"][ia] / 3.0, 1e-9)
         s["lam"][act[~acc]] *= 4.0
         s["rej"][ia] = 0
