@@ -128,7 +128,7 @@ class ReprojectionProblem:
         return self.refine_many([T0], **kw)[0]
 
     def refine_many(self, T0s: Sequence[np.ndarray], max_iter: int = 60, tol_m: float = 1e-11,
-                    rel_tol: float = 1e-9, merge_m: float = 1e-3,
+                    rel_tol: float = 1e-7, merge_m: float = 1e-3,
                     merge_rad: float = np.deg2rad(1.0)) -> "list[LMResult | None]":
         """Levenberg-Marquardt from several starting poses at once (vectorised over them).
 
@@ -169,7 +169,8 @@ class ReprojectionProblem:
                 continue
             step_m = (np.linalg.norm(delta[:, :3], axis=1) * self.size
                       + np.linalg.norm(delta[:, 3:], axis=1))
-            pred = lam[idx] * np.einsum("ki,ki->k", delta * D, delta) - np.einsum("ki,ki->k", g, delta)
+            # the decrease the linear model predicts: delta^T (lam D delta - g) > 0
+            pred = np.einsum("ki,ki->k", delta, lam[idx, None] * D * delta - g)
             R1 = _exp_so3_many(delta[:, :3]) @ R[idx]
             t1 = t[idx] + delta[:, 3:]
             r1, J1, ok1 = self._residuals(R1, t1)
@@ -177,7 +178,7 @@ class ReprojectionProblem:
             acc = c1 <= cost[idx]
             a, ia = idx[acc], np.flatnonzero(acc)
             if len(a):
-                rho = np.where(pred[ia] > 0, (cost[a] - c1[ia]) / np.where(pred[ia] > 0, pred[ia], 1.0), 1.0)
+                rho = (cost[a] - c1[ia]) / np.maximum(pred[ia], 1e-300)
                 R[a], t[a], r[a], J[a], cost[a] = R1[ia], t1[ia], r1[ia], J1[ia], c1[ia]
                 lam[a] *= np.maximum(1.0 / 3.0, 1.0 - (2.0 * rho - 1.0) ** 3)
                 nu[a] = 2.0
@@ -245,7 +246,7 @@ class LMResult:
 
 
 def refine_pose_lm(T0: np.ndarray, observations: Sequence[CameraObs], max_iter: int = 60,
-                   tol_m: float = 1e-11, rel_tol: float = 1e-9) -> LMResult | None:
+                   tol_m: float = 1e-11, rel_tol: float = 1e-7) -> LMResult | None:
     """Levenberg-Marquardt (numpy, analytic Jacobian) on the weighted reprojection error of all
     ``observations``, from ``T0`` = ``T_ecm_needle``.
 
