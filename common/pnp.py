@@ -458,16 +458,21 @@ def pnp_average(uv: dict, rig: StereoRig, model_points, scores: dict | None = No
     """Pipeline I as in the paper: per-camera EPnP poses averaged (see module docstring).
 
     ``uv``: ``{"left": (5, 2), "right": (5, 2)}`` pixels (a camera may be absent; NaN rows are
-    missing points), ``scores`` likewise (5,). A camera with fewer than 4 usable keypoints is
-    left out of the mean; with none left, NoPose. Each camera's pose is weighted by the sum of
+    missing points), ``scores`` likewise (5,). A camera with fewer than 4 usable keypoints, or
+    whose solver finds no pose in front of it, is left out of the mean; with none left, NoPose. Each camera's pose is weighted by the sum of
     its scores. ``rms_px`` is the averaged pose's reprojection RMS in the cameras used.
     """
     obs = stereo_observations(uv, rig, model_points, scores, min_score)
     _check_observations(obs)
-    per_cam = {}
+    per_cam, failure = {}, None
     for name, o in obs.items():
         if o.n >= MIN_POINTS:
-            per_cam[name] = pnp_camera(o, refine)
+            try:
+                per_cam[name] = pnp_camera(o, refine)
+            except NoPose as exc:         # the other camera may still give the pose
+                failure = exc
+    if not per_cam:
+        raise failure
     Ts = [c.T_ecm_needle for c in per_cam.values()]
     w = [obs[n].weights.sum() for n in per_cam]
     T = pose_mean(Ts, w) if len(Ts) > 1 else Ts[0]
