@@ -136,12 +136,13 @@ def measure(args, dataset: str, log) -> dict:
         streams[m] = (src, PoseEstimate)
 
     with GraphRun(doc, log) as run:
+        run.start_consumers()
         session = run._session()
         subs = [session.declare_subscriber(output_key(run.graph.name, *src.split("/")),
                                            rec.callback(name, typ))
                 for name, (src, typ) in streams.items()]
         subs.append(session.declare_subscriber(stats_key(run.graph.name), rec.callback("@stats", NodeStats)))
-        run.start()
+        run.start_source()
         # the first frame's publish time starts the clock
         deadline = time.monotonic() + 60
         while not rec.rows.get("published"):

@@ -23,6 +23,7 @@ from pathlib import Path
 from typing import Optional
 
 from common.graph import graph_from_dict, live_key, module_info
+from common.messages import Calibration
 
 SOURCE = "replay"
 
@@ -190,7 +191,12 @@ class GraphRun:
                 if s.done and s.last_status not in (0, None)}
 
     def start(self) -> None:
-        from common.launcher import Launcher
+        """Start every node, the source last (``start_consumers`` then ``start_source``)."""
+        self.start_consumers()
+        self.start_source()
+
+    def start_consumers(self) -> None:
+        """Start every node but the source and wait until each is live."""
         self.main.start()
         self._threads.append(threading.Thread(target=self.main.run, name="launcher", daemon=True))
         self._threads[-1].start()
@@ -206,6 +212,10 @@ class GraphRun:
             if time.monotonic() > deadline:
                 raise GraphRunError(f"node(s) not up after {self.ready_timeout:.0f} s: {', '.join(sorted(missing))}")
             time.sleep(0.2)
+
+    def start_source(self) -> None:
+        """Start the source (in a second launcher joined to the first)."""
+        from common.launcher import Launcher
         time.sleep(0.3)   # let the declarations settle across the peers
         self.src = Launcher(self.graph, only=[self.source], out=self.log)
         self.src.start()
@@ -300,6 +310,12 @@ def lossless_class(base: type, start_delay_s: float = 0.0, peers: int = 0) -> ty
                 time.sleep(0.05)
         if start_delay_s > 0:
             time.sleep(start_delay_s)
+            # a source that holds its calibration sends it ahead of the first frame: messages
+            # on different keys may overtake each other, and a frame without calibration is lost
+            calib = getattr(self, "calib", None)
+            if isinstance(calib, Calibration) and "calib" in self.OUTPUTS:
+                self.publish("calib", calib)
+                time.sleep(0.2)
     attrs["setup"] = setup
     return type(base.__name__, (base,), attrs)
 
