@@ -315,17 +315,17 @@ class _Problem:
             cs[:, :, :5] = self._kp_cs
         return cs
 
-    def feet(self, R, t, start=None):
+    def feet(self, R, t, start=None, axes=None):
         """Feet (K, C, 5 + M, 2) for poses (R, t): (cos, sin) of the arc angles (from the arc's
         middle) of the keypoints and of each observed point's nearest arc point. From
         ``start`` (the feet at a nearby pose: ``warm_steps`` Newton steps) or else from the
         nearest of ``n_samples`` projected arc points (``foot_steps`` Newton steps)."""
-        tcam, E = self._axes(R, t)
+        tcam, E = self._axes(R, t) if axes is None else axes
         t4 = tcam[:, :, None, :]
         cs = self.nearest_samples(E, t4) if start is None else start
         return self._newton(cs, E, t4, self.cfg.foot_steps if start is None else self.cfg.warm_steps)
 
-    def evaluate(self, R, t, feet, jacobian: bool = True):
+    def evaluate(self, R, t, feet, jacobian: bool = True, axes=None):
         """Residuals (P, n) in px of P poses ``(R (P,3,3), t (P,3))`` with the ``feet`` (P, C,
         5 + M, 2) (see ``feet``) held fixed, their Jacobians (P, n, 6) w.r.t. the
         ECM increment [dr, dt] (None unless ``jacobian``), and whether each pose keeps the
@@ -339,7 +339,7 @@ class _Problem:
         derivative (envelope theorem); the overshoot's leaves out the turn of the end's tangent.
         """
         P = len(R)
-        tcam, E = self._axes(R, t)
+        tcam, E = self._axes(R, t) if axes is None else axes
         t4 = tcam[:, :, None, :]
         co, si = feet[:, :, 5:, 0], feet[:, :, 5:, 1]
         u, v, tu, tv, z, iz, x, y, W = self._project_arc(feet, E, t4, full=True)
@@ -388,8 +388,9 @@ class _Problem:
     def linearise(self, R, t, start=None):
         """Residuals (K, n), Jacobians (K, n, 6) w.r.t. the ECM increment [dr, dt], the observed
         points' feet (a start for nearby poses) and validity of K poses. ``start``: see ``feet``."""
-        cs = self.feet(R, t, start)
-        r, J, valid = self.evaluate(R, t, cs)
+        axes = self._axes(R, t)
+        cs = self.feet(R, t, start, axes)
+        r, J, valid = self.evaluate(R, t, cs, axes=axes)
         return r, J, cs, valid
 
     def robust(self, r):
