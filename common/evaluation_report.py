@@ -110,31 +110,52 @@ def report_markdown(res: dict) -> str:
 
 # ---------------------------------------------------------------- Fig. 8
 
-def plot_error_vs_distance(ev: Evaluation, path) -> None:
+def plot_error_vs_distance(ev: Evaluation, path, bins: int = 6) -> None:
     """Position (mm) and orientation (deg) error against camera distance (cm), one series per
-    method: the paper's Fig. 8. Failed frames are marked on the x axis with a cross."""
+    method: the paper's Fig. 8. Each frame is a dot; the line is the median per distance bin;
+    frames without a pose are crosses on the x axis. The y axis is logarithmic when the errors
+    span more than two decades."""
     import matplotlib
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    fig, axes = plt.subplots(1, 2, figsize=(12, 4.5))
-    for m, t in ev.pose.items():
-        d = t["distance_m"] * 100
-        colour = METHOD_COLOURS.get(m)
-        ok = np.isfinite(t["position_m"])
-        order = np.argsort(d[ok])
-        for ax, vals in ((axes[0], t["position_m"] * 1e3), (axes[1], np.degrees(t["orientation_rad"]))):
-            ax.plot(d[ok][order], vals[ok][order], "o-", ms=3.5, lw=0.8, alpha=0.8, color=colour,
-                    label=f"{m} (n={int(ok.sum())}/{len(ok)})")
+    fig, axes = plt.subplots(1, 2, figsize=(12, 4.8))
+    all_d = np.concatenate([t["distance_m"] for t in ev.pose.values()] or [np.zeros(0)]) * 100
+    edges = np.linspace(all_d.min(), all_d.max(), bins + 1) if all_d.size else np.zeros(0)
+    for ax_i, (ax, unit) in enumerate(((axes[0], "position error (mm)"), (axes[1], "orientation error (deg)"))):
+        vals_all = []
+        for m, t in ev.pose.items():
+            d = t["distance_m"] * 100
+            vals = t["position_m"] * 1e3 if ax_i == 0 else np.degrees(t["orientation_rad"])
+            colour = METHOD_COLOURS.get(m)
+            ok = np.isfinite(vals)
+            vals_all.append(vals[ok])
+            ax.scatter(d[ok], vals[ok], s=9, alpha=0.35, color=colour, linewidths=0)
+            if edges.size and ok.any():
+                idx = np.clip(np.digitize(d[ok], edges) - 1, 0, bins - 1)
+                centres, meds = [], []
+                for b in range(bins):
+                    sel = vals[ok][idx == b]
+                    if sel.size:
+                        centres.append((edges[b] + edges[b + 1]) / 2)
+                        meds.append(np.median(sel))
+                ax.plot(centres, meds, "o-", ms=4, lw=1.6, color=colour,
+                        label=f"{m} (n={int(ok.sum())}/{len(ok)})")
             if (~ok).any():
-                ax.plot(d[~ok], np.zeros((~ok).sum()), "x", color=colour, ms=7, clip_on=False)
-    for ax, what in ((axes[0], "position error (mm)"), (axes[1], "orientation error (deg)")):
+                ax.plot(d[~ok], np.zeros((~ok).sum()), "x", color=colour, ms=7, clip_on=False,
+                        transform=ax.get_xaxis_transform())
+        v = np.concatenate(vals_all) if vals_all else np.zeros(0)
+        v = v[v > 0]
+        if v.size and v.max() / max(v.min(), 1e-12) > 100 and v.min() > 1e-6:
+            ax.set_yscale("log")
+        else:
+            ax.set_ylim(bottom=0)
         ax.set_xlabel("camera distance (cm)")
-        ax.set_ylabel(what)
-        ax.grid(alpha=0.3)
-        ax.set_ylim(bottom=0)
+        ax.set_ylabel(unit)
+        ax.grid(alpha=0.3, which="both")
     axes[0].legend(fontsize=8)
-    fig.suptitle("Pose error vs camera distance (x on the axis: no pose)")
+    fig.suptitle("Pose error vs camera distance: dots per frame, lines the median per distance bin, "
+                 "x: no pose", fontsize=10)
     fig.tight_layout()
     fig.savefig(path, dpi=110)
     plt.close(fig)
@@ -153,11 +174,12 @@ def select_overlay_frames(ev: Evaluation, k_worst: int = 3) -> list[tuple[int, s
             return
         pos = np.where(np.isfinite(t["position_m"]), t["position_m"], np.inf)
         order = np.argsort(-pos, kind="stable")
-        for i in order[:k_worst]:
-            s = t["seqs"][i]
-            why = "no pose" if not np.isfinite(pos[i]) else f"{pos[i] * 1e3:.2f} mm"
-            chosen.setdefault(s, f"worst_{m}_{why.replace(' ', '')}")
+        failed = [i for i in order if not np.isfinite(pos[i])]
         fin = [i for i in order if np.isfinite(pos[i])]
+        for i in failed[:2]:
+            chosen.setdefault(t["seqs"][i], f"nopose_{m}")
+        for i in fin[:k_worst]:
+            chosen.setdefault(t["seqs"][i], f"worst_{m}_{pos[i] * 1e3:.2f}mm")
         if fin:
             chosen.setdefault(t["seqs"][fin[len(fin) // 2]], f"median_{m}")
             chosen.setdefault(t["seqs"][fin[-1]], f"best_{m}")
@@ -249,11 +271,13 @@ def draw_overlay(images: dict, rig, needle: NeedleModel, T_true, estimates: dict
     body = np.concatenate([panels[0], np.full((panel_px, 4, 3), 255, np.uint8), panels[1]], axis=1)
     rows = [("truth (arc, + keypoints)", TRUTH_BGR), ("detector keypoints (o)", (0, 220, 255))]
     rows += [(m, _bgr(METHOD_COLOURS.get(m, "#ffffff"))) for m in estimates]
-    legend = np.zeros((30 + 20 * ((len(rows) + 2) // 3), body.shape[1], 3), np.uint8)
-    cv2.putText(legend, title, (8, 18), cv2.FONT_HERSHEY_SIMPLEX, 0.5, (255, 255, 255), 1,
-                cv2.LINE_AA)
+    head = title.split("\n")
+    legend = np.zeros((12 + 20 * len(head) + 20 * ((len(rows) + 2) // 3), body.shape[1], 3), np.uint8)
+    for i, line in enumerate(head):
+        cv2.putText(legend, line, (8, 18 + 20 * i), cv2.FONT_HERSHEY_SIMPLEX, 0.45, (255, 255, 255),
+                    1, cv2.LINE_AA)
     for i, (label, colour) in enumerate(rows):
-        x, y = 8 + (i % 3) * 300, 40 + (i // 3) * 20
+        x, y = 8 + (i % 3) * 300, 22 + 20 * len(head) + (i // 3) * 20
         cv2.line(legend, (x, y - 4), (x + 24, y - 4), colour, 2)
         cv2.putText(legend, label, (x + 30, y), cv2.FONT_HERSHEY_SIMPLEX, 0.45, colour, 1,
                     cv2.LINE_AA)
@@ -285,12 +309,12 @@ def write_overlays(outdir, col: Collected, ev: Evaluation, rig, needle: NeedleMo
                 i = t["seqs"].index(seq)
                 errs.append(f"{m} {t['position_m'][i] * 1e3:.2f}mm/"
                             f"{np.degrees(t['orientation_rad'][i]):.1f}deg")
-        title = f"frame {seq}  ({why})  " + "  ".join(errs)
+        title = f"frame {seq}  ({why})\n" + "  ".join(errs[:3]) + ("\n" + "  ".join(errs[3:]) if errs[3:] else "")
         try:
             images = load_images(seq)
         except Exception as exc:  # a missing image still gives an overlay on black
             images = {}
-            title += f"  [image not loaded: {exc}]"
+            title += f"\n[image not loaded: {exc}]"
         pic = draw_overlay(images, rig, needle, ev.T_true[seq], estimates, dets, title)
         name = f"{seq:06d}_{why}.png"
         cv2.imwrite(str(out / name), pic)

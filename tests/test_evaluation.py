@@ -207,7 +207,7 @@ def test_last_steps_and_overlay_choice():
     assert last_steps(truths) == [3, 7, 11]
     ev = evaluate(col)
     chosen = dict(select_overlay_frames(ev))
-    assert chosen[6].startswith("worst_pnp_joint_nopose")
+    assert chosen[6] == "nopose_pnp_joint"
     assert any(v.startswith("worst_multiview") for v in chosen.values())
 
 
