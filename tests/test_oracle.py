@@ -9,7 +9,7 @@ from common.messages import Calibration, GroundTruth, Keypoints, decode, encode
 from common.needle import NeedleModel
 from common.oracle import (Oracle, arc_bbox, needle_pose_in_view, random_needle_pose, true_keypoints,
                            view_tilt_rad)
-from common.transforms import inv_T, make_T, transform_points
+from common.transforms import make_T, transform_points
 
 RIG = StereoRig.default()
 MODEL = NeedleModel()
