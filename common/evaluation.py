@@ -132,7 +132,8 @@ class Collected:
     """Everything the evaluator gathered from the graph, keyed by frame ``seq``.
 
     ``arrivals_ns[method][seq]``: wall-clock time (ns) the pose reached the evaluator;
-    ``node_ms[node]``: each node's median processing time (ms) from its stats.
+    ``node_ms[node]``: each node's median handler time (ms) from its stats (over every message
+    it handled); ``node_cpu_ms[node]``: its CPU time per frame (ms) over the run.
     """
 
     truths: dict = field(default_factory=dict)
@@ -143,6 +144,7 @@ class Collected:
     calib: Optional[Calibration] = None
     eos_frames: Optional[int] = None
     node_ms: dict = field(default_factory=dict)
+    node_cpu_ms: dict = field(default_factory=dict)      # node -> CPU ms per frame over the run
     node_counters: dict = field(default_factory=dict)
     first_arrival_ns: Optional[int] = None
     last_arrival_ns: Optional[int] = None
@@ -369,6 +371,17 @@ def pose_table(ev: Evaluation) -> dict:
     return out
 
 
+def process_cpu_seconds(pid: int) -> Optional[float]:
+    """CPU time (user + system, s) process ``pid`` has used, from /proc; None if unknown."""
+    import os
+    try:
+        with open(f"/proc/{pid}/stat") as f:
+            fields = f.read().rsplit(")", 1)[1].split()
+        return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
+    except (OSError, IndexError, ValueError):
+        return None
+
+
 def timing_summary(col: Collected, final_method: Optional[str] = None) -> dict:
     """``{"throughput_hz", "latency_ms": {"p50", "p99"}, "per_node_ms": {node: p50}}``.
 
@@ -389,6 +402,7 @@ def timing_summary(col: Collected, final_method: Optional[str] = None) -> dict:
     return {"throughput_hz": thr,
             "latency_ms": {"p50": percentile(lat, 50), "p99": percentile(lat, 99)},
             "per_node_ms": dict(sorted(col.node_ms.items())),
+            "per_node_cpu_ms_per_frame": dict(sorted(col.node_cpu_ms.items())),
             "final_method": final_method}
 
 

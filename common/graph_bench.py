@@ -83,16 +83,6 @@ class Recorder:
             return [r for r in self.rows.get(stream, []) if t0_ns <= r[1] < t1_ns]
 
 
-def cpu_seconds(pid: int):
-    """CPU time (user + system, s) a process has used, from /proc; None if unknown."""
-    try:
-        with open(f"/proc/{pid}/stat") as f:
-            fields = f.read().rsplit(")", 1)[1].split()
-        return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
-    except (OSError, IndexError, ValueError):
-        return None
-
-
 def latency_ms(rows) -> dict:
     lat = [(a - s) / 1e6 for _, s, a in rows]
     if not lat:
@@ -115,6 +105,7 @@ def ensure_dataset(path) -> str:
 
 def measure(args, dataset: str, log) -> dict:
     from common.dataset import Dataset
+    from common.evaluation import process_cpu_seconds
     from common.graph import output_key, stats_key
     from common.messages import GroundTruth, Keypoints, NodeStats, PoseEstimate
     from common.pipeline_graph import GraphRun, keypoint_sources, pipeline_graph, pose_inputs
@@ -158,12 +149,12 @@ def measure(args, dataset: str, log) -> dict:
         with rec.lock:
             pids = {n: st.pid for n, st in rec.stats.items()}
             drops0 = {n: _dropped(st) for n, st in rec.stats.items()}
-        cpu0 = {n: cpu_seconds(p) for n, p in pids.items()}
+        cpu0 = {n: process_cpu_seconds(p) for n, p in pids.items()}
         w1 = w0 + int(args.duration * 1e9)
         while time.time_ns() < w1:
             _check_alive(run)
             time.sleep(0.1)
-        cpu1 = {n: cpu_seconds(p) for n, p in pids.items()}
+        cpu1 = {n: process_cpu_seconds(p) for n, p in pids.items()}
         time.sleep(0.5)  # outputs of the window's last frames still in flight
         for s in subs:
             s.undeclare()

@@ -51,6 +51,7 @@ class EvaluatorNode(Node):
         self._stats_lock = threading.Lock()
         self._stats: dict = {}
         self._stats_sub = None
+        self._cpu0: dict = {}
         self._subscribe_stats()
 
     # ---------------------------------------------------------------- node statistics
@@ -76,7 +77,16 @@ class EvaluatorNode(Node):
         return time.time_ns()
 
     def on_truth(self, msg):
+        if not self.col.truths:
+            self._cpu0 = self._cpu_snapshot()
         self.col.add_truth(msg, self._seen())
+
+    def _cpu_snapshot(self) -> dict:
+        """CPU seconds used so far by every node process known from its stats."""
+        from common.evaluation import process_cpu_seconds
+        with self._stats_lock:
+            pids = {n: st.pid for n, st in self._stats.items() if n != self.node_id}
+        return {n: process_cpu_seconds(pid) for n, pid in pids.items()}
 
     def on_left(self, msg):
         self.col.add_keypoints(msg, self._seen())
@@ -140,6 +150,12 @@ class EvaluatorNode(Node):
             for msg in self._stats.values():
                 if msg.node != self.node_id:
                     self.col.add_stats(msg)
+        cpu1 = self._cpu_snapshot()
+        frames = max(len(self.col.truths), 1)
+        for n, c1 in cpu1.items():
+            c0 = self._cpu0.get(n)
+            if c0 is not None and c1 is not None:
+                self.col.node_cpu_ms[n] = 1e3 * (c1 - c0) / frames
         loader = self._image_loader()
         extra = {"noise_px": float(self.params.get("noise_px", 0.0)),
                  "graph_methods": self.methods}
