@@ -161,7 +161,7 @@ def main(argv=None) -> int:
         return 1
     res = json.loads(res_path.read_text())
     print_summary(res)
-    print(f"wrote {out}/results.json, report.md, error_vs_distance.png, overlays/ "
+    print(f"wrote {out}/results.json, report.md, error_vs_distance.png, per_frame.csv, overlays/ "
           f"({time.monotonic() - t0:.0f} s)")
     return 0
 

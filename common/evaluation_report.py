@@ -1,5 +1,6 @@
 """What people look at after an evaluation: ``report.md``, ``error_vs_distance.png``,
-``overlays/`` and ``results.json``, written from a ``common.evaluation.Collected``.
+``overlays/``, ``per_frame.csv`` and ``results.json``, written from a
+``common.evaluation.Collected``.
 
 No process, no network. Overlays draw, per chosen frame, a crop of the left and right images
 around the needle: the true arc and keypoints in green, each method's estimated arc in its
@@ -325,6 +326,36 @@ def write_overlays(outdir, col: Collected, ev: Evaluation, rig, needle: NeedleMo
     return names
 
 
+# ---------------------------------------------------------------- per frame
+
+def write_per_frame_csv(path, col: Collected, ev: Evaluation) -> None:
+    """One row per frame: seq, sequence, step, camera distance (mm), the keypoints' mean 2D
+    (px) and 3D (mm) errors, and each method's position (mm) and orientation (deg) errors:
+    empty where the method is not scored on that frame, ``nan`` where it gave no pose."""
+    import csv
+    idx = {m: {s: i for i, s in enumerate(t["seqs"])} for m, t in ev.pose.items()}
+    with open(path, "w", newline="") as f:
+        w = csv.writer(f)
+        w.writerow(["seq", "sequence", "step", "distance_mm", "kp2d_px", "kp3d_mm"]
+                   + [f"{m}_{q}" for m in ev.pose for q in ("mm", "deg")])
+        for s in ev.seqs:
+            gt = col.truths[s]
+            T = ev.T_true.get(s)
+            with np.errstate(invalid="ignore"):
+                e2 = np.nanmean(ev.err2d_px[s]) if np.isfinite(ev.err2d_px[s]).any() else np.nan
+                e3 = (np.nanmean(ev.err3d_m[s]) * 1e3 if s in ev.err3d_m
+                      and np.isfinite(ev.err3d_m[s]).any() else np.nan)
+            row = [s, "" if gt.sequence is None else gt.sequence, "" if gt.step is None else gt.step,
+                   "" if T is None else f"{np.linalg.norm(T[:3, 3]) * 1e3:.2f}", f"{e2:.4f}", f"{e3:.4f}"]
+            for m, t in ev.pose.items():
+                i = idx[m].get(s)
+                if i is None:
+                    row += ["", ""]
+                else:
+                    row += [f"{t['position_m'][i] * 1e3:.4f}", f"{np.degrees(t['orientation_rad'][i]):.4f}"]
+            w.writerow(row)
+
+
 # ---------------------------------------------------------------- everything
 
 def write_outputs(outdir, col: Collected, *, dataset: str, detector: str,
@@ -351,4 +382,5 @@ def write_outputs(outdir, col: Collected, *, dataset: str, detector: str,
     os.replace(tmp, outdir / "results.json")
     (outdir / "report.md").write_text(report_markdown(res))
     plot_error_vs_distance(ev, outdir / "error_vs_distance.png")
+    write_per_frame_csv(outdir / "per_frame.csv", col, ev)
     return res

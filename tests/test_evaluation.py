@@ -183,6 +183,10 @@ def test_results_keys_and_types(tmp_path):
     assert t["latency_ms"]["p50"] == pytest.approx(20.0)
     assert t["per_node_ms"] == {"epnp": 1.5}
     assert (tmp_path / "error_vs_distance.png").stat().st_size > 10_000
+    rows = (tmp_path / "per_frame.csv").read_text().splitlines()
+    assert len(rows) == 13 and rows[0].startswith("seq,sequence,step,distance_mm")
+    assert rows[3].split(",")[rows[0].split(",").index("multiview_mm")] == "0.5000"   # last step
+    assert rows[1].split(",")[rows[0].split(",").index("multiview_mm")] == ""         # not scored
     assert len(list((tmp_path / "overlays").glob("*.png"))) >= 3
     md = (tmp_path / "report.md").read_text()
     assert "Table II" in md and "Table III" in md and "2.26 / 6.74" in md and "5.58" in md
