@@ -195,11 +195,14 @@ class Collected:
         frame (then the evaluator need not wait for its drain timeout)."""
         if self.eos_frames is None or len(self.truths) < self.eos_frames:
             return False
-        arm = self.calib.arm() if self.calib is not None else None
-        posed = {s for s, gt in self.truths.items() if true_T_ecm_needle(gt, arm) is not None}
+        if getattr(self, "_counted_for", None) != len(self.truths):   # computed once per truth set
+            arm = self.calib.arm() if self.calib is not None else None
+            posed = {s for s, gt in self.truths.items() if true_T_ecm_needle(gt, arm) is not None}
+            self._counted = {m: counted_seqs(m, self.truths, posed) for m in (*METHODS, *EXTRA_METHODS)}
+            self._counted_for = len(self.truths)
         for m in methods:
             got = self.poses.get(m, {})
-            if any(s not in got for s in counted_seqs(m, self.truths, posed)):
+            if any(s not in got for s in self._counted.get(m, ())):
                 return False
         return True
 
