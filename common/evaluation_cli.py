@@ -37,6 +37,9 @@ def _parser() -> argparse.ArgumentParser:
                         "`needletrack bench` measures speed")
     p.add_argument("--no-refine", action="store_true", help="leave out the refinement node")
     p.add_argument("--timeout", type=float, default=None, help="give up after this many seconds")
+    p.add_argument("--bench", type=float, default=0.0, metavar="SECONDS",
+                   help="then also measure the live graph's speed for this long (`needletrack bench`) "
+                        "and add it to results.json (key `bench`) and report.md")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
     return p
 
@@ -160,9 +163,37 @@ def main(argv=None) -> int:
         print(f"needletrack eval: the evaluator wrote no {res_path}; see {log_path}", file=sys.stderr)
         return 1
     res = json.loads(res_path.read_text())
+    if args.bench > 0:
+        rc = _bench(args, dataset, out, res)
+        if rc:
+            return rc
     print_summary(res)
     print(f"wrote {out}/results.json, report.md, error_vs_distance.png, per_frame.csv, overlays/ "
           f"({time.monotonic() - t0:.0f} s)")
+    return 0
+
+
+def _bench(args, dataset: str, out: Path, res: dict) -> int:
+    """Measure the live graph (``common.graph_bench``) and add it to results.json/report.md."""
+    from common.graph_bench import measure, report
+    from common.pipeline_graph import GraphRunError
+    from common.evaluation import to_jsonable
+    bargs = argparse.Namespace(detector=args.detector, model=args.model, rate="30",
+                               duration=args.bench, warmup=4.0, one_detector=False,
+                               no_refine=args.no_refine)
+    log_path = out / "bench.log"
+    try:
+        with open(log_path, "w") as log:
+            r = measure(bargs, dataset, log)
+    except (GraphRunError, RuntimeError) as exc:
+        print(f"needletrack eval --bench: {exc}; see {log_path}", file=sys.stderr)
+        return 1
+    text = report(r)
+    res["bench"] = to_jsonable(r)
+    (out / "results.json").write_text(json.dumps(res, indent=2, allow_nan=False) + "\n")
+    with open(out / "report.md", "a") as f:
+        f.write("\n## Live graph speed (`needletrack bench`)\n\n```\n" + text + "\n```\n")
+    print(text)
     return 0
 
 
