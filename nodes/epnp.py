@@ -6,7 +6,8 @@ frame's ECM pose, at most ``max_wait`` frames, default 30). Output: ``pose`` (Po
 ``pnp_average`` or ``pnp_joint``, residual = reprojection RMS in px).
 
 Params: ``method`` (``joint`` | ``average``, default joint); ``min_score`` (0.5);
-``max_rms_px`` (20: a fit worse than this is not published); ``outlier_px`` (joint only,
+``max_rms_px`` (a fit worse than this is not published; default 20 for joint, none for
+average, whose mean of two disagreeing camera poses reprojects badly by construction); ``outlier_px`` (joint only,
 default 10: the worst keypoint is dropped and the fit redone while its residual exceeds this);
 ``refine`` (average only, default true: false gives raw EPnP as published, see common/pnp.py).
 A frame that gives no pose is counted as ``no_pose.<reason>``.
@@ -35,7 +36,9 @@ class EpnpNode(StereoPoseNode):
         if method not in METHODS:
             raise ValueError(f"epnp: params.method must be one of {sorted(METHODS)}, got {method!r}")
         self.method = method
-        self.max_rms_px = _opt_float(self.params.get("max_rms_px", 20.0))
+        # the mean of two camera poses on different branches of the planar ambiguity reprojects
+        # badly by construction: the paper's method is published as it is
+        self.max_rms_px = _opt_float(self.params.get("max_rms_px", 20.0 if method == "joint" else None))
         self.outlier_px = _opt_float(self.params.get("outlier_px", 10.0))
         self.refine = bool(self.params.get("refine", True))
 
