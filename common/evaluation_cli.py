@@ -227,7 +227,7 @@ def _wait_with_progress(run, n_frames: int, timeout: float, quiet: bool) -> None
             if st.node == "replay":
                 state["n"] = int(st.counters.get("out.left", 0))
         try:
-            sub = run._session().declare_subscriber(stats_key(run.graph.name, "replay"), on_stats)
+            sub = run.client_session().declare_subscriber(stats_key(run.graph.name, "replay"), on_stats)
         except Exception:
             sub = None
     while not done.wait(0.25):

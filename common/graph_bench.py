@@ -128,7 +128,7 @@ def measure(args, dataset: str, log) -> dict:
 
     with GraphRun(doc, log) as run:
         run.start_consumers()
-        session = run._session()
+        session = run.client_session()
         subs = [session.declare_subscriber(output_key(run.graph.name, *src.split("/")),
                                            rec.callback(name, typ))
                 for name, (src, typ) in streams.items()]
@@ -203,10 +203,7 @@ def _dropped(st) -> int:
 
 def _check_alive(run) -> None:
     from common.pipeline_graph import GraphRunError
-    dead = {}
-    for l in (run.main, run.src):
-        if l is not None:
-            dead.update(run.dead_nodes(l))
+    dead = run.failed()
     if dead:
         raise GraphRunError(f"node(s) failed: {dead}")
 

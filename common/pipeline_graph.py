@@ -164,7 +164,7 @@ class GraphRun:
         self.session = None
         self._threads: list = []
 
-    def _session(self):
+    def client_session(self):
         """A client session on the hub: it sees the graph's liveliness and data, and, unlike a
         peer, is no link the nodes wait for."""
         if self.session is None:
@@ -180,7 +180,7 @@ class GraphRun:
 
     def live_nodes(self) -> set:
         live = set()
-        for reply in self._session().liveliness().get(live_key(self.graph.name), timeout=1.0):
+        for reply in self.client_session().liveliness().get(live_key(self.graph.name), timeout=1.0):
             if reply.ok is not None:
                 live.add(str(reply.ok.key_expr).rsplit("/", 1)[-1])
         return live
@@ -222,14 +222,19 @@ class GraphRun:
         self._threads.append(threading.Thread(target=self.src.run, name="launcher-src", daemon=True))
         self._threads[-1].start()
 
+    def failed(self) -> dict:
+        """Nodes of the run that exited with a status other than 0: id -> status."""
+        dead = {}
+        for l in (self.main, self.src):
+            if l is not None:
+                dead.update(self.dead_nodes(l))
+        return dead
+
     def wait(self, until: list, timeout: float) -> None:
         """Block until every node in ``until`` exited with 0 (see the class docstring)."""
         deadline = time.monotonic() + timeout
-        launchers = [l for l in (self.main, self.src) if l is not None]
         while True:
-            dead = {}
-            for l in launchers:
-                dead.update(self.dead_nodes(l))
+            dead = self.failed()
             if dead:
                 raise GraphRunError(f"node(s) failed: {_fmt_dead(dead)}")
             done = True
