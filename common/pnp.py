@@ -153,50 +153,47 @@ class ReprojectionProblem:
         cos_merge = math.cos(merge_rad)
         eye = np.eye(6)
         for _ in range(max_iter):
-            idx = np.flatnonzero(active)
-            if len(idx) == 0:
+            if not active.any():
                 break
-            iters[idx] += 1
-            Ja, ra = J[idx], r[idx]
-            g = np.einsum("kmi,km->ki", Ja, ra)
-            H = Ja.transpose(0, 2, 1) @ Ja
+            # every start takes the same vectorised step; masks keep finished ones unchanged
+            iters += active
+            g = np.einsum("kmi,km->ki", J, r)
+            H = J.transpose(0, 2, 1) @ J
             D = np.einsum("kii->ki", H) + 1e-30
             try:
-                delta = -np.linalg.solve(H + (lam[idx, None] * D)[:, :, None] * eye, g[..., None])[..., 0]
+                delta = -np.linalg.solve(H + (lam[:, None] * D)[:, :, None] * eye, g[..., None])[..., 0]
             except np.linalg.LinAlgError:
-                lam[idx] *= nu[idx]
-                nu[idx] *= 2.0
+                lam = np.where(active, lam * nu, lam)
+                nu = np.where(active, nu * 2.0, nu)
                 continue
-            step_m = (np.linalg.norm(delta[:, :3], axis=1) * self.size
-                      + np.linalg.norm(delta[:, 3:], axis=1))
+            step_m = (np.sqrt(np.einsum("ki,ki->k", delta[:, :3], delta[:, :3])) * self.size
+                      + np.sqrt(np.einsum("ki,ki->k", delta[:, 3:], delta[:, 3:])))
             # the decrease the linear model predicts: delta^T (lam D delta - g) > 0
-            pred = np.einsum("ki,ki->k", delta, lam[idx, None] * D * delta - g)
-            R1 = _exp_so3_many(delta[:, :3]) @ R[idx]
-            t1 = t[idx] + delta[:, 3:]
+            pred = np.einsum("ki,ki->k", delta, lam[:, None] * D * delta - g)
+            R1 = _exp_so3_many(delta[:, :3]) @ R
+            t1 = t + delta[:, 3:]
             r1, J1, ok1 = self._residuals(R1, t1)
             c1 = np.where(ok1, np.einsum("km,km->k", r1, r1), np.inf)
-            acc = c1 <= cost[idx]
-            a, ia = idx[acc], np.flatnonzero(acc)
-            if len(a):
-                rho = (cost[a] - c1[ia]) / np.maximum(pred[ia], 1e-300)
-                R[a], t[a], r[a], J[a], cost[a] = R1[ia], t1[ia], r1[ia], J1[ia], c1[ia]
-                lam[a] *= np.maximum(1.0 / 3.0, 1.0 - (2.0 * rho - 1.0) ** 3)
-                nu[a] = 2.0
-                done = (step_m[ia] < tol_m) | (pred[ia] <= rel_tol * cost[a]) | (cost[a] < 1e-26)
-                converged[a[done]] = True
-                active[a[done]] = False
-            rej, ir = idx[~acc], np.flatnonzero(~acc)
-            if len(rej):
-                done = (step_m[ir] < tol_m) | (pred[ir] <= 1e-3 * rel_tol * cost[rej])   # nothing to gain
-                converged[rej[done]] = True
-                active[rej[done]] = False
-                grow = rej[~done]
-                lam[grow] *= nu[grow]
-                nu[grow] *= 2.0
+            acc = active & (c1 <= cost)
+            rej = active & ~acc
+            with np.errstate(invalid="ignore", over="ignore"):
+                rho = (cost - c1) / np.maximum(pred, 1e-300)
+                shrink = np.maximum(1.0 / 3.0, 1.0 - (2.0 * rho - 1.0) ** 3)
+            R = np.where(acc[:, None, None], R1, R)
+            t = np.where(acc[:, None], t1, t)
+            r = np.where(acc[:, None], r1, r)
+            J = np.where(acc[:, None, None], J1, J)
+            cost = np.where(acc, c1, cost)
+            lam = np.where(acc, lam * shrink, np.where(rej, lam * nu, lam))
+            nu = np.where(acc, 2.0, np.where(rej, nu * 2.0, nu))
+            done = ((acc & ((step_m < tol_m) | (pred <= rel_tol * cost) | (cost < 1e-26)))
+                    | (rej & ((step_m < tol_m) | (pred <= 1e-3 * rel_tol * cost))))   # nothing to gain
+            converged |= done
+            active &= ~done
             # fits heading to a minimum already found stop there
-            conv_idx = np.flatnonzero(converged & (merged < 0))
-            act = np.flatnonzero(active)
-            if len(conv_idx) and len(act):
+            found = converged & (merged < 0)
+            if found.any() and active.any():
+                act, conv_idx = np.flatnonzero(active), np.flatnonzero(found)
                 near_t = np.all(np.abs(t[act, None, :] - t[None, conv_idx, :]) < merge_m, axis=2)
                 cosang = (np.einsum("aij,cij->ac", R[act], R[conv_idx]) - 1.0) / 2.0
                 near = near_t & (cosang > cos_merge)
