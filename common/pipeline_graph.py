@@ -24,6 +24,8 @@ from typing import Optional
 
 from common.graph import graph_from_dict, live_key, module_info
 from common.messages import Calibration
+from common.node import KEEP_ALL_LIMIT
+from common.pairing import StereoPairer
 
 SOURCE = "replay"
 
@@ -291,7 +293,8 @@ def lossless_command(module: str, start_delay_s: float = 0.0, peers: int = 0) ->
 
 
 def lossless_class(base: type, start_delay_s: float = 0.0, peers: int = 0) -> type:
-    """A subclass of a node class whose inputs are all keep-all.
+    """A subclass of a node class whose inputs are all keep-all (and whose stereo pairers, if
+    any, hold as many frames as those queues).
 
     After its setup (its Zenoh session is open by then; its liveliness token is declared after)
     it waits until the session has direct links to ``peers`` peers (at most PEER_WAIT_S): peers
@@ -303,6 +306,10 @@ def lossless_class(base: type, start_delay_s: float = 0.0, peers: int = 0) -> ty
 
     def setup(self):
         base.setup(self)
+        # stereo pairing waits for a frame's other half as long as the queues hold it
+        for value in vars(self).values():
+            if isinstance(value, StereoPairer):
+                value.depth = max(value.depth, KEEP_ALL_LIMIT)
         rt = getattr(self, "_runtime", None)
         session = getattr(rt, "session", None)
         if peers > 0 and session is not None:
