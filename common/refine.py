@@ -94,6 +94,7 @@ class RefineConfig:
     min_score: float = 0.5          # keypoints scored below are left out (as the PnP does)
     min_centreline_w: float = 0.05  # centreline points weighted below are left out
     cauchy_scale: float = 3.0       # robust loss scale, in sigmas
+    cauchy_scale_end: float = 1.0   # the same for the overshoot past an arc's end (spurs: thread, glare)
     max_iter: int = 30
     step_tol: float = 1.0           # converged after a step worth < this many residual variances
     max_reject: int = 5             # ... or after this many rejected steps in a row
@@ -112,7 +113,7 @@ class RefineConfig:
     min_sigma_ratio: float = 0.25   # the covariance assumes at least this fraction of the sigmas
 
     def __post_init__(self):
-        positive = ("sigma_kp_px", "sigma_curve_px", "cauchy_scale", "step_tol", "merge_mm",
+        positive = ("sigma_kp_px", "sigma_curve_px", "cauchy_scale", "cauchy_scale_end", "step_tol", "merge_mm",
                     "merge_deg", "distinct_mm", "distinct_deg", "ambiguity_chi2",
                     "research_rad", "research_m", "max_step_rad", "max_step_m",
                     "min_sigma_ratio", "max_depth_m", "edge_on_chi2")
@@ -254,6 +255,11 @@ class _Problem:
         # Residual weights in evaluation order, per camera: keypoint u (5), keypoint v (5),
         # curve normal distance (M), curve overshoot beyond the arc's ends (M).
         self.wp = np.concatenate([wU, wU, wO, wO], axis=1).ravel()
+        # Cauchy scales (squared, in sigmas) per residual: the overshoot past an arc end has its
+        # own, so that a spur past the needle's end (thread, glare) cannot drag the arc along
+        c_end = cfg.cauchy_scale_end ** 2
+        self._c2 = np.concatenate([np.full((C, 10 + M), cfg.cauchy_scale ** 2), np.full((C, M), c_end)],
+                                  axis=1).ravel()
         self._Uu, self._Uv = U[None, :, :, 0], U[None, :, :, 1]
         self._Ou, self._Ov = O[None, :, :, 0], O[None, :, :, 1]
         # the same padded in front with the keypoints, for the feet's Newton steps (which
@@ -395,7 +401,7 @@ class _Problem:
 
     def robust(self, r):
         """Per-residual Cauchy cost and IRLS weight (prior weights included)."""
-        c2 = self.cfg.cauchy_scale ** 2
+        c2 = self._c2
         s2 = self.wp * r ** 2
         return c2 * np.log1p(s2 / c2), self.wp / (1.0 + s2 / c2)
 

@@ -235,6 +235,33 @@ def test_competing_minima_inflate_the_covariance_to_cover_each_other():
     assert found >= 1
 
 
+def test_centreline_outliers_and_a_spur_past_the_tail_are_shrugged_off():
+    """10% of the centreline thrown 20 px off, or the thread's first 15 px taken for needle past
+    the tail: the robust fit stays near the clean one."""
+    rng = np.random.default_rng(31)
+    clean, outliers, spur = [], [], []
+    for _ in range(30):
+        T = random_pose(rng)
+        obs = observe(T, rng, kp_px=0.5, curve_px=0.25)
+        cands = joint_candidates(obs)[1]
+        clean.append(errors_mm_deg(REFINER.refine(obs, cands).T_ecm_needle, T)[0])
+        bad, thread = {}, {}
+        for k, o in obs.items():
+            c = o.centreline.copy()
+            idx = rng.choice(len(c), len(c) // 10, replace=False)
+            ang = rng.uniform(0, 2 * np.pi, len(idx))
+            c[idx] += 20.0 * np.stack([np.cos(ang), np.sin(ang)], axis=1)
+            bad[k] = ArcObservation(o.uv, o.scores, c)
+            tan = o.centreline[-1] - o.centreline[-2]
+            ext = o.centreline[-1] + np.arange(1, 16)[:, None] * tan / np.linalg.norm(tan)
+            thread[k] = ArcObservation(o.uv, o.scores, np.concatenate([o.centreline, ext]))
+        outliers.append(errors_mm_deg(REFINER.refine(bad, cands).T_ecm_needle, T)[0])
+        spur.append(errors_mm_deg(REFINER.refine(thread, cands).T_ecm_needle, T)[0])
+    print(f"\nposition median: clean {np.median(clean):.2f} mm, 10% outliers {np.median(outliers):.2f} mm, "
+          f"spur {np.median(spur):.2f} mm")
+    assert np.median(outliers) < 1.0 and np.median(spur) < 1.0
+
+
 # ------------------------------------------------------------------ pieces and bad input
 
 def test_analytic_jacobian_matches_finite_differences():
