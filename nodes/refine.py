@@ -33,16 +33,20 @@ from common.pnp import pnp_joint
 from common.pose_node import StereoPoseNode
 from common.refine import ArcObservation, DenseRefiner, RefineConfig, RefineError
 
-CONFIG_FIELDS = {f.name for f in dataclasses.fields(RefineConfig)}
+CONFIG_TYPES = {f.name: {"int": int, "float": float, "bool": bool}[str(f.type)]
+                for f in dataclasses.fields(RefineConfig)}
 
 
 def refine_config(params: dict) -> RefineConfig:
-    """A RefineConfig from node params: its own fields, and ``min_score`` shared with the PnP."""
-    kw = {k: v for k, v in params.items() if k in CONFIG_FIELDS}
-    if "min_score" in params:
-        kw["min_score"] = float(params["min_score"])
-    else:
-        kw.setdefault("min_score", 0.5)
+    """A RefineConfig from node params (its fields, ``min_score`` shared with the PnP); raises
+    ValueError naming a param of the wrong type or value."""
+    kw = {}
+    for k, v in params.items():
+        if k in CONFIG_TYPES:
+            try:
+                kw[k] = CONFIG_TYPES[k](v)
+            except (TypeError, ValueError):
+                raise ValueError(f"refine: params.{k} must be {CONFIG_TYPES[k].__name__}, got {v!r}") from None
     return RefineConfig(**kw)
 
 

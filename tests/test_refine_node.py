@@ -78,11 +78,14 @@ def test_node_matches_the_library_and_adds_the_world_pose():
 
 
 def test_node_params_reach_the_fit():
-    cfg = refine_config({"sigma_curve_px": 0.3, "min_score": 0.7, "max_rms_px": 5, "other": 1})
-    assert cfg.sigma_curve_px == 0.3 and cfg.min_score == 0.7
+    cfg = refine_config({"sigma_curve_px": 0.3, "min_score": 0.7, "max_rms_px": 5, "other": 1,
+                         "max_curve_points": 48.0})
+    assert cfg.sigma_curve_px == 0.3 and cfg.min_score == 0.7 and cfg.max_curve_points == 48
     assert refine_config({}).min_score == 0.5
     with pytest.raises(ValueError):
         RefineNode.offline({"sigma_kp_px": -1.0})
+    with pytest.raises(ValueError, match="max_iter"):
+        RefineNode.offline({"max_iter": "many"})
 
 
 def test_node_without_centreline_refines_keypoints_and_counts_it():
