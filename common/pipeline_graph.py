@@ -107,7 +107,7 @@ def pipeline_graph(dataset: str, *, detector: str = "learned", detector_params: 
         info = module_info(n["module"])
         if info and info["inputs"] is not None:
             n["inputs"] = {k: v for k, v in n.get("inputs", {}).items() if k in info["inputs"]}
-    wrapped = nodes if lossless else []
+    wrapped = list(nodes) if lossless else []
     nodes += list(sinks or [])
     # every process of the graph but the source, plus the launcher that hosts them
     n_main = len(nodes) - 1
