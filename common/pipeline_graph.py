@@ -66,6 +66,8 @@ def pipeline_graph(dataset: str, *, detector: str = "learned", detector_params: 
     port = port or free_port()
     one = {"OMP_NUM_THREADS": "1"}
     det_params = {"backend": detector, **(detector_params or {})}
+    if split_detector and detector == "learned":
+        det_params.setdefault("threads", 1)   # two processes share the cores, one each
     nodes = [
         {"id": SOURCE, "module": "replay",
          "params": {"path": str(Path(dataset).resolve()), "rate": rate, "loop": bool(loop),
