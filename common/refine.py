@@ -82,8 +82,8 @@ class RefineConfig:
     scale is in units of those sigmas."""
 
     max_curve_points: int = 64      # observed centreline points kept per camera (even in arc length)
-    n_samples: int = 16             # projected arc samples that start each point's foot search
-    foot_steps: int = 2             # then Newton steps along the projected arc, once per pose
+    n_samples: int = 24             # projected arc samples that start each point's foot search
+    foot_steps: int = 1             # then Newton steps along the projected arc, once per pose
     warm_steps: int = 1             # Newton steps from feet carried over from the previous pose
     research_rad: float = 0.02      # after a step this large (rotation, rad) the feet are searched
     research_m: float = 0.001       # afresh (or translation, m); smaller steps carry them over

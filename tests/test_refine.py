@@ -8,6 +8,7 @@ from hypothesis import given, settings, strategies as st
 from common.camera import StereoRig
 from common.messages import Keypoints
 from common.needle import NeedleModel
+from common.observations import NoPose
 from common.pnp import pnp_joint
 from common.refine import (ArcObservation, DenseRefiner, RefineConfig, RefineError, mirror_pose,
                            project_centreline, refine_pose)
@@ -105,6 +106,8 @@ def test_noise_free_is_exact_from_the_joint_pnp_candidates():
     rng = np.random.default_rng(7)
     for _ in range(10):
         T = random_pose(rng)
+        while view_angle_deg(T) < 15.0:          # (nearly edge-on: keypoints on a line, no PnP)
+            T = random_pose(rng)
         obs = observe(T)
         res = refine_pose(RIG, NEEDLE, obs, joint_candidates(obs)[1])
         dt_mm, dr_deg = errors_mm_deg(res.T_ecm_needle, T)
@@ -167,7 +170,10 @@ def noisy_runs():
     for _ in range(40):
         T = random_pose(rng)
         obs = observe(T, rng, kp_px=1.0, curve_px=0.5)
-        pj, cands = joint_candidates(obs)
+        try:
+            pj, cands = joint_candidates(obs)
+        except NoPose:                            # keypoints (nearly) on a line: no PnP start
+            continue
         res = REFINER.refine(obs, cands)
         d = _delta(T, res.T_ecm_needle)
         nees = float(d @ np.linalg.solve(res.covariance, d))
@@ -182,6 +188,7 @@ def _delta(T, T_ref):
 
 def test_refined_beats_keypoint_only_joint_fit(noisy_runs):
     r = noisy_runs
+    assert len(r) >= 35
     print(f"\nrefined   position mean {r[:, 0].mean():.2f} mm, median {np.median(r[:, 0]):.2f} mm; "
           f"orientation mean {r[:, 1].mean():.2f} deg, median {np.median(r[:, 1]):.2f} deg")
     print(f"pnp_joint position mean {r[:, 2].mean():.2f} mm, median {np.median(r[:, 2]):.2f} mm; "
@@ -277,6 +284,8 @@ def test_analytic_jacobian_matches_finite_differences():
     T0 = perturb(T, rng, deg=0.5, mm=0.3)
     R0, t0 = T0[None, :3, :3], T0[None, :3, 3]
     cs = prob.feet(R0, t0)
+    for _ in range(3):                           # converge the feet
+        cs = prob.feet(R0, t0, cs)
     r, J, valid = prob.evaluate(R0, t0, cs)
     assert valid[0]
 
@@ -399,8 +408,8 @@ def test_bench_reports_errors_and_times():
     from common.refine_bench import run, table
     rows = run([0.0, 0.5], frames=4, progress=False)
     assert [r["noise_px"] for r in rows] == [0.0, 0.5] and all(r["failed"] == 0 for r in rows)
-    assert rows[0]["refined"]["position_mm"]["mean"] < 1e-6
-    assert rows[0]["refined"]["orientation_deg"]["mean"] < 1e-6
+    assert rows[0]["refined"]["position_mm"]["mean"] < 1e-4
+    assert rows[0]["refined"]["orientation_deg"]["mean"] < 1e-4
     assert 0 < rows[1]["refined"]["position_mm"]["mean"] < 5.0
     assert rows[1]["wall_ms"]["p50"] > 0 and rows[1]["cpu_ms"]["max"] >= rows[1]["cpu_ms"]["p50"]
     text = table(rows)
