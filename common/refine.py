@@ -310,16 +310,20 @@ class _Problem:
     def _newton(self, cs, E, t4, steps):
         """``steps`` Newton steps of the feet ``cs`` (the part after the 5 keypoints) along the
         projected arc towards the observed points, clamped to the arc."""
+        if steps < 1:
+            return cs
+        c = cs[:, :, 5:]
         for _ in range(steps):
-            u, v, tu, tv = self._project_arc(cs, E, t4)
-            du, dv = u - self._Opu, v - self._Opv
+            u, v, tu, tv = self._project_arc(c, E, t4)
+            du, dv = u - self._Ou, v - self._Ov
             step = -(tu * du + tv * dv) / np.maximum(tu * tu + tv * tv, 1e-300)
             step = np.minimum(np.maximum(step, -0.5), 0.5)[..., None]
-            cs = (cs + step * cs[..., ::-1] * self._perp) / np.sqrt(1.0 + step * step)
-            beyond = cs[..., :1] < self._cos_half
-            cs = np.where(beyond, np.where(cs[..., 1:] > 0, self._end_cs[1], self._end_cs[0]), cs)
-            cs[:, :, :5] = self._kp_cs
-        return cs
+            c = (c + step * c[..., ::-1] * self._perp) / np.sqrt(1.0 + step * step)
+            c = np.where(c[..., :1] < self._cos_half, np.where(c[..., 1:] > 0, self._end_cs[1], self._end_cs[0]), c)
+        out = np.empty_like(cs)
+        out[:, :, :5] = self._kp_cs
+        out[:, :, 5:] = c
+        return out
 
     def feet(self, R, t, start=None, axes=None):
         """Feet (K, C, 5 + M, 2) for poses (R, t): (cos, sin) of the arc angles (from the arc's
@@ -377,10 +381,11 @@ class _Problem:
         au = np.stack([self._fx * iz, self._sk * iz, -(self._fx * x + self._sk * y) * iz], axis=-1)
         av = np.stack([np.zeros_like(iz), self._fy * iz, -self._fy * y * iz], axis=-1)
         ac = nx[..., None] * au[..., 5:, :] + ny[..., None] * av[..., 5:, :]
-        a_end = np.where(at_e[..., None],
-                         -(ex[..., None] * au[..., 4:5, :] + ey[..., None] * av[..., 4:5, :]),
-                         -(ex[..., None] * au[..., 0:1, :] + ey[..., None] * av[..., 0:1, :]))
-        a_end = a_end * active[..., None]
+        # overshoot rows: minus the outward tangent at the end's point (A or E), where active
+        ce = np.where(active, -1.0, 0.0)
+        cE, cA = np.where(at_e, ce, 0.0), np.where(at_e, 0.0, ce)
+        a_end = ((cE * ex)[..., None] * au[..., 4:5, :] + (cE * ey)[..., None] * av[..., 4:5, :]
+                 + (cA * ex)[..., None] * au[..., 0:1, :] + (cA * ey)[..., None] * av[..., 0:1, :])
         w_end = np.where(at_e[..., None], W[..., 4:5, :], W[..., 0:1, :])
         A = np.concatenate([au[..., :5, :], av[..., :5, :], ac, a_end], axis=2)     # (P, C, n_c, 3)
         Wr = np.concatenate([W[..., :5, :], W[..., :5, :], W[..., 5:, :], w_end], axis=2)
