@@ -148,6 +148,67 @@ def decode_centreline(line_logit: np.ndarray, kp_cells: np.ndarray, n: int = CEN
     return out, w.astype(np.float64)
 
 
+ARC_ANGLES_DEG = (30.0, 60.0, 90.0, 120.0, 150.0)
+
+
+def fit_arc_affine(a: np.ndarray, e: np.ndarray, line_logit: np.ndarray,
+                   angles_deg=ARC_ANGLES_DEG, min_prob: float = 0.3, iters: int = 4):
+    """Fit the needle's arc in a heatmap under an affine (weak-perspective) camera.
+
+    The arc is ``p(t) = c + U [cos t, sin t]`` (cell coordinates), t the needle-frame angle. It
+    passes through the tip ``a`` at ``angles_deg[0]`` and the tail ``e`` at ``angles_deg[-1]``
+    (both from their heatmaps) and along the centreline ridge (pixels of probability
+    >= ``min_prob``). Start: the ridge point farthest from the chord a-e is the arc's midpoint
+    (an affine map keeps ratios of distances to a line); then alternate each ridge point's angle
+    and a weighted linear least-squares fit of (c, U). Returns (c (2,), U (2, 2)), or None when
+    the ridge is too weak or the fit degenerate. Used for B, C, D, whose own heatmaps know
+    "on the needle" far better than "where along it"."""
+    prob = 1.0 / (1.0 + np.exp(-line_logit.astype(np.float32)))
+    ys, xs = np.nonzero(prob >= min_prob)
+    if len(xs) < 8:
+        return None
+    w = prob[ys, xs].astype(np.float64)
+    pts = np.stack([xs, ys], 1).astype(np.float64)
+    ang = np.deg2rad(np.asarray(angles_deg, float))
+    t0, t1 = ang[0], ang[-1]
+    chord = e - a
+    L = np.linalg.norm(chord)
+    if L < 2.0:
+        return None
+    d = (chord[0] * (pts[:, 1] - a[1]) - chord[1] * (pts[:, 0] - a[0])) / L
+    along = (pts - a) @ chord / (L * L)
+    inside = (along > 0.2) & (along < 0.8)
+    if inside.sum() < 3:
+        return None
+    k = np.argsort(-np.abs(d) * inside)[:5]
+    mid = np.average(pts[k], axis=0, weights=w[k])
+    tm = 0.5 * (t0 + t1)
+
+    def solve(tt, pp, ww):
+        A = np.stack([np.ones_like(tt), np.cos(tt), np.sin(tt)], 1) * np.sqrt(ww)[:, None]
+        sol, *_ = np.linalg.lstsq(A, pp * np.sqrt(ww)[:, None], rcond=None)
+        return sol[0], sol[1:].T   # c, U (columns: cos, sin)
+
+    c, U = solve(np.array([t0, tm, t1]), np.stack([a, mid, e]), np.ones(3))
+    w_end = max(5.0, 0.1 * w.sum())
+    for _ in range(iters):
+        if abs(np.linalg.det(U)) < 1e-6:
+            return None
+        q = np.linalg.solve(U, (pts - c).T).T
+        tt = np.arctan2(q[:, 1], q[:, 0])
+        tt = np.where(tt < t0 - np.pi / 2, tt + 2 * np.pi, tt)
+        on = c + np.stack([np.cos(tt), np.sin(tt)], 1) @ U.T
+        r = np.linalg.norm(pts - on, axis=1)
+        keep = (tt > t0 - 0.1) & (tt < t1 + 0.1) & (r < 2.5)
+        if keep.sum() < 5:
+            return None
+        c, U = solve(np.concatenate([[t0, t1], tt[keep]]), np.vstack([a, e, pts[keep]]),
+                     np.concatenate([[w_end, w_end], w[keep]]))
+    if not np.all(np.isfinite(U)) or abs(np.linalg.det(U)) < 1e-6:
+        return None
+    return c, U
+
+
 class KeypointDetector:
     """The learned two-stage detector; one instance keeps a tracking state per camera name."""
 
@@ -155,7 +216,7 @@ class KeypointDetector:
 
     def __init__(self, weights=None, device: str = "auto", threshold: float = 0.5,
                  tracking: bool = True, threads: int | None = None, refine: bool = True,
-                 centreline: bool = True):
+                 centreline: bool = True, arc_bcd: bool = True):
         self.device = pick_device(device)
         if threads:
             torch.set_num_threads(int(threads))
@@ -166,6 +227,7 @@ class KeypointDetector:
         self.tracking = bool(tracking)
         self.refine = bool(refine)
         self.centreline = bool(centreline)
+        self.arc_bcd = bool(arc_bcd)
         self._track: dict[str, tuple] = {}
         self.last_mode = ""
 
@@ -197,9 +259,18 @@ class KeypointDetector:
         heat, pres = self.model.crop(self._tensor(crop))
         heat = heat.float().cpu()
         uv, score = decode_heatmaps(heat[:, :5], self.cfg.out_stride)
+        uv_crop = uv[0].numpy().astype(np.float64)
+        if self.arc_bcd:   # B, C, D from the arc through A and E (see fit_arc_affine)
+            st = self.cfg.out_stride
+            cells = (uv_crop - (st - 1) / 2.0) / st
+            fit = fit_arc_affine(cells[0], cells[4], heat[0, 5].numpy())
+            if fit is not None:
+                c, U = fit
+                t = np.deg2rad(np.asarray(ARC_ANGLES_DEG[1:4]))
+                uv_crop[1:4] = (c + np.stack([np.cos(t), np.sin(t)], 1) @ U.T) * st + (st - 1) / 2.0
         Minv = invert_affine(M)
-        uv_img = apply_affine(Minv, uv[0].numpy())
-        return {"M": M, "Minv": Minv, "uv": uv_img, "uv_crop": uv[0].numpy(), "scores": score[0].numpy(),
+        uv_img = apply_affine(Minv, uv_crop)
+        return {"M": M, "Minv": Minv, "uv": uv_img, "uv_crop": uv_crop, "scores": score[0].numpy(),
                 "presence": float(torch.sigmoid(pres[0])), "line": heat[0, 5].numpy()}
 
     def _box_of(self, res) -> tuple:
@@ -293,13 +364,13 @@ class LearnedBackend(KeypointBackend):
     def __init__(self, params=None):
         super().__init__(params)
         p = self.params
-        known = {"weights", "device", "threshold", "tracking", "threads", "refine", "centreline"}
+        known = {"weights", "device", "threshold", "tracking", "threads", "refine", "centreline", "arc_bcd"}
         try:
             self.detector = KeypointDetector(
                 p.get("weights"), device=str(p.get("device", "auto")),
                 threshold=float(p.get("threshold", 0.5)), tracking=bool(p.get("tracking", True)),
                 threads=p.get("threads"), refine=bool(p.get("refine", True)),
-                centreline=bool(p.get("centreline", True)))
+                centreline=bool(p.get("centreline", True)), arc_bcd=bool(p.get("arc_bcd", True)))
         except (ModelFileError, ValueError, TypeError) as exc:
             raise BackendError(f"learned backend: {exc}") from exc
         self.ignored = sorted(set(p) - known)

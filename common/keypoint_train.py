@@ -45,7 +45,9 @@ DEFAULT_TRAIN = {
     "val_fraction": 0.1,
     "threads": 2,
     "time_budget_min": 0,     # the cosine schedule ends at this training time if it comes first; 0 = none
-    "loss_weights": {"kp": 1.0, "line": 4.0, "presence": 0.3, "global": 1.0, "box": 1.0},
+    "loss_weights": {"kp": 1.0, "line": 4.0, "presence": 0.3, "global": 1.0, "box": 1.0,
+                     "global_presence": 1.0},
+    "stages": ["global", "crop"],   # which networks to train (the other keeps its weights)
 }
 
 
@@ -108,19 +110,25 @@ def global_batch(records, idx, cfg: ModelConfig, aug, rng):
 
 
 def losses(model: KeypointModel, cb, gb, w: dict) -> dict:
+    """Loss terms of a stage-2 batch ``cb`` and a stage-1 batch ``gb`` (either may be None)."""
     cfg = model.cfg
-    x, kpc, valid, line, pres = cb
-    heat, p = model.crop(x)
     out = {}
-    out["kp"] = keypoint_loss(heat[:, :5], gaussian_targets(kpc, valid, cfg.heat, cfg.kp_sigma))
-    out["line"] = F.binary_cross_entropy_with_logits(heat[:, 5], line)
-    out["presence"] = F.binary_cross_entropy_with_logits(p, pres)
-    gx, gheat, greg, gmask = gb
-    g = model.glob(gx)
-    out["global"] = focal_heatmap_loss(g[:, 0], gheat)
-    m = gmask[:, None]
-    out["box"] = (F.smooth_l1_loss(g[:, 1:5], greg, reduction="none", beta=0.1) * m).sum() / m.sum().clamp_min(1) / 4
-    out["total"] = sum(w[k] * out[k] for k in ("kp", "line", "presence", "global", "box"))
+    if cb is not None:
+        x, kpc, valid, line, pres = cb
+        heat, p = model.crop(x)
+        out["kp"] = keypoint_loss(heat[:, :5], gaussian_targets(kpc, valid, cfg.heat, cfg.kp_sigma))
+        out["line"] = F.binary_cross_entropy_with_logits(heat[:, 5], line)
+        out["presence"] = F.binary_cross_entropy_with_logits(p, pres)
+    if gb is not None:
+        gx, gheat, greg, gmask = gb
+        g = model.glob(gx)
+        out["global"] = focal_heatmap_loss(g[:, 0], gheat)
+        m = gmask[:, None]
+        out["box"] = (F.smooth_l1_loss(g[:, 1:5], greg, reduction="none", beta=0.1) * m).sum() / m.sum().clamp_min(1) / 4
+        # image-level presence on the heatmap's peak (the detector's confidence): MIL-style
+        has = (gmask.flatten(1).sum(1) > 0).float()
+        out["global_presence"] = F.binary_cross_entropy_with_logits(g[:, 0].flatten(1).amax(1), has)
+    out["total"] = sum(w.get(k, 0.0) * v for k, v in out.items())
     return out
 
 
@@ -210,15 +218,20 @@ def plot_curves(metrics: list[dict], path) -> None:
 
 
 def prepare_records(data_dirs, out: Path, mcfg: ModelConfig, seed: int, progress: bool = True):
-    """Records of all data folders, cached in ``out/records.npz`` keyed by the folders."""
-    cache = out / "records.npz"
-    key_path = out / "records.key"
+    """Records of all data folders, cached (outside the repository, in the temp folder) under a
+    key made of the folders, their frames.jsonl size and time, the downscale and the seed."""
+    import hashlib
+    import tempfile
     def stamp(d):  # a folder that grew (or changed) invalidates the cache
         f = Path(d) / "frames.jsonl"
         return [str(Path(d).resolve()), f.stat().st_size if f.is_file() else -1,
                 f.stat().st_mtime_ns if f.is_file() else -1]
     key = json.dumps({"data": [stamp(d) for d in data_dirs], "downscale": mcfg.global_downscale,
                       "seed": seed})
+    cache_dir = Path(tempfile.gettempdir()) / "needletrack-keypoint-cache"
+    cache_dir.mkdir(parents=True, exist_ok=True)
+    h = hashlib.sha1(key.encode()).hexdigest()[:16]
+    cache, key_path = cache_dir / f"{h}.npz", cache_dir / f"{h}.key"
     if cache.is_file() and key_path.is_file() and key_path.read_text() == key:
         return load_cached(cache)
     records = []
@@ -243,8 +256,9 @@ def split(records, fraction: float, seed: int):
 
 # ---------------------------------------------------------------- main
 
-def train(data_dirs, out, config_path=None, log=print, progress=True) -> dict:
-    """Train (or resume) into the folder ``out``; returns the last epoch's metrics."""
+def train(data_dirs, out, config_path=None, log=print, progress=True, init=None) -> dict:
+    """Train (or resume) into the folder ``out``; returns the last epoch's metrics. ``init``: a
+    weights file to start from (fine-tuning) when ``out`` holds no checkpoint yet."""
     cfg = load_config(config_path)
     tcfg = cfg["train"]
     mcfg = ModelConfig.from_dict(cfg["model"])
@@ -264,6 +278,18 @@ def train(data_dirs, out, config_path=None, log=print, progress=True) -> dict:
 
     torch.manual_seed(seed)
     model = KeypointModel(mcfg)
+    stages = list(tcfg["stages"])
+    if not stages or set(stages) - {"global", "crop"}:
+        raise ValueError(f"{config_path}: train.stages must list 'global' and/or 'crop', got {stages}")
+    if init and not (out / "checkpoint.pt").is_file():
+        try:
+            src = torch.load(init, map_location="cpu", weights_only=True)
+            if src.get("config") != mcfg.to_dict():
+                raise ValueError(f"--init {init}: its model config differs from {config_path}")
+            model.load_state_dict(src["state_dict"])
+        except (OSError, RuntimeError, KeyError, AttributeError) as exc:
+            raise ValueError(f"--init {init}: cannot load ({exc})") from None
+        log(f"starting from the weights of {init}")
     steps_per_epoch = int(tcfg["steps_per_epoch"]) or max(1, len(tr) // int(tcfg["batch"]))
     total = steps_per_epoch * int(tcfg["epochs"])
     if tcfg["optimizer"] == "sgd":
@@ -320,8 +346,8 @@ def train(data_dirs, out, config_path=None, log=print, progress=True) -> dict:
                 break
             idx = order[step * int(tcfg["batch"]):(step + 1) * int(tcfg["batch"])]
             gidx = rng.integers(0, len(tr), int(tcfg["global_batch"]))
-            cb = crop_batch(tr, idx, mcfg, aug, rng)
-            gb = global_batch(tr, gidx, mcfg, aug, rng)
+            cb = crop_batch(tr, idx, mcfg, aug, rng) if "crop" in stages else None
+            gb = global_batch(tr, gidx, mcfg, aug, rng) if "global" in stages else None
             L = losses(model, cb, gb, w)
             lr = base_lr * min(1.0, (step_count + 1) / max(1, warm)) * 0.5 * (1 + math.cos(math.pi * frac))
             for g in opt.param_groups:
@@ -333,8 +359,8 @@ def train(data_dirs, out, config_path=None, log=print, progress=True) -> dict:
             step_count += 1
             vals = {k: float(v.detach()) for k, v in L.items()}
             running = vals if running is None else {k: 0.95 * running[k] + 0.05 * vals[k] for k in vals}
-            bar.set_postfix(loss=f"{running['total']:.3f}", kp=f"{running['kp']:.3f}",
-                            glob=f"{running['global']:.3f}", lr=f"{lr:.1e}")
+            bar.set_postfix(loss=f"{running['total']:.3f}", kp=f"{running.get('kp', 0):.3f}",
+                            glob=f"{running.get('global', 0):.3f}", lr=f"{lr:.1e}")
         bar.close()
         if running is None:
             break
@@ -374,10 +400,11 @@ def main(argv=None) -> int:
     ap.add_argument("--data", action="append", required=True, help="dataset folder (repeatable)")
     ap.add_argument("--config", default=None, help="training YAML (e.g. models/train.yaml)")
     ap.add_argument("--out", required=True, help="output folder, e.g. models/keypoint")
+    ap.add_argument("--init", default=None, help="start from these weights (fine-tuning)")
     ap.add_argument("--no-progress", action="store_true", help="no progress bar")
     a = ap.parse_args(argv)
     try:
-        train(a.data, a.out, a.config, progress=not a.no_progress)
+        train(a.data, a.out, a.config, progress=not a.no_progress, init=a.init)
     except (DatasetError, ValueError, OSError) as exc:
         print(f"needletrack train: error: {exc}", file=sys.stderr)
         return 2
