@@ -427,8 +427,8 @@ def _select_curve(name: str, pts, w, m: int, w_min: float):
     if pts.ndim != 2 or pts.shape[1] != 2 or w.shape != (len(pts),):
         raise RefineError("bad_centreline", f"{name}: need centreline (N, 2) and centreline_w (N,), "
                           f"got {pts.shape} and {w.shape}")
-    ok = np.isfinite(pts).all(axis=1) & np.isfinite(w) & (w >= w_min)
-    if not ok.all():
+    if not (np.isfinite(pts.sum() + w.sum()) and w.min(initial=1.0) >= w_min):
+        ok = np.isfinite(pts).all(axis=1) & np.isfinite(w) & (w >= w_min)
         pts, w = pts[ok], w[ok]
     w = np.minimum(w, 1.0)
     if len(pts) <= m:
@@ -478,7 +478,14 @@ def mirror_pose(T_ecm_needle: np.ndarray, needle: NeedleModel, eye_ecm=np.zeros(
 
 def _pose_delta(T, T_ref):
     """[rotation vector of R R_ref^T, t - t_ref]: T as a left increment of T_ref (ECM frame)."""
-    return np.concatenate([R_to_rotvec(T[:3, :3] @ T_ref[:3, :3].T), T[:3, 3] - T_ref[:3, 3]])
+    dR = T[:3, :3] @ T_ref[:3, :3].T
+    c = (dR[0, 0] + dR[1, 1] + dR[2, 2] - 1.0) / 2.0
+    if -0.99 < c < 1.0 - 1e-12:            # away from 0 and pi: the log map directly
+        a = math.acos(c)
+        w = np.array([dR[2, 1] - dR[1, 2], dR[0, 2] - dR[2, 0], dR[1, 0] - dR[0, 1]]) * (a / (2 * math.sin(a)))
+    else:
+        w = R_to_rotvec(dR)
+    return np.concatenate([w, T[:3, 3] - T_ref[:3, 3]])
 
 
 # ------------------------------------------------------------------ the solver
@@ -521,14 +528,16 @@ def _lm(prob: _Problem, R, t, cfg: RefineConfig, n_iter: int, state=None):
             dx = -sc * np.stack([np.linalg.lstsq(a, b * c, rcond=None)[0] for a, b, c in zip(A, g, sc)])
         # Trust region: no step turns more than max_step_rad or moves more than max_step_m (a
         # nearly face-on arc leaves its tilt weakly determined; a full step may leap far).
-        shrink = np.minimum(1.0, np.minimum(
-            cfg.max_step_rad / np.maximum(np.abs(dx[:, :3]).max(axis=1), 1e-300),
-            cfg.max_step_m / np.maximum(np.abs(dx[:, 3:]).max(axis=1), 1e-300)))
+        adx = np.abs(dx)
+        rot, tra = adx[:, :3].max(axis=1), adx[:, 3:].max(axis=1)
+        shrink = np.minimum(1.0, np.minimum(cfg.max_step_rad / np.maximum(rot, 1e-300),
+                                            cfg.max_step_m / np.maximum(tra, 1e-300)))
         dx = dx * shrink[:, None]
+        rot, tra = rot * shrink, tra * shrink
         Rn = _exp_so3(dx[:, :3]) @ s["R"][act]
         tn = s["t"][act] + dx[:, 3:]
         # Feet: carried over from the current poses, searched afresh after a large step.
-        big = np.max(np.abs(dx[:, :3])) > cfg.research_rad or np.max(np.abs(dx[:, 3:])) > cfg.research_m
+        big = rot.max() > cfg.research_rad or tra.max() > cfg.research_m
         warm = None if big else s["cs"][act]
         rn, Jn, csn, validn = prob.linearise(Rn, tn, warm)
         rho_n, wr_n = prob.robust(rn)
@@ -549,7 +558,7 @@ def _lm(prob: _Problem, R, t, cfg: RefineConfig, n_iter: int, state=None):
         s["rej"][act[~acc]] += 1
         quad = (dx[:, None, :] @ H @ dx[..., None])[:, 0, 0]
         within = acc & (shrink == 1.0) & (quad < cfg.step_tol * old / dof)
-        small = (np.abs(dx[:, :3]).max(axis=1) < 1e-11) & (np.abs(dx[:, 3:]).max(axis=1) < 1e-12)
+        small = (rot < 1e-11) & (tra < 1e-12)
         s["done"][act] |= within | small | (s["rej"][act] >= cfg.max_reject)
     return s
 
@@ -681,19 +690,23 @@ def _inv_psd(H):
     """Inverse of a 6x6 normal matrix with Jacobi scaling; unobservable directions get a huge
     (not infinite) variance."""
     d = np.sqrt(np.maximum(np.diag(H), 1e-300))
-    Hs = H / np.outer(d, d)
+    dd = np.outer(d, d)
+    Hs = H / dd
+    try:                                   # well conditioned (the usual case): Cholesky
+        L = np.linalg.cholesky(Hs)
+        if np.diag(L).min() > 1e-6:
+            Li = np.linalg.inv(L)
+            return (Li.T @ Li) / dd
+    except np.linalg.LinAlgError:
+        pass
     w, V = np.linalg.eigh(Hs)
     w = np.maximum(w, 1e-12 * max(w.max(), 1e-300))
-    return (V / w) @ V.T / np.outer(d, d)
+    return (V / w) @ V.T / dd
 
 
 def _view_angle_deg(prob: _Problem, T) -> float:
     """Smallest angle (deg) between the arc's plane and a camera's line of sight to the arc."""
-    m = T[:3, :3] @ prob.arc_centroid + T[:3, 3]
-    n = T[:3, 2]
-    ang = []
-    for c in prob.cam_centres:
-        v = m - c
-        ang.append(np.degrees(np.arcsin(min(1.0, abs(n @ v) / np.linalg.norm(v)))))
-    return float(min(ang))
+    v = (T[:3, :3] @ prob.arc_centroid + T[:3, 3]) - prob.cam_centres
+    s = np.abs(v @ T[:3, 2]) / np.sqrt((v * v).sum(axis=1))
+    return math.degrees(math.asin(min(1.0, float(s.min()))))
 

@@ -97,7 +97,7 @@ def test_noise_free_is_exact_from_a_perturbed_start(seed):
     res = REFINER.refine(observe(T), [perturb(T, rng)])
     dt_mm, dr_deg = errors_mm_deg(res.T_ecm_needle, T)
     assert dt_mm < 1e-3 and dr_deg < 1e-4, (dt_mm, dr_deg)
-    assert res.rms_px < 1e-6
+    assert res.rms_px < 1e-4
     # an exact fit still reports a proper (positive definite) uncertainty
     assert np.linalg.eigvalsh(res.covariance).min() > 0
 
