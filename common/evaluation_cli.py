@@ -4,9 +4,9 @@ Checks the folder against the dataset spec (exit 2 with file, line and field whe
 it, or when it has no ground truth to compare with), then runs the real graph on it: replay ->
 detector -> epnp (average, joint) -> triangulate -> ecm -> fusion (-> refine -> fusion) ->
 evaluator, on a free loopback port. Every node queues all its inputs (none keeps only the
-newest, as in a live graph), so every frame is scored whatever the load. The evaluator writes OUTDIR (results.json, report.md,
-error_vs_distance.png, overlays/); this command prints the summary. The graph's log is
-OUTDIR/graph.log and the graph itself OUTDIR/graph.yaml.
+newest, as in a live graph), so every frame is scored whatever the load. The evaluator writes
+OUTDIR (results.json, report.md, error_vs_distance.png, per_frame.csv, overlays/); this command
+prints the summary. The graph's log is OUTDIR/graph.log and the graph itself OUTDIR/graph.yaml.
 """
 from __future__ import annotations
 
