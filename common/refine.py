@@ -496,9 +496,9 @@ _I6 = np.eye(6)
 def _lm(prob: _Problem, R, t, cfg: RefineConfig, n_iter: int, state=None):
     """Batched Levenberg-Marquardt on K poses; returns the state dict (poses, costs, ...).
 
-    A pose is done when its step is far inside its own uncertainty (the step's cost change
-    ``dx' H dx`` below ``step_tol`` residual variances), when the step is negligible in absolute
-    terms, or after ``max_reject`` rejected steps in a row (a cost at rounding level)."""
+    A pose is done when the step on offer is far inside its own uncertainty (the step's cost
+    change ``dx' H dx`` below ``step_tol`` residual variances), when a step is negligible in
+    absolute terms, or after ``max_reject`` rejected steps in a row (a cost at rounding level)."""
     K = len(R)
     if state is None:
         r, J, cs, valid = prob.linearise(R, t)
@@ -534,6 +534,22 @@ def _lm(prob: _Problem, R, t, cfg: RefineConfig, n_iter: int, state=None):
                                             cfg.max_step_m / np.maximum(tra, 1e-300)))
         dx = dx * shrink[:, None]
         rot, tra = rot * shrink, tra * shrink
+        # Converged when the step on offer is far inside the pose's own uncertainty: its cost
+        # change below step_tol residual variances (then it is not taken, nor evaluated).
+        quad = (dx[:, None, :] @ H @ dx[..., None])[:, 0, 0]
+        # (residuals are in sigmas, so a variance above 1 is outliers' doing: not a looser bound)
+        within = (shrink == 1.0) & (quad < cfg.step_tol * np.minimum(s["cost"][act] / dof, 1.0))
+        if within.any():
+            # the small step is still taken, unevaluated (its effect on the fit's residuals and
+            # Jacobian, kept for the covariance, is within the same fraction of a variance)
+            iw = act[within]
+            s["R"][iw] = _exp_so3(dx[within, :3]) @ s["R"][iw]
+            s["t"][iw] = s["t"][iw] + dx[within, 3:]
+            s["done"][iw] = True
+            go = ~within
+            if not go.any():
+                break
+            act, dx, rot, tra = act[go], dx[go], rot[go], tra[go]
         Rn = _exp_so3(dx[:, :3]) @ s["R"][act]
         tn = s["t"][act] + dx[:, 3:]
         # Feet: carried over from the current poses, searched afresh after a large step.
@@ -556,10 +572,8 @@ def _lm(prob: _Problem, R, t, cfg: RefineConfig, n_iter: int, state=None):
         s["lam"][act[~acc]] *= 4.0
         s["rej"][ia] = 0
         s["rej"][act[~acc]] += 1
-        quad = (dx[:, None, :] @ H @ dx[..., None])[:, 0, 0]
-        within = acc & (shrink == 1.0) & (quad < cfg.step_tol * old / dof)
         small = (rot < 1e-11) & (tra < 1e-12)
-        s["done"][act] |= within | small | (s["rej"][act] >= cfg.max_reject)
+        s["done"][act] |= small | (s["rej"][act] >= cfg.max_reject)
     return s
 
 
