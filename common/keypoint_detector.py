@@ -152,21 +152,26 @@ ARC_ANGLES_DEG = (30.0, 60.0, 90.0, 120.0, 150.0)
 
 
 def fit_arc_affine(a: np.ndarray, e: np.ndarray, line_logit: np.ndarray,
-                   angles_deg=ARC_ANGLES_DEG, min_prob: float = 0.3, iters: int = 4):
+                   angles_deg=ARC_ANGLES_DEG, min_prob: float = 0.3, iters: int = 8):
     """Fit the needle's arc in a heatmap under an affine (weak-perspective) camera.
 
     The arc is ``p(t) = c + U [cos t, sin t]`` (cell coordinates), t the needle-frame angle. It
     passes through the tip ``a`` at ``angles_deg[0]`` and the tail ``e`` at ``angles_deg[-1]``
-    (both from their heatmaps) and along the centreline ridge (pixels of probability
-    >= ``min_prob``). Start: the ridge point farthest from the chord a-e is the arc's midpoint
-    (an affine map keeps ratios of distances to a line); then alternate each ridge point's angle
-    and a weighted linear least-squares fit of (c, U). Returns (c (2,), U (2, 2)), or None when
-    the ridge is too weak or the fit degenerate. Used for B, C, D, whose own heatmaps know
-    "on the needle" far better than "where along it"."""
+    (both from their heatmaps) and along the centreline ridge (pixels of probability >=
+    ``min_prob``, weighted by it). Start: the ridge point farthest from the chord a-e is the
+    arc's midpoint (an affine map keeps ratios of distances to a line); then Gauss-Newton on the
+    orthogonal distances of the ridge pixels (each pixel's own angle eliminated, so the fit does
+    not crawl along the arc as plain alternation does) with a and e as heavily weighted
+    constraints. Returns (c (2,), U (2, 2)) for ``arc_at``, or None when the ridge is too weak or
+    the fit degenerate. Used for B, C, D, whose own heatmaps know "on the needle" far better than
+    "where along it"."""
     prob = 1.0 / (1.0 + np.exp(-line_logit.astype(np.float32)))
     ys, xs = np.nonzero(prob >= min_prob)
     if len(xs) < 8:
         return None
+    if len(xs) > 600:   # keep the strongest pixels: the cost grows with their number
+        keep = np.argsort(-prob[ys, xs])[:600]
+        ys, xs = ys[keep], xs[keep]
     w = prob[ys, xs].astype(np.float64)
     pts = np.stack([xs, ys], 1).astype(np.float64)
     ang = np.deg2rad(np.asarray(angles_deg, float))
@@ -182,31 +187,85 @@ def fit_arc_affine(a: np.ndarray, e: np.ndarray, line_logit: np.ndarray,
         return None
     k = np.argsort(-np.abs(d) * inside)[:5]
     mid = np.average(pts[k], axis=0, weights=w[k])
-    tm = 0.5 * (t0 + t1)
-
-    def solve(tt, pp, ww):
-        A = np.stack([np.ones_like(tt), np.cos(tt), np.sin(tt)], 1) * np.sqrt(ww)[:, None]
-        sol, *_ = np.linalg.lstsq(A, pp * np.sqrt(ww)[:, None], rcond=None)
-        return sol[0], sol[1:].T   # c, U (columns: cos, sin)
-
-    c, U = solve(np.array([t0, tm, t1]), np.stack([a, mid, e]), np.ones(3))
-    w_end = max(5.0, 0.1 * w.sum())
-    for _ in range(iters):
-        if abs(np.linalg.det(U)) < 1e-6:
+    T = np.array([t0, 0.5 * (t0 + t1), t1])
+    D = np.stack([np.ones(3), np.cos(T), np.sin(T)], 1)
+    sol = np.linalg.solve(D, np.stack([a, mid, e]))
+    c, U = sol[0], sol[1:].T
+    # initial angles: closest point on the initial curve
+    ts = np.linspace(t0 - 0.3, t1 + 0.3, 200)
+    curve = c + np.stack([np.cos(ts), np.sin(ts)], 1) @ U.T
+    tt = ts[((pts[:, None, :] - curve[None]) ** 2).sum(-1).argmin(1)]
+    w_end = 10.0 * max(1.0, w.sum())
+    for it in range(iters):
+        cs, sn = np.cos(tt), np.sin(tt)
+        on = c + np.stack([cs, sn], 1) @ U.T
+        tang = np.stack([-sn, cs], 1) @ U.T
+        tl = np.maximum(np.linalg.norm(tang, axis=1), 1e-9)
+        nrm = np.stack([-tang[:, 1], tang[:, 0]], 1) / tl[:, None]
+        res = ((pts - on) * nrm).sum(1)
+        inl = (np.abs(res) < 2.5) & (tt > t0 - 0.15) & (tt < t1 + 0.15)
+        if inl.sum() < 5:
             return None
-        q = np.linalg.solve(U, (pts - c).T).T
-        tt = np.arctan2(q[:, 1], q[:, 0])
-        tt = np.where(tt < t0 - np.pi / 2, tt + 2 * np.pi, tt)
-        on = c + np.stack([np.cos(tt), np.sin(tt)], 1) @ U.T
-        r = np.linalg.norm(pts - on, axis=1)
-        keep = (tt > t0 - 0.1) & (tt < t1 + 0.1) & (r < 2.5)
-        if keep.sum() < 5:
-            return None
-        c, U = solve(np.concatenate([[t0, t1], tt[keep]]), np.vstack([a, e, pts[keep]]),
-                     np.concatenate([[w_end, w_end], w[keep]]))
-    if not np.all(np.isfinite(U)) or abs(np.linalg.det(U)) < 1e-6:
+        J = np.stack([nrm[:, 0], nrm[:, 1], nrm[:, 0] * cs, nrm[:, 0] * sn, nrm[:, 1] * cs, nrm[:, 1] * sn], 1)
+        rows, rhs, ws = [J[inl]], [res[inl]], [w[inl]]
+        for tk, pk in ((t0, a), (t1, e)):
+            pe = c + U @ np.array([np.cos(tk), np.sin(tk)])
+            rows.append(np.array([[1, 0, np.cos(tk), np.sin(tk), 0, 0], [0, 1, 0, 0, np.cos(tk), np.sin(tk)]], float))
+            rhs.append(pk - pe)
+            ws.append(np.array([w_end, w_end]))
+        Jm, r, wv = np.vstack(rows), np.concatenate(rhs), np.sqrt(np.concatenate(ws))
+        dx, *_ = np.linalg.lstsq(Jm * wv[:, None], r * wv, rcond=None)
+        c = c + dx[:2]
+        U = U + dx[2:].reshape(2, 2)
+        # each pixel's angle follows: one Newton step along the tangent of the new curve
+        cs, sn = np.cos(tt), np.sin(tt)
+        on = c + np.stack([cs, sn], 1) @ U.T
+        tang = np.stack([-sn, cs], 1) @ U.T
+        tt = tt + ((pts - on) * tang).sum(1) / np.maximum((tang * tang).sum(1), 1e-9)
+        if np.abs(dx).max() < 1e-4:
+            break
+    if not (np.all(np.isfinite(U)) and np.all(np.isfinite(c))) or abs(np.linalg.det(U)) < 1e-6:
+        return None
+    # sanity: the fitted arc stays near the chord's scale and on the ridge
+    m = prob.shape[0]
+    pred = c + np.stack([np.cos(ang), np.sin(ang)], 1) @ U.T
+    if (np.abs(pred - np.clip(pred, -0.25 * m, 1.25 * m)).max() > 0 or np.linalg.norm(U, 2) > 4 * m
+            or np.linalg.norm(pred[0] - a) > 1.0 or np.linalg.norm(pred[-1] - e) > 1.0):
+        return None
+    cs, sn = np.cos(tt), np.sin(tt)
+    res = np.linalg.norm(pts - (c + np.stack([cs, sn], 1) @ U.T), axis=1)
+    inl = (res < 2.5) & (tt > t0 - 0.15) & (tt < t1 + 0.15)
+    if inl.sum() < 5 or np.sqrt(np.average(res[inl] ** 2, weights=w[inl])) > 1.5:
         return None
     return c, U
+
+
+def arc_at(fit, t_deg) -> np.ndarray:
+    """Points (N, 2) of a ``fit_arc_affine`` fit at needle angles ``t_deg`` (degrees)."""
+    c, U = fit
+    t = np.deg2rad(np.asarray(t_deg, float)).reshape(-1)
+    return c + np.stack([np.cos(t), np.sin(t)], 1) @ U.T
+
+
+def refine_along_arc(prob: np.ndarray, fit, t_pred_deg: float, half_deg: float = 15.0,
+                     band: float = 2.0) -> float:
+    """Angle (deg) of a keypoint on the fitted arc: the mean of its heatmap probability ``prob``
+    (m, m, cells) along the arc within +-``half_deg`` of the affine prediction (mass summed across
+    the arc within +-``band`` cells). A flat heatmap leaves ``t_pred_deg``; a peaked one moves the
+    point along the arc (perspective makes the true point differ from the affine one)."""
+    ts = np.linspace(t_pred_deg - half_deg, t_pred_deg + half_deg, 61)
+    curve = arc_at(fit, ts)
+    tang = np.gradient(curve, axis=0)
+    nrm = np.stack([-tang[:, 1], tang[:, 0]], 1)
+    nrm /= np.maximum(np.linalg.norm(nrm, axis=1, keepdims=True), 1e-9)
+    offs = np.arange(-band, band + 1e-9, 0.5)
+    pts = curve[:, None, :] + offs[None, :, None] * nrm[:, None, :]
+    samp = cv2.remap(prob.astype(np.float32), pts[..., 0].astype(np.float32), pts[..., 1].astype(np.float32),
+                     cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT, borderValue=0)
+    mass = samp.sum(1) * np.linalg.norm(tang, axis=1)   # mass per unit angle
+    if not np.isfinite(mass).all() or mass.sum() <= 1e-9:
+        return float(t_pred_deg)
+    return float((mass * ts).sum() / mass.sum())
 
 
 class KeypointDetector:
@@ -216,7 +275,7 @@ class KeypointDetector:
 
     def __init__(self, weights=None, device: str = "auto", threshold: float = 0.5,
                  tracking: bool = True, threads: int | None = None, refine: bool = True,
-                 centreline: bool = True, arc_bcd: bool = True):
+                 centreline: bool = True, arc_bcd: bool = True, along_arc: bool = False):
         self.device = pick_device(device)
         if threads:
             torch.set_num_threads(int(threads))
@@ -228,6 +287,7 @@ class KeypointDetector:
         self.refine = bool(refine)
         self.centreline = bool(centreline)
         self.arc_bcd = bool(arc_bcd)
+        self.along_arc = bool(along_arc)
         self._track: dict[str, tuple] = {}
         self.last_mode = ""
 
@@ -265,9 +325,12 @@ class KeypointDetector:
             cells = (uv_crop - (st - 1) / 2.0) / st
             fit = fit_arc_affine(cells[0], cells[4], heat[0, 5].numpy())
             if fit is not None:
-                c, U = fit
-                t = np.deg2rad(np.asarray(ARC_ANGLES_DEG[1:4]))
-                uv_crop[1:4] = (c + np.stack([np.cos(t), np.sin(t)], 1) @ U.T) * st + (st - 1) / 2.0
+                t = np.asarray(ARC_ANGLES_DEG[1:4], float)
+                if self.along_arc:
+                    m = heat.shape[-1]
+                    prob = torch.softmax(heat[0, 1:4].reshape(3, -1), -1).reshape(3, m, m).numpy()
+                    t = np.array([refine_along_arc(prob[i], fit, t[i]) for i in range(3)])
+                uv_crop[1:4] = arc_at(fit, t) * st + (st - 1) / 2.0
         Minv = invert_affine(M)
         uv_img = apply_affine(Minv, uv_crop)
         return {"M": M, "Minv": Minv, "uv": uv_img, "uv_crop": uv_crop, "scores": score[0].numpy(),
