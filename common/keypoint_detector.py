@@ -149,6 +149,7 @@ def decode_centreline(line_logit: np.ndarray, kp_cells: np.ndarray, n: int = CEN
 
 
 ARC_ANGLES_DEG = (30.0, 60.0, 90.0, 120.0, 150.0)
+ARC_MIN_SCORE = 0.35   # A's and E's heatmap scores needed to place B..D on the fitted arc
 
 
 def fit_arc_affine(a: np.ndarray, e: np.ndarray, line_logit: np.ndarray,
@@ -303,6 +304,7 @@ class KeypointDetector:
         t = torch.from_numpy(np.ascontiguousarray(arr)).permute(2, 0, 1)[None]
         return t.to(self.device).contiguous(memory_format=torch.channels_last)
 
+    @torch.inference_mode()
     def _stage1(self, img: np.ndarray):
         from common.keypoint_data import global_input
         h, w = img.shape[:2]
@@ -311,6 +313,7 @@ class KeypointDetector:
         out = self.model.glob(self._tensor(global_input(small)))
         return decode_global(out.float().cpu(), ds)
 
+    @torch.inference_mode()
     def _stage2(self, img: np.ndarray, box):
         cx, cy, bw, bh = box
         M = crop_affine(cx, cy, crop_side(self.cfg, bw, bh), self.cfg.crop)
@@ -320,7 +323,10 @@ class KeypointDetector:
         heat = heat.float().cpu()
         uv, score = decode_heatmaps(heat[:, :5], self.cfg.out_stride)
         uv_crop = uv[0].numpy().astype(np.float64)
-        if self.arc_bcd:   # B, C, D from the arc through A and E (see fit_arc_affine)
+        sc = score[0].numpy()
+        # B, C, D from the arc through A and E (see fit_arc_affine), when A and E are sure
+        # (an occluded end is a guess, and the arc pinned on it would drag B..D along)
+        if self.arc_bcd and min(sc[0], sc[4]) >= ARC_MIN_SCORE:
             st = self.cfg.out_stride
             cells = (uv_crop - (st - 1) / 2.0) / st
             fit = fit_arc_affine(cells[0], cells[4], heat[0, 5].numpy())
