@@ -31,6 +31,8 @@ def _parser() -> argparse.ArgumentParser:
                    help="oracle only: Gaussian keypoint noise per coordinate (px)")
     p.add_argument("--seed", type=int, default=0, help="oracle only: noise seed")
     p.add_argument("--model", help="learned only: weights file (default: the detector's shipped model)")
+    p.add_argument("--param", action="append", default=[], metavar="KEY=VALUE",
+                   help="a detector parameter (repeatable), e.g. --param tracking=false")
     p.add_argument("--rate", default=None,
                    help="replay rate in Hz, or 'max' (default: 30 for the oracle, 10 otherwise). Every "
                         "frame is scored whatever the rate (the nodes queue their inputs here); "
@@ -125,6 +127,12 @@ def main(argv=None) -> int:
     elif args.model:
         det_params = {"weights": str(Path(args.model).resolve())}
     split = args.detector != "oracle"   # one process per camera: images detected in parallel
+    from common.graph import parse_param
+    try:
+        det_params.update(dict(parse_param(p) for p in args.param))
+    except ValueError as exc:
+        print(f"needletrack eval: {exc}", file=sys.stderr)
+        return 2
     rate = args.rate or (30 if args.detector == "oracle" else 10)
     rate = rate if str(rate) == "max" else float(rate)
     doc = pipeline_graph(dataset, detector=args.detector, detector_params=det_params, rate=rate,
