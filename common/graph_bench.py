@@ -231,7 +231,8 @@ def report(r: dict) -> str:
         L.append(f"  {n:<18}{f(cpu, 0):>7}{f(v['cpu_ms_per_frame'], 2):>14}{f(v['proc_ms_p50'], 2):>13}"
                  f"{f(v['proc_ms_p99'], 2):>9}"
                  f"{v['dropped']:>9}   {ins}")
-    L.append(f"  total CPU {f(100 * r['cpu_total'], 0)}% of {100 * (r['cpus'] or 1)}%")
+    L.append(f"  total CPU {f(100 * r['cpu_total'], 0)}% of {100 * (r['cpus'] or 1)}%; "
+             f"cpu ms/frame = CPU time per published frame")
     return "\n".join(L)
 
 
