@@ -24,7 +24,7 @@ import numpy as np
 import torch
 
 from common.keypoint_model import (KeypointModel, ModelConfig, apply_affine, crop_affine, crop_side,
-                                   decode_global, decode_heatmaps, fuse_conv_bn, invert_affine)
+                                   decode_global_topk, decode_heatmaps, fuse_conv_bn, invert_affine)
 from common.messages import CameraImage, Keypoints, MessageError
 
 MODEL_FORMAT = "needletrack-keypoint-detector"
@@ -276,7 +276,8 @@ class KeypointDetector:
 
     def __init__(self, weights=None, device: str = "auto", threshold: float = 0.5,
                  tracking: bool = True, threads: int | None = None, refine: bool = True,
-                 centreline: bool = True, arc_bcd: bool = True, along_arc: bool = False):
+                 centreline: bool = True, arc_bcd: bool = True, along_arc: bool = False,
+                 proposal_threshold: float = 0.3, proposals: int = 2):
         self.device = pick_device(device)
         if threads:
             torch.set_num_threads(int(threads))
@@ -289,6 +290,8 @@ class KeypointDetector:
         self.centreline = bool(centreline)
         self.arc_bcd = bool(arc_bcd)
         self.along_arc = bool(along_arc)
+        self.proposal_threshold = float(proposal_threshold)
+        self.proposals = max(1, int(proposals))
         self._track: dict[str, tuple] = {}
         self.last_mode = ""
 
@@ -311,7 +314,7 @@ class KeypointDetector:
         ds = self.cfg.global_downscale
         small = cv2.resize(img, (max(1, round(w / ds)), max(1, round(h / ds))), interpolation=cv2.INTER_AREA)
         out = self.model.glob(self._tensor(global_input(small)))
-        return decode_global(out.float().cpu(), ds)
+        return decode_global_topk(out.float().cpu(), ds, self.proposals, self.proposal_threshold)
 
     @torch.inference_mode()
     def _stage2(self, img: np.ndarray, box):
@@ -381,20 +384,29 @@ class KeypointDetector:
                 res = None
         if res is None:
             self.last_mode = "cold"
-            c1, cx, cy, bw, bh = self._stage1(img)
-            if c1 < self.threshold:
+            # stage 1 proposes (Keypoint R-CNN's RPN role, a low threshold); stage 2's presence
+            # on the re-centred crop decides, against the detection threshold
+            proposals = self._stage1(img)
+            if not proposals:
                 self.reset(camera)
                 return Keypoints.not_found(camera, seq, stamp_ns, self.name,
-                                           f"no needle: confidence {c1:.2f} < {self.threshold:.2f}", c1)
-            res = self._stage2(img, (cx, cy, bw, bh))
-            if self.refine and res["presence"] >= self.threshold:
-                res = self._stage2(img, self._box_of(res))
-            conf = min(c1, res["presence"])
+                                           f"no needle: no proposal >= {self.proposal_threshold:.2f}")
+            best = None
+            for c1, cx, cy, bw, bh in proposals:
+                r = self._stage2(img, (cx, cy, bw, bh))
+                if self.refine and r["presence"] >= self.proposal_threshold:
+                    r = self._stage2(img, self._box_of(r))
+                if best is None or r["presence"] > best[0]["presence"]:
+                    best = (r, c1)
+                if r["presence"] >= self.threshold:
+                    break
+            res, c1 = best
+            conf = res["presence"]
             if conf < self.threshold:
                 self.reset(camera)
                 return Keypoints.not_found(camera, seq, stamp_ns, self.name,
-                                           f"no needle: crop confidence {res['presence']:.2f} < "
-                                           f"{self.threshold:.2f}", conf)
+                                           f"no needle: confidence {conf:.2f} < {self.threshold:.2f} "
+                                           f"(proposal {c1:.2f})", conf)
         self._finish(res)
         box = self._box_of(res)
         self._track[camera] = box

@@ -305,6 +305,26 @@ def decode_global(out: torch.Tensor, downscale: int):
     return conf, cx, cy, BOX_UNIT * float(np.exp(np.clip(lw, -4, 4))), BOX_UNIT * float(np.exp(np.clip(lh, -4, 4)))
 
 
+def decode_global_topk(out: torch.Tensor, downscale: int, k: int = 2, min_conf: float = 0.0,
+                       min_dist_cells: int = 2):
+    """Up to ``k`` boxes (confidence, cx, cy, w, h), best first, from the local maxima of the
+    GlobalNet heatmap at least ``min_dist_cells`` apart with confidence >= ``min_conf``."""
+    heat = out[0, 0]
+    pooled = F.max_pool2d(heat[None, None], 2 * min_dist_cells + 1, 1, min_dist_cells)[0, 0]
+    peaks = (heat == pooled) & (torch.sigmoid(heat) >= min_conf)
+    ys, xs = torch.nonzero(peaks, as_tuple=True)
+    order = torch.argsort(heat[ys, xs], descending=True)[:k]
+    cell = GLOBAL_STRIDE * downscale
+    boxes = []
+    for i in order.tolist():
+        iy, ix = int(ys[i]), int(xs[i])
+        lw, lh, ox, oy = (float(v) for v in out[0, 1:5, iy, ix])
+        boxes.append((float(torch.sigmoid(heat[iy, ix])), (ix + ox) * cell + (cell - 1) / 2.0,
+                      (iy + oy) * cell + (cell - 1) / 2.0, BOX_UNIT * float(np.exp(np.clip(lw, -4, 4))),
+                      BOX_UNIT * float(np.exp(np.clip(lh, -4, 4)))))
+    return boxes
+
+
 def crop_side(cfg: ModelConfig, w: float, h: float) -> float:
     """Side (full-res px) of the square crop taken around a needle box of w x h px."""
     return max(cfg.crop_min, cfg.crop_margin * max(w, h) + cfg.crop_pad)

@@ -48,6 +48,9 @@ DEFAULT_TRAIN = {
     "loss_weights": {"kp": 1.0, "line": 4.0, "presence": 0.3, "global": 1.0, "box": 1.0,
                      "global_presence": 1.0},
     "stages": ["global", "crop"],   # which networks to train (the other keeps its weights)
+    "hard_negatives": 0,      # >0: before training, mine up to this many stage-1 false proposals
+                              # per image (instrument jaws, thread...) with the starting weights
+    "hard_prob": 0.2,         # fraction of stage-2 samples drawn from the mined hard negatives
 }
 
 
@@ -86,14 +89,69 @@ def load_config(path: str | None) -> dict:
 
 # ---------------------------------------------------------------- batches
 
-def crop_batch(records, idx, cfg: ModelConfig, aug, rng):
-    items = [crop_sample(records[i], cfg, aug, rng) for i in idx]
+def crop_batch(records, idx, cfg: ModelConfig, aug, rng, hard=None, hard_prob: float = 0.0):
+    items = [hard_sample(hard[rng.integers(len(hard))], cfg, aug, rng)
+             if hard and rng.random() < hard_prob else crop_sample(records[i], cfg, aug, rng) for i in idx]
     x = torch.from_numpy(np.stack([it[0] for it in items])).permute(0, 3, 1, 2).contiguous()
     kpc = torch.from_numpy(np.stack([it[1] for it in items]))
     valid = torch.from_numpy(np.stack([it[2] for it in items]))
     line = centreline_target([it[3] for it in items], cfg.heat, cfg.line_sigma)
     pres = torch.tensor([it[4] for it in items], dtype=torch.float32)
     return x, kpc, valid, line, pres
+
+
+def hard_sample(h, cfg: ModelConfig, aug, rng):
+    """A stage-2 negative crop around a mined false proposal ``h`` = (region, origin, box)."""
+    region, origin, (cx, cy, bw, bh) = h
+    side = crop_side(cfg, bw, bh) * float(np.exp(rng.uniform(-0.25, 0.25)))
+    cx += rng.uniform(-0.12, 0.12) * side
+    cy += rng.uniform(-0.12, 0.12) * side
+    M = crop_affine(cx, cy, side, cfg.crop, rng.uniform(-np.pi, np.pi), bool(rng.random() < 0.5))
+    img = crop_from(region, origin, M, cfg.crop)
+    if aug is not None:
+        from common.keypoint_data import photometric
+        img = photometric(img, aug, rng)
+    return img, np.zeros((5, 2), np.float32), np.zeros(5, np.float32), None, 0.0
+
+
+@torch.inference_mode()
+def mine_hard_negatives(model: KeypointModel, data_dirs, per_image: int, progress=True) -> list:
+    """Stage-1 proposals (confidence >= 0.15) far from the needle in every training image:
+    [(region uint8, origin (2,), box (cx, cy, w, h))], regions cut at full resolution."""
+    import cv2
+    from tqdm import tqdm
+    from common.keypoint_data import _cut, read_dataset
+    from common.keypoint_model import decode_global_topk
+    model.eval()
+    cfg = model.cfg
+    out = []
+    for d in data_dirs:
+        _, frames = read_dataset(d)
+        for fr in tqdm(frames, desc="mining hard negatives", disable=not progress, unit="frame"):
+            for cam in ("left", "right"):
+                img = cv2.imread(str(Path(d) / fr[cam]), cv2.IMREAD_COLOR)
+                if img is None:
+                    continue
+                h, w = img.shape[:2]
+                small = cv2.resize(img, (round(w / cfg.global_downscale), round(h / cfg.global_downscale)),
+                                   interpolation=cv2.INTER_AREA)
+                g = model.glob(torch.from_numpy(global_input(small)).permute(2, 0, 1)[None].contiguous())
+                kp = np.asarray((fr.get("keypoints") or {}).get(cam) or np.full((5, 2), np.nan), float)
+                n_img = 0
+                for conf, cx, cy, bw, bh in decode_global_topk(g, cfg.global_downscale, per_image + 1, 0.15):
+                    if np.isfinite(kp).all():
+                        near = np.linalg.norm(kp - [cx, cy], axis=1).min()
+                        if near < 0.6 * max(bw, bh, np.ptp(kp, 0).max()):
+                            continue
+                    side = int(2.6 * max(bw, bh) + 48)
+                    region, origin = _cut(img, int(cx - side / 2), int(cy - side / 2), side)
+                    if region.size:
+                        out.append((region, origin, (cx, cy, bw, bh)))
+                        n_img += 1
+                    if n_img >= per_image:
+                        break
+    model.train()
+    return out
 
 
 def global_batch(records, idx, cfg: ModelConfig, aug, rng):
@@ -290,6 +348,10 @@ def train(data_dirs, out, config_path=None, log=print, progress=True, init=None)
         except (OSError, RuntimeError, KeyError, AttributeError) as exc:
             raise ValueError(f"--init {init}: cannot load ({exc})") from None
         log(f"starting from the weights of {init}")
+    hard = []
+    if int(tcfg["hard_negatives"]) > 0:
+        hard = mine_hard_negatives(model, data_dirs, int(tcfg["hard_negatives"]), progress)
+        log(f"{len(hard)} hard negatives mined")
     steps_per_epoch = int(tcfg["steps_per_epoch"]) or max(1, len(tr) // int(tcfg["batch"]))
     total = steps_per_epoch * int(tcfg["epochs"])
     if tcfg["optimizer"] == "sgd":
@@ -346,7 +408,8 @@ def train(data_dirs, out, config_path=None, log=print, progress=True, init=None)
                 break
             idx = order[step * int(tcfg["batch"]):(step + 1) * int(tcfg["batch"])]
             gidx = rng.integers(0, len(tr), int(tcfg["global_batch"]))
-            cb = crop_batch(tr, idx, mcfg, aug, rng) if "crop" in stages else None
+            cb = (crop_batch(tr, idx, mcfg, aug, rng, hard, float(tcfg["hard_prob"]))
+                  if "crop" in stages else None)
             gb = global_batch(tr, gidx, mcfg, aug, rng) if "global" in stages else None
             L = losses(model, cb, gb, w)
             lr = base_lr * min(1.0, (step_count + 1) / max(1, warm)) * 0.5 * (1 + math.cos(math.pi * frac))
