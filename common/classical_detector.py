@@ -117,7 +117,7 @@ class ClassicalDetector:
         if fit is None:
             return None
         c, u, v, t, r = fit
-        inl = r < 1.6
+        inl = r < max(1.6, 2.0 * float(np.median(r)) + 0.8)   # the wire band has a width
         if inl.sum() < 8:
             return None
         t0, t1 = _covered_range(t[inl])
@@ -130,11 +130,13 @@ class ClassicalDetector:
         width = inl.sum() / length
         frac = inl.mean()
         # plausibility of a projected 120-degree arc (foreshortening widens the anomaly range)
-        s_span = np.clip(1 - abs(np.rad2deg(span) - 120) / 90, 0, 1)
-        s_width = np.clip(1 - abs(width - 2.2) / 3.0, 0, 1)
+        # (a free ellipse fit to a 120-degree band often returns a wider anomaly range)
+        s_span = np.clip(1 - max(0.0, abs(np.rad2deg(span) - 150) - 90) / 60, 0, 1)
+        # wire 0.55-1.05 mm at 10-25 cm: about 1-4.5 px wide at half resolution
+        s_width = np.clip(1 - max(0.0, 1.0 - width, width - 4.5) / 2.0, 0, 1)
         s_len = np.clip((length - 12) / 20, 0, 1)
         s_bright = np.clip(np.median(th_vals[inl]) / 60, 0, 1)
-        score = float(frac ** 2 * (0.3 + 0.7 * s_span) * s_width * s_len * (0.5 + 0.5 * s_bright))
+        score = float(frac * (0.3 + 0.7 * s_span) * s_width * s_len * (0.5 + 0.5 * s_bright))
         return {"score": score, "c": c, "u": u, "v": v, "t0": t0, "t1": t1, "t": t, "inl": inl,
                 "length": length, "width": width}
 

@@ -63,7 +63,8 @@ def load_model(path=None, device="cpu") -> tuple[KeypointModel, dict]:
         model = KeypointModel(cfg)
         model.load_state_dict(blob["state_dict"], strict=True)
     except (KeyError, TypeError, ValueError, RuntimeError) as exc:
-        raise ModelFileError(f"{path}: weights do not match the network ({str(exc)[:300]}); {RETRAIN}") from None
+        why = " ".join(str(exc).split())[:300]
+        raise ModelFileError(f"{path}: weights do not match the network ({why}); {RETRAIN}") from None
     model.eval()
     fuse_conv_bn(model)
     model = model.to(device=device, memory_format=torch.channels_last)
