@@ -163,3 +163,25 @@ def test_arc_fit_recovers_b_c_d_of_an_affine_arc():
     assert refine_along_arc(peak, fit, 90.0) == pytest.approx(90.0 + np.rad2deg(0.1), abs=2.5)
     # no ridge: no fit
     assert fit_arc_affine(kp[0], kp[4], np.full((128, 128), -9.0)) is None
+
+
+def test_detector_node_with_the_learned_backend_on_one_camera(rendered):
+    """One detector process per camera: only ``left`` wired; a JPEG frame gives keypoints, corrupt
+    bytes give "no needle" with the reason, counted, and the node keeps going."""
+    from common.camera import StereoRig
+    from common.messages import Calibration, decode, encode
+    from common.needle import NeedleModel
+    from nodes.detector import DetectorNode
+    images, fields = rendered
+    calib = Calibration(0, np.array([1920, 1080]), StereoRig.default().to_dict(), NeedleModel().to_dict())
+    node = DetectorNode.offline({"backend": "learned", "device": "cpu", "threads": 1}, wired=["left", "calib"])
+    node.on_calib(decode(encode(calib), Calibration))
+    node.on_left(decode(encode(CameraImage("left", 1, 10, 1, 1, "png", b"corrupt")), CameraImage))
+    node.on_left(decode(encode(CameraImage.from_bgr("left", 2, 20, images["left"], "jpeg")), CameraImage))
+    (o1, bad), (o2, good) = node.published
+    assert o1 == o2 == "left"
+    assert not bad.found and bad.reason.startswith("bad image") and node.counters["bad_image"] == 1
+    assert good.found and good.seq == 2 and good.detector == "learned"
+    vis = np.asarray(fields["visible"]["left"], bool)
+    err = np.linalg.norm(good.uv - np.asarray(fields["keypoints"]["left"]), axis=1)[vis]
+    assert np.median(err) < 5.0
