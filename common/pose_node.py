@@ -137,3 +137,27 @@ class StereoPoseNode(Node):
         T_world_needle = None if T_world_ecm is None else T_world_ecm @ T_ecm_needle
         return PoseEstimate(seq, stamp_ns, method, np.asarray(T_ecm_needle, dtype=float),
                             T_world_needle, T_world_ecm, float(residual), residual_unit, **extra)
+
+
+POSE_METHODS = ("pnp_average", "pnp_joint", "triangulation", "multiview", "refined",
+                "multiview_refined")
+"""The pose methods a graph can produce: the input names of nodes that consume them all."""
+
+
+class PoseMethodInputs:
+    """Mixin for nodes that take every method's pose (evaluator, monitor): an input named after
+    each method in ``POSE_METHODS`` calls ``self.on_pose(method, msg)``."""
+
+    def on_pose(self, method: str, msg: PoseEstimate) -> None:
+        raise NotImplementedError
+
+
+def _pose_handler(method):
+    def handler(self, msg):
+        self.on_pose(method, msg)
+    handler.__name__ = f"on_{method}"
+    return handler
+
+
+for _method in POSE_METHODS:
+    setattr(PoseMethodInputs, f"on_{_method}", _pose_handler(_method))

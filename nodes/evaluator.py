@@ -22,11 +22,12 @@ from common.evaluation import EXTRA_METHODS, METHODS, Collected
 from common.messages import (Calibration, EndOfStream, GroundTruth, Keypoints, MessageError,
                              NodeStats, Points3D, PoseEstimate, decode)
 from common.node import Node, run
+from common.pose_node import PoseMethodInputs
 
 POSE_INPUTS = METHODS + EXTRA_METHODS
 
 
-class EvaluatorNode(Node):
+class EvaluatorNode(PoseMethodInputs, Node):
     """Compares every output of the graph with the ground truth and writes the evaluation."""
 
     INPUTS = {"truth": GroundTruth, "left": Keypoints, "right": Keypoints, "points3d": Points3D,
@@ -106,26 +107,8 @@ class EvaluatorNode(Node):
         self._eos_at = time.monotonic()
         self.log.info("end of stream after %d frames; waiting for the outputs in flight", msg.frames)
 
-    def _pose(self, method, msg):
+    def on_pose(self, method, msg):
         self.col.add_pose(method, msg, self._seen())
-
-    def on_pnp_average(self, msg):
-        self._pose("pnp_average", msg)
-
-    def on_pnp_joint(self, msg):
-        self._pose("pnp_joint", msg)
-
-    def on_triangulation(self, msg):
-        self._pose("triangulation", msg)
-
-    def on_multiview(self, msg):
-        self._pose("multiview", msg)
-
-    def on_refined(self, msg):
-        self._pose("refined", msg)
-
-    def on_multiview_refined(self, msg):
-        self._pose("multiview_refined", msg)
 
     # ---------------------------------------------------------------- the end
     def step(self):

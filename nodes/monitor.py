@@ -20,6 +20,7 @@ import numpy as np
 from common.evaluation import EXTRA_METHODS, METHODS, true_T_ecm_needle
 from common.messages import Calibration, GroundTruth, PoseEstimate
 from common.node import Node, run
+from common.pose_node import PoseMethodInputs
 from common.transforms import R_to_rotvec, pose_error
 
 POSE_INPUTS = METHODS + EXTRA_METHODS
@@ -51,7 +52,7 @@ def format_line(seq: int, poses: dict, T_true, methods) -> str:
     return " | ".join(parts)
 
 
-class MonitorNode(Node):
+class MonitorNode(PoseMethodInputs, Node):
     """Prints each method's pose (and its error when the truth is known) for the newest frame."""
 
     INPUTS = {"truth": GroundTruth, "calib": Calibration,
@@ -80,7 +81,7 @@ class MonitorNode(Node):
         while len(self.truths) > KEEP_FRAMES:
             self.truths.popitem(last=False)
 
-    def _pose(self, method, msg):
+    def on_pose(self, method, msg):
         self.frames.setdefault(msg.seq, {})[method] = msg
         while len(self.frames) > KEEP_FRAMES:
             self.frames.popitem(last=False)
@@ -103,24 +104,6 @@ class MonitorNode(Node):
         print(format_line(seq, self.frames[seq], T_true, self.methods), file=self.out, flush=True)
         self._last_print, self._printed = now, seq
         self.count("lines")
-
-    def on_pnp_average(self, msg):
-        self._pose("pnp_average", msg)
-
-    def on_pnp_joint(self, msg):
-        self._pose("pnp_joint", msg)
-
-    def on_triangulation(self, msg):
-        self._pose("triangulation", msg)
-
-    def on_multiview(self, msg):
-        self._pose("multiview", msg)
-
-    def on_refined(self, msg):
-        self._pose("refined", msg)
-
-    def on_multiview_refined(self, msg):
-        self._pose("multiview_refined", msg)
 
 
 NODE = MonitorNode
