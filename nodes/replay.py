@@ -17,7 +17,8 @@ import time
 import numpy as np
 
 from common.messages import Calibration, CameraImage, EcmJoints, EndOfStream, GroundTruth
-from common.node import Node, run
+from common.camera_source import CameraSourceNode
+from common.node import run
 
 CAMS = ("left", "right")
 
@@ -50,7 +51,7 @@ def truth_message(fr, seq: int, stamp_ns: int):
                                            for c in CAMS})
 
 
-class ReplayNode(Node):
+class ReplayNode(CameraSourceNode):
     """Dataset folder source."""
 
     OUTPUTS = ("left", "right", "joints", "truth", "calib", "eos")
@@ -79,13 +80,6 @@ class ReplayNode(Node):
         self.t0_wall = None
         self.t0_rec = None
         self.next_t = None
-
-    def _publish_calib(self, force: bool = False) -> None:
-        now = time.monotonic()
-        if force or self.last_calib is None or now - self.last_calib >= 1.0:
-            self.calib.stamp_ns = time.time_ns()
-            self.publish("calib", self.calib)
-            self.last_calib = now
 
     def _pace(self, fr) -> None:
         now = time.monotonic()

@@ -21,10 +21,11 @@ import time
 import numpy as np
 
 from common.messages import Calibration, CameraImage, Command, EcmJoints, GroundTruth
-from common.node import Node, run
+from common.camera_source import CameraSourceNode
+from common.node import run
 
 
-class SimNode(Node):
+class SimNode(CameraSourceNode):
     """Live simulator source."""
 
     OUTPUTS = ("left", "right", "joints", "truth", "calib")
@@ -53,13 +54,6 @@ class SimNode(Node):
         self.calib = Calibration(stamp_ns=0, image_size=np.array([self.sim.rig.left.width, self.sim.rig.left.height]),
                                  cameras=self.sim.rig.to_dict(), needle=self.sim.needle.to_dict(),
                                  ecm=self.sim.arm.to_dict(), source="needletrack sim (MuJoCo built-in scene)")
-
-    def _publish_calib(self, force: bool = False) -> None:
-        now = time.monotonic()
-        if force or self.last_calib is None or now - self.last_calib >= 1.0:
-            self.calib.stamp_ns = time.time_ns()
-            self.publish("calib", self.calib)
-            self.last_calib = now
 
     def step(self):
         if self.count_max and self.seq >= self.count_max:
