@@ -244,6 +244,9 @@ class Launcher:
             data = self.graph.to_dict()
             data["nodes"] = [new_spec.to_dict() if n["id"] == node_id else n for n in data["nodes"]]
             new_graph = graph_from_dict(data)       # raises GraphError with every problem
+            # a node process reads its spec from the graph file: a refused swap must restore it,
+            # or a later restart of the old node would run the refused spec
+            old_graph, old_graph_file = self.graph, self.graph_file
             self.graph = new_graph
             self.graph_file = self._write_graph()
             new_spec = new_graph.node(node_id)
@@ -279,6 +282,8 @@ class Launcher:
             taken = self._ctl(node_id, new.pid, "takeover", {"cuts": cuts}) if new_spec.module else {}
         except Exception:
             self._terminate([new], grace=2.0)
+            with self._lock:
+                self.graph, self.graph_file = old_graph, old_graph_file
             raise
         with self._lock:
             new.role = "active"
