@@ -221,11 +221,23 @@ class Launcher:
                 return json.loads(reply.ok.payload.to_bytes().decode())
         return None
 
+    def _covers(self, node_id: str, old: Optional[Proc], status: dict) -> bool:
+        """Whether the standby process holds outputs from the frame after the old process's last
+        output on: a lagging old process (a slow backend) may not have reached the standby's
+        first frame yet, and handing over then would lose the frames in between."""
+        first = status.get("held_first") or {}
+        if old is None or old.popen.poll() is not None or not first:
+            return True
+        ans = self._ctl(node_id, old.pid, "status", timeout=0.5) or {}
+        last = ans.get("last_seq") or {}
+        return all(out not in last or last[out] + 1 >= seq for out, seq in first.items())
+
     def swap(self, node_id: str, module: Optional[str] = None, params: Optional[dict] = None) -> dict:
         """Replace a running node by a new process (another module and/or params), make-before-break.
 
         1. the new process starts in standby: it runs its handlers but holds its outputs;
-        2. once it is up and has produced an output (or ``SWAP_WARM_TIMEOUT_S`` passed), the old
+        2. once it is up and has produced an output, and its held outputs reach back to the frame
+           after the old process's last output (or ``SWAP_WARM_TIMEOUT_S`` passed), the old
            process is told to hand over: it stops publishing at once and answers, per output, the
            sequence number after the last one it published (the cut);
         3. the new process publishes its held outputs with seq >= cut and goes live, dropping any
@@ -264,7 +276,7 @@ class Launcher:
                 if new_spec.module:
                     status = self._ctl(node_id, new.pid, "status", timeout=0.5)
                     if status and status.get("ready"):
-                        if status.get("produced") or not new_spec.outputs:
+                        if not new_spec.outputs or (status.get("produced") and self._covers(node_id, old, status)):
                             break
                         warm_deadline = warm_deadline or time.monotonic() + SWAP_WARM_TIMEOUT_S
                         if time.monotonic() > warm_deadline:

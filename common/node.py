@@ -410,8 +410,17 @@ class Runtime:
             obj = {"state": self.state, "produced": self._produced, "pid": os.getpid(),
                    "ready": self._ready.is_set(),
                    "last_seq": dict(self._last_seq),
-                   "held_seq": [s for _, s, _ in self._held][-4:]}
+                   "held_seq": [s for _, s, _ in self._held][-4:],
+                   "held_first": self._held_first()}
         self._reply(query, obj)
+
+    def _held_first(self) -> dict:
+        """Per output, the oldest seq a standby process holds (call with ``_pub_lock`` held)."""
+        first: dict = {}
+        for out, seq, _ in self._held:
+            if seq is not None and seq < first.get(out, seq + 1):
+                first[out] = seq
+        return first
 
     def _q_handover(self, query) -> None:
         """Old process: stop publishing now; reply, per output, the first seq the successor owns."""

@@ -2,8 +2,11 @@
 ``seq``) becomes a ``Keypoints`` on ``out`` whose ``detector`` field is ``params.tag``, so a
 consumer can tell which implementation produced a frame (used to test hot swap).
 
-params: ``tag`` (default "tagger"), ``fail_every`` (raise in the handler every N-th frame; 0 = never).
+params: ``tag`` (default "tagger"), ``fail_every`` (raise in the handler every N-th frame; 0 = never),
+``delay_s`` (sleep this long in the handler: a slow backend; default 0).
 """
+import time
+
 import numpy as np
 
 from common.messages import Keypoints
@@ -19,11 +22,14 @@ class Tagger(Node):
     def setup(self):
         self.tag = str(self.params.get("tag", "tagger"))
         self.fail_every = int(self.params.get("fail_every", 0))
+        self.delay_s = float(self.params.get("delay_s", 0.0))
 
     def on_in(self, msg):
         seq = int(msg.seq)
         if self.fail_every and seq % self.fail_every == 0:
             raise RuntimeError(f"failing on purpose at seq {seq}")
+        if self.delay_s > 0:
+            time.sleep(self.delay_s)
         uv = np.full((5, 2), float(seq))
         self.publish("out", Keypoints(camera="left", seq=seq, stamp_ns=int(getattr(msg, "stamp_ns", 0)),
                                       found=True, uv=uv, scores=np.ones(5), confidence=1.0, detector=self.tag))

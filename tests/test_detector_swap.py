@@ -111,3 +111,26 @@ def test_a_failed_backend_swap_leaves_the_running_backend_in_place_for_good(run_
     msgs = g.collect("detector/left", 3, timeout=20, expect=Keypoints)
     assert {m.detector for m in msgs} == {"oracle"}, g.log()[-4000:]
     assert {r["node"]: r["restarts"] for r in g.status()["nodes"]}["detector"] == 1
+
+
+def test_a_slow_backend_hands_over_only_once_its_successor_covers_the_next_frame(run_graph):
+    """A slow old backend lags the frames: it may still be on frame L while the new process already
+    holds outputs from S0 > L + 1 on. The handover waits until the old one has published up to
+    S0 - 1, so the new backend continues exactly at the frame after the old one's last output."""
+    g = run_graph({"nodes": [
+        {"id": "count", "module": "counter", "params": {"rate_hz": 10}},
+        {"id": "det", "module": "tagger", "params": {"tag": "slow", "delay_s": 0.25}, "inputs": {"in": "count/out"}}]})
+    sub = g.subscribe("det/out", Keypoints)
+    sub.wait(3, 15)
+    for tag, delay in (("fast", 0.0), ("slow", 0.25), ("fast", 0.0)):
+        mark = max(m.seq for m in sub.messages)
+        res = g.swap("det", tag=tag, delay_s=delay)
+        assert res.returncode == 0, res.stdout + res.stderr
+        sub.wait(3, 15, where=lambda m, t=tag, s=mark: m.detector == t and m.seq > s)
+    msgs = sorted(sub.messages, key=lambda m: m.seq)
+    seqs = [m.seq for m in msgs]
+    assert len(set(seqs)) == len(seqs), "a frame was published twice"
+    hand = handovers(msgs)
+    assert [(a, b) for _, _, a, b in hand] == [("slow", "fast"), ("fast", "slow"), ("slow", "fast")], hand
+    slow_to_fast = [(x, y) for x, y, a, _ in hand if a == "slow"]
+    assert all(y == x + 1 for x, y in slow_to_fast), f"frames lost at a handover from the slow backend: {hand}"
