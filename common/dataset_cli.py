@@ -1,4 +1,4 @@
-"""``needletrack dataset generate|check|show``: make, verify and look at dataset folders."""
+"""``needletrack dataset generate|generate-alt|check|show``: make, verify and look at dataset folders."""
 from __future__ import annotations
 
 import argparse
@@ -32,6 +32,24 @@ def _parser() -> argparse.ArgumentParser:
     g.add_argument("--overwrite", action="store_true", help="start over in a folder made with other settings")
     g.add_argument("--quiet", action="store_true", help="no progress bar")
 
+    a = sub.add_parser("generate-alt", help="render a dataset folder with the second, independent renderer",
+                       description="Like generate, but rendered by common/alt_render.py (numpy/OpenCV z-buffer "
+                                   "rasteriser, no MuJoCo) with its own needle meshes, tissue, lights and ECM base: "
+                                   "a check that models and methods do not overfit the built-in scene. "
+                                   "Same multi-view protocol; resumable.")
+    a.add_argument("--out", required=True, help="output folder")
+    a.add_argument("--sequences", type=int, required=True, help="number of needle poses")
+    a.add_argument("--steps", type=int, default=1, help="endoscope poses per needle pose (default 1)")
+    a.add_argument("--seed", type=int, default=0)
+    a.add_argument("--width", type=int, default=1920)
+    a.add_argument("--height", type=int, default=1080)
+    a.add_argument("--format", default="jpg", choices=["jpg", "png"], help="image files (default jpg)")
+    a.add_argument("--quality", type=int, default=95, help="JPEG quality (default 95)")
+    a.add_argument("--supersample", type=int, default=3, choices=[1, 2, 3, 4],
+                   help="samples per pixel side around the needle (default 3)")
+    a.add_argument("--overwrite", action="store_true", help="start over in a folder made with other settings")
+    a.add_argument("--quiet", action="store_true", help="no progress bar")
+
     c = sub.add_parser("check", help="validate a folder against the dataset spec and its ground truth")
     c.add_argument("path")
     c.add_argument("--tol-px", type=float, default=0.1, help="max keypoint reprojection error (px)")
@@ -53,6 +71,8 @@ def main(argv=None) -> int:
     try:
         if args.cmd == "generate":
             return _generate(args)
+        if args.cmd == "generate-alt":
+            return _generate_alt(args)
         if args.cmd == "check":
             return _check(args)
         if args.cmd == "show":
@@ -78,6 +98,19 @@ def _generate(args) -> int:
     print(f"{args.out}: {n} frames ({args.sequences} sequences x {args.steps} steps, "
           f"{args.width}x{args.height}, randomise={args.randomise}, seed={args.seed}) "
           f"in {time.time() - t0:.1f} s")
+    return 0
+
+
+def _generate_alt(args) -> int:
+    import time
+
+    from common.alt_generate import AltGenerateConfig, generate_alt
+    cfg = AltGenerateConfig(args.sequences, args.steps, args.seed, args.width, args.height, args.format,
+                            args.quality, args.supersample)
+    t0 = time.time()
+    n = generate_alt(args.out, cfg, progress=not args.quiet, overwrite=args.overwrite)
+    print(f"{args.out}: {n} frames ({args.sequences} sequences x {args.steps} steps, {args.width}x{args.height}, "
+          f"second renderer, seed={args.seed}) in {time.time() - t0:.1f} s")
     return 0
 
 
