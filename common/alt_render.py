@@ -563,11 +563,11 @@ class AltRenderer:
     def __init__(self, rig: StereoRig, supersample: int = SUPERSAMPLE):
         self.rig = rig
         self.supersample = int(supersample)
-        self._scene_id = None
+        self._scene = None
 
     def _prepare(self, scene: AltScene) -> None:
         """Concatenate the scene's meshes once per scene."""
-        if self._scene_id == id(scene):
+        if self._scene is scene:     # a reference, not an id: a freed scene's id can be reused
             return
         V, F, N, lab, mat = [], [], [], [], []
         n = 0
@@ -584,7 +584,7 @@ class AltRenderer:
         self._face_label = np.concatenate(lab) if lab else np.zeros(0, np.int8)
         self._face_mesh = np.concatenate(mat) if mat else np.zeros(0, np.int32)
         self._needle_V = scene.meshes[0].V if scene.meshes and scene.meshes[0].label == LABELS["needle"] else None
-        self._scene_id = id(scene)
+        self._scene = scene
 
     def render(self, scene: AltScene, T_world_ecm: np.ndarray) -> dict[str, AltRender]:
         """Both cameras' images, labels and depths."""
@@ -594,14 +594,14 @@ class AltRenderer:
     def _render_camera(self, scene: AltScene, T_world_ecm: np.ndarray, cam) -> AltRender:
         w, h = cam.width, cam.height
         T_world_cam = T_world_ecm @ cam.T_ecm_cam
-        rgb, label, depth = self._samples(scene, T_world_ecm, T_world_cam, cam.K, w, h, 1.0)
+        rgb, label, depth = self._samples(scene, T_world_ecm, T_world_cam, cam.K, w, h)
         rgb = _smooth_object_edges(rgb, label)
         box = self._needle_window(T_world_cam, cam)
         if box is not None and self.supersample > 1:
             x0, y0, x1, y1 = box
             s = self.supersample
             Ks = np.array([[s, 0, s * (0.5 - x0) - 0.5], [0, s, s * (0.5 - y0) - 0.5], [0, 0, 1.0]]) @ cam.K
-            ss, _, _ = self._samples(scene, T_world_ecm, T_world_cam, Ks, s * (x1 - x0 + 1), s * (y1 - y0 + 1), s)
+            ss, _, _ = self._samples(scene, T_world_ecm, T_world_cam, Ks, s * (x1 - x0 + 1), s * (y1 - y0 + 1))
             rgb[y0:y1 + 1, x0:x1 + 1] = ss.reshape(y1 - y0 + 1, s, x1 - x0 + 1, s, 3).mean(axis=(1, 3))
         if scene.blur_sigma_px > 0.05:
             rgb = cv2.GaussianBlur(rgb, (0, 0), scene.blur_sigma_px)
@@ -631,7 +631,7 @@ class AltRenderer:
             return None
         return x0, y0, x1, y1
 
-    def _samples(self, scene: AltScene, T_world_ecm, T_world_cam, K, w: int, h: int, scale: float):
+    def _samples(self, scene: AltScene, T_world_ecm, T_world_cam, K, w: int, h: int):
         """Linear RGB (h, w, 3), label (h, w) int8 and depth (h, w) of the sample grid of ``K``."""
         R = T_world_cam[:3, :3]
         o = T_world_cam[:3, 3].astype(np.float32)

@@ -193,6 +193,17 @@ def test_an_occluder_hides_a_keypoint():
         assert renders[cam].label[v, u] == LABELS["instrument"]
 
 
+def test_one_renderer_follows_each_scene_it_is_given():
+    rig = StereoRig.default(320, 180)
+    T_world_ecm = _looking_down(0.12)
+    scenes = [_scene(make_T(rotvec_to_R([0, 0, a]), [0.004 * a, 0, 0.0006])) for a in (0.0, 2.0)]
+    shared = AltRenderer(rig)
+    for sc in scenes + scenes[::-1]:
+        got = shared.render(sc, T_world_ecm)["left"]
+        want = AltRenderer(rig).render(sc, T_world_ecm)["left"]
+        assert np.array_equal(got.label, want.label) and np.array_equal(got.bgr, want.bgr)
+
+
 def test_aim_joints_points_the_scope_at_the_target():
     arm = alt_arm()
     rng = np.random.default_rng(5)
