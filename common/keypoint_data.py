@@ -276,6 +276,9 @@ class AugConfig:
     blur: float = 0.3            # probability of a Gaussian blur (sigma 0.3 .. 1.2 px)
     noise: float = 6.0           # max Gaussian noise sigma (intensity levels)
     jpeg: float = 0.2            # probability of JPEG re-compression (quality 55 .. 95)
+    global_window: tuple = (0, 0)  # stage 1 trains on random (w, h) windows of the downscaled
+                                   # image, multiples of 8 (0 = the whole image): cheaper steps
+    window_needle: float = 0.7   # probability that a window holds the needle's centre
 
     @classmethod
     def from_dict(cls, d: dict | None) -> "AugConfig":
@@ -371,6 +374,27 @@ def global_input(small: np.ndarray) -> np.ndarray:
     return small
 
 
+def _global_window(img: np.ndarray, box: np.ndarray, ds: int, aug: AugConfig, rng):
+    """A random ``aug.global_window`` of the downscaled image and the box (cx, cy, w, h in
+    full-image pixels) in that window's full-resolution pixels; NaN if its centre falls outside."""
+    ww, wh = (int(v) for v in aug.global_window)
+    h, w = img.shape[:2]
+    if ww <= 0 or wh <= 0 or (ww >= w and wh >= h):
+        return img, box
+    ww, wh = min(ww, w), min(wh, h)
+    if np.isfinite(box).all() and rng.random() < aug.window_needle:
+        c = box[:2] / ds   # the window holds the centre, anywhere but its outer 8 px
+        x0 = int(np.clip(rng.uniform(c[0] - ww + 8, c[0] - 8), 0, w - ww))
+        y0 = int(np.clip(rng.uniform(c[1] - wh + 8, c[1] - 8), 0, h - wh))
+    else:
+        x0, y0 = int(rng.integers(0, w - ww + 1)), int(rng.integers(0, h - wh + 1))
+    box = box.copy()
+    box[:2] -= (x0 * ds, y0 * ds)
+    if np.isfinite(box).all() and not (0 <= box[0] < ww * ds and 0 <= box[1] < wh * ds):
+        box[:] = np.nan
+    return img[y0:y0 + wh, x0:x0 + ww], box
+
+
 def global_sample(rec: ImageRecord, cfg: ModelConfig, aug: AugConfig | None, rng: np.random.Generator):
     """One stage-1 sample: (padded small image uint8, heat target (hc, wc), reg target (4, hc, wc),
     reg mask (hc, wc)). Targets: CenterNet Gaussian at the box centre; log size; sub-cell offset."""
@@ -385,6 +409,7 @@ def global_sample(rec: ImageRecord, cfg: ModelConfig, aug: AugConfig | None, rng
         if rng.random() < 0.5:
             img = img[::-1]
             box[1] = (H - 1) - box[1]
+        img, box = _global_window(img, box, ds, aug, rng)
         img = photometric(np.ascontiguousarray(img), aug, rng)
     img = global_input(np.ascontiguousarray(img))
     hc, wc = img.shape[0] // GLOBAL_STRIDE, img.shape[1] // GLOBAL_STRIDE

@@ -278,7 +278,7 @@ class KeypointDetector:
     def __init__(self, weights=None, device: str = "auto", threshold: float = 0.5,
                  tracking: bool = True, threads: int | None = None, refine: bool = True,
                  centreline: bool = True, arc_bcd: bool = True, along_arc: bool = False,
-                 proposal_threshold: float = 0.3, proposals: int = 2):
+                 proposal_threshold: float = 0.2, proposals: int = 3):
         self.device = pick_device(device)
         if threads:
             torch.set_num_threads(int(threads))
@@ -436,9 +436,10 @@ from common.keypoint_backends import BackendError, KeypointBackend  # noqa: E402
 class LearnedBackend(KeypointBackend):
     """Backend ``learned`` of the detector node. Params: ``weights`` (default
     models/keypoint/model.pt), ``device`` (auto | cpu | cuda), ``threshold`` (0.5), ``tracking``
-    (true), ``threads`` (torch threads; default 1 when one process serves one camera is the
-    sensible choice on a 2-core machine, so the default leaves torch's own), ``refine`` (true),
-    ``centreline`` (true)."""
+    (true), ``threads`` (torch threads, default 1: in a graph the other nodes share the cores, and
+    torch's threads then wait on each other; run one detector per camera for parallelism),
+    ``refine`` (true), ``centreline`` (true), ``proposals`` (stage-1 proposals tried, 3),
+    ``proposal_threshold`` (0.2)."""
 
     name = "learned"
     needs_image = True
@@ -446,13 +447,16 @@ class LearnedBackend(KeypointBackend):
     def __init__(self, params=None):
         super().__init__(params)
         p = self.params
-        known = {"weights", "device", "threshold", "tracking", "threads", "refine", "centreline", "arc_bcd"}
+        known = {"weights", "device", "threshold", "tracking", "threads", "refine", "centreline", "arc_bcd",
+                 "proposals", "proposal_threshold"}
         try:
             self.detector = KeypointDetector(
                 p.get("weights"), device=str(p.get("device", "auto")),
                 threshold=float(p.get("threshold", 0.5)), tracking=bool(p.get("tracking", True)),
-                threads=p.get("threads"), refine=bool(p.get("refine", True)),
-                centreline=bool(p.get("centreline", True)), arc_bcd=bool(p.get("arc_bcd", True)))
+                threads=int(p.get("threads", 1)), refine=bool(p.get("refine", True)),
+                centreline=bool(p.get("centreline", True)), arc_bcd=bool(p.get("arc_bcd", True)),
+                proposals=int(p.get("proposals", 3)),
+                proposal_threshold=float(p.get("proposal_threshold", 0.2)))
         except (ModelFileError, ValueError, TypeError) as exc:
             raise BackendError(f"learned backend: {exc}") from exc
         self.ignored = sorted(set(p) - known)

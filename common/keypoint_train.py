@@ -48,8 +48,10 @@ DEFAULT_TRAIN = {
     "loss_weights": {"kp": 1.0, "line": 4.0, "presence": 0.3, "global": 1.0, "box": 1.0,
                      "global_presence": 1.0},
     "stages": ["global", "crop"],   # which networks to train (the other keeps its weights)
-    "hard_negatives": 0,      # >0: before training, mine up to this many stage-1 false proposals
-                              # per image (instrument jaws, thread...) with the starting weights
+    "hard_negatives": 0,      # >0: mine up to this many stage-1 false proposals per image
+                              # (instrument jaws, thread...) with the weights of that moment
+    "hard_mining_at": 0.0,    # when to mine: fraction of the schedule (0 = before the first step)
+    "hard_mining_images": 0,  # mine on at most this many images (a seeded random subset); 0 = all
     "hard_prob": 0.2,         # fraction of stage-2 samples drawn from the mined hard negatives
 }
 
@@ -115,8 +117,10 @@ def hard_sample(h, cfg: ModelConfig, aug, rng):
 
 
 @torch.inference_mode()
-def mine_hard_negatives(model: KeypointModel, data_dirs, per_image: int, progress=True) -> list:
-    """Stage-1 proposals (confidence >= 0.15) far from the needle in every training image:
+def mine_hard_negatives(model: KeypointModel, data_dirs, per_image: int, progress=True,
+                        max_images: int = 0, seed: int = 0) -> list:
+    """Stage-1 proposals (confidence >= 0.15) far from the needle in the training images (all, or
+    a seeded random subset of ``max_images`` frames' cameras):
     [(region uint8, origin (2,), box (cx, cy, w, h))], regions cut at full resolution."""
     import cv2
     from tqdm import tqdm
@@ -125,31 +129,32 @@ def mine_hard_negatives(model: KeypointModel, data_dirs, per_image: int, progres
     model.eval()
     cfg = model.cfg
     out = []
-    for d in data_dirs:
-        _, frames = read_dataset(d)
-        for fr in tqdm(frames, desc="mining hard negatives", disable=not progress, unit="frame"):
-            for cam in ("left", "right"):
-                img = cv2.imread(str(Path(d) / fr[cam]), cv2.IMREAD_COLOR)
-                if img is None:
+    jobs = [(d, fr, cam) for d in data_dirs for fr in read_dataset(d)[1] for cam in ("left", "right")]
+    if 0 < max_images < len(jobs):
+        keep = np.random.default_rng(seed).choice(len(jobs), max_images, replace=False)
+        jobs = [jobs[i] for i in sorted(keep)]
+    for d, fr, cam in tqdm(jobs, desc="mining hard negatives", disable=not progress, unit="image"):
+        img = cv2.imread(str(Path(d) / fr[cam]), cv2.IMREAD_COLOR)
+        if img is None:
+            continue
+        h, w = img.shape[:2]
+        small = cv2.resize(img, (round(w / cfg.global_downscale), round(h / cfg.global_downscale)),
+                           interpolation=cv2.INTER_AREA)
+        g = model.glob(torch.from_numpy(global_input(small)).permute(2, 0, 1)[None].contiguous())
+        kp = np.asarray((fr.get("keypoints") or {}).get(cam) or np.full((5, 2), np.nan), float)
+        n_img = 0
+        for conf, cx, cy, bw, bh in decode_global_topk(g, cfg.global_downscale, per_image + 1, 0.15):
+            if np.isfinite(kp).all():
+                near = np.linalg.norm(kp - [cx, cy], axis=1).min()
+                if near < 0.6 * max(bw, bh, np.ptp(kp, 0).max()):
                     continue
-                h, w = img.shape[:2]
-                small = cv2.resize(img, (round(w / cfg.global_downscale), round(h / cfg.global_downscale)),
-                                   interpolation=cv2.INTER_AREA)
-                g = model.glob(torch.from_numpy(global_input(small)).permute(2, 0, 1)[None].contiguous())
-                kp = np.asarray((fr.get("keypoints") or {}).get(cam) or np.full((5, 2), np.nan), float)
-                n_img = 0
-                for conf, cx, cy, bw, bh in decode_global_topk(g, cfg.global_downscale, per_image + 1, 0.15):
-                    if np.isfinite(kp).all():
-                        near = np.linalg.norm(kp - [cx, cy], axis=1).min()
-                        if near < 0.6 * max(bw, bh, np.ptp(kp, 0).max()):
-                            continue
-                    side = int(2.6 * max(bw, bh) + 48)
-                    region, origin = _cut(img, int(cx - side / 2), int(cy - side / 2), side)
-                    if region.size:
-                        out.append((region, origin, (cx, cy, bw, bh)))
-                        n_img += 1
-                    if n_img >= per_image:
-                        break
+            side = int(2.6 * max(bw, bh) + 48)
+            region, origin = _cut(img, int(cx - side / 2), int(cy - side / 2), side)
+            if region.size:
+                out.append((region, origin, (cx, cy, bw, bh)))
+                n_img += 1
+            if n_img >= per_image:
+                break
     model.train()
     return out
 
@@ -348,10 +353,14 @@ def train(data_dirs, out, config_path=None, log=print, progress=True, init=None)
         except (OSError, RuntimeError, KeyError, AttributeError) as exc:
             raise ValueError(f"--init {init}: cannot load ({exc})") from None
         log(f"starting from the weights of {init}")
-    hard = []
-    if int(tcfg["hard_negatives"]) > 0:
-        hard = mine_hard_negatives(model, data_dirs, int(tcfg["hard_negatives"]), progress)
-        log(f"{len(hard)} hard negatives mined")
+    hard, mined = [], False
+    mine_at = float(tcfg["hard_mining_at"]) if int(tcfg["hard_negatives"]) > 0 else None
+
+    def mine() -> list:
+        found = mine_hard_negatives(model, data_dirs, int(tcfg["hard_negatives"]), progress,
+                                    int(tcfg["hard_mining_images"]), seed)
+        log(f"{len(found)} hard negatives mined")
+        return found
     steps_per_epoch = int(tcfg["steps_per_epoch"]) or max(1, len(tr) // int(tcfg["batch"]))
     total = steps_per_epoch * int(tcfg["epochs"])
     if tcfg["optimizer"] == "sgd":
@@ -406,6 +415,10 @@ def train(data_dirs, out, config_path=None, log=print, progress=True, init=None)
             frac = progress_of(step_count, elapsed + time.time() - t0)
             if frac >= 1.0:
                 break
+            if mine_at is not None and not mined and frac >= mine_at:
+                t_mine = time.time()
+                hard, mined = mine(), True
+                t0 += time.time() - t_mine   # mining is not training time
             idx = order[step * int(tcfg["batch"]):(step + 1) * int(tcfg["batch"])]
             gidx = rng.integers(0, len(tr), int(tcfg["global_batch"]))
             cb = (crop_batch(tr, idx, mcfg, aug, rng, hard, float(tcfg["hard_prob"]))

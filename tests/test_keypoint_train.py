@@ -7,8 +7,8 @@ import pytest
 import torch
 import yaml
 
-from common.keypoint_data import (AugConfig, DatasetError, crop_sample, load_records, read_dataset,
-                                  write_synthetic_dataset)
+from common.keypoint_data import (AugConfig, DatasetError, _global_window, crop_sample, load_records,
+                                  read_dataset, write_synthetic_dataset)
 from common.keypoint_model import KeypointModel, ModelConfig, apply_affine, crop_affine, crop_side
 from common.keypoint_train import DEFAULT_TRAIN, crop_batch, global_batch, load_config, losses, main, train
 
@@ -50,8 +50,10 @@ def test_short_training_lowers_the_loss_and_resumes(tiny_data, tmp_path):
     assert (out / "model.pt").is_file() and (out / "checkpoint.pt").is_file()
     assert (out / "curves.png").is_file()
     # resume: the same command with more epochs continues after epoch 1
-    last = train([tiny_data], out, _config(tmp_path, 3), log=logs.append, progress=False)
+    last = train([tiny_data], out, _config(tmp_path, 3, hard_negatives=1, hard_mining_at=0.5,
+                                           hard_mining_images=6), log=logs.append, progress=False)
     assert any("resuming" in line for line in logs)
+    assert sum("hard negatives mined" in line for line in logs) == 1   # once, half-way
     metrics = [json.loads(l) for l in (out / "metrics.jsonl").read_text().splitlines()]
     assert [m["epoch"] for m in metrics] == [1, 2, 3] and last["epoch"] == 3
     assert "gtbox_mean_px" in metrics[-1]["val"]
@@ -75,6 +77,25 @@ def test_short_training_lowers_the_loss_and_resumes(tiny_data, tmp_path):
     before, after = loss_of(initial), loss_of(trained)
     assert after["total"] < 0.9 * before["total"]
     assert after["kp"] < before["kp"]
+
+
+def test_stage1_windows_keep_the_box_on_the_same_pixels():
+    aug = AugConfig(global_window=(48, 32), window_needle=0.5)
+    rng = np.random.default_rng(1)
+    small = np.zeros((90, 160, 3), np.uint8)
+    small[70, 100] = 255                              # the needle centre, at downscale 4
+    box = np.array([4 * 100 + 1.5, 4 * 70 + 1.5, 40.0, 30.0])
+    seen = 0
+    for _ in range(40):
+        win, b = _global_window(small, box, 4, aug, rng)
+        assert win.shape == (32, 48, 3)
+        ys, xs = np.nonzero(win[..., 0])
+        if np.isfinite(b).all():
+            seen += 1
+            assert (xs[0] * 4 + 1.5, ys[0] * 4 + 1.5) == (b[0], b[1]) and tuple(b[2:]) == (40.0, 30.0)
+        else:
+            assert len(xs) == 0
+    assert 10 < seen < 40
 
 
 def test_config_errors_name_the_file_and_field(tmp_path):
