@@ -5,13 +5,18 @@ from __future__ import annotations
 class StereoPairer:
     """Buffers left/right items by ``seq`` and returns a pair once both halves are in.
 
-    Only the newest ``depth`` sequence numbers are kept: an older half whose partner never
-    comes (dropped as stale upstream) is discarded and counted in ``dropped``.
+    Each camera's stream is assumed to arrive in increasing ``seq`` (one publisher per camera),
+    so a half waits exactly as long as its partner can still come: it is discarded (counted in
+    ``dropped``) once the other camera has delivered a later frame, or once a later frame has
+    been paired. A camera that lags at start-up therefore loses no frame. ``depth`` only bounds
+    the memory when the other camera stops altogether: at most ``depth`` frames wait, the
+    oldest going first.
     """
 
-    def __init__(self, depth: int = 8):
+    def __init__(self, depth: int = 64):
         self.depth = depth
         self._pending: dict[int, dict] = {}
+        self._newest = {"left": -1, "right": -1}
         self.dropped = 0
         self._last_paired = -1
 
@@ -19,19 +24,30 @@ class StereoPairer:
         """Add one half; returns ``(left, right)`` when the frame is complete, else None."""
         if camera not in ("left", "right"):
             raise ValueError(f"camera must be 'left' or 'right', got {camera!r}")
-        if seq <= self._last_paired:
-            self.dropped += 1
+        other = "right" if camera == "left" else "left"
+        if seq <= self._last_paired or (seq < self._newest[other] and seq not in self._pending):
+            self.dropped += 1          # a later frame is paired, or the other camera skipped this one
             return None
+        self._newest[camera] = max(self._newest[camera], seq)
         halves = self._pending.setdefault(seq, {})
         halves[camera] = item
         if len(halves) == 2:
             del self._pending[seq]
             self._last_paired = seq
-            for old in [s for s in self._pending if s < seq]:
-                del self._pending[old]
-                self.dropped += 1
+            self._discard(lambda s: s < seq)
             return halves["left"], halves["right"]
+        # halves of this camera's earlier frames stay; the other camera's earlier ones never pair
+        self._discard(lambda s: s < seq and other in self._pending[s])
         while len(self._pending) > self.depth:
             del self._pending[min(self._pending)]
             self.dropped += 1
         return None
+
+    def _discard(self, stale) -> None:
+        for s in [s for s in self._pending if stale(s)]:
+            del self._pending[s]
+            self.dropped += 1
+
+    def __len__(self) -> int:
+        """Frames waiting for their other half."""
+        return len(self._pending)

@@ -10,8 +10,12 @@ Params: ``backend`` (default ``oracle``); every other param goes to the backend 
 A backend that needs no image (the oracle) never decodes one; with ``left``/``right`` not wired
 it runs on ``truth`` alone, both cameras per frame. A backend that needs the ground truth holds
 an image until the truth of its frame arrives (at most ``max_wait`` frames, default 30, then
-``Keypoints.not_found``). A corrupt image gives ``Keypoints.not_found`` and counts
-``bad_image``; frames before the first calibration count ``no_calibration``.
+``Keypoints.not_found``). Images (and, with no image wired, ground truths) that come before
+the first calibration wait for it, within the same ``max_wait`` frames (a detector that joins a
+running graph hears the source's beacon within a second); when the image input keeps only the
+newest message, so does the wait (the older image is dropped and counted ``superseded``); after
+that they count ``no_calibration``. A corrupt image gives ``Keypoints.not_found`` and counts
+``bad_image``.
 """
 from __future__ import annotations
 
@@ -35,19 +39,20 @@ class DetectorNode(Node):
         self.backend = load_backend(self.backend_name, params)
         self.calib: Calibration | None = None
         self.truths = SeqCache()
-        self.waiting: list[CameraImage] = []         # images waiting for their frame's truth
+        self.waiting: list[CameraImage] = []         # images waiting for calibration or truth
+        self.waiting_truths: list[int] = []          # truth-only: frames waiting for calibration
         self.newest_seq = -1
         self.log.info("detector backend %s", self.backend_name)
 
     def on_calib(self, msg: Calibration):
         self.calib = msg
+        self._release()
 
     def on_truth(self, msg: GroundTruth):
         self.truths.put(msg.seq, msg)
         if not (self.wired("left") or self.wired("right")):
-            for cam in ("left", "right"):
-                self._detect(cam, msg.seq, msg.stamp_ns, None)
-            return
+            self.newest_seq = max(self.newest_seq, msg.seq)
+            self.waiting_truths.append(msg.seq)
         self._release()
 
     def on_left(self, msg: CameraImage):
@@ -59,22 +64,40 @@ class DetectorNode(Node):
     # ---------------------------------------------------------------- internals
     def _image(self, msg: CameraImage):
         self.newest_seq = max(self.newest_seq, msg.seq)
-        if self.backend.needs_truth and self.wired("truth") and msg.seq not in self.truths:
-            self.waiting.append(msg)
-        else:
-            self._run(msg)
+        if self.calib is None and msg.camera not in self.KEEP_ALL:
+            # waiting for the calibration, a newest-only input keeps only its newest image
+            n = len(self.waiting)
+            self.waiting = [w for w in self.waiting if w.camera != msg.camera]
+            self.count("superseded", n - len(self.waiting))
+        self.waiting.append(msg)
         self._release()
+
+    def _ready(self, seq: int) -> bool:
+        return self.calib is not None and (not self.backend.needs_truth or not self.wired("truth")
+                                           or seq in self.truths)
 
     def _release(self):
         keep = []
         for img in self.waiting:
-            if img.seq in self.truths or self.newest_seq - img.seq >= self.max_wait:
+            if self._ready(img.seq) or self.newest_seq - img.seq >= self.max_wait:
                 self._run(img)
             else:
                 keep.append(img)
         self.waiting = keep
+        keep = []
+        for seq in self.waiting_truths:
+            if self.calib is not None or self.newest_seq - seq >= self.max_wait:
+                truth = self.truths.get(seq)
+                for cam in ("left", "right"):
+                    self._detect(cam, seq, truth.stamp_ns if truth else 0, None)
+            else:
+                keep.append(seq)
+        self.waiting_truths = keep
 
     def _run(self, msg: CameraImage):
+        if self.calib is None:
+            self.count("no_calibration")
+            return
         image = None
         if self.backend.needs_image:
             try:
