@@ -244,19 +244,20 @@ def save_records(path, records: list[ImageRecord]) -> None:
 
 
 def load_cached(path) -> list[ImageRecord]:
-    z = np.load(path, allow_pickle=False)
-    n = len(z["frame"])
+    """Records written by ``save_records`` (each array read from the file once: an ``NpzFile``
+    reads a member anew on every subscript)."""
+    with np.load(path, allow_pickle=False) as z:
+        a = {k: z[k] for k in z.files}
+    n = len(a["frame"])
     parts = {}
     for name in _ARRAYS:
-        shapes = z[name + "_shape"]
-        flat = z[name + "_flat"]
-        sizes = shapes.prod(1)
-        offs = np.concatenate([[0], np.cumsum(sizes)])
+        shapes, flat = a[name + "_shape"], a[name + "_flat"]
+        offs = np.concatenate([[0], np.cumsum(shapes.prod(1))])
         parts[name] = [flat[offs[i]:offs[i + 1]].reshape(shapes[i]) for i in range(n)]
-    return [ImageRecord(parts["small"][i], parts["region"][i], z["origin"][i], parts["neg"][i],
-                        z["neg_origin"][i], z["kp"][i], z["vis"][i].astype(bool), z["arc"][i],
-                        z["box"][i], tuple(int(v) for v in z["image_size"][i]), int(z["frame"][i]),
-                        CAMERAS[int(z["camera"][i])]) for i in range(n)]
+    return [ImageRecord(parts["small"][i], parts["region"][i], a["origin"][i], parts["neg"][i],
+                        a["neg_origin"][i], a["kp"][i], a["vis"][i].astype(bool), a["arc"][i],
+                        a["box"][i], tuple(int(v) for v in a["image_size"][i]), int(a["frame"][i]),
+                        CAMERAS[int(a["camera"][i])]) for i in range(n)]
 
 
 # ---------------------------------------------------------------- augmentation

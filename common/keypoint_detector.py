@@ -153,6 +153,14 @@ ARC_ANGLES_DEG = (30.0, 60.0, 90.0, 120.0, 150.0)
 ARC_MIN_SCORE = 0.35   # A's and E's heatmap scores needed to place B..D on the fitted arc
 
 
+def ideal_peak_mass(sigma: float) -> float:
+    """Softmax mass within 2 cells of the peak (``decode_heatmaps``' score) of the Gaussian soft
+    target the loss trains towards: a perfect heatmap scores this, so scores are divided by it."""
+    x = np.arange(-12, 13, dtype=float)
+    g = np.exp(-x ** 2 / (2 * sigma ** 2))
+    return float((g[10:15].sum() / g.sum()) ** 2)
+
+
 def fit_arc_affine(a: np.ndarray, e: np.ndarray, line_logit: np.ndarray,
                    angles_deg=ARC_ANGLES_DEG, min_prob: float = 0.3, iters: int = 8):
     """Fit the needle's arc in a heatmap under an affine (weak-perspective) camera.
@@ -327,7 +335,7 @@ class KeypointDetector:
         heat = heat.float().cpu()
         uv, score = decode_heatmaps(heat[:, :5], self.cfg.out_stride)
         uv_crop = uv[0].numpy().astype(np.float64)
-        sc = score[0].numpy()
+        sc = np.clip(score[0].numpy() / ideal_peak_mass(self.cfg.kp_sigma), 0.0, 1.0)
         # B, C, D from the arc through A and E (see fit_arc_affine), when A and E are sure
         # (an occluded end is a guess, and the arc pinned on it would drag B..D along)
         if self.arc_bcd and min(sc[0], sc[4]) >= ARC_MIN_SCORE:
@@ -341,9 +349,11 @@ class KeypointDetector:
                     prob = torch.softmax(heat[0, 1:4].reshape(3, -1), -1).reshape(3, m, m).numpy()
                     t = np.array([refine_along_arc(prob[i], fit, t[i]) for i in range(3)])
                 uv_crop[1:4] = arc_at(fit, t) * st + (st - 1) / 2.0
+                # B..D now rest on A, E and the ridge, not on their own (along-arc diffuse) heatmaps
+                sc[1:4] = min(sc[0], sc[4])
         Minv = invert_affine(M)
         uv_img = apply_affine(Minv, uv_crop)
-        return {"M": M, "Minv": Minv, "uv": uv_img, "uv_crop": uv_crop, "scores": score[0].numpy(),
+        return {"M": M, "Minv": Minv, "uv": uv_img, "uv_crop": uv_crop, "scores": sc,
                 "presence": float(torch.sigmoid(pres[0])), "line": heat[0, 5].numpy()}
 
     def _box_of(self, res) -> tuple:

@@ -43,6 +43,7 @@ DEFAULT_TRAIN = {
     "warmup_steps": 100,
     "steps_per_epoch": 0,     # 0: one crop per training image per epoch
     "val_fraction": 0.1,
+    "val_every": 1,           # validate (and keep the best weights) every this many epochs, and at the end
     "threads": 2,
     "time_budget_min": 0,     # the cosine schedule ends at this training time if it comes first; 0 = none
     "loss_weights": {"kp": 1.0, "line": 4.0, "presence": 0.3, "global": 1.0, "box": 1.0,
@@ -440,7 +441,10 @@ def train(data_dirs, out, config_path=None, log=print, progress=True, init=None)
         bar.close()
         if running is None:
             break
-        val = validate(model, va) if va else {}
+        done = (epoch + 1 == int(tcfg["epochs"])
+                or progress_of(step_count, elapsed + time.time() - t0) >= 1.0)
+        checked = bool(va) and (done or (epoch + 1) % max(1, int(tcfg["val_every"])) == 0)
+        val = validate(model, va) if checked else {}
         elapsed += time.time() - t0
         last = {"epoch": epoch + 1, "train_loss": running["total"], "train": running, "val": val,
                 "elapsed_s": round(elapsed, 1)}
@@ -448,13 +452,14 @@ def train(data_dirs, out, config_path=None, log=print, progress=True, init=None)
         score = val.get("pipe_mean_px", val.get("gtbox_mean_px", running["total"]))
         if val and val.get("detection_rate", 1.0) < 0.9:
             score = score + 100.0   # a model that misses needles is never "best"
-        msg = (f"epoch {epoch + 1}: loss {running['total']:.4f}  val gt-box {val.get('gtbox_mean_px', float('nan')):.3f} px"
+        msg = (f"epoch {epoch + 1}: loss {running['total']:.4f}  ({elapsed / 60:.1f} min)" if not checked else
+               f"epoch {epoch + 1}: loss {running['total']:.4f}  val gt-box {val.get('gtbox_mean_px', float('nan')):.3f} px"
                f"  two-stage {val.get('pipe_mean_px', float('nan')):.3f} px  detected {val.get('found', 0)}/{val.get('n_pos', 0)}"
                f"  fp {val.get('false_positives', 0)}/{val.get('n_neg', 0)}  ({elapsed / 60:.1f} min)")
         log(msg)
         meta = {"epoch": epoch + 1, "val": val, "train_seconds": round(elapsed, 1),
                 "data": [str(d) for d in data_dirs], "seed": seed}
-        if score <= best or not (out / "model.pt").is_file():
+        if (checked or not va) and score <= best or not (out / "model.pt").is_file():
             best = min(best, score)
             save_model(out / "model.pt", model, meta)
         with open(mpath, "w") as f:
