@@ -90,3 +90,15 @@ def test_output_shapes_and_global_decoding():
 def test_model_config_rejects_unknown_fields():
     with pytest.raises(ValueError, match="unknown field"):
         ModelConfig.from_dict({"crop": 128, "widht": 3})
+
+
+def test_a_perfect_heatmap_scores_one_after_normalisation():
+    from common.keypoint_detector import ideal_peak_mass
+    from common.keypoint_model import decode_heatmaps, gaussian_targets
+    sigma = 1.5
+    t = gaussian_targets(torch.tensor([[[30.0, 41.0]]]), torch.ones(1, 1), 64, sigma)
+    _, score = decode_heatmaps(torch.log(t.clamp_min(1e-30)), 1)
+    assert float(score[0, 0]) / ideal_peak_mass(sigma) == pytest.approx(1.0, abs=1e-3)
+    flat = torch.zeros(1, 1, 64, 64)                       # no peak at all
+    _, score = decode_heatmaps(flat, 1)
+    assert float(score[0, 0]) / ideal_peak_mass(sigma) < 0.01
