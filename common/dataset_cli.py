@@ -1,4 +1,4 @@
-"""``needletrack dataset generate|generate-alt|check|show``: make, verify and look at dataset folders."""
+"""``needletrack dataset generate|generate-alt|generate-negatives|check|show``: make, verify and look at dataset folders."""
 from __future__ import annotations
 
 import argparse
@@ -50,6 +50,17 @@ def _parser() -> argparse.ArgumentParser:
     a.add_argument("--overwrite", action="store_true", help="start over in a folder made with other settings")
     a.add_argument("--quiet", action="store_true", help="no progress bar")
 
+    n = sub.add_parser("generate-negatives", help="render needle-free frames of the built-in scene",
+                       description="Frames with the needle moved out of sight (instruments, thread, tissue "
+                                   "stay), no keypoint visible: negatives for training the detector and for "
+                                   "measuring its false detections.")
+    n.add_argument("--out", required=True, help="output folder")
+    n.add_argument("--frames", type=int, required=True, help="number of stereo frames")
+    n.add_argument("--seed", type=int, default=777)
+    n.add_argument("--randomise", default="train", choices=["none", "test", "train"],
+                   help="randomisation preset (default train)")
+    n.add_argument("--quiet", action="store_true", help="no progress bar")
+
     c = sub.add_parser("check", help="validate a folder against the dataset spec and its ground truth")
     c.add_argument("path")
     c.add_argument("--tol-px", type=float, default=0.1, help="max keypoint reprojection error (px)")
@@ -73,6 +84,10 @@ def main(argv=None) -> int:
             return _generate(args)
         if args.cmd == "generate-alt":
             return _generate_alt(args)
+        if args.cmd == "generate-negatives":
+            from common.sim_generate import generate_needle_free
+            generate_needle_free(args.out, args.frames, args.seed, args.randomise, not args.quiet)
+            return 0
         if args.cmd == "check":
             return _check(args)
         if args.cmd == "show":

@@ -29,37 +29,6 @@ from common.needle import NeedleModel
 CAMERAS = ("left", "right")
 
 
-def make_negatives(folder, n_frames: int = 10, seed: int = 777, preset: str = "test") -> Path:
-    """Render ``n_frames`` stereo frames of the built-in scene with the needle moved out of sight
-    (instruments, thread and tissue stay) as a dataset folder without keypoints."""
-    from dataclasses import replace
-
-    from common.dataset import DatasetWriter, Frame, parse_frame  # noqa: F401
-    from common.sim_generate import scene_meta
-    from common.sim_randomise import degrade_stereo, get_preset, plan_sequence
-    from common.sim_render import SceneRenderer
-    folder = Path(folder)
-    meta = scene_meta(1920, 1080, f"needle-free frames for the detector benchmark, seed {seed}")
-    pre = get_preset(preset)
-    renderer = SceneRenderer()
-    with DatasetWriter(str(folder), meta, "jpg", 95) as writer:
-        for i in range(n_frames):
-            plan = plan_sequence(seed, i, 1, pre, meta.rig, meta.needle, meta.arm, 2048)
-            T_hidden = plan.spec.T_world_needle.copy()
-            T_hidden[:3, 3] = [0.0, 0.0, -5.0]
-            renderer.load(replace(plan.spec, T_world_needle=T_hidden))
-            T_world_ecm = meta.arm.T_world_ecm(plan.joints[0])
-            renders = renderer.render(T_world_ecm)
-            rng = np.random.default_rng([seed, i])
-            images = degrade_stereo({c: r.bgr for c, r in renders.items()}, rng, pre)
-            paths = writer.write_images(i, images)
-            writer.append(Frame(index=i, stamp_ns=int(i * 33_333_333), left=paths["left"], right=paths["right"],
-                                T_world_ecm=T_world_ecm,
-                                visible={c: np.zeros(5, bool) for c in CAMERAS},
-                                bbox={c: None for c in CAMERAS}))
-    return folder
-
-
 def test_images(folder, n_frames: int):
     """[(image path, camera, keypoints (5,2), visible (5,), arc (P,2) or None)] of the first
     ``n_frames`` needle poses (step 0 of each sequence, or the first frames)."""
@@ -239,7 +208,8 @@ def main(argv=None) -> int:
     a = ap.parse_args(argv)
     try:
         if a.negatives and a.make_negatives and not (Path(a.negatives) / "frames.jsonl").is_file():
-            make_negatives(a.negatives, a.make_negatives)
+            from common.sim_generate import generate_needle_free
+            generate_needle_free(a.negatives, a.make_negatives, seed=777, preset="test", progress=False)
         r = run(a.data, a.backend, a.weights, a.frames, a.negatives, a.threads, a.repeat, a.picture, a.device)
     except (DatasetError, ValueError, OSError, RuntimeError) as exc:
         print(f"needletrack bench detector: error: {exc}", file=sys.stderr)

@@ -10,6 +10,7 @@ from __future__ import annotations
 import json
 import os
 from dataclasses import dataclass
+from pathlib import Path
 
 import numpy as np
 
@@ -169,3 +170,37 @@ def _consume(results, writer, bar) -> None:
         for obj in frames:
             writer.append(parse_frame(obj))
             bar.update(1)
+
+
+def generate_needle_free(folder, n_frames: int, seed: int = 777, preset: str = "test",
+                         progress: bool = True) -> Path:
+    """Render ``n_frames`` stereo frames of the built-in scene with the needle moved out of sight
+    (instruments, thread and tissue stay) as a dataset folder whose frames see no keypoint:
+    negatives for training the detector and for measuring its false detections."""
+    from dataclasses import replace
+
+    from tqdm import tqdm
+
+    from common.dataset import DatasetWriter, Frame
+    from common.sim_randomise import degrade_stereo, get_preset, plan_sequence
+    from common.sim_render import SceneRenderer
+    folder = Path(folder)
+    meta = scene_meta(1920, 1080, f"needle-free frames, preset {preset}, seed {seed}")
+    pre = get_preset(preset)
+    renderer = SceneRenderer()
+    with DatasetWriter(str(folder), meta, "jpg", 95) as writer:
+        for i in tqdm(range(n_frames), desc="needle-free frames", unit="frame", disable=not progress):
+            plan = plan_sequence(seed, i, 1, pre, meta.rig, meta.needle, meta.arm, 2048)
+            T_hidden = plan.spec.T_world_needle.copy()
+            T_hidden[:3, 3] = [0.0, 0.0, -5.0]
+            renderer.load(replace(plan.spec, T_world_needle=T_hidden))
+            T_world_ecm = meta.arm.T_world_ecm(plan.joints[0])
+            renders = renderer.render(T_world_ecm)
+            rng = np.random.default_rng([seed, i])
+            images = degrade_stereo({c: r.bgr for c, r in renders.items()}, rng, pre)
+            paths = writer.write_images(i, images)
+            writer.append(Frame(index=i, stamp_ns=int(i * 33_333_333), left=paths["left"], right=paths["right"],
+                                T_world_ecm=T_world_ecm,
+                                visible={c: np.zeros(5, bool) for c in ("left", "right")},
+                                bbox={c: None for c in ("left", "right")}))
+    return folder

@@ -108,3 +108,13 @@ def test_dataset_cli_generate_check_show(tmp_path, capsys):
     assert "frames.jsonl:2: keypoints" in text and "FAILED" in text
     # an unreadable folder is an error, not a traceback
     assert dataset_main(["check", str(tmp_path / "nope")]) == 1
+
+
+def test_needle_free_frames_see_no_needle(tmp_path):
+    from common.sim_generate import generate_needle_free
+    folder = generate_needle_free(tmp_path / "neg", 1, seed=3, preset="train", progress=False)
+    ds = Dataset(folder)
+    rep = check_dataset(ds)
+    assert rep.ok, rep.errors
+    (frame,) = list(ds)
+    assert all(not frame.visible[c].any() and frame.bbox[c] is None for c in ("left", "right"))
