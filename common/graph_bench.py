@@ -1,11 +1,15 @@
 """``needletrack bench [graph] [--dataset DIR]``: the live pipeline's speed, end to end.
 
-The whole graph (``common.pipeline_graph``: replay -> detector -> epnp, triangulate, ecm,
-fusion, refine) as deployed, i.e. with newest-only inputs, fed by the replay source looping over
-a 1920x1080 stereo dataset at the endoscope's 30 Hz (``--rate``; ``max``: as fast as it goes). After a warm-up it measures
-for ``--duration`` seconds:
+The tracking graph as deployed, i.e. with newest-only inputs (``common.pipeline_graph``:
+replay -> one detector process per camera -> refine -> fusion over refined poses, with ecm),
+fed by the replay source looping over a 1920x1080 stereo dataset at the endoscope's 30 Hz
+(``--rate``; ``max``: as fast as it goes). ``--all-methods`` adds the other pose methods
+(epnp average and joint, triangulate, fusion over joint poses), as in an evaluation; they are
+not on the path to the final pose. After a warm-up it measures for ``--duration`` seconds:
 
-- frames/s published by the source and frames/s that come out as a fused pose (end to end);
+- frames/s published by the source, stereo frames/s through the last single-frame pose node
+  (paired and processed, with or without a pose: with a detector that misses the needle most
+  frames give none) and fused poses/s (end to end);
 - latency from frame publish (``CameraImage.stamp_ns``, wall clock) to the fused pose, p50/p99,
   and to each stage's output (keypoints, each pose method);
 - each node's CPU share and CPU time per published frame (from /proc over the window), its
@@ -47,7 +51,11 @@ def _parser() -> argparse.ArgumentParser:
     p.add_argument("--warmup", type=float, default=4.0, help="seconds ignored after the first frame")
     p.add_argument("--one-detector", action="store_true",
                    help="one detector process for both cameras (default: one per camera)")
-    p.add_argument("--no-refine", action="store_true", help="leave out the refinement node")
+    p.add_argument("--no-refine", action="store_true",
+                   help="leave out the refinement node (then the final pose is multiview over pnp_joint)")
+    p.add_argument("--all-methods", action="store_true",
+                   help="also run the pose methods not on the path to the final pose (epnp average, "
+                        "triangulate, ...), as an evaluation does")
     p.add_argument("--json", help="also write the figures to this JSON file")
     p.add_argument("--log", help="write the graph's log here (default: a temporary file)")
     return p
@@ -108,17 +116,21 @@ def measure(args, dataset: str, log) -> dict:
     from common.evaluation import process_cpu_seconds
     from common.graph import output_key, stats_key
     from common.messages import GroundTruth, Keypoints, NodeStats, PoseEstimate
-    from common.pipeline_graph import GraphRun, keypoint_sources, pipeline_graph, pose_inputs
+    from common.pipeline_graph import (METHOD_NEEDS, POSE_OUTPUTS, GraphRun, keypoint_sources,
+                                       pipeline_graph, pose_inputs)
 
     ds = Dataset(dataset, check_files=False)
     rate = args.rate if str(args.rate) == "max" else float(args.rate)
     split = not args.one_detector
     det_params = {"weights": str(Path(args.model).resolve())} if args.model else {}
+    final = "multiview" if args.no_refine else "multiview_refined"
     doc = pipeline_graph(dataset, detector=args.detector, detector_params=det_params, rate=rate, loop=True,
                          refine=False if args.no_refine else None, split_detector=split,
-                         name="needletrack-bench")
+                         methods=None if args.all_methods else [final], name="needletrack-bench")
     poses = pose_inputs(doc)
-    final = next(m for m in ("multiview_refined", "multiview") if m in poses)
+    if final not in poses:
+        final = next(m for m in ("multiview_refined", "multiview") if m in poses)
+    frame_node = POSE_OUTPUTS[METHOD_NEEDS[final][0]].split("/")[0]   # pairs stereo keypoints
     rec = Recorder()
     streams = {"published": ("replay/truth", GroundTruth)}
     for cam, src in keypoint_sources(split).items():
@@ -149,12 +161,15 @@ def measure(args, dataset: str, log) -> dict:
         with rec.lock:
             pids = {n: st.pid for n, st in rec.stats.items()}
             drops0 = {n: _dropped(st) for n, st in rec.stats.items()}
+            pairs0 = _pairs(rec.stats.get(frame_node))
         cpu0 = {n: process_cpu_seconds(p) for n, p in pids.items()}
         w1 = w0 + int(args.duration * 1e9)
         while time.time_ns() < w1:
             _check_alive(run)
             time.sleep(0.1)
         cpu1 = {n: process_cpu_seconds(p) for n, p in pids.items()}
+        with rec.lock:
+            pairs1 = _pairs(rec.stats.get(frame_node))
         time.sleep(0.5)  # outputs of the window's last frames still in flight
         for s in subs:
             s.undeclare()
@@ -168,6 +183,10 @@ def measure(args, dataset: str, log) -> dict:
     fused = rec.window(final, w0, w1)
     seqs = {r[0] for r in fused}
     out["throughput_hz"] = len(seqs) / span
+    # stats come once a second: the pair counts span from one stats message to another
+    out["frame_node"] = frame_node
+    out["frames_processed_hz"] = ((pairs1[0] - pairs0[0]) / ((pairs1[1] - pairs0[1]) / 1e9)
+                                  if pairs0 and pairs1 and pairs1[1] > pairs0[1] else None)
     out["frames_through"] = (len(seqs) / len(published)) if published else None
     out["latency_ms"] = latency_ms(fused)
     stages = {}
@@ -196,6 +215,14 @@ def measure(args, dataset: str, log) -> dict:
     return out
 
 
+def _pairs(st):
+    """(stereo frames paired so far, stamp_ns of that count) from a pose node's stats."""
+    if st is None:
+        return None
+    v = st.counters.get("pairs", 0)
+    return (v if isinstance(v, int) else 0, st.stamp_ns)
+
+
 def _dropped(st) -> int:
     v = st.counters.get("dropped", 0)
     return v if isinstance(v, int) else 0
@@ -215,6 +242,8 @@ def report(r: dict) -> str:
          f"detector {r['detector']} ({r['detector_processes']} process(es)), replay rate {r['rate']}, "
          f"{r['duration_s']:.0f} s measured on {r['cpus']} CPU(s)",
          f"  frames published      {f(r['published_hz'])} /s",
+         f"  frames processed      {f(r['frames_processed_hz'])} /s stereo frames paired and processed by "
+         f"{r['frame_node']} (with or without a pose)",
          f"  end to end            {f(r['throughput_hz'])} /s fused poses ({r['final_method']}); "
          f"{f(None if r['frames_through'] is None else 100 * r['frames_through'])}% of the published frames"
          f"   [target >= {TARGET_HZ:.0f}; paper 10 Hz on an RTX 3080]",

@@ -11,6 +11,7 @@ consumers pair them by ``seq`` (see ``common.pairing``).
 from __future__ import annotations
 
 import dataclasses
+import math
 from dataclasses import dataclass, field
 from typing import Any, Optional
 
@@ -27,35 +28,75 @@ class MessageError(ValueError):
 
 # ---------------------------------------------------------------- ndarray extension
 
+_DTYPE = {name: np.dtype(name) for name in _DTYPES}
+_DTYPE_NAME = {dt: name for name, dt in _DTYPE.items()}     # (``dtype.name`` is slow to get)
+_UINT_BYTES = {0xcc: 1, 0xcd: 2, 0xce: 4, 0xcf: 8}          # msgpack uint 8/16/32/64 markers
+
+
 def _default(obj):
     if isinstance(obj, np.ndarray):
-        if obj.dtype.name not in _DTYPES:
-            raise TypeError(f"ndarray dtype {obj.dtype} cannot be sent")
-        a = np.ascontiguousarray(obj)
-        head = msgpack.packb([a.dtype.name, list(a.shape)])
-        return msgpack.ExtType(_EXT_NDARRAY, head + a.tobytes())
+        name = _DTYPE_NAME.get(obj.dtype)
+        if name is None:                       # not native byte order, or not sendable
+            name = obj.dtype.name
+            if name not in _DTYPES:
+                raise TypeError(f"ndarray dtype {obj.dtype} cannot be sent")
+            obj = obj.astype(name)
+        head = msgpack.packb([name, list(obj.shape)])
+        return msgpack.ExtType(_EXT_NDARRAY, head + obj.tobytes())    # tobytes: C order
     if isinstance(obj, np.generic):
         return obj.item()
     raise TypeError(f"cannot encode {type(obj).__name__}")
 
 
+def _ndarray_header(data: bytes):
+    """``(dtype, shape, offset of the raw bytes)`` of an ndarray extension, whose header is
+    the msgpack ``[dtype name, [dims]]`` that ``_default`` writes, read directly (a msgpack
+    Unpacker per array costs more than the rest of a small message); None for another form."""
+    if data[0] != 0x92 or not 0xa0 <= data[1] <= 0xbf:          # fixarray(2), fixstr
+        return None
+    p = 2 + (data[1] & 0x1f)
+    if not 0x90 <= data[p] <= 0x9f:                              # fixarray(ndim)
+        return None
+    dtype, ndim, p = data[2:p].decode("ascii", "replace"), data[p] & 0x0f, p + 1
+    shape = []
+    for _ in range(ndim):
+        b = data[p]
+        if b < 0x80:                                             # positive fixint
+            shape.append(b)
+            p += 1
+        elif b in _UINT_BYTES:
+            k = _UINT_BYTES[b]
+            shape.append(int.from_bytes(data[p + 1:p + 1 + k], "big"))
+            p += 1 + k
+        else:
+            return None
+    return dtype, shape, p
+
+
 def _ext_hook(code, data):
     if code != _EXT_NDARRAY:
         raise MessageError(f"unknown msgpack extension type {code}")
-    unpacker = msgpack.Unpacker(raw=False)
-    unpacker.feed(data)
     try:
-        dtype, shape = next(unpacker)
-    except Exception as exc:  # malformed header
-        raise MessageError(f"malformed ndarray header: {exc}") from None
-    if dtype not in _DTYPES or not isinstance(shape, list):
+        head = _ndarray_header(data)
+    except IndexError:
+        head = None
+    if head is None:
+        unpacker = msgpack.Unpacker(raw=False)
+        unpacker.feed(data)
+        try:
+            dtype, shape = next(unpacker)
+        except Exception as exc:  # malformed header
+            raise MessageError(f"malformed ndarray header: {exc}") from None
+        offset = unpacker.tell()
+    else:
+        dtype, shape, offset = head
+    dt = _DTYPE.get(dtype) if isinstance(dtype, str) else None
+    if dt is None or not isinstance(shape, list) or not all(type(d) is int and d >= 0 for d in shape):
         raise MessageError(f"bad ndarray header dtype={dtype!r} shape={shape!r}")
-    offset = unpacker.tell()
-    buf = memoryview(data)[offset:]
-    n = int(np.prod(shape)) * np.dtype(dtype).itemsize
-    if len(buf) != n:
-        raise MessageError(f"ndarray of {dtype}{tuple(shape)} needs {n} bytes, got {len(buf)}")
-    return np.frombuffer(buf, dtype=dtype).reshape(shape).copy()
+    n = math.prod(shape) * dt.itemsize
+    if len(data) - offset != n:
+        raise MessageError(f"ndarray of {dtype}{tuple(shape)} needs {n} bytes, got {len(data) - offset}")
+    return np.frombuffer(data, dtype=dt, offset=offset).reshape(shape).copy()
 
 
 # ---------------------------------------------------------------- field validation

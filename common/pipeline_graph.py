@@ -46,12 +46,14 @@ def pipeline_graph(dataset: str, *, detector: str = "learned", detector_params: 
                    rate="max", port: Optional[int] = None, name: str = "needletrack-eval",
                    refine: Optional[bool] = None, loop: bool = False, count: int = 0,
                    sinks: Optional[list] = None, lossless: bool = False,
-                   split_detector: bool = False,
+                   split_detector: bool = False, methods=None,
                    start_delay_s: float = 1.0) -> dict:
     """The graph document of the whole pipeline on a replayed dataset folder.
 
     ``refine``: include the refinement node and a fusion over refined poses (default: when
-    nodes/refine.py exists). ``sinks``: extra node dicts (e.g. the evaluator), wired by the
+    nodes/refine.py exists). ``methods``: only the nodes these pose methods (names of
+    ``POSE_OUTPUTS``) need, e.g. ``["multiview_refined"]`` runs replay, detector, ecm, refine
+    and fusion_refined (default: every method). ``sinks``: extra node dicts (e.g. the evaluator), wired by the
     caller with the ids used here. Every node runs with ``restart: never``: a run that loses a
     node is a failed run, not one to patch up silently.
 
@@ -63,6 +65,14 @@ def pipeline_graph(dataset: str, *, detector: str = "learned", detector_params: 
     """
     if refine is None:
         refine = has_module("refine")
+    wanted = set(POSE_OUTPUTS) if methods is None else set(methods)
+    unknown = wanted - set(POSE_OUTPUTS)
+    if unknown:
+        raise ValueError(f"unknown pose method(s) {sorted(unknown)}; known: {', '.join(POSE_OUTPUTS)}")
+    if not refine:
+        wanted -= {"refined", "multiview_refined"}
+    for m in list(wanted):          # a fusion needs the single-frame method it fuses
+        wanted |= set(METHOD_NEEDS.get(m, ()))
     port = port or free_port()
     one = {"OMP_NUM_THREADS": "1"}
     det_params = {"backend": detector, **(detector_params or {})}
@@ -91,16 +101,20 @@ def pipeline_graph(dataset: str, *, detector: str = "learned", detector_params: 
     ]
     stereo = {**kp, "calib": "replay/calib", "ecm": "ecm/pose"}
     for method in ("average", "joint"):
-        nodes.append({"id": f"epnp_{method}", "module": "epnp", "params": {"method": method},
-                      "inputs": dict(stereo), "outputs": ["pose"], "env": one})
-    nodes.append({"id": "triangulate", "module": "triangulate", "inputs": dict(stereo),
-                  "outputs": ["pose", "points"], "env": one})
-    nodes.append({"id": "fusion", "module": "fusion", "params": {"method": "multiview"},
-                  "inputs": {"pose": "epnp_joint/pose", "ecm": "ecm/pose", "truth": "replay/truth"},
-                  "outputs": ["pose"], "env": one})
-    if refine:
+        if f"pnp_{method}" in wanted:
+            nodes.append({"id": f"epnp_{method}", "module": "epnp", "params": {"method": method},
+                          "inputs": dict(stereo), "outputs": ["pose"], "env": one})
+    if "triangulation" in wanted:
+        nodes.append({"id": "triangulate", "module": "triangulate", "inputs": dict(stereo),
+                      "outputs": ["pose", "points"], "env": one})
+    if "multiview" in wanted:
+        nodes.append({"id": "fusion", "module": "fusion", "params": {"method": "multiview"},
+                      "inputs": {"pose": "epnp_joint/pose", "ecm": "ecm/pose", "truth": "replay/truth"},
+                      "outputs": ["pose"], "env": one})
+    if "refined" in wanted:
         nodes.append({"id": "refine", "module": "refine", "inputs": dict(stereo),
                       "outputs": ["pose"], "env": one})
+    if "multiview_refined" in wanted:
         nodes.append({"id": "fusion_refined", "module": "fusion",
                       "params": {"method": "multiview_refined"},
                       "inputs": {"pose": "refine/pose", "ecm": "ecm/pose", "truth": "replay/truth"},
@@ -136,6 +150,9 @@ POSE_OUTPUTS = {"pnp_average": "epnp_average/pose", "pnp_joint": "epnp_joint/pos
                 "triangulation": "triangulate/pose", "multiview": "fusion/pose",
                 "refined": "refine/pose", "multiview_refined": "fusion_refined/pose"}
 """Where each pose method comes out of ``pipeline_graph``."""
+
+METHOD_NEEDS = {"multiview": ("pnp_joint",), "multiview_refined": ("refined",)}
+"""The single-frame method a multi-view method fuses."""
 
 
 def pose_inputs(doc: dict) -> dict:

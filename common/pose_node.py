@@ -3,8 +3,8 @@
 ``StereoPoseNode`` is a ``Node`` base for nodes that turn the two ``Keypoints`` of a stereo
 frame into a pose (``epnp``, ``triangulate``): it keeps the latest ``Calibration``, remembers
 recent ``EcmPose`` messages by ``seq``, pairs left/right keypoints by ``seq`` and calls
-``on_pair(left, right)``; it counts why a frame gave no pose (``no_pose.<reason>``) and builds
-the ``PoseEstimate`` with ``T_world_needle`` when the ECM pose of that frame is known.
+``on_pair(left, right)``; it counts the stereo frames paired (``pairs``) and why a frame gave no
+pose (``no_pose.<reason>``), and builds the ``PoseEstimate`` with ``T_world_needle`` when the ECM pose of that frame is known.
 
 ``publish_pose`` publishes a pose once its frame's ECM pose is in (with ``ecm`` wired): a pose
 computed before the ECM pose arrived waits for it, at most ``max_wait`` frames (param, default
@@ -84,6 +84,7 @@ class StereoPoseNode(Node):
         self._release()
         if pair is None:
             return
+        self.count("pairs")
         if self.rig is None:
             self.count("no_pose.no_calibration")
             return

@@ -40,7 +40,7 @@ import numpy as np
 
 from common.camera import Camera, StereoRig
 from common.needle import NeedleModel
-from common.transforms import R_to_rotvec, make_T, rotation_angle, transform_points
+from common.transforms import R_to_rotvec, make_T, transform_points
 
 
 class RefineError(ValueError):
@@ -209,9 +209,29 @@ class _Static:
         self._end_cs = np.array([[np.cos(self.half), -np.sin(self.half)],
                                  [np.cos(self.half), np.sin(self.half)]])  # A, E
         self._perp = np.array([-1.0, 1.0])           # (cos, sin)[::-1] * perp = d/d angle
-        self._Bc = np.zeros((1, C, 6, 6))                            # camera -> ECM increments
-        self._Bc[0, :, :3, :3] = self.Rc
-        self._Bc[0, :, 3:, 3:] = self.Rc
+        # Jacobian rows (see _Problem.evaluate): for a point at W (camera frame, from the needle
+        # origin) with pixel offset (du, dv) from the principal point and 1/depth iz,
+        #   d u / d[dr_c, dt_c] = iz (Ku(W) - du m(W)),  d v / d[dr_c, dt_c] = iz (Kv(W) - dv m(W)),
+        #   Ku = [-sk W2, fx W2, sk W0 - fx W1, fx, sk, 0], Kv = [-fy W2, 0, fy W0, 0, fy, 0],
+        #   m = [W1, -W0, 0, 0, 0, 1]  (rotation part W x a, a = d(u, v)/d point).
+        # All three are affine in W: [Ku, Kv, m] = W @ L + L1, with the camera -> ECM map of the
+        # increments (block diag(Rc, Rc)) folded in.
+        L = np.zeros((C, 3, 18))
+        L1 = np.zeros((C, 18))
+        fx, sk, fy = Kp[:, 0, 0], Kp[:, 0, 1], Kp[:, 1, 1]
+        L[:, 0, 2], L[:, 1, 2], L[:, 2, 0], L[:, 2, 1] = sk, -fx, -sk, fx          # Ku
+        L1[:, 3], L1[:, 4] = fx, sk
+        L[:, 0, 8], L[:, 2, 6] = fy, -fy                                          # Kv
+        L1[:, 10] = fy
+        L[:, 0, 13], L[:, 1, 12] = -1.0, 1.0                                      # m
+        L1[:, 17] = 1.0
+        Bc = np.zeros((C, 6, 6))                                                  # camera -> ECM
+        Bc[:, :3, :3] = self.Rc
+        Bc[:, 3:, 3:] = self.Rc
+        for k in range(3):
+            L[:, :, 6 * k:6 * k + 6] = L[:, :, 6 * k:6 * k + 6] @ Bc
+            L1[:, 6 * k:6 * k + 6] = (L1[:, None, 6 * k:6 * k + 6] @ Bc)[:, 0]
+        self._L, self._L1 = L[None], L1[None, :, None]
         self._out = np.array([-1.0, 1.0])                       # outward along the arc at A, E
         self._cos_end_zone = np.cos(self.half - np.deg2rad(1.0))  # feet within 1 deg of an end
         ang = np.linspace(-self.half, self.half, cfg.n_samples)
@@ -377,23 +397,19 @@ class _Problem:
         if not jacobian:
             return r, None, valid
 
-        # d(u, v)/d(camera-frame point): a_u = [fx, sk, -(fx x + sk y)] / z, a_v = [0, fy, -fy y] / z
-        au = np.stack([self._fx * iz, self._sk * iz, -(self._fx * x + self._sk * y) * iz], axis=-1)
-        av = np.stack([np.zeros_like(iz), self._fy * iz, -self._fy * y * iz], axis=-1)
-        ac = nx[..., None] * au[..., 5:, :] + ny[..., None] * av[..., 5:, :]
-        # overshoot rows: minus the outward tangent at the end's point (A or E), where active
-        ce = np.where(active, -1.0, 0.0)
-        cE, cA = np.where(at_e, ce, 0.0), np.where(at_e, 0.0, ce)
-        a_end = ((cE * ex)[..., None] * au[..., 4:5, :] + (cE * ey)[..., None] * av[..., 4:5, :]
-                 + (cA * ex)[..., None] * au[..., 0:1, :] + (cA * ey)[..., None] * av[..., 0:1, :])
-        w_end = np.where(at_e[..., None], W[..., 4:5, :], W[..., 0:1, :])
-        A = np.concatenate([au[..., :5, :], av[..., :5, :], ac, a_end], axis=2)     # (P, C, n_c, 3)
-        Wr = np.concatenate([W[..., :5, :], W[..., :5, :], W[..., 5:, :], w_end], axis=2)
-        # a point moves by dr_c x w + dt_c (camera-frame increments): d/d dr_c = w x a
-        cr = np.stack([Wr[..., 1] * A[..., 2] - Wr[..., 2] * A[..., 1],
-                       Wr[..., 2] * A[..., 0] - Wr[..., 0] * A[..., 2],
-                       Wr[..., 0] * A[..., 1] - Wr[..., 1] * A[..., 0]], axis=-1)
-        J = (np.concatenate([cr, A], axis=-1) @ self._Bc).reshape(P, -1, 6)
+        # d(u, v)/d[dr, dt] of every point (see _Static: Ku, Kv, m), in the ECM frame
+        Q = W @ self._L + self._L1                                          # (P, C, N, 18)
+        izc = iz[..., None]
+        Gu = (Q[..., :6] - (u - self._cx)[..., None] * Q[..., 12:]) * izc
+        Gv = (Q[..., 6:12] - (v - self._cy)[..., None] * Q[..., 12:]) * izc
+        # curve rows: along the normal at the foot; overshoot rows: minus the outward tangent at
+        # the end's point (A or E), where active
+        rows_n = nx[..., None] * Gu[..., 5:, :] + ny[..., None] * Gv[..., 5:, :]
+        cu, cv = np.where(active, -ex, 0.0)[..., None], np.where(active, -ey, 0.0)[..., None]
+        at_e4 = at_e[..., None]
+        rows_t = (cu * np.where(at_e4, Gu[..., 4:5, :], Gu[..., 0:1, :])
+                  + cv * np.where(at_e4, Gv[..., 4:5, :], Gv[..., 0:1, :]))
+        J = np.concatenate([Gu[..., :5, :], Gv[..., :5, :], rows_n, rows_t], axis=2).reshape(P, -1, 6)
         return r, J, valid
 
     def linearise(self, R, t, start=None):
@@ -632,8 +648,14 @@ def refine_pose(rig: StereoRig, needle: NeedleModel, observations: Mapping[str, 
 
 def _near_any(T, Ts, mm, deg) -> bool:
     """Whether T is within mm and deg of any pose in Ts."""
-    return any(np.linalg.norm(T[:3, 3] - T2[:3, 3]) * 1e3 < mm
-               and np.degrees(rotation_angle(T[:3, :3].T @ T2[:3, :3])) < deg for T2 in Ts)
+    d2, cos_tol = (mm * 1e-3) ** 2, math.cos(math.radians(deg))
+    R = T[:3, :3].ravel()
+    for T2 in Ts:
+        d = T[:3, 3] - T2[:3, 3]
+        # the angle of R^T R2 from its trace, sum(R * R2)
+        if d @ d < d2 and (float(R @ T2[:3, :3].ravel()) - 1.0) / 2.0 > cos_tol:
+            return True
+    return False
 
 
 def _dedupe(s, idx, mm, deg):

@@ -9,8 +9,8 @@ and centreline points used; ``covariance`` over [rotation vector (rad), translat
 ECM frame; ``ambiguous`` when competing solutions fit nearly as well or the arc is seen
 edge-on, and then the covariance spans them).
 
-Per frame: the joint stereo PnP (``common.pnp.pnp_joint``) on the keypoints gives the starting
-poses (every local minimum it finds); ``DenseRefiner.refine`` fits them, and their mirror
+Per frame: the joint stereo PnP (``common.pnp.pnp_joint``, from the IPPE starts) on the
+keypoints gives the starting poses (every local minimum it finds); ``DenseRefiner.refine`` fits them, and their mirror
 images, to keypoints and centrelines together and keeps the best. A camera whose detector
 found nothing is left out. Frames without any centreline are refined on the keypoints alone
 (counted ``keypoints_only``).
@@ -77,7 +77,7 @@ class RefineNode(StereoPoseNode):
         uv, sc = self.stereo_arrays(left, right)
         try:
             pj = pnp_joint(uv, self.rig, self.model_points, sc, self.min_score,
-                           outlier_px=self.outlier_px)
+                           outlier_px=self.outlier_px, epnp_starts=False)
         except NoPose as exc:
             self.no_pose(exc.reason, left.seq, exc.detail)
             return
