@@ -1,6 +1,8 @@
-"""Start-up of a live graph: a camera whose detector lags and a detector that hears frames
-before the calibration beacon lose no frame (common/pairing.py, nodes/detector.py)."""
+"""A live graph's stereo frames: a camera whose detector lags at start-up and a detector that
+hears frames before the calibration beacon lose no frame, and per-camera detectors that cannot
+keep up pick the same frames (common/pairing.py, nodes/detector.py)."""
 import numpy as np
+import pytest
 
 from common.camera import StereoRig
 from common.messages import Calibration, CameraImage, GroundTruth
@@ -102,3 +104,46 @@ def test_detector_without_a_calibration_gives_up_after_max_wait_frames():
     det.on_calib(CALIB)
     assert sorted({k.seq for _, k in det.published}) == [3, 4, 5]
     assert issubclass(DetectorNode, Node)
+
+
+class _TimedDetector(DetectorNode):
+    """A detector whose detections take ``busy_s`` of a simulated clock."""
+
+    def setup(self):
+        super().setup()
+        self.now = 0.0
+        self.clock = lambda: self.now
+
+    def _detect_image(self, msg):
+        self.now += self.params["busy_s"]
+        super()._detect_image(msg)
+
+
+def _camera_run(busy_s, camera, frames=60, period_s=1 / 30):
+    det = _TimedDetector.offline({"backend": "oracle", "busy_s": busy_s}, wired=[camera, "truth", "calib"])
+    det.on_calib(CALIB)
+    T = random_needle_pose(np.random.default_rng(2), RIG, MODEL)
+    for s in range(frames):
+        det.on_truth(_truth(s, T))
+        getattr(det, f"on_{camera}")(CameraImage(camera, s, int(s * period_s * 1e9), 2, 2, "bgr8", bytes(12)))
+    return det, [k.seq for _, k in det.published]
+
+
+def test_per_camera_detectors_pick_the_same_frames_whatever_their_speed():
+    left, l_seqs = _camera_run(0.045, "left")           # 1.35 frame intervals per detection
+    right, r_seqs = _camera_run(0.050, "right")
+    assert left.stride == right.stride == 2
+    late = [s for s in l_seqs if s >= 20]
+    assert late and late == [s for s in r_seqs if s >= 20] and all(s % 2 == 0 for s in late)
+    assert left.counters["stride_skipped"] > 20
+    # a faster detector strides less, and its frames include the slower one's: all of those pair
+    fast, f_seqs = _camera_run(0.020, "right")
+    slow, s_seqs = _camera_run(0.110, "left")            # 3.3 intervals: stride 4
+    assert fast.stride == 1 and slow.stride == 4
+    assert set(s for s in s_seqs if s >= 20) <= set(f_seqs)
+    # both cameras in one process, or a fixed stride: no adaptation
+    both = DetectorNode.offline({"backend": "oracle"})
+    assert both.stride == 1 and not both.auto_stride
+    assert DetectorNode.offline({"backend": "oracle", "stride": 2}, wired=["left", "calib"]).stride == 2
+    with pytest.raises(ValueError, match="stride"):
+        DetectorNode.offline({"backend": "oracle", "stride": 3}, wired=["left", "calib"])
