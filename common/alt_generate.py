@@ -91,19 +91,9 @@ def insertion_for_distance(arm: EcmArm, q, target: np.ndarray, distance: float) 
 
 
 def needle_in_view(rig: StereoRig, needle: NeedleModel, T_world_needle, T_world_ecm, margin: float) -> bool:
-    """The whole arc in front of both cameras and inside both images shrunk by ``margin``
-    (a fraction of the image size)."""
-    p_ecm = transform_points(inv_T(T_world_ecm) @ T_world_needle, needle.sample_arc(16))
-    for cam in rig.cameras:
-        p = transform_points(cam.T_cam_ecm, p_ecm)
-        if np.any(p[:, 2] <= 0.02):
-            return False
-        uv = cam.project(p)
-        mx, my = margin * cam.width, margin * cam.height
-        if np.any(uv[:, 0] < mx) or np.any(uv[:, 0] > cam.width - 1 - mx) or \
-                np.any(uv[:, 1] < my) or np.any(uv[:, 1] > cam.height - 1 - my):
-            return False
-    return True
+    """The whole arc at least 2 cm in front of both cameras and inside both images shrunk by
+    ``margin`` (a fraction of the image size)."""
+    return rig.sees(transform_points(inv_T(T_world_ecm) @ T_world_needle, needle.sample_arc(16)), margin, 0.02)
 
 
 def sample_first_view(rng, arm, rig, needle, T_world_needle, tries: int = 60):

@@ -82,6 +82,20 @@ class StereoRig:
     def cameras(self) -> tuple[Camera, Camera]:
         return self.left, self.right
 
+    def sees(self, p_ecm: np.ndarray, margin: float = 0.0, min_depth_m: float = 0.01) -> bool:
+        """All (N, 3) ECM-frame points at least ``min_depth_m`` in front of both cameras and
+        inside both images shrunk by ``margin`` (a fraction of the image size) on every side."""
+        for cam in self.cameras:
+            p = transform_points(cam.T_cam_ecm, p_ecm)
+            if np.any(p[:, 2] <= min_depth_m):
+                return False
+            uv = cam.project(p)
+            mx, my = margin * cam.width, margin * cam.height
+            if np.any(uv[:, 0] < mx) or np.any(uv[:, 0] > cam.width - 1 - mx) or \
+                    np.any(uv[:, 1] < my) or np.any(uv[:, 1] > cam.height - 1 - my):
+                return False
+        return True
+
     @classmethod
     def default(cls, width: int = 1920, height: int = 1080, fovy_rad: float = 1.2,
                 baseline_m: float = 0.004) -> "StereoRig":

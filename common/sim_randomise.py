@@ -222,18 +222,8 @@ def insertion_for_distance(arm: EcmArm, q, target: np.ndarray, distance: float) 
 
 def keypoints_in_view(rig: StereoRig, needle: NeedleModel, T_world_needle, T_world_ecm,
                       margin: float = 0.0) -> bool:
-    """All keypoints in front of both cameras and inside the image shrunk by ``margin`` (fraction)."""
-    p_ecm = transform_points(inv_T(T_world_ecm) @ T_world_needle, needle.sample_arc(12))
-    for cam in rig.cameras:
-        p = transform_points(cam.T_cam_ecm, p_ecm)
-        if np.any(p[:, 2] <= 0.01):
-            return False
-        uv = cam.project(p)
-        mx, my = margin * cam.width, margin * cam.height
-        if np.any(uv[:, 0] < mx) or np.any(uv[:, 0] > cam.width - 1 - mx) or \
-                np.any(uv[:, 1] < my) or np.any(uv[:, 1] > cam.height - 1 - my):
-            return False
-    return True
+    """The whole arc in front of both cameras and inside the image shrunk by ``margin`` (fraction)."""
+    return rig.sees(transform_points(inv_T(T_world_ecm) @ T_world_needle, needle.sample_arc(12)), margin)
 
 
 def sample_ecm(rng: np.random.Generator, arm: EcmArm, rig: StereoRig, needle: NeedleModel,
