@@ -126,7 +126,8 @@ def measure(args, dataset: str, log) -> dict:
     final = "multiview" if args.no_refine else "multiview_refined"
     doc = pipeline_graph(dataset, detector=args.detector, detector_params=det_params, rate=rate, loop=True,
                          refine=False if args.no_refine else None, split_detector=split,
-                         methods=None if args.all_methods else [final], name="needletrack-bench")
+                         methods=None if getattr(args, "all_methods", False) else [final],
+                         name="needletrack-bench")
     poses = pose_inputs(doc)
     if final not in poses:
         final = next(m for m in ("multiview_refined", "multiview") if m in poses)

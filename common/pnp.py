@@ -409,11 +409,14 @@ def _check_in_front(obs: dict[str, CameraObs]) -> None:
         return
     from common.triangulation import triangulate_dlt
     L, Rr = obs["left"], obs["right"]
-    common_idx, il, ir = np.intersect1d(L.index, Rr.index, return_indices=True)
-    if len(common_idx) == 0:
+    in_right = {k: i for i, k in enumerate(Rr.index.tolist())}
+    il = [i for i, k in enumerate(L.index.tolist()) if k in in_right]
+    if not il:
         return
-    X = triangulate_dlt(L.uv[il], Rr.uv[ir], L.camera.P_ecm, Rr.camera.P_ecm)
-    depth = (X @ L.camera.T_cam_ecm[:3, :3].T + L.camera.T_cam_ecm[:3, 3])[:, 2]
+    ir = [in_right[k] for k in L.index[il].tolist()]
+    T_cam_ecm = L.camera.T_cam_ecm
+    X = triangulate_dlt(L.uv[il], Rr.uv[ir], L.camera.K @ T_cam_ecm[:3], Rr.camera.P_ecm)
+    depth = X @ T_cam_ecm[2, :3] + T_cam_ecm[2, 3]
     depth = depth[np.isfinite(depth)]
     if len(depth) and np.median(depth) <= 0:
         raise NoPose("behind_camera", "keypoints triangulate behind the cameras")
