@@ -214,13 +214,20 @@ _SKEW = np.array([[0, 0, 0, 0, 0, -1, 0, 1, 0],
 
 
 def _exp_so3_many(w: np.ndarray) -> np.ndarray:
-    """Rodrigues for (k, 3) rotation vectors -> (k, 3, 3)."""
-    th2 = np.einsum("ki,ki->k", w, w) + 1e-300     # (at 0 the K terms vanish anyway)
-    th = np.sqrt(th2)
-    a = (np.sin(th) / th)[:, None, None]
-    b = ((1.0 - np.cos(th)) / th2)[:, None, None]
-    K = (w @ _SKEW).reshape(-1, 3, 3)
-    return np.eye(3) + a * K + b * (K @ K)
+    """Rodrigues for (k, 3) rotation vectors -> (k, 3, 3). (Scalar math per vector: k is a
+    handful of starts, where numpy's per-call cost would dominate.)"""
+    out = np.empty((len(w), 3, 3))
+    for i, (x, y, z) in enumerate(np.asarray(w, dtype=float).tolist()):
+        th2 = x * x + y * y + z * z
+        if th2 < 1e-16:
+            a, b = 1.0 - th2 / 6.0, 0.5 - th2 / 24.0
+        else:
+            th = math.sqrt(th2)
+            a, b = math.sin(th) / th, (1.0 - math.cos(th)) / th2
+        out[i] = ((1 - b * (y * y + z * z), -a * z + b * x * y, a * y + b * x * z),
+                  (a * z + b * x * y, 1 - b * (x * x + z * z), -a * x + b * y * z),
+                  (-a * y + b * x * z, a * x + b * y * z, 1 - b * (x * x + y * y)))
+    return out
 
 
 @dataclass
