@@ -459,8 +459,10 @@ def train(data_dirs, out, config_path=None, log=print, progress=True, init=None)
         log(msg)
         meta = {"epoch": epoch + 1, "val": val, "train_seconds": round(elapsed, 1),
                 "data": [str(d) for d in data_dirs], "seed": seed}
-        if (checked or not va) and score <= best or not (out / "model.pt").is_file():
-            best = min(best, score)
+        scored = checked or not va
+        if scored and score <= best or not (out / "model.pt").is_file():
+            if scored:   # a first model saved without validation sets no bar for the next
+                best = min(best, score)
             save_model(out / "model.pt", model, meta)
         with open(mpath, "w") as f:
             f.write("".join(json.dumps(m) + "\n" for m in metrics))
