@@ -12,8 +12,8 @@ frame in parallel, but two processes that each take the newest image when they a
 apart and detect different frames, which then never pair (measured: 15 keypoint frames/s per
 camera, 8 stereo pairs/s). So such a detector detects only frames whose ``seq`` is a multiple of
 its stride, a power of two (``stride: auto``, the default there) just large enough that a
-detection fits in ``stride`` frame intervals (from the recent detection times and frame stamps;
-90% of it, with hysteresis): both cameras' detectors then pick the same frames whatever their
+detection fits in ``stride`` frame intervals (from the recent detection times and frame stamps,
+with hysteresis): both cameras' detectors then pick the same frames whatever their
 own speed (powers of two nest), and a detector waits for its next frame instead of starting
 on a stale one. The other frames count ``stride_skipped``. A number fixes the stride; a
 detector with both cameras wired, or whose image inputs keep every message, uses 1.
@@ -128,12 +128,12 @@ class DetectorNode(Node):
             self._period_s = p if self._period_s is None else 0.9 * self._period_s + 0.1 * p
 
     def _adapt_stride(self, busy_s: float) -> None:
-        """The smallest power-of-two stride whose frame intervals hold 1/0.9 of a detection."""
+        """The smallest power-of-two stride whose frame intervals hold a detection."""
         self._busy_s = busy_s if self._busy_s is None else 0.8 * self._busy_s + 0.2 * busy_s
         if not self._period_s:
             return
         need = self._busy_s / self._period_s           # frame intervals per detection
-        while self.stride < 64 and need > 0.9 * self.stride:
+        while self.stride < 64 and need > self.stride:
             self.stride *= 2
         while self.stride > 1 and need < 0.6 * (self.stride // 2):
             self.stride //= 2
