@@ -43,6 +43,8 @@ def _parser() -> argparse.ArgumentParser:
     p.add_argument("--dataset", help="dataset folder to loop over (default data/test, else data/bench)")
     p.add_argument("--detector", default="learned", choices=("learned", "classical", "oracle"))
     p.add_argument("--model", help="learned only: weights file (default: the shipped model)")
+    p.add_argument("--param", action="append", default=[], metavar="KEY=VALUE",
+                   help="a detector parameter (repeatable), e.g. --param stride=1")
     p.add_argument("--rate", default="30",
                    help="replay rate in Hz (default 30, the endoscope's), or 'max': as fast as the "
                         "replay can read the files (then every node's keep-all inputs, e.g. the ECM "
@@ -122,7 +124,9 @@ def measure(args, dataset: str, log) -> dict:
     ds = Dataset(dataset, check_files=False)
     rate = args.rate if str(args.rate) == "max" else float(args.rate)
     split = not args.one_detector
+    from common.graph import parse_param
     det_params = {"weights": str(Path(args.model).resolve())} if args.model else {}
+    det_params.update(dict(parse_param(p) for p in getattr(args, "param", [])))
     final = "multiview" if args.no_refine else "multiview_refined"
     doc = pipeline_graph(dataset, detector=args.detector, detector_params=det_params, rate=rate, loop=True,
                          refine=False if args.no_refine else None, split_detector=split,
