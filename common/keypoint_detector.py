@@ -278,6 +278,14 @@ def refine_along_arc(prob: np.ndarray, fit, t_pred_deg: float, half_deg: float =
     return float((mass * ts).sum() / mass.sum())
 
 
+def _moved(box, new_box, tol: float = 0.1) -> bool:
+    """Whether the needle's box (cx, cy, w, h) moved by more than ``tol`` of its larger side
+    (centre or size): the tracked crop no longer frames it."""
+    side = max(box[2], box[3], 1.0)
+    return (abs(new_box[0] - box[0]) > tol * side or abs(new_box[1] - box[1]) > tol * side
+            or abs(max(new_box[2], new_box[3]) - side) > tol * side)
+
+
 class KeypointDetector:
     """The learned two-stage detector; one instance keeps a tracking state per camera name."""
 
@@ -389,9 +397,11 @@ class KeypointDetector:
         box = self._track.get(camera) if self.tracking else None
         if box is not None:
             res = self._stage2(img, box)
-            conf = res["presence"]
             self.last_mode = "tracking"
-            if conf < self.threshold:
+            conf = res["presence"]
+            # a needle that moved in the image is cut by the old crop and its keypoints go wrong
+            # (the crop still shows enough needle to score high): then find it anew, cold
+            if conf < self.threshold or _moved(box, self._box_of(res)):
                 res = None
         if res is None:
             self.last_mode = "cold"
