@@ -179,8 +179,8 @@ def fit_arc_affine(a: np.ndarray, e: np.ndarray, line_logit: np.ndarray,
     ys, xs = np.nonzero(prob >= min_prob)
     if len(xs) < 8:
         return None
-    if len(xs) > 600:   # keep the strongest pixels: the cost grows with their number
-        keep = np.argsort(-prob[ys, xs])[:600]
+    if len(xs) > 300:   # keep the strongest pixels: the cost grows with their number
+        keep = np.argsort(-prob[ys, xs])[:300]
         ys, xs = ys[keep], xs[keep]
     w = prob[ys, xs].astype(np.float64)
     pts = np.stack([xs, ys], 1).astype(np.float64)
@@ -202,7 +202,7 @@ def fit_arc_affine(a: np.ndarray, e: np.ndarray, line_logit: np.ndarray,
     sol = np.linalg.solve(D, np.stack([a, mid, e]))
     c, U = sol[0], sol[1:].T
     # initial angles: closest point on the initial curve
-    ts = np.linspace(t0 - 0.3, t1 + 0.3, 200)
+    ts = np.linspace(t0 - 0.3, t1 + 0.3, 100)
     curve = c + np.stack([np.cos(ts), np.sin(ts)], 1) @ U.T
     tt = ts[((pts[:, None, :] - curve[None]) ** 2).sum(-1).argmin(1)]
     w_end = 10.0 * max(1.0, w.sum())
@@ -223,8 +223,12 @@ def fit_arc_affine(a: np.ndarray, e: np.ndarray, line_logit: np.ndarray,
             rows.append(np.array([[1, 0, np.cos(tk), np.sin(tk), 0, 0], [0, 1, 0, 0, np.cos(tk), np.sin(tk)]], float))
             rhs.append(pk - pe)
             ws.append(np.array([w_end, w_end]))
-        Jm, r, wv = np.vstack(rows), np.concatenate(rhs), np.sqrt(np.concatenate(ws))
-        dx, *_ = np.linalg.lstsq(Jm * wv[:, None], r * wv, rcond=None)
+        Jm, r, wv = np.vstack(rows), np.concatenate(rhs), np.concatenate(ws)
+        JtW = Jm.T * wv
+        try:   # normal equations of the weighted least squares (6 unknowns)
+            dx = np.linalg.solve(JtW @ Jm, JtW @ r)
+        except np.linalg.LinAlgError:
+            return None
         c = c + dx[:2]
         U = U + dx[2:].reshape(2, 2)
         # each pixel's angle follows: one Newton step along the tangent of the new curve
@@ -344,25 +348,31 @@ class KeypointDetector:
         uv, score = decode_heatmaps(heat[:, :5], self.cfg.out_stride)
         uv_crop = uv[0].numpy().astype(np.float64)
         sc = np.clip(score[0].numpy() / ideal_peak_mass(self.cfg.kp_sigma), 0.0, 1.0)
-        # B, C, D from the arc through A and E (see fit_arc_affine), when A and E are sure
-        # (an occluded end is a guess, and the arc pinned on it would drag B..D along)
-        if self.arc_bcd and min(sc[0], sc[4]) >= ARC_MIN_SCORE:
-            st = self.cfg.out_stride
-            cells = (uv_crop - (st - 1) / 2.0) / st
-            fit = fit_arc_affine(cells[0], cells[4], heat[0, 5].numpy())
-            if fit is not None:
-                t = np.asarray(ARC_ANGLES_DEG[1:4], float)
-                if self.along_arc:
-                    m = heat.shape[-1]
-                    prob = torch.softmax(heat[0, 1:4].reshape(3, -1), -1).reshape(3, m, m).numpy()
-                    t = np.array([refine_along_arc(prob[i], fit, t[i]) for i in range(3)])
-                uv_crop[1:4] = arc_at(fit, t) * st + (st - 1) / 2.0
-                # B..D now rest on A, E and the ridge, not on their own (along-arc diffuse) heatmaps
-                sc[1:4] = min(sc[0], sc[4])
         Minv = invert_affine(M)
-        uv_img = apply_affine(Minv, uv_crop)
-        return {"M": M, "Minv": Minv, "uv": uv_img, "uv_crop": uv_crop, "scores": sc,
-                "presence": float(torch.sigmoid(pres[0])), "line": heat[0, 5].numpy()}
+        return {"M": M, "Minv": Minv, "uv": apply_affine(Minv, uv_crop), "uv_crop": uv_crop, "scores": sc,
+                "presence": float(torch.sigmoid(pres[0])), "line": heat[0, 5].numpy(), "heat": heat}
+
+    def _place_bcd(self, res) -> None:
+        """B, C, D of the chosen crop on the arc through A and E (see fit_arc_affine), when A and
+        E are sure (an occluded end is a guess, and the arc pinned on it would drag B..D along).
+        Done once per frame, on the final crop only: the fit costs more than the heatmaps."""
+        sc, uv_crop, heat = res["scores"], res["uv_crop"], res["heat"]
+        if not self.arc_bcd or min(sc[0], sc[4]) < ARC_MIN_SCORE:
+            return
+        st = self.cfg.out_stride
+        cells = (uv_crop - (st - 1) / 2.0) / st
+        fit = fit_arc_affine(cells[0], cells[4], res["line"])
+        if fit is None:
+            return
+        t = np.asarray(ARC_ANGLES_DEG[1:4], float)
+        if self.along_arc:
+            m = heat.shape[-1]
+            prob = torch.softmax(heat[0, 1:4].reshape(3, -1), -1).reshape(3, m, m).numpy()
+            t = np.array([refine_along_arc(prob[i], fit, t[i]) for i in range(3)])
+        uv_crop[1:4] = arc_at(fit, t) * st + (st - 1) / 2.0
+        # B..D now rest on A, E and the ridge, not on their own (along-arc diffuse) heatmaps
+        sc[1:4] = min(sc[0], sc[4])
+        res["uv"] = apply_affine(res["Minv"], uv_crop)
 
     def _box_of(self, res) -> tuple:
         pts = res["uv"]
@@ -401,7 +411,7 @@ class KeypointDetector:
             conf = res["presence"]
             # a needle that moved in the image is cut by the old crop and its keypoints go wrong
             # (the crop still shows enough needle to score high): then find it anew, cold
-            if conf < self.threshold or _moved(box, self._box_of(res)):
+            if conf < self.threshold or _moved(box, self._box_of({"uv": res["uv"]})):
                 res = None
         if res is None:
             self.last_mode = "cold"
@@ -428,10 +438,10 @@ class KeypointDetector:
                 return Keypoints.not_found(camera, seq, stamp_ns, self.name,
                                            f"no needle: confidence {conf:.2f} < {self.threshold:.2f} "
                                            f"(proposal {c1:.2f})", conf)
+        self._place_bcd(res)
+        self._track[camera] = self._box_of({"uv": res["uv"]})   # as _moved compares it
         self._finish(res)
-        box = self._box_of(res)
-        self._track[camera] = box
-        cx, cy, bw, bh = box
+        cx, cy, bw, bh = self._box_of(res)
         return Keypoints(camera, seq, stamp_ns, True, res["uv"].astype(np.float64),
                          res["scores"].astype(np.float64), float(conf),
                          np.array([cx - bw / 2, cy - bh / 2, cx + bw / 2, cy + bh / 2]), self.name, None,
