@@ -29,6 +29,9 @@ from common.needle import NeedleModel
 CAMERAS = ("left", "right")
 
 
+SURE_SCORE = 0.5   # the pose nodes' default min_score
+
+
 def test_images(folder, n_frames: int):
     """[(image path, camera, keypoints (5,2), visible (5,), arc (P,2) or None)] of the first
     ``n_frames`` needle poses (step 0 of each sequence, or the first frames)."""
@@ -86,7 +89,7 @@ def run(data, backend="learned", weights=None, n_frames=30, negatives=None, thre
     for img in imgs[:3]:  # warm-up
         reset()
         det.detect(img, "left")
-    errs, cl_err, found, n_pos, cold_ms, track_ms, results = [], [], 0, 0, [], [], []
+    errs, sure, cl_err, found, n_pos, cold_ms, track_ms, results = [], [], [], 0, 0, [], [], []
     for (path, cam, kp, vis, arc), img in tqdm(list(zip(items, imgs)), desc=f"bench {backend}",
                                                 disable=not progress, unit="img"):
         reset()
@@ -101,6 +104,7 @@ def run(data, backend="learned", weights=None, n_frames=30, negatives=None, thre
             continue
         found += 1
         errs.append(np.where(vis, np.linalg.norm(k.uv - kp, axis=1), np.nan))
+        sure.append(vis & (np.asarray(k.scores) >= SURE_SCORE))
         d = _arc_distance(k.centreline, k.centreline_w, arc)
         if d is not None:
             cl_err.append(d)
@@ -116,6 +120,10 @@ def run(data, backend="learned", weights=None, n_frames=30, negatives=None, thre
                     "kp_error_p90_px": float(np.nanpercentile(e, 90)),
                     "kp_error_per_kp_px": dict(zip("ABCDE", (float(v) for v in np.nanmean(e, 0)))),
                     "kp_error_per_kp_median_px": dict(zip("ABCDE", (float(v) for v in np.nanmedian(e, 0))))})
+        m = np.asarray(sure)   # the points the detector vouches for: what the pose nodes use
+        if m.any():
+            res.update({"kp_error_sure_mean_px": float(e[m].mean()), "kp_error_sure_median_px": float(np.median(e[m])),
+                        "kp_sure_fraction": float(m.sum() / np.isfinite(e).sum())})
     if cl_err:
         res["centreline_error_mean_px"] = float(np.mean(cl_err))
         res["centreline_error_median_px"] = float(np.median(cl_err))
@@ -181,6 +189,10 @@ def format_report(r: dict) -> str:
         lines.append(f"keypoint error (visible points, px): mean {r['kp_error_mean_px']:.3f}  "
                      f"median {r['kp_error_median_px']:.3f}  p90 {r['kp_error_p90_px']:.3f}")
         lines.append(f"  per keypoint (mean px): {per}")
+        if "kp_error_sure_mean_px" in r:
+            lines.append(f"  points scored >= {SURE_SCORE} (what the pose nodes use; "
+                         f"{100 * r['kp_sure_fraction']:.1f}% of the visible ones): mean "
+                         f"{r['kp_error_sure_mean_px']:.3f}  median {r['kp_error_sure_median_px']:.3f}")
     if "centreline_error_mean_px" in r:
         lines.append(f"centreline distance to the true arc (px): mean {r['centreline_error_mean_px']:.3f}  "
                      f"median {r['centreline_error_median_px']:.3f}")
