@@ -33,7 +33,7 @@ import numpy as np
 
 from common.camera import StereoRig
 from common.observations import CameraObs, NoPose, check_spread, stereo_observations
-from common.transforms import make_T, pose_error, pose_mean, rotvec_to_R, skew
+from common.transforms import make_T, pose_error, pose_mean, rotvec_to_R, rotvecs_to_Rs, skew
 
 MIN_POINTS = 4
 
@@ -170,7 +170,7 @@ class ReprojectionProblem:
                       + np.sqrt(np.einsum("ki,ki->k", delta[:, 3:], delta[:, 3:])))
             # the decrease the linear model predicts: delta^T (lam D delta - g) > 0
             pred = np.einsum("ki,ki->k", delta, la[:, None] * D * delta - g)
-            R1 = _exp_so3_many(delta[:, :3]) @ R[act]
+            R1 = rotvecs_to_Rs(delta[:, :3]) @ R[act]
             t1 = t[act] + delta[:, 3:]
             r1, J1, ok1 = self._residuals(R1, t1)
             c1 = np.where(ok1, np.einsum("km,km->k", r1, r1), np.inf)
@@ -211,23 +211,6 @@ class ReprojectionProblem:
 _SKEW = np.array([[0, 0, 0, 0, 0, -1, 0, 1, 0],
                   [0, 0, 1, 0, 0, 0, -1, 0, 0],
                   [0, -1, 0, 1, 0, 0, 0, 0, 0]], dtype=float)
-
-
-def _exp_so3_many(w: np.ndarray) -> np.ndarray:
-    """Rodrigues for (k, 3) rotation vectors -> (k, 3, 3). (Scalar math per vector: k is a
-    handful of starts, where numpy's per-call cost would dominate.)"""
-    out = np.empty((len(w), 3, 3))
-    for i, (x, y, z) in enumerate(np.asarray(w, dtype=float).tolist()):
-        th2 = x * x + y * y + z * z
-        if th2 < 1e-16:
-            a, b = 1.0 - th2 / 6.0, 0.5 - th2 / 24.0
-        else:
-            th = math.sqrt(th2)
-            a, b = math.sin(th) / th, (1.0 - math.cos(th)) / th2
-        out[i] = ((1 - b * (y * y + z * z), -a * z + b * x * y, a * y + b * x * z),
-                  (a * z + b * x * y, 1 - b * (x * x + z * z), -a * x + b * y * z),
-                  (-a * y + b * x * z, a * x + b * y * z, 1 - b * (x * x + y * y)))
-    return out
 
 
 @dataclass
@@ -337,7 +320,7 @@ def initial_poses(obs: CameraObs, epnp: bool = True, ippe: bool = True) -> list[
     rv = np.array([np.asarray(s[1], float).reshape(3) for s in sols])
     tv = np.array([np.asarray(s[2], float).reshape(3) for s in sols])
     finite = np.all(np.isfinite(rv), axis=1) & np.all(np.isfinite(tv), axis=1)
-    Rs = _exp_so3_many(np.where(finite[:, None], rv, 0.0))
+    Rs = rotvecs_to_Rs(np.where(finite[:, None], rv, 0.0))
     for (label, _, _, Q), R, t, ok in zip(sols, Rs, tv, finite):
         if not ok:
             continue

@@ -40,7 +40,7 @@ import numpy as np
 
 from common.camera import Camera, StereoRig
 from common.needle import NeedleModel
-from common.transforms import R_to_rotvec, make_T, transform_points
+from common.transforms import R_to_rotvec, make_T, rotvecs_to_Rs, transform_points
 
 
 class RefineError(ValueError):
@@ -199,7 +199,7 @@ class _Static:
         col = lambda a: np.asarray(a, float).reshape(1, C, 1)
         self._fx, self._sk, self._fy = col(Kp[:, 0, 0]), col(Kp[:, 0, 1]), col(Kp[:, 1, 1])
         self._cx, self._cy = col(kc[:, 0]), col(kc[:, 1])
-        self._Rmid = _exp_so3(np.array([[0.0, 0.0, self.mid]]))[0]
+        self._Rmid = rotvecs_to_Rs(np.array([[0.0, 0.0, self.mid]]))[0]
         # radius * [e1, e2, e2, -e1] of the needle axes turned so the arc's middle is on +x
         self._W = self.radius * np.stack([self._Rmid[:, 0], self._Rmid[:, 1], self._Rmid[:, 1],
                                           -self._Rmid[:, 0]], axis=1)
@@ -456,23 +456,6 @@ def _select_curve(name: str, pts, w, m: int, w_min: float):
     return pts[idx], w[idx]
 
 
-def _exp_so3(v):
-    """Batched Rodrigues: rotation vectors (K, 3) -> rotations (K, 3, 3). (Scalar math per
-    vector: K is a handful of candidates, where numpy's per-call cost dominates.)"""
-    out = np.empty((len(v), 3, 3))
-    for k, (x, y, z) in enumerate(v.tolist()):
-        th2 = x * x + y * y + z * z
-        if th2 < 1e-16:
-            a, b = 1.0 - th2 / 6.0, 0.5 - th2 / 24.0
-        else:
-            th = math.sqrt(th2)
-            a, b = math.sin(th) / th, (1.0 - math.cos(th)) / th2
-        out[k] = ((1 - b * (y * y + z * z), -a * z + b * x * y, a * y + b * x * z),
-                  (a * z + b * x * y, 1 - b * (x * x + z * z), -a * x + b * y * z),
-                  (-a * y + b * x * z, a * x + b * y * z, 1 - b * (x * x + y * y)))
-    return out
-
-
 def _orthonormalise(R):
     U, _, Vt = np.linalg.svd(R)
     return U @ Vt
@@ -559,14 +542,14 @@ def _lm(prob: _Problem, R, t, cfg: RefineConfig, n_iter: int, state=None):
             # the small step is still taken, unevaluated (its effect on the fit's residuals and
             # Jacobian, kept for the covariance, is within the same fraction of a variance)
             iw = act[within]
-            s["R"][iw] = _exp_so3(dx[within, :3]) @ s["R"][iw]
+            s["R"][iw] = rotvecs_to_Rs(dx[within, :3]) @ s["R"][iw]
             s["t"][iw] = s["t"][iw] + dx[within, 3:]
             s["done"][iw] = True
             go = ~within
             if not go.any():
                 break
             act, dx, rot, tra = act[go], dx[go], rot[go], tra[go]
-        Rn = _exp_so3(dx[:, :3]) @ s["R"][act]
+        Rn = rotvecs_to_Rs(dx[:, :3]) @ s["R"][act]
         tn = s["t"][act] + dx[:, 3:]
         # Feet: carried over from the current poses, searched afresh after a large step.
         big = rot.max() > cfg.research_rad or tra.max() > cfg.research_m

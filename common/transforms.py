@@ -4,6 +4,8 @@
 """
 from __future__ import annotations
 
+import math
+
 import numpy as np
 
 
@@ -37,6 +39,23 @@ def rotvec_to_R(rvec: np.ndarray) -> np.ndarray:
     k = rvec / theta
     K = skew(k)
     return np.eye(3) + np.sin(theta) * K + (1 - np.cos(theta)) * (K @ K)
+
+
+def rotvecs_to_Rs(w: np.ndarray) -> np.ndarray:
+    """Rodrigues for (k, 3) rotation vectors -> (k, 3, 3) rotations. Scalar math per vector: for
+    the handful of vectors of an LM step numpy's per-call cost would dominate."""
+    out = np.empty((len(w), 3, 3))
+    for i, (x, y, z) in enumerate(np.asarray(w, dtype=float).tolist()):
+        th2 = x * x + y * y + z * z
+        if th2 < 1e-16:
+            a, b = 1.0 - th2 / 6.0, 0.5 - th2 / 24.0
+        else:
+            th = math.sqrt(th2)
+            a, b = math.sin(th) / th, (1.0 - math.cos(th)) / th2
+        out[i] = ((1 - b * (y * y + z * z), -a * z + b * x * y, a * y + b * x * z),
+                  (a * z + b * x * y, 1 - b * (x * x + z * z), -a * x + b * y * z),
+                  (-a * y + b * x * z, a * x + b * y * z, 1 - b * (x * x + y * y)))
+    return out
 
 
 def R_to_rotvec(R: np.ndarray) -> np.ndarray:
