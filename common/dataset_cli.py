@@ -8,6 +8,20 @@ STANDARD_TEST_SET = ("needletrack dataset generate --out data/test --sequences 3
                      "--seed 1000 --randomise test")
 
 
+def _generate_args(p: argparse.ArgumentParser) -> None:
+    """The arguments both scene generators take."""
+    p.add_argument("--out", required=True, help="output folder")
+    p.add_argument("--sequences", type=int, required=True, help="number of needle poses")
+    p.add_argument("--steps", type=int, default=1, help="endoscope poses per needle pose (default 1)")
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--width", type=int, default=1920)
+    p.add_argument("--height", type=int, default=1080)
+    p.add_argument("--format", default="jpg", choices=["jpg", "png"], help="image files (default jpg)")
+    p.add_argument("--quality", type=int, default=95, help="JPEG quality (default 95)")
+    p.add_argument("--overwrite", action="store_true", help="start over in a folder made with other settings")
+    p.add_argument("--quiet", action="store_true", help="no progress bar")
+
+
 def _parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog="needletrack dataset", description=__doc__)
     sub = p.add_subparsers(dest="cmd", required=True)
@@ -16,39 +30,21 @@ def _parser() -> argparse.ArgumentParser:
                                    "between steps one random ECM joint (yaw, pitch or roll) moves 0.05 rad. "
                                    "Resumable: rerun the same command after an interruption. "
                                    f"Standard test set: {STANDARD_TEST_SET}")
-    g.add_argument("--out", required=True, help="output folder")
-    g.add_argument("--sequences", type=int, required=True, help="number of needle poses")
-    g.add_argument("--steps", type=int, default=1, help="endoscope poses per needle pose (default 1)")
-    g.add_argument("--seed", type=int, default=0)
+    _generate_args(g)
     g.add_argument("--randomise", default="train", choices=["none", "test", "train"],
                    help="randomisation preset (default train)")
-    g.add_argument("--width", type=int, default=1920)
-    g.add_argument("--height", type=int, default=1080)
-    g.add_argument("--format", default="jpg", choices=["jpg", "png"], help="image files (default jpg)")
-    g.add_argument("--quality", type=int, default=95, help="JPEG quality (default 95)")
     g.add_argument("--jobs", type=int, default=2, help="render processes (default 2)")
     g.add_argument("--msaa", type=int, default=4, choices=[0, 2, 4, 8],
                    help="anti-aliasing samples (default 4; 0 renders ~2.5x faster with jagged thin wires)")
-    g.add_argument("--overwrite", action="store_true", help="start over in a folder made with other settings")
-    g.add_argument("--quiet", action="store_true", help="no progress bar")
 
     a = sub.add_parser("generate-alt", help="render a dataset folder with the second, independent renderer",
                        description="Like generate, but rendered by common/alt_render.py (numpy/OpenCV z-buffer "
                                    "rasteriser, no MuJoCo) with its own needle meshes, tissue, lights and ECM base: "
                                    "a check that models and methods do not overfit the built-in scene. "
                                    "Same multi-view protocol; resumable.")
-    a.add_argument("--out", required=True, help="output folder")
-    a.add_argument("--sequences", type=int, required=True, help="number of needle poses")
-    a.add_argument("--steps", type=int, default=1, help="endoscope poses per needle pose (default 1)")
-    a.add_argument("--seed", type=int, default=0)
-    a.add_argument("--width", type=int, default=1920)
-    a.add_argument("--height", type=int, default=1080)
-    a.add_argument("--format", default="jpg", choices=["jpg", "png"], help="image files (default jpg)")
-    a.add_argument("--quality", type=int, default=95, help="JPEG quality (default 95)")
+    _generate_args(a)
     a.add_argument("--supersample", type=int, default=3, choices=[1, 2, 3, 4],
                    help="samples per pixel side around the needle (default 3)")
-    a.add_argument("--overwrite", action="store_true", help="start over in a folder made with other settings")
-    a.add_argument("--quiet", action="store_true", help="no progress bar")
 
     n = sub.add_parser("generate-negatives", help="render needle-free frames of the built-in scene",
                        description="Frames with the needle moved out of sight (instruments, thread, tissue "
