@@ -10,7 +10,6 @@ reproducible, resumable (finished sequences are kept) and extensible.
 """
 from __future__ import annotations
 
-import json
 import os
 from dataclasses import dataclass
 
@@ -343,39 +342,14 @@ def generate_alt(folder: str, cfg: AltGenerateConfig, progress: bool = True, ove
     """Generate (or resume, or extend) a folder; returns the number of frames in it."""
     from tqdm import tqdm
 
-    from common.dataset import DatasetWriter, Frame, parse_frame, truncate_frames, truncate_torn_tail
-    if cfg.sequences < 1 or cfg.steps < 1:
-        raise ValueError("generate-alt: --sequences and --steps must be >= 1")
+    from common.dataset import DatasetWriter, Frame, resume_generation
     if cfg.width < 16 or cfg.height < 16:
         raise ValueError(f"generate-alt: image size {cfg.width}x{cfg.height} is too small")
-    os.makedirs(folder, exist_ok=True)
-    gpath = os.path.join(folder, GENERATE_FILE)
-    fpath = os.path.join(folder, "frames.jsonl")
-    resume = False
-    if os.path.isfile(gpath) and not overwrite:
-        with open(gpath) as f:
-            old = json.load(f)
-        if old.get("config") != json.loads(json.dumps(cfg.stable())):
-            raise ValueError(f"{folder} holds a generate-alt run with other settings {old.get('config')}; "
-                             f"use another --out or --overwrite")
-        resume = True
-    elif os.path.exists(fpath) and not overwrite:
-        raise ValueError(f"{folder} already holds a dataset not made by `dataset generate-alt`; "
-                         f"use another --out or --overwrite")
+    resume, done = resume_generation(folder, GENERATE_FILE, cfg.stable(), cfg.sequences, cfg.steps,
+                                     "dataset generate-alt", overwrite)
     source = (f"needletrack dataset generate-alt (common/alt_render.py: numpy/OpenCV z-buffer rasteriser, "
               f"not MuJoCo; its own needle meshes, tissue, lights and ECM): seed={cfg.seed} steps={cfg.steps}")
     meta = alt_meta(cfg.width, cfg.height, source)
-    done = 0
-    if resume:
-        done = min(truncate_torn_tail(fpath) // cfg.steps, cfg.sequences)
-        truncate_frames(fpath, done * cfg.steps)
-        if done:
-            with open(fpath) as f:
-                fr = parse_frame(json.loads(f.read().splitlines()[-1]))
-            if fr.sequence != done - 1 or fr.index != done * cfg.steps - 1:
-                raise ValueError(f"{fpath}: cannot resume, the last frame is not the end of sequence {done - 1}")
-    with open(gpath, "w") as f:
-        json.dump({"config": cfg.stable(), "sequences": cfg.sequences}, f, indent=1)
     writer = DatasetWriter(folder, meta, cfg.image_format, cfg.jpeg_quality, resume=resume)
     renderer = AltRenderer(meta.rig, cfg.supersample)
     bar = tqdm(total=cfg.sequences * cfg.steps, initial=done * cfg.steps, unit="frame", desc="generate-alt",

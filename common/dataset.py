@@ -669,3 +669,42 @@ def truncate_frames(fpath: str, n: int) -> None:
         lines = [ln for ln in f.read().split(b"\n") if ln.strip()]
     with open(fpath, "wb") as f:
         f.write(b"".join(ln + b"\n" for ln in lines[:n]))
+
+
+def resume_generation(folder: str, record_name: str, config: dict, sequences: int, steps: int,
+                      command: str, overwrite: bool = False, defaults: dict | None = None) -> tuple[bool, int]:
+    """Prepare ``folder`` for a resumable, sequence-by-sequence generation.
+
+    ``record_name`` (e.g. generate.json) holds the settings ``config`` that must match for a run to
+    be resumed or extended (``defaults`` fill settings an older record lacks). A torn last line of
+    frames.jsonl and any partial sequence are dropped. Returns (resume, sequences already done);
+    raises ValueError when the folder holds other settings or a dataset ``command`` did not make."""
+    if sequences < 1 or steps < 1:
+        raise ValueError(f"{command}: --sequences and --steps must be >= 1")
+    os.makedirs(folder, exist_ok=True)
+    gpath = os.path.join(folder, record_name)
+    fpath = os.path.join(folder, "frames.jsonl")
+    config = json.loads(json.dumps(config))
+    resume = False
+    if os.path.isfile(gpath) and not overwrite:
+        with open(gpath) as f:
+            old = dict(json.load(f).get("config") or {})
+        if {**(defaults or {}), **old} != config:
+            raise ValueError(f"{folder} holds a `{command}` run with other settings {old}; "
+                             f"use another --out or --overwrite")
+        resume = True
+    elif os.path.exists(fpath) and not overwrite:
+        raise ValueError(f"{folder} already holds a dataset not made by `{command}`; "
+                         f"use another --out or --overwrite")
+    done = 0
+    if resume:
+        done = min(truncate_torn_tail(fpath) // steps, sequences)
+        truncate_frames(fpath, done * steps)
+        if done:  # the last kept line must be the end of sequence done-1
+            with open(fpath) as f:
+                fr = parse_frame(json.loads(f.read().splitlines()[-1]))
+            if fr.sequence != done - 1 or fr.index != done * steps - 1:
+                raise ValueError(f"{fpath}: cannot resume, the last frame is not the end of sequence {done - 1}")
+    with open(gpath, "w") as f:
+        json.dump({"config": config, "sequences": sequences}, f, indent=1)
+    return resume, done

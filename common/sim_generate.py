@@ -7,7 +7,6 @@ context each); the parent writes frames.jsonl in order.
 """
 from __future__ import annotations
 
-import json
 import os
 from dataclasses import dataclass
 from pathlib import Path
@@ -104,41 +103,13 @@ def generate(folder: str, cfg: GenerateConfig, jobs: int = 2, progress: bool = T
     import mujoco
     from tqdm import tqdm
 
-    from common.dataset import DatasetWriter, parse_frame, truncate_frames, truncate_torn_tail
-    if cfg.sequences < 1 or cfg.steps < 1:
-        raise ValueError("generate: --sequences and --steps must be >= 1")
-    os.makedirs(folder, exist_ok=True)
-    gpath = os.path.join(folder, GENERATE_FILE)
-    fpath = os.path.join(folder, "frames.jsonl")
-    resume = False
-    if os.path.isfile(gpath) and not overwrite:
-        with open(gpath) as f:
-            old = json.load(f)
-        defaults = GenerateConfig(1, 1).stable()  # settings added later default to their old behaviour
-        if {**defaults, **dict(old.get("config") or {}), "steps": (old.get("config") or {}).get("steps")} \
-                != json.loads(json.dumps(cfg.stable())):
-            raise ValueError(f"{folder} holds a generation with other settings {old.get('config')}; "
-                             f"use another --out or --overwrite")
-        resume = True
-    elif os.path.exists(fpath) and not overwrite:
-        raise ValueError(f"{folder} already holds a dataset not made by `dataset generate`; "
-                         f"use another --out or --overwrite")
+    from common.dataset import DatasetWriter, resume_generation
+    # settings added later default to their old behaviour
+    resume, done = resume_generation(folder, GENERATE_FILE, cfg.stable(), cfg.sequences, cfg.steps,
+                                     "dataset generate", overwrite, GenerateConfig(1, 1).stable())
     source = (f"needletrack dataset generate (MuJoCo {mujoco.__version__} built-in suturing scene): "
               f"randomise={cfg.randomise} seed={cfg.seed} steps={cfg.steps}")
     meta = scene_meta(cfg.width, cfg.height, source)
-    done = 0
-    if resume:
-        n = truncate_torn_tail(fpath)
-        done = min(n // cfg.steps, cfg.sequences)
-        truncate_frames(fpath, done * cfg.steps)
-        if done:  # the last kept line must be the end of sequence done-1
-            with open(fpath) as f:
-                last = json.loads(f.read().splitlines()[-1])
-            fr = parse_frame(last)
-            if fr.sequence != done - 1 or fr.index != done * cfg.steps - 1:
-                raise ValueError(f"{fpath}: cannot resume, the last frame is not the end of sequence {done - 1}")
-    with open(gpath, "w") as f:
-        json.dump({"config": cfg.stable(), "sequences": cfg.sequences}, f, indent=1)
     writer = DatasetWriter(folder, meta, cfg.image_format, cfg.jpeg_quality, resume=resume)
     todo = list(range(done, cfg.sequences))
     bar = tqdm(total=cfg.sequences * cfg.steps, initial=done * cfg.steps, unit="frame",
