@@ -51,7 +51,7 @@ DEFAULT_TRAIN = {
     "stages": ["global", "crop"],   # which networks to train (the other keeps its weights)
     "hard_negatives": 0,      # >0: mine up to this many stage-1 false proposals per image
                               # (instrument jaws, thread...) with the weights of that moment
-    "hard_mining_at": 0.0,    # when to mine: fraction of the schedule (0 = before the first step)
+    "hard_mining_at": 0.0,    # when to mine: fraction(s) of the schedule (0 = before the first step)
     "hard_mining_images": 0,  # mine on at most this many images (a seeded random subset); 0 = all
     "hard_prob": 0.2,         # fraction of stage-2 samples drawn from the mined hard negatives
 }
@@ -354,8 +354,11 @@ def train(data_dirs, out, config_path=None, log=print, progress=True, init=None)
         except (OSError, RuntimeError, KeyError, AttributeError) as exc:
             raise ValueError(f"--init {init}: cannot load ({exc})") from None
         log(f"starting from the weights of {init}")
-    hard, mined = [], False
-    mine_at = float(tcfg["hard_mining_at"]) if int(tcfg["hard_negatives"]) > 0 else None
+    hard = []
+    at = tcfg["hard_mining_at"]
+    # each mining adds the current weights' false proposals to the earlier ones
+    mine_at = sorted(float(a) for a in (at if isinstance(at, list) else [at])) \
+        if int(tcfg["hard_negatives"]) > 0 else []
 
     def mine() -> list:
         found = mine_hard_negatives(model, data_dirs, int(tcfg["hard_negatives"]), progress,
@@ -416,9 +419,10 @@ def train(data_dirs, out, config_path=None, log=print, progress=True, init=None)
             frac = progress_of(step_count, elapsed + time.time() - t0)
             if frac >= 1.0:
                 break
-            if mine_at is not None and not mined and frac >= mine_at:
+            if mine_at and frac >= mine_at[0]:
+                mine_at = [a for a in mine_at if a > frac]
                 t_mine = time.time()
-                hard, mined = mine(), True
+                hard = hard + mine()
                 t0 += time.time() - t_mine   # mining is not training time
             idx = order[step * int(tcfg["batch"]):(step + 1) * int(tcfg["batch"])]
             gidx = rng.integers(0, len(tr), int(tcfg["global_batch"]))

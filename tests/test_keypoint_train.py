@@ -50,10 +50,10 @@ def test_short_training_lowers_the_loss_and_resumes(tiny_data, tmp_path):
     assert (out / "model.pt").is_file() and (out / "checkpoint.pt").is_file()
     assert (out / "curves.png").is_file()
     # resume: the same command with more epochs continues after epoch 1
-    last = train([tiny_data], out, _config(tmp_path, 3, hard_negatives=1, hard_mining_at=0.5,
+    last = train([tiny_data], out, _config(tmp_path, 3, hard_negatives=1, hard_mining_at=[0.5, 0.8],
                                            hard_mining_images=6), log=logs.append, progress=False)
     assert any("resuming" in line for line in logs)
-    assert sum("hard negatives mined" in line for line in logs) == 1   # once, half-way
+    assert sum("hard negatives mined" in line for line in logs) == 2   # half-way, then at 80%
     metrics = [json.loads(l) for l in (out / "metrics.jsonl").read_text().splitlines()]
     assert [m["epoch"] for m in metrics] == [1, 2, 3] and last["epoch"] == 3
     assert "gtbox_mean_px" in metrics[-1]["val"]
