@@ -9,9 +9,10 @@ and centreline points used; ``covariance`` over [rotation vector (rad), translat
 ECM frame; ``ambiguous`` when competing solutions fit nearly as well or the arc is seen
 edge-on, and then the covariance spans them).
 
-Per frame: the joint stereo PnP (``common.pnp.pnp_joint``, from the IPPE starts) on the
-keypoints gives the starting poses (every local minimum it finds); ``DenseRefiner.refine`` fits them, and their mirror
-images, to keypoints and centrelines together and keeps the best. A camera whose detector
+Per frame: the minima of the joint stereo PnP on the keypoints, from the IPPE starts and
+stopped early (``common.pnp.refine_starts``), are the starting poses; ``DenseRefiner.refine``
+fits them, and their mirror images, to keypoints and centrelines of both cameras together and
+keeps the best. A camera whose detector
 found nothing is left out. Frames without any centreline are refined on the keypoints alone
 (counted ``keypoints_only``).
 
@@ -29,7 +30,7 @@ import dataclasses
 from common.messages import Calibration, EcmPose, Keypoints
 from common.node import run
 from common.observations import NoPose
-from common.pnp import pnp_joint
+from common.pnp import refine_starts
 from common.pose_node import StereoPoseNode
 from common.refine import ArcObservation, DenseRefiner, RefineConfig, RefineError
 
@@ -76,8 +77,7 @@ class RefineNode(StereoPoseNode):
     def on_pair(self, left: Keypoints, right: Keypoints):
         uv, sc = self.stereo_arrays(left, right)
         try:
-            pj = pnp_joint(uv, self.rig, self.model_points, sc, self.min_score,
-                           outlier_px=self.outlier_px, epnp_starts=False)
+            starts = refine_starts(uv, self.rig, self.model_points, sc, self.min_score, self.outlier_px)
         except NoPose as exc:
             self.no_pose(exc.reason, left.seq, exc.detail)
             return
@@ -85,7 +85,7 @@ class RefineNode(StereoPoseNode):
         if not any(o.centreline is not None and len(o.centreline) for o in obs.values()):
             self.count("keypoints_only")
         try:
-            res = self.refiner.refine(obs, [c.T_ecm_needle for c in pj.candidates])
+            res = self.refiner.refine(obs, starts)
         except RefineError as exc:
             self.no_pose(exc.reason, left.seq, str(exc))
             return

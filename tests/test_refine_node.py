@@ -8,7 +8,7 @@ from common.ecm_kinematics import EcmArm
 from common.messages import Calibration, EcmPose, Keypoints, PoseEstimate, decode, encode
 from common.needle import NeedleModel
 from common.oracle import Oracle, random_needle_pose
-from common.pnp import pnp_joint
+from common.pnp import refine_starts
 from common.refine import ArcObservation, DenseRefiner, RefineConfig
 from common.transforms import make_T, pose_error, rotvec_to_R
 from nodes.refine import RefineNode, refine_config
@@ -44,9 +44,9 @@ def oracle_frames(n, noise_px=0.5, seed=3):
 def library(left, right, config=RefineConfig()):
     uv = {k.camera: k.uv for k in (left, right)}
     sc = {k.camera: k.scores for k in (left, right)}
-    pj = pnp_joint(uv, RIG, MODEL.keypoints(), sc, config.min_score, outlier_px=10.0)
+    starts = refine_starts(uv, RIG, MODEL.keypoints(), sc, config.min_score)
     obs = {k.camera: ArcObservation.from_keypoints(k) for k in (left, right)}
-    return DenseRefiner(RIG, MODEL, config).refine(obs, [c.T_ecm_needle for c in pj.candidates])
+    return DenseRefiner(RIG, MODEL, config).refine(obs, starts)
 
 
 def poses(node):
@@ -160,10 +160,9 @@ def test_refine_node_in_a_launched_graph_matches_the_library(run_graph):
             continue
         uv = {c: k.uv for c, k in pair.items()}
         sc = {c: k.scores for c, k in pair.items()}
-        pj = pnp_joint(uv, rig, model.keypoints(), sc, 0.5, outlier_px=10.0)
+        starts = refine_starts(uv, rig, model.keypoints(), sc, 0.5)
         obs = {c: ArcObservation.from_keypoints(k) for c, k in pair.items()}
-        ref = DenseRefiner(rig, model, RefineConfig(min_score=0.5)).refine(
-            obs, [c.T_ecm_needle for c in pj.candidates])
+        ref = DenseRefiner(rig, model, RefineConfig(min_score=0.5)).refine(obs, starts)
         assert isinstance(p, PoseEstimate) and p.method == "refined"
         assert np.allclose(p.T_ecm_needle, ref.T_ecm_needle, atol=1e-12)
         assert np.allclose(p.covariance, ref.covariance)
