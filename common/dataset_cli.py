@@ -27,7 +27,8 @@ def _parser() -> argparse.ArgumentParser:
     sub = p.add_subparsers(dest="cmd", required=True)
     g = sub.add_parser("generate", help="render a dataset folder from the built-in MuJoCo scene",
                        description="N needle poses (sequences), each seen from K endoscope poses (steps); "
-                                   "between steps one random ECM joint (yaw, pitch or roll) moves 0.05 rad. "
+                                   "between steps one random ECM joint (yaw, pitch or roll) moves 0.05 rad "
+                                   "(--step-rad; a small step makes each sequence a video for the live bench). "
                                    "Resumable: rerun the same command after an interruption. "
                                    f"Standard test set: {STANDARD_TEST_SET}")
     _generate_args(g)
@@ -36,6 +37,9 @@ def _parser() -> argparse.ArgumentParser:
     g.add_argument("--jobs", type=int, default=2, help="render processes (default 2)")
     g.add_argument("--msaa", type=int, default=4, choices=[0, 2, 4, 8],
                    help="anti-aliasing samples (default 4; 0 renders ~2.5x faster with jagged thin wires)")
+    g.add_argument("--step-rad", type=float, default=0.05,
+                   help="ECM joint step between a sequence's steps, rad (default 0.05, the paper's "
+                        "multi-view protocol; e.g. 0.003 for a slowly moving endoscope video)")
 
     a = sub.add_parser("generate-alt", help="render a dataset folder with the second, independent renderer",
                        description="Like generate, but rendered by common/alt_render.py (numpy/OpenCV z-buffer "
@@ -103,7 +107,7 @@ def _generate(args) -> int:
     import common.sim_render  # noqa: F401  (selects the headless GL backend first)
     from common.sim_generate import GenerateConfig, generate
     cfg = GenerateConfig(args.sequences, args.steps, args.seed, args.randomise, args.width, args.height,
-                         args.format, args.quality, args.msaa)
+                         args.format, args.quality, args.msaa, args.step_rad)
     t0 = time.time()
     n = generate(args.out, cfg, jobs=args.jobs, progress=not args.quiet, overwrite=args.overwrite)
     print(f"{args.out}: {n} frames ({args.sequences} sequences x {args.steps} steps, "

@@ -28,6 +28,7 @@ class GenerateConfig:
     image_format: str = "jpg"
     jpeg_quality: int = 95
     msaa: int = 4
+    step_rad: float = 0.05       # ECM joint step between a sequence's endoscope poses (the paper's)
 
     def stable(self) -> dict:
         """What must match for a folder to be resumed or extended."""
@@ -51,7 +52,8 @@ def render_sequence(renderer, cfg: GenerateConfig, sequence: int) -> list[tuple[
     meta = scene_meta(cfg.width, cfg.height, "")
     preset = get_preset(cfg.randomise)
     tex = 1024
-    plan = plan_sequence(cfg.seed, sequence, cfg.steps, preset, meta.rig, meta.needle, meta.arm, tex, cfg.msaa)
+    plan = plan_sequence(cfg.seed, sequence, cfg.steps, preset, meta.rig, meta.needle, meta.arm, tex, cfg.msaa,
+                         cfg.step_rad)
     renderer.load(plan.spec)
     rng = np.random.default_rng(plan.image_seed)
     out = []
@@ -98,6 +100,8 @@ def _work(sequence: int) -> list[dict]:
 def generate(folder: str, cfg: GenerateConfig, jobs: int = 2, progress: bool = True,
              overwrite: bool = False) -> int:
     """Generate (or resume, or extend) a dataset folder; returns the number of frames in it."""
+    if not (np.isfinite(cfg.step_rad) and 0.0 <= cfg.step_rad <= 0.5):
+        raise ValueError(f"dataset generate: --step-rad must be in [0, 0.5] rad, got {cfg.step_rad}")
     import multiprocessing as mp
 
     import mujoco
@@ -108,7 +112,7 @@ def generate(folder: str, cfg: GenerateConfig, jobs: int = 2, progress: bool = T
     resume, done = resume_generation(folder, GENERATE_FILE, cfg.stable(), cfg.sequences, cfg.steps,
                                      "dataset generate", overwrite, GenerateConfig(1, 1).stable())
     source = (f"needletrack dataset generate (MuJoCo {mujoco.__version__} built-in suturing scene): "
-              f"randomise={cfg.randomise} seed={cfg.seed} steps={cfg.steps}")
+              f"randomise={cfg.randomise} seed={cfg.seed} steps={cfg.steps} step_rad={cfg.step_rad:g}")
     meta = scene_meta(cfg.width, cfg.height, source)
     writer = DatasetWriter(folder, meta, cfg.image_format, cfg.jpeg_quality, resume=resume)
     todo = list(range(done, cfg.sequences))

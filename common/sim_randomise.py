@@ -241,18 +241,20 @@ def sample_ecm(rng: np.random.Generator, arm: EcmArm, rig: StereoRig, needle: Ne
 
 
 def multiview_joints(rng: np.random.Generator, arm: EcmArm, rig: StereoRig, needle: NeedleModel,
-                     T_world_needle: np.ndarray, q0, steps: int) -> list[np.ndarray]:
+                     T_world_needle: np.ndarray, q0, steps: int,
+                     step_rad: float = MULTIVIEW_STEP_RAD) -> list[np.ndarray]:
     """The paper's protocol: between steps one random revolute joint (yaw, pitch or roll) moves
-    by +-0.05 rad; the sign that keeps the needle inside the images is preferred."""
+    by +-``step_rad`` (0.05 rad); the sign that keeps the needle inside the images is preferred.
+    A small ``step_rad`` (e.g. 0.003) makes a sequence a video of a slowly moving endoscope."""
     qs = [np.asarray(q0, dtype=float)]
     for _ in range(steps - 1):
         j = int(rng.choice(REVOLUTE_JOINTS))
         sign = 1.0 if rng.random() < 0.5 else -1.0
         q = qs[-1].copy()
-        q[j] += sign * MULTIVIEW_STEP_RAD
+        q[j] += sign * step_rad
         if not keypoints_in_view(rig, needle, T_world_needle, arm.T_world_ecm(q), margin=0.05):
             q2 = qs[-1].copy()
-            q2[j] -= sign * MULTIVIEW_STEP_RAD
+            q2[j] -= sign * step_rad
             if keypoints_in_view(rig, needle, T_world_needle, arm.T_world_ecm(q2), margin=0.05):
                 q = q2
         qs.append(q)
@@ -271,7 +273,8 @@ class SequencePlan:
 
 
 def plan_sequence(seed: int, sequence: int, steps: int, preset: Preset, rig: StereoRig,
-                  needle: NeedleModel, arm: EcmArm, texture_size: int = 1024, msaa: int = 4) -> SequencePlan:
+                  needle: NeedleModel, arm: EcmArm, texture_size: int = 1024, msaa: int = 4,
+                  step_rad: float = MULTIVIEW_STEP_RAD) -> SequencePlan:
     """Deterministic plan of sequence ``sequence`` for a run seeded ``seed``."""
     rng = np.random.default_rng([seed, sequence])
     for _ in range(100):
@@ -284,7 +287,7 @@ def plan_sequence(seed: int, sequence: int, steps: int, preset: Preset, rig: Ste
         inst = sample_instruments(rng, T, needle, held, preset)
         spec = SceneSpec(rig=rig, needle=needle, T_world_needle=T, appearance=ap, instruments=inst,
                          thread_seed=int(rng.integers(1 << 30)), texture_size=texture_size, msaa=msaa)
-        qs = multiview_joints(rng, arm, rig, needle, T, q0, steps)
+        qs = multiview_joints(rng, arm, rig, needle, T, q0, steps, step_rad)
         return SequencePlan(spec, qs, int(rng.integers(1 << 30)))
     raise RuntimeError(f"sim: could not place the needle in view for sequence {sequence}")
 

@@ -49,6 +49,19 @@ def test_planned_sequences_are_physical_and_in_view(preset):
         assert held_seen > 0
 
 
+def test_a_small_step_makes_a_video_of_the_same_scene():
+    rig, needle, arm = StereoRig.default(), NeedleModel(), default_arm()
+    base = plan_sequence(5, 2, 30, PRESETS["test"], rig, needle, arm)
+    video = plan_sequence(5, 2, 30, PRESETS["test"], rig, needle, arm, step_rad=0.003)
+    assert np.allclose(video.spec.T_world_needle, base.spec.T_world_needle)
+    assert np.allclose(video.joints[0], base.joints[0])
+    for qa, qb in zip(video.joints, video.joints[1:]):
+        dq = np.abs(qb - qa)
+        assert np.sum(dq > 1e-12) == 1 and np.isclose(dq.max(), 0.003)
+    with pytest.raises(ValueError, match="step-rad"):
+        generate("/nonexistent/never-made", GenerateConfig(1, 2, step_rad=-0.1), jobs=1, progress=False)
+
+
 def test_rotate_with_keypoints_maps_pixels_along():
     img = np.zeros((90, 160, 3), np.uint8)
     img[30, 100] = 255
