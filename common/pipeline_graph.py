@@ -47,7 +47,7 @@ def pipeline_graph(dataset: str, *, detector: str = "learned", detector_params: 
                    refine: Optional[bool] = None, loop: bool = False, count: int = 0,
                    sinks: Optional[list] = None, lossless: bool = False,
                    split_detector: bool = False, methods=None,
-                   start_delay_s: float = 1.0) -> dict:
+                   start_delay_s: float = 1.0, decode: bool = False) -> dict:
     """The graph document of the whole pipeline on a replayed dataset folder.
 
     ``refine``: include the refinement node and a fusion over refined poses (default: when
@@ -61,7 +61,8 @@ def pipeline_graph(dataset: str, *, detector: str = "learned", detector_params: 
     ``lossless``: every pipeline node runs through ``lossless_command``: each of its inputs
     queues every message instead of keeping the newest (an evaluation scores every frame,
     whatever the machine's load), and the source waits ``start_delay_s`` after joining the
-    graph before its first frame, so that its links to every consumer are up.
+    graph before its first frame, so that its links to every consumer are up. ``decode``: the
+    replay decodes the images once at start-up and sends them raw, as a live camera would.
     """
     if refine is None:
         refine = has_module("refine")
@@ -81,7 +82,7 @@ def pipeline_graph(dataset: str, *, detector: str = "learned", detector_params: 
     nodes = [
         {"id": SOURCE, "module": "replay",
          "params": {"path": str(Path(dataset).resolve()), "rate": rate, "loop": bool(loop),
-                    "count": int(count)},
+                    "count": int(count), "decode": bool(decode)},
          "outputs": ["left", "right", "joints", "truth", "calib", "eos"]}]
     if split_detector:   # one process per camera: the two images are detected in parallel
         for cam in ("left", "right"):

@@ -8,8 +8,13 @@ frame, then once a second), and ``eos`` (``EndOfStream``) after the last frame w
 
 params: ``path`` (the folder, required), ``rate`` (``recorded``: the folder's own timing;
 ``max``: as fast as possible; or a number in Hz; default recorded), ``loop`` (false),
-``start`` (first frame index, 0), ``count`` (frames to play; 0 = all).
-A frame whose image file cannot be read is logged, counted (``image_errors``) and skipped.
+``start`` (first frame index, 0), ``count`` (frames to play; 0 = all), ``decode`` (false:
+send the files' bytes; true: decode every frame once at start-up, hold the images in memory
+(6.2 MB per 1080p image) and send them raw (``bgr8``), as a live capture card delivers them:
+the consumers then pay no image decoding, which is the storage format's cost, not the
+pipeline's; at most ``MAX_DECODED_BYTES``, use ``count`` for longer folders).
+A frame whose image file cannot be read (or decoded) is logged, counted (``image_errors``)
+and skipped.
 """
 import os
 import time
@@ -21,6 +26,7 @@ from common.camera_source import CameraSourceNode
 from common.node import run
 
 CAMS = ("left", "right")
+MAX_DECODED_BYTES = 8 << 30   # decode=true holds every image in memory: refuse more than 8 GiB
 
 
 def parse_rate(value) -> float | None:
@@ -73,6 +79,7 @@ class ReplayNode(CameraSourceNode):
         self.calib = Calibration(stamp_ns=0, image_size=np.array(meta.image_size), cameras=meta.rig.to_dict(),
                                  needle=meta.needle.to_dict(), ecm=None if meta.arm is None else meta.arm.to_dict(),
                                  source=f"replay {self.ds.path}" + (f" ({meta.source})" if meta.source else ""))
+        self.decoded = self._decode_all() if p.get("decode", False) else None
         self.pos = 0
         self.loops = 0
         self.published_frames = 0
@@ -80,6 +87,50 @@ class ReplayNode(CameraSourceNode):
         self.t0_wall = None
         self.t0_rec = None
         self.next_t = None
+
+    def _decode_all(self) -> list:
+        """Per frame: {camera: raw bgr8 bytes}, or None for a frame whose images fail."""
+        import cv2
+        w, h = self.ds.meta.image_size
+        need = len(self.frames) * len(CAMS) * w * h * 3
+        if need > MAX_DECODED_BYTES:
+            raise ValueError(f"replay: decode=true would hold {need / 2**30:.1f} GiB of images "
+                             f"({len(self.frames)} frames); play fewer with 'count'")
+        out = []
+        for fr in self.frames:
+            imgs = {}
+            for cam in CAMS:
+                img = cv2.imread(os.path.join(self.ds.path, fr.image(cam)), cv2.IMREAD_COLOR)
+                if img is None or img.shape[:2] != (h, w):
+                    self.count("image_errors")
+                    self.log.error("replay: frames.jsonl:%s: cannot decode the %s image (or not %dx%d)",
+                                   fr.line, cam, w, h)
+                    imgs = None
+                    break
+                imgs[cam] = img.tobytes()
+            out.append(imgs)
+        self.log.info("replay: %d frames decoded into memory", sum(d is not None for d in out))
+        return out
+
+    def _images(self, fr, seq: int, stamp: int) -> list | None:
+        """The frame's two CameraImage messages, or None when its images cannot be read."""
+        w, h = self.ds.meta.image_size
+        if self.decoded is not None:
+            raw = self.decoded[self.pos]
+            return None if raw is None else [CameraImage(c, seq, stamp, w, h, "bgr8", raw[c]) for c in CAMS]
+        msgs = []
+        for cam in CAMS:
+            rel = fr.image(cam)
+            try:
+                with open(os.path.join(self.ds.path, rel), "rb") as f:
+                    data = f.read()
+            except OSError as exc:
+                self.count("image_errors")
+                self.log.error("replay: frames.jsonl:%s: cannot read image: %s", fr.line, exc)
+                return None
+            enc = "png" if rel.lower().endswith(".png") else "jpeg"
+            msgs.append(CameraImage(cam, seq, stamp, w, h, enc, data))
+        return msgs
 
     def _pace(self, fr) -> None:
         now = time.monotonic()
@@ -112,18 +163,8 @@ class ReplayNode(CameraSourceNode):
         self._pace(fr)
         seq = fr.index + self.loops * len(self.ds.frames)
         stamp = time.time_ns()
-        w, h = self.ds.meta.image_size
-        msgs = []
-        try:
-            for cam in CAMS:
-                rel = fr.image(cam)
-                with open(os.path.join(self.ds.path, rel), "rb") as f:
-                    data = f.read()
-                enc = "png" if rel.lower().endswith(".png") else "jpeg"
-                msgs.append(CameraImage(cam, seq, stamp, w, h, enc, data))
-        except OSError as exc:
-            self.count("image_errors")
-            self.log.error("replay: frames.jsonl:%s: cannot read image: %s", fr.line, exc)
+        msgs = self._images(fr, seq, stamp)
+        if msgs is None:     # counted and logged
             self.pos += 1
             return True
         for cam, msg in zip(CAMS, msgs):

@@ -3,6 +3,7 @@ import common.sim_render  # noqa: F401  (headless GL before mujoco)
 
 import os
 
+import cv2
 import numpy as np
 import pytest
 
@@ -86,6 +87,22 @@ def test_replay_skips_an_unreadable_frame(tmp_path):
     assert node.counters["image_errors"] == 1
     assert [m.seq for o, m in node.published if o == "left"] == [0, 2]
     assert node.published[-1][1].frames == 2
+
+
+def test_replay_decode_sends_raw_images_and_skips_a_broken_one(tmp_path, monkeypatch):
+    _dataset(tmp_path, 3)
+    (tmp_path / "images" / "left" / "000001.png").write_bytes(b"not a png")
+    node = ReplayNode.offline(params={"path": str(tmp_path), "rate": 1000, "loop": True, "decode": True})
+    assert node.counters["image_errors"] == 1      # found at start-up, logged and counted once
+    assert not _run(node, 6)
+    frames = [_roundtrip(m) for o, m in node.published if o == "left"]
+    assert [m.seq for m in frames] == [0, 2, 3, 5]  # frame 1 skipped in every loop
+    want = cv2.imread(str(tmp_path / "images" / "left" / "000002.png"), cv2.IMREAD_COLOR)
+    assert all(m.encoding == "bgr8" for m in frames) and np.array_equal(frames[1].to_bgr(), want)
+    import nodes.replay
+    monkeypatch.setattr(nodes.replay, "MAX_DECODED_BYTES", 10)
+    with pytest.raises(ValueError, match="count"):
+        ReplayNode.offline(params={"path": str(tmp_path), "decode": True})
 
 
 def test_replay_params_are_checked(tmp_path):
