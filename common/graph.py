@@ -426,6 +426,22 @@ def parse_param(text: str) -> tuple:
 
 # ------------------------------------------------------------------ Zenoh configuration
 
+def close_session(session, declarations: list) -> None:
+    """Undeclare ``declarations`` (subscribers, queryables, tokens) and close ``session``, best
+    effort: at shutdown the session may already be gone, and nothing is left to report to."""
+    for d in declarations:
+        try:
+            d.undeclare()
+        except Exception:
+            pass
+    declarations.clear()
+    if session is not None:
+        try:
+            session.close()
+        except Exception:
+            pass
+
+
 def zenoh_config(z: ZenohSettings, role: str = "node", listen: Optional[list] = None):
     """A ``zenoh.Config`` for a graph member.
 

@@ -31,7 +31,8 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Optional
 
-from common.graph import REPO_ROOT, Graph, GraphError, NodeSpec, ctl_key, graph_from_dict, launcher_key, zenoh_config
+from common.graph import (REPO_ROOT, Graph, GraphError, NodeSpec, close_session, ctl_key, graph_from_dict,
+                          launcher_key, zenoh_config)
 
 STOP_GRACE_S = 5.0
 BACKOFF_MIN_S, BACKOFF_MAX_S, BACKOFF_RESET_S = 0.5, 10.0, 10.0
@@ -405,14 +406,8 @@ class Launcher:
             slot = self.slots.get(p.spec.id)
             if slot is not None and slot.proc is p:
                 slot.last_status = p.popen.returncode
-        for d in self._decl:
-            try:
-                d.undeclare()
-            except Exception:
-                pass
-        if self.session is not None:
-            self.session.close()
-            self.session = None
+        close_session(self.session, self._decl)
+        self.session = None
         if self._own_run_dir:
             shutil.rmtree(self.run_dir, ignore_errors=True)
         bad = {nid: s.last_status for nid, s in self.slots.items()

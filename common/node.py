@@ -561,16 +561,8 @@ class Runtime:
         return self.exit_status
 
     def close(self) -> None:
-        for d in self._decl:
-            try:
-                d.undeclare()
-            except Exception:
-                pass
-        if self.session is not None:
-            try:
-                self.session.close()
-            except Exception:
-                pass
+        from common.graph import close_session
+        close_session(self.session, self._decl)
 
 
 # ====================================================================== entry points
