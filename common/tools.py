@@ -30,6 +30,15 @@ def _load(path: str):
     return load_graph(p)
 
 
+def _load_or_report(path: str):
+    """The graph, or None after printing why it cannot be loaded (the caller exits 2)."""
+    try:
+        return _load(path)
+    except GraphError as exc:
+        print(str(exc), file=sys.stderr)
+        return None
+
+
 def open_session(graph, wait_s: float = 2.0):
     """A Zenoh session joined to ``graph`` (connects to its listen endpoints); waits up to
     ``wait_s`` for a first peer so that queries and liveliness see the graph at once."""
@@ -130,10 +139,8 @@ def ps_main(argv: list) -> int:
     _graph_arg(ap)
     ap.add_argument("--json", action="store_true", help="print JSON rows")
     args = ap.parse_args(argv)
-    try:
-        graph = _load(args.graph)
-    except GraphError as exc:
-        print(str(exc), file=sys.stderr)
+    graph = _load_or_report(args.graph)
+    if graph is None:
         return 2
     session = open_session(graph)
     try:
@@ -187,10 +194,8 @@ def echo_main(argv: list) -> int:
     ap.add_argument("--timeout", type=float, default=0, help="exit after this many seconds")
     args = ap.parse_args(argv)
     from common.messages import MessageError, decode
-    try:
-        graph = _load(args.graph)
-    except GraphError as exc:
-        print(str(exc), file=sys.stderr)
+    graph = _load_or_report(args.graph)
+    if graph is None:
         return 2
     key = graph.resolve_key(args.key)
     done = threading.Event()
@@ -257,10 +262,8 @@ def hz_main(argv: list) -> int:
     ap.add_argument("--duration", type=float, default=0, help="exit after this many seconds")
     ap.add_argument("--window", type=int, default=300, help="messages in the sliding window")
     args = ap.parse_args(argv)
-    try:
-        graph = _load(args.graph)
-    except GraphError as exc:
-        print(str(exc), file=sys.stderr)
+    graph = _load_or_report(args.graph)
+    if graph is None:
         return 2
     meter = RateMeter(args.window)
     session = open_session(graph)
@@ -298,12 +301,11 @@ def swap_main(argv: list) -> int:
     ap.add_argument("--param", action="append", default=[], metavar="K=V", help="set a param (YAML value); repeatable")
     ap.add_argument("--timeout", type=float, default=150.0)
     args = ap.parse_args(argv)
-    try:
-        graph = _load(args.graph)
-        params = dict(parse_param(p) for p in args.param)
-    except GraphError as exc:
-        print(str(exc), file=sys.stderr)
+    graph = _load_or_report(args.graph)
+    if graph is None:
         return 2
+    try:
+        params = dict(parse_param(p) for p in args.param)
     except ValueError as exc:
         print(f"needletrack swap: {exc}", file=sys.stderr)
         return 2
