@@ -4,8 +4,8 @@ Random needle poses 10-25 cm in front of the built-in endoscope (the test protoc
 view angle unless ``--max-tilt-deg`` says otherwise), observed by the oracle detector: keypoints
 with Gaussian noise and the projected centreline with noise along its normal. For each
 keypoint noise level, every frame goes through what the ``refine`` node runs: the early-stopped
-joint PnP minima (``refine_starts``) and ``DenseRefiner.refine`` from them; the keypoint-only method ``pnp_joint`` (as the ``epnp_joint`` node runs
-it) is scored beside. Prints per noise level: position / orientation error (mean, median) of
+joint PnP minima (``refine_starts``) and ``DenseRefiner.refine`` from them; the keypoint-only
+method ``pnp_joint`` (as the ``epnp_joint`` node runs it) is scored beside. Prints per noise level: position / orientation error (mean, median) of
 both, the share flagged ambiguous, how honest the covariance is (NEES: chi-square(6) has
 median 5.35), the refinement's time per stereo frame (wall clock and CPU, p50 / p90), the CPU
 time of the starts, and the two together: the node's CPU time per
@@ -38,7 +38,7 @@ def run(noise_levels, frames: int = 100, curve_ratio: float = 0.5, seed: int = 0
     for noise in noise_levels:
         rng = np.random.default_rng(seed)
         oracle = Oracle(noise_px=noise, centreline_noise_px=curve_ratio * noise, seed=seed)
-        err, err_kp, amb, nees, wall, cpu, pnp, node, failed = [], [], [], [], [], [], [], [], 0
+        err, err_kp, amb, nees, wall, cpu, starts_cpu, node, failed = [], [], [], [], [], [], [], [], 0
         for seq in tqdm(range(frames), desc=f"noise {noise:g} px", disable=not progress, leave=False):
             T = random_needle_pose(rng, rig, model, max_tilt_rad=np.deg2rad(max_tilt_deg))
             obs, uv, sc = {}, {}, {}
@@ -53,8 +53,8 @@ def run(noise_levels, frames: int = 100, curve_ratio: float = 0.5, seed: int = 0
                 res = refiner.refine(obs, starts)
                 wall.append(time.perf_counter() - w0)
                 cpu.append(time.process_time() - c0)
-                pnp.append(c0 - p0)
-                node.append(cpu[-1] + pnp[-1])
+                starts_cpu.append(c0 - p0)
+                node.append(cpu[-1] + starts_cpu[-1])
                 pj = pnp_joint(uv, rig, model.keypoints(), sc, refiner.config.min_score, outlier_px=10.0)
             except (NoPose, RefineError):
                 failed += 1
@@ -77,7 +77,7 @@ def run(noise_levels, frames: int = 100, curve_ratio: float = 0.5, seed: int = 0
             "nees_over_99pct": float(np.mean(np.array(nees) > 16.81)) if nees else float("nan"),
             "wall_ms": {"p50": ms(wall, 50), "p90": ms(wall, 90), "max": ms(wall, 100)},
             "cpu_ms": {"p50": ms(cpu, 50), "p90": ms(cpu, 90), "max": ms(cpu, 100)},
-            "starts_cpu_ms": {"p50": ms(pnp, 50), "p90": ms(pnp, 90)},
+            "starts_cpu_ms": {"p50": ms(starts_cpu, 50), "p90": ms(starts_cpu, 90)},
             "node_cpu_ms": {"p50": ms(node, 50), "p90": ms(node, 90), "mean": float(np.mean(node) * 1e3) if node else float("nan")},
         })
     return rows
