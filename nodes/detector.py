@@ -32,6 +32,7 @@ from __future__ import annotations
 
 import time
 
+from common.frame_stride import FrameStride
 from common.keypoint_backends import load_backend
 from common.messages import CameraImage, Calibration, GroundTruth, Keypoints, MessageError
 from common.node import Node, run
@@ -51,13 +52,11 @@ class DetectorNode(Node):
         self.max_wait = int(params.pop("max_wait", 30))
         stride = params.pop("stride", "auto")
         one_camera = self.wired("left") != self.wired("right")
-        self.auto_stride = stride == "auto" and one_camera and not set(self.KEEP_ALL) & {"left", "right"}
-        self.stride = 1 if stride == "auto" else int(stride)
-        if self.stride < 1 or self.stride & (self.stride - 1):
-            raise ValueError(f"detector: params.stride must be 'auto' or a power of two, got {stride!r}")
-        self._last_frame = None           # (seq, stamp_ns) of the newest image seen
-        self._period_s = None             # frame interval, s (running mean)
-        self._busy_s = None               # wall time of one detection, s (running mean)
+        try:
+            self.frames = FrameStride(1 if stride == "auto" else int(stride), adaptive=stride == "auto"
+                                      and one_camera and not set(self.KEEP_ALL) & {"left", "right"})
+        except ValueError:
+            raise ValueError(f"detector: params.stride must be 'auto' or a power of two, got {stride!r}") from None
         self.clock = time.perf_counter
         self.backend = load_backend(self.backend_name, params)
         self.calib: Calibration | None = None
@@ -87,8 +86,8 @@ class DetectorNode(Node):
     # ---------------------------------------------------------------- internals
     def _image(self, msg: CameraImage):
         self.newest_seq = max(self.newest_seq, msg.seq)
-        self._frame_period(msg)
-        if msg.seq % self.stride:
+        self.frames.frame(msg.seq, msg.stamp_ns)
+        if not self.frames.takes(msg.seq):
             self.count("stride_skipped")
             return
         if self.calib is None and msg.camera not in self.KEEP_ALL:
@@ -121,22 +120,13 @@ class DetectorNode(Node):
                 keep.append(seq)
         self.waiting_truths = keep
 
-    def _frame_period(self, msg: CameraImage) -> None:
-        last, self._last_frame = self._last_frame, (msg.seq, msg.stamp_ns)
-        if last is not None and msg.seq > last[0] and msg.stamp_ns > last[1]:
-            p = (msg.stamp_ns - last[1]) * 1e-9 / (msg.seq - last[0])
-            self._period_s = p if self._period_s is None else 0.9 * self._period_s + 0.1 * p
+    @property
+    def stride(self) -> int:
+        return self.frames.stride
 
-    def _adapt_stride(self, busy_s: float) -> None:
-        """The smallest power-of-two stride whose frame intervals hold a detection."""
-        self._busy_s = busy_s if self._busy_s is None else 0.8 * self._busy_s + 0.2 * busy_s
-        if not self._period_s:
-            return
-        need = self._busy_s / self._period_s           # frame intervals per detection
-        while self.stride < 64 and need > self.stride:
-            self.stride *= 2
-        while self.stride > 1 and need < 0.6 * (self.stride // 2):
-            self.stride //= 2
+    @property
+    def auto_stride(self) -> bool:
+        return self.frames.adaptive
 
     def _run(self, msg: CameraImage):
         if self.calib is None:
@@ -144,8 +134,7 @@ class DetectorNode(Node):
             return
         t0 = self.clock()
         self._detect_image(msg)
-        if self.auto_stride:
-            self._adapt_stride(self.clock() - t0)
+        self.frames.detected(self.clock() - t0)
 
     def _detect_image(self, msg: CameraImage):
         image = None
