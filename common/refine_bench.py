@@ -9,7 +9,11 @@ method ``pnp_joint`` (as the ``epnp_joint`` node runs it) is scored beside. Prin
 both, the share flagged ambiguous, how honest the covariance is (NEES: chi-square(6) has
 median 5.35), the refinement's time per stereo frame (wall clock and CPU, p50 / p90), the CPU
 time of the starts, and the two together: the node's CPU time per
-stereo frame (the target is 5 ms). ``--plot`` draws the errors against the noise.
+stereo frame (the target is 5 ms). Tracking: each pose is followed by a second frame with the
+needle moved by ``--motion-mm`` / ``--motion-deg`` (a hand-held needle or a moving endoscope
+at 30 Hz), refined as the node does in a video (``TrackingRefiner``: warm from the first
+frame's pose, cold if that fit is not as good): its error, the share kept warm and its CPU
+time. ``--plot`` draws the errors against the noise.
 """
 from __future__ import annotations
 
@@ -19,7 +23,8 @@ import time
 
 
 def run(noise_levels, frames: int = 100, curve_ratio: float = 0.5, seed: int = 0,
-        max_tilt_deg: float = 90.0, progress: bool = True) -> list[dict]:
+        max_tilt_deg: float = 90.0, progress: bool = True, motion_mm: float = 0.5,
+        motion_deg: float = 1.0) -> list[dict]:
     """One row per keypoint noise level (px): errors (mm, deg), ambiguity, NEES, times (ms)."""
     import numpy as np
     from tqdm import tqdm
@@ -30,22 +35,36 @@ def run(noise_levels, frames: int = 100, curve_ratio: float = 0.5, seed: int = 0
     from common.oracle import Oracle, random_needle_pose
     from common.pnp import pnp_joint, refine_starts
     from common.refine import ArcObservation, DenseRefiner, RefineError
-    from common.transforms import R_to_rotvec, pose_error
+    from common.refine_tracking import TrackingRefiner
+    from common.transforms import R_to_rotvec, make_T, pose_error, rotvec_to_R
 
     rig, model = StereoRig.default(), NeedleModel()
     refiner = DenseRefiner(rig, model)
+    tracker = TrackingRefiner(refiner, model.keypoints(), refiner.config.min_score)
+
+    def observe(oracle, T, seq):
+        obs, uv, sc = {}, {}, {}
+        for cam in rig.cameras:
+            uv[cam.name], sc[cam.name] = oracle.keypoints(cam, T, model, seq)
+            c, w = oracle.centreline(cam, T, model, seq)
+            obs[cam.name] = ArcObservation(uv[cam.name], sc[cam.name], c, w)
+        return obs, uv, sc
+
+    def moved(T, rng):
+        """T moved by motion_mm along and motion_deg about random axes (about the needle origin)."""
+        axis, way = rng.normal(size=3), rng.normal(size=3)
+        dR = rotvec_to_R(np.radians(motion_deg) * axis / np.linalg.norm(axis))
+        return make_T(dR @ T[:3, :3], T[:3, 3] + 1e-3 * motion_mm * way / np.linalg.norm(way))
+
     rows = []
     for noise in noise_levels:
         rng = np.random.default_rng(seed)
         oracle = Oracle(noise_px=noise, centreline_noise_px=curve_ratio * noise, seed=seed)
         err, err_kp, amb, nees, wall, cpu, starts_cpu, node, failed = [], [], [], [], [], [], [], [], 0
+        err_trk, trk_cpu, warm = [], [], []
         for seq in tqdm(range(frames), desc=f"noise {noise:g} px", disable=not progress, leave=False):
             T = random_needle_pose(rng, rig, model, max_tilt_rad=np.deg2rad(max_tilt_deg))
-            obs, uv, sc = {}, {}, {}
-            for cam in rig.cameras:
-                uv[cam.name], sc[cam.name] = oracle.keypoints(cam, T, model, seq)
-                c, w = oracle.centreline(cam, T, model, seq)
-                obs[cam.name] = ArcObservation(uv[cam.name], sc[cam.name], c, w)
+            obs, uv, sc = observe(oracle, T, 2 * seq)
             try:
                 p0 = time.process_time()
                 starts = refine_starts(uv, rig, model.keypoints(), sc, refiner.config.min_score)
@@ -67,6 +86,21 @@ def run(noise_levels, frames: int = 100, curve_ratio: float = 0.5, seed: int = 0
             d = np.concatenate([R_to_rotvec(T[:3, :3] @ res.T_ecm_needle[:3, :3].T),
                                 T[:3, 3] - res.T_ecm_needle[:3, 3]])
             nees.append(float(d @ np.linalg.solve(res.covariance, d)))
+            # the next video frame, tracked from this one (the tracker's own cold fit of this
+            # frame equals res: same starts, same refiner)
+            T2 = moved(T, rng)
+            obs2, uv2, sc2 = observe(oracle, T2, 2 * seq + 1)
+            tracker.reset()
+            try:
+                tracker.refine(uv, sc, obs, 0)
+                c0 = time.process_time()
+                res2 = tracker.refine(uv2, sc2, obs2, 33_333_333)
+                trk_cpu.append(time.process_time() - c0)
+            except (NoPose, RefineError):
+                continue
+            warm.append(tracker.last_warm)
+            dt, dr = pose_error(res2.T_ecm_needle, T2)
+            err_trk.append((dt * 1e3, np.degrees(dr)))
         e, k = np.array(err).reshape(-1, 2), np.array(err_kp).reshape(-1, 2)
         ms = lambda a, q: float(np.percentile(a, q) * 1e3) if len(a) else float("nan")
         rows.append({
@@ -79,6 +113,11 @@ def run(noise_levels, frames: int = 100, curve_ratio: float = 0.5, seed: int = 0
             "cpu_ms": {"p50": ms(cpu, 50), "p90": ms(cpu, 90), "max": ms(cpu, 100)},
             "starts_cpu_ms": {"p50": ms(starts_cpu, 50), "p90": ms(starts_cpu, 90)},
             "node_cpu_ms": {"p50": ms(node, 50), "p90": ms(node, 90), "mean": float(np.mean(node) * 1e3) if node else float("nan")},
+            "tracking": {"motion_mm": motion_mm, "motion_deg": motion_deg,
+                         "refined": _stats(np.array(err_trk).reshape(-1, 2)),
+                         "warm": float(np.mean(warm)) if warm else float("nan"),
+                         "node_cpu_ms": {"p50": ms(trk_cpu, 50), "p90": ms(trk_cpu, 90),
+                                         "mean": float(np.mean(trk_cpu) * 1e3) if trk_cpu else float("nan")}},
         })
     return rows
 
@@ -109,6 +148,25 @@ def table(rows) -> str:
             f"| {r['wall_ms']['p50']:.1f} / {r['wall_ms']['p90']:.1f} ({r['cpu_ms']['p50']:.1f} / "
             f"{r['cpu_ms']['p90']:.1f}) | {r['starts_cpu_ms']['p50']:.1f} "
             f"| {r['node_cpu_ms']['p50']:.1f} / {r['node_cpu_ms']['p90']:.1f} |")
+    return "\n".join(out)
+
+
+def tracking_table(rows) -> str:
+    """The tracked second frames as a Markdown table."""
+    out = ["| keypoint / curve noise (px) | motion per frame | tracked mm mean / median "
+           "| tracked deg mean / median | kept warm | node CPU ms p50 / p90 / mean |",
+           "| --- | --- | --- | --- | --- | --- |"]
+    for r in rows:
+        t = r["tracking"]
+        a = t["refined"]
+        if not a:
+            continue
+        out.append(
+            f"| {r['noise_px']:g} / {r['curve_noise_px']:g} | {t['motion_mm']:g} mm, {t['motion_deg']:g} deg "
+            f"| {a['position_mm']['mean']:.2f} / {a['position_mm']['median']:.2f} "
+            f"| {a['orientation_deg']['mean']:.2f} / {a['orientation_deg']['median']:.2f} "
+            f"| {t['warm']:.0%} | {t['node_cpu_ms']['p50']:.1f} / {t['node_cpu_ms']['p90']:.1f} "
+            f"/ {t['node_cpu_ms']['mean']:.1f} |")
     return "\n".join(out)
 
 
@@ -143,15 +201,22 @@ def main(argv=None) -> int:
                     help="centreline noise as a fraction of the keypoint noise (default 0.5)")
     ap.add_argument("--max-tilt-deg", type=float, default=90.0,
                     help="leave out views within 90 - this of edge-on (default 90: every view)")
+    ap.add_argument("--motion-mm", type=float, default=0.5,
+                    help="needle motion between a frame and the tracked next one, mm (default 0.5)")
+    ap.add_argument("--motion-deg", type=float, default=1.0,
+                    help="needle rotation between them, deg (default 1)")
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--plot", help="write the errors against noise to this PNG")
     args = ap.parse_args(argv)
-    if args.frames < 1 or any(n < 0 for n in args.noise):
-        ap.error("--frames must be >= 1 and noise levels >= 0")
+    if args.frames < 1 or any(n < 0 for n in args.noise) or args.motion_mm < 0 or args.motion_deg < 0:
+        ap.error("--frames must be >= 1, noise levels and motions >= 0")
     print(f"refine bench: {args.frames} frames per noise level, 1920x1080 built-in endoscope, "
           f"{os.cpu_count()} CPUs, load average {os.getloadavg()[0]:.2f}")
-    rows = run(args.noise, args.frames, args.curve_ratio, args.seed, args.max_tilt_deg)
+    rows = run(args.noise, args.frames, args.curve_ratio, args.seed, args.max_tilt_deg,
+               motion_mm=args.motion_mm, motion_deg=args.motion_deg)
     print(table(rows))
+    print("\ntracking (the next frame of a video, warm from this one):")
+    print(tracking_table(rows))
     failed = sum(r["failed"] for r in rows)
     if failed:
         print(f"{failed} frames gave no pose")

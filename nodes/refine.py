@@ -12,14 +12,17 @@ edge-on, and then the covariance spans them).
 Per frame: the minima of the joint stereo PnP on the keypoints, from the IPPE starts and
 stopped early (``common.pnp.refine_starts``), are the starting poses; ``DenseRefiner.refine``
 fits them, and their mirror images, to keypoints and centrelines of both cameras together and
-keeps the best. A camera whose detector
+keeps the best. In tracking mode (``common.refine_tracking``) a frame that follows a
+well-fitted one within ``max_gap_s`` starts from that pose instead and keeps the result only if
+it is as good, else it is refined cold (counted ``warm`` and ``cold``). A camera whose detector
 found nothing is left out. Frames without any centreline are refined on the keypoints alone
 (counted ``keypoints_only``).
 
 Params: ``min_score`` (0.5: keypoints scoring lower are not used, by the PnP nor the fit);
 ``max_rms_px`` (20: a worse fit is not published); ``outlier_px`` (10, the joint PnP's outlier
 rejection); any ``RefineConfig`` field (e.g. ``sigma_kp_px``, ``sigma_curve_px``,
-``max_curve_points``, ``edge_on_deg``). A frame that gives no pose is counted as
+``max_curve_points``, ``edge_on_deg``); ``tracking`` (true) and any ``TrackingConfig`` field
+(``max_gap_s``, ``cold_every``, ``max_rms_growth``, ``rms_slack_px``). A frame that gives no pose is counted as
 ``no_pose.<reason>`` (the PnP's reasons, or the refinement's: ``too_few_points``,
 ``no_valid_candidate``, ``bad_centreline``, ``bad_keypoints``, ``high_residual``).
 """
@@ -30,25 +33,37 @@ import dataclasses
 from common.messages import Calibration, EcmPose, Keypoints
 from common.node import run
 from common.observations import NoPose
-from common.pnp import refine_starts
 from common.pose_node import StereoPoseNode
 from common.refine import ArcObservation, DenseRefiner, RefineConfig, RefineError
+from common.refine_tracking import TrackingConfig, TrackingRefiner
 
-CONFIG_TYPES = {f.name: {"int": int, "float": float, "bool": bool}[str(f.type)]
-                for f in dataclasses.fields(RefineConfig)}
+
+def _config_from_params(cls, params: dict, rename: dict | None = None):
+    """A ``cls`` dataclass from the node params named like its fields (``rename``: param name
+    for a field); raises ValueError naming a param of the wrong type or value."""
+    kw = {}
+    for f in dataclasses.fields(cls):
+        key = (rename or {}).get(f.name, f.name)
+        if key in params:
+            typ = {"int": int, "float": float, "bool": bool}[str(f.type)]
+            v = params[key]
+            if typ is bool and not isinstance(v, bool):
+                raise ValueError(f"refine: params.{key} must be true or false, got {v!r}")
+            try:
+                kw[f.name] = typ(v)
+            except (TypeError, ValueError):
+                raise ValueError(f"refine: params.{key} must be {typ.__name__}, got {v!r}") from None
+    return cls(**kw)
 
 
 def refine_config(params: dict) -> RefineConfig:
-    """A RefineConfig from node params (its fields, ``min_score`` shared with the PnP); raises
-    ValueError naming a param of the wrong type or value."""
-    kw = {}
-    for k, v in params.items():
-        if k in CONFIG_TYPES:
-            try:
-                kw[k] = CONFIG_TYPES[k](v)
-            except (TypeError, ValueError):
-                raise ValueError(f"refine: params.{k} must be {CONFIG_TYPES[k].__name__}, got {v!r}") from None
-    return RefineConfig(**kw)
+    """A RefineConfig from node params (its fields, ``min_score`` shared with the PnP)."""
+    return _config_from_params(RefineConfig, params)
+
+
+def tracking_config(params: dict) -> TrackingConfig:
+    """A TrackingConfig from node params (``tracking`` switches it on or off)."""
+    return _config_from_params(TrackingConfig, params, {"enabled": "tracking"})
 
 
 class RefineNode(StereoPoseNode):
@@ -61,35 +76,37 @@ class RefineNode(StereoPoseNode):
     def setup(self):
         super().setup()
         self.config = refine_config(self.params)
+        self.tracking = tracking_config(self.params)
         self.min_score = self.config.min_score
         mr = self.params.get("max_rms_px", 20.0)
         self.max_rms_px = None if mr is None else float(mr)
         op = self.params.get("outlier_px", 10.0)
         self.outlier_px = None if op is None else float(op)
-        self.refiner: DenseRefiner | None = None
+        self.tracker: TrackingRefiner | None = None
 
     def on_calib(self, msg: Calibration):
         changed = self.calib is None or msg.cameras != self.calib.cameras or msg.needle != self.calib.needle
         super().on_calib(msg)
-        if changed or self.refiner is None:
-            self.refiner = DenseRefiner(self.rig, msg.needle_model(), self.config)
+        if changed or self.tracker is None:
+            self.tracker = TrackingRefiner(DenseRefiner(self.rig, msg.needle_model(), self.config),
+                                           self.model_points, self.min_score, self.outlier_px, self.tracking)
 
     def on_pair(self, left: Keypoints, right: Keypoints):
         uv, sc = self.stereo_arrays(left, right)
-        try:
-            starts = refine_starts(uv, self.rig, self.model_points, sc, self.min_score, self.outlier_px)
-        except NoPose as exc:
-            self.no_pose(exc.reason, left.seq, exc.detail)
-            return
         obs = {kp.camera: ArcObservation.from_keypoints(kp) for kp in (left, right) if kp.found}
         if not any(o.centreline is not None and len(o.centreline) for o in obs.values()):
             self.count("keypoints_only")
         try:
-            res = self.refiner.refine(obs, starts)
+            res = self.tracker.refine(uv, sc, obs, left.stamp_ns)
+        except NoPose as exc:
+            self.no_pose(exc.reason, left.seq, exc.detail)
+            return
         except RefineError as exc:
             self.no_pose(exc.reason, left.seq, str(exc))
             return
+        self.count("warm" if self.tracker.last_warm else "cold")
         if self.max_rms_px is not None and not res.rms_px <= self.max_rms_px:
+            self.tracker.reset()
             self.no_pose("high_residual", left.seq, f"RMS {res.rms_px:.2f} px > {self.max_rms_px} px")
             return
         if res.ambiguous:

@@ -10,6 +10,7 @@ from common.needle import NeedleModel
 from common.oracle import Oracle, random_needle_pose
 from common.pnp import refine_starts
 from common.refine import ArcObservation, DenseRefiner, RefineConfig
+from common.refine_tracking import TrackingConfig, TrackingRefiner
 from common.transforms import make_T, pose_error, rotvec_to_R
 from nodes.refine import RefineNode, refine_config
 
@@ -55,7 +56,7 @@ def poses(node):
 
 def test_node_matches_the_library_and_adds_the_world_pose():
     frames = oracle_frames(4)
-    node = RefineNode.offline({}, wired=["left", "right", "calib", "ecm"])
+    node = RefineNode.offline({"tracking": False}, wired=["left", "right", "calib", "ecm"])
     node.on_calib(roundtrip(CALIB))
     T_world_ecm = ARM.T_world_ecm(Q)
     for T, left, right in frames:
@@ -74,7 +75,24 @@ def test_node_matches_the_library_and_adds_the_world_pose():
         dt, dr = pose_error(p.T_ecm_needle, T)
         assert dt < 5e-3 and np.degrees(dr) < 5.0
         roundtrip(p)
-    assert node.counters.get("keypoints_only", 0) == 0
+    assert node.counters.get("keypoints_only", 0) == 0 and node.counters["cold"] == 4
+
+
+def test_node_tracks_a_video_as_the_library_does():
+    from tests.test_refine_tracking import FRAME_NS, video
+    node = RefineNode.offline({"cold_every": 4}, wired=["left", "right", "calib"])
+    node.on_calib(CALIB)
+    tracker = TrackingRefiner(DenseRefiner(RIG, MODEL), MODEL.keypoints(), config=TrackingConfig(cold_every=4))
+    for seq, (T, uv, sc, obs) in enumerate(video(8)):
+        for cam in ("right", "left"):
+            o = obs[cam]
+            getattr(node, f"on_{cam}")(Keypoints(cam, seq, seq * FRAME_NS, True, o.uv, o.scores, 1.0,
+                                                 centreline=o.centreline, centreline_w=o.centreline_w))
+        ref = tracker.refine(uv, sc, obs, seq * FRAME_NS)
+        assert np.allclose(poses(node)[-1].T_ecm_needle, ref.T_ecm_needle, atol=1e-12)
+    assert node.counters["warm"] == 6 and node.counters["cold"] == 2
+    with pytest.raises(ValueError, match="tracking"):
+        RefineNode.offline({"tracking": "yes"})
 
 
 def test_node_params_reach_the_fit():
@@ -141,7 +159,7 @@ def test_refine_node_in_a_launched_graph_matches_the_library(run_graph):
          "outputs": ["left", "right", "joints", "truth", "calib"]},
         {"id": "detector", "module": "detector", "params": {"backend": "oracle", "noise_px": 0.3, "seed": 2},
          "inputs": {"truth": "camera/truth", "calib": "camera/calib"}, "outputs": ["left", "right"]},
-        {"id": "refine", "module": "refine",
+        {"id": "refine", "module": "refine", "params": {"tracking": False},   # each frame as the library
          "inputs": {"left": "detector/left", "right": "detector/right", "calib": "camera/calib"},
          "outputs": ["pose"]},
     ]}, timeout=90)

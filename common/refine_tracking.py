@@ -1,0 +1,90 @@
+"""Frame-to-frame dense refinement: in a video, start each frame from the last frame's pose.
+
+A cold frame starts ``DenseRefiner.refine`` from every minimum of the keypoint-only stereo PnP
+(``common.pnp.refine_starts``, about half of a cold frame's time). In a video the needle moves
+little from one frame to the next, so the previous refined pose (and, as always, its mirror
+image) is a start as good as the PnP's and costs nothing. A warm result is kept only when it is
+unambiguous and fits as well as the cold fit it descends from (RMS at most
+``max_rms_growth`` times the cold one plus ``rms_slack_px``); otherwise, after a gap of more
+than ``max_gap_s``, when the last frame gave no pose, and every ``cold_every`` frames, the
+frame is refined cold. A wrong warm start therefore costs one extra refinement, never a wrong
+pose: the needle jumping, the detector swapping tip and tail or a competing solution appearing
+all raise the residual or the ambiguity and send the frame down the cold path.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Mapping, Optional
+
+import numpy as np
+
+from common.pnp import refine_starts
+from common.refine import ArcObservation, DenseRefiner, RefineResult
+
+
+@dataclass(frozen=True)
+class TrackingConfig:
+    """When a frame may start from the previous one (times in s, residuals in px)."""
+
+    enabled: bool = True
+    max_gap_s: float = 0.2          # the previous pose is at most this old
+    cold_every: int = 30            # and at most this many warm frames in a row
+    max_rms_growth: float = 1.5     # a warm fit's RMS may exceed the last cold one's by this factor ...
+    rms_slack_px: float = 0.5       # ... plus this much
+
+    def __post_init__(self):
+        if not (self.max_gap_s > 0 and self.cold_every >= 1 and self.max_rms_growth >= 1
+                and self.rms_slack_px >= 0):
+            raise ValueError(f"TrackingConfig: max_gap_s > 0, cold_every >= 1, max_rms_growth >= 1 "
+                             f"and rms_slack_px >= 0 required, got {self}")
+
+
+class TrackingRefiner:
+    """``refine`` per stereo frame, warm from the previous frame's pose when that is safe.
+
+    ``refine`` raises what ``refine_starts`` (``NoPose``) and ``DenseRefiner.refine``
+    (``RefineError``) raise on a cold frame; ``last_warm`` says how the last pose was obtained.
+    """
+
+    def __init__(self, refiner: DenseRefiner, model_points, min_score: float = 0.5,
+                 outlier_px: Optional[float] = 10.0, config: TrackingConfig | None = None):
+        self.refiner, self.model_points = refiner, np.asarray(model_points, float)
+        self.min_score, self.outlier_px = min_score, outlier_px
+        self.config = config or TrackingConfig()
+        self.last_warm = False
+        self.reset()
+
+    def reset(self) -> None:
+        """Forget the previous frame: the next one is refined cold."""
+        self._prev: Optional[RefineResult] = None
+        self._prev_stamp_ns = 0
+        self._cold_rms = np.inf
+        self._warm_run = 0
+
+    def refine(self, uv: Mapping[str, np.ndarray], scores: Mapping[str, np.ndarray],
+               observations: Mapping[str, ArcObservation], stamp_ns: int) -> RefineResult:
+        """The refined pose of one stereo frame (keypoints ``uv``/``scores`` per camera for the
+        PnP starts, ``observations`` for the fit) taken at ``stamp_ns``."""
+        cfg = self.config
+        res = None
+        if (cfg.enabled and self._prev is not None and self._warm_run < cfg.cold_every
+                and 0 <= stamp_ns - self._prev_stamp_ns <= cfg.max_gap_s * 1e9):
+            try:
+                res = self.refiner.refine(observations, [self._prev.T_ecm_needle])
+            except ValueError:
+                res = None
+            if res is not None and (res.ambiguous or not
+                                    res.rms_px <= cfg.max_rms_growth * self._cold_rms + cfg.rms_slack_px):
+                res = None
+        self.last_warm = res is not None
+        if res is None:
+            self._prev = None                      # a cold frame that raises leaves no start behind
+            starts = refine_starts(uv, self.refiner.rig, self.model_points, scores, self.min_score,
+                                   self.outlier_px)
+            res = self.refiner.refine(observations, starts)
+            self._cold_rms, self._warm_run = res.rms_px, 0
+        else:
+            self._warm_run += 1
+        # an ambiguous pose is no start: its warm fit would be ambiguous too
+        self._prev, self._prev_stamp_ns = (None if res.ambiguous else res), stamp_ns
+        return res

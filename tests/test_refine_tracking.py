@@ -1,0 +1,105 @@
+"""Frame-to-frame refinement (common/refine_tracking.py): warm starts in a video, the cold path
+whenever the warm fit is not as good."""
+import numpy as np
+import pytest
+
+from common.camera import StereoRig
+from common.needle import NeedleModel
+from common.oracle import Oracle, random_needle_pose
+from common.pnp import refine_starts
+from common.refine import ArcObservation, DenseRefiner
+from common.refine_tracking import TrackingConfig, TrackingRefiner
+from common.transforms import make_T, pose_error, rotvec_to_R
+
+RIG = StereoRig.default()
+MODEL = NeedleModel()
+FRAME_NS = 33_333_333
+
+
+def observe(oracle, T, seq):
+    obs, uv, sc = {}, {}, {}
+    for cam in RIG.cameras:
+        uv[cam.name], sc[cam.name] = oracle.keypoints(cam, T, MODEL, seq)
+        c, w = oracle.centreline(cam, T, MODEL, seq)
+        obs[cam.name] = ArcObservation(uv[cam.name], sc[cam.name], c, w)
+    return uv, sc, obs
+
+
+def video(n, seed=5, step_mm=0.3, step_deg=0.5, max_tilt_deg=60.0):
+    """n frames of a needle drifting by about step_mm / step_deg per frame: (T, uv, sc, obs)."""
+    rng = np.random.default_rng(seed)
+    oracle = Oracle(noise_px=0.5, seed=seed)
+    T = random_needle_pose(rng, RIG, MODEL, max_tilt_rad=np.radians(max_tilt_deg))
+    axis, way = rng.normal(size=3), rng.normal(size=3)
+    dR = rotvec_to_R(np.radians(step_deg) * axis / np.linalg.norm(axis))
+    dt = 1e-3 * step_mm * way / np.linalg.norm(way)
+    frames = []
+    for i in range(n):
+        frames.append((T, *observe(oracle, T, i)))
+        T = make_T(dR @ T[:3, :3], T[:3, 3] + dt)
+    return frames
+
+
+def cold(uv, sc, obs, refiner):
+    return refiner.refine(obs, refine_starts(uv, RIG, MODEL.keypoints(), sc))
+
+
+@pytest.fixture()
+def refiner():
+    return DenseRefiner(RIG, MODEL)
+
+
+def test_a_video_is_tracked_warm_and_as_accurately_as_cold(refiner):
+    tracker = TrackingRefiner(refiner, MODEL.keypoints())
+    warm = []
+    for i, (T, uv, sc, obs) in enumerate(video(12)):
+        res = tracker.refine(uv, sc, obs, i * FRAME_NS)
+        warm.append(tracker.last_warm)
+        ref = cold(uv, sc, obs, refiner)
+        dt, dr = pose_error(res.T_ecm_needle, ref.T_ecm_needle)
+        assert dt < 1e-4 and np.degrees(dr) < 0.1, i       # the same minimum as the cold fit
+        dt, dr = pose_error(res.T_ecm_needle, T)
+        assert dt < 3e-3 and np.degrees(dr) < 3.0, i
+    assert not warm[0] and sum(warm) >= 9
+
+
+def test_a_jump_a_gap_and_cold_every_fall_back_to_the_cold_fit(refiner):
+    tracker = TrackingRefiner(refiner, MODEL.keypoints(), config=TrackingConfig(cold_every=3))
+    a, b = video(2, seed=1), video(1, seed=2)     # b: another needle pose altogether
+    tracker.refine(*a[0][1:], 0)
+    res = tracker.refine(*b[0][1:], FRAME_NS)
+    assert not tracker.last_warm
+    assert np.allclose(res.T_ecm_needle, cold(*b[0][1:], refiner).T_ecm_needle, atol=1e-12)
+    tracker.reset()
+    tracker.refine(*a[0][1:], 0)
+    tracker.refine(*a[1][1:], int(0.5e9))          # half a second later: too old to start from
+    assert not tracker.last_warm
+    frames = video(6, seed=3)
+    tracker.reset()
+    kinds = []
+    for i, (T, uv, sc, obs) in enumerate(frames):
+        tracker.refine(uv, sc, obs, i * FRAME_NS)
+        kinds.append(tracker.last_warm)
+    assert kinds == [False, True, True, True, False, True]
+
+
+def test_swapped_tip_and_tail_are_not_tracked_into_a_wrong_pose(refiner):
+    tracker = TrackingRefiner(refiner, MODEL.keypoints())
+    (T0, uv0, sc0, obs0), (T1, uv1, sc1, obs1) = video(2, seed=4)
+    tracker.refine(uv0, sc0, obs0, 0)
+    # a detector that mistakes the tail for the tip: keypoints and centreline reversed
+    uv1 = {k: v[::-1] for k, v in uv1.items()}
+    obs1 = {k: ArcObservation(o.uv[::-1], o.scores[::-1], o.centreline[::-1], o.centreline_w[::-1])
+            for k, o in obs1.items()}
+    res = tracker.refine(uv1, sc1, obs1, FRAME_NS)
+    assert not tracker.last_warm
+    assert np.allclose(res.T_ecm_needle, cold(uv1, sc1, obs1, refiner).T_ecm_needle, atol=1e-12)
+
+
+def test_tracking_off_and_bad_config():
+    tracker = TrackingRefiner(DenseRefiner(RIG, MODEL), MODEL.keypoints(), config=TrackingConfig(enabled=False))
+    for i, (T, uv, sc, obs) in enumerate(video(3)):
+        tracker.refine(uv, sc, obs, i * FRAME_NS)
+        assert not tracker.last_warm
+    with pytest.raises(ValueError, match="cold_every"):
+        TrackingConfig(cold_every=0)
