@@ -59,6 +59,8 @@ def _parser() -> argparse.ArgumentParser:
     n.add_argument("--seed", type=int, default=777)
     n.add_argument("--randomise", default="train", choices=["none", "test", "train"],
                    help="randomisation preset (default train)")
+    n.add_argument("--pale-thread", type=float, default=None, metavar="SHARE",
+                   help="share of frames with the undyed, needle-pale thread (default: the preset's 1 in 5)")
     n.add_argument("--quiet", action="store_true", help="no progress bar")
 
     c = sub.add_parser("check", help="validate a folder against the dataset spec and its ground truth")
@@ -86,7 +88,8 @@ def main(argv=None) -> int:
             return _generate_alt(args)
         if args.cmd == "generate-negatives":
             from common.sim_generate import generate_needle_free
-            generate_needle_free(args.out, args.frames, args.seed, args.randomise, not args.quiet)
+            generate_needle_free(args.out, args.frames, args.seed, args.randomise, not args.quiet,
+                                 args.pale_thread)
             return 0
         if args.cmd == "check":
             return _check(args)

@@ -148,16 +148,21 @@ def _consume(results, writer, bar) -> None:
 
 
 def generate_needle_free(folder, n_frames: int, seed: int = 777, preset: str = "test",
-                         progress: bool = True) -> Path:
+                         progress: bool = True, pale_thread: float | None = None) -> Path:
     """Render ``n_frames`` stereo frames of the built-in scene with the needle moved out of sight
     (instruments, thread and tissue stay) as a dataset folder whose frames see no keypoint:
-    negatives for training the detector and for measuring its false detections."""
+    negatives for training the detector and for measuring its false detections.
+
+    ``pale_thread``: share of frames whose thread takes the palette's pale, needle-like colour
+    (default: the preset's draw, 1 in 5) — a lone pale thread curled on the tissue is the
+    decoy a detector most easily takes for a needle."""
     from dataclasses import replace
 
     from tqdm import tqdm
 
     from common.dataset import DatasetWriter, Frame
-    from common.sim_randomise import degrade_stereo, get_preset, plan_sequence
+    from common.sim_randomise import (PALE_THREAD_RGB, THREAD_RGBS, degrade_stereo, get_preset,
+                                      plan_sequence)
     from common.sim_render import SceneRenderer
     folder = Path(folder)
     meta = scene_meta(1920, 1080, f"needle-free frames, preset {preset}, seed {seed}")
@@ -168,7 +173,13 @@ def generate_needle_free(folder, n_frames: int, seed: int = 777, preset: str = "
             plan = plan_sequence(seed, i, 1, pre, meta.rig, meta.needle, meta.arm, 2048)
             T_hidden = plan.spec.T_world_needle.copy()
             T_hidden[:3, 3] = [0.0, 0.0, -5.0]
-            renderer.load(replace(plan.spec, T_world_needle=T_hidden))
+            spec = replace(plan.spec, T_world_needle=T_hidden)
+            if pale_thread is not None:
+                rng = np.random.default_rng([seed, i, 1])
+                dyed = [c for c in THREAD_RGBS if c != PALE_THREAD_RGB]
+                rgb = PALE_THREAD_RGB if rng.random() < pale_thread else dyed[rng.integers(len(dyed))]
+                spec = replace(spec, appearance=replace(spec.appearance, thread_rgb=rgb))
+            renderer.load(spec)
             T_world_ecm = meta.arm.T_world_ecm(plan.joints[0])
             renders = renderer.render(T_world_ecm)
             rng = np.random.default_rng([seed, i])

@@ -30,6 +30,10 @@ RCM_WORLD = np.array([0.0, -0.12, 0.27])  # the ECM's remote centre of motion ab
 DISTANCE_RANGE_M = (0.10, 0.25)
 
 
+# suture colours (violet, black, green, undyed, blue); the undyed one is as pale as the needle
+THREAD_RGBS = ((0.35, 0.15, 0.55), (0.1, 0.1, 0.12), (0.2, 0.45, 0.3), (0.85, 0.85, 0.8), (0.15, 0.2, 0.5))
+PALE_THREAD_RGB = THREAD_RGBS[3]
+
 def default_arm() -> EcmArm:
     """The built-in ECM: RCM above and behind the phantom, insertion axis (at q = 0) aimed at the
     pad's centre, ECM x along world x (so image right is world +x)."""
@@ -97,8 +101,7 @@ def sample_appearance(rng: np.random.Generator, preset: Preset) -> Appearance:
         needle_specular=jit(0.85, 0.35), needle_shininess=jit(0.8, 0.3),
         needle_reflectance=jit(0.0, 0.3, 0.0, 0.5) if j >= 1 else 0.0,
         wire_diameter_m=float(np.clip(0.0008 + rng.uniform(-0.00025, 0.00025) * j, 0.0004, 0.0012)),
-        thread_rgb=tuple(rng.choice([[0.35, 0.15, 0.55], [0.1, 0.1, 0.12], [0.2, 0.45, 0.3],
-                                     [0.85, 0.85, 0.8], [0.15, 0.2, 0.5]])),
+        thread_rgb=tuple(rng.choice(THREAD_RGBS)),
         thread_diameter_m=float(rng.uniform(0.00025, 0.00045)),
         thread_length_m=float(rng.uniform(0.03, 0.08)),
         light_diffuse=jit(0.75, 0.3, 0.3, 1.2),

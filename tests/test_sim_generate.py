@@ -131,3 +131,21 @@ def test_needle_free_frames_see_no_needle(tmp_path):
     assert rep.ok, rep.errors
     (frame,) = list(ds)
     assert all(not frame.visible[c].any() and frame.bbox[c] is None for c in ("left", "right"))
+
+
+def test_needle_free_frames_can_lay_the_pale_thread_on_purpose(tmp_path, monkeypatch):
+    from common import sim_render
+    from common.sim_generate import generate_needle_free
+    from common.sim_randomise import PALE_THREAD_RGB
+    colours, load = [], sim_render.SceneRenderer.load
+
+    def spy(self, spec, *a, **kw):
+        colours.append(tuple(spec.appearance.thread_rgb))
+        return load(self, spec, *a, **kw)
+
+    monkeypatch.setattr(sim_render.SceneRenderer, "load", spy)
+    for share in (1.0, 0.0):
+        generate_needle_free(tmp_path / f"neg{share}", 2, seed=3, preset="train", progress=False,
+                             pale_thread=share)
+    assert colours[:2] == [PALE_THREAD_RGB] * 2
+    assert all(c != PALE_THREAD_RGB for c in colours[2:]) and len(colours) == 4
