@@ -137,7 +137,7 @@ def main(argv=None) -> int:
     rate = rate if str(rate) == "max" else float(rate)
     doc = pipeline_graph(dataset, detector=args.detector, detector_params=det_params, rate=rate,
                          refine=False if args.no_refine else None, lossless=True,
-                         split_detector=split)
+                         split_detector=split, refine_tracking=False)   # refined: a single-frame method
     evaluator = {"id": "evaluator", "module": "evaluator",
                  "params": {"out": str(out.resolve()), "dataset": str(Path(dataset).resolve()),
                             "detector": args.detector, "noise_px": args.noise_px},

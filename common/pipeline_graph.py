@@ -47,7 +47,8 @@ def pipeline_graph(dataset: str, *, detector: str = "learned", detector_params: 
                    refine: Optional[bool] = None, loop: bool = False, count: int = 0,
                    sinks: Optional[list] = None, lossless: bool = False,
                    split_detector: bool = False, methods=None,
-                   start_delay_s: float = 1.0, decode: bool = False) -> dict:
+                   start_delay_s: float = 1.0, decode: bool = False,
+                   refine_tracking: bool = True) -> dict:
     """The graph document of the whole pipeline on a replayed dataset folder.
 
     ``refine``: include the refinement node and a fusion over refined poses (default: when
@@ -63,6 +64,8 @@ def pipeline_graph(dataset: str, *, detector: str = "learned", detector_params: 
     whatever the machine's load), and the source waits ``start_delay_s`` after joining the
     graph before its first frame, so that its links to every consumer are up. ``decode``: the
     replay decodes the images once at start-up and sends them raw, as a live camera would.
+    ``refine_tracking``: the refinement starts a frame from the last one's pose when it can
+    (``common.refine_tracking``; false: every frame on its own, a single-frame method).
     """
     if refine is None:
         refine = has_module("refine")
@@ -114,7 +117,7 @@ def pipeline_graph(dataset: str, *, detector: str = "learned", detector_params: 
                       "outputs": ["pose"], "env": one})
     if "refined" in wanted:
         nodes.append({"id": "refine", "module": "refine", "inputs": dict(stereo),
-                      "outputs": ["pose"], "env": one})
+                      "params": {"tracking": bool(refine_tracking)}, "outputs": ["pose"], "env": one})
     if "multiview_refined" in wanted:
         nodes.append({"id": "fusion_refined", "module": "fusion",
                       "params": {"method": "multiview_refined"},

@@ -1,15 +1,16 @@
-"""Frame-to-frame dense refinement: in a video, start each frame from the last frame's pose.
+"""Frame-to-frame dense refinement: in a video, start each frame from the last frame's solutions.
 
 A cold frame starts ``DenseRefiner.refine`` from every minimum of the keypoint-only stereo PnP
 (``common.pnp.refine_starts``, about half of a cold frame's time). In a video the needle moves
-little from one frame to the next, so the previous refined pose (and, as always, its mirror
-image) is a start as good as the PnP's and costs nothing. A warm result is kept only when it is
-unambiguous and fits as well as the cold fit it descends from (RMS at most
+little from one frame to the next, so the previous frame's distinct solutions (the best and its
+competitors, each with its mirror image as always) are starts as good as the PnP's and cost
+nothing; carrying the competitors along keeps an ambiguous view ambiguous. A warm result is
+kept only when it fits as well as the cold fit it descends from (RMS at most
 ``max_rms_growth`` times the cold one plus ``rms_slack_px``); otherwise, after a gap of more
-than ``max_gap_s``, when the last frame gave no pose, and every ``cold_every`` frames, the
-frame is refined cold. A wrong warm start therefore costs one extra refinement, never a wrong
-pose: the needle jumping, the detector swapping tip and tail or a competing solution appearing
-all raise the residual or the ambiguity and send the frame down the cold path.
+than ``max_gap_s``, when the last frame gave no pose, and every ``cold_every`` frames (which
+lets the PnP bring in solutions the track lacks), the frame is refined cold. A wrong warm start
+therefore costs one extra refinement, never a wrong pose: the needle jumping or the detector
+swapping tip and tail raise the residual and send the frame down the cold path.
 """
 from __future__ import annotations
 
@@ -64,17 +65,16 @@ class TrackingRefiner:
     def refine(self, uv: Mapping[str, np.ndarray], scores: Mapping[str, np.ndarray],
                observations: Mapping[str, ArcObservation], stamp_ns: int) -> RefineResult:
         """The refined pose of one stereo frame (keypoints ``uv``/``scores`` per camera for the
-        PnP starts, ``observations`` for the fit) taken at ``stamp_ns``."""
+        PnP starts, ``observations`` for the fit) taken at ``stamp_ns`` (ns)."""
         cfg = self.config
         res = None
         if (cfg.enabled and self._prev is not None and self._warm_run < cfg.cold_every
                 and 0 <= stamp_ns - self._prev_stamp_ns <= cfg.max_gap_s * 1e9):
             try:
-                res = self.refiner.refine(observations, [self._prev.T_ecm_needle])
+                res = self.refiner.refine(observations, [T for T, _ in self._prev.candidates])
             except ValueError:
                 res = None
-            if res is not None and (res.ambiguous or not
-                                    res.rms_px <= cfg.max_rms_growth * self._cold_rms + cfg.rms_slack_px):
+            if res is not None and not res.rms_px <= cfg.max_rms_growth * self._cold_rms + cfg.rms_slack_px:
                 res = None
         self.last_warm = res is not None
         if res is None:
@@ -85,6 +85,5 @@ class TrackingRefiner:
             self._cold_rms, self._warm_run = res.rms_px, 0
         else:
             self._warm_run += 1
-        # an ambiguous pose is no start: its warm fit would be ambiguous too
-        self._prev, self._prev_stamp_ns = (None if res.ambiguous else res), stamp_ns
+        self._prev, self._prev_stamp_ns = res, stamp_ns
         return res
