@@ -201,40 +201,41 @@ def fit_arc_affine(a: np.ndarray, e: np.ndarray, line_logit: np.ndarray,
     D = np.stack([np.ones(3), np.cos(T), np.sin(T)], 1)
     sol = np.linalg.solve(D, np.stack([a, mid, e]))
     c, U = sol[0], sol[1:].T
-    # initial angles: closest point on the initial curve
+    # initial angles: closest point on the initial curve (|p - q|^2 without the |p|^2 term)
     ts = np.linspace(t0 - 0.3, t1 + 0.3, 100)
-    curve = c + np.stack([np.cos(ts), np.sin(ts)], 1) @ U.T
-    tt = ts[((pts[:, None, :] - curve[None]) ** 2).sum(-1).argmin(1)]
+    curve = c + np.outer(np.cos(ts), U[:, 0]) + np.outer(np.sin(ts), U[:, 1])
+    tt = ts[((curve * curve).sum(1) - 2.0 * pts @ curve.T).argmin(1)]
+    # a and e as heavily weighted constraints: rows of d(c + U [cos t, sin t]) / d(c, U) at t0, t1
     w_end = 10.0 * max(1.0, w.sum())
+    ends = np.array([[1, 0, np.cos(t0), np.sin(t0), 0, 0], [0, 1, 0, 0, np.cos(t0), np.sin(t0)],
+                     [1, 0, np.cos(t1), np.sin(t1), 0, 0], [0, 1, 0, 0, np.cos(t1), np.sin(t1)]])
+    H_ends = w_end * ends.T @ ends
+    target = np.concatenate([a, e])
+    J = np.empty((len(pts), 6))
     for it in range(iters):
         cs, sn = np.cos(tt), np.sin(tt)
-        on = c + np.stack([cs, sn], 1) @ U.T
-        tang = np.stack([-sn, cs], 1) @ U.T
-        tl = np.maximum(np.linalg.norm(tang, axis=1), 1e-9)
-        nrm = np.stack([-tang[:, 1], tang[:, 0]], 1) / tl[:, None]
-        res = ((pts - on) * nrm).sum(1)
+        on = c + np.outer(cs, U[:, 0]) + np.outer(sn, U[:, 1])
+        tang = np.outer(cs, U[:, 1]) - np.outer(sn, U[:, 0])
+        tl = np.maximum(np.sqrt((tang * tang).sum(1)), 1e-9)
+        nx, ny = -tang[:, 1] / tl, tang[:, 0] / tl
+        diff = pts - on
+        res = diff[:, 0] * nx + diff[:, 1] * ny
         inl = (np.abs(res) < 2.5) & (tt > t0 - 0.15) & (tt < t1 + 0.15)
         if inl.sum() < 5:
             return None
-        J = np.stack([nrm[:, 0], nrm[:, 1], nrm[:, 0] * cs, nrm[:, 0] * sn, nrm[:, 1] * cs, nrm[:, 1] * sn], 1)
-        rows, rhs, ws = [J[inl]], [res[inl]], [w[inl]]
-        for tk, pk in ((t0, a), (t1, e)):
-            pe = c + U @ np.array([np.cos(tk), np.sin(tk)])
-            rows.append(np.array([[1, 0, np.cos(tk), np.sin(tk), 0, 0], [0, 1, 0, 0, np.cos(tk), np.sin(tk)]], float))
-            rhs.append(pk - pe)
-            ws.append(np.array([w_end, w_end]))
-        Jm, r, wv = np.vstack(rows), np.concatenate(rhs), np.concatenate(ws)
-        JtW = Jm.T * wv
+        J[:, 0], J[:, 1], J[:, 2], J[:, 3], J[:, 4], J[:, 5] = nx, ny, nx * cs, nx * sn, ny * cs, ny * sn
+        Ji, wi = J[inl], w[inl]
+        JtW = Ji.T * wi
+        r_ends = target - ends @ np.concatenate([c, U.ravel()])
         try:   # normal equations of the weighted least squares (6 unknowns)
-            dx = np.linalg.solve(JtW @ Jm, JtW @ r)
+            dx = np.linalg.solve(JtW @ Ji + H_ends, JtW @ res[inl] + w_end * ends.T @ r_ends)
         except np.linalg.LinAlgError:
             return None
         c = c + dx[:2]
         U = U + dx[2:].reshape(2, 2)
         # each pixel's angle follows: one Newton step along the tangent of the new curve
-        cs, sn = np.cos(tt), np.sin(tt)
-        on = c + np.stack([cs, sn], 1) @ U.T
-        tang = np.stack([-sn, cs], 1) @ U.T
+        on = c + np.outer(cs, U[:, 0]) + np.outer(sn, U[:, 1])
+        tang = np.outer(cs, U[:, 1]) - np.outer(sn, U[:, 0])
         tt = tt + ((pts - on) * tang).sum(1) / np.maximum((tang * tang).sum(1), 1e-9)
         if np.abs(dx).max() < 1e-4:
             break

@@ -260,15 +260,15 @@ def decode_heatmaps(kp_logits: torch.Tensor, out_stride: int):
     Returns ``uv`` (N, K, 2) in crop pixels and ``score`` (N, K): the softmax mass within 2 cells
     of the peak (near 1 for a sharp, single peak)."""
     n, k, m, _ = kp_logits.shape
-    logp = F.log_softmax(kp_logits.reshape(n, k, -1).float(), dim=-1).reshape(n, k, m, m)
-    flat = logp.reshape(n, k, -1).argmax(-1)
+    logp = F.log_softmax(kp_logits.reshape(n, k, -1).float(), dim=-1)
+    flat = logp.argmax(-1)
     iy, ix = flat // m, flat % m
-    pad = F.pad(logp, (1, 1, 1, 1), mode="replicate")
+    logp = logp.reshape(n, k, m, m)
     bi = torch.arange(n)[:, None].expand(n, k)
     ki = torch.arange(k)[None, :].expand(n, k)
 
-    def at(dy, dx):
-        return pad[bi, ki, iy + 1 + dy, ix + 1 + dx]
+    def at(dy, dx):   # edge cells repeat past the border (replicate padding)
+        return logp[bi, ki, (iy + dy).clamp(0, m - 1), (ix + dx).clamp(0, m - 1)]
 
     c, l, r, u, d = at(0, 0), at(0, -1), at(0, 1), at(-1, 0), at(1, 0)
     dx = _vertex(l, c, r)
@@ -277,8 +277,13 @@ def decode_heatmaps(kp_logits: torch.Tensor, out_stride: int):
     y = iy.float() + dy
     s = out_stride
     uv = torch.stack([x * s + (s - 1) / 2.0, y * s + (s - 1) / 2.0], -1)
-    mass = F.avg_pool2d(logp.exp(), 5, stride=1, padding=2, count_include_pad=True) * 25.0
-    score = mass[bi, ki, iy, ix].clamp(0, 1)
+    # the probability mass in the 5x5 cells around each peak (cells past the border hold none):
+    # gathered at the peaks only, not pooled over the whole map
+    o = torch.arange(-2, 3)
+    wy, wx = iy[..., None, None] + o[:, None], ix[..., None, None] + o[None, :]
+    inside = (wy >= 0) & (wy < m) & (wx >= 0) & (wx < m)
+    win = logp[bi[..., None, None], ki[..., None, None], wy.clamp(0, m - 1), wx.clamp(0, m - 1)]
+    score = (win.exp() * inside).sum((-1, -2)).clamp(0, 1)
     return uv, score
 
 
