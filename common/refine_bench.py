@@ -59,12 +59,13 @@ def run(noise_levels, frames: int = 100, curve_ratio: float = 0.5, seed: int = 0
     rows = []
     for noise in noise_levels:
         rng = np.random.default_rng(seed)
+        motion_rng = np.random.default_rng(seed + 1)   # its own stream: the poses stay those of rng
         oracle = Oracle(noise_px=noise, centreline_noise_px=curve_ratio * noise, seed=seed)
         err, err_kp, amb, nees, wall, cpu, starts_cpu, node, failed = [], [], [], [], [], [], [], [], 0
         err_trk, trk_cpu, warm = [], [], []
         for seq in tqdm(range(frames), desc=f"noise {noise:g} px", disable=not progress, leave=False):
             T = random_needle_pose(rng, rig, model, max_tilt_rad=np.deg2rad(max_tilt_deg))
-            obs, uv, sc = observe(oracle, T, 2 * seq)
+            obs, uv, sc = observe(oracle, T, seq)
             try:
                 p0 = time.process_time()
                 starts = refine_starts(uv, rig, model.keypoints(), sc, refiner.config.min_score)
@@ -88,8 +89,8 @@ def run(noise_levels, frames: int = 100, curve_ratio: float = 0.5, seed: int = 0
             nees.append(float(d @ np.linalg.solve(res.covariance, d)))
             # the next video frame, tracked from this one (the tracker's own cold fit of this
             # frame equals res: same starts, same refiner)
-            T2 = moved(T, rng)
-            obs2, uv2, sc2 = observe(oracle, T2, 2 * seq + 1)
+            T2 = moved(T, motion_rng)
+            obs2, uv2, sc2 = observe(oracle, T2, frames + seq)
             tracker.reset()
             try:
                 tracker.refine(uv, sc, obs, 0)
