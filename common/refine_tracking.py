@@ -5,9 +5,10 @@ A cold frame starts ``DenseRefiner.refine`` from every minimum of the keypoint-o
 little from one frame to the next, so the previous frame's distinct solutions (the best and its
 competitors, each with its mirror image as always) are starts as good as the PnP's and cost
 nothing; carrying the competitors along keeps an ambiguous view ambiguous. A warm result is
-kept only when it fits as well as the cold fit it descends from (RMS at most
-``max_rms_growth`` times the cold one plus ``rms_slack_px``); otherwise, after a gap of more
-than ``max_gap_s``, when the last frame gave no pose, and every ``cold_every`` frames (which
+tried only when the previous pose still reprojects the keypoints within ``max_start_px`` (a
+jump, e.g. a new scene, goes cold at once instead of through a long, failing fit) and kept only
+when it fits as well as the cold fit it descends from (RMS at most ``max_rms_growth`` times the
+cold one plus ``rms_slack_px``); otherwise, after a gap of more than ``max_gap_s``, when the last frame gave no pose, and every ``cold_every`` frames (which
 lets the PnP bring in solutions the track lacks), the frame is refined cold. A wrong warm start
 therefore costs one extra refinement, never a wrong pose: the needle jumping or the detector
 swapping tip and tail raise the residual and send the frame down the cold path.
@@ -19,7 +20,8 @@ from typing import Mapping, Optional
 
 import numpy as np
 
-from common.pnp import refine_starts
+from common.observations import stereo_observations
+from common.pnp import MIN_POINTS, ReprojectionProblem, refine_starts
 from common.refine import ArcObservation, DenseRefiner, RefineResult
 
 
@@ -30,14 +32,15 @@ class TrackingConfig:
     enabled: bool = True
     max_gap_s: float = 0.2          # the previous pose is at most this old
     cold_every: int = 30            # and at most this many warm frames in a row
+    max_start_px: float = 15.0      # the previous pose reprojects the keypoints within this (RMS)
     max_rms_growth: float = 1.5     # a warm fit's RMS may exceed the last cold one's by this factor ...
     rms_slack_px: float = 0.5       # ... plus this much
 
     def __post_init__(self):
-        if not (self.max_gap_s > 0 and self.cold_every >= 1 and self.max_rms_growth >= 1
-                and self.rms_slack_px >= 0):
-            raise ValueError(f"TrackingConfig: max_gap_s > 0, cold_every >= 1, max_rms_growth >= 1 "
-                             f"and rms_slack_px >= 0 required, got {self}")
+        if not (self.max_gap_s > 0 and self.cold_every >= 1 and self.max_start_px > 0
+                and self.max_rms_growth >= 1 and self.rms_slack_px >= 0):
+            raise ValueError(f"TrackingConfig: max_gap_s > 0, cold_every >= 1, max_start_px > 0, "
+                             f"max_rms_growth >= 1 and rms_slack_px >= 0 required, got {self}")
 
 
 class TrackingRefiner:
@@ -69,7 +72,8 @@ class TrackingRefiner:
         cfg = self.config
         res = None
         if (cfg.enabled and self._prev is not None and self._warm_run < cfg.cold_every
-                and 0 <= stamp_ns - self._prev_stamp_ns <= cfg.max_gap_s * 1e9):
+                and 0 <= stamp_ns - self._prev_stamp_ns <= cfg.max_gap_s * 1e9
+                and self._reprojects(uv, scores, self._prev.T_ecm_needle)):
             try:
                 res = self.refiner.refine(observations, [T for T, _ in self._prev.candidates])
             except ValueError:
@@ -87,3 +91,12 @@ class TrackingRefiner:
             self._warm_run += 1
         self._prev, self._prev_stamp_ns = res, stamp_ns
         return res
+
+    def _reprojects(self, uv, scores, T_ecm_needle) -> bool:
+        """Whether the pose reprojects the usable keypoints within ``max_start_px`` (RMS)."""
+        try:
+            obs = stereo_observations(uv, self.refiner.rig, self.model_points, scores, self.min_score)
+        except ValueError:
+            return False
+        problem = ReprojectionProblem(list(obs.values()))
+        return problem.n >= MIN_POINTS and problem.rms_px(T_ecm_needle) <= self.config.max_start_px
