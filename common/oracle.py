@@ -134,6 +134,17 @@ class Oracle:
             uv[cam.name], sc[cam.name] = self.keypoints(cam, T_ecm_needle, model, seq)
         return uv, sc
 
+    def stereo_arcs(self, rig: StereoRig, T_ecm_needle, model: NeedleModel, seq: int):
+        """``({camera: uv}, {camera: scores}, {camera: ArcObservation})`` for both cameras: the
+        keypoints as the PnP takes them and, with the centreline, as the refinement does."""
+        from common.refine import ArcObservation
+        uv, sc = self.stereo(rig, T_ecm_needle, model, seq)
+        obs = {}
+        for cam in rig.cameras:
+            c, w = self.centreline(cam, T_ecm_needle, model, seq)
+            obs[cam.name] = ArcObservation(uv[cam.name], sc[cam.name], c, w)
+        return uv, sc, obs
+
 
 def truth_T_ecm_needle(truth) -> np.ndarray | None:
     """``T_ecm_needle`` from a GroundTruth (None when its poses are not both known)."""

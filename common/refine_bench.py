@@ -34,21 +34,13 @@ def run(noise_levels, frames: int = 100, curve_ratio: float = 0.5, seed: int = 0
     from common.observations import NoPose
     from common.oracle import Oracle, random_needle_pose
     from common.pnp import pnp_joint, refine_starts
-    from common.refine import ArcObservation, DenseRefiner, RefineError
+    from common.refine import DenseRefiner, RefineError
     from common.refine_tracking import TrackingRefiner
     from common.transforms import R_to_rotvec, make_T, pose_error, rotvec_to_R
 
     rig, model = StereoRig.default(), NeedleModel()
     refiner = DenseRefiner(rig, model)
     tracker = TrackingRefiner(refiner, model.keypoints(), refiner.config.min_score)
-
-    def observe(oracle, T, seq):
-        obs, uv, sc = {}, {}, {}
-        for cam in rig.cameras:
-            uv[cam.name], sc[cam.name] = oracle.keypoints(cam, T, model, seq)
-            c, w = oracle.centreline(cam, T, model, seq)
-            obs[cam.name] = ArcObservation(uv[cam.name], sc[cam.name], c, w)
-        return obs, uv, sc
 
     def moved(T, rng):
         """T moved by motion_mm along and motion_deg about random axes (about the needle origin)."""
@@ -65,7 +57,7 @@ def run(noise_levels, frames: int = 100, curve_ratio: float = 0.5, seed: int = 0
         err_trk, trk_cpu, warm = [], [], []
         for seq in tqdm(range(frames), desc=f"noise {noise:g} px", disable=not progress, leave=False):
             T = random_needle_pose(rng, rig, model, max_tilt_rad=np.deg2rad(max_tilt_deg))
-            obs, uv, sc = observe(oracle, T, seq)
+            uv, sc, obs = oracle.stereo_arcs(rig, T, model, seq)
             try:
                 p0 = time.process_time()
                 starts = refine_starts(uv, rig, model.keypoints(), sc, refiner.config.min_score)
@@ -90,7 +82,7 @@ def run(noise_levels, frames: int = 100, curve_ratio: float = 0.5, seed: int = 0
             # the next video frame, tracked from this one (the tracker's own cold fit of this
             # frame equals res: same starts, same refiner)
             T2 = moved(T, motion_rng)
-            obs2, uv2, sc2 = observe(oracle, T2, frames + seq)
+            uv2, sc2, obs2 = oracle.stereo_arcs(rig, T2, model, frames + seq)
             tracker.reset()
             try:
                 tracker.refine(uv, sc, obs, 0)

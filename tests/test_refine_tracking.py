@@ -16,15 +16,6 @@ MODEL = NeedleModel()
 FRAME_NS = 33_333_333
 
 
-def observe(oracle, T, seq):
-    obs, uv, sc = {}, {}, {}
-    for cam in RIG.cameras:
-        uv[cam.name], sc[cam.name] = oracle.keypoints(cam, T, MODEL, seq)
-        c, w = oracle.centreline(cam, T, MODEL, seq)
-        obs[cam.name] = ArcObservation(uv[cam.name], sc[cam.name], c, w)
-    return uv, sc, obs
-
-
 def video(n, seed=5, step_mm=0.3, step_deg=0.5, max_tilt_deg=60.0):
     """n frames of a needle drifting by about step_mm / step_deg per frame: (T, uv, sc, obs)."""
     rng = np.random.default_rng(seed)
@@ -35,7 +26,7 @@ def video(n, seed=5, step_mm=0.3, step_deg=0.5, max_tilt_deg=60.0):
     dt = 1e-3 * step_mm * way / np.linalg.norm(way)
     frames = []
     for i in range(n):
-        frames.append((T, *observe(oracle, T, i)))
+        frames.append((T, *oracle.stereo_arcs(RIG, T, MODEL, i)))
         T = make_T(dR @ T[:3, :3], T[:3, 3] + dt)
     return frames
 
