@@ -23,8 +23,8 @@ import cv2
 import numpy as np
 import torch
 
-from common.keypoint_model import (KeypointModel, ModelConfig, apply_affine, crop_affine, crop_side,
-                                   decode_global_topk, decode_heatmaps, fuse_conv_bn, invert_affine)
+from common.keypoint_model import (FrozenForInference, KeypointModel, ModelConfig, apply_affine, crop_affine,
+                                   crop_side, decode_global_topk, decode_heatmaps, fuse_conv_bn, invert_affine)
 from common.messages import CameraImage, Keypoints, MessageError
 
 MODEL_FORMAT = "needletrack-keypoint-detector"
@@ -305,6 +305,7 @@ class KeypointDetector:
             torch.set_num_threads(int(threads))
         self.weights = Path(weights or DEFAULT_WEIGHTS)
         self.model, self.meta = load_model(self.weights, self.device)
+        self._glob, self._crop = FrozenForInference(self.model.glob), FrozenForInference(self.model.crop)
         self.cfg = self.model.cfg
         self.threshold = float(threshold)
         self.tracking = bool(tracking)
@@ -335,7 +336,7 @@ class KeypointDetector:
         h, w = img.shape[:2]
         ds = self.cfg.global_downscale
         small = cv2.resize(img, (max(1, round(w / ds)), max(1, round(h / ds))), interpolation=cv2.INTER_AREA)
-        out = self.model.glob(self._tensor(global_input(small)))
+        out = self._glob(self._tensor(global_input(small)))
         return decode_global_topk(out.float().cpu(), ds, self.proposals, self.proposal_threshold)
 
     @torch.inference_mode()
@@ -344,7 +345,7 @@ class KeypointDetector:
         M = crop_affine(cx, cy, crop_side(self.cfg, bw, bh), self.cfg.crop)
         crop = cv2.warpAffine(img, M, (self.cfg.crop, self.cfg.crop), flags=cv2.INTER_LINEAR,
                               borderMode=cv2.BORDER_REPLICATE)
-        heat, pres = self.model.crop(self._tensor(crop))
+        heat, pres = self._crop(self._tensor(crop))
         heat = heat.float().cpu()
         uv, score = decode_heatmaps(heat[:, :5], self.cfg.out_stride)
         uv_crop = uv[0].numpy().astype(np.float64)

@@ -3,7 +3,7 @@ import numpy as np
 import pytest
 import torch
 
-from common.keypoint_model import (CropNet, GlobalNet, KeypointModel, ModelConfig, apply_affine,
+from common.keypoint_model import (CropNet, FrozenForInference, GlobalNet, KeypointModel, ModelConfig, apply_affine,
                                    centreline_target, crop_affine, decode_global, decode_heatmaps,
                                    fuse_conv_bn, gaussian_targets, invert_affine, keypoint_loss)
 
@@ -68,6 +68,29 @@ def test_fused_model_matches_the_unfused_one():
     assert not any(isinstance(m, torch.nn.BatchNorm2d) for m in model.modules())
     assert torch.allclose(h0, h1, atol=1e-4) and torch.allclose(p0, p1, atol=1e-4)
     assert torch.allclose(g0, g1, atol=1e-4)
+
+
+def test_frozen_networks_match_the_modules_per_shape_and_fall_back():
+    torch.manual_seed(1)
+    model = fuse_conv_bn(KeypointModel(ModelConfig(crop=64)).eval())
+    crop, glob = FrozenForInference(model.crop), FrozenForInference(model.glob)
+    with torch.inference_mode():
+        for shape in ((1, 3, 64, 64), (2, 3, 64, 64)):
+            x = torch.randint(0, 256, shape, dtype=torch.uint8)
+            for a, b in zip(crop(x), model.crop(x)):
+                assert torch.allclose(a, b, atol=1e-5)
+        for shape in ((1, 3, 48, 80), (1, 3, 64, 120)):   # one trace per image size
+            g = torch.randint(0, 256, shape, dtype=torch.uint8)
+            assert torch.allclose(glob(g), model.glob(g), atol=1e-5)
+    assert len(crop._traced) == 2 and len(glob._traced) == 2
+    assert all(isinstance(n, torch.jit.ScriptModule) for n in crop._traced.values())
+
+    class Untraceable(torch.nn.Module):
+        def forward(self, x):
+            return {"n": int(x.sum())}   # data-dependent Python value: tracing fails
+
+    net = FrozenForInference(Untraceable())
+    assert net(torch.ones(2, 2)) == {"n": 4}
 
 
 def test_output_shapes_and_global_decoding():
