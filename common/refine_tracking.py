@@ -4,14 +4,16 @@ A cold frame starts ``DenseRefiner.refine`` from every minimum of the keypoint-o
 (``common.pnp.refine_starts``, about half of a cold frame's time). In a video the needle moves
 little from one frame to the next, so the previous frame's distinct solutions (the best and its
 competitors, each with its mirror image as always) are starts as good as the PnP's and cost
-nothing; carrying the competitors along keeps an ambiguous view ambiguous. A warm result is
-tried only when the previous pose still reprojects the keypoints within ``max_start_px`` (a
-jump, e.g. a new scene, goes cold at once instead of through a long, failing fit) and kept only
-when it fits as well as the cold fit it descends from (RMS at most ``max_rms_growth`` times the
-cold one plus ``rms_slack_px``); otherwise, after a gap of more than ``max_gap_s``, when the last frame gave no pose, and every ``cold_every`` frames (which
-lets the PnP bring in solutions the track lacks), the frame is refined cold. A wrong warm start
-therefore costs one extra refinement, never a wrong pose: the needle jumping or the detector
-swapping tip and tail raise the residual and send the frame down the cold path.
+nothing; carrying the competitors along keeps an ambiguous view ambiguous.
+
+A warm fit is tried only when the previous pose still reprojects the keypoints within
+``max_start_px`` (a jump, e.g. a new scene, goes cold at once instead of through a long,
+failing fit), and kept only when it fits as well as the cold fit it descends from (RMS at most
+``max_rms_growth`` times the cold one plus ``rms_slack_px``). Otherwise, after a gap of more
+than ``max_gap_s``, after a frame without a pose, and every ``cold_every`` frames (which lets
+the PnP bring in solutions the track lacks), the frame is refined cold. A wrong warm start
+therefore costs at most one extra refinement, never a wrong pose: the needle jumping or the
+detector swapping tip and tail raise the residual and send the frame down the cold path.
 """
 from __future__ import annotations
 

@@ -22,7 +22,8 @@ Params: ``min_score`` (0.5: keypoints scoring lower are not used, by the PnP nor
 ``max_rms_px`` (20: a worse fit is not published); ``outlier_px`` (10, the joint PnP's outlier
 rejection); any ``RefineConfig`` field (e.g. ``sigma_kp_px``, ``sigma_curve_px``,
 ``max_curve_points``, ``edge_on_deg``); ``tracking`` (true) and any ``TrackingConfig`` field
-(``max_gap_s``, ``cold_every``, ``max_rms_growth``, ``rms_slack_px``). A frame that gives no pose is counted as
+(``max_gap_s``, ``cold_every``, ``max_start_px``, ``max_rms_growth``, ``rms_slack_px``). A frame
+that gives no pose is counted as
 ``no_pose.<reason>`` (the PnP's reasons, or the refinement's: ``too_few_points``,
 ``no_valid_candidate``, ``bad_centreline``, ``bad_keypoints``, ``high_residual``).
 """
