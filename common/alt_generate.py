@@ -18,7 +18,7 @@ import numpy as np
 from common.alt_render import (LABELS, AltRenderer, AltScene, InstrumentShape, Light, Material, NeedleShape,
                                Tissue, instrument_meshes, make_tissue_textures, needle_mesh, tube_mesh)
 from common.camera import StereoRig
-from common.ecm_kinematics import EcmArm
+from common.ecm_kinematics import MULTIVIEW_STEP_RAD, REVOLUTE_JOINTS, EcmArm
 from common.needle import NeedleModel
 from common.transforms import inv_T, make_T, quat_to_R, rotvec_to_R, transform_points
 
@@ -26,8 +26,6 @@ FPS = 30.0
 GENERATE_FILE = "generate_alt.json"
 RCM_WORLD = np.array([0.025, -0.14, 0.28])   # this arm's remote centre of motion (m, world z up)
 DISTANCE_RANGE_M = (0.10, 0.25)
-MULTIVIEW_STEP_RAD = 0.05
-REVOLUTE_JOINTS = (0, 1, 3)                  # yaw, pitch, roll
 
 
 @dataclass(frozen=True)

@@ -4,6 +4,8 @@ from __future__ import annotations
 import argparse
 import sys
 
+from common.ecm_kinematics import MULTIVIEW_STEP_RAD
+
 STANDARD_TEST_SET = ("needletrack dataset generate --out data/test --sequences 30 --steps 5 "
                      "--seed 1000 --randomise test")
 
@@ -37,9 +39,9 @@ def _parser() -> argparse.ArgumentParser:
     g.add_argument("--jobs", type=int, default=2, help="render processes (default 2)")
     g.add_argument("--msaa", type=int, default=4, choices=[0, 2, 4, 8],
                    help="anti-aliasing samples (default 4; 0 renders ~2.5x faster with jagged thin wires)")
-    g.add_argument("--step-rad", type=float, default=0.05,
-                   help="ECM joint step between a sequence's steps, rad (default 0.05, the paper's "
-                        "multi-view protocol; e.g. 0.003 for a slowly moving endoscope video)")
+    g.add_argument("--step-rad", type=float, default=MULTIVIEW_STEP_RAD,
+                   help=f"ECM joint step between a sequence's steps, rad (default {MULTIVIEW_STEP_RAD:g}, the "
+                        "paper's multi-view protocol; e.g. 0.003 for a slowly moving endoscope video)")
 
     a = sub.add_parser("generate-alt", help="render a dataset folder with the second, independent renderer",
                        description="Like generate, but rendered by common/alt_render.py (numpy/OpenCV z-buffer "

@@ -9,6 +9,10 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+# The paper's multi-view protocol: between views one revolute joint (yaw, pitch or roll) steps
+MULTIVIEW_STEP_RAD = 0.05
+REVOLUTE_JOINTS = (0, 1, 3)
+
 
 def mdh_link(alpha: float, a: float, theta: float, d: float) -> np.ndarray:
     """One modified Denavit-Hartenberg link transform."""

@@ -22,7 +22,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from common.camera import StereoRig
-from common.ecm_kinematics import EcmArm
+from common.ecm_kinematics import MULTIVIEW_STEP_RAD, EcmArm
 from common.fusion import MultiViewFusion
 from common.needle import NeedleModel
 from common.observations import NoPose
@@ -100,7 +100,7 @@ def single_view(noise_px: float, n_poses: int, seed: int = 0, methods=None, rig=
 
 def multiview_scenario(rng: np.random.Generator, rig: StereoRig, model: NeedleModel,
                        arm: EcmArm | None = None, q0=(0.0, 0.0, 0.05, 0.0), n_views: int = 5,
-                       joint: int = 0, step_rad: float = 0.05):
+                       joint: int = 0, step_rad: float = MULTIVIEW_STEP_RAD):
     """A static needle seen from ``n_views`` ECM poses, joint ``joint`` stepping ``step_rad``
     (centred on ``q0``). Returns (T_world_needle, [T_world_ecm_k], [T_ecm_needle_k]); the
     needle is placed in view of the middle pose."""

@@ -13,6 +13,8 @@ from pathlib import Path
 
 import numpy as np
 
+from common.ecm_kinematics import MULTIVIEW_STEP_RAD
+
 FPS = 30.0
 GENERATE_FILE = "generate.json"
 
@@ -28,7 +30,7 @@ class GenerateConfig:
     image_format: str = "jpg"
     jpeg_quality: int = 95
     msaa: int = 4
-    step_rad: float = 0.05       # ECM joint step between a sequence's endoscope poses (the paper's)
+    step_rad: float = MULTIVIEW_STEP_RAD   # ECM joint step between a sequence's endoscope poses
 
     def stable(self) -> dict:
         """What must match for a folder to be resumed or extended."""

@@ -19,13 +19,11 @@ import cv2
 import numpy as np
 
 from common.camera import StereoRig
-from common.ecm_kinematics import EcmArm
+from common.ecm_kinematics import MULTIVIEW_STEP_RAD, REVOLUTE_JOINTS, EcmArm
 from common.needle import NeedleModel
 from common.sim_scene import PHANTOM_SIZE, Appearance, Instrument, SceneSpec, phantom_height
 from common.transforms import inv_T, make_T, rotvec_to_R, transform_points
 
-MULTIVIEW_STEP_RAD = 0.05
-REVOLUTE_JOINTS = (0, 1, 3)  # yaw, pitch, roll: the joints the multi-view protocol moves
 RCM_WORLD = np.array([0.0, -0.12, 0.27])  # the ECM's remote centre of motion above the table
 DISTANCE_RANGE_M = (0.10, 0.25)
 
