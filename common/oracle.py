@@ -24,7 +24,7 @@ import numpy as np
 
 from common.camera import Camera, StereoRig
 from common.needle import NeedleModel
-from common.transforms import inv_T, transform_points
+from common.transforms import inv_T, make_T, rotvec_to_R, transform_points
 
 CAMERA_INDEX = {"left": 0, "right": 1}
 
@@ -154,6 +154,14 @@ def truth_T_ecm_needle(truth) -> np.ndarray | None:
 
 
 # ---------------------------------------------------------------------- test-bed poses
+
+def perturb_pose(T_ecm_needle: np.ndarray, rng: np.random.Generator, mm: float, deg: float) -> np.ndarray:
+    """The pose moved by exactly ``mm`` and turned by exactly ``deg`` about the needle origin,
+    both along random ECM-frame axes (a start for a fit, or the next frame of a video)."""
+    axis, way = rng.normal(size=3), rng.normal(size=3)
+    dR = rotvec_to_R(axis / np.linalg.norm(axis) * np.deg2rad(deg))
+    return make_T(dR @ T_ecm_needle[:3, :3], T_ecm_needle[:3, 3] + way / np.linalg.norm(way) * mm * 1e-3)
+
 
 def needle_pose_in_view(distance_m: float, direction_xy, quat) -> np.ndarray:
     """``T_ecm_needle`` with the needle's origin ``distance_m`` from the ECM origin along the

@@ -32,21 +32,15 @@ def run(noise_levels, frames: int = 100, curve_ratio: float = 0.5, seed: int = 0
     from common.camera import StereoRig
     from common.needle import NeedleModel
     from common.observations import NoPose
-    from common.oracle import Oracle, random_needle_pose
+    from common.oracle import Oracle, perturb_pose, random_needle_pose
     from common.pnp import pnp_joint, refine_starts
     from common.refine import DenseRefiner, RefineError
     from common.refine_tracking import TrackingRefiner
-    from common.transforms import R_to_rotvec, make_T, pose_error, rotvec_to_R
+    from common.transforms import R_to_rotvec, pose_error
 
     rig, model = StereoRig.default(), NeedleModel()
     refiner = DenseRefiner(rig, model)
     tracker = TrackingRefiner(refiner, model.keypoints(), refiner.config.min_score)
-
-    def moved(T, rng):
-        """T moved by motion_mm along and motion_deg about random axes (about the needle origin)."""
-        axis, way = rng.normal(size=3), rng.normal(size=3)
-        dR = rotvec_to_R(np.radians(motion_deg) * axis / np.linalg.norm(axis))
-        return make_T(dR @ T[:3, :3], T[:3, 3] + 1e-3 * motion_mm * way / np.linalg.norm(way))
 
     rows = []
     for noise in noise_levels:
@@ -81,7 +75,7 @@ def run(noise_levels, frames: int = 100, curve_ratio: float = 0.5, seed: int = 0
             nees.append(float(d @ np.linalg.solve(res.covariance, d)))
             # the next video frame, tracked from this one (the tracker's own cold fit of this
             # frame equals res: same starts, same refiner)
-            T2 = moved(T, motion_rng)
+            T2 = perturb_pose(T, motion_rng, motion_mm, motion_deg)
             uv2, sc2, obs2 = oracle.stereo_arcs(rig, T2, model, frames + seq)
             tracker.reset()
             try:

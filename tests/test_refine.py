@@ -9,6 +9,7 @@ from common.camera import StereoRig
 from common.messages import Keypoints
 from common.needle import NeedleModel
 from common.observations import NoPose
+from common.oracle import perturb_pose
 from common.pnp import pnp_joint
 from common.refine import (ArcObservation, DenseRefiner, RefineConfig, RefineError, mirror_pose,
                            project_centreline, refine_pose)
@@ -49,10 +50,7 @@ def observe(T, rng=None, kp_px=0.0, curve_px=0.0, rig=RIG):
 
 
 def perturb(T, rng, deg=3.0, mm=2.0):
-    axis = rng.normal(size=3)
-    dR = rotvec_to_R(axis / np.linalg.norm(axis) * np.deg2rad(deg))
-    dt = rng.normal(size=3)
-    return make_T(dR @ T[:3, :3], T[:3, 3] + dt / np.linalg.norm(dt) * mm * 1e-3)
+    return perturb_pose(T, rng, mm, deg)
 
 
 def errors_mm_deg(T_est, T_true):
