@@ -25,6 +25,7 @@ import torch
 
 from common.keypoint_model import (FrozenForInference, KeypointModel, ModelConfig, apply_affine, crop_affine,
                                    crop_side, decode_global_topk, decode_heatmaps, fuse_conv_bn, invert_affine)
+from common.centreline_subpixel import CENTRELINE_SIGMA_PX, refine_centreline
 from common.messages import CameraImage, Keypoints, MessageError
 
 MODEL_FORMAT = "needletrack-keypoint-detector"
@@ -34,6 +35,9 @@ DEFAULT_WEIGHTS = REPO / "models" / "keypoint" / "model.pt"
 RETRAIN = ("retrain with `needletrack train --data DATASET --config models/train.yaml "
            "--out models/keypoint` (models/README.md gives the full recipe)")
 CENTRELINE_POINTS = 48
+# The needle's smallest image extent in any view, its 5.1 mm sagitta seen from the side, is
+# 10 px at 40 cm with this endoscope (f ~ 790 px): keypoints closer together are a collapse.
+MIN_EXTENT_PX = 10.0
 log = logging.getLogger("needletrack.keypoint_detector")
 
 
@@ -299,7 +303,8 @@ class KeypointDetector:
     def __init__(self, weights=None, device: str = "auto", threshold: float = 0.5,
                  tracking: bool = True, threads: int | None = None, refine: bool = True,
                  centreline: bool = True, arc_bcd: bool = True, along_arc: bool = False,
-                 proposal_threshold: float = 0.2, proposals: int = 3):
+                 proposal_threshold: float = 0.2, proposals: int = 3, subpixel: bool = True,
+                 min_extent_px: float = MIN_EXTENT_PX):
         self.device = pick_device(device)
         if threads:
             torch.set_num_threads(int(threads))
@@ -315,6 +320,8 @@ class KeypointDetector:
         self.along_arc = bool(along_arc)
         self.proposal_threshold = float(proposal_threshold)
         self.proposals = max(1, int(proposals))
+        self.subpixel = bool(subpixel)
+        self.min_extent_px = float(min_extent_px)
         self._track: dict[str, tuple] = {}
         self.last_mode = ""
 
@@ -384,15 +391,20 @@ class KeypointDetector:
         lo, hi = pts.min(0), pts.max(0)
         return ((lo[0] + hi[0]) / 2, (lo[1] + hi[1]) / 2, hi[0] - lo[0] + 4, hi[1] - lo[1] + 4)
 
-    def _finish(self, res) -> None:
+    def _finish(self, res, img: np.ndarray) -> None:
+        """The centreline: decoded from the crop's ridge, then (``subpixel``) moved onto the wire's
+        centre in the full-resolution image (``common.centreline_subpixel``)."""
+        res["centreline"], res["centreline_w"], res["centreline_sigma"] = None, None, None
         if not self.centreline:
-            res["centreline"], res["centreline_w"] = None, None
             return
         s = self.cfg.out_stride
         kp_cells = (res["uv_crop"] - (s - 1) / 2.0) / s
         pts_cells, w = decode_centreline(res["line"], kp_cells)
         res["centreline"] = apply_affine(res["Minv"], pts_cells * s + (s - 1) / 2.0)
         res["centreline_w"] = w
+        if self.subpixel:
+            res["centreline"], res["centreline_w"] = refine_centreline(img, res["centreline"], w)
+            res["centreline_sigma"] = CENTRELINE_SIGMA_PX
 
     # ------------------------------------------------------------ public
     @torch.inference_mode()
@@ -441,13 +453,20 @@ class KeypointDetector:
                                            f"no needle: confidence {conf:.2f} < {self.threshold:.2f} "
                                            f"(proposal {c1:.2f})", conf)
         self._place_bcd(res)
+        extent = float(np.linalg.norm(res["uv"][:, None] - res["uv"][None], axis=2).max())
+        if not extent >= self.min_extent_px:
+            # a needle within ~40 cm spans >= 10 px in any view: the points collapsed on one spot
+            self.reset(camera)
+            return Keypoints.not_found(camera, seq, stamp_ns, self.name,
+                                       f"no needle: keypoints collapsed ({extent:.1f} px apart "
+                                       f"< min_extent_px {self.min_extent_px:g})", conf)
         self._track[camera] = self._box_of({"uv": res["uv"]})   # as _moved compares it
-        self._finish(res)
+        self._finish(res, img)
         cx, cy, bw, bh = self._box_of(res)
         return Keypoints(camera, seq, stamp_ns, True, res["uv"].astype(np.float64),
                          res["scores"].astype(np.float64), float(conf),
                          np.array([cx - bw / 2, cy - bh / 2, cx + bw / 2, cy + bh / 2]), self.name, None,
-                         res["centreline"], res["centreline_w"])
+                         res["centreline"], res["centreline_w"], res["centreline_sigma"])
 
     def detect_message(self, msg: CameraImage) -> Keypoints:
         """Keypoints of a ``CameraImage``; corrupt or inconsistent image data -> "no needle"."""
@@ -470,8 +489,9 @@ class LearnedBackend(KeypointBackend):
     models/keypoint/model.pt), ``device`` (auto | cpu | cuda), ``threshold`` (0.5), ``tracking``
     (true), ``threads`` (torch threads, default 1: in a graph the other nodes share the cores, and
     torch's threads then wait on each other; run one detector per camera for parallelism),
-    ``refine`` (true), ``centreline`` (true), ``proposals`` (stage-1 proposals tried, 3),
-    ``proposal_threshold`` (0.2)."""
+    ``refine`` (true), ``centreline`` (true), ``subpixel`` (true: the centreline refined in the
+    full-resolution image), ``min_extent_px`` (10: keypoints closer together are "no needle"),
+    ``arc_bcd`` (true), ``proposals`` (stage-1 proposals tried, 3), ``proposal_threshold`` (0.2)."""
 
     name = "learned"
     needs_image = True
@@ -480,7 +500,7 @@ class LearnedBackend(KeypointBackend):
         super().__init__(params)
         p = self.params
         known = {"weights", "device", "threshold", "tracking", "threads", "refine", "centreline", "arc_bcd",
-                 "proposals", "proposal_threshold"}
+                 "proposals", "proposal_threshold", "subpixel", "min_extent_px"}
         try:
             self.detector = KeypointDetector(
                 p.get("weights"), device=str(p.get("device", "auto")),
@@ -488,7 +508,9 @@ class LearnedBackend(KeypointBackend):
                 threads=int(p.get("threads", 1)), refine=bool(p.get("refine", True)),
                 centreline=bool(p.get("centreline", True)), arc_bcd=bool(p.get("arc_bcd", True)),
                 proposals=int(p.get("proposals", 3)),
-                proposal_threshold=float(p.get("proposal_threshold", 0.2)))
+                proposal_threshold=float(p.get("proposal_threshold", 0.2)),
+                subpixel=bool(p.get("subpixel", True)),
+                min_extent_px=float(p.get("min_extent_px", MIN_EXTENT_PX)))
         except (ModelFileError, ValueError, TypeError) as exc:
             raise BackendError(f"learned backend: {exc}") from exc
         self.ignored = sorted(set(p) - known)

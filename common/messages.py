@@ -385,7 +385,9 @@ class Keypoints(Message):
     ``found`` is False for "no needle" (then ``reason`` says why and ``uv`` is all NaN).
     ``uv`` (5, 2) pixels of A..E, ``scores`` (5,) in [0, 1], ``confidence`` overall in [0, 1],
     ``bbox`` [x0, y0, x1, y1] pixels. ``centreline`` optionally carries the dense observation
-    of the needle's projected arc, (N, 2) pixels ordered from A to E, with ``centreline_w`` (N,).
+    of the needle's projected arc, (N, 2) pixels ordered from A to E, with ``centreline_w`` (N,),
+    and optionally ``centreline_sigma_px``, the detector's 1-sigma error of a centreline point
+    across the curve (px; absent: the consumer's default).
     """
 
     SCHEMA = "needletrack.Keypoints"
@@ -394,7 +396,8 @@ class Keypoints(Message):
               "confidence": ("float",), "bbox": ("array", (4,), "optional"),
               "detector": ("str",), "reason": ("str", "optional"),
               "centreline": ("array", (None, 2), "optional"),
-              "centreline_w": ("array", (None,), "optional")}
+              "centreline_w": ("array", (None,), "optional"),
+              "centreline_sigma_px": ("float", "optional")}
     camera: str
     seq: int
     stamp_ns: int
@@ -407,9 +410,12 @@ class Keypoints(Message):
     reason: Optional[str] = None
     centreline: Optional[np.ndarray] = None
     centreline_w: Optional[np.ndarray] = None
+    centreline_sigma_px: Optional[float] = None
 
     def validate(self):
-        pass
+        s = self.centreline_sigma_px
+        if s is not None and not (np.isfinite(s) and s > 0):
+            raise MessageError(f"Keypoints.centreline_sigma_px: must be positive, got {s}")
 
     @classmethod
     def not_found(cls, camera: str, seq: int, stamp_ns: int, detector: str, reason: str,

@@ -58,13 +58,16 @@ class ArcObservation:
 
     ``uv`` (5, 2) keypoints A..E (NaN where missing), ``scores`` (5,) in [0, 1];
     ``centreline`` (N, 2) points of the needle's projected arc ordered from A to E, with weights
-    ``centreline_w`` (N,) in [0, 1] (all ones when None). Either part may be absent.
+    ``centreline_w`` (N,) in [0, 1] (all ones when None), ``centreline_sigma_px`` the
+    centreline's 1-sigma error across the curve (None: ``RefineConfig.sigma_curve_px``). Either
+    part may be absent.
     """
 
     uv: Optional[np.ndarray] = None
     scores: Optional[np.ndarray] = None
     centreline: Optional[np.ndarray] = None
     centreline_w: Optional[np.ndarray] = None
+    centreline_sigma_px: Optional[float] = None
 
     @classmethod
     def from_keypoints(cls, msg) -> "ArcObservation":
@@ -73,7 +76,8 @@ class ArcObservation:
             return cls()
         return cls(np.asarray(msg.uv, float), np.asarray(msg.scores, float),
                    None if msg.centreline is None else np.asarray(msg.centreline, float),
-                   None if msg.centreline_w is None else np.asarray(msg.centreline_w, float))
+                   None if msg.centreline_w is None else np.asarray(msg.centreline_w, float),
+                   msg.centreline_sigma_px)
 
 
 @dataclass(frozen=True)
@@ -264,7 +268,10 @@ class _Problem:
             if o.centreline is not None and len(o.centreline):
                 pts, w = _select_curve(cam.name, o.centreline, o.centreline_w, M, cfg.min_centreline_w)
                 O[i, :len(pts)] = _undistort(cam, pts)
-                wO[i, :len(pts)] = w / cfg.sigma_curve_px ** 2
+                sig = cfg.sigma_curve_px if o.centreline_sigma_px is None else float(o.centreline_sigma_px)
+                if not (np.isfinite(sig) and sig > 0):
+                    raise RefineError("bad_centreline", f"{cam.name}: centreline_sigma_px must be positive, got {sig}")
+                wO[i, :len(pts)] = w / sig ** 2
         self.U, self.wU, self.O, self.wO = U, wU, O, wO
         self.n_kp = int(np.count_nonzero(wU))
         self.n_curve = int(np.count_nonzero(wO))
