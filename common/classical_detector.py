@@ -180,7 +180,7 @@ class ClassicalDetector:
         conf = float(min(1.0, best["score"]))
         return Keypoints(camera, seq, stamp_ns, True, kp, np.full(5, conf), conf,
                          np.array([lo[0], lo[1], hi[0], hi[1]]), self.name, None, line,
-                         np.ones(len(line)))
+                         np.ones(len(line)), on_arc=np.array([False, True, True, True, False]))
 
     def _tip_is_last(self, b, th, mask) -> bool:
         """Which end is the tip: thinner end (taper) and no thread continuing beyond it."""

@@ -381,6 +381,7 @@ class KeypointDetector:
         uv_crop[1:4] = arc_at(fit, t) * st + (st - 1) / 2.0
         # B..D now rest on A, E and the ridge, not on their own (along-arc diffuse) heatmaps
         sc[1:4] = min(sc[0], sc[4])
+        res["on_arc"] = np.array([False, True, True, True, False])
         res["uv"] = apply_affine(res["Minv"], uv_crop)
 
     def _box_of(self, res) -> tuple:
@@ -466,7 +467,7 @@ class KeypointDetector:
         return Keypoints(camera, seq, stamp_ns, True, res["uv"].astype(np.float64),
                          res["scores"].astype(np.float64), float(conf),
                          np.array([cx - bw / 2, cy - bh / 2, cx + bw / 2, cy + bh / 2]), self.name, None,
-                         res["centreline"], res["centreline_w"], res["centreline_sigma"])
+                         res["centreline"], res["centreline_w"], res["centreline_sigma"], res.get("on_arc"))
 
     def detect_message(self, msg: CameraImage) -> Keypoints:
         """Keypoints of a ``CameraImage``; corrupt or inconsistent image data -> "no needle"."""

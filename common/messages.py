@@ -387,7 +387,8 @@ class Keypoints(Message):
     ``bbox`` [x0, y0, x1, y1] pixels. ``centreline`` optionally carries the dense observation
     of the needle's projected arc, (N, 2) pixels ordered from A to E, with ``centreline_w`` (N,),
     and optionally ``centreline_sigma_px``, the detector's 1-sigma error of a centreline point
-    across the curve (px; absent: the consumer's default).
+    across the curve (px; absent: the consumer's default). ``on_arc`` (5,) optionally marks (1)
+    the keypoints the detector placed on its fitted arc instead of observing them on their own.
     """
 
     SCHEMA = "needletrack.Keypoints"
@@ -397,7 +398,8 @@ class Keypoints(Message):
               "detector": ("str",), "reason": ("str", "optional"),
               "centreline": ("array", (None, 2), "optional"),
               "centreline_w": ("array", (None,), "optional"),
-              "centreline_sigma_px": ("float", "optional")}
+              "centreline_sigma_px": ("float", "optional"),
+              "on_arc": ("array", (5,), "optional")}
     camera: str
     seq: int
     stamp_ns: int
@@ -411,6 +413,7 @@ class Keypoints(Message):
     centreline: Optional[np.ndarray] = None
     centreline_w: Optional[np.ndarray] = None
     centreline_sigma_px: Optional[float] = None
+    on_arc: Optional[np.ndarray] = None
 
     def validate(self):
         s = self.centreline_sigma_px

@@ -59,8 +59,9 @@ class ArcObservation:
     ``uv`` (5, 2) keypoints A..E (NaN where missing), ``scores`` (5,) in [0, 1];
     ``centreline`` (N, 2) points of the needle's projected arc ordered from A to E, with weights
     ``centreline_w`` (N,) in [0, 1] (all ones when None), ``centreline_sigma_px`` the
-    centreline's 1-sigma error across the curve (None: ``RefineConfig.sigma_curve_px``). Either
-    part may be absent.
+    centreline's 1-sigma error across the curve (None: ``RefineConfig.sigma_curve_px``);
+    ``on_arc`` (5,) true for keypoints the detector placed on its fitted arc rather than observed
+    (left out of the fit where the centreline is given). Either part may be absent.
     """
 
     uv: Optional[np.ndarray] = None
@@ -68,6 +69,7 @@ class ArcObservation:
     centreline: Optional[np.ndarray] = None
     centreline_w: Optional[np.ndarray] = None
     centreline_sigma_px: Optional[float] = None
+    on_arc: Optional[np.ndarray] = None
 
     @classmethod
     def from_keypoints(cls, msg) -> "ArcObservation":
@@ -77,7 +79,7 @@ class ArcObservation:
         return cls(np.asarray(msg.uv, float), np.asarray(msg.scores, float),
                    None if msg.centreline is None else np.asarray(msg.centreline, float),
                    None if msg.centreline_w is None else np.asarray(msg.centreline_w, float),
-                   msg.centreline_sigma_px)
+                   msg.centreline_sigma_px, None if msg.on_arc is None else np.asarray(msg.on_arc, bool))
 
 
 @dataclass(frozen=True)
@@ -272,6 +274,14 @@ class _Problem:
                 if not (np.isfinite(sig) and sig > 0):
                     raise RefineError("bad_centreline", f"{cam.name}: centreline_sigma_px must be positive, got {sig}")
                 wO[i, :len(pts)] = w / sig ** 2
+                if o.on_arc is not None and np.count_nonzero(w) >= 3:
+                    # keypoints a detector placed on its own fitted arc count the curve twice,
+                    # with that arc's (weak-perspective) bias along it, which tips the mirror
+                    # choice of small, far needles: the curve stands for them
+                    on_arc = np.asarray(o.on_arc)
+                    if on_arc.shape != (5,):
+                        raise RefineError("bad_keypoints", f"{cam.name}: need on_arc (5,), got {on_arc.shape}")
+                    wU[i, on_arc.astype(bool)] = 0.0
         self.U, self.wU, self.O, self.wO = U, wU, O, wO
         self.n_kp = int(np.count_nonzero(wU))
         self.n_curve = int(np.count_nonzero(wO))
