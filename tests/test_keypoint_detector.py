@@ -55,6 +55,37 @@ def test_shipped_model_finds_the_needle_in_rendered_frames(detector, rendered_fr
     assert np.median(errors) <= 2.0, f"keypoint errors {np.round(errors, 2)} px"
 
 
+def test_centreline_is_sub_pixel_in_the_full_resolution_image(rendered_frames):
+    from common.camera import StereoRig
+    from common.needle import NeedleModel
+    from common.refine import project_centreline
+    rig, needle = StereoRig.default(), NeedleModel()
+    dist = {}
+    for subpixel in (False, True):
+        det, d = KeypointDetector(device="cpu", subpixel=subpixel), []
+        for images, fields in rendered_frames:
+            T_ecm_needle = np.linalg.inv(np.asarray(fields["T_world_ecm"])) @ np.asarray(fields["T_world_needle"])
+            for cam in ("left", "right"):
+                kp = det.detect(images[cam], cam)
+                if not kp.found:
+                    continue
+                assert (kp.centreline_sigma_px is not None) == subpixel
+                # B..D placed on the arc through A and E when both ends are sure, else observed
+                assert kp.on_arc is None or list(kp.on_arc) == [False, True, True, True, False]
+                arc = project_centreline(rig[cam], needle, T_ecm_needle, spacing_px=0.2)
+                pts = kp.centreline[kp.centreline_w > 0]
+                d += list(np.linalg.norm(pts[:, None] - arc[None], axis=2).min(1))
+        dist[subpixel] = np.median(d)
+    assert dist[True] < 0.15 and dist[True] < 0.7 * dist[False], dist
+
+
+def test_collapsed_keypoints_are_no_needle(rendered):
+    images, _ = rendered
+    det = KeypointDetector(device="cpu", min_extent_px=5000)
+    kp = det.detect(images["left"], "left")
+    assert not kp.found and "keypoints collapsed" in kp.reason and np.isnan(kp.uv).all()
+
+
 def test_tracking_reuses_the_box_and_gives_the_same_answer(rendered):
     images, _ = rendered
     det = KeypointDetector(device="cpu", tracking=True)

@@ -412,3 +412,32 @@ def test_bench_reports_errors_and_times():
     assert rows[1]["wall_ms"]["p50"] > 0 and rows[1]["cpu_ms"]["max"] >= rows[1]["cpu_ms"]["p50"]
     text = table(rows)
     assert text.count("\n") == 3 and "n/a" in text.splitlines()[2]
+
+
+def test_stated_centreline_noise_and_keypoints_placed_on_the_arc():
+    rng = np.random.default_rng(11)
+    T = random_pose(rng)
+    obs = observe(T, rng, kp_px=0.3, curve_px=0.1)
+    start = [perturb(T, rng)]
+    base = REFINER.refine(obs, start)
+    # the default sigma stated per observation is the same fit; a smaller one weighs the curve more
+    same = {k: ArcObservation(o.uv, o.scores, o.centreline, o.centreline_w, RefineConfig().sigma_curve_px)
+            for k, o in obs.items()}
+    assert np.allclose(REFINER.refine(same, start).T_ecm_needle, base.T_ecm_needle, atol=1e-12)
+    # B..D pushed along the arc (a weak-perspective placement's bias) move the pose unless they
+    # are marked as placed on the arc, which leaves them out as if the detector had not given them
+    shifted, marked, dropped = {}, {}, {}
+    for k, o in obs.items():
+        uv = o.uv.copy()
+        uv[1:4] += 3.0 * (o.uv[4] - o.uv[0]) / np.linalg.norm(o.uv[4] - o.uv[0])
+        shifted[k] = ArcObservation(uv, o.scores, o.centreline, o.centreline_w)
+        marked[k] = ArcObservation(uv, o.scores, o.centreline, o.centreline_w,
+                                   on_arc=np.array([False, True, True, True, False]))
+        dropped[k] = ArcObservation(uv, np.array([1.0, 0, 0, 0, 1]), o.centreline, o.centreline_w)
+    T_marked = REFINER.refine(marked, start).T_ecm_needle
+    assert np.allclose(T_marked, REFINER.refine(dropped, start).T_ecm_needle, atol=1e-12)
+    assert errors_mm_deg(T_marked, T)[1] < errors_mm_deg(REFINER.refine(shifted, start).T_ecm_needle, T)[1]
+    with pytest.raises(RefineError) as e:
+        REFINER.refine({k: ArcObservation(o.uv, o.scores, o.centreline, o.centreline_w, -1.0)
+                        for k, o in obs.items()}, start)
+    assert e.value.reason == "bad_centreline"
