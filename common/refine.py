@@ -98,6 +98,9 @@ class RefineConfig:
     sigma_kp_px: float = 1.0        # assumed keypoint noise
     sigma_curve_px: float = 0.5     # assumed centreline noise
     min_score: float = 0.5          # keypoints scored below are left out (as the PnP does)
+    # one camera poses the needle only through its arc's apparent size and shape: at 10-25 cm its
+    # depth and tilt can be off by centimetres and tens of degrees, so the default needs both
+    min_cameras: int = 2
     min_centreline_w: float = 0.05  # centreline points weighted below are left out
     cauchy_scale: float = 3.0       # robust loss scale, in sigmas
     cauchy_scale_end: float = 1.0   # the same for the overshoot past an arc's end (spurs: thread, glare)
@@ -289,6 +292,10 @@ class _Problem:
         if self.n_res < 6:
             raise RefineError("too_few_points", f"{self.n_kp} keypoints and {self.n_curve} centreline "
                               "points cannot fix 6 pose parameters")
+        seen = [cam.name for i, cam in enumerate(st.cams) if wU[i].any() or wO[i].any()]
+        if len(seen) < cfg.min_cameras:
+            raise RefineError("too_few_cameras", f"the needle is seen by {len(seen)} camera(s) ({', '.join(seen)}), "
+                              f"min_cameras is {cfg.min_cameras}")
         # Residual weights in evaluation order, per camera: keypoint u (5), keypoint v (5),
         # curve normal distance (M), curve overshoot beyond the arc's ends (M).
         self.wp = np.concatenate([wU, wU, wO, wO], axis=1).ravel()

@@ -137,11 +137,14 @@ def test_centreline_alone_fixes_the_arc():
     assert dt_mm < 1e-3 and dr_deg < 1e-4
 
 
-def test_one_camera_is_enough_without_noise():
+def test_one_camera_needs_min_cameras_1_and_is_exact_without_noise():
     rng = np.random.default_rng(5)
     T = random_pose(rng)
     obs = {"left": observe(T)["left"]}
-    res = REFINER.refine(obs, [perturb(T, rng)])
+    with pytest.raises(RefineError) as e:
+        REFINER.refine(obs, [perturb(T, rng)])
+    assert e.value.reason == "too_few_cameras" and "seen by 1 camera(s) (left)" in str(e.value)
+    res = DenseRefiner(RIG, NEEDLE, RefineConfig(min_cameras=1)).refine(obs, [perturb(T, rng)])
     dt_mm, dr_deg = errors_mm_deg(res.T_ecm_needle, T)
     assert dt_mm < 1e-3 and dr_deg < 1e-4
 
