@@ -53,14 +53,16 @@ def refine_centreline(image: np.ndarray, pts: np.ndarray, weights: np.ndarray, *
     n = len(pts)
     if n < 2 * trim + 3:
         return pts, np.zeros(n)
-    steps = np.arange(-half_px, half_px + 1e-9, step_px)
-    nrm = curve_normals(pts)
-    grid = pts[:, None, :] + steps[None, :, None] * nrm[:, None, :]
-    samples = cv2.remap(image, grid[..., 0].astype(np.float32), grid[..., 1].astype(np.float32),
-                        cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT, borderValue=0)
-    f = samples.reshape(n, len(steps), -1).astype(np.float32) / 255.0
-    prof = 2.0 * f.min(axis=2) - f.max(axis=2)                       # whiteness across the curve
-    g = np.gradient(prof, axis=1)
+    steps = np.arange(-half_px, half_px + 1e-9, step_px, dtype=np.float32)
+    nrm = curve_normals(pts).astype(np.float32)
+    p32 = pts.astype(np.float32)
+    mx = p32[:, 0:1] + steps[None, :] * nrm[:, 0:1]
+    my = p32[:, 1:2] + steps[None, :] * nrm[:, 1:2]
+    samples = cv2.remap(image, mx, my, cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT, borderValue=0)
+    samples = samples.reshape(n, len(steps), -1).astype(np.float32)
+    prof = (2.0 / 255.0) * samples.min(axis=2) - (1.0 / 255.0) * samples.max(axis=2)   # whiteness
+    g = np.zeros_like(prof)
+    g[:, 1:-1] = 0.5 * (prof[:, 2:] - prof[:, :-2])                  # per sample
     mid, win = len(steps) // 2, int(round(search_px / step_px))
     jl = mid - win + np.argmax(g[:, mid - win:mid + 1], axis=1)      # rising edge (before)
     jr = mid + np.argmin(g[:, mid:mid + win + 1], axis=1)            # falling edge (after)
@@ -68,11 +70,11 @@ def refine_centreline(image: np.ndarray, pts: np.ndarray, weights: np.ndarray, *
     tr = (_subsample_peak(-g, jr) - mid) * step_px
     r = np.arange(n)
     edge = np.minimum(g[r, jl], -g[r, jr]) / step_px                # weaker edge's slope (1/px)
-    bg = np.minimum(np.median(prof[:, :8], axis=1), np.median(prof[:, -8:], axis=1))
+    bg = np.minimum(prof[:, :8].mean(axis=1), prof[:, -8:].mean(axis=1))
     inside = (steps[None] >= tl[:, None] - 1.0) & (steps[None] <= tr[:, None] + 1.0)
-    mass = np.clip(prof - bg[:, None], 0.0, None) * inside
+    mass = np.maximum(prof - bg[:, None], 0.0) * inside
     total = mass.sum(axis=1)
-    offset = (mass * steps[None]).sum(axis=1) / np.maximum(total, 1e-9)
+    offset = (mass @ steps) / np.maximum(total, 1e-9)
     width = tr - tl
     ok = (w > 0) & (total > 0) & (edge > 0.02) & (width > 0.5)
     ok[:trim] = ok[n - trim:] = False

@@ -2,7 +2,8 @@
 
 Two stages (see ``common.keypoint_model``): stage 1 on the image downscaled by 8 finds the needle
 and its box and gives the confidence; stage 2 on a full-resolution crop around the box gives A..E
-at sub-pixel precision, per-point scores, a presence confidence and the centreline. Cold frames
+at sub-pixel precision, per-point scores, a presence confidence and the centreline (then moved
+onto the wire's centre in the full-resolution image, ``common.centreline_subpixel``). Cold frames
 run stage 2 twice: the second time on the box of the first pass's keypoints, which puts the crop
 at the scale and centring the network knows best. In tracking mode (per camera) the previous
 frame's box is reused and stage 1 is skipped while stage 2's presence confidence stays at or above
@@ -492,7 +493,7 @@ class LearnedBackend(KeypointBackend):
     torch's threads then wait on each other; run one detector per camera for parallelism),
     ``refine`` (true), ``centreline`` (true), ``subpixel`` (true: the centreline refined in the
     full-resolution image), ``min_extent_px`` (10: keypoints closer together are "no needle"),
-    ``arc_bcd`` (true), ``proposals`` (stage-1 proposals tried, 3), ``proposal_threshold`` (0.2)."""
+    ``arc_bcd`` (true), ``along_arc`` (false), ``proposals`` (stage-1 proposals tried, 3), ``proposal_threshold`` (0.2)."""
 
     name = "learned"
     needs_image = True
@@ -501,14 +502,14 @@ class LearnedBackend(KeypointBackend):
         super().__init__(params)
         p = self.params
         known = {"weights", "device", "threshold", "tracking", "threads", "refine", "centreline", "arc_bcd",
-                 "proposals", "proposal_threshold", "subpixel", "min_extent_px"}
+                 "along_arc", "proposals", "proposal_threshold", "subpixel", "min_extent_px"}
         try:
             self.detector = KeypointDetector(
                 p.get("weights"), device=str(p.get("device", "auto")),
                 threshold=float(p.get("threshold", 0.5)), tracking=bool(p.get("tracking", True)),
                 threads=int(p.get("threads", 1)), refine=bool(p.get("refine", True)),
                 centreline=bool(p.get("centreline", True)), arc_bcd=bool(p.get("arc_bcd", True)),
-                proposals=int(p.get("proposals", 3)),
+                along_arc=bool(p.get("along_arc", False)), proposals=int(p.get("proposals", 3)),
                 proposal_threshold=float(p.get("proposal_threshold", 0.2)),
                 subpixel=bool(p.get("subpixel", True)),
                 min_extent_px=float(p.get("min_extent_px", MIN_EXTENT_PX)))
