@@ -70,7 +70,8 @@ def refine_centreline(image: np.ndarray, pts: np.ndarray, weights: np.ndarray, *
     tr = (_subsample_peak(-g, jr) - mid) * step_px
     r = np.arange(n)
     edge = np.minimum(g[r, jl], -g[r, jr]) / step_px                # weaker edge's slope (1/px)
-    bg = np.minimum(prof[:, :8].mean(axis=1), prof[:, -8:].mean(axis=1))
+    # the darker side's median: a jaw or glare in one side's window must not raise the background
+    bg = np.minimum(np.median(prof[:, :8], axis=1), np.median(prof[:, -8:], axis=1))
     inside = (steps[None] >= tl[:, None] - 1.0) & (steps[None] <= tr[:, None] + 1.0)
     mass = np.maximum(prof - bg[:, None], 0.0) * inside
     total = mass.sum(axis=1)
