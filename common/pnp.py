@@ -302,12 +302,9 @@ def initial_poses(obs: CameraObs, epnp: bool = True, ippe: bool = True) -> list[
     img = np.ascontiguousarray(obs.uv, dtype=np.float64).reshape(-1, 1, 2)
     sols = []
     for suffix, Q in (("", None), ("q", _Q)):
-        # the turned model gives the same solutions unless OpenCV lost one: a rotation that
-        # comes out near a half turn, or near none (what it returns for an exact half turn)
-        ippe_sols = [s for s in sols if s[0].startswith("ippe")]
-        if Q is not None and len(ippe_sols) == 2 and all(1e-2 < np.linalg.norm(s[1]) < np.pi - 1e-2
-                                                         for s in ippe_sols):
-            break
+        # always both: the turned model gives the same solutions (dropped as duplicates below)
+        # unless OpenCV lost one near a half turn, and what it returns then need not look like
+        # one (an exact half turn in the camera frame came back as two rotations 120 and 146 deg off)
         pts = obs.points if Q is None else obs.points @ Q.T
         obj = np.ascontiguousarray(pts, dtype=np.float64).reshape(-1, 1, 3)
         for lab, rvec, tvec in _opencv_poses(obj, img, K, epnp and Q is None, ippe):

@@ -62,6 +62,17 @@ def test_average_exact_at_zero_noise(T):
         assert dt < TOL_M and dr < TOL_RAD
 
 
+def test_a_half_turn_in_both_camera_frames_is_found():
+    # found by hypothesis: the needle face-on and upside down in both images; OpenCV's IPPE lost
+    # the right camera's solution without returning anything near a half turn
+    c, s = -0.30885800684178477, 0.95110815978505836
+    T = np.array([[c, 0.0, s, 1.5368440888388724e-05], [0.0, 1.0, 0.0, -2.8198665390780205e-02],
+                  [-s, 0.0, c, -1.5368440888388724e-01], [0.0, 0.0, 0.0, 1.0]])
+    for method in (pnp_average, pnp_joint):
+        dt, dr = pose_error(method(exact_uv(T), RIG, P).T_ecm_needle, T)
+        assert dt < TOL_M and dr < TOL_RAD, method.__name__
+
+
 def test_raw_epnp_is_not_exact_on_coplanar_keypoints():
     """Why pnp_average refines by default: raw EPnP misses on the planar arc even at 0 px."""
     rng = np.random.default_rng(3)
