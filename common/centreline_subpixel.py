@@ -84,3 +84,32 @@ def refine_centreline(image: np.ndarray, pts: np.ndarray, weights: np.ndarray, *
         ok &= np.abs(width - wmed) <= width_tol * wmed + 1.0
     out = np.where(ok[:, None], pts + offset[:, None] * nrm, pts)
     return out, np.where(ok, w, 0.0)
+
+
+def ellipse_residual(pts: np.ndarray, iterations: int = 3, floor_px: float = 0.3) -> tuple[float, float]:
+    """How far a centreline (N, 2) px is from one ellipse, the perspective image of the needle's
+    circle: (median distance of the inliers to the best-fit ellipse, px; inlier share).
+
+    Direct least-squares ellipse fit (``cv2.fitEllipseDirect``), refitted on the points within
+    ``max(3 x median, floor_px)`` (a jaw over part of the needle bends a few stations away);
+    distances are Sampson's first-order geometric distances. (inf, 0) for fewer than 6 points."""
+    pts = np.asarray(pts, float)
+    if len(pts) < 6:
+        return float("inf"), 0.0
+    keep = np.ones(len(pts), bool)
+    d = np.zeros(len(pts))
+    for it in range(iterations + 1):
+        if keep.sum() < 6:
+            return float("inf"), 0.0
+        (cx, cy), (w, h), ang = cv2.fitEllipseDirect(pts[keep].astype(np.float32))
+        a, b = 0.5 * w, 0.5 * h
+        if not (np.isfinite([cx, cy, a, b]).all() and a > 1e-6 and b > 1e-6):
+            return float("inf"), 0.0
+        c, s = np.cos(np.deg2rad(ang)), np.sin(np.deg2rad(ang))
+        x = (pts[:, 0] - cx) * c + (pts[:, 1] - cy) * s
+        y = -(pts[:, 0] - cx) * s + (pts[:, 1] - cy) * c
+        q = (x / a) ** 2 + (y / b) ** 2 - 1.0
+        d = np.abs(q) / np.maximum(2.0 * np.hypot(x / a ** 2, y / b ** 2), 1e-12)
+        if it < iterations:
+            keep = d <= max(3.0 * float(np.median(d[keep])), floor_px)
+    return float(np.median(d[keep])), float(keep.mean())

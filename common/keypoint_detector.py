@@ -26,7 +26,7 @@ import torch
 
 from common.keypoint_model import (FrozenForInference, KeypointModel, ModelConfig, apply_affine, crop_affine,
                                    crop_side, decode_global_topk, decode_heatmaps, fuse_conv_bn, invert_affine)
-from common.centreline_subpixel import CENTRELINE_SIGMA_PX, refine_centreline
+from common.centreline_subpixel import CENTRELINE_SIGMA_PX, ellipse_residual, refine_centreline
 from common.messages import CameraImage, Keypoints, MessageError
 
 MODEL_FORMAT = "needletrack-keypoint-detector"
@@ -39,6 +39,11 @@ CENTRELINE_POINTS = 48
 # The needle's smallest image extent in any view, its 5.1 mm sagitta seen from the side, is
 # 10 px at 40 cm with this endoscope (f ~ 790 px): keypoints closer together are a collapse.
 MIN_EXTENT_PX = 10.0
+# The perspective image of the needle's circle is an ellipse: the sub-pixel centreline of a
+# needle lies within 0.1 px of one (median; standard test set), a bent thread 0.3-2.7 px.
+MAX_ELLIPSE_PX = 0.25
+MIN_ELLIPSE_SHARE = 0.5      # of the centreline points on that ellipse (a jaw may bend the rest)
+MIN_ELLIPSE_POINTS = 8       # fewer (a needle mostly hidden) are not judged
 log = logging.getLogger("needletrack.keypoint_detector")
 
 
@@ -305,7 +310,7 @@ class KeypointDetector:
                  tracking: bool = True, threads: int | None = None, refine: bool = True,
                  centreline: bool = True, arc_bcd: bool = True, along_arc: bool = False,
                  proposal_threshold: float = 0.2, proposals: int = 3, subpixel: bool = True,
-                 min_extent_px: float = MIN_EXTENT_PX):
+                 min_extent_px: float = MIN_EXTENT_PX, max_ellipse_px: float = MAX_ELLIPSE_PX):
         self.device = pick_device(device)
         if threads:
             torch.set_num_threads(int(threads))
@@ -323,6 +328,7 @@ class KeypointDetector:
         self.proposals = max(1, int(proposals))
         self.subpixel = bool(subpixel)
         self.min_extent_px = float(min_extent_px)
+        self.max_ellipse_px = float(max_ellipse_px)
         self._track: dict[str, tuple] = {}
         self.last_mode = ""
 
@@ -408,6 +414,20 @@ class KeypointDetector:
             res["centreline"], res["centreline_w"] = refine_centreline(img, res["centreline"], w)
             res["centreline_sigma"] = CENTRELINE_SIGMA_PX
 
+    def _not_an_ellipse(self, res) -> str | None:
+        """Why the sub-pixel centreline is not the image of a circle (None if it is, or when it
+        cannot be judged: no sub-pixel centreline, or fewer than MIN_ELLIPSE_POINTS stations)."""
+        if not (self.max_ellipse_px > 0 and res.get("centreline_sigma") is not None):
+            return None
+        pts = res["centreline"][res["centreline_w"] > 0]
+        if len(pts) < MIN_ELLIPSE_POINTS:
+            return None
+        med, share = ellipse_residual(pts)
+        if med <= self.max_ellipse_px and share >= MIN_ELLIPSE_SHARE:
+            return None
+        return (f"centreline is not an ellipse arc (median {med:.2f} px from its best ellipse over "
+                f"{share:.0%} of it; max_ellipse_px {self.max_ellipse_px:g})")
+
     # ------------------------------------------------------------ public
     @torch.inference_mode()
     def detect(self, image, camera: str = "left", seq: int = 0, stamp_ns: int = 0) -> Keypoints:
@@ -462,8 +482,12 @@ class KeypointDetector:
             return Keypoints.not_found(camera, seq, stamp_ns, self.name,
                                        f"no needle: keypoints collapsed ({extent:.1f} px apart "
                                        f"< min_extent_px {self.min_extent_px:g})", conf)
-        self._track[camera] = self._box_of({"uv": res["uv"]})   # as _moved compares it
         self._finish(res, img)
+        not_ellipse = self._not_an_ellipse(res)
+        if not_ellipse:
+            self.reset(camera)
+            return Keypoints.not_found(camera, seq, stamp_ns, self.name, f"no needle: {not_ellipse}", conf)
+        self._track[camera] = self._box_of({"uv": res["uv"]})   # as _moved compares it
         cx, cy, bw, bh = self._box_of(res)
         return Keypoints(camera, seq, stamp_ns, True, res["uv"].astype(np.float64),
                          res["scores"].astype(np.float64), float(conf),
@@ -493,6 +517,7 @@ class LearnedBackend(KeypointBackend):
     torch's threads then wait on each other; run one detector per camera for parallelism),
     ``refine`` (true), ``centreline`` (true), ``subpixel`` (true: the centreline refined in the
     full-resolution image), ``min_extent_px`` (10: keypoints closer together are "no needle"),
+    ``max_ellipse_px`` (0.25: a sub-pixel centreline farther from one ellipse is "no needle"; 0: off),
     ``arc_bcd`` (true), ``along_arc`` (false), ``proposals`` (stage-1 proposals tried, 3), ``proposal_threshold`` (0.2)."""
 
     name = "learned"
@@ -502,7 +527,7 @@ class LearnedBackend(KeypointBackend):
         super().__init__(params)
         p = self.params
         known = {"weights", "device", "threshold", "tracking", "threads", "refine", "centreline", "arc_bcd",
-                 "along_arc", "proposals", "proposal_threshold", "subpixel", "min_extent_px"}
+                 "along_arc", "proposals", "proposal_threshold", "subpixel", "min_extent_px", "max_ellipse_px"}
         try:
             self.detector = KeypointDetector(
                 p.get("weights"), device=str(p.get("device", "auto")),
@@ -512,7 +537,8 @@ class LearnedBackend(KeypointBackend):
                 along_arc=bool(p.get("along_arc", False)), proposals=int(p.get("proposals", 3)),
                 proposal_threshold=float(p.get("proposal_threshold", 0.2)),
                 subpixel=bool(p.get("subpixel", True)),
-                min_extent_px=float(p.get("min_extent_px", MIN_EXTENT_PX)))
+                min_extent_px=float(p.get("min_extent_px", MIN_EXTENT_PX)),
+                max_ellipse_px=float(p.get("max_ellipse_px", MAX_ELLIPSE_PX)))
         except (ModelFileError, ValueError, TypeError) as exc:
             raise BackendError(f"learned backend: {exc}") from exc
         self.ignored = sorted(set(p) - known)

@@ -1,7 +1,7 @@
 """Sub-pixel centreline refinement in the image (common.centreline_subpixel)."""
 import numpy as np
 
-from common.centreline_subpixel import TRIM, refine_centreline
+from common.centreline_subpixel import TRIM, ellipse_residual, refine_centreline
 
 CENTRE, RADIUS, HALF_WIDTH = np.array([400.3, 300.7]), 120.4, 2.2
 TISSUE, WIRE = np.array([120, 130, 215.0]), np.array([205, 205, 210.0])   # BGR
@@ -62,3 +62,29 @@ def test_too_short_or_off_image_curves_do_not_fail():
     far = np.stack([np.linspace(-500, -400, 20), np.full(20, -300.0)], 1)
     pts, w = refine_centreline(img, far, np.ones(20))
     assert pts.shape == (20, 2) and not w.any()
+
+
+def ellipse_arc(t, centre=(300.0, 200.0), axes=(80.0, 35.0), angle=0.4):
+    c, s = np.cos(angle), np.sin(angle)
+    x, y = axes[0] * np.cos(t), axes[1] * np.sin(t)
+    return np.stack([centre[0] + c * x - s * y, centre[1] + s * x + c * y], 1)
+
+
+def test_a_projected_circle_is_an_ellipse_and_a_bent_thread_is_not():
+    rng = np.random.default_rng(3)
+    t = np.linspace(0.2, 2.3, 44)                       # a 120-degree arc seen obliquely
+    arc = ellipse_arc(t) + rng.normal(0, 0.07, (44, 2))
+    med, share = ellipse_residual(arc)
+    assert med < 0.1 and share > 0.9
+    # a jaw bends a fifth of the stations away (its width filter leaves few such): the rest still
+    # make one ellipse
+    jaw = arc.copy()
+    jaw[:9] += np.linspace(0, 6, 9)[:, None] * np.array([0.0, 1.0])
+    med, share = ellipse_residual(jaw)
+    assert med < 0.1 and share >= 0.5
+    # a thread bent at a corner (two nearly straight arms, as the test set's decoy)
+    arm1 = np.stack([np.linspace(0, 25, 22), np.linspace(0, 2, 22) ** 2], 1)
+    arm2 = arm1[-1] + np.stack([np.linspace(0, 3, 22) ** 2, np.linspace(0, 25, 22)], 1)
+    med, share = ellipse_residual(np.vstack([arm1, arm2[1:]]) + rng.normal(0, 0.07, (43, 2)))
+    assert med > 0.25 or share < 0.5
+    assert ellipse_residual(arc[:5]) == (float("inf"), 0.0)

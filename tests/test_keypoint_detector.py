@@ -79,6 +79,14 @@ def test_centreline_is_sub_pixel_in_the_full_resolution_image(rendered_frames):
     assert dist[True] < 0.15 and dist[True] < 0.7 * dist[False], dist
 
 
+def test_a_centreline_off_an_ellipse_is_no_needle(rendered):
+    images, _ = rendered
+    strict = KeypointDetector(device="cpu", max_ellipse_px=1e-4)   # no centreline is that exact
+    kp = strict.detect(images["left"], "left")
+    assert not kp.found and "not an ellipse arc" in kp.reason and np.isnan(kp.uv).all()
+    assert KeypointDetector(device="cpu", max_ellipse_px=0).detect(images["left"], "left").found
+
+
 def test_collapsed_keypoints_are_no_needle(rendered):
     images, _ = rendered
     det = KeypointDetector(device="cpu", min_extent_px=5000)
