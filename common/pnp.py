@@ -275,13 +275,13 @@ def _opencv_poses(obj, img, K, epnp: bool, ippe: bool):
         try:
             ok, rvec, tvec = cv2.solvePnP(obj, img, K, None, flags=cv2.SOLVEPNP_EPNP)
             if ok:
-                out.append(("epnp", rvec, tvec))
+                out.append(("epnp", rvec, tvec, np.nan))
         except cv2.error:
             pass
     if ippe:
         try:
-            n, rvecs, tvecs, _ = cv2.solvePnPGeneric(obj, img, K, None, flags=cv2.SOLVEPNP_IPPE)
-            out += [(f"ippe{k}", rvecs[k], tvecs[k]) for k in range(n)]
+            n, rvecs, tvecs, errs = cv2.solvePnPGeneric(obj, img, K, None, flags=cv2.SOLVEPNP_IPPE)
+            out += [(f"ippe{k}", rvecs[k], tvecs[k], float(np.ravel(errs)[k])) for k in range(n)]
         except cv2.error:
             pass
     return out
@@ -302,13 +302,19 @@ def initial_poses(obs: CameraObs, epnp: bool = True, ippe: bool = True) -> list[
     img = np.ascontiguousarray(obs.uv, dtype=np.float64).reshape(-1, 1, 2)
     sols = []
     for suffix, Q in (("", None), ("q", _Q)):
-        # always both: the turned model gives the same solutions (dropped as duplicates below)
-        # unless OpenCV lost one near a half turn, and what it returns then need not look like
-        # one (an exact half turn in the camera frame came back as two rotations 120 and 146 deg off)
+        # the turned model gives the same solutions unless OpenCV lost one near a half turn;
+        # then it returns a rotation near a half turn or none, or one that reprojects far worse
+        # than the other (an exact half turn in both cameras: 0.8 against 47 px at zero noise)
+        ippe_sols = [s for s in sols if s[0].startswith("ippe")]
+        if Q is not None and len(ippe_sols) == 2 and all(1e-2 < np.linalg.norm(s[1]) < np.pi - 1e-2
+                                                         for s in ippe_sols):
+            e = sorted(s[4] for s in ippe_sols)
+            if e[1] <= 3.0 * e[0] + 2.0:
+                break
         pts = obs.points if Q is None else obs.points @ Q.T
         obj = np.ascontiguousarray(pts, dtype=np.float64).reshape(-1, 1, 3)
-        for lab, rvec, tvec in _opencv_poses(obj, img, K, epnp and Q is None, ippe):
-            sols.append((lab + suffix, rvec, tvec, Q))
+        for lab, rvec, tvec, err in _opencv_poses(obj, img, K, epnp and Q is None, ippe):
+            sols.append((lab + suffix, rvec, tvec, Q, err))
     order = {"ippe0": 0, "ippe1": 1, "ippe0q": 2, "ippe1q": 3, "epnp": 4}
     sols.sort(key=lambda s: order[s[0]])
     out: list[tuple[str, np.ndarray]] = []
@@ -318,7 +324,7 @@ def initial_poses(obs: CameraObs, epnp: bool = True, ippe: bool = True) -> list[
     tv = np.array([np.asarray(s[2], float).reshape(3) for s in sols])
     finite = np.all(np.isfinite(rv), axis=1) & np.all(np.isfinite(tv), axis=1)
     Rs = rotvecs_to_Rs(np.where(finite[:, None], rv, 0.0))
-    for (label, _, _, Q), R, t, ok in zip(sols, Rs, tv, finite):
+    for (label, _, _, Q, _), R, t, ok in zip(sols, Rs, tv, finite):
         if not ok:
             continue
         if Q is not None:
