@@ -8,21 +8,27 @@ detector's frames include a slower one's.
 """
 from __future__ import annotations
 
+from collections import deque
+
+import numpy as np
+
 
 class FrameStride:
-    """Power-of-two frame stride from the frame interval and the detection time (running
-    means; the stride halves only when a detection would fit in 0.6 of the smaller stride, a
-    hysteresis against flapping). ``adaptive`` False keeps the given stride."""
+    """Power-of-two frame stride from the frame interval (running mean) and the median of the last
+    ``window`` detection times (a cold detection or a scheduler hiccup is not a trend); the
+    stride halves only when that median would fit in ``halve_at`` of the smaller stride, a
+    hysteresis against flapping. ``adaptive`` False keeps the given stride."""
 
     MAX = 64
 
-    def __init__(self, stride: int = 1, adaptive: bool = False):
+    def __init__(self, stride: int = 1, adaptive: bool = False, window: int = 15, halve_at: float = 0.75):
         if stride < 1 or stride & (stride - 1):
             raise ValueError(f"stride must be a power of two, got {stride!r}")
         self.stride, self.adaptive = int(stride), bool(adaptive)
+        self.halve_at = float(halve_at)
         self._last_frame = None           # (seq, stamp_ns) of the newest frame seen
         self._period_s = None             # frame interval, s
-        self._busy_s = None               # wall time of one detection, s
+        self._busy_s = deque(maxlen=int(window))   # wall times of the last detections, s
 
     def takes(self, seq: int) -> bool:
         return seq % self.stride == 0
@@ -38,11 +44,11 @@ class FrameStride:
         """A detection took ``busy_s`` seconds: adapts the stride (when adaptive)."""
         if not self.adaptive:
             return
-        self._busy_s = busy_s if self._busy_s is None else 0.8 * self._busy_s + 0.2 * busy_s
+        self._busy_s.append(float(busy_s))
         if not self._period_s:
             return
-        need = self._busy_s / self._period_s           # frame intervals per detection
+        need = float(np.median(self._busy_s)) / self._period_s     # frame intervals per detection
         while self.stride < self.MAX and need > self.stride:
             self.stride *= 2
-        while self.stride > 1 and need < 0.6 * (self.stride // 2):
+        while self.stride > 1 and need < self.halve_at * (self.stride // 2):
             self.stride //= 2

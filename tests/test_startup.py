@@ -129,6 +129,23 @@ def _camera_run(busy_s, camera, frames=60, period_s=1 / 30):
     return det, [k.seq for _, k in det.published]
 
 
+def test_stride_follows_sustained_detection_times_not_spikes():
+    from common.frame_stride import FrameStride
+    fs = FrameStride(1, adaptive=True)
+    for s in range(90):                    # 30 Hz; a cold detection of 100 ms every 6th frame
+        fs.frame(s, int(s / 30 * 1e9))
+        fs.detected(0.100 if s % 6 == 3 else 0.020)
+        assert fs.stride == 1
+    for s in range(90, 120):               # slower for good: 45 ms = 1.35 frame intervals
+        fs.frame(s, int(s / 30 * 1e9))
+        fs.detected(0.045)
+    assert fs.stride == 2
+    for s in range(120, 150):              # fast again: 20 ms < 0.75 interval
+        fs.frame(s, int(s / 30 * 1e9))
+        fs.detected(0.020)
+    assert fs.stride == 1
+
+
 def test_per_camera_detectors_pick_the_same_frames_whatever_their_speed():
     left, l_seqs = _camera_run(0.045, "left")           # 1.35 frame intervals per detection
     right, r_seqs = _camera_run(0.050, "right")
