@@ -12,7 +12,7 @@ frame in parallel, but two processes that each take the newest image when they a
 apart and detect different frames, which then never pair (measured: 15 keypoint frames/s per
 camera, 8 stereo pairs/s). So such a detector detects only frames whose ``seq`` is a multiple of
 its stride, a power of two (``stride: auto``, the default there) just large enough that a
-detection fits in ``stride`` frame intervals (from the recent detection times and frame stamps,
+detection fits in ``stride`` frame intervals (the median of the last 15 detection times, the frame stamps,
 with hysteresis): both cameras' detectors then pick the same frames whatever their
 own speed (powers of two nest), and a detector waits for its next frame instead of starting
 on a stale one. The other frames count ``stride_skipped``. A number fixes the stride; a
