@@ -3,7 +3,8 @@
 The tracking graph as deployed, i.e. with newest-only inputs (``common.pipeline_graph``:
 replay -> one detector process per camera -> refine -> fusion over refined poses, with ecm),
 fed by the replay source looping over a 1920x1080 stereo dataset at the endoscope's 30 Hz
-(``--rate``; ``max``: as fast as it goes). ``--all-methods`` adds the other pose methods
+(``--rate``; ``max``: as fast as the graph goes, closed loop: the replay sends the next frame
+once both cameras' keypoints of the last one are out, ``rate: paced``). ``--all-methods`` adds the other pose methods
 (epnp average and joint, triangulate, fusion over joint poses), as in an evaluation; they are
 not on the path to the final pose. After a warm-up it measures for ``--duration`` seconds:
 
@@ -47,8 +48,8 @@ def _parser() -> argparse.ArgumentParser:
                    help="a detector parameter (repeatable), e.g. --param stride=1")
     p.add_argument("--rate", default="30",
                    help="replay rate in Hz (default 30, the endoscope's), or 'max': as fast as the "
-                        "replay can read the files (then every node's keep-all inputs, e.g. the ECM "
-                        "poses, flood it and the figures show an overloaded graph)")
+                        "graph goes (closed loop: the next frame once both cameras' keypoints of the "
+                        "last one are out; the detectors take every frame)")
     p.add_argument("--decode", action="store_true",
                    help="the replay decodes the images once at start-up and sends them raw (bgr8, by "
                         "shared memory), as a live capture card delivers them: the detectors then do "
@@ -126,7 +127,7 @@ def measure(args, dataset: str, log) -> dict:
                                        pipeline_graph, pose_inputs)
 
     ds = Dataset(dataset, check_files=False)
-    rate = args.rate if str(args.rate) == "max" else float(args.rate)
+    rate = "paced" if str(args.rate) == "max" else float(args.rate)
     split = not args.one_detector
     from common.graph import parse_param
     det_params = {"weights": str(Path(args.model).resolve())} if args.model else {}

@@ -66,6 +66,8 @@ def pipeline_graph(dataset: str, *, detector: str = "learned", detector_params: 
     replay decodes the images once at start-up and sends them raw, as a live camera would.
     ``refine_tracking``: the refinement starts a frame from the last one's pose when it can
     (``common.refine_tracking``; false: every frame on its own, a single-frame method).
+    ``rate="paced"``: the replay sends the next frame once both cameras' keypoints of the last
+    one are out (closed loop, as fast as the graph goes); the detectors then take every frame.
     """
     if refine is None:
         refine = has_module("refine")
@@ -80,6 +82,9 @@ def pipeline_graph(dataset: str, *, detector: str = "learned", detector_params: 
     port = port or free_port()
     one = {"OMP_NUM_THREADS": "1"}
     det_params = {"backend": detector, **(detector_params or {})}
+    paced = str(rate) == "paced"
+    if paced:
+        det_params.setdefault("stride", 1)    # the replay waits for every frame's keypoints
     if split_detector and detector == "learned":
         det_params.setdefault("threads", 1)   # two processes share the cores, one each
     nodes = [
@@ -99,6 +104,8 @@ def pipeline_graph(dataset: str, *, detector: str = "learned", detector_params: 
                                  "truth": "replay/truth", "calib": "replay/calib"},
                       "outputs": ["left", "right"]})
     kp = keypoint_sources(split_detector)
+    if paced:
+        nodes[0]["inputs"] = {"ack": kp["left"], "ack2": kp["right"]}
     nodes += [
         {"id": "ecm", "module": "ecm", "inputs": {"joints": "replay/joints", "calib": "replay/calib"},
          "outputs": ["pose"], "env": one},

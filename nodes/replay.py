@@ -7,7 +7,11 @@ frame, then once a second), and ``eos`` (``EndOfStream``) after the last frame w
 ``stamp_ns`` is the wall-clock time of publishing (the recorded stamps set the pace).
 
 params: ``path`` (the folder, required), ``rate`` (``recorded``: the folder's own timing;
-``max``: as fast as possible; or a number in Hz; default recorded), ``loop`` (false),
+``max``: as fast as possible; ``paced``: as fast as the graph takes frames, closed loop: at
+most ``in_flight`` frames (2) are out that not every wired ``ack``/``ack2`` input has answered
+with a message of that ``seq`` or later (e.g. both cameras' keypoints); a frame unanswered for
+``ack_timeout`` s (1.0) stops counting (``ack_timeouts``); or a number in Hz; default
+recorded), ``loop`` (false),
 ``start`` (first frame index, 0), ``count`` (frames to play; 0 = all), ``decode`` (false:
 send the files' bytes; true: decode every frame once at start-up, hold the images in memory
 (6.2 MB per 1080p image) and send them raw (``bgr8``), as a live capture card delivers them:
@@ -18,6 +22,7 @@ and skipped.
 """
 import os
 import time
+from collections import deque
 
 import numpy as np
 
@@ -26,13 +31,17 @@ from common.camera_source import CameraSourceNode
 from common.node import run
 
 CAMS = ("left", "right")
+PACED = -1.0                  # parse_rate's value for ``paced``
+ACKS = ("ack", "ack2")
 MAX_DECODED_BYTES = 8 << 30   # decode=true holds every image in memory: refuse more than 8 GiB
 
 
 def parse_rate(value) -> float | None:
-    """``recorded`` -> None, ``max`` -> 0.0, else a positive rate in Hz."""
+    """``recorded`` -> None, ``max`` -> 0.0, ``paced`` -> PACED, else a positive rate in Hz."""
     if value is None or str(value).strip().lower() == "recorded":
         return None
+    if str(value).strip().lower() == "paced":
+        return PACED
     if str(value).strip().lower() == "max":
         return 0.0
     try:
@@ -61,6 +70,8 @@ class ReplayNode(CameraSourceNode):
     """Dataset folder source."""
 
     OUTPUTS = ("left", "right", "joints", "truth", "calib", "eos")
+    INPUTS = {"ack": None, "ack2": None}     # any message with a ``seq`` (``rate: paced``)
+    KEEP_ALL = ACKS
 
     def setup(self):
         from common.dataset import Dataset
@@ -87,6 +98,30 @@ class ReplayNode(CameraSourceNode):
         self.t0_wall = None
         self.t0_rec = None
         self.next_t = None
+        self.ack_timeout = float(p.get("ack_timeout", 1.0))
+        self.acked = {name: -1 for name in ACKS if self.wired(name)}
+        self.in_flight = max(1, int(p.get("in_flight", 2)))
+        self.awaiting = deque()          # (seq, monotonic time) of the frames not yet acknowledged
+        if self.rate == PACED and not self.acked:
+            raise ValueError("replay: rate 'paced' needs an 'ack' input wired (e.g. a detector's keypoints)")
+
+    def on_ack(self, msg):
+        self.acked["ack"] = max(self.acked.get("ack", -1), int(getattr(msg, "seq", -1)))
+
+    def on_ack2(self, msg):
+        self.acked["ack2"] = max(self.acked.get("ack2", -1), int(getattr(msg, "seq", -1)))
+
+    def _waiting_for_ack(self) -> bool:
+        """``rate: paced``: ``in_flight`` frames are out and not yet acknowledged."""
+        if self.rate != PACED:
+            return False
+        done = min(self.acked.values())
+        now = time.monotonic()
+        while self.awaiting and (self.awaiting[0][0] <= done or now - self.awaiting[0][1] > self.ack_timeout):
+            if self.awaiting[0][0] > done:
+                self.count("ack_timeouts")
+            self.awaiting.popleft()
+        return len(self.awaiting) >= self.in_flight
 
     def _decode_all(self) -> list:
         """Per frame: {camera: raw bgr8 bytes}, or None for a frame whose images fail."""
@@ -159,6 +194,10 @@ class ReplayNode(CameraSourceNode):
             self.loops += 1
         if self.published_frames == 0 and self.last_calib is None:
             self._publish_calib(force=True)
+        if self._waiting_for_ack():
+            time.sleep(0.0005)           # the runtime dispatches the acks between steps
+            self._publish_calib()
+            return True
         fr = self.frames[self.pos]
         self._pace(fr)
         seq = fr.index + self.loops * len(self.ds.frames)
@@ -175,6 +214,8 @@ class ReplayNode(CameraSourceNode):
         if truth is not None:
             self.publish("truth", truth)
         self.published_frames += 1
+        if self.rate == PACED:
+            self.awaiting.append((seq, time.monotonic()))
         self.pos += 1
         self._publish_calib()
         return True

@@ -105,6 +105,35 @@ def test_replay_decode_sends_raw_images_and_skips_a_broken_one(tmp_path, monkeyp
         ReplayNode.offline(params={"path": str(tmp_path), "decode": True})
 
 
+def test_replay_paced_sends_the_next_frame_once_both_acks_are_in(tmp_path):
+    from common.messages import Keypoints
+    _dataset(tmp_path, 4)
+    ack = lambda cam, seq: Keypoints.not_found(cam, seq, 0, "oracle", "test")
+    node = ReplayNode.offline(params={"path": str(tmp_path), "rate": "paced", "in_flight": 1,
+                                      "ack_timeout": 60}, wired=["ack", "ack2"])
+    seqs = lambda: [m.seq for o, m in node.published if o == "left"]
+    for _ in range(5):
+        node.step()
+    assert seqs() == [0]                       # frame 0 unanswered: nothing more goes out
+    node.on_ack(ack("left", 0))
+    node.step()
+    assert seqs() == [0]                       # one camera of two
+    node.on_ack2(ack("right", 0))
+    node.step()
+    assert seqs() == [0, 1]
+    # two in flight (the default); an unanswered frame stops counting after ack_timeout
+    node = ReplayNode.offline(params={"path": str(tmp_path), "rate": "paced", "ack_timeout": 0.01},
+                              wired=["ack"])
+    node.step(), node.step(), node.step()
+    assert seqs() == [0, 1]
+    import time
+    time.sleep(0.02)
+    node.step()
+    assert seqs() == [0, 1, 2] and node.counters["ack_timeouts"] >= 1
+    with pytest.raises(ValueError, match="paced"):
+        ReplayNode.offline(params={"path": str(tmp_path), "rate": "paced"}, wired=[])
+
+
 def test_replay_params_are_checked(tmp_path):
     assert parse_rate("recorded") is None and parse_rate("max") == 0.0 and parse_rate("12.5") == 12.5
     for bad in ("fast", -1, 0):
