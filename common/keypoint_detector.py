@@ -26,7 +26,7 @@ import torch
 
 from common.keypoint_model import (FrozenForInference, KeypointModel, ModelConfig, apply_affine, crop_affine,
                                    crop_side, decode_global_topk, decode_heatmaps, fuse_conv_bn, invert_affine)
-from common.centreline_subpixel import CENTRELINE_SIGMA_PX, ellipse_residual, refine_centreline
+from common.centreline_subpixel import CENTRELINE_SIGMA_PX, curve_normals, ellipse_residual, refine_centreline
 from common.messages import CameraImage, Keypoints, MessageError
 
 MODEL_FORMAT = "needletrack-keypoint-detector"
@@ -138,9 +138,7 @@ def decode_centreline(line_logit: np.ndarray, kp_cells: np.ndarray, n: int = CEN
     prob = 1.0 / (1.0 + np.exp(-line_logit.astype(np.float32)))
     logp = np.log(prob + 1e-6)
     seed = _curve_through(kp_cells, n)
-    tang = np.gradient(seed, axis=0)
-    tang /= np.maximum(np.linalg.norm(tang, axis=1, keepdims=True), 1e-9)
-    normal = np.stack([-tang[:, 1], tang[:, 0]], 1)
+    normal = curve_normals(seed)
     steps = np.arange(-search, search + 1e-9, 0.5)
     pts = seed[:, None, :] + steps[None, :, None] * normal[:, None, :]
     mx = pts[..., 0].astype(np.float32)
@@ -281,8 +279,7 @@ def refine_along_arc(prob: np.ndarray, fit, t_pred_deg: float, half_deg: float =
     ts = np.linspace(t_pred_deg - half_deg, t_pred_deg + half_deg, 61)
     curve = arc_at(fit, ts)
     tang = np.gradient(curve, axis=0)
-    nrm = np.stack([-tang[:, 1], tang[:, 0]], 1)
-    nrm /= np.maximum(np.linalg.norm(nrm, axis=1, keepdims=True), 1e-9)
+    nrm = curve_normals(curve)
     offs = np.arange(-band, band + 1e-9, 0.5)
     pts = curve[:, None, :] + offs[None, :, None] * nrm[:, None, :]
     samp = cv2.remap(prob.astype(np.float32), pts[..., 0].astype(np.float32), pts[..., 1].astype(np.float32),

@@ -115,16 +115,14 @@ class Oracle:
     def centreline(self, camera: Camera, T_ecm_needle, model: NeedleModel, seq: int):
         """(points (N, 2), weights (N,)): the projected arc A..E in this camera with noise along
         its normal (see the module docstring); N is 0 when none of it is in the image."""
+        from common.centreline_subpixel import curve_normals
         from common.refine import project_centreline
         c = project_centreline(camera, model, np.asarray(T_ecm_needle, dtype=float))
         sigma = self.noise_px / 2 if self.centreline_noise_px is None else self.centreline_noise_px
         if sigma > 0 and len(c) > 1:
             rng = np.random.default_rng([abs(int(self.seed)), abs(int(seq)),
                                          CAMERA_INDEX.get(camera.name, 2), 1])
-            tang = np.gradient(c, axis=0)
-            nrm = np.stack([-tang[:, 1], tang[:, 0]], axis=1)
-            nrm /= np.maximum(np.linalg.norm(nrm, axis=1, keepdims=True), 1e-12)
-            c = c + nrm * rng.normal(0.0, sigma, (len(c), 1))
+            c = c + curve_normals(c) * rng.normal(0.0, sigma, (len(c), 1))
         return c, np.ones(len(c))
 
     def stereo(self, rig: StereoRig, T_ecm_needle, model: NeedleModel, seq: int) -> tuple[dict, dict]:
