@@ -92,8 +92,10 @@ def ellipse_residual(pts: np.ndarray, iterations: int = 3, floor_px: float = 0.3
 
     Direct least-squares ellipse fit (``cv2.fitEllipseDirect``), refitted on the points within
     ``max(3 x median, floor_px)`` (a jaw over part of the needle bends a few stations away);
-    distances are Sampson's first-order geometric distances. (inf, 0) for fewer than 6 points."""
-    pts = np.asarray(pts, float)
+    distances are Sampson's first-order geometric distances. (inf, 0) for fewer than 6 finite
+    points or when no ellipse can be fitted."""
+    pts = np.asarray(pts, float).reshape(-1, 2)
+    pts = pts[np.isfinite(pts).all(axis=1)]
     if len(pts) < 6:
         return float("inf"), 0.0
     keep = np.ones(len(pts), bool)
@@ -101,7 +103,10 @@ def ellipse_residual(pts: np.ndarray, iterations: int = 3, floor_px: float = 0.3
     for it in range(iterations + 1):
         if keep.sum() < 6:
             return float("inf"), 0.0
-        (cx, cy), (w, h), ang = cv2.fitEllipseDirect(pts[keep].astype(np.float32))
+        try:
+            (cx, cy), (w, h), ang = cv2.fitEllipseDirect(pts[keep].astype(np.float32))
+        except cv2.error:
+            return float("inf"), 0.0
         a, b = 0.5 * w, 0.5 * h
         if not (np.isfinite([cx, cy, a, b]).all() and a > 1e-6 and b > 1e-6):
             return float("inf"), 0.0

@@ -417,6 +417,7 @@ class KeypointDetector:
         if not (self.max_ellipse_px > 0 and res.get("centreline_sigma") is not None):
             return None
         pts = res["centreline"][res["centreline_w"] > 0]
+        pts = pts[np.isfinite(pts).all(axis=1)]
         if len(pts) < MIN_ELLIPSE_POINTS:
             return None
         med, share = ellipse_residual(pts)

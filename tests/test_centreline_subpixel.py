@@ -62,6 +62,9 @@ def test_too_short_or_off_image_curves_do_not_fail():
     far = np.stack([np.linspace(-500, -400, 20), np.full(20, -300.0)], 1)
     pts, w = refine_centreline(img, far, np.ones(20))
     assert pts.shape == (20, 2) and not w.any()
+    pts, w = refine_centreline(img, np.full((20, 2), np.nan), np.ones(20))
+    assert not w.any()
+    assert ellipse_residual(np.full((20, 2), np.nan)) == (float("inf"), 0.0)
 
 
 def ellipse_arc(t, centre=(300.0, 200.0), axes=(80.0, 35.0), angle=0.4):
