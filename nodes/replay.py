@@ -105,11 +105,14 @@ class ReplayNode(CameraSourceNode):
         if self.rate == PACED and not self.acked:
             raise ValueError("replay: rate 'paced' needs an 'ack' input wired (e.g. a detector's keypoints)")
 
+    def _ack(self, name: str, msg) -> None:
+        self.acked[name] = max(self.acked.get(name, -1), int(getattr(msg, "seq", -1)))
+
     def on_ack(self, msg):
-        self.acked["ack"] = max(self.acked.get("ack", -1), int(getattr(msg, "seq", -1)))
+        self._ack("ack", msg)
 
     def on_ack2(self, msg):
-        self.acked["ack2"] = max(self.acked.get("ack2", -1), int(getattr(msg, "seq", -1)))
+        self._ack("ack2", msg)
 
     def _waiting_for_ack(self) -> bool:
         """``rate: paced``: ``in_flight`` frames are out and not yet acknowledged."""
