@@ -14,8 +14,9 @@ not on the path to the final pose. After a warm-up it measures for ``--duration`
 - latency from frame publish (``CameraImage.stamp_ns``, wall clock) to the fused pose, p50/p99,
   and to each stage's output (keypoints, each pose method);
 - each node's CPU share and CPU time per published frame (from /proc over the window), its
-  handler times (its stats: p50/p99 over every message it handled, calibration and ECM poses
-  included) and dropped inputs.
+  handler times (its stats: p50/p99 over the messages whose handler published, i.e. a frame's
+  work: a detector's images, not its calibration or ground truth; the replay's step is not a
+  handler, its CPU ms/frame is its cost) and dropped inputs.
 
 Prints a table; ``--json FILE`` also writes the figures. Without ``--dataset`` it uses
 ``data/test`` when present, else generates ``data/bench`` once (30 frames).

@@ -211,7 +211,7 @@ def fit_arc_affine(a: np.ndarray, e: np.ndarray, line_logit: np.ndarray,
     c, U = sol[0], sol[1:].T
     # initial angles: closest point on the initial curve (|p - q|^2 without the |p|^2 term)
     ts = np.linspace(t0 - 0.3, t1 + 0.3, 100)
-    curve = c + np.outer(np.cos(ts), U[:, 0]) + np.outer(np.sin(ts), U[:, 1])
+    curve = c + np.stack([np.cos(ts), np.sin(ts)], 1) @ U.T
     tt = ts[((curve * curve).sum(1) - 2.0 * pts @ curve.T).argmin(1)]
     # a and e as heavily weighted constraints: rows of d(c + U [cos t, sin t]) / d(c, U) at t0, t1
     w_end = 10.0 * max(1.0, w.sum())
@@ -219,32 +219,28 @@ def fit_arc_affine(a: np.ndarray, e: np.ndarray, line_logit: np.ndarray,
                      [1, 0, np.cos(t1), np.sin(t1), 0, 0], [0, 1, 0, 0, np.cos(t1), np.sin(t1)]])
     H_ends = w_end * ends.T @ ends
     target = np.concatenate([a, e])
-    J = np.empty((len(pts), 6))
+    P = pts.T                                  # (2, N): row-wise arrays keep the loop cheap
+    quarter = np.array([[0.0, -1.0], [1.0, 0.0]])   # tangent = U [-sin t, cos t] = U quarter [cos t, sin t]
     for it in range(iters):
-        cs, sn = np.cos(tt), np.sin(tt)
-        on = c + np.outer(cs, U[:, 0]) + np.outer(sn, U[:, 1])
-        tang = np.outer(cs, U[:, 1]) - np.outer(sn, U[:, 0])
-        tl = np.maximum(np.sqrt((tang * tang).sum(1)), 1e-9)
-        nx, ny = -tang[:, 1] / tl, tang[:, 0] / tl
-        diff = pts - on
-        res = diff[:, 0] * nx + diff[:, 1] * ny
+        CS = np.stack([np.cos(tt), np.sin(tt)])
+        tang = (U @ quarter) @ CS
+        nrm = np.stack([-tang[1], tang[0]]) / np.maximum(np.hypot(tang[0], tang[1]), 1e-9)
+        res = ((P - c[:, None] - U @ CS) * nrm).sum(0)
         inl = (np.abs(res) < 2.5) & (tt > t0 - 0.15) & (tt < t1 + 0.15)
         if inl.sum() < 5:
             return None
-        J[:, 0], J[:, 1], J[:, 2], J[:, 3], J[:, 4], J[:, 5] = nx, ny, nx * cs, nx * sn, ny * cs, ny * sn
-        Ji, wi = J[inl], w[inl]
-        JtW = Ji.T * wi
+        J = np.concatenate([nrm, nrm[0] * CS, nrm[1] * CS])[:, inl]   # d res / d(c, U), (6, n)
+        JtW = J * w[inl]
         r_ends = target - ends @ np.concatenate([c, U.ravel()])
         try:   # normal equations of the weighted least squares (6 unknowns)
-            dx = np.linalg.solve(JtW @ Ji + H_ends, JtW @ res[inl] + w_end * ends.T @ r_ends)
+            dx = np.linalg.solve(JtW @ J.T + H_ends, JtW @ res[inl] + w_end * ends.T @ r_ends)
         except np.linalg.LinAlgError:
             return None
         c = c + dx[:2]
         U = U + dx[2:].reshape(2, 2)
         # each pixel's angle follows: one Newton step along the tangent of the new curve
-        on = c + np.outer(cs, U[:, 0]) + np.outer(sn, U[:, 1])
-        tang = np.outer(cs, U[:, 1]) - np.outer(sn, U[:, 0])
-        tt = tt + ((pts - on) * tang).sum(1) / np.maximum((tang * tang).sum(1), 1e-9)
+        tang = (U @ quarter) @ CS
+        tt = tt + ((P - c[:, None] - U @ CS) * tang).sum(0) / np.maximum((tang * tang).sum(0), 1e-9)
         if np.abs(dx).max() < 1e-4:
             break
     if not (np.all(np.isfinite(U)) and np.all(np.isfinite(c))) or abs(np.linalg.det(U)) < 1e-6:

@@ -523,7 +523,8 @@ class Command(Message):
 @register
 @dataclass
 class NodeStats(Message):
-    """A node's periodic statistics, published on its stats key."""
+    """A node's periodic statistics, published on its stats key. ``proc_ms_p50``/``p99``: handler
+    times of the messages whose handler published (the frame's work; a sink: every message)."""
 
     SCHEMA = "needletrack.NodeStats"
     FIELDS = {"node": ("str",), "module": ("str",), "pid": ("int",), "stamp_ns": ("int",),

@@ -120,6 +120,14 @@ class Node:
         else:
             self._runtime.stats.add(name, n)
 
+    def wait_for_input(self, timeout: float) -> None:
+        """Sources, between steps: block until an input message arrives (and handle it) or
+        ``timeout`` seconds pass, instead of polling (offline: sleep)."""
+        if self._runtime is None:
+            time.sleep(timeout)
+        else:
+            self._runtime.wait_for_input(timeout)
+
     def wired(self, input_name: str) -> bool:
         """Whether the graph connects this input."""
         return input_name in self._wired
@@ -195,21 +203,28 @@ class InputQueue:
 
 
 class Stats:
-    """Counters (thread-safe), per-period rates and handler times of one node."""
+    """Counters (thread-safe), per-period rates and handler times of one node.
+
+    Handler times are those of the handlers that published something (the frame's work: a
+    detector's image, not its calibration or ground truth); a node whose handlers never publish
+    (a sink) reports all of them."""
 
     def __init__(self, window: int = 1000):
         self._lock = threading.Lock()
         self.counters: collections.Counter = collections.Counter()
         self._last: dict = {}
         self._last_t = time.monotonic()
-        self.proc_ms: collections.deque = collections.deque(maxlen=window)
+        self.proc_ms: collections.deque = collections.deque(maxlen=window)       # publishing handlers
+        self.any_proc_ms: collections.deque = collections.deque(maxlen=window)   # every handler
 
     def add(self, name: str, n: int = 1) -> None:
         with self._lock:
             self.counters[name] += n
 
-    def proc(self, ms: float) -> None:
-        self.proc_ms.append(ms)
+    def proc(self, ms: float, published: bool = True) -> None:
+        self.any_proc_ms.append(ms)
+        if published:
+            self.proc_ms.append(ms)
 
     def snapshot(self) -> tuple:
         """(counters, rates_hz of ``in.*``/``out.*`` since the last snapshot, p50 ms, p99 ms)."""
@@ -221,7 +236,7 @@ class Stats:
                  if k.startswith(("in.", "out."))}
         self._last, self._last_t = counters, now
         p50 = p99 = 0.0
-        vals = sorted(self.proc_ms)
+        vals = sorted(self.proc_ms or self.any_proc_ms)
         if vals:
             p50 = vals[min(len(vals) - 1, int(0.50 * len(vals)))]
             p99 = vals[min(len(vals) - 1, int(0.99 * len(vals)))]
@@ -294,6 +309,7 @@ class Runtime:
         self.state = "standby" if standby else "active"       # active | standby | retired
         self._held: collections.deque = collections.deque(maxlen=STANDBY_BUFFER)   # (output, seq, payload)
         self._produced = False
+        self._publishes = 0
         self._last_seq: dict[str, int] = {}
         self._cuts: dict[str, int] = {}
         self._restarts = restarts
@@ -380,6 +396,7 @@ class Runtime:
 
     def publish(self, output: str, msg) -> None:
         seq = _seq_of(msg)
+        self._publishes += 1
         with self._pub_lock:
             self._produced = True
             if self.state == "standby":
@@ -467,6 +484,11 @@ class Runtime:
         if self.queue is not None:
             self.queue.close()
 
+    def wait_for_input(self, timeout: float) -> None:
+        item = self.queue.get(timeout)
+        if item is not None:
+            self._dispatch(*item)
+
     def _dispatch(self, name: str, item) -> None:
         key, payload, _t = item
         node = self.node
@@ -481,7 +503,7 @@ class Runtime:
             self.stats.add("decode_errors")
             self.errlog.error(f"decode:{name}", f"{key}: cannot decode payload: {exc}")
             return
-        t0 = time.perf_counter()
+        t0, n0 = time.perf_counter(), self._publishes
         try:
             handler(msg)
         except Exception as exc:  # a handler bug must not kill the node
@@ -489,7 +511,7 @@ class Runtime:
             self.errlog.error(f"handler:{name}", f"{key}: on_{name.lstrip('@')} raised "
                               f"{type(exc).__name__}: {exc}", exc_info=True)
         finally:
-            self.stats.proc((time.perf_counter() - t0) * 1e3)
+            self.stats.proc((time.perf_counter() - t0) * 1e3, self._publishes > n0)
 
     def _publish_stats(self) -> None:
         counters, rates, p50, p99 = self.stats.snapshot()

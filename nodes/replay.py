@@ -8,8 +8,10 @@ frame, then once a second), and ``eos`` (``EndOfStream``) after the last frame w
 
 params: ``path`` (the folder, required), ``rate`` (``recorded``: the folder's own timing;
 ``max``: as fast as possible; ``paced``: as fast as the graph takes frames, closed loop: at
-most ``in_flight`` frames (2) are out that not every wired ``ack``/``ack2`` input has answered
-with a message of that ``seq`` or later (e.g. both cameras' keypoints); a frame unanswered for
+most ``in_flight`` frames (1) are out that not every wired ``ack``/``ack2`` input has answered
+with a message of that ``seq`` or later (e.g. both cameras' keypoints: with 1 the detectors
+never queue a frame, with 2 the next frame waits a whole detection at each detector, which
+measured 65-80 ms latency for the same rate); a frame unanswered for
 ``ack_timeout`` s (1.0) stops counting (``ack_timeouts``); or a number in Hz; default
 recorded), ``loop`` (false),
 ``start`` (first frame index, 0), ``count`` (frames to play; 0 = all), ``decode`` (false:
@@ -100,7 +102,7 @@ class ReplayNode(CameraSourceNode):
         self.next_t = None
         self.ack_timeout = float(p.get("ack_timeout", 1.0))
         self.acked = {name: -1 for name in ACKS if self.wired(name)}
-        self.in_flight = max(1, int(p.get("in_flight", 2)))
+        self.in_flight = max(1, int(p.get("in_flight", 1)))
         self.awaiting = deque()          # (seq, monotonic time) of the frames not yet acknowledged
         if self.rate == PACED and not self.acked:
             raise ValueError("replay: rate 'paced' needs an 'ack' input wired (e.g. a detector's keypoints)")
@@ -198,7 +200,7 @@ class ReplayNode(CameraSourceNode):
         if self.published_frames == 0 and self.last_calib is None:
             self._publish_calib(force=True)
         if self._waiting_for_ack():
-            time.sleep(0.0005)           # the runtime dispatches the acks between steps
+            self.wait_for_input(0.005)   # the next ack (polling cost ~3 ms of CPU per frame)
             self._publish_calib()
             return True
         fr = self.frames[self.pos]

@@ -353,3 +353,15 @@ def test_images_cross_processes_through_shared_memory_intact(run_graph):
     assert st.counters.get("shm_pool_full", 0) == 0
     sink = g.wait_stats("sink", lambda st: st.counters.get("frames", 0) >= 5)
     assert sink.counters["decode_errors"] == 0 and sink.counters["handler_errors"] == 0
+
+
+def test_handler_times_are_those_of_the_handlers_that_published():
+    from common.node import Stats
+    st = Stats()
+    for ms, published in ((0.01, False), (12.0, True), (0.02, False), (0.03, False), (14.0, True)):
+        st.proc(ms, published)
+    _, _, p50, p99 = st.snapshot()
+    assert 12.0 <= p50 <= 14.0 and p99 == 14.0      # the calibration-like messages left out
+    sink = Stats()                                  # a node that never publishes: every handler
+    sink.proc(3.0, False)
+    assert sink.snapshot()[2] == 3.0
