@@ -121,9 +121,9 @@ def test_replay_paced_sends_the_next_frame_once_both_acks_are_in(tmp_path):
     node.on_ack2(ack("right", 0))
     node.step()
     assert seqs() == [0, 1]
-    # two in flight (the default); an unanswered frame stops counting after ack_timeout
-    node = ReplayNode.offline(params={"path": str(tmp_path), "rate": "paced", "ack_timeout": 0.01},
-                              wired=["ack"])
+    # two in flight; an unanswered frame stops counting after ack_timeout
+    node = ReplayNode.offline(params={"path": str(tmp_path), "rate": "paced", "in_flight": 2,
+                                      "ack_timeout": 0.01}, wired=["ack"])
     node.step(), node.step(), node.step()
     assert seqs() == [0, 1]
     import time
