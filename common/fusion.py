@@ -115,7 +115,7 @@ def information_mean(Ts, covariances, T0=None, iterations: int = 10):
         r = np.concatenate([_log_so3_many(Ts[:, :3, :3] @ T[:3, :3].T), Ts[:, :3, 3] - T[:3, 3]], axis=1)
         delta = H_inv @ np.einsum("mij,mj->i", infos, r)
         T = make_T(rotvec_to_R(delta[:3]) @ T[:3, :3], T[:3, 3] + delta[3:])
-        if np.linalg.norm(delta[:3]) < 1e-12 and np.linalg.norm(delta[3:]) < 1e-13:
+        if np.linalg.norm(delta[:3]) < 1e-10 and np.linalg.norm(delta[3:]) < 1e-11:   # 1e-10 rad, 0.01 nm
             break
     return T, 0.5 * (H_inv + H_inv.T)
 
