@@ -2,9 +2,9 @@
 
 The tracking graph as deployed, i.e. with newest-only inputs (``common.pipeline_graph``:
 replay -> one detector process per camera -> refine -> fusion over refined poses, with ecm),
-fed by the replay source looping over a 1920x1080 stereo dataset at the endoscope's 30 Hz
-(``--rate``; ``max``: as fast as the graph goes, closed loop: the replay sends the next frame
-once both cameras' keypoints of the last one are out, ``rate: paced``). ``--all-methods`` adds the other pose methods
+fed by the replay source looping over a 1920x1080 stereo dataset as fast as the graph goes
+(``--rate max``, the default: closed loop, the replay sends the next frame once both cameras'
+keypoints of the last one are out, ``rate: paced``), or at ``--rate`` Hz (30: the endoscope's). ``--all-methods`` adds the other pose methods
 (epnp average and joint, triangulate, fusion over joint poses), as in an evaluation; they are
 not on the path to the final pose. After a warm-up it measures for ``--duration`` seconds:
 
@@ -47,10 +47,10 @@ def _parser() -> argparse.ArgumentParser:
     p.add_argument("--model", help="learned only: weights file (default: the shipped model)")
     p.add_argument("--param", action="append", default=[], metavar="KEY=VALUE",
                    help="a detector parameter (repeatable), e.g. --param stride=1")
-    p.add_argument("--rate", default="30",
-                   help="replay rate in Hz (default 30, the endoscope's), or 'max': as fast as the "
-                        "graph goes (closed loop: the next frame once both cameras' keypoints of the "
-                        "last one are out; the detectors take every frame)")
+    p.add_argument("--rate", default="max",
+                   help="'max' (default): as fast as the graph goes (closed loop: the next frame once "
+                        "both cameras' keypoints of the last one are out; the detectors take every "
+                        "frame), or a replay rate in Hz (e.g. 30, the endoscope's)")
     p.add_argument("--decode", action="store_true",
                    help="the replay decodes the images once at start-up and sends them raw (bgr8, by "
                         "shared memory), as a live capture card delivers them: the detectors then do "
