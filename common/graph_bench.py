@@ -70,11 +70,15 @@ def _parser() -> argparse.ArgumentParser:
 
 
 class Recorder:
-    """Arrival times (wall clock, ns) of the messages the bench subscribes to, by stream."""
+    """Arrival times (wall clock, ns) of the messages the bench subscribes to, by stream.
+
+    The callbacks only keep each payload's bytes and arrival time; they are decoded when asked
+    for (``rows``, ``window``), so that the bench's own CPU stays small while it measures."""
 
     def __init__(self):
         self.lock = threading.Lock()
-        self.rows: dict = {}          # stream -> list of (seq, stamp_ns, arrival_ns)
+        self._raw: dict = {}          # stream -> list of (payload bytes, msg type, arrival_ns)
+        self._rows: dict = {}         # stream -> list of (seq, stamp_ns, arrival_ns), decoded
         self.stats: dict = {}         # node -> newest NodeStats
 
     def callback(self, stream: str, msg_type):
@@ -82,21 +86,37 @@ class Recorder:
 
         def cb(sample):
             now = time.time_ns()
+            if stream != "@stats":
+                with self.lock:
+                    self._raw.setdefault(stream, []).append((sample.payload.to_bytes(), msg_type, now))
+                return
             try:
                 msg = decode(sample.payload.to_bytes(), msg_type)
             except MessageError:
                 return
             with self.lock:
-                if stream == "@stats":
-                    self.stats[msg.node] = msg
-                else:
-                    self.rows.setdefault(stream, []).append((msg.seq, msg.stamp_ns, now))
+                self.stats[msg.node] = msg
         return cb
+
+    def rows(self, stream: str) -> list:
+        """(seq, stamp_ns, arrival_ns) of every message of ``stream`` so far (malformed ones left out)."""
+        from common.messages import MessageError, decode
+        with self.lock:
+            raw, self._raw[stream] = self._raw.get(stream, []), []
+        out = []
+        for payload, msg_type, now in raw:
+            try:
+                msg = decode(payload, msg_type)
+            except MessageError:
+                continue
+            out.append((msg.seq, msg.stamp_ns, now))
+        with self.lock:
+            self._rows.setdefault(stream, []).extend(out)
+            return list(self._rows[stream])
 
     def window(self, stream: str, t0_ns: int, t1_ns: int) -> list:
         """Rows of ``stream`` whose frame was published within [t0, t1)."""
-        with self.lock:
-            return [r for r in self.rows.get(stream, []) if t0_ns <= r[1] < t1_ns]
+        return [r for r in self.rows(stream) if t0_ns <= r[1] < t1_ns]
 
 
 def latency_ms(rows) -> dict:
@@ -159,12 +179,12 @@ def measure(args, dataset: str, log) -> dict:
         run.start_source()
         # the first frame's publish time starts the clock
         deadline = time.monotonic() + 60
-        while not rec.rows.get("published"):
+        while not rec.rows("published"):
             if time.monotonic() > deadline:
                 raise RuntimeError("the replay published no frame within 60 s")
             _check_alive(run)
             time.sleep(0.05)
-        first_ns = rec.rows["published"][0][1]
+        first_ns = rec.rows("published")[0][1]
         w0 = first_ns + int(args.warmup * 1e9)
         while time.time_ns() < w0:
             _check_alive(run)
