@@ -385,6 +385,22 @@ def process_cpu_seconds(pid: int) -> Optional[float]:
         return None
 
 
+def machine_cpu_seconds() -> Optional[dict]:
+    """The machine's CPU time so far (s, summed over CPUs) by kind, from /proc/stat: ``busy``
+    (user, nice, system, irq), ``idle`` (idle, iowait) and ``steal`` (taken by the hypervisor for
+    other guests: on a shared virtual machine, the slow minutes); None if unknown."""
+    import os
+    try:
+        with open("/proc/stat") as f:
+            v = [int(x) for x in f.readline().split()[1:9]]
+    except (OSError, ValueError):
+        return None
+    hz = os.sysconf("SC_CLK_TCK")
+    user, nice, system, idle, iowait, irq, softirq, steal = (v + [0] * 8)[:8]
+    return {"busy": (user + nice + system + irq + softirq) / hz, "idle": (idle + iowait) / hz,
+            "steal": steal / hz}
+
+
 def timing_summary(col: Collected, final_method: Optional[str] = None) -> dict:
     """``{"throughput_hz", "latency_ms": {"p50", "p99"}, "per_node_ms": {node: p50}}``.
 

@@ -65,6 +65,8 @@ def _parser() -> argparse.ArgumentParser:
                    help="also run the pose methods not on the path to the final pose (epnp average, "
                         "triangulate, ...), as an evaluation does")
     p.add_argument("--json", help="also write the figures to this JSON file")
+    p.add_argument("--plot", help="also draw the latencies (per stage) and each node's CPU per frame "
+                                  "into this PNG")
     p.add_argument("--log", help="write the graph's log here (default: a temporary file)")
     return p
 
@@ -141,7 +143,7 @@ def ensure_dataset(path) -> str:
 
 def measure(args, dataset: str, log) -> dict:
     from common.dataset import Dataset
-    from common.evaluation import process_cpu_seconds
+    from common.evaluation import machine_cpu_seconds, process_cpu_seconds
     from common.graph import output_key, stats_key
     from common.messages import GroundTruth, Keypoints, NodeStats, PoseEstimate
     from common.pipeline_graph import (METHOD_NEEDS, POSE_OUTPUTS, GraphRun, keypoint_sources,
@@ -194,11 +196,13 @@ def measure(args, dataset: str, log) -> dict:
             drops0 = {n: _dropped(st) for n, st in rec.stats.items()}
             pairs0 = _pairs(rec.stats.get(frame_node))
         cpu0 = {n: process_cpu_seconds(p) for n, p in pids.items()}
+        machine0 = machine_cpu_seconds()
         w1 = w0 + int(args.duration * 1e9)
         while time.time_ns() < w1:
             _check_alive(run)
             time.sleep(0.1)
         cpu1 = {n: process_cpu_seconds(p) for n, p in pids.items()}
+        machine1 = machine_cpu_seconds()
         with rec.lock:
             pairs1 = _pairs(rec.stats.get(frame_node))
         time.sleep(0.5)  # outputs of the window's last frames still in flight
@@ -227,6 +231,9 @@ def measure(args, dataset: str, log) -> dict:
         stages[name] = {**latency_ms(rec.window(name, w0, w1)),
                         "rate_hz": len({r[0] for r in rec.window(name, w0, w1)}) / span}
     out["stages"] = stages
+    if getattr(args, "plot", None):
+        out["latency_samples_ms"] = {name: [(a - st) / 1e6 for _, st, a in rec.window(name, w0, w1)]
+                                     for name in streams if name != "published"}
     nodes = {}
     with rec.lock:
         stats = dict(rec.stats)
@@ -243,6 +250,9 @@ def measure(args, dataset: str, log) -> dict:
     out["per_node_ms"] = {n: v["proc_ms_p50"] for n, v in nodes.items()}
     out["cpu_total"] = sum(v["cpu_share"] or 0.0 for v in nodes.values())
     out["cpus"] = os.cpu_count()
+    # the hypervisor's share of the CPUs during the window: how slow a minute this was
+    out["cpu_steal"] = ((machine1["steal"] - machine0["steal"]) / span / (out["cpus"] or 1)
+                        if machine0 and machine1 else None)
     return out
 
 
@@ -293,7 +303,45 @@ def report(r: dict) -> str:
                  f"{v['dropped']:>9}   {ins}")
     L.append(f"  total CPU {f(100 * r['cpu_total'], 0)}% of {100 * (r['cpus'] or 1)}%; "
              f"cpu ms/frame = CPU time per published frame")
+    if r.get("cpu_steal") is not None:
+        L.append(f"  CPU steal {100 * r['cpu_steal']:.0f}% (taken by the hypervisor for other guests: "
+                 f"above a few %, this machine ran slow during the window)")
     return "\n".join(L)
+
+
+def plot(r: dict, samples: dict, path) -> None:
+    """Latency distribution per stage (from frame publish, ms) beside each node's CPU time per
+    published frame (ms), with the issue 6 targets."""
+    import matplotlib
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    fig, (ax, bx) = plt.subplots(1, 2, figsize=(12, 4.5), gridspec_kw={"width_ratios": [3, 2]})
+    for name, lat in samples.items():
+        if lat:
+            x = np.sort(lat)
+            ax.plot(x, np.arange(1, len(x) + 1) / len(x), label=f"{name} (p50 {np.median(x):.0f} ms)")
+    ax.axvline(50, color="k", ls="--", lw=1, label="target p50 <= 50 ms")
+    ax.axhline(0.5, color="grey", lw=0.5)
+    ax.set_xlabel("latency from frame publish (ms)")
+    ax.set_ylabel("share of frames")
+    ax.set_xlim(0, max(120.0, min(400.0, max((max(v) for v in samples.values() if v), default=0))))
+    ax.legend(fontsize=8, loc="lower right")
+    ax.set_title(f"{r['throughput_hz']:.1f} fused poses/s ({r['final_method']}), rate {r['rate']}")
+    nodes = r["per_node"]
+    names = [n for n in nodes if nodes[n]["cpu_ms_per_frame"] is not None]
+    cpu = [nodes[n]["cpu_ms_per_frame"] for n in names]
+    bx.barh(names, cpu, color="tab:blue", label="CPU per published frame")
+    bx.scatter([nodes[n]["proc_ms_p50"] for n in names], names, color="tab:red", zorder=3,
+               label="handler p50 (wall)")
+    bx.set_xlabel("ms")
+    steal = "" if r.get("cpu_steal") is None else f", steal {100 * r['cpu_steal']:.0f}%"
+    bx.set_title(f"CPU {100 * r['cpu_total']:.0f}% of {100 * (r['cpus'] or 1)}%{steal}; "
+                 f"{sum(cpu):.1f} ms per frame in all")
+    bx.legend(fontsize=8, loc="lower right")
+    fig.suptitle(f"needletrack bench: {r['dataset']}, detector {r['detector']}", fontsize=10)
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
 
 
 def main(argv=None) -> int:
@@ -320,7 +368,11 @@ def main(argv=None) -> int:
         print(f"needletrack bench: {exc}; last lines of {log_path}:", file=sys.stderr)
         print("".join(Path(log_path).read_text().splitlines(True)[-25:]), file=sys.stderr)
         return 1
+    samples = r.pop("latency_samples_ms", None)
     print(report(r))
+    if args.plot and samples is not None:
+        plot(r, samples, args.plot)
+        print(f"wrote {args.plot}")
     if args.json:
         Path(args.json).write_text(json.dumps(r, indent=2) + "\n")
         print(f"wrote {args.json}")

@@ -100,9 +100,12 @@ def test_bench_reports_throughput_latency_and_nodes(small_dataset, tmp_path, cap
     """``needletrack bench graph`` on the live graph: figures printed, none asserted on time."""
     out = tmp_path / "bench.json"
     rc = bench_main(["graph", "--dataset", str(small_dataset), "--detector", "oracle",
-                     "--duration", "3", "--warmup", "1.5", "--json", str(out)])
+                     "--duration", "3", "--warmup", "1.5", "--json", str(out),
+                     "--plot", str(tmp_path / "bench.png")])
     assert rc == 0
+    assert (tmp_path / "bench.png").stat().st_size > 10_000
     r = json.loads(out.read_text())
+    assert "latency_samples_ms" not in r
     assert r["published_hz"] > 5 and r["throughput_hz"] > 0
     assert r["latency_ms"]["p50"] > 0 and r["latency_ms"]["p99"] >= r["latency_ms"]["p50"]
     # the tracking graph: only the nodes on the path to the final pose
