@@ -59,6 +59,15 @@ class NodeError(RuntimeError):
     """A node that cannot run as configured (bad wiring, missing handler)."""
 
 
+class Prepared:
+    """A message whose large field already sits in a shared-memory buffer (``Node.prepare``):
+    publishing it writes only the small header, so a source can copy its next frame while it
+    waits and stamp it when it sends. Change only small fields (``stamp_ns``) in between."""
+
+    def __init__(self, msg, buf=None, head_len: int = 0):
+        self.msg, self.buf, self.head_len = msg, buf, head_len
+
+
 class Node:
     """Base of every node. Override ``setup``, ``on_<input>``, ``step`` (sources),
     ``on_command`` and ``teardown`` as needed; see the module docstring."""
@@ -105,13 +114,19 @@ class Node:
 
     # ---------------------------------------------------------------- services
     def publish(self, output: str, msg) -> None:
-        """Encode ``msg`` (a Message, or already encoded bytes) and publish it on ``output``."""
+        """Encode ``msg`` (a Message, already encoded bytes, or ``Prepared``) and publish it on
+        ``output``."""
         if output not in self.OUTPUTS:
             raise NodeError(f"{type(self).__name__}.publish: {output!r} is not in OUTPUTS {self.OUTPUTS}")
         if self._runtime is None:
-            self.published.append((output, msg))
+            self.published.append((output, msg.msg if isinstance(msg, Prepared) else msg))
         else:
             self._runtime.publish(output, msg)
+
+    def prepare(self, msg) -> Prepared:
+        """``msg`` ready to ``publish`` later, its large field (an image) copied now into shared
+        memory when the transport uses it (offline: nothing to copy)."""
+        return Prepared(msg) if self._runtime is None else self._runtime.prepare(msg)
 
     def count(self, name: str, n: int = 1) -> None:
         """Add ``n`` to a custom counter reported in the node's stats."""
@@ -276,15 +291,26 @@ class ShmWriter:
         self.failures = 0
 
     def payload(self, head: bytes, tail):
+        buf = self.reserve(len(head), tail)
+        return None if buf is None else self.seal(buf, head)
+
+    def reserve(self, head_len: int, tail):
+        """A buffer with ``tail`` copied in after ``head_len`` free bytes (None: pool full)."""
         import zenoh
-        n = len(head) + len(tail)
+        n = head_len + len(tail)
         try:
             buf = self.provider.alloc(n, self._shm.GarbageCollect())
         except zenoh.ZError:
             self.failures += 1
             return None
+        buf[head_len:n] = tail if isinstance(tail, (bytes, bytearray)) else bytes(tail)
+        return buf
+
+    @staticmethod
+    def seal(buf, head: bytes):
+        """The payload of a ``reserve``d buffer once its head is written (the buffer is used up)."""
+        import zenoh
         buf[0:len(head)] = head
-        buf[len(head):n] = tail if isinstance(tail, (bytes, bytearray)) else bytes(tail)
         return zenoh.ZBytes(buf)
 
 
@@ -373,29 +399,50 @@ class Runtime:
         return cb
 
     # ---------------------------------------------------------------- publishing and swap
+    def _shm_writer(self, nbytes: int) -> Optional[ShmWriter]:
+        """The shared-memory writer for a payload tail of ``nbytes``, or None (socket)."""
+        if nbytes < ShmWriter.MIN_BYTES or self.graph.zenoh.shm_pool_mb <= 0:
+            return None
+        if self._shm is None:
+            try:
+                self._shm = ShmWriter(self.graph.zenoh.shm_pool_mb << 20)
+            except Exception as exc:  # no shared memory on this system: use the socket
+                self.log.warning("no Zenoh shared memory (%s); large payloads go by socket", exc)
+                self.graph.zenoh.shm_pool_mb = 0
+        return self._shm
+
+    def prepare(self, msg) -> Prepared:
+        head, tail = encode_parts(msg)
+        writer = None if tail is None else self._shm_writer(len(tail))
+        buf = None if writer is None else writer.reserve(len(head), tail)
+        return Prepared(msg, buf, len(head))
+
     def _payload(self, msg, shm: bool):
         if isinstance(msg, (bytes, bytearray, memoryview)):
             return bytes(msg)
+        if isinstance(msg, Prepared):
+            buf, msg.buf = msg.buf, None              # a buffer is sent once
+            if shm and buf is not None:
+                head, _ = encode_parts(msg.msg)
+                if len(head) == msg.head_len:
+                    self.stats.add("out_shm")
+                    self.stats.add("out_shm_prepared")
+                    return ShmWriter.seal(buf, head)
+            msg = msg.msg                             # a header of another length: copy again
         head, tail = encode_parts(msg)
         if tail is None:
             return head
-        if shm and len(tail) >= ShmWriter.MIN_BYTES and self.graph.zenoh.shm_pool_mb > 0:
-            if self._shm is None:
-                try:
-                    self._shm = ShmWriter(self.graph.zenoh.shm_pool_mb << 20)
-                except Exception as exc:  # no shared memory on this system: use the socket
-                    self.log.warning("no Zenoh shared memory (%s); large payloads go by socket", exc)
-                    self.graph.zenoh.shm_pool_mb = 0
-            if self._shm is not None:
-                zb = self._shm.payload(head, tail)
-                if zb is not None:
-                    self.stats.add("out_shm")
-                    return zb
-                self.stats.add("shm_pool_full")
+        writer = self._shm_writer(len(tail)) if shm else None
+        if writer is not None:
+            zb = writer.payload(head, tail)
+            if zb is not None:
+                self.stats.add("out_shm")
+                return zb
+            self.stats.add("shm_pool_full")
         return b"".join((head, tail))
 
     def publish(self, output: str, msg) -> None:
-        seq = _seq_of(msg)
+        seq = _seq_of(msg.msg if isinstance(msg, Prepared) else msg)
         self._publishes += 1
         with self._pub_lock:
             self._produced = True

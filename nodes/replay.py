@@ -30,7 +30,7 @@ import numpy as np
 
 from common.messages import Calibration, CameraImage, EcmJoints, EndOfStream, GroundTruth
 from common.camera_source import CameraSourceNode
-from common.node import run
+from common.node import Prepared, run
 
 CAMS = ("left", "right")
 PACED = -1.0                  # parse_rate's value for ``paced``
@@ -95,6 +95,7 @@ class ReplayNode(CameraSourceNode):
         self.decoded = self._decode_all() if p.get("decode", False) else None
         self.pos = 0
         self.loops = 0
+        self.next_images = None          # (seq, [Prepared left, right]): the next frame, copied
         self.published_frames = 0
         self.last_calib = None
         self.t0_wall = None
@@ -152,11 +153,12 @@ class ReplayNode(CameraSourceNode):
         self.log.info("replay: %d frames decoded into memory", sum(d is not None for d in out))
         return out
 
-    def _images(self, fr, seq: int, stamp: int) -> list | None:
-        """The frame's two CameraImage messages, or None when its images cannot be read."""
+    def _images(self, pos: int, seq: int, stamp: int) -> list | None:
+        """Frame ``pos``'s two CameraImage messages, or None when its images cannot be read."""
         w, h = self.ds.meta.image_size
+        fr = self.frames[pos]
         if self.decoded is not None:
-            raw = self.decoded[self.pos]
+            raw = self.decoded[pos]
             return None if raw is None else [CameraImage(c, seq, stamp, w, h, "bgr8", raw[c]) for c in CAMS]
         msgs = []
         for cam in CAMS:
@@ -207,11 +209,14 @@ class ReplayNode(CameraSourceNode):
         self._pace(fr)
         seq = fr.index + self.loops * len(self.ds.frames)
         stamp = time.time_ns()
-        msgs = self._images(fr, seq, stamp)
+        ready, self.next_images = self.next_images, None
+        msgs = ready[1] if ready is not None and ready[0] == seq else self._images(self.pos, seq, stamp)
         if msgs is None:     # counted and logged
             self.pos += 1
             return True
         for cam, msg in zip(CAMS, msgs):
+            if isinstance(msg, Prepared):
+                msg.msg.stamp_ns = stamp
             self.publish(cam, msg)
         if fr.ecm_joints is not None:
             self.publish("joints", EcmJoints(seq, stamp, np.asarray(fr.ecm_joints, float)))
@@ -223,7 +228,22 @@ class ReplayNode(CameraSourceNode):
             self.awaiting.append((seq, time.monotonic()))
         self.pos += 1
         self._publish_calib()
+        self._prepare_next()
         return True
+
+    def _prepare_next(self) -> None:
+        """Copy the next frame's images into shared memory now, while the graph works on this
+        one (as a capture card fills its next buffer): sending it then costs only the headers,
+        ~3.5 ms less between the decision to send and the detectors' start."""
+        pos, loops = self.pos, self.loops
+        if pos >= len(self.frames):
+            if not self.loop:
+                return
+            pos, loops = 0, loops + 1
+        seq = self.frames[pos].index + loops * len(self.ds.frames)
+        # stamped when sent; a placeholder of the same encoded size keeps the header length
+        msgs = self._images(pos, seq, time.time_ns())   # None (counted and logged once) is kept too
+        self.next_images = (seq, None if msgs is None else [self.prepare(m) for m in msgs])
 
 
 NODE = ReplayNode

@@ -365,3 +365,32 @@ def test_handler_times_are_those_of_the_handlers_that_published():
     sink = Stats()                                  # a node that never publishes: every handler
     sink.proc(3.0, False)
     assert sink.snapshot()[2] == 3.0
+
+
+def test_a_replay_sends_its_prepared_raw_frames_intact_through_shared_memory(run_graph, tmp_path):
+    """The replay copies its next frame into shared memory before sending it (``Node.prepare``);
+    what arrives is the recorded image, stamped when sent."""
+    from common.camera import StereoRig
+    from common.dataset import DatasetMeta, DatasetWriter, Frame
+    from common.messages import CameraImage
+    from common.needle import NeedleModel
+    from common.sim_randomise import default_arm
+    w, h = 320, 240
+    meta = DatasetMeta((w, h), StereoRig.default(w, h), NeedleModel(), default_arm(), "test")
+    rng = np.random.default_rng(0)
+    images = [rng.integers(0, 255, (h, w, 3), dtype=np.uint8) for _ in range(3)]
+    with DatasetWriter(tmp_path / "ds", meta, image_format="png") as wr:
+        for i, img in enumerate(images):
+            paths = wr.write_images(i, {"left": img, "right": img[::-1].copy()})
+            wr.append(Frame(index=i, stamp_ns=i * 10_000_000, left=paths["left"], right=paths["right"]))
+    g = run_graph({"nodes": [
+        {"id": "replay", "module": "replay", "params": {"path": str(tmp_path / "ds"), "rate": 20, "loop": True,
+                                                        "decode": True}},
+        {"id": "sink", "module": "framesink", "inputs": {"left": "replay/left", "right": "replay/right"}}]})
+    msgs = g.collect("replay/left", n=5, timeout=10, expect=CameraImage)
+    for m in msgs:
+        assert np.array_equal(m.to_bgr(), images[m.seq % 3])
+    stamps = [m.stamp_ns for m in msgs]
+    assert all(b - a > 20e6 for a, b in zip(stamps, stamps[1:]))     # stamped when sent, at 20 Hz
+    st = g.wait_stats("replay", lambda st: st.counters.get("out_shm_prepared", 0) >= 4)
+    assert st.counters.get("shm_pool_full", 0) == 0
