@@ -146,7 +146,8 @@ class RefineResult:
     ``rms_curve_px`` per term (NaN when the term is empty); ``ambiguous`` with ``reasons``
     (``competing_candidates``, ``edge_on``); ``view_angle_deg`` the smallest angle between the arc's
     plane and a camera's line of sight (0 = edge-on, 90 = face-on); ``candidates`` every distinct
-    converged solution as ``(T_ecm_needle, cost)``, best first.
+    converged solution as ``(T_ecm_needle, cost)``, best first; ``competitor_chi2`` how much
+    more the best of the others costs, in residual variances (inf: no other solution).
     """
 
     T_ecm_needle: np.ndarray
@@ -161,6 +162,7 @@ class RefineResult:
     n_iter: int = 0
     n_residuals: int = 0
     candidates: list = field(default_factory=list)
+    competitor_chi2: float = float("inf")
 
 
 def project_centreline(camera: Camera, needle: NeedleModel, T_ecm_needle: np.ndarray,
@@ -609,8 +611,8 @@ class DenseRefiner:
         self._static = _Static(rig, needle, self.config)
 
     def refine(self, observations: Mapping[str, ArcObservation],
-               candidates: Sequence[np.ndarray]) -> RefineResult:
-        """See ``refine_pose``."""
+               candidates: Sequence[np.ndarray], mirrors: bool | None = None) -> RefineResult:
+        """See ``refine_pose``; ``mirrors`` overrides ``config.add_mirrors`` for this call."""
         cfg, st = self.config, self._static
         cands = [np.asarray(T, float) for T in candidates
                  if T is not None and np.shape(T) == (4, 4) and np.all(np.isfinite(T))]
@@ -622,7 +624,7 @@ class DenseRefiner:
         starts: list[np.ndarray] = []
         eye = st.cam_centres.mean(0)
         mirrors = ([mirror_pose(T, self.needle, eye, st.arc_centroid) for T in cands]
-                   if cfg.add_mirrors else [])
+                   if (cfg.add_mirrors if mirrors is None else mirrors) else [])
         for T in cands + mirrors:
             if not _near_any(T, starts, cfg.merge_mm, cfg.merge_deg):
                 starts.append(T)
@@ -726,7 +728,8 @@ def _result(prob: _Problem, s, cfg: RefineConfig) -> RefineResult:
         T_ecm_needle=T0, covariance=cov, rms_px=rms(used), rms_kp_px=rms(used & prob.is_kp),
         rms_curve_px=rms(used & ~prob.is_kp), cost=float(s["cost"][b]), ambiguous=bool(reasons),
         reasons=tuple(reasons), view_angle_deg=view, n_iter=int(s["iters"]),
-        n_residuals=n_res, candidates=cands)
+        n_residuals=n_res, candidates=cands,
+        competitor_chi2=float(min((dchi for _, dchi in competitors), default=np.inf)))
 
 
 def _inv_psd(H):

@@ -37,12 +37,18 @@ class TrackingConfig:
     max_start_px: float = 15.0      # the previous pose reprojects the keypoints within this (RMS)
     max_rms_growth: float = 1.5     # a warm fit's RMS may exceed the last cold one's by this factor ...
     rms_slack_px: float = 0.5       # ... plus this much
+    # a warm frame refines the previous pose alone, without its mirror image and the other
+    # solutions, when the previous frame's best competitor cost this many residual variances
+    # more (or no competitor was found): a minimum that far off does not come within the
+    # ambiguity margin in one frame (every cold_every frames all are searched again)
+    mirror_chi2: float = 100.0
 
     def __post_init__(self):
         if not (self.max_gap_s > 0 and self.cold_every >= 1 and self.max_start_px > 0
-                and self.max_rms_growth >= 1 and self.rms_slack_px >= 0):
+                and self.max_rms_growth >= 1 and self.rms_slack_px >= 0 and self.mirror_chi2 >= 0):
             raise ValueError(f"TrackingConfig: max_gap_s > 0, cold_every >= 1, max_start_px > 0, "
-                             f"max_rms_growth >= 1 and rms_slack_px >= 0 required, got {self}")
+                             f"max_rms_growth >= 1, rms_slack_px >= 0 and mirror_chi2 >= 0 required, "
+                             f"got {self}")
 
 
 class TrackingRefiner:
@@ -76,8 +82,13 @@ class TrackingRefiner:
         if (cfg.enabled and self._prev is not None and self._warm_run < cfg.cold_every
                 and 0 <= stamp_ns - self._prev_stamp_ns <= cfg.max_gap_s * 1e9
                 and self._reprojects(uv, scores, self._prev.T_ecm_needle)):
+            prev = self._prev
+            near = prev.ambiguous or prev.competitor_chi2 < cfg.mirror_chi2
             try:
-                res = self.refiner.refine(observations, [T for T, _ in self._prev.candidates])
+                if near:
+                    res = self.refiner.refine(observations, [T for T, _ in prev.candidates])
+                else:   # ~35% cheaper (measured on the video: 3.8 instead of 5.9 ms)
+                    res = self.refiner.refine(observations, [prev.T_ecm_needle], mirrors=False)
             except ValueError:
                 res = None
             if res is not None and not res.rms_px <= cfg.max_rms_growth * self._cold_rms + cfg.rms_slack_px:

@@ -94,3 +94,30 @@ def test_tracking_off_and_bad_config():
         assert not tracker.last_warm
     with pytest.raises(ValueError, match="cold_every"):
         TrackingConfig(cold_every=0)
+
+
+def test_a_warm_frame_leaves_out_the_mirror_only_when_it_was_far_worse(refiner):
+    """mirror_chi2: the previous frame's competitor decides whether a warm frame refines the
+    mirror image (and the other solutions) too; ambiguity is still found near the margin."""
+    calls = []
+    real = refiner.refine
+
+    def spy(obs, cands, mirrors=None):
+        calls.append((len(cands), mirrors))
+        return real(obs, cands, mirrors)
+
+    refiner.refine = spy
+    frames = video(3, seed=4)
+    for mirror_chi2, expect in ((0.0, (1, False)), (np.inf, (None, None))):
+        tracker = TrackingRefiner(refiner, MODEL.keypoints(), config=TrackingConfig(mirror_chi2=mirror_chi2))
+        calls.clear()
+        first = tracker.refine(*frames[0][1:], 0)
+        res = tracker.refine(*frames[1][1:], FRAME_NS)
+        assert tracker.last_warm
+        n, mirrors = calls[-1]
+        if expect[0] is None:                       # every previous solution, mirrors added
+            assert n == len(first.candidates) and mirrors is None and np.isfinite(res.competitor_chi2)
+        else:                                       # the previous pose alone
+            assert (n, mirrors) == expect and res.competitor_chi2 == np.inf
+        dt, dr = pose_error(res.T_ecm_needle, cold(*frames[1][1:], refiner).T_ecm_needle)
+        assert dt < 1e-4 and np.degrees(dr) < 0.1
