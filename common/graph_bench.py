@@ -337,7 +337,7 @@ def plot(r: dict, samples: dict, path) -> None:
     steal = "" if r.get("cpu_steal") is None else f", steal {100 * r['cpu_steal']:.0f}%"
     bx.set_title(f"CPU {100 * r['cpu_total']:.0f}% of {100 * (r['cpus'] or 1)}%{steal}; "
                  f"{sum(cpu):.1f} ms per frame in all")
-    bx.legend(fontsize=8, loc="lower right")
+    bx.legend(fontsize=8, loc="center right")
     fig.suptitle(f"needletrack bench: {r['dataset']}, detector {r['detector']}", fontsize=10)
     fig.tight_layout()
     fig.savefig(path, dpi=110)

@@ -381,7 +381,8 @@ class Runtime:
         self.session = zenoh.open(zenoh_config(self.graph.zenoh, role="node"))
         for out in self.node.OUTPUTS:
             self._pubs[out] = self.session.declare_publisher(
-                self.graph.output_key(nid, out), congestion_control=zenoh.CongestionControl.BLOCK)
+                self.graph.output_key(nid, out), congestion_control=zenoh.CongestionControl.BLOCK,
+                express=True)
         for name in self.spec.inputs:
             key = self.graph.input_key(self.spec, name)
             self._decl.append(self.session.declare_subscriber(key, self._make_cb(name)))
