@@ -22,6 +22,9 @@ Runtime behaviour (see README "Runtime"):
   newer message comes drops the older (counted ``dropped``); a ``KEEP_ALL`` input queues all;
 - undecodable payloads and raising handlers are logged (rate limited) with the key and counted
   (``decode_errors``, ``handler_errors``); the node keeps running;
+- outputs are published ``express`` (not batched: a hop costs ~2 ms less); payloads with a
+  large field (images) go by Zenoh shared memory; a source may ``prepare`` its next message
+  (the copy into shared memory done ahead) and ``wait_for_input`` between steps;
 - stats (``NodeStats``) once a second on ``<graph>/@stats/<id>``; a liveliness token
   ``<graph>/@live/<id>`` while the node is up (declared after ``setup``);
 - SIGTERM/SIGINT stop the node cleanly (``teardown`` runs, exit status 0);
