@@ -202,12 +202,12 @@ class ReplayNode(CameraSourceNode):
         if self.published_frames == 0 and self.last_calib is None:
             self._publish_calib(force=True)
         if self._waiting_for_ack():
-            self.wait_for_input(0.005)   # the next ack (polling cost ~3 ms of CPU per frame)
+            self.wait_for_input(0.005)   # the next ack (polling cost ~2 ms of CPU per frame)
             self._publish_calib()
             return True
         fr = self.frames[self.pos]
         self._pace(fr)
-        seq = fr.index + self.loops * len(self.ds.frames)
+        seq = self._seq(self.pos, self.loops)
         stamp = time.time_ns()
         ready, self.next_images = self.next_images, None
         msgs = ready[1] if ready is not None and ready[0] == seq else self._images(self.pos, seq, stamp)
@@ -231,6 +231,10 @@ class ReplayNode(CameraSourceNode):
         self._prepare_next()
         return True
 
+    def _seq(self, pos: int, loops: int) -> int:
+        """``seq`` of frame ``pos`` on pass ``loops`` over the folder."""
+        return self.frames[pos].index + loops * len(self.ds.frames)
+
     def _prepare_next(self) -> None:
         """Copy the next frame's images into shared memory now, while the graph works on this
         one (as a capture card fills its next buffer): sending it then costs only the headers,
@@ -240,7 +244,7 @@ class ReplayNode(CameraSourceNode):
             if not self.loop:
                 return
             pos, loops = 0, loops + 1
-        seq = self.frames[pos].index + loops * len(self.ds.frames)
+        seq = self._seq(pos, loops)
         # stamped when sent; a placeholder of the same encoded size keeps the header length
         msgs = self._images(pos, seq, time.time_ns())   # None (counted and logged once) is kept too
         self.next_images = (seq, None if msgs is None else [self.prepare(m) for m in msgs])
