@@ -204,7 +204,7 @@ def fit_arc_affine(a: np.ndarray, e: np.ndarray, line_logit: np.ndarray,
     if inside.sum() < 3:
         return None
     k = np.argsort(-np.abs(d) * inside)[:5]
-    mid = np.average(pts[k], axis=0, weights=w[k])
+    mid = (pts[k] * w[k, None]).sum(0) / w[k].sum()
     T = np.array([t0, 0.5 * (t0 + t1), t1])
     D = np.stack([np.ones(3), np.cos(T), np.sin(T)], 1)
     sol = np.linalg.solve(D, np.stack([a, mid, e]))
@@ -254,7 +254,7 @@ def fit_arc_affine(a: np.ndarray, e: np.ndarray, line_logit: np.ndarray,
     cs, sn = np.cos(tt), np.sin(tt)
     res = np.linalg.norm(pts - (c + np.stack([cs, sn], 1) @ U.T), axis=1)
     inl = (res < 2.5) & (tt > t0 - 0.15) & (tt < t1 + 0.15)
-    if inl.sum() < 5 or np.sqrt(np.average(res[inl] ** 2, weights=w[inl])) > 1.5:
+    if inl.sum() < 5 or np.sqrt((w[inl] * res[inl] ** 2).sum() / w[inl].sum()) > 1.5:
         return None
     return c, U
 

@@ -290,40 +290,36 @@ def decode_heatmaps(kp_logits: torch.Tensor, out_stride: int):
     Per keypoint: the argmax of the softmax, then a separable quadratic fit to the
     log-probabilities of its 3x3 neighbourhood (exact for the Gaussian the loss trains towards).
     Returns ``uv`` (N, K, 2) in crop pixels and ``score`` (N, K): the softmax mass within 2 cells
-    of the peak (near 1 for a sharp, single peak)."""
-    n, k, m, _ = kp_logits.shape
-    logp = F.log_softmax(kp_logits.reshape(n, k, -1).float(), dim=-1)
-    flat = logp.argmax(-1)
-    iy, ix = flat // m, flat % m
-    logp = logp.reshape(n, k, m, m)
-    bi = torch.arange(n)[:, None].expand(n, k)
-    ki = torch.arange(k)[None, :].expand(n, k)
-
-    def at(dy, dx):   # edge cells repeat past the border (replicate padding)
-        return logp[bi, ki, (iy + dy).clamp(0, m - 1), (ix + dx).clamp(0, m - 1)]
-
-    c, l, r, u, d = at(0, 0), at(0, -1), at(0, 1), at(-1, 0), at(1, 0)
-    dx = _vertex(l, c, r)
-    dy = _vertex(u, c, d)
-    x = ix.float() + dx
-    y = iy.float() + dy
-    s = out_stride
-    uv = torch.stack([x * s + (s - 1) / 2.0, y * s + (s - 1) / 2.0], -1)
-    # the probability mass in the 5x5 cells around each peak (cells past the border hold none):
-    # gathered at the peaks only, not pooled over the whole map
-    o = torch.arange(-2, 3)
+    of the peak (near 1 for a sharp, single peak). Computed in numpy on the 5x5 cells around each
+    peak (the log-probability there is the logit less the map's log-sum-exp): per detection this
+    is a handful of array calls, where torch's per-call cost doubled the time."""
+    x = kp_logits.detach().float().cpu().numpy()
+    n, k, m, _ = x.shape
+    flat = x.reshape(n, k, m * m)
+    peak = flat.argmax(-1)
+    top = np.take_along_axis(flat, peak[..., None], -1)
+    lse = top[..., 0] + np.log(np.exp(flat - top).sum(-1))
+    iy, ix = peak // m, peak % m
+    o = np.arange(-2, 3)
     wy, wx = iy[..., None, None] + o[:, None], ix[..., None, None] + o[None, :]
     inside = (wy >= 0) & (wy < m) & (wx >= 0) & (wx < m)
-    win = logp[bi[..., None, None], ki[..., None, None], wy.clamp(0, m - 1), wx.clamp(0, m - 1)]
-    score = (win.exp() * inside).sum((-1, -2)).clamp(0, 1)
-    return uv, score
+    # edge cells repeat past the border (replicate padding); cells past it hold no mass
+    idx = (np.clip(wy, 0, m - 1) * m + np.clip(wx, 0, m - 1)).reshape(n, k, 25)
+    win = (np.take_along_axis(flat, idx, -1) - lse[..., None]).reshape(n, k, 5, 5)
+    c, l, r, u, d = win[..., 2, 2], win[..., 2, 1], win[..., 2, 3], win[..., 1, 2], win[..., 3, 2]
+    s = out_stride
+    xs = (ix + _vertex(l, c, r)) * s + (s - 1) / 2.0
+    ys = (iy + _vertex(u, c, d)) * s + (s - 1) / 2.0
+    uv = np.stack([xs, ys], -1).astype(np.float32)
+    score = np.clip((np.exp(win) * inside).sum((-1, -2)), 0.0, 1.0).astype(np.float32)
+    return torch.from_numpy(uv), torch.from_numpy(score)
 
 
-def _vertex(a: torch.Tensor, b: torch.Tensor, c: torch.Tensor) -> torch.Tensor:
+def _vertex(a: np.ndarray, b: np.ndarray, c: np.ndarray) -> np.ndarray:
     """Vertex offset in [-0.5, 0.5] of the parabola through (-1, a), (0, b), (1, c)."""
     den = a - 2 * b + c
-    off = torch.where(den < -1e-6, 0.5 * (a - c) / den.clamp(max=-1e-6), torch.zeros_like(b))
-    return off.clamp(-0.5, 0.5)
+    off = np.where(den < -1e-6, 0.5 * (a - c) / np.minimum(den, -1e-6), 0.0)
+    return np.clip(off, -0.5, 0.5)
 
 
 def decode_global(out: torch.Tensor, downscale: int):
