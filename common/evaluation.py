@@ -385,20 +385,16 @@ def process_cpu_seconds(pid: int) -> Optional[float]:
         return None
 
 
-def machine_cpu_seconds() -> Optional[dict]:
-    """The machine's CPU time so far (s, summed over CPUs) by kind, from /proc/stat: ``busy``
-    (user, nice, system, irq), ``idle`` (idle, iowait) and ``steal`` (taken by the hypervisor for
-    other guests: on a shared virtual machine, the slow minutes); None if unknown."""
+def cpu_steal_seconds() -> Optional[float]:
+    """CPU time (s, summed over CPUs) the hypervisor has given other guests so far (``steal`` in
+    /proc/stat): on a shared virtual machine, what makes a slow minute; None if unknown."""
     import os
     try:
         with open("/proc/stat") as f:
-            v = [int(x) for x in f.readline().split()[1:9]]
-    except (OSError, ValueError):
+            fields = f.readline().split()
+        return int(fields[8]) / os.sysconf("SC_CLK_TCK")
+    except (OSError, ValueError, IndexError):
         return None
-    hz = os.sysconf("SC_CLK_TCK")
-    user, nice, system, idle, iowait, irq, softirq, steal = (v + [0] * 8)[:8]
-    return {"busy": (user + nice + system + irq + softirq) / hz, "idle": (idle + iowait) / hz,
-            "steal": steal / hz}
 
 
 def timing_summary(col: Collected, final_method: Optional[str] = None) -> dict:

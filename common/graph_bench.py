@@ -143,7 +143,7 @@ def ensure_dataset(path) -> str:
 
 def measure(args, dataset: str, log) -> dict:
     from common.dataset import Dataset
-    from common.evaluation import machine_cpu_seconds, process_cpu_seconds
+    from common.evaluation import cpu_steal_seconds, process_cpu_seconds
     from common.graph import output_key, stats_key
     from common.messages import GroundTruth, Keypoints, NodeStats, PoseEstimate
     from common.pipeline_graph import (METHOD_NEEDS, POSE_OUTPUTS, GraphRun, keypoint_sources,
@@ -196,13 +196,13 @@ def measure(args, dataset: str, log) -> dict:
             drops0 = {n: _dropped(st) for n, st in rec.stats.items()}
             pairs0 = _pairs(rec.stats.get(frame_node))
         cpu0 = {n: process_cpu_seconds(p) for n, p in pids.items()}
-        machine0 = machine_cpu_seconds()
+        steal0 = cpu_steal_seconds()
         w1 = w0 + int(args.duration * 1e9)
         while time.time_ns() < w1:
             _check_alive(run)
             time.sleep(0.1)
         cpu1 = {n: process_cpu_seconds(p) for n, p in pids.items()}
-        machine1 = machine_cpu_seconds()
+        steal1 = cpu_steal_seconds()
         with rec.lock:
             pairs1 = _pairs(rec.stats.get(frame_node))
         time.sleep(0.5)  # outputs of the window's last frames still in flight
@@ -251,8 +251,8 @@ def measure(args, dataset: str, log) -> dict:
     out["cpu_total"] = sum(v["cpu_share"] or 0.0 for v in nodes.values())
     out["cpus"] = os.cpu_count()
     # the hypervisor's share of the CPUs during the window: how slow a minute this was
-    out["cpu_steal"] = ((machine1["steal"] - machine0["steal"]) / span / (out["cpus"] or 1)
-                        if machine0 and machine1 else None)
+    out["cpu_steal"] = ((steal1 - steal0) / span / (out["cpus"] or 1)
+                        if steal0 is not None and steal1 is not None else None)
     return out
 
 
