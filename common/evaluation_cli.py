@@ -38,12 +38,26 @@ def _parser() -> argparse.ArgumentParser:
                         "frame is scored whatever the rate (the nodes queue their inputs here); "
                         "`needletrack bench` measures speed")
     p.add_argument("--no-refine", action="store_true", help="leave out the refinement node")
+    p.add_argument("--support-normal", metavar="X,Y,Z", type=_vector3,
+                   help="the refinement's prior that the needle may rest on a surface with this "
+                        "normal (world frame), e.g. 0,0,1 for the simulator's phantom (common/rest_prior.py; "
+                        "default: no prior)")
     p.add_argument("--timeout", type=float, default=None, help="give up after this many seconds")
     p.add_argument("--bench", type=float, default=0.0, metavar="SECONDS",
                    help="then also measure the live graph's speed for this long (`needletrack bench`) "
                         "and add it to results.json (key `bench`) and report.md")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
     return p
+
+
+def _vector3(text: str) -> list:
+    try:
+        v = [float(x) for x in text.split(",")]
+    except ValueError:
+        v = []
+    if len(v) != 3 or not any(v):
+        raise argparse.ArgumentTypeError(f"expected three numbers X,Y,Z not all zero, got {text!r}")
+    return v
 
 
 def check_folder(path: str, progress: bool = True):
@@ -137,10 +151,12 @@ def main(argv=None) -> int:
     rate = rate if str(rate) == "max" else float(rate)
     doc = pipeline_graph(dataset, detector=args.detector, detector_params=det_params, rate=rate,
                          refine=False if args.no_refine else None, lossless=True,
-                         split_detector=split, refine_tracking=False)   # refined: a single-frame method
+                         split_detector=split, refine_tracking=False,   # refined: a single-frame method
+                         refine_params={"support_normal_world": args.support_normal} if args.support_normal else None)
     evaluator = {"id": "evaluator", "module": "evaluator",
                  "params": {"out": str(out.resolve()), "dataset": str(Path(dataset).resolve()),
-                            "detector": args.detector, "noise_px": args.noise_px},
+                            "detector": args.detector, "noise_px": args.noise_px,
+                            "support_normal_world": args.support_normal},
                  "inputs": {"truth": "replay/truth", "calib": "replay/calib", "eos": "replay/eos",
                             **keypoint_sources(split),
                             "points3d": "triangulate/points", **pose_inputs(doc)},

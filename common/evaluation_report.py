@@ -46,6 +46,8 @@ def report_markdown(res: dict) -> str:
          f"- frames: {res['frames']} stereo frames ({res.get('images', 2 * res['frames'])} images)",
          f"- detector: `{res['detector']}`" + (f" (noise {res['noise_px']} px)"
                                                if res.get("noise_px") else ""),
+         *([f"- refinement's resting prior: support surface normal {res['support_normal_world']} "
+            "(world frame)"] if res.get("support_normal_world") else []),
          f"- needle found in {_fmt(100 * res['detection_rate'] if res['detection_rate'] is not None else None, 1)}% "
          f"of the images; false detections: {res.get('false_detections', 0)} "
          f"of {res.get('images_without_needle', 0)} images without a needle", ""]

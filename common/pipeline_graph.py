@@ -49,7 +49,7 @@ def pipeline_graph(dataset: str, *, detector: str = "learned", detector_params: 
                    sinks: Optional[list] = None, lossless: bool = False,
                    split_detector: bool = False, methods=None,
                    start_delay_s: float = 1.0, decode: bool = False,
-                   refine_tracking: bool = True) -> dict:
+                   refine_tracking: bool = True, refine_params: Optional[dict] = None) -> dict:
     """The graph document of the whole pipeline on a replayed dataset folder.
 
     ``refine``: include the refinement node and a fusion over refined poses (default: when
@@ -66,7 +66,8 @@ def pipeline_graph(dataset: str, *, detector: str = "learned", detector_params: 
     graph before its first frame, so that its links to every consumer are up. ``decode``: the
     replay decodes the images once at start-up and sends them raw, as a live camera would.
     ``refine_tracking``: the refinement starts a frame from the last one's pose when it can
-    (``common.refine_tracking``; false: every frame on its own, a single-frame method).
+    (``common.refine_tracking``; false: every frame on its own, a single-frame method);
+    ``refine_params``: more params of the refine node (e.g. ``support_normal_world``).
     ``rate="paced"``: the replay sends the next frame once both cameras' keypoints of the last
     one are out (closed loop, as fast as the graph goes); the detectors then take every frame.
     """
@@ -127,7 +128,8 @@ def pipeline_graph(dataset: str, *, detector: str = "learned", detector_params: 
                       "outputs": ["pose"], "env": one})
     if "refined" in wanted:
         nodes.append({"id": "refine", "module": "refine", "inputs": dict(stereo),
-                      "params": {"tracking": bool(refine_tracking)}, "outputs": ["pose"], "env": one})
+                      "params": {"tracking": bool(refine_tracking), **(refine_params or {})},
+                      "outputs": ["pose"], "env": one})
     if "multiview_refined" in wanted:
         nodes.append({"id": "fusion_refined", "module": "fusion",
                       "params": {"method": "multiview_refined"},

@@ -40,6 +40,7 @@ import numpy as np
 
 from common.camera import Camera, StereoRig
 from common.needle import NeedleModel
+from common.rest_prior import resting_log_prior
 from common.transforms import R_to_rotvec, make_T, rotvecs_to_Rs, transform_points
 
 
@@ -120,12 +121,16 @@ class RefineConfig:
     min_depth_m: float = 1e-3       # every point must be this far in front of both cameras
     max_depth_m: float = 2.0        # and the needle nearer than this (a PnP start may run off)
     min_sigma_ratio: float = 0.25   # the covariance assumes at least this fraction of the sigmas
+    # with a support surface's normal given (``refine(support_normal=)``): probability that the
+    # needle rests on it, and the spread of its tilt then (common/rest_prior.py)
+    rest_prior: float = 0.5
+    rest_sigma_deg: float = 10.0
 
     def __post_init__(self):
         positive = ("sigma_kp_px", "sigma_curve_px", "cauchy_scale", "cauchy_scale_end", "step_tol", "merge_mm",
                     "merge_deg", "distinct_mm", "distinct_deg", "ambiguity_chi2",
                     "research_rad", "research_m", "max_step_rad", "max_step_m",
-                    "min_sigma_ratio", "max_depth_m", "edge_on_chi2")
+                    "min_sigma_ratio", "max_depth_m", "edge_on_chi2", "rest_sigma_deg")
         for name in positive:
             v = getattr(self, name)
             if not (np.isfinite(v) and v > 0):
@@ -135,6 +140,8 @@ class RefineConfig:
                          ("foot_steps", 1), ("warm_steps", 1)):
             if int(getattr(self, name)) < lo:
                 raise ValueError(f"RefineConfig.{name}: must be at least {lo}, got {getattr(self, name)}")
+        if not 0.0 <= self.rest_prior < 1.0:
+            raise ValueError(f"RefineConfig.rest_prior: must be in [0, 1), got {self.rest_prior}")
 
 
 @dataclass
@@ -147,7 +154,8 @@ class RefineResult:
     (``competing_candidates``, ``edge_on``); ``view_angle_deg`` the smallest angle between the arc's
     plane and a camera's line of sight (0 = edge-on, 90 = face-on); ``candidates`` every distinct
     converged solution as ``(T_ecm_needle, cost)``, best first; ``competitor_chi2`` how much
-    more the best of the others costs, in residual variances (inf: no other solution).
+    the cost of the nearest of the others differs, in residual variances (inf: no other
+    solution; a support surface's prior may pick a minimum that costs a little more).
     """
 
     T_ecm_needle: np.ndarray
@@ -611,7 +619,8 @@ class DenseRefiner:
         self._static = _Static(rig, needle, self.config)
 
     def refine(self, observations: Mapping[str, ArcObservation],
-               candidates: Sequence[np.ndarray], mirrors: bool | None = None) -> RefineResult:
+               candidates: Sequence[np.ndarray], mirrors: bool | None = None,
+               support_normal: np.ndarray | None = None) -> RefineResult:
         """See ``refine_pose``; ``mirrors`` overrides ``config.add_mirrors`` for this call."""
         cfg, st = self.config, self._static
         cands = [np.asarray(T, float) for T in candidates
@@ -639,20 +648,25 @@ class DenseRefiner:
         keep = _dedupe(s, keep, cfg.distinct_mm, cfg.distinct_deg)[:cfg.max_candidates]
         s = {k: (v[keep] if isinstance(v, np.ndarray) else v) for k, v in s.items()}
         s = _lm(prob, s["R"], s["t"], cfg, cfg.max_iter - cfg.coarse_iter, state=s)
-        return _result(prob, s, cfg)
+        log_prior = None if support_normal is None else resting_log_prior(
+            s["R"], support_normal, cfg.rest_prior, math.radians(cfg.rest_sigma_deg))
+        return _result(prob, s, cfg, log_prior)
 
 
 def refine_pose(rig: StereoRig, needle: NeedleModel, observations: Mapping[str, ArcObservation],
-                candidates: Sequence[np.ndarray], config: RefineConfig | None = None) -> RefineResult:
+                candidates: Sequence[np.ndarray], config: RefineConfig | None = None,
+                support_normal: np.ndarray | None = None) -> RefineResult:
     """Refine ``T_ecm_needle`` against the keypoints and centrelines of both cameras.
 
     ``observations`` maps ``"left"``/``"right"`` to an ``ArcObservation`` (a camera may be left
     out); ``candidates`` are initial 4x4 ``T_ecm_needle`` (e.g. every solution of the stereo
     PnP). Every candidate (and its mirror image) is refined; the one with the lowest robust cost
-    is returned. Raises ``RefineError`` when no pose can be computed. For many frames of one rig,
-    build a ``DenseRefiner`` once instead.
+    is returned. ``support_normal``: the normal (ECM frame) of a surface the needle may rest on
+    (``common.rest_prior``); then the cost in residual variances less twice the log prior
+    decides between the minima. Raises ``RefineError`` when no pose can be computed. For many
+    frames of one rig, build a ``DenseRefiner`` once instead.
     """
-    return DenseRefiner(rig, needle, config).refine(observations, candidates)
+    return DenseRefiner(rig, needle, config).refine(observations, candidates, support_normal=support_normal)
 
 
 def _near_any(T, Ts, mm, deg) -> bool:
@@ -677,21 +691,35 @@ def _dedupe(s, idx, mm, deg):
     return np.array(kept, int)
 
 
-def _result(prob: _Problem, s, cfg: RefineConfig) -> RefineResult:
+def _residual_variance(prob: _Problem, r, wr, cfg: RefineConfig) -> float:
+    """Residual variance at an optimum, in units of the assumed sigmas (~1 when they hold). An
+    exact fit does not claim infinite certainty: at least min_sigma_ratio of the sigmas."""
+    return max(float((wr * r ** 2).sum() / max(prob.n_res - 6, 1)), cfg.min_sigma_ratio ** 2)
+
+
+def _result(prob: _Problem, s, cfg: RefineConfig, log_prior=None) -> RefineResult:
+    """The best minimum: the lowest cost, or with ``log_prior`` (K,) the lowest cost in residual
+    variances less twice the log prior. Competitors, the ambiguity and the covariance's
+    inflation are judged on the costs alone."""
     order = np.argsort(s["cost"])
     order = order[np.isfinite(s["cost"][order])]
     b = order[0]
-    T0 = make_T(s["R"][b], s["t"][b])
-    r, J = s["r"][b], s["J"][b]
+    r = s["r"][b]
     _, wr = prob.robust(r)
+    s2 = _residual_variance(prob, r, wr, cfg)
+    penalty = np.zeros(len(s["cost"])) if log_prior is None else -2.0 * np.asarray(log_prior, float)
+    score = s["cost"][order] / s2 + penalty[order]
+    if score.argmin() != 0:
+        order = np.concatenate([order[score.argmin():][:1], np.delete(order, score.argmin())])
+        b = order[0]
+        r = s["r"][b]
+        _, wr = prob.robust(r)
+        s2 = _residual_variance(prob, r, wr, cfg)
+    T0 = make_T(s["R"][b], s["t"][b])
+    J = s["J"][b]
     used = prob.wp > 0
     n_res = prob.n_res
-    dof = max(n_res - 6, 1)
-    s2 = float((wr * r ** 2).sum() / dof)
     H = J.T @ (wr[:, None] * J)
-    # Residuals are in units of the assumed sigmas: s2 ~ 1 when they hold. An exact fit does
-    # not claim infinite certainty: at least min_sigma_ratio of the assumed sigmas.
-    s2 = max(s2, cfg.min_sigma_ratio ** 2)
     cov = s2 * _inv_psd(H)
 
     def rms(mask):
@@ -707,7 +735,8 @@ def _result(prob: _Problem, s, cfg: RefineConfig) -> RefineResult:
         if _near_any(Tj, [c[0] for c in cands], cfg.distinct_mm, cfg.distinct_deg):
             continue
         cands.append((Tj, float(s["cost"][j])))
-        competitors.append((Tj, (s["cost"][j] - s["cost"][b]) / s2))
+        # judged on the images alone: a prior may pick between minima, not hide one
+        competitors.append((Tj, abs(s["cost"][j] - s["cost"][b]) / s2))
     view = _view_angle_deg(prob, T0)
     edge_on = view < cfg.edge_on_deg
     close = [(Tj, dchi) for Tj, dchi in competitors if dchi < cfg.ambiguity_chi2]

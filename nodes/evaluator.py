@@ -5,7 +5,8 @@ exits 0.
 
 Params: ``out`` (folder, required), ``dataset`` (the folder replayed: named in the results and
 read for the overlays' images; frame ``seq`` = frames.jsonl ``index``), ``detector`` (name for
-the results), ``noise_px`` (oracle noise, reported), ``drain_s`` (default 3: how long to wait
+the results), ``noise_px`` (oracle noise, reported), ``support_normal_world`` (the refinement's
+resting prior, reported), ``drain_s`` (default 3: how long to wait
 after EndOfStream when some poses never come), ``quiet``.
 
 Inputs named after the pose methods (``pnp_average``, ``pnp_joint``, ``triangulation``,
@@ -141,6 +142,7 @@ class EvaluatorNode(PoseMethodInputs, Node):
                 self.col.node_cpu_ms[n] = 1e3 * (c1 - c0) / frames
         loader = self._image_loader()
         extra = {"noise_px": float(self.params.get("noise_px", 0.0)),
+                 "support_normal_world": self.params.get("support_normal_world"),
                  "graph_methods": self.methods}
         res = write_outputs(self.out, self.col, dataset=str(self.dataset_path or ""),
                             detector=self.detector, load_images=loader, extra=extra,

@@ -22,7 +22,11 @@ Params: ``min_score`` (0.5: keypoints scoring lower are not used, by the PnP nor
 ``max_rms_px`` (20: a worse fit is not published); ``outlier_px`` (10, the joint PnP's outlier
 rejection); any ``RefineConfig`` field (e.g. ``sigma_kp_px``, ``sigma_curve_px``,
 ``max_curve_points``, ``edge_on_deg``); ``tracking`` (true) and any ``TrackingConfig`` field
-(``max_gap_s``, ``cold_every``, ``max_start_px``, ``max_rms_growth``, ``rms_slack_px``). A frame
+(``max_gap_s``, ``cold_every``, ``max_start_px``, ``max_rms_growth``, ``rms_slack_px``);
+``support_normal_world`` (none: the normal, world frame, of the surface the needle may rest on,
+e.g. ``[0, 0, 1]`` for the simulator's phantom: with it, ``common.rest_prior`` picks between
+minima the images leave nearly equal; it needs the ``ecm`` input, and a frame whose ECM pose is
+not in yet uses the newest one; ``rest_prior``, ``rest_sigma_deg`` tune it). A frame
 that gives no pose is counted as
 ``no_pose.<reason>`` (the PnP's reasons, or the refinement's: ``too_few_points``,
 ``no_valid_candidate``, ``bad_centreline``, ``bad_keypoints``, ``high_residual``).
@@ -30,6 +34,8 @@ that gives no pose is counted as
 from __future__ import annotations
 
 import dataclasses
+
+import numpy as np
 
 from common.messages import Calibration, EcmPose, Keypoints
 from common.node import run
@@ -84,6 +90,7 @@ class RefineNode(StereoPoseNode):
         op = self.params.get("outlier_px", 10.0)
         self.outlier_px = None if op is None else float(op)
         self.tracker: TrackingRefiner | None = None
+        self.support_normal_world = support_normal(self.params.get("support_normal_world"))
 
     def on_calib(self, msg: Calibration):
         changed = self.calib is None or msg.cameras != self.calib.cameras or msg.needle != self.calib.needle
@@ -98,7 +105,7 @@ class RefineNode(StereoPoseNode):
         if not any(o.centreline is not None and len(o.centreline) for o in obs.values()):
             self.count("keypoints_only")
         try:
-            res = self.tracker.refine(uv, sc, obs, left.stamp_ns)
+            res = self.tracker.refine(uv, sc, obs, left.stamp_ns, self.support_normal_ecm(left.seq))
         except NoPose as exc:
             self.no_pose(exc.reason, left.seq, exc.detail)
             return
@@ -115,6 +122,35 @@ class RefineNode(StereoPoseNode):
         self.publish_pose(self.pose_message(left.seq, left.stamp_ns, "refined", res.T_ecm_needle,
                                             res.rms_px, "px", covariance=res.covariance,
                                             ambiguous=bool(res.ambiguous)))
+
+
+    def support_normal_ecm(self, seq: int):
+        """The support surface's normal in frame ``seq``'s ECM frame (None: not configured, or
+        no ECM pose yet)."""
+        if self.support_normal_world is None:
+            return None
+        T_world_ecm = self.ecm_poses.get(seq)
+        if T_world_ecm is None and self.ecm_poses:
+            # the newest: the prior only weighs near-equal minima, a few frames of motion is nothing
+            T_world_ecm = next(reversed(self.ecm_poses.values()))
+        if T_world_ecm is None:
+            self.count("no_support_prior")
+            return None
+        return T_world_ecm[:3, :3].T @ self.support_normal_world
+
+
+def support_normal(value) -> np.ndarray | None:
+    """The ``support_normal_world`` param as a unit 3-vector (None stays None)."""
+    if value is None:
+        return None
+    try:
+        n = np.asarray(value, dtype=float)
+    except (TypeError, ValueError):
+        n = np.zeros(0)
+    if n.shape != (3,) or not np.all(np.isfinite(n)) or not np.linalg.norm(n) > 0:
+        raise ValueError(f"refine: params.support_normal_world must be 3 finite numbers, not all zero, "
+                         f"got {value!r}")
+    return n / np.linalg.norm(n)
 
 
 NODE = RefineNode

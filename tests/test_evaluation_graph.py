@@ -4,6 +4,7 @@ import shutil
 
 import numpy as np
 import pytest
+import yaml
 
 from common.dataset_cli import main as dataset_main
 from common.evaluation import METHODS, check_results
@@ -51,8 +52,15 @@ def test_oracle_without_noise_gives_zero_errors(small_dataset, tmp_path):
 
 
 def test_oracle_with_noise_gives_errors_of_the_expected_size(small_dataset, tmp_path):
-    res = run_eval(small_dataset, tmp_path, "--noise-px", "1.0", "--seed", "7")
+    res = run_eval(small_dataset, tmp_path, "--noise-px", "1.0", "--seed", "7", "--support-normal", "0,0,1")
     assert check_results(res) == []
+    # the resting prior reaches the refine node and is reported
+    assert res["support_normal_world"] == [0.0, 0.0, 1.0]
+    graph = yaml.safe_load((tmp_path / "graph.yaml").read_text())
+    assert next(n for n in graph["nodes"] if n["id"] == "refine")["params"]["support_normal_world"] == [0, 0, 1]
+    assert "resting prior" in (tmp_path / "report.md").read_text()
+    with pytest.raises(SystemExit):
+        eval_main(["--dataset", str(small_dataset), "--support-normal", "0,0"])
     # Gaussian noise of 1 px per coordinate: radial error of mean sqrt(pi/2) = 1.25 px
     k2 = res["keypoints_2d_px"]["all"]
     assert k2["n"] == 90

@@ -42,12 +42,12 @@ def oracle_frames(n, noise_px=0.5, seed=3):
     return frames
 
 
-def library(left, right, config=RefineConfig()):
+def library(left, right, config=RefineConfig(), support_normal=None):
     uv = {k.camera: k.uv for k in (left, right)}
     sc = {k.camera: k.scores for k in (left, right)}
     starts = refine_starts(uv, RIG, MODEL.keypoints(), sc, config.min_score)
     obs = {k.camera: ArcObservation.from_keypoints(k) for k in (left, right)}
-    return DenseRefiner(RIG, MODEL, config).refine(obs, starts)
+    return DenseRefiner(RIG, MODEL, config).refine(obs, starts, support_normal=support_normal)
 
 
 def poses(node):
@@ -76,6 +76,27 @@ def test_node_matches_the_library_and_adds_the_world_pose():
         assert dt < 5e-3 and np.degrees(dr) < 5.0
         roundtrip(p)
     assert node.counters.get("keypoints_only", 0) == 0 and node.counters["cold"] == 4
+
+
+def test_node_support_normal_is_turned_into_each_frames_ecm_frame():
+    frames = oracle_frames(3, noise_px=1.0)
+    node = RefineNode.offline({"tracking": False, "support_normal_world": [0, 0, 2]},
+                              wired=["left", "right", "calib", "ecm"])
+    node.on_calib(CALIB)
+    assert node.support_normal_ecm(0) is None and node.counters["no_support_prior"] == 1
+    T_world_ecm = ARM.T_world_ecm(Q)
+    node.on_ecm(EcmPose(0, 0, T_world_ecm))
+    assert np.allclose(T_world_ecm[:3, :3] @ node.support_normal_ecm(7), [0, 0, 1])   # the newest
+    for T, left, right in frames:
+        node.on_ecm(EcmPose(left.seq, left.stamp_ns, T_world_ecm))
+        node.on_right(right)
+        node.on_left(left)
+        ref = library(left, right, support_normal=T_world_ecm[:3, :3].T @ [0, 0, 1])
+        assert np.allclose(poses(node)[-1].T_ecm_needle, ref.T_ecm_needle, atol=1e-12)
+        assert np.allclose(poses(node)[-1].covariance, ref.covariance)
+    for bad in ([0, 0], [0, 0, 0], "up"):
+        with pytest.raises(ValueError, match="support_normal_world"):
+            RefineNode.offline({"support_normal_world": bad})
 
 
 def test_node_tracks_a_video_as_the_library_does():
