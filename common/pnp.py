@@ -406,9 +406,8 @@ def _check_in_front(obs: dict[str, CameraObs]) -> None:
     if not il:
         return
     ir = [in_right[k] for k in L.index[il].tolist()]
-    depth = _ray_depths(L.camera, L.uv[il], Rr.camera, Rr.uv[ir])
-    depth = depth[np.isfinite(depth)]
-    if len(depth) and np.median(depth) <= 0:
+    depth = sorted(d for d in _ray_depths(L.camera, L.uv[il], Rr.camera, Rr.uv[ir]).tolist() if math.isfinite(d))
+    if depth and depth[(len(depth) - 1) // 2] + depth[len(depth) // 2] <= 0:     # the median
         raise NoPose("behind_camera", "keypoints triangulate behind the cameras")
 
 

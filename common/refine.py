@@ -309,6 +309,7 @@ class _Problem:
         # Residual weights in evaluation order, per camera: keypoint u (5), keypoint v (5),
         # curve normal distance (M), curve overshoot beyond the arc's ends (M).
         self.wp = np.concatenate([wU, wU, wO, wO], axis=1).ravel()
+        self.used_kp, self.used_curve = (self.wp > 0) & st.is_kp, (self.wp > 0) & ~st.is_kp
         # Cauchy scales (squared, in sigmas) per residual: the overshoot past an arc end has its
         # own, so that a spur past the needle's end (thread, glare) cannot drag the arc along
         c_end = cfg.cauchy_scale_end ** 2
@@ -717,15 +718,14 @@ def _result(prob: _Problem, s, cfg: RefineConfig, log_prior=None) -> RefineResul
         s2 = _residual_variance(prob, r, wr, cfg)
     T0 = make_T(s["R"][b], s["t"][b])
     J = s["J"][b]
-    used = prob.wp > 0
     n_res = prob.n_res
     H = J.T @ (wr[:, None] * J)
     cov = s2 * _inv_psd(H)
-
-    def rms(mask):
-        # a curve point's two residuals (normal, overshoot) make one distance
-        n = int(mask.sum()) - int((mask & ~prob.is_kp).sum()) // 2
-        return float(np.sqrt(np.sum(r[mask] ** 2) / n)) if n else float("nan")
+    # RMS per keypoint coordinate and per curve point (its two residuals, normal and
+    # overshoot, make one distance)
+    r2 = r * r
+    sq_kp, sq_curve = float(r2[prob.used_kp].sum()), float(r2[prob.used_curve].sum())
+    rms = lambda sq, n: math.sqrt(sq / n) if n else float("nan")
 
     # Competing solutions: other distinct minima, and how much worse they fit.
     cands, reasons = [(T0, float(s["cost"][b]))], []
@@ -754,8 +754,9 @@ def _result(prob: _Problem, s, cfg: RefineConfig, log_prior=None) -> RefineResul
             cov = cov + a * np.outer(d, d)
     cov = 0.5 * (cov + cov.T)
     return RefineResult(
-        T_ecm_needle=T0, covariance=cov, rms_px=rms(used), rms_kp_px=rms(used & prob.is_kp),
-        rms_curve_px=rms(used & ~prob.is_kp), cost=float(s["cost"][b]), ambiguous=bool(reasons),
+        T_ecm_needle=T0, covariance=cov, rms_px=rms(sq_kp + sq_curve, 2 * prob.n_kp + prob.n_curve),
+        rms_kp_px=rms(sq_kp, 2 * prob.n_kp), rms_curve_px=rms(sq_curve, prob.n_curve),
+        cost=float(s["cost"][b]), ambiguous=bool(reasons),
         reasons=tuple(reasons), view_angle_deg=view, n_iter=int(s["iters"]),
         n_residuals=n_res, candidates=cands,
         competitor_chi2=float(min((dchi for _, dchi in competitors), default=np.inf)))
