@@ -306,7 +306,7 @@ def initial_poses(obs: CameraObs, epnp: bool = True, ippe: bool = True) -> list[
         # then it returns a rotation near a half turn or none, or one that reprojects far worse
         # than the other (an exact half turn in both cameras: 0.8 against 47 px at zero noise)
         ippe_sols = [s for s in sols if s[0].startswith("ippe")]
-        if Q is not None and len(ippe_sols) == 2 and all(1e-2 < np.linalg.norm(s[1]) < np.pi - 1e-2
+        if Q is not None and len(ippe_sols) == 2 and all(1e-2 < math.hypot(*np.ravel(s[1]).tolist()) < np.pi - 1e-2
                                                          for s in ippe_sols):
             e = sorted(s[4] for s in ippe_sols)
             if e[1] <= 3.0 * e[0] + 2.0:
@@ -324,17 +324,21 @@ def initial_poses(obs: CameraObs, epnp: bool = True, ippe: bool = True) -> list[
     tv = np.array([np.asarray(s[2], float).reshape(3) for s in sols])
     finite = np.all(np.isfinite(rv), axis=1) & np.all(np.isfinite(tv), axis=1)
     Rs = rotvecs_to_Rs(np.where(finite[:, None], rv, 0.0))
+    T_ecm_cam = cam.T_ecm_cam
     for (label, _, _, Q, _), R, t, ok in zip(sols, Rs, tv, finite):
         if not ok:
             continue
         if Q is not None:
             R = R @ Q
-        if np.any(obs.points @ R[2] + t[2] <= 0):
+        if (obs.points @ R[2]).min() + t[2] <= 0:
             continue
-        T = cam.T_ecm_cam @ make_T(R, t)
-        if _distinct(T, [o[1] for o in out], 5e-4, np.deg2rad(0.5)):
+        T = T_ecm_cam @ make_T(R, t)
+        if _distinct(T, [o[1] for o in out], 5e-4, _HALF_DEG):
             out.append((f"{label}:{cam.name}", T))
     return out
+
+
+_HALF_DEG = math.radians(0.5)
 
 
 def _distinct(T, others, tol_m, tol_rad) -> bool:
