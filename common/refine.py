@@ -708,10 +708,9 @@ def _result(prob: _Problem, s, cfg: RefineConfig, log_prior=None) -> RefineResul
     r = s["r"][b]
     _, wr = prob.robust(r)
     s2 = _residual_variance(prob, r, wr, cfg)
-    penalty = np.zeros(len(s["cost"])) if log_prior is None else -2.0 * np.asarray(log_prior, float)
-    score = s["cost"][order] / s2 + penalty[order]
-    if score.argmin() != 0:
-        order = np.concatenate([order[score.argmin():][:1], np.delete(order, score.argmin())])
+    k = 0 if log_prior is None else int(np.argmin(s["cost"][order] / s2 - 2.0 * np.asarray(log_prior)[order]))
+    if k:
+        order = np.concatenate([order[k:k + 1], np.delete(order, k)])
         b = order[0]
         r = s["r"][b]
         _, wr = prob.robust(r)
