@@ -415,6 +415,11 @@ def test_bench_reports_errors_and_times():
     assert rows[1]["wall_ms"]["p50"] > 0 and rows[1]["cpu_ms"]["max"] >= rows[1]["cpu_ms"]["p50"]
     text = table(rows)
     assert text.count("\n") == 3 and "n/a" in text.splitlines()[2]
+    # repeated passes see the same frames: the same errors, each frame's least time
+    again = run([0.5], frames=4, progress=False, repeat=2)[0]
+    assert again["repeat"] == 2 and again["refined"] == rows[1]["refined"]
+    assert again["tracking"]["refined"] == rows[1]["tracking"]["refined"]
+    assert 0 < again["node_cpu_ms"]["p50"] and again["cpu_ms"]["max"] >= again["cpu_ms"]["p50"]
 
 
 def test_stated_centreline_noise_and_keypoints_placed_on_the_arc():
