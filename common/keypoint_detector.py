@@ -26,7 +26,8 @@ import torch
 
 from common.keypoint_model import (FrozenForInference, KeypointModel, ModelConfig, apply_affine, crop_affine,
                                    crop_side, decode_global_topk, decode_heatmaps, fuse_conv_bn, invert_affine)
-from common.centreline_subpixel import CENTRELINE_SIGMA_PX, curve_normals, ellipse_residual, refine_centreline
+from common.centreline_subpixel import (CENTRELINE_CORR_POINTS, CENTRELINE_SIGMA_PX, curve_normals,
+                                        ellipse_residual, refine_centreline)
 from common.messages import CameraImage, Keypoints, MessageError
 
 MODEL_FORMAT = "needletrack-keypoint-detector"
@@ -486,7 +487,8 @@ class KeypointDetector:
         return Keypoints(camera, seq, stamp_ns, True, res["uv"].astype(np.float64),
                          res["scores"].astype(np.float64), float(conf),
                          np.array([cx - bw / 2, cy - bh / 2, cx + bw / 2, cy + bh / 2]), self.name, None,
-                         res["centreline"], res["centreline_w"], res["centreline_sigma"], res.get("on_arc"))
+                         res["centreline"], res["centreline_w"], res["centreline_sigma"], res.get("on_arc"),
+                         None if res["centreline_sigma"] is None else CENTRELINE_CORR_POINTS)
 
     def detect_message(self, msg: CameraImage) -> Keypoints:
         """Keypoints of a ``CameraImage``; corrupt or inconsistent image data -> "no needle"."""

@@ -387,7 +387,8 @@ class Keypoints(Message):
     ``bbox`` [x0, y0, x1, y1] pixels. ``centreline`` optionally carries the dense observation
     of the needle's projected arc, (N, 2) pixels ordered from A to E, with ``centreline_w`` (N,),
     and optionally ``centreline_sigma_px``, the detector's 1-sigma error of a centreline point
-    across the curve (px; absent: the consumer's default). ``on_arc`` (5,) optionally marks (1)
+    across the curve (px; absent: the consumer's default), and ``centreline_corr_points``, how
+    many consecutive points' errors move together (>= 1; absent: independent). ``on_arc`` (5,) optionally marks (1)
     the keypoints the detector placed on its fitted arc instead of observing them on their own.
     """
 
@@ -399,7 +400,8 @@ class Keypoints(Message):
               "centreline": ("array", (None, 2), "optional"),
               "centreline_w": ("array", (None,), "optional"),
               "centreline_sigma_px": ("float", "optional"),
-              "on_arc": ("array", (5,), "optional")}
+              "on_arc": ("array", (5,), "optional"),
+              "centreline_corr_points": ("float", "optional")}
     camera: str
     seq: int
     stamp_ns: int
@@ -414,11 +416,15 @@ class Keypoints(Message):
     centreline_w: Optional[np.ndarray] = None
     centreline_sigma_px: Optional[float] = None
     on_arc: Optional[np.ndarray] = None
+    centreline_corr_points: Optional[float] = None
 
     def validate(self):
         s = self.centreline_sigma_px
         if s is not None and not (np.isfinite(s) and s > 0):
             raise MessageError(f"Keypoints.centreline_sigma_px: must be positive, got {s}")
+        c = self.centreline_corr_points
+        if c is not None and not (np.isfinite(c) and c >= 1):
+            raise MessageError(f"Keypoints.centreline_corr_points: must be at least 1, got {c}")
 
     @classmethod
     def not_found(cls, camera: str, seq: int, stamp_ns: int, detector: str, reason: str,

@@ -18,8 +18,10 @@ minimises, over both cameras, a robust (Cauchy) sum of
 Levenberg-Marquardt runs on all candidates at once (vectorised numpy, no scipy, analytic
 Jacobians) over six parameters: a rotation-vector increment left-multiplied in the ECM frame and
 a translation increment in the ECM frame, ``R <- exp(dr) R``, ``t <- t + dt``. The covariance,
-``s^2 (J^T W J)^-1`` at the optimum with ``s^2`` the residual variance, is in that same order
-and frame: ``[rotation vector (rad), translation (m)]``, as ``PoseEstimate.covariance``.
+``s^2 (J^T W J)^-1`` at the optimum with ``s^2`` the residual variance (and a centreline
+point's weight divided by the number of neighbours its error moves with, when the detector
+states it), is in that same order and frame: ``[rotation vector (rad), translation (m)]``, as
+``PoseEstimate.covariance``.
 
 A planar arc has a two-fold ambiguity (seen edge-on, whether it bulges towards or away from the
 camera); every candidate's mirror image about the line of sight is added and refined too. When
@@ -62,7 +64,10 @@ class ArcObservation:
     ``centreline_w`` (N,) in [0, 1] (all ones when None), ``centreline_sigma_px`` the
     centreline's 1-sigma error across the curve (None: ``RefineConfig.sigma_curve_px``);
     ``on_arc`` (5,) true for keypoints the detector placed on its fitted arc rather than observed
-    (left out of the fit where the centreline is given). Either part may be absent.
+    (left out of the fit where the centreline is given); ``centreline_corr_points`` how many
+    consecutive centreline points' errors move together (None: independent): in the covariance,
+    not the fit, each point then counts for that fraction of an observation. Either part may be
+    absent.
     """
 
     uv: Optional[np.ndarray] = None
@@ -71,6 +76,7 @@ class ArcObservation:
     centreline_w: Optional[np.ndarray] = None
     centreline_sigma_px: Optional[float] = None
     on_arc: Optional[np.ndarray] = None
+    centreline_corr_points: Optional[float] = None
 
     @classmethod
     def from_keypoints(cls, msg) -> "ArcObservation":
@@ -80,7 +86,8 @@ class ArcObservation:
         return cls(np.asarray(msg.uv, float), np.asarray(msg.scores, float),
                    None if msg.centreline is None else np.asarray(msg.centreline, float),
                    None if msg.centreline_w is None else np.asarray(msg.centreline_w, float),
-                   msg.centreline_sigma_px, None if msg.on_arc is None else np.asarray(msg.on_arc, bool))
+                   msg.centreline_sigma_px, None if msg.on_arc is None else np.asarray(msg.on_arc, bool),
+                   msg.centreline_corr_points)
 
 
 @dataclass(frozen=True)
@@ -267,6 +274,7 @@ class _Problem:
         cfg, C, M = st.cfg, st.C, st.M
         U, wU = np.zeros((C, 5, 2)), np.zeros((C, 5))
         O, wO = np.zeros((C, M, 2)), np.zeros((C, M))
+        corr = np.ones(C)                 # per camera: centreline points per independent error
         for i, cam in enumerate(st.cams):
             o = obs.get(cam.name)
             if o is None:
@@ -287,6 +295,11 @@ class _Problem:
                 if not (np.isfinite(sig) and sig > 0):
                     raise RefineError("bad_centreline", f"{cam.name}: centreline_sigma_px must be positive, got {sig}")
                 wO[i, :len(pts)] = w / sig ** 2
+                if o.centreline_corr_points is not None:
+                    corr[i] = float(o.centreline_corr_points)
+                    if not (np.isfinite(corr[i]) and corr[i] >= 1):
+                        raise RefineError("bad_centreline", f"{cam.name}: centreline_corr_points must be "
+                                          f"at least 1, got {o.centreline_corr_points}")
                 if o.on_arc is not None and np.count_nonzero(w) >= 3:
                     # keypoints a detector placed on its own fitted arc count the curve twice,
                     # with that arc's (weak-perspective) bias along it, which tips the mirror
@@ -310,6 +323,9 @@ class _Problem:
         # curve normal distance (M), curve overshoot beyond the arc's ends (M).
         self.wp = np.concatenate([wU, wU, wO, wO], axis=1).ravel()
         self.used_kp, self.used_curve = (self.wp > 0) & st.is_kp, (self.wp > 0) & ~st.is_kp
+        # the weight of each residual in the covariance relative to the fit's
+        self.cov_scale = np.concatenate([np.ones((C, 10)), np.repeat(1.0 / corr[:, None], 2 * M, axis=1)],
+                                        axis=1).ravel()
         # Cauchy scales (squared, in sigmas) per residual: the overshoot past an arc end has its
         # own, so that a spur past the needle's end (thread, glare) cannot drag the arc along
         c_end = cfg.cauchy_scale_end ** 2
@@ -718,7 +734,7 @@ def _result(prob: _Problem, s, cfg: RefineConfig, log_prior=None) -> RefineResul
     T0 = make_T(s["R"][b], s["t"][b])
     J = s["J"][b]
     n_res = prob.n_res
-    H = J.T @ (wr[:, None] * J)
+    H = J.T @ ((wr * prob.cov_scale)[:, None] * J)
     cov = s2 * _inv_psd(H)
     # RMS per keypoint coordinate and per curve point (its two residuals, normal and
     # overshoot, make one distance)

@@ -69,7 +69,7 @@ def test_centreline_is_sub_pixel_in_the_full_resolution_image(rendered_frames):
                 kp = det.detect(images[cam], cam)
                 if not kp.found:
                     continue
-                assert (kp.centreline_sigma_px is not None) == subpixel
+                assert (kp.centreline_sigma_px is not None) == subpixel == (kp.centreline_corr_points is not None)
                 # B..D placed on the arc through A and E when both ends are sure, else observed
                 assert kp.on_arc is None or list(kp.on_arc) == [False, True, True, True, False]
                 arc = project_centreline(rig[cam], needle, T_ecm_needle, spacing_px=0.2)

@@ -27,7 +27,8 @@ def examples():
         Keypoints("right", 9, 11, True, np.arange(10, dtype=float).reshape(5, 2), np.linspace(0, 1, 5), 0.9,
                   np.array([1.0, 2.0, 30.0, 40.0]), "oracle", None, np.zeros((7, 2)), np.ones(7)),
         Keypoints("left", 9, 11, True, np.ones((5, 2)), np.ones(5), 0.8, None, "learned", None, np.zeros((7, 2)),
-                  np.ones(7), centreline_sigma_px=0.2, on_arc=np.array([False, True, True, True, False])),
+                  np.ones(7), centreline_sigma_px=0.2, on_arc=np.array([False, True, True, True, False]),
+                  centreline_corr_points=5.0),
         Keypoints.not_found("left", 2, 3, "learned", "low confidence", 0.2),
         PoseEstimate(seq=4, stamp_ns=12, method="pnp_joint", T_ecm_needle=T, T_world_needle=T, residual=0.4,
                      residual_unit="px", n_views=2, covariance=np.eye(6) * 1e-6, ambiguous=False,
@@ -175,4 +176,10 @@ def test_keypoints_with_a_bad_centreline_sigma_are_refused():
                                  "body": {**body, "uv": body["uv"].tolist(), "scores": body["scores"].tolist(),
                                           "centreline_sigma_px": bad}})
         with pytest.raises(MessageError, match="Keypoints.centreline_sigma_px: must be positive"):
+            decode(payload, Keypoints)
+    for bad in (0.5, float("nan")):
+        payload = msgpack.packb({"schema": Keypoints.SCHEMA, "version": 1,
+                                 "body": {**body, "uv": body["uv"].tolist(), "scores": body["scores"].tolist(),
+                                          "centreline_corr_points": bad}})
+        with pytest.raises(MessageError, match="Keypoints.centreline_corr_points: must be at least 1"):
             decode(payload, Keypoints)

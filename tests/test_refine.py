@@ -449,3 +449,22 @@ def test_stated_centreline_noise_and_keypoints_placed_on_the_arc():
         REFINER.refine({k: ArcObservation(o.uv, o.scores, o.centreline, o.centreline_w, -1.0)
                         for k, o in obs.items()}, start)
     assert e.value.reason == "bad_centreline"
+
+
+def test_correlated_centreline_points_widen_the_covariance_not_the_fit():
+    """A detector stating that k neighbouring centreline points share their error: the pose is
+    the same, the covariance of a curve-only fit k times the variance."""
+    rng = np.random.default_rng(21)
+    T = view_pose(45.0, spin_deg=20.0)
+    obs = observe(T, rng, kp_px=0.5, curve_px=0.25)
+    curve_only = {n: ArcObservation(centreline=o.centreline, centreline_w=o.centreline_w) for n, o in obs.items()}
+    corr = {n: ArcObservation(centreline=o.centreline, centreline_w=o.centreline_w, centreline_corr_points=4.0)
+            for n, o in obs.items()}
+    starts = joint_candidates(obs)[1]
+    a, b = REFINER.refine(curve_only, starts), REFINER.refine(corr, starts)
+    assert not a.ambiguous and np.allclose(a.T_ecm_needle, b.T_ecm_needle, atol=1e-12)
+    # (up to the far competitor's share, exp(-chi2 / 2) of its offset, not scaled)
+    assert np.allclose(b.covariance, 4.0 * a.covariance, rtol=2e-3)
+    with pytest.raises(RefineError, match="centreline_corr_points"):
+        REFINER.refine({n: ArcObservation(centreline=o.centreline, centreline_corr_points=0.5)
+                        for n, o in obs.items()}, starts)
