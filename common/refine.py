@@ -27,7 +27,9 @@ A planar arc has a two-fold ambiguity (seen edge-on, whether it bulges towards o
 camera); every candidate's mirror image about the line of sight is added and refined too. When
 other candidates end nearly as good as the best, or the arc is seen nearly edge-on, the result
 is flagged ``ambiguous`` and its covariance inflated by the spread of the competitors, so that a
-pose that may be wrong is never reported as a confident one.
+pose that may be wrong is never reported as a confident one. Given the normal of a surface the
+needle may rest on, a prior (``common.rest_prior``) picks between minima the images leave nearly
+equal; the flag and the covariance stay as the images say.
 
 Pixels: observations are undistorted first when a camera has distortion; residuals are in
 (undistorted) pixels.
