@@ -23,7 +23,7 @@ import numpy as np
 from common.messages import (Calibration, EndOfStream, GroundTruth, Keypoints, NodeStats,
                              Points3D, PoseEstimate)
 from common.needle import KEYPOINT_NAMES, NeedleModel
-from common.transforms import inv_T, pose_error
+from common.transforms import R_to_rotvec, inv_T, pose_error
 
 CAMERAS = ("left", "right")
 METHODS = ("pnp_average", "pnp_joint", "triangulation", "multiview")
@@ -241,6 +241,8 @@ def pose_error_table(poses: dict, T_true: dict, seqs) -> dict:
     pos = np.full(len(seqs), np.nan)
     rot = np.full(len(seqs), np.nan)
     views = np.full(len(seqs), np.nan)
+    nees = np.full(len(seqs), np.nan)
+    amb = np.full(len(seqs), np.nan)
     for i, s in enumerate(seqs):
         p = poses.get(s)
         if p is None:
@@ -250,9 +252,29 @@ def pose_error_table(poses: dict, T_true: dict, seqs) -> dict:
             continue
         pos[i], rot[i] = pose_error(T, T_true[s])
         views[i] = getattr(p, "n_views", 1)
+        nees[i] = pose_nees(T, getattr(p, "covariance", None), T_true[s])
+        if getattr(p, "ambiguous", None) is not None:
+            amb[i] = float(p.ambiguous)
     dist = np.array([needle_distance_m(T_true[s]) for s in seqs])
     return {"seqs": list(seqs), "position_m": pos, "orientation_rad": rot, "distance_m": dist,
-            "n_views": views}
+            "n_views": views, "nees": nees, "ambiguous": amb}
+
+
+def pose_nees(T_est: np.ndarray, covariance, T_true: np.ndarray) -> float:
+    """Normalised estimation error squared of a pose with its covariance (6, 6) over [rotation
+    vector (rad), translation (m)] in the ECM frame, the error being the truth as a left
+    increment of the estimate: chi-square with 6 degrees of freedom (median 5.35) when the
+    covariance is honest. NaN without a usable covariance."""
+    if covariance is None:
+        return float("nan")
+    C = np.asarray(covariance, float)
+    if C.shape != (6, 6) or not np.all(np.isfinite(C)):
+        return float("nan")
+    d = np.concatenate([R_to_rotvec(T_true[:3, :3] @ T_est[:3, :3].T), T_true[:3, 3] - T_est[:3, 3]])
+    try:
+        return float(d @ np.linalg.solve(C, d))
+    except np.linalg.LinAlgError:
+        return float("nan")
 
 
 def keypoint_errors_2d(kp: Optional[Keypoints], uv_true, visible=None) -> np.ndarray:
@@ -371,6 +393,13 @@ def pose_table(ev: Evaluation) -> dict:
                   "failed_seqs": [int(s) for s, good in zip(t["seqs"], ok) if not good]}
         if m in MULTIVIEW_METHODS:
             out[m]["mean_views"] = float(np.nanmean(t["n_views"])) if n else None
+        nees = t["nees"][np.isfinite(t["nees"])]
+        if len(nees):       # how honest the stated covariance is (chi-square(6): median 5.35)
+            out[m]["nees"] = {"median": float(np.median(nees)), "over_99pct": float(np.mean(nees > 16.81)),
+                              "n": int(len(nees))}
+        amb = t["ambiguous"][np.isfinite(t["ambiguous"])]
+        if len(amb):
+            out[m]["ambiguous_share"] = float(amb.mean())
     return out
 
 

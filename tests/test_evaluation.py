@@ -5,7 +5,7 @@ import numpy as np
 import pytest
 
 from common.camera import StereoRig
-from common.evaluation import (METHODS, RESULT_KEYS, Collected, build_results, check_results,
+from common.evaluation import (METHODS, RESULT_KEYS, Collected, build_results, check_results, pose_nees,
                                evaluate, keypoint_errors_2d, last_steps, pearson, summary,
                                to_jsonable)
 from common.evaluation_report import report_markdown, select_overlay_frames, write_outputs
@@ -221,3 +221,21 @@ def test_report_lists_every_method():
     for m in METHODS:
         assert f"| {m} |" in md
     assert "| all |" in md
+
+
+def test_nees_of_a_stated_covariance():
+    """The truth as a left increment of the estimate, in the covariance's metric."""
+    T_true = make_T(rotvec_to_R([0.1, -0.2, 0.3]), [0.01, 0.02, 0.15])
+    d = np.array([0.02, 0.0, 0.0, 0.0, 0.001, 0.0])           # 20 mrad about x, 1 mm along y
+    T_est = make_T(rotvec_to_R(-d[:3]) @ T_true[:3, :3], T_true[:3, 3] - d[3:])
+    cov = np.diag([0.01 ** 2] * 3 + [0.001 ** 2] * 3)
+    assert pose_nees(T_est, cov, T_true) == pytest.approx(2.0 ** 2 + 1.0 ** 2, rel=1e-6)
+    assert np.isnan(pose_nees(T_est, None, T_true)) and np.isnan(pose_nees(T_est, np.eye(3), T_true))
+    # in the tables: a method whose poses carry covariances gets its NEES, the others none
+    col = synthetic(pos_err=0.001, ang_err=0.0)
+    for p in col.poses["pnp_joint"].values():
+        p.covariance, p.ambiguous = np.diag([1e-4] * 3 + [0.001 ** 2] * 3), False
+    res = build_results(col, dataset="d", detector="oracle")
+    assert res["pose"]["pnp_joint"]["nees"]["median"] == pytest.approx(1.0, rel=1e-6)
+    assert res["pose"]["pnp_joint"]["ambiguous_share"] == 0.0 and "nees" not in res["pose"]["triangulation"]
+    assert check_results(res) == [] and "| pnp_joint | 1.0 | 0% | 0% |" in report_markdown(res)
