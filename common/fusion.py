@@ -5,7 +5,8 @@ was made. At every new estimate all queued ones are mapped into the current ECM 
 ``inv(T_world_ecm_now) @ T_world_ecm_i @ T_ecm_needle_i``, outliers are removed (farther than
 ``max_dist_m`` or ``max_angle_rad`` from a robust centre, the medoid), and the inliers are
 averaged: chordal rotation mean and mean translation, or, when every inlier carries a 6x6
-covariance, their information-weighted mean (Gauss-Newton on the Mahalanobis distances).
+covariance, their information-weighted mean (Gauss-Newton on the Mahalanobis distances), whose
+stated covariance allows for the views' errors being alike (``fuse_poses``).
 
 Covariances follow ``common.pnp``: over ``[w, v]`` with ``R = exp([w]x) R0``, ``t = t0 + v``
 (rotation in ECM axes about the needle origin, translation of the origin, rad and m). Moving
@@ -125,7 +126,12 @@ def fuse_poses(Ts, covariances=None, max_dist_m: float = 0.005,
     """Robust mean of poses given in one frame -> (T, inlier mask, covariance or None).
 
     Inliers lie within ``max_dist_m`` and ``max_angle_rad`` of the medoid; they are averaged by
-    ``information_mean`` when every inlier has a covariance, else chordal/arithmetic mean.
+    ``information_mean`` when every inlier has a covariance, else chordal/arithmetic mean. The
+    covariance is the covariance intersection of the inliers with equal weights: n times the
+    information mean's, which would hold only for independent views. These are not: the same
+    needle through the same detector from nearly the same place, their errors move together
+    (refined poses, standard test set: NEES median 19.5 taken as independent, 3.9 so; chi-square(6)
+    has 5.35).
     """
     Ts = [np.asarray(T, dtype=float) for T in Ts]
     if not Ts:
@@ -142,7 +148,7 @@ def fuse_poses(Ts, covariances=None, max_dist_m: float = 0.005,
         if all(C is not None for C in covs):
             res = information_mean(sel, covs, T)
             if res is not None:
-                T, cov = res
+                T, cov = res[0], len(sel) * res[1]
     return T, inl, cov
 
 
