@@ -82,11 +82,12 @@ def _pass(noise, frames, curve_ratio, seed, max_tilt_deg, motion_mm, motion_deg,
     """One pass over the frames of a noise level: per-frame errors and times (s)."""
     import numpy as np
 
+    from common.evaluation import pose_nees
     from common.observations import NoPose
     from common.oracle import Oracle, perturb_pose, random_needle_pose
     from common.pnp import pnp_joint, refine_starts
     from common.refine import RefineError
-    from common.transforms import R_to_rotvec, pose_error
+    from common.transforms import pose_error
 
     rng = np.random.default_rng(seed)
     motion_rng = np.random.default_rng(seed + 1)   # its own stream: the poses stay those of rng
@@ -115,9 +116,7 @@ def _pass(noise, frames, curve_ratio, seed, max_tilt_deg, motion_mm, motion_deg,
         dt, dr = pose_error(pj.T_ecm_needle, T)
         p["err_kp"].append((dt * 1e3, np.degrees(dr)))
         p["amb"].append(res.ambiguous)
-        d = np.concatenate([R_to_rotvec(T[:3, :3] @ res.T_ecm_needle[:3, :3].T),
-                            T[:3, 3] - res.T_ecm_needle[:3, 3]])
-        p["nees"].append(float(d @ np.linalg.solve(res.covariance, d)))
+        p["nees"].append(pose_nees(res.T_ecm_needle, res.covariance, T))
         # the next video frame, tracked from this one (the tracker's own cold fit of this
         # frame equals res: same starts, same refiner)
         T2 = perturb_pose(T, motion_rng, motion_mm, motion_deg)
