@@ -1,6 +1,6 @@
 """Inference with the learned keypoint detector: image -> ``Keypoints`` (A..E, scores, centreline).
 
-Two stages (see ``common.keypoint_model``): stage 1 on the image downscaled by 8 finds the needle
+Two stages (see ``common.keypoint_model``): stage 1 on the downscaled image finds the needle
 and its box and gives the confidence; stage 2 on a full-resolution crop around the box gives A..E
 at sub-pixel precision, per-point scores, a presence confidence and the centreline (then moved
 onto the wire's centre in the full-resolution image, ``common.centreline_subpixel``). Cold frames
@@ -45,6 +45,12 @@ MIN_EXTENT_PX = 10.0
 MAX_ELLIPSE_PX = 0.25
 MIN_ELLIPSE_SHARE = 0.5      # of the centreline points on that ellipse (a jaw may bend the rest)
 MIN_ELLIPSE_POINTS = 8       # fewer (a needle mostly hidden) are not judged
+# The keypoints' 1-sigma error per image axis as a stereo fit should take it (stated in every
+# message): 0.75 px measured (0.94 px mean distance, standard test set), raised to 1 px because
+# the two cameras' nearly identical images give nearly alike errors, which a stereo fit absorbs
+# (its residuals: 0.25 px RMS). pnp_joint's covariance on the seed-5555 set: NEES median 50 from
+# its residuals alone, 4.7 with this (chi-square(6): 5.35); the dense fit's assumed 1 px as well.
+KEYPOINT_SIGMA_PX = 1.0
 log = logging.getLogger("needletrack.keypoint_detector")
 
 
@@ -488,7 +494,8 @@ class KeypointDetector:
                          res["scores"].astype(np.float64), float(conf),
                          np.array([cx - bw / 2, cy - bh / 2, cx + bw / 2, cy + bh / 2]), self.name, None,
                          res["centreline"], res["centreline_w"], res["centreline_sigma"], res.get("on_arc"),
-                         None if res["centreline_sigma"] is None else CENTRELINE_CORR_POINTS)
+                         None if res["centreline_sigma"] is None else CENTRELINE_CORR_POINTS,
+                         KEYPOINT_SIGMA_PX)
 
     def detect_message(self, msg: CameraImage) -> Keypoints:
         """Keypoints of a ``CameraImage``; corrupt or inconsistent image data -> "no needle"."""

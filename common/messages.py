@@ -390,6 +390,9 @@ class Keypoints(Message):
     across the curve (px; absent: the consumer's default), and ``centreline_corr_points``, how
     many consecutive points' errors move together (>= 1; absent: independent). ``on_arc`` (5,) optionally marks (1)
     the keypoints the detector placed on its fitted arc instead of observing them on their own.
+    ``keypoint_sigma_px`` optionally states the 1-sigma error of a keypoint per image axis as a
+    stereo fit should take it (px; errors the two cameras' detections share included; absent:
+    the consumer's default).
     """
 
     SCHEMA = "needletrack.Keypoints"
@@ -401,7 +404,8 @@ class Keypoints(Message):
               "centreline_w": ("array", (None,), "optional"),
               "centreline_sigma_px": ("float", "optional"),
               "on_arc": ("array", (5,), "optional"),
-              "centreline_corr_points": ("float", "optional")}
+              "centreline_corr_points": ("float", "optional"),
+              "keypoint_sigma_px": ("float", "optional")}
     camera: str
     seq: int
     stamp_ns: int
@@ -417,6 +421,7 @@ class Keypoints(Message):
     centreline_sigma_px: Optional[float] = None
     on_arc: Optional[np.ndarray] = None
     centreline_corr_points: Optional[float] = None
+    keypoint_sigma_px: Optional[float] = None
 
     def validate(self):
         s = self.centreline_sigma_px
@@ -425,6 +430,9 @@ class Keypoints(Message):
         c = self.centreline_corr_points
         if c is not None and not (np.isfinite(c) and c >= 1):
             raise MessageError(f"Keypoints.centreline_corr_points: must be at least 1, got {c}")
+        k = self.keypoint_sigma_px
+        if k is not None and not (np.isfinite(k) and k > 0):
+            raise MessageError(f"Keypoints.keypoint_sigma_px: must be positive, got {k}")
 
     @classmethod
     def not_found(cls, camera: str, seq: int, stamp_ns: int, detector: str, reason: str,

@@ -68,8 +68,9 @@ class ArcObservation:
     ``on_arc`` (5,) true for keypoints the detector placed on its fitted arc rather than observed
     (left out of the fit where the centreline is given); ``centreline_corr_points`` how many
     consecutive centreline points' errors move together (None: independent): in the covariance,
-    not the fit, each point then counts for that fraction of an observation. Either part may be
-    absent.
+    not the fit, each point then counts for that fraction of an observation;
+    ``keypoint_sigma_px`` the keypoints' 1-sigma error per axis (None:
+    ``RefineConfig.sigma_kp_px``). Either part may be absent.
     """
 
     uv: Optional[np.ndarray] = None
@@ -79,6 +80,7 @@ class ArcObservation:
     centreline_sigma_px: Optional[float] = None
     on_arc: Optional[np.ndarray] = None
     centreline_corr_points: Optional[float] = None
+    keypoint_sigma_px: Optional[float] = None
 
     @classmethod
     def from_keypoints(cls, msg) -> "ArcObservation":
@@ -89,7 +91,7 @@ class ArcObservation:
                    None if msg.centreline is None else np.asarray(msg.centreline, float),
                    None if msg.centreline_w is None else np.asarray(msg.centreline_w, float),
                    msg.centreline_sigma_px, None if msg.on_arc is None else np.asarray(msg.on_arc, bool),
-                   msg.centreline_corr_points)
+                   msg.centreline_corr_points, msg.keypoint_sigma_px)
 
 
 @dataclass(frozen=True)
@@ -287,9 +289,12 @@ class _Problem:
                 if uv.shape != (5, 2) or sc.shape != (5,):
                     raise RefineError("bad_keypoints", f"{cam.name}: need uv (5, 2) and scores (5,), "
                                       f"got {uv.shape} and {sc.shape}")
+                sig = cfg.sigma_kp_px if o.keypoint_sigma_px is None else float(o.keypoint_sigma_px)
+                if not (np.isfinite(sig) and sig > 0):
+                    raise RefineError("bad_keypoints", f"{cam.name}: keypoint_sigma_px must be positive, got {sig}")
                 ok = np.all(np.isfinite(uv), axis=1) & np.isfinite(sc) & (sc >= cfg.min_score)
                 U[i, ok] = _undistort(cam, uv[ok])
-                wU[i, ok] = np.minimum(sc[ok], 1.0) / cfg.sigma_kp_px ** 2
+                wU[i, ok] = np.minimum(sc[ok], 1.0) / sig ** 2
             if o.centreline is not None and len(o.centreline):
                 pts, w = _select_curve(cam.name, o.centreline, o.centreline_w, M, cfg.min_centreline_w)
                 O[i, :len(pts)] = _undistort(cam, pts)

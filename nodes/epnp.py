@@ -9,8 +9,10 @@ Params: ``method`` (``joint`` | ``average``, default joint); ``min_score`` (0.5)
 ``max_rms_px`` (a fit worse than this is not published; default 20 for joint, none for
 average, whose mean of two disagreeing camera poses reprojects badly by construction); ``outlier_px`` (joint only,
 default 10: the worst keypoint is dropped and the fit redone while its residual exceeds this);
-``refine`` (average only, default true: false gives raw EPnP as published, see common/pnp.py).
-A frame that gives no pose is counted as ``no_pose.<reason>``.
+``refine`` (average only, default true: false gives raw EPnP as published, see common/pnp.py);
+``min_sigma_px`` (joint only, default 0.25: the covariance's keypoint noise is at least this,
+or the detectors' stated ``keypoint_sigma_px`` where larger; the fit's residuals alone miss the
+errors both cameras' detections share). A frame that gives no pose is counted as ``no_pose.<reason>``.
 """
 from __future__ import annotations
 
@@ -41,13 +43,18 @@ class EpnpNode(StereoPoseNode):
         self.max_rms_px = _opt_float(self.params.get("max_rms_px", 20.0 if method == "joint" else None))
         self.outlier_px = _opt_float(self.params.get("outlier_px", 10.0))
         self.refine = bool(self.params.get("refine", True))
+        self.min_sigma_px = float(self.params.get("min_sigma_px", 0.25))
+        if not self.min_sigma_px > 0:
+            raise ValueError(f"epnp: params.min_sigma_px must be positive, got {self.min_sigma_px}")
 
     def on_pair(self, left, right):
         uv, sc = self.stereo_arrays(left, right)
         try:
             if self.method == "joint":
+                stated = [kp.keypoint_sigma_px for kp in (left, right) if kp.found and kp.keypoint_sigma_px]
                 res = pnp_joint(uv, self.rig, self.model_points, sc, self.min_score,
-                                outlier_px=self.outlier_px, max_rms_px=self.max_rms_px)
+                                outlier_px=self.outlier_px, max_rms_px=self.max_rms_px,
+                                min_sigma_px=max([self.min_sigma_px, *stated]))
             else:
                 res = pnp_average(uv, self.rig, self.model_points, sc, self.min_score,
                                   refine=self.refine, max_rms_px=self.max_rms_px)

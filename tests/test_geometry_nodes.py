@@ -133,6 +133,33 @@ def test_epnp_node_matches_the_library(method):
         roundtrip(p)
 
 
+
+def test_epnp_joint_covariance_takes_the_stated_keypoint_noise():
+    """The fit's residuals miss the errors both cameras share: a detector's stated
+    ``keypoint_sigma_px`` (or the ``min_sigma_px`` param) floors the covariance's noise."""
+    from dataclasses import replace
+    rng = np.random.default_rng(2)
+    truths = [frame(s, random_needle_pose(rng, RIG, MODEL))[0] for s in range(2)]
+    left, right = detect(truths, noise_px=0.1, seed=2)
+
+    def covariances(params, sigma=None):
+        node = EpnpNode.offline({"method": "joint", **params}, wired=["left", "right", "calib"])
+        node.on_calib(roundtrip(CALIB))
+        for l, r in zip(left, right):
+            node.on_left(roundtrip(replace(l, keypoint_sigma_px=sigma)))
+            node.on_right(roundtrip(replace(r, keypoint_sigma_px=sigma)))
+        return [p.covariance for p in outputs(node, "pose")]
+
+    base, stated, param = covariances({}), covariances({}, 1.0), covariances({"min_sigma_px": 1.0})
+    for l, r, c0, c1, c2 in zip(left, right, base, stated, param):
+        ref = pnp_joint({"left": l.uv, "right": r.uv}, RIG, P, {"left": l.scores, "right": r.scores},
+                        min_sigma_px=1.0)
+        assert np.allclose(c1, ref.covariance, rtol=1e-9) and np.allclose(c2, c1, rtol=1e-9)
+        # 0.1 px of noise: the residual variance is below both floors, so the ratio is theirs
+        assert np.allclose(c1, c0 * (1.0 / 0.25) ** 2, rtol=1e-9)
+    with pytest.raises(ValueError, match="min_sigma_px must be positive"):
+        EpnpNode.offline({"method": "joint", "min_sigma_px": 0}, wired=["left", "right", "calib"])
+
 def test_a_pose_waits_for_its_ecm_pose():
     rng = np.random.default_rng(5)
     truths = [frame(s, random_needle_pose(rng, RIG, MODEL))[0] for s in range(3)]

@@ -7,7 +7,7 @@ import pytest
 import torch
 
 from common.keypoint_backends import BackendError, load_backend
-from common.keypoint_detector import (DEFAULT_WEIGHTS, KeypointDetector, ModelFileError,
+from common.keypoint_detector import (DEFAULT_WEIGHTS, KEYPOINT_SIGMA_PX, KeypointDetector, ModelFileError,
                                       decode_centreline, load_model)
 from common.keypoint_model import KeypointModel, ModelConfig
 from common.keypoint_train import save_model
@@ -70,6 +70,7 @@ def test_centreline_is_sub_pixel_in_the_full_resolution_image(rendered_frames):
                 if not kp.found:
                     continue
                 assert (kp.centreline_sigma_px is not None) == subpixel == (kp.centreline_corr_points is not None)
+                assert kp.keypoint_sigma_px == KEYPOINT_SIGMA_PX
                 # B..D placed on the arc through A and E when both ends are sure, else observed
                 assert kp.on_arc is None or list(kp.on_arc) == [False, True, True, True, False]
                 arc = project_centreline(rig[cam], needle, T_ecm_needle, spacing_px=0.2)

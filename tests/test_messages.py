@@ -28,7 +28,7 @@ def examples():
                   np.array([1.0, 2.0, 30.0, 40.0]), "oracle", None, np.zeros((7, 2)), np.ones(7)),
         Keypoints("left", 9, 11, True, np.ones((5, 2)), np.ones(5), 0.8, None, "learned", None, np.zeros((7, 2)),
                   np.ones(7), centreline_sigma_px=0.2, on_arc=np.array([False, True, True, True, False]),
-                  centreline_corr_points=5.0),
+                  centreline_corr_points=5.0, keypoint_sigma_px=1.0),
         Keypoints.not_found("left", 2, 3, "learned", "low confidence", 0.2),
         PoseEstimate(seq=4, stamp_ns=12, method="pnp_joint", T_ecm_needle=T, T_world_needle=T, residual=0.4,
                      residual_unit="px", n_views=2, covariance=np.eye(6) * 1e-6, ambiguous=False,
@@ -169,7 +169,7 @@ def test_corrupted_messages_decode_or_raise_message_error(data):
         pass
 
 
-def test_keypoints_with_a_bad_centreline_sigma_are_refused():
+def test_keypoints_with_bad_noise_statements_are_refused():
     body = Keypoints("left", 1, 2, True, np.ones((5, 2)), np.ones(5), 0.9).to_body()
     for bad in (0.0, -0.2, float("nan")):
         payload = msgpack.packb({"schema": Keypoints.SCHEMA, "version": 1,
@@ -182,4 +182,10 @@ def test_keypoints_with_a_bad_centreline_sigma_are_refused():
                                  "body": {**body, "uv": body["uv"].tolist(), "scores": body["scores"].tolist(),
                                           "centreline_corr_points": bad}})
         with pytest.raises(MessageError, match="Keypoints.centreline_corr_points: must be at least 1"):
+            decode(payload, Keypoints)
+    for bad in (0.0, -1.0, float("inf")):
+        payload = msgpack.packb({"schema": Keypoints.SCHEMA, "version": 1,
+                                 "body": {**body, "uv": body["uv"].tolist(), "scores": body["scores"].tolist(),
+                                          "keypoint_sigma_px": bad}})
+        with pytest.raises(MessageError, match="Keypoints.keypoint_sigma_px: must be positive"):
             decode(payload, Keypoints)

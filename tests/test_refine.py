@@ -1,6 +1,8 @@
 """Dense refinement (common/refine.py) on synthetic observations: no process, no network."""
 from __future__ import annotations
 
+from dataclasses import replace
+
 import numpy as np
 import pytest
 from hypothesis import given, settings, strategies as st
@@ -468,3 +470,19 @@ def test_correlated_centreline_points_widen_the_covariance_not_the_fit():
     with pytest.raises(RefineError, match="centreline_corr_points"):
         REFINER.refine({n: ArcObservation(centreline=o.centreline, centreline_corr_points=0.5)
                         for n, o in obs.items()}, starts)
+
+
+def test_a_stated_keypoint_sigma_weighs_the_keypoints_as_the_config_would():
+    """``keypoint_sigma_px`` from the detector stands for ``RefineConfig.sigma_kp_px``."""
+    rng = np.random.default_rng(22)
+    T = view_pose(50.0, spin_deg=-30.0)
+    obs = observe(T, rng, kp_px=1.0, curve_px=0.25)
+    starts = joint_candidates(obs)[1]
+    stated = {n: replace(o, keypoint_sigma_px=2.0) for n, o in obs.items()}
+    a = DenseRefiner(RIG, NEEDLE, RefineConfig(sigma_kp_px=2.0)).refine(obs, starts)
+    b = REFINER.refine(stated, starts)
+    assert np.allclose(a.T_ecm_needle, b.T_ecm_needle, atol=1e-12)
+    assert np.allclose(a.covariance, b.covariance, rtol=1e-9)
+    assert not np.allclose(REFINER.refine(obs, starts).T_ecm_needle, b.T_ecm_needle, atol=1e-9)
+    with pytest.raises(RefineError, match="keypoint_sigma_px"):
+        REFINER.refine({n: replace(o, keypoint_sigma_px=0.0) for n, o in obs.items()}, starts)
