@@ -17,7 +17,7 @@ import numpy as np
 from common.camera import Camera, StereoRig
 
 REASONS = ("too_few_points", "non_finite", "coincident", "collinear", "behind_camera",
-           "solver_failed", "high_residual")
+           "solver_failed", "high_residual", "unsure_keypoints")
 
 
 class NoPose(ValueError):

@@ -611,6 +611,26 @@ def refine_starts(uv: dict, rig: StereoRig, model_points, scores: dict | None = 
     return [c.T_ecm_needle for c in cands]
 
 
+def unsure_starts(uv: dict, rig: StereoRig, model_points, scores: dict | None = None,
+                  min_score: float = 0.01, outlier_px: float | None = 10.0) -> list[np.ndarray]:
+    """Starting poses for a needle with fewer than 4 sure keypoints (most of it hidden, e.g. in
+    an instrument's jaws): ``refine_starts`` on every keypoint scored at least ``min_score``,
+    once in the detector's order and once with the order reversed (tip and tail swapped: unsure
+    keypoints on a partly visible arc may have its ends the wrong way round). The fit that
+    follows weighs only the sure keypoints and the centreline. NoPose (the reversed order's
+    reason) when neither order gives a start."""
+    starts: list[np.ndarray] = []
+    for order in (slice(None), slice(None, None, -1)):
+        u = {c: None if p is None else np.asarray(p, float)[order] for c, p in uv.items()}
+        s = None if scores is None else {c: None if v is None else np.asarray(v, float)[order]
+                                         for c, v in scores.items()}
+        try:
+            starts += refine_starts(u, rig, model_points, s, min_score, outlier_px)
+        except NoPose as exc:
+            if not starts and order.step == -1:
+                raise exc
+    return starts
+
 def _drop_point(obs: dict[str, CameraObs], k: int) -> dict[str, CameraObs]:
     """Remove the k-th point in stacked order (the cameras' points one after the other)."""
     out = {}

@@ -14,6 +14,13 @@ than ``max_gap_s``, after a frame without a pose, and every ``cold_every`` frame
 the PnP bring in solutions the track lacks), the frame is refined cold. A wrong warm start
 therefore costs at most one extra refinement, never a wrong pose: the needle jumping or the
 detector swapping tip and tail raise the residual and send the frame down the cold path.
+
+A cold frame with fewer than 4 sure keypoints in both cameras (a needle mostly hidden, e.g. in
+an instrument's jaws) cannot start the PnP. With ``unsure_starts`` it starts from every keypoint
+the detector gave, both ways round (``common.pnp.unsure_starts``), and the fit, on the sure
+keypoints and the centreline alone, is kept only when it is unambiguous and within
+``unsure_max_rms_px``: else ``NoPose("unsure_keypoints")``. Such a fit has no sure tip or tail to
+tell the arc's ends apart, and nothing else to check it by.
 """
 from __future__ import annotations
 
@@ -24,14 +31,16 @@ from typing import Mapping, Optional
 import numpy as np
 
 from common.observations import usable_mask
-from common.pnp import MIN_POINTS, refine_starts
+from common.observations import NoPose
+from common.pnp import MIN_POINTS, refine_starts, unsure_starts
 from common.refine import ArcObservation, DenseRefiner, RefineResult
 from common.transforms import transform_points
 
 
 @dataclass(frozen=True)
 class TrackingConfig:
-    """When a frame may start from the previous one (times in s, residuals in px)."""
+    """How a frame starts: from the previous one, when that may be (times in s, residuals in
+    px), or cold, with or without 4 sure keypoints (module docstring)."""
 
     enabled: bool = True
     max_gap_s: float = 0.2          # the previous pose is at most this old
@@ -44,13 +53,17 @@ class TrackingConfig:
     # more (or no competitor was found): a minimum that far off does not come within the
     # ambiguity margin in one frame (every cold_every frames all are searched again)
     mirror_chi2: float = 100.0
+    unsure_starts: bool = True      # fewer than 4 sure keypoints: start from all, both ways round
+    unsure_max_rms_px: float = 2.0  # ... and keep an unambiguous fit within this RMS (2x the
+                                    # learned detector's stated keypoint noise)
 
     def __post_init__(self):
         if not (self.max_gap_s > 0 and self.cold_every >= 1 and self.max_start_px > 0
-                and self.max_rms_growth >= 1 and self.rms_slack_px >= 0 and self.mirror_chi2 >= 0):
+                and self.max_rms_growth >= 1 and self.rms_slack_px >= 0 and self.mirror_chi2 >= 0
+                and self.unsure_max_rms_px > 0):
             raise ValueError(f"TrackingConfig: max_gap_s > 0, cold_every >= 1, max_start_px > 0, "
-                             f"max_rms_growth >= 1, rms_slack_px >= 0 and mirror_chi2 >= 0 required, "
-                             f"got {self}")
+                             f"max_rms_growth >= 1, rms_slack_px >= 0, mirror_chi2 >= 0 and "
+                             f"unsure_max_rms_px > 0 required, got {self}")
 
 
 class TrackingRefiner:
@@ -102,14 +115,30 @@ class TrackingRefiner:
         self.last_warm = res is not None
         if res is None:
             self._prev = None                      # a cold frame that raises leaves no start behind
-            starts = refine_starts(uv, self.refiner.rig, self.model_points, scores, self.min_score,
-                                   self.outlier_px)
-            res = self.refiner.refine(observations, starts, support_normal=support_normal)
+            res = self._cold(uv, scores, observations, support_normal)
             self._cold_rms, self._warm_run = res.rms_px, 0
         else:
             self._warm_run += 1
         self._prev, self._prev_stamp_ns = res, stamp_ns
         return res
+
+    def _cold(self, uv, scores, observations, support_normal) -> RefineResult:
+        """A frame refined from the PnP's minima, or from unsure keypoints (module docstring)."""
+        rig, cfg = self.refiner.rig, self.config
+        try:
+            starts = refine_starts(uv, rig, self.model_points, scores, self.min_score, self.outlier_px)
+        except NoPose as exc:
+            if not (cfg.unsure_starts and exc.reason == "too_few_points"):
+                raise
+            starts = unsure_starts(uv, rig, self.model_points, scores, outlier_px=self.outlier_px)
+            res = self.refiner.refine(observations, starts, support_normal=support_normal)
+            if res.ambiguous or not res.rms_px <= cfg.unsure_max_rms_px:
+                why = (", ".join(res.reasons) if res.ambiguous
+                       else f"RMS {res.rms_px:.2f} px > unsure_max_rms_px {cfg.unsure_max_rms_px:g}")
+                raise NoPose("unsure_keypoints", f"fewer than {MIN_POINTS} sure keypoints and the fit "
+                             f"without them is not sure ({why})") from None
+            return res
+        return self.refiner.refine(observations, starts, support_normal=support_normal)
 
     def _reprojects(self, uv, scores, T_ecm_needle) -> bool:
         """Whether the pose reprojects the usable keypoints within ``max_start_px`` (RMS weighted

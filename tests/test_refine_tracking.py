@@ -121,3 +121,52 @@ def test_a_warm_frame_leaves_out_the_mirror_only_when_it_was_far_worse(refiner):
             assert (n, mirrors) == expect and res.competitor_chi2 == np.inf
         dt, dr = pose_error(res.T_ecm_needle, cold(*frames[1][1:], refiner).T_ecm_needle)
         assert dt < 1e-4 and np.degrees(dr) < 0.1
+
+
+def hidden(frame, sure=(0,), hide_from=0.5, kp_err_px=3.0, seed=0):
+    """A needle mostly hidden (as in an instrument's jaws): only the keypoints ``sure`` scored
+    0.9, the others 0.3 and ``kp_err_px`` off, the centreline from ``hide_from`` of its length
+    on (towards E) unseen."""
+    rng = np.random.default_rng(seed)
+    T, uv, sc, obs = frame
+    uv2, sc2, obs2 = {}, {}, {}
+    for cam, o in obs.items():
+        s = np.full(5, 0.3)
+        s[list(sure)] = 0.9
+        u = o.uv + np.where(s[:, None] < 0.5, rng.normal(0, kp_err_px, (5, 2)), 0.0)
+        w = np.asarray(o.centreline_w, float).copy()
+        w[int(hide_from * len(w)):] = 0.0
+        uv2[cam], sc2[cam] = u, s
+        obs2[cam] = ArcObservation(u, s, o.centreline, w)
+    return T, uv2, sc2, obs2
+
+
+def test_a_mostly_hidden_needle_is_posed_from_its_arc_and_one_sure_end(refiner):
+    """Fewer than 4 sure keypoints: started from all of them both ways round, kept when sure."""
+    from common.observations import NoPose
+    T, uv, sc, obs = hidden(video(1, seed=11)[0])
+    with pytest.raises(NoPose) as e:
+        refine_starts(uv, RIG, MODEL.keypoints(), sc)
+    assert e.value.reason == "too_few_points"
+    res = TrackingRefiner(refiner, MODEL.keypoints()).refine(uv, sc, obs, 0)
+    dt, dr = pose_error(res.T_ecm_needle, T)
+    assert not res.ambiguous and dt < 2e-3 and np.degrees(dr) < 5.0, (dt, np.degrees(dr))
+    # the old behaviour, and a fit held to a residual it cannot meet
+    for cfg in (TrackingConfig(unsure_starts=False), TrackingConfig(unsure_max_rms_px=0.01)):
+        with pytest.raises(NoPose) as e:
+            TrackingRefiner(refiner, MODEL.keypoints(), config=cfg).refine(uv, sc, obs, 0)
+        assert e.value.reason == ("too_few_points" if not cfg.unsure_starts else "unsure_keypoints")
+    with pytest.raises(ValueError, match="unsure_max_rms_px"):
+        TrackingConfig(unsure_max_rms_px=0.0)
+
+
+def test_a_needle_without_a_sure_end_gives_no_pose(refiner):
+    """No sure keypoint: the whole arc fits its tip-for-tail turned pose exactly as well (the arc
+    is symmetric about C), so no pose rather than a coin flip."""
+    from common.observations import NoPose
+    T, uv, sc, obs = hidden(video(1, seed=7)[0], sure=(), hide_from=1.0)
+    tracker = TrackingRefiner(refiner, MODEL.keypoints())
+    with pytest.raises(NoPose) as e:
+        tracker.refine(uv, sc, obs, 0)
+    assert e.value.reason == "unsure_keypoints" and "competing_candidates" in str(e.value)
+    assert tracker._prev is None
