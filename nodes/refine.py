@@ -16,20 +16,24 @@ keeps the best. In tracking mode (``common.refine_tracking``) a frame that follo
 well-fitted one within ``max_gap_s`` starts from that pose instead and keeps the result only if
 it is as good, else it is refined cold (counted ``warm`` and ``cold``). A camera whose detector
 found nothing is left out. Frames without any centreline are refined on the keypoints alone
-(counted ``keypoints_only``).
+(counted ``keypoints_only``). A frame with fewer than 4 sure keypoints (a needle mostly hidden)
+starts from all its keypoints, both ways round, and is posed only when that fit is unambiguous
+and within ``unsure_max_rms_px`` (``common.refine_tracking``).
 
 Params: ``min_score`` (0.5: keypoints scoring lower are not used, by the PnP nor the fit);
 ``max_rms_px`` (20: a worse fit is not published); ``outlier_px`` (10, the joint PnP's outlier
 rejection); any ``RefineConfig`` field (e.g. ``sigma_kp_px``, ``sigma_curve_px``,
 ``max_curve_points``, ``edge_on_deg``); ``tracking`` (true) and any ``TrackingConfig`` field
-(``max_gap_s``, ``cold_every``, ``max_start_px``, ``max_rms_growth``, ``rms_slack_px``);
+(``max_gap_s``, ``cold_every``, ``max_start_px``, ``max_rms_growth``, ``rms_slack_px``,
+``mirror_chi2``, ``unsure_starts`` (true), ``unsure_max_rms_px`` (2));
 ``support_normal_world`` (none: the normal, world frame, of the surface the needle may rest on,
 e.g. ``[0, 0, 1]`` for the simulator's phantom: with it, ``common.rest_prior`` picks between
 minima the images leave nearly equal; it needs the ``ecm`` input, and a frame whose ECM pose is
 not in yet uses the newest one; ``rest_prior``, ``rest_sigma_deg`` tune it). A frame
 that gives no pose is counted as
 ``no_pose.<reason>`` (the PnP's reasons, or the refinement's: ``too_few_points``,
-``no_valid_candidate``, ``bad_centreline``, ``bad_keypoints``, ``high_residual``).
+``no_valid_candidate``, ``bad_centreline``, ``bad_keypoints``, ``high_residual``,
+``unsure_keypoints``).
 """
 from __future__ import annotations
 

@@ -9,7 +9,7 @@ from common.needle import NeedleModel
 from common.observations import NoPose, stereo_observations
 from common.oracle import Oracle, needle_pose_in_view, random_needle_pose, true_keypoints, view_tilt_rad
 from common.pnp import (ReprojectionProblem, initial_poses, pnp_average, pnp_joint, pose_covariance,
-                        refine_pose_lm)
+                        refine_pose_lm, refine_starts, unsure_starts)
 from common.transforms import inv_T, make_T, pose_error, rotvec_to_R
 
 RIG = StereoRig.default()
@@ -276,3 +276,18 @@ def test_max_rms_rejects_inconsistent_views():
     with pytest.raises(NoPose) as e:
         pnp_joint(uv, RIG, P, max_rms_px=5.0)
     assert e.value.reason == "high_residual"
+
+
+def test_unsure_starts_try_the_keypoints_both_ways_round():
+    """Fewer than 4 sure keypoints: starts from all of them, as given and tip-for-tail turned."""
+    T = random_needle_pose(np.random.default_rng(8), RIG, MODEL)
+    uv = {c.name: true_keypoints(c, T, MODEL)[0] for c in RIG.cameras}
+    sc = {n: np.array([0.9, 0.3, 0.3, 0.3, 0.2]) for n in uv}
+    with pytest.raises(NoPose, match="too_few_points"):
+        refine_starts(uv, RIG, P, sc)
+    starts = unsure_starts(uv, RIG, P, sc)
+    errs = [np.degrees(pose_error(S, T)[1]) for S in starts]
+    assert min(errs) < 1e-6                    # the keypoints as given: exact
+    assert max(errs) > 90.0                    # and the reversed order's pose, far from it
+    with pytest.raises(NoPose, match="too_few_points"):
+        unsure_starts({n: np.where(np.arange(5)[:, None] < 3, u, np.nan) for n, u in uv.items()}, RIG, P, sc)
