@@ -1,5 +1,5 @@
 """What people look at after an evaluation: ``report.md``, ``error_vs_distance.png``,
-``overlays/``, ``per_frame.csv`` and ``results.json``, written from a
+``nees.png``, ``overlays/``, ``per_frame.csv`` and ``results.json``, written from a
 ``common.evaluation.Collected``.
 
 No process, no network. Overlays draw, per chosen frame, a crop of the left and right images
@@ -94,6 +94,7 @@ def report_markdown(res: dict) -> str:
         L += [f"| {m} | {_fmt(d['nees']['median'], 1)} | {_fmt(100 * d['nees']['over_99pct'], 0)}% "
               f"| {_fmt(100 * d['ambiguous_share'], 0) + '%' if d.get('ambiguous_share') is not None else '—'} |"
               for m, d in honest]
+        L += ["", "![NEES against chi-square(6)](nees.png)"]
     L += ["", "![error vs distance](error_vs_distance.png)", ""]
 
     t = res["timing"]
@@ -173,6 +174,48 @@ def plot_error_vs_distance(ev: Evaluation, path, bins: int = 6) -> None:
     fig.tight_layout()
     fig.savefig(path, dpi=110)
     plt.close(fig)
+
+
+def chi2_6_cdf(x):
+    """CDF of chi-square with 6 degrees of freedom (closed form for even dof)."""
+    h = np.maximum(np.asarray(x, float), 0.0) / 2.0
+    return 1.0 - np.exp(-h) * (1.0 + h + h * h / 2.0)
+
+
+def plot_nees(ev: Evaluation, path) -> bool:
+    """How honest each method's stated covariance is: the share of frames whose NEES is below x
+    against chi-square(6)'s (what an honest 6-dof covariance gives). A curve to the right of it
+    is over-confident, to the left under-confident. False (nothing drawn) when no method states
+    covariances."""
+    series = {m: np.sort(t["nees"][np.isfinite(t["nees"])]) for m, t in ev.pose.items()}
+    series = {m: v for m, v in series.items() if v.size}
+    if not series:
+        return False
+    import matplotlib
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, ax = plt.subplots(figsize=(6.5, 4.5))
+    lo = min(max(float(v[0]), 1e-3) for v in series.values())
+    hi = max(float(v[-1]) for v in series.values())
+    x = np.geomspace(min(lo, 0.1), max(hi, 100.0), 400)
+    ax.plot(x, chi2_6_cdf(x), "k--", lw=1.5, label="chi-square(6): honest")
+    for m, v in series.items():
+        ax.step(np.maximum(v, x[0]), np.arange(1, v.size + 1) / v.size, where="post",
+                color=METHOD_COLOURS.get(m), lw=1.6, label=f"{m} (median {np.median(v):.1f}, n={v.size})")
+    ax.axvline(16.81, color="grey", lw=0.8, ls=":")
+    ax.set_xscale("log")
+    ax.set_ylim(0, 1)
+    ax.set_xlabel("NEES (squared pose error in the stated covariance's metric); dotted: 99% bound")
+    ax.set_ylabel("share of frames below")
+    ax.set_title("Stated covariance vs actual error: right of the dashed curve = over-confident",
+                 fontsize=9)
+    ax.grid(alpha=0.3, which="both")
+    ax.legend(fontsize=8, loc="lower right")
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+    return True
 
 
 # ---------------------------------------------------------------- overlays
@@ -371,7 +414,8 @@ def write_per_frame_csv(path, col: Collected, ev: Evaluation) -> None:
 def write_outputs(outdir, col: Collected, *, dataset: str, detector: str,
                   load_images: Optional[Callable[[int], dict]] = None,
                   extra: Optional[dict] = None, methods: Optional[list] = None) -> dict:
-    """Write results.json, report.md, error_vs_distance.png and overlays/ into ``outdir``;
+    """Write results.json, report.md, error_vs_distance.png, nees.png (when a method states
+    covariances) and overlays/ into ``outdir``;
     returns the results document. ``load_images`` as in ``write_overlays`` (None: black);
     ``methods`` as in ``evaluate``."""
     from common.camera import StereoRig
@@ -392,5 +436,6 @@ def write_outputs(outdir, col: Collected, *, dataset: str, detector: str,
     os.replace(tmp, outdir / "results.json")
     (outdir / "report.md").write_text(report_markdown(res))
     plot_error_vs_distance(ev, outdir / "error_vs_distance.png")
+    plot_nees(ev, outdir / "nees.png")
     write_per_frame_csv(outdir / "per_frame.csv", col, ev)
     return res

@@ -239,3 +239,16 @@ def test_nees_of_a_stated_covariance():
     assert res["pose"]["pnp_joint"]["nees"]["median"] == pytest.approx(1.0, rel=1e-6)
     assert res["pose"]["pnp_joint"]["ambiguous_share"] == 0.0 and "nees" not in res["pose"]["triangulation"]
     assert check_results(res) == [] and "| pnp_joint | 1.0 | 0% | 0% |" in report_markdown(res)
+
+
+def test_the_nees_picture_is_drawn_when_covariances_are_stated(tmp_path):
+    from common.evaluation_report import chi2_6_cdf
+    assert chi2_6_cdf(5.348) == pytest.approx(0.5, abs=1e-3) and chi2_6_cdf(16.81) == pytest.approx(0.99, abs=1e-3)
+    col = synthetic(pos_err=0.001, ang_err=0.0)
+    write_outputs(tmp_path / "none", col, dataset="d", detector="oracle")
+    assert not (tmp_path / "none" / "nees.png").exists()      # no method states a covariance
+    for p in col.poses["pnp_joint"].values():
+        p.covariance, p.ambiguous = np.diag([1e-4] * 3 + [0.001 ** 2] * 3), False
+    write_outputs(tmp_path / "cov", col, dataset="d", detector="oracle")
+    assert (tmp_path / "cov" / "nees.png").stat().st_size > 10_000
+    assert "(nees.png)" in (tmp_path / "cov" / "report.md").read_text()
