@@ -171,21 +171,13 @@ def test_corrupted_messages_decode_or_raise_message_error(data):
 
 def test_keypoints_with_bad_noise_statements_are_refused():
     body = Keypoints("left", 1, 2, True, np.ones((5, 2)), np.ones(5), 0.9).to_body()
-    for bad in (0.0, -0.2, float("nan")):
-        payload = msgpack.packb({"schema": Keypoints.SCHEMA, "version": 1,
-                                 "body": {**body, "uv": body["uv"].tolist(), "scores": body["scores"].tolist(),
-                                          "centreline_sigma_px": bad}})
-        with pytest.raises(MessageError, match="Keypoints.centreline_sigma_px: must be positive"):
-            decode(payload, Keypoints)
-    for bad in (0.5, float("nan")):
-        payload = msgpack.packb({"schema": Keypoints.SCHEMA, "version": 1,
-                                 "body": {**body, "uv": body["uv"].tolist(), "scores": body["scores"].tolist(),
-                                          "centreline_corr_points": bad}})
-        with pytest.raises(MessageError, match="Keypoints.centreline_corr_points: must be at least 1"):
-            decode(payload, Keypoints)
-    for bad in (0.0, -1.0, float("inf")):
-        payload = msgpack.packb({"schema": Keypoints.SCHEMA, "version": 1,
-                                 "body": {**body, "uv": body["uv"].tolist(), "scores": body["scores"].tolist(),
-                                          "keypoint_sigma_px": bad}})
-        with pytest.raises(MessageError, match="Keypoints.keypoint_sigma_px: must be positive"):
-            decode(payload, Keypoints)
+    cases = {"centreline_sigma_px": ((0.0, -0.2, float("nan")), "must be positive"),
+             "centreline_corr_points": ((0.5, float("nan")), "must be at least 1"),
+             "keypoint_sigma_px": ((0.0, -1.0, float("inf")), "must be positive")}
+    for field, (bads, why) in cases.items():
+        for bad in bads:
+            payload = msgpack.packb({"schema": Keypoints.SCHEMA, "version": 1,
+                                     "body": {**body, "uv": body["uv"].tolist(),
+                                              "scores": body["scores"].tolist(), field: bad}})
+            with pytest.raises(MessageError, match=f"Keypoints.{field}: {why}"):
+                decode(payload, Keypoints)
