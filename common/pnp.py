@@ -620,6 +620,7 @@ def unsure_starts(uv: dict, rig: StereoRig, model_points, scores: dict | None = 
     follows weighs only the sure keypoints and the centreline. NoPose (the reversed order's
     reason) when neither order gives a start."""
     starts: list[np.ndarray] = []
+    failure = None
     for order in (slice(None), slice(None, None, -1)):
         u = {c: None if p is None else np.asarray(p, float)[order] for c, p in uv.items()}
         s = None if scores is None else {c: None if v is None else np.asarray(v, float)[order]
@@ -627,9 +628,11 @@ def unsure_starts(uv: dict, rig: StereoRig, model_points, scores: dict | None = 
         try:
             starts += refine_starts(u, rig, model_points, s, min_score, outlier_px)
         except NoPose as exc:
-            if not starts and order.step == -1:
-                raise exc
+            failure = exc
+    if not starts:
+        raise failure
     return starts
+
 
 def _drop_point(obs: dict[str, CameraObs], k: int) -> dict[str, CameraObs]:
     """Remove the k-th point in stacked order (the cameras' points one after the other)."""

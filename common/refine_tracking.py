@@ -30,8 +30,7 @@ from typing import Mapping, Optional
 
 import numpy as np
 
-from common.observations import usable_mask
-from common.observations import NoPose
+from common.observations import NoPose, usable_mask
 from common.pnp import MIN_POINTS, refine_starts, unsure_starts
 from common.refine import ArcObservation, DenseRefiner, RefineResult
 from common.transforms import transform_points
