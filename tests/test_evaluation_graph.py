@@ -47,7 +47,7 @@ def test_oracle_without_noise_gives_zero_errors(small_dataset, tmp_path):
     assert {"detector", "epnp_joint", "fusion"} <= set(t["per_node_ms"])
     assert {"detector", "epnp_joint", "fusion"} <= set(t["per_node_cpu_ms_per_frame"])
     report = (tmp_path / "report.md").read_text()
-    assert report.count("| pnp_joint | 9 / 9 |") == 1 and "| refined | " in report.split("NEES")[-1]
+    assert report.count("| pnp_joint | 9 / 9 |") == 1 and "| refined | " in report.split("| method | NEES median")[-1]
     assert (tmp_path / "error_vs_distance.png").stat().st_size > 10_000
     assert any((tmp_path / "overlays").glob("*worst*.png"))
 
