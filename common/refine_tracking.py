@@ -20,7 +20,8 @@ an instrument's jaws) cannot start the PnP. With ``unsure_starts`` it starts fro
 the detector gave, both ways round (``common.pnp.unsure_starts``), and the fit, on the sure
 keypoints and the centreline alone, is kept only when it is unambiguous and within
 ``unsure_max_rms_px``: else ``NoPose("unsure_keypoints")``. Such a fit has no sure tip or tail to
-tell the arc's ends apart, and nothing else to check it by.
+tell the arc's ends apart, and nothing else to check it by. In a video such frames are tracked
+warm as the others (a cold one costs two to three times a sure frame's), under the same test.
 """
 from __future__ import annotations
 
@@ -111,6 +112,8 @@ class TrackingRefiner:
                 res = None
             if res is not None and not res.rms_px <= cfg.max_rms_growth * self._cold_rms + cfg.rms_slack_px:
                 res = None
+            if res is not None and self._unsure(uv, scores) and not (cfg.unsure_starts and self._sure_enough(res)):
+                res = None
         self.last_warm = res is not None
         if res is None:
             self._prev = None                      # a cold frame that raises leaves no start behind
@@ -131,13 +134,25 @@ class TrackingRefiner:
                 raise
             starts = unsure_starts(uv, rig, self.model_points, scores, outlier_px=self.outlier_px)
             res = self.refiner.refine(observations, starts, support_normal=support_normal)
-            if res.ambiguous or not res.rms_px <= cfg.unsure_max_rms_px:
+            if not self._sure_enough(res):
                 why = (", ".join(res.reasons) if res.ambiguous
                        else f"RMS {res.rms_px:.2f} px > unsure_max_rms_px {cfg.unsure_max_rms_px:g}")
                 raise NoPose("unsure_keypoints", f"fewer than {MIN_POINTS} sure keypoints and the fit "
                              f"without them is not sure ({why})") from None
             return res
         return self.refiner.refine(observations, starts, support_normal=support_normal)
+
+    def _sure_enough(self, res: RefineResult) -> bool:
+        """Whether a fit without 4 sure keypoints may stand: unambiguous, within the RMS bound."""
+        return not res.ambiguous and res.rms_px <= self.config.unsure_max_rms_px
+
+    def _unsure(self, uv, scores) -> bool:
+        """Whether no camera has the 4 sure keypoints the PnP needs."""
+        try:
+            return all(int(usable_mask(p, None if scores is None else scores.get(n), self.min_score).sum())
+                       < MIN_POINTS for n, p in uv.items() if p is not None)
+        except ValueError:
+            return True
 
     def _reprojects(self, uv, scores, T_ecm_needle) -> bool:
         """Whether the pose reprojects the usable keypoints within ``max_start_px`` (RMS weighted
@@ -163,4 +178,5 @@ class TrackingRefiner:
             d = cam.project(p) - np.asarray(pts, float)[ok]
             w = np.ones(len(d)) if s is None else np.asarray(s, float)[ok]
             sq, w_sum, n = sq + float(w @ (d * d).sum(axis=1)), w_sum + float(w.sum()), n + len(d)
-        return n >= MIN_POINTS and w_sum > 0 and math.sqrt(sq / w_sum) <= self.config.max_start_px
+        # any sure keypoint will do: a mostly hidden needle (module docstring) keeps one or two
+        return n >= 1 and w_sum > 0 and math.sqrt(sq / w_sum) <= self.config.max_start_px

@@ -170,3 +170,22 @@ def test_a_needle_without_a_sure_end_gives_no_pose(refiner):
         tracker.refine(uv, sc, obs, 0)
     assert e.value.reason == "unsure_keypoints" and "competing_candidates" in str(e.value)
     assert tracker._prev is None
+
+
+def test_a_mostly_hidden_needle_is_tracked_warm_under_the_same_test(refiner):
+    from common.observations import NoPose
+    frames = [hidden(f, seed=i) for i, f in enumerate(video(8, seed=11))]
+    tracker = TrackingRefiner(refiner, MODEL.keypoints())
+    warm = []
+    for i, (T, uv, sc, obs) in enumerate(frames):
+        res = tracker.refine(uv, sc, obs, i * FRAME_NS)
+        warm.append(tracker.last_warm)
+        dt, dr = pose_error(res.T_ecm_needle, T)
+        assert not res.ambiguous and dt < 3e-3 and np.degrees(dr) < 5.0, (i, dt, np.degrees(dr))
+    assert not warm[0] and sum(warm) >= 6
+    # switched off: neither cold nor warm
+    off = TrackingRefiner(refiner, MODEL.keypoints(), config=TrackingConfig(unsure_starts=False))
+    off._prev, off._cold_rms = res, res.rms_px       # as if the previous frame had been posed
+    off._prev_stamp_ns = (len(frames) - 1) * FRAME_NS
+    with pytest.raises(NoPose):
+        off.refine(*frames[-1][1:], len(frames) * FRAME_NS)
