@@ -178,7 +178,7 @@ def plot_error_vs_distance(ev: Evaluation, path, bins: int = 6) -> None:
 
 def chi2_6_cdf(x):
     """CDF of chi-square with 6 degrees of freedom (closed form for even dof)."""
-    h = np.maximum(np.asarray(x, float), 0.0) / 2.0
+    h = np.minimum(np.maximum(np.asarray(x, float), 0.0), 1e3) / 2.0    # 1 beyond (and at inf)
     return 1.0 - np.exp(-h) * (1.0 + h + h * h / 2.0)
 
 
@@ -436,6 +436,7 @@ def write_outputs(outdir, col: Collected, *, dataset: str, detector: str,
     os.replace(tmp, outdir / "results.json")
     (outdir / "report.md").write_text(report_markdown(res))
     plot_error_vs_distance(ev, outdir / "error_vs_distance.png")
-    plot_nees(ev, outdir / "nees.png")
+    if not plot_nees(ev, outdir / "nees.png"):
+        (outdir / "nees.png").unlink(missing_ok=True)     # a stale one from an earlier run
     write_per_frame_csv(outdir / "per_frame.csv", col, ev)
     return res

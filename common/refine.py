@@ -519,6 +519,15 @@ def _orthonormalise(R):
     return U @ Vt
 
 
+def tip_for_tail(T_ecm_needle: np.ndarray, needle: NeedleModel) -> np.ndarray:
+    """The pose turned end for end: a half turn about the arc's axis of symmetry (the needle-frame
+    line through the origin and the arc's middle), which maps the arc onto itself with A and E
+    swapped. Without a sure tip or tail it fits a centreline exactly as well."""
+    m = 0.5 * sum(needle.arc_span_rad)
+    u = np.array([math.cos(m), math.sin(m), 0.0])
+    return T_ecm_needle @ make_T(2.0 * np.outer(u, u) - np.eye(3), np.zeros(3))
+
+
 def mirror_pose(T_ecm_needle: np.ndarray, needle: NeedleModel, eye_ecm=np.zeros(3),
                 _centroid=None) -> np.ndarray:
     """The planar arc's mirror solution: reflected about the plane through the arc's centroid

@@ -21,7 +21,9 @@ the detector gave, both ways round (``common.pnp.unsure_starts``), and the fit, 
 keypoints and the centreline alone, is kept only when it is unambiguous and within
 ``unsure_max_rms_px``: else ``NoPose("unsure_keypoints")``. Such a fit has no sure tip or tail to
 tell the arc's ends apart, and nothing else to check it by. In a video such frames are tracked
-warm as the others (a cold one costs two to three times a sure frame's), under the same test.
+warm as the others (a cold one costs two to three times a sure frame's), under the same test:
+the previous solutions and their end-for-end turns (``common.refine.tip_for_tail``) are the
+starts, with their mirrors, so that the turn competes as it does in a cold fit.
 """
 from __future__ import annotations
 
@@ -33,7 +35,7 @@ import numpy as np
 
 from common.observations import NoPose, usable_mask
 from common.pnp import MIN_POINTS, refine_starts, unsure_starts
-from common.refine import ArcObservation, DenseRefiner, RefineResult
+from common.refine import ArcObservation, DenseRefiner, RefineResult, tip_for_tail
 from common.transforms import transform_points
 
 
@@ -69,8 +71,10 @@ class TrackingConfig:
 class TrackingRefiner:
     """``refine`` per stereo frame, warm from the previous frame's pose when that is safe.
 
-    ``refine`` raises what ``refine_starts`` (``NoPose``) and ``DenseRefiner.refine``
-    (``RefineError``) raise on a cold frame; ``last_warm`` says how the last pose was obtained.
+    ``refine`` raises what ``refine_starts`` / ``unsure_starts`` (``NoPose``) and
+    ``DenseRefiner.refine`` (``RefineError``) raise on a cold frame, and
+    ``NoPose("unsure_keypoints")`` when a frame without 4 sure keypoints gives no sure fit;
+    ``last_warm`` says how the last pose was obtained.
     """
 
     def __init__(self, refiner: DenseRefiner, model_points, min_score: float = 0.5,
@@ -100,9 +104,14 @@ class TrackingRefiner:
                 and 0 <= stamp_ns - self._prev_stamp_ns <= cfg.max_gap_s * 1e9
                 and self._reprojects(uv, scores, self._prev.T_ecm_needle)):
             prev = self._prev
+            unsure = self._unsure(uv, scores)
             near = prev.ambiguous or prev.competitor_chi2 < cfg.mirror_chi2
             try:
-                if near:
+                if unsure:    # the cold path's competitors: mirrors and the end-for-end turns
+                    starts = [T for T, _ in prev.candidates]
+                    starts += [tip_for_tail(T, self.refiner.needle) for T in starts]
+                    res = self.refiner.refine(observations, starts, support_normal=support_normal)
+                elif near:
                     res = self.refiner.refine(observations, [T for T, _ in prev.candidates],
                                               support_normal=support_normal)
                 else:   # ~35% cheaper (measured on the video: 3.8 instead of 5.9 ms)
@@ -112,7 +121,7 @@ class TrackingRefiner:
                 res = None
             if res is not None and not res.rms_px <= cfg.max_rms_growth * self._cold_rms + cfg.rms_slack_px:
                 res = None
-            if res is not None and self._unsure(uv, scores) and not (cfg.unsure_starts and self._sure_enough(res)):
+            if res is not None and unsure and not (cfg.unsure_starts and self._sure_enough(res)):
                 res = None
         self.last_warm = res is not None
         if res is None:

@@ -16,6 +16,8 @@ errors both cameras' detections share). A frame that gives no pose is counted as
 """
 from __future__ import annotations
 
+import math
+
 from common.messages import Calibration, EcmPose, Keypoints
 from common.node import run
 from common.observations import NoPose
@@ -43,9 +45,13 @@ class EpnpNode(StereoPoseNode):
         self.max_rms_px = _opt_float(self.params.get("max_rms_px", 20.0 if method == "joint" else None))
         self.outlier_px = _opt_float(self.params.get("outlier_px", 10.0))
         self.refine = bool(self.params.get("refine", True))
-        self.min_sigma_px = float(self.params.get("min_sigma_px", 0.25))
-        if not self.min_sigma_px > 0:
-            raise ValueError(f"epnp: params.min_sigma_px must be positive, got {self.min_sigma_px}")
+        v = self.params.get("min_sigma_px", 0.25)
+        try:
+            self.min_sigma_px = float(v)
+        except (TypeError, ValueError):
+            self.min_sigma_px = float("nan")
+        if not (math.isfinite(self.min_sigma_px) and self.min_sigma_px > 0):
+            raise ValueError(f"epnp: params.min_sigma_px must be a positive number (px), got {v!r}")
 
     def on_pair(self, left, right):
         uv, sc = self.stereo_arrays(left, right)

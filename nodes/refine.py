@@ -22,8 +22,9 @@ and within ``unsure_max_rms_px`` (``common.refine_tracking``).
 
 Params: ``min_score`` (0.5: keypoints scoring lower are not used, by the PnP nor the fit);
 ``max_rms_px`` (20: a worse fit is not published); ``outlier_px`` (10, the joint PnP's outlier
-rejection); any ``RefineConfig`` field (e.g. ``sigma_kp_px``, ``sigma_curve_px``,
-``max_curve_points``, ``edge_on_deg``); ``tracking`` (true) and any ``TrackingConfig`` field
+rejection); any ``RefineConfig`` field (e.g. ``sigma_kp_px``, ``sigma_curve_px``: defaults for
+detectors that state no noise; a stated ``keypoint_sigma_px`` / ``centreline_sigma_px`` is
+used instead; ``max_curve_points``, ``edge_on_deg``); ``tracking`` (true) and any ``TrackingConfig`` field
 (``max_gap_s``, ``cold_every``, ``max_start_px``, ``max_rms_growth``, ``rms_slack_px``,
 ``mirror_chi2``, ``unsure_starts`` (true), ``unsure_max_rms_px`` (2));
 ``support_normal_world`` (none: the normal, world frame, of the surface the needle may rest on,

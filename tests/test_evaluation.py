@@ -252,3 +252,7 @@ def test_the_nees_picture_is_drawn_when_covariances_are_stated(tmp_path):
     write_outputs(tmp_path / "cov", col, dataset="d", detector="oracle")
     assert (tmp_path / "cov" / "nees.png").stat().st_size > 10_000
     assert "(nees.png)" in (tmp_path / "cov" / "report.md").read_text()
+    for p in col.poses["pnp_joint"].values():
+        p.covariance = None
+    write_outputs(tmp_path / "cov", col, dataset="d", detector="oracle")   # the same folder again
+    assert not (tmp_path / "cov" / "nees.png").exists()

@@ -133,7 +133,6 @@ def test_epnp_node_matches_the_library(method):
         roundtrip(p)
 
 
-
 def test_epnp_joint_covariance_takes_the_stated_keypoint_noise():
     """The fit's residuals miss the errors both cameras share: a detector's stated
     ``keypoint_sigma_px`` (or the ``min_sigma_px`` param) floors the covariance's noise."""
@@ -157,8 +156,10 @@ def test_epnp_joint_covariance_takes_the_stated_keypoint_noise():
         assert np.allclose(c1, ref.covariance, rtol=1e-9) and np.allclose(c2, c1, rtol=1e-9)
         # 0.1 px of noise: the residual variance is below both floors, so the ratio is theirs
         assert np.allclose(c1, c0 * (1.0 / 0.25) ** 2, rtol=1e-9)
-    with pytest.raises(ValueError, match="min_sigma_px must be positive"):
-        EpnpNode.offline({"method": "joint", "min_sigma_px": 0}, wired=["left", "right", "calib"])
+    for bad in (0, "abc", None, float("inf")):
+        with pytest.raises(ValueError, match="min_sigma_px must be a positive number"):
+            EpnpNode.offline({"method": "joint", "min_sigma_px": bad}, wired=["left", "right", "calib"])
+
 
 def test_a_pose_waits_for_its_ecm_pose():
     rng = np.random.default_rng(5)
