@@ -266,6 +266,10 @@ def pose_covariance(jacobian: np.ndarray, cost: float, min_sigma_px: float = 0.2
 # a fixed rotation _Q and its solutions turned back: a pose cannot be a half turn in both
 # frames unless its axis is perpendicular to _Q's, a single direction.
 _Q = rotvec_to_R(np.array([0.3, 0.5, 0.81]) / np.linalg.norm([0.3, 0.5, 0.81]) * (np.pi / 2))
+# A pose within ~1e-7 rad of a half turn came back from IPPE as rotations of 2.68-3.46 rad, 0.4-0.6
+# rad off, in both cameras (found by hypothesis): any solution turned this far runs the turned
+# model too (about a third of the cameras; its solutions are duplicates unless one was lost).
+TURN_ABOVE_RAD = 2.5
 
 
 def _opencv_poses(obj, img, K, epnp: bool, ippe: bool):
@@ -303,10 +307,11 @@ def initial_poses(obs: CameraObs, epnp: bool = True, ippe: bool = True) -> list[
     sols = []
     for suffix, Q in (("", None), ("q", _Q)):
         # the turned model gives the same solutions unless OpenCV lost one near a half turn;
-        # then it returns a rotation near a half turn or none, or one that reprojects far worse
-        # than the other (an exact half turn in both cameras: 0.8 against 47 px at zero noise)
+        # then it returns a rotation far turned (TURN_ABOVE_RAD) or none, or one that reprojects
+        # far worse than the other (an exact half turn in both cameras: 0.8 against 47 px at
+        # zero noise)
         ippe_sols = [s for s in sols if s[0].startswith("ippe")]
-        if Q is not None and len(ippe_sols) == 2 and all(1e-2 < math.hypot(*np.ravel(s[1]).tolist()) < np.pi - 1e-2
+        if Q is not None and len(ippe_sols) == 2 and all(1e-2 < math.hypot(*np.ravel(s[1]).tolist()) < TURN_ABOVE_RAD
                                                          for s in ippe_sols):
             e = sorted(s[4] for s in ippe_sols)
             if e[1] <= 3.0 * e[0] + 2.0:

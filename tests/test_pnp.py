@@ -73,6 +73,19 @@ def test_a_half_turn_in_both_camera_frames_is_found():
         assert dt < TOL_M and dr < TOL_RAD, method.__name__
 
 
+def test_a_near_half_turn_returned_far_off_by_ippe_is_found():
+    # found by hypothesis: within 1e-7 rad of a half turn in both cameras IPPE returned
+    # rotations of 2.68-3.46 rad, 0.4-0.6 rad off, neither near a half turn nor far worse in
+    # reprojection than the other: pnp_average was 1.9 mm / 0.32 rad off at zero noise
+    T = np.array([[0.0191273, -0.95543186, -0.29459143, 0.0], [0.95543182, 0.10428265, -0.27617958, 0.0715794],
+                  [0.29459154, -0.27617946, 0.91484465, -0.23953369], [0.0, 0.0, 0.0, 1.0]])
+    U, _, Vt = np.linalg.svd(T[:3, :3])
+    T[:3, :3] = U @ Vt
+    for method in (pnp_average, pnp_joint):
+        dt, dr = pose_error(method(exact_uv(T), RIG, P).T_ecm_needle, T)
+        assert dt < TOL_M and dr < TOL_RAD, method.__name__
+
+
 def test_raw_epnp_is_not_exact_on_coplanar_keypoints():
     """Why pnp_average refines by default: raw EPnP misses on the planar arc even at 0 px."""
     rng = np.random.default_rng(3)
