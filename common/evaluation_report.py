@@ -15,7 +15,7 @@ from typing import Callable, Optional
 
 import numpy as np
 
-from common.evaluation import (CAMERAS, METHODS, MULTIVIEW_METHODS, PAPER, Collected, Evaluation,
+from common.evaluation import (CAMERAS, METHODS, MULTIVIEW_METHODS, NEES_99PCT, PAPER, Collected, Evaluation,
                                build_results, check_results, evaluate, to_jsonable)
 from common.needle import KEYPOINT_NAMES, NeedleModel
 from common.transforms import transform_points
@@ -203,7 +203,7 @@ def plot_nees(ev: Evaluation, path) -> bool:
     for m, v in series.items():
         ax.step(np.maximum(v, x[0]), np.arange(1, v.size + 1) / v.size, where="post",
                 color=METHOD_COLOURS.get(m), lw=1.6, label=f"{m} (median {np.median(v):.1f}, n={v.size})")
-    ax.axvline(16.81, color="grey", lw=0.8, ls=":")
+    ax.axvline(NEES_99PCT, color="grey", lw=0.8, ls=":")
     ax.set_xscale("log")
     ax.set_ylim(0, 1)
     ax.set_xlabel("NEES (squared pose error in the stated covariance's metric); dotted: 99% bound")
