@@ -260,7 +260,7 @@ def decode(payload, expect: type | None = None) -> Message:
         raise MessageError(f"{cls.__name__}: body is not a map")
     unknown = set(body) - set(cls.FIELDS)
     if unknown:
-        raise MessageError(f"{cls.__name__}.{sorted(unknown)[0]}: unknown field")
+        raise MessageError(f"{cls.__name__}.{min(unknown, key=str)}: unknown field")
     kwargs = {}
     for fname, spec in cls.FIELDS.items():
         if fname not in body:

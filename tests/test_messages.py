@@ -169,6 +169,16 @@ def test_corrupted_messages_decode_or_raise_message_error(data):
         pass
 
 
+def test_a_body_key_that_is_not_a_string_is_an_unknown_field():
+    # found by hypothesis: a corrupted map key decodes as an int beside the string keys
+    body = Keypoints("left", 1, 2, True, np.ones((5, 2)), np.ones(5), 0.9).to_body()
+    payload = msgpack.packb({"schema": Keypoints.SCHEMA, "version": 1,
+                             "body": {**body, "uv": body["uv"].tolist(), "scores": body["scores"].tolist(),
+                                      7: 1, "zz": 2}}, strict_types=False)
+    with pytest.raises(MessageError, match="Keypoints.7: unknown field"):
+        decode(payload, Keypoints)
+
+
 def test_keypoints_with_bad_noise_statements_are_refused():
     body = Keypoints("left", 1, 2, True, np.ones((5, 2)), np.ones(5), 0.9).to_body()
     cases = {"centreline_sigma_px": ((0.0, -0.2, float("nan")), "must be positive"),
