@@ -128,7 +128,6 @@ class RefineNode(StereoPoseNode):
                                             res.rms_px, "px", covariance=res.covariance,
                                             ambiguous=bool(res.ambiguous)))
 
-
     def support_normal_ecm(self, seq: int):
         """The support surface's normal in frame ``seq``'s ECM frame (None: not configured, or
         no ECM pose yet)."""
