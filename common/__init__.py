@@ -1,0 +1,14 @@
+"""needletrack's library: everything that computes, usable without any process or network.
+
+Packages, each importing only those listed before it (``nodes/`` wires them to Zenoh):
+
+- ``geometry``: poses, cameras, the needle, ECM kinematics, PnP, triangulation, fusion, the dense
+  refinement. Pure NumPy/OpenCV.
+- ``runtime``: nodes, messages, graphs, the launcher and the graph tools. No geometry.
+- ``data``: the dataset folder format (``docs/dataset.md``): read, write, check.
+- ``sim``: the two renderers and the dataset generators, and the ``dataset`` command.
+- ``detector``: the keypoint network, its training, inference and the detector backends.
+- ``evaluation``: scoring against ground truth, reports, the pipeline graph, the benchmarks.
+
+``cli`` is the one entry point (``needletrack COMMAND``).
+"""

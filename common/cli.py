@@ -12,26 +12,26 @@ from typing import Optional
 
 COMMANDS = {
     # name: (target, one-line help)
-    "launch": ("common.launcher:launch_main", "run a graph, one process per node (default dataflow.yaml)"),
-    "ps": ("common.tools:ps_main", "live nodes of a graph with rates and error counts"),
-    "echo": ("common.tools:echo_main", "print decoded messages on a key"),
-    "hz": ("common.tools:hz_main", "print the rate of messages on a key"),
-    "swap": ("common.tools:swap_main", "replace a running node (make-before-break)"),
-    "cmd": ("common.tools:cmd_main", "send a Command to a node"),
-    "validate": ("common.tools:validate_main", "check a graph YAML and list every error"),
+    "launch": ("common.runtime.launcher:launch_main", "run a graph, one process per node (default dataflow.yaml)"),
+    "ps": ("common.runtime.tools:ps_main", "live nodes of a graph with rates and error counts"),
+    "echo": ("common.runtime.tools:echo_main", "print decoded messages on a key"),
+    "hz": ("common.runtime.tools:hz_main", "print the rate of messages on a key"),
+    "swap": ("common.runtime.tools:swap_main", "replace a running node (make-before-break)"),
+    "cmd": ("common.runtime.tools:cmd_main", "send a Command to a node"),
+    "validate": ("common.runtime.tools:validate_main", "check a graph YAML and list every error"),
     "bench": ("common.cli:bench_main", "benchmarks: transport, sim, detector, graph, refine, geometry"),
-    "dataset": ("common.dataset_cli:main", "make and check datasets"),
-    "train": ("common.keypoint_train:main", "train the keypoint detector"),
-    "eval": ("common.evaluation_cli:main", "evaluate pose pipelines"),
+    "dataset": ("common.sim.cli:main", "make and check datasets"),
+    "train": ("common.detector.train:main", "train the keypoint detector"),
+    "eval": ("common.evaluation.cli:main", "evaluate pose pipelines"),
 }
 
 BENCHES = {
-    "transport": ("common.bench_transport:main", "1080p stereo frames between two node processes"),
-    "sim": ("common.sim_bench:main", "simulator rendering"),
-    "detector": ("common.keypoint_bench:main", "keypoint detector speed and accuracy"),
-    "graph": ("common.graph_bench:main", "the full graph end to end"),
-    "refine": ("common.refine_bench:main", "dense pose refinement speed and accuracy (synthetic)"),
-    "geometry": ("common.geometry_eval:main", "pose methods (PnP, triangulation, fusion) vs keypoint noise, on the oracle"),
+    "transport": ("common.evaluation.transport_bench:main", "1080p stereo frames between two node processes"),
+    "sim": ("common.evaluation.sim_bench:main", "simulator rendering"),
+    "detector": ("common.evaluation.detector_bench:main", "keypoint detector speed and accuracy"),
+    "graph": ("common.evaluation.graph_bench:main", "the full graph end to end"),
+    "refine": ("common.evaluation.refine_bench:main", "dense pose refinement speed and accuracy (synthetic)"),
+    "geometry": ("common.evaluation.geometry_bench:main", "pose methods (PnP, triangulation, fusion) vs keypoint noise, on the oracle"),
 }
 
 

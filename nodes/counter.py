@@ -4,11 +4,13 @@ params: ``rate_hz`` (default 20), ``count`` (stop after this many; 0 = forever),
 ``start_seq`` (default 0). ``q[0]`` carries the seq (as a float) so receivers can check payloads.
 """
 import time
+from dataclasses import dataclass
 
 import numpy as np
 
-from common.messages import EcmJoints
-from common.node import Node, run
+from common.runtime.messages import EcmJoints
+from common.runtime.node import Node, NodeError, run
+from common.runtime.pacing import Pacer
 
 
 class Counter(Node):
@@ -16,20 +18,24 @@ class Counter(Node):
 
     OUTPUTS = ("out",)
 
+    @dataclass
+    class Params:
+        rate_hz: float = 20.0
+        count: int = 0           # 0: forever
+        start_seq: int = 0
+
     def setup(self):
-        self.period = 1.0 / float(self.params.get("rate_hz", 20.0))
-        self.count_max = int(self.params.get("count", 0))
-        self.seq = int(self.params.get("start_seq", 0))
+        if self.p.rate_hz <= 0:
+            raise NodeError(f"params.rate_hz must be > 0, got {self.p.rate_hz}")
+        self.count_max = self.p.count
+        self.seq = self.p.start_seq
         self.sent = 0
-        self.next_t = time.monotonic()
+        self.pacer = Pacer(self.p.rate_hz)
 
     def step(self):
         if self.count_max and self.sent >= self.count_max:
             return False
-        delay = self.next_t - time.monotonic()
-        if delay > 0:
-            time.sleep(delay)
-        self.next_t = max(self.next_t + self.period, time.monotonic() - self.period)
+        self.pacer.wait()
         q = np.array([float(self.seq), 0.0, 0.0, 0.0])
         self.publish("out", EcmJoints(seq=self.seq, stamp_ns=time.time_ns(), q=q))
         self.seq += 1

@@ -1,5 +1,5 @@
 """Keypoint detector node: camera images -> Keypoints A..E per camera, by a pluggable backend
-(common/keypoint_backends.py).
+(common/detector/backends.py).
 
 Inputs: ``left``, ``right`` (CameraImage), ``truth`` (GroundTruth, for the oracle), ``calib``
 (Calibration). Outputs: ``left``, ``right`` (Keypoints with the image's ``seq``/``stamp_ns``).
@@ -31,12 +31,21 @@ that they count ``no_calibration``. A corrupt image gives ``Keypoints.not_found`
 from __future__ import annotations
 
 import time
+from dataclasses import dataclass, fields, make_dataclass
+from typing import Literal
 
-from common.frame_stride import FrameStride
-from common.keypoint_backends import load_backend
-from common.messages import CameraImage, Calibration, GroundTruth, Keypoints, MessageError
-from common.node import Node, run
-from common.pose_node import SeqCache
+from common.detector.backends import BACKEND_PARAMS, BackendError, load_backend
+from common.runtime.frame_stride import FrameStride
+from common.runtime.messages import (
+    Calibration,
+    CameraImage,
+    GroundTruth,
+    Keypoints,
+    MessageError,
+)
+from common.runtime.node import Node, NodeError, run
+from common.runtime.pairing import SeqCache
+from common.runtime.params import merge_schemas
 
 
 class DetectorNode(Node):
@@ -46,19 +55,38 @@ class DetectorNode(Node):
     OUTPUTS = ("left", "right")
     KEEP_ALL = ("truth", "calib")
 
+    @dataclass
+    class Params:
+        backend: str = "oracle"
+        max_wait: int = 30
+        stride: int | Literal["auto"] = "auto"
+
+    @classmethod
+    def param_schema(cls, raw: dict) -> type:
+        """The node's own params and those of its backend (``BACKEND_PARAMS``)."""
+        name = raw.get("backend", "oracle")
+        if name not in BACKEND_PARAMS:
+            known = make_dataclass("Backend", [("backend", Literal[tuple(sorted(BACKEND_PARAMS))], "oracle")])
+            return merge_schemas("DetectorParams", cls.Params, known)
+        return merge_schemas("DetectorParams", BACKEND_PARAMS[name], cls.Params)
+
     def setup(self):
-        params = dict(self.params)
-        self.backend_name = str(params.pop("backend", "oracle"))
-        self.max_wait = int(params.pop("max_wait", 30))
-        stride = params.pop("stride", "auto")
+        theirs = {f.name for f in fields(BACKEND_PARAMS[self.p.backend])}
+        params = {k: v for k, v in self.params.items() if k in theirs}
+        self.backend_name = self.p.backend
+        self.max_wait = self.p.max_wait
+        stride = self.p.stride
         one_camera = self.wired("left") != self.wired("right")
         try:
             self.frames = FrameStride(1 if stride == "auto" else int(stride), adaptive=stride == "auto"
                                       and one_camera and not set(self.KEEP_ALL) & {"left", "right"})
         except ValueError:
-            raise ValueError(f"detector: params.stride must be 'auto' or a power of two, got {stride!r}") from None
+            raise NodeError(f"params.stride must be 'auto' or a power of two, got {stride!r}") from None
         self.clock = time.perf_counter
-        self.backend = load_backend(self.backend_name, params)
+        try:
+            self.backend = load_backend(self.backend_name, params)
+        except BackendError as exc:
+            raise NodeError(str(exc)) from None
         self.calib: Calibration | None = None
         self.truths = SeqCache()
         self.waiting: list[CameraImage] = []         # images waiting for calibration or truth

@@ -1,4 +1,4 @@
-"""ECM kinematics node: joint states -> endoscope pose ``T_world_ecm`` (common/ecm_kinematics.py).
+"""ECM kinematics node: joint states -> endoscope pose ``T_world_ecm`` (common/geometry/ecm_kinematics.py).
 
 Inputs: ``joints`` (EcmJoints, every message is used), ``calib`` (Calibration, optional).
 Output: ``pose`` (EcmPose with the same ``seq``/``stamp_ns`` and ``q``; with a calibration, also
@@ -11,12 +11,15 @@ arrive before the first calibration are counted ``no_pose.no_calibration`` and s
 """
 from __future__ import annotations
 
+from dataclasses import dataclass
+
 import numpy as np
 
-from common.ecm_kinematics import EcmArm
-from common.messages import Calibration, EcmJoints, EcmPose
-from common.node import Node, run
-from common.transforms import is_rigid
+from common.geometry.camera import StereoRig
+from common.geometry.ecm_kinematics import EcmArm
+from common.geometry.transforms import is_rigid
+from common.runtime.messages import Calibration, EcmJoints, EcmPose
+from common.runtime.node import Node, NodeError, run
 
 ARM_KEYS = ("T_world_base", "L_rcc", "L_scopelen")
 
@@ -43,18 +46,27 @@ class EcmNode(Node):
     OUTPUTS = ("pose",)
     KEEP_ALL = ("joints", "calib")
 
+    @dataclass
+    class Params:
+        T_world_base: list[list[float]] | None = None   # 4x4; with L_rcc, L_scopelen: the arm model
+        L_rcc: float | None = None                      # (m); none given: the calibration's arm
+        L_scopelen: float | None = None
+
     def setup(self):
-        self.param_arm = arm_from_params(self.params)
+        try:
+            self.param_arm = arm_from_params({k: v for k, v in vars(self.p).items() if v is not None})
+        except ValueError as exc:
+            raise NodeError(str(exc)) from None
         self.calib_arm = None
         self.have_calib = False
         self.T_ecm_cams: dict = {}
 
     def on_calib(self, msg: Calibration):
         self.have_calib = True
-        self.T_ecm_cams = {c.name: c.T_ecm_cam for c in msg.rig().cameras}
+        self.T_ecm_cams = {c.name: c.T_ecm_cam for c in StereoRig.from_dict(msg.cameras, msg.image_size).cameras}
         if msg.ecm is not None:
             try:
-                self.calib_arm = msg.arm()
+                self.calib_arm = EcmArm.from_calibration(msg.ecm)
             except (KeyError, TypeError, ValueError) as exc:
                 self.count("bad_calibration")
                 self.log.error("calibration ecm mapping unusable: %s", exc)

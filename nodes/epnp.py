@@ -1,4 +1,4 @@
-"""Pipeline I node: needle pose from the stereo keypoints by PnP (common/pnp.py).
+"""Pipeline I node: needle pose from the stereo keypoints by PnP (common/geometry/pnp.py).
 
 Inputs: ``left``, ``right`` (Keypoints, paired by ``seq``), ``calib`` (Calibration), ``ecm``
 (EcmPose, optional: adds ``T_world_ecm``/``T_world_needle``; when wired, a pose waits for its
@@ -9,20 +9,21 @@ Params: ``method`` (``joint`` | ``average``, default joint); ``min_score`` (0.5)
 ``max_rms_px`` (a fit worse than this is not published; default 20 for joint, none for
 average, whose mean of two disagreeing camera poses reprojects badly by construction); ``outlier_px`` (joint only,
 default 10: the worst keypoint is dropped and the fit redone while its residual exceeds this);
-``refine`` (average only, default true: false gives raw EPnP as published, see common/pnp.py);
+``refine`` (average only, default true: false gives raw EPnP as published, see common/geometry/pnp.py);
 ``min_sigma_px`` (joint only, default 0.25: the covariance's keypoint noise is at least this,
 or the detectors' stated ``keypoint_sigma_px`` where larger; the fit's residuals alone miss the
 errors both cameras' detections share). A frame that gives no pose is counted as ``no_pose.<reason>``.
 """
 from __future__ import annotations
 
-import math
+from dataclasses import dataclass
+from typing import Literal
 
-from common.messages import Calibration, EcmPose, Keypoints
-from common.node import run
-from common.observations import NoPose
-from common.pnp import pnp_average, pnp_joint
-from common.pose_node import StereoPoseNode
+from common.geometry.observations import NoPose
+from common.geometry.pnp import pnp_average, pnp_joint
+from common.runtime.messages import Calibration, EcmPose, Keypoints
+from common.runtime.node import NodeError, run
+from nodes._pose import StereoPoseNode
 
 METHODS = {"joint": "pnp_joint", "average": "pnp_average"}
 
@@ -34,24 +35,26 @@ class EpnpNode(StereoPoseNode):
     OUTPUTS = ("pose",)
     KEEP_ALL = StereoPoseNode.KEEP_ALL
 
+    @dataclass
+    class Params(StereoPoseNode.Params):
+        method: Literal["joint", "average"] = "joint"
+        max_rms_px: float | None = 20.0       # joint only; null: no gate
+        outlier_px: float | None = 10.0
+        refine: bool = True
+        min_sigma_px: float = 0.25
+
     def setup(self):
         super().setup()
-        method = str(self.params.get("method", "joint"))
-        if method not in METHODS:
-            raise ValueError(f"epnp: params.method must be one of {sorted(METHODS)}, got {method!r}")
+        method = self.p.method
         self.method = method
         # the mean of two camera poses on different branches of the planar ambiguity reprojects
         # badly by construction: the paper's method is published as it is
-        self.max_rms_px = _opt_float(self.params.get("max_rms_px", 20.0 if method == "joint" else None))
-        self.outlier_px = _opt_float(self.params.get("outlier_px", 10.0))
-        self.refine = bool(self.params.get("refine", True))
-        v = self.params.get("min_sigma_px", 0.25)
-        try:
-            self.min_sigma_px = float(v)
-        except (TypeError, ValueError):
-            self.min_sigma_px = float("nan")
-        if not (math.isfinite(self.min_sigma_px) and self.min_sigma_px > 0):
-            raise ValueError(f"epnp: params.min_sigma_px must be a positive number (px), got {v!r}")
+        self.max_rms_px = self.p.max_rms_px if method == "joint" or "max_rms_px" in self.params else None
+        self.outlier_px = self.p.outlier_px
+        self.refine = self.p.refine
+        self.min_sigma_px = self.p.min_sigma_px
+        if not self.min_sigma_px > 0:
+            raise NodeError(f"params.min_sigma_px must be a positive number (px), got {self.min_sigma_px!r}")
 
     def on_pair(self, left, right):
         uv, sc = self.stereo_arrays(left, right)
@@ -72,10 +75,6 @@ class EpnpNode(StereoPoseNode):
             extra = {"covariance": res.covariance, "ambiguous": bool(res.ambiguous)}
         self.publish_pose(self.pose_message(left.seq, left.stamp_ns, METHODS[self.method],
                                                res.T_ecm_needle, res.rms_px, "px", **extra))
-
-
-def _opt_float(v):
-    return None if v is None else float(v)
 
 
 NODE = EpnpNode

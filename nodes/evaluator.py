@@ -17,13 +17,23 @@ from __future__ import annotations
 
 import threading
 import time
+from dataclasses import dataclass
 from pathlib import Path
 
-from common.evaluation import EXTRA_METHODS, METHODS, Collected
-from common.messages import (Calibration, EndOfStream, GroundTruth, Keypoints, MessageError,
-                             NodeStats, Points3D, PoseEstimate, decode)
-from common.node import Node, run
-from common.pose_node import PoseMethodInputs
+from common.evaluation.scoring import EXTRA_METHODS, METHODS, Collected
+from common.runtime.messages import (
+    Calibration,
+    EndOfStream,
+    GroundTruth,
+    Keypoints,
+    MessageError,
+    NodeStats,
+    Points3D,
+    PoseEstimate,
+    decode,
+)
+from common.runtime.node import Node, NodeError, run
+from nodes._pose import PoseMethodInputs
 
 POSE_INPUTS = METHODS + EXTRA_METHODS
 
@@ -39,13 +49,22 @@ class EvaluatorNode(PoseMethodInputs, Node):
     OUTPUTS = ()
     KEEP_ALL = tuple(INPUTS)
 
+    @dataclass
+    class Params:
+        out: str = ""                     # the output folder (required)
+        dataset: str | None = None
+        detector: str = "unknown"
+        drain_s: float = 3.0
+        noise_px: float = 0.0
+        support_normal_world: list[float] | None = None
+
     def setup(self):
-        if not self.params.get("out"):
-            raise ValueError("evaluator: params.out (the output folder) is required")
-        self.out = Path(self.params["out"])
-        self.dataset_path = self.params.get("dataset")
-        self.detector = str(self.params.get("detector", "unknown"))
-        self.drain_s = float(self.params.get("drain_s", 3.0))
+        if not self.p.out:
+            raise NodeError("params.out (the output folder) is required")
+        self.out = Path(self.p.out)
+        self.dataset_path = self.p.dataset
+        self.detector = self.p.detector
+        self.drain_s = self.p.drain_s
         self.col = Collected()
         self.methods = [m for m in POSE_INPUTS if self.wired(m)]
         self._eos_at = None
@@ -62,7 +81,7 @@ class EvaluatorNode(PoseMethodInputs, Node):
         rt = getattr(self, "_runtime", None)
         if rt is None or getattr(rt, "session", None) is None:
             return
-        from common.graph import stats_key
+        from common.runtime.graph import stats_key
 
         def on_stats(sample):
             try:
@@ -85,7 +104,7 @@ class EvaluatorNode(PoseMethodInputs, Node):
 
     def _cpu_snapshot(self) -> dict:
         """CPU seconds used so far by every node process known from its stats."""
-        from common.evaluation import process_cpu_seconds
+        from common.evaluation.scoring import process_cpu_seconds
         with self._stats_lock:
             pids = {n: st.pid for n, st in self._stats.items() if n != self.node_id}
         return {n: process_cpu_seconds(pid) for n, pid in pids.items()}
@@ -127,7 +146,7 @@ class EvaluatorNode(PoseMethodInputs, Node):
         return True
 
     def finish(self, why: str):
-        from common.evaluation_report import write_outputs
+        from common.evaluation.report import write_outputs
 
         self.log.info("evaluating (%s)", why)
         with self._stats_lock:
@@ -141,8 +160,8 @@ class EvaluatorNode(PoseMethodInputs, Node):
             if c0 is not None and c1 is not None:
                 self.col.node_cpu_ms[n] = 1e3 * (c1 - c0) / frames
         loader = self._image_loader()
-        extra = {"noise_px": float(self.params.get("noise_px", 0.0)),
-                 "support_normal_world": self.params.get("support_normal_world"),
+        extra = {"noise_px": self.p.noise_px,
+                 "support_normal_world": self.p.support_normal_world,
                  "graph_methods": self.methods}
         res = write_outputs(self.out, self.col, dataset=str(self.dataset_path or ""),
                             detector=self.detector, load_images=loader, extra=extra,
@@ -154,7 +173,7 @@ class EvaluatorNode(PoseMethodInputs, Node):
         if not self.dataset_path:
             return None
         try:
-            from common.dataset import Dataset
+            from common.data.dataset import Dataset
             ds = Dataset(self.dataset_path, check_files=False)
         except Exception as exc:  # overlays then draw on black; the numbers do not need images
             self.log.warning("overlays without images: %s", exc)

@@ -7,12 +7,13 @@ params: ``report`` (a JSON path written at shutdown: latencies, frames, missing 
 """
 import json
 import time
+from dataclasses import dataclass
 
 import numpy as np
 
-from common.messages import CameraImage
-from common.node import Node, run
-from common.pairing import StereoPairer
+from common.runtime.messages import CameraImage
+from common.runtime.node import Node, run
+from common.runtime.pairing import StereoPairer
 
 
 class FrameSink(Node):
@@ -21,13 +22,18 @@ class FrameSink(Node):
     INPUTS = {"left": CameraImage, "right": CameraImage}
     KEEP_ALL = ("left", "right")
 
+    @dataclass
+    class Params:
+        report: str | None = None    # JSON file written at the end
+        log_every_s: float = 5.0
+
     def setup(self):
         self.pairer = StereoPairer(depth=16)
         self.lat_ms: list = []
         self.arrivals: list = []
         self.seqs: list = []
-        self.report = self.params.get("report")
-        self.log_every = float(self.params.get("log_every_s", 5.0))
+        self.report = self.p.report
+        self.log_every = self.p.log_every_s
         self.last_log = time.monotonic()
         self.cpu0 = time.process_time()
 

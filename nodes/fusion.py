@@ -1,4 +1,4 @@
-"""Multi-view fusion node (common/fusion.py): a queue of the last k pose estimates, each mapped
+"""Multi-view fusion node (common/geometry/fusion.py): a queue of the last k pose estimates, each mapped
 into the current ECM frame through the ECM poses at which they were made, outliers removed,
 averaged.
 
@@ -17,12 +17,14 @@ Command ``reset`` empties the queue.
 """
 from __future__ import annotations
 
+from dataclasses import dataclass
+
 import numpy as np
 
-from common.fusion import MultiViewFusion
-from common.messages import EcmPose, GroundTruth, PoseEstimate
-from common.node import Node, run
-from common.pose_node import SeqCache
+from common.geometry.fusion import MultiViewFusion
+from common.runtime.messages import EcmPose, GroundTruth, PoseEstimate
+from common.runtime.node import Node, run
+from common.runtime.pairing import SeqCache
 
 
 class FusionNode(Node):
@@ -32,19 +34,28 @@ class FusionNode(Node):
     OUTPUTS = ("pose",)
     KEEP_ALL = ("pose", "ecm", "truth")
 
+    @dataclass
+    class Params:
+        k: int = 5
+        max_dist_mm: float = 5.0
+        max_angle_deg: float = 15.0
+        reset_dist_mm: float = 10.0
+        reset_angle_deg: float = 45.0
+        reset_after: int = 3
+        use_covariance: bool = True
+        method: str = "multiview"       # the method name of the fused poses
+        reset_on_sequence: bool = True
+        max_wait: int = 30
+
     def setup(self):
-        p = self.params
+        p = self.p
         self.fusion = MultiViewFusion(
-            k=int(p.get("k", 5)),
-            max_dist_m=float(p.get("max_dist_mm", 5.0)) * 1e-3,
-            max_angle_rad=np.deg2rad(float(p.get("max_angle_deg", 15.0))),
-            reset_dist_m=float(p.get("reset_dist_mm", 10.0)) * 1e-3,
-            reset_angle_rad=np.deg2rad(float(p.get("reset_angle_deg", 45.0))),
-            reset_after=int(p.get("reset_after", 3)),
-            use_covariance=bool(p.get("use_covariance", True)))
-        self.method = str(p.get("method", "multiview"))
-        self.reset_on_sequence = bool(p.get("reset_on_sequence", True))
-        self.max_wait = int(p.get("max_wait", 30))
+            k=p.k, max_dist_m=p.max_dist_mm * 1e-3, max_angle_rad=np.deg2rad(p.max_angle_deg),
+            reset_dist_m=p.reset_dist_mm * 1e-3, reset_angle_rad=np.deg2rad(p.reset_angle_deg),
+            reset_after=p.reset_after, use_covariance=p.use_covariance)
+        self.method = p.method
+        self.reset_on_sequence = p.reset_on_sequence
+        self.max_wait = p.max_wait
         self.ecm_poses = SeqCache()
         self.sequences = SeqCache()
         self.pending: list[PoseEstimate] = []

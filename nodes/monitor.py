@@ -1,29 +1,35 @@
-"""Monitor: prints the live graph's needle poses, one line per frame or per interval.
+"""Monitor: prints the live graph's needle pose, one line per frame or per interval.
 
-Each line: the frame ``seq`` and, per wired pose method, the position of the needle's origin in
-the ECM frame (mm) and its rotation vector (deg); when the truth is wired and known, each
-method's error against it (position mm / orientation deg), e.g.::
+A line shows the final method's pose (the first wired of ``FINAL_ORDER``: the dense refinement
+when the graph has it): the position of the needle's origin in the ECM frame (mm), its rotation
+vector (deg) and, when the truth is known, its error (position mm / orientation deg); a pose the
+images could not decide is marked ``ambiguous``. A line fits ``WIDTH`` (120) columns::
 
-    seq   412 | pnp_joint t=[3.1 -7.9 -152.0]mm r=[171.2 12.0 -3.3]deg err 0.84mm 1.9deg | ...
+    seq   412 5/5 refined  t=[3.1 -7.9 -152.0]mm r=[171.2 12.0 -3.3]deg err 0.18mm 0.5deg
 
-Params: ``every_s`` (default 1.0; 0 prints every frame), ``methods`` (list: which wired inputs to
-print, in order; default all wired).
+``5/5``: how many of the wired methods posed the frame. With ``all_methods`` each other wired method follows on a line of its own, indented.
+Params: ``every_s`` (1.0; 0 prints every frame), ``methods`` (which wired inputs to count and
+show, in order; default all wired), ``all_methods`` (false).
 """
 from __future__ import annotations
 
 import sys
 import time
 from collections import OrderedDict
+from dataclasses import dataclass
 
 import numpy as np
 
-from common.evaluation import EXTRA_METHODS, METHODS, true_T_ecm_needle
-from common.messages import Calibration, GroundTruth, PoseEstimate
-from common.node import Node, run
-from common.pose_node import PoseMethodInputs
-from common.transforms import R_to_rotvec, pose_error
+from common.evaluation.scoring import EXTRA_METHODS, METHODS, true_T_ecm_needle
+from common.geometry.ecm_kinematics import EcmArm
+from common.geometry.transforms import R_to_rotvec, pose_error
+from common.runtime.messages import Calibration, GroundTruth, PoseEstimate
+from common.runtime.node import Node, run
+from nodes._pose import PoseMethodInputs
 
 POSE_INPUTS = METHODS + EXTRA_METHODS
+FINAL_ORDER = ("refined", "multiview_refined", "multiview", "pnp_joint", "pnp_average", "triangulation")
+WIDTH = 120
 KEEP_FRAMES = 64
 
 
@@ -34,22 +40,34 @@ def format_pose(T: np.ndarray) -> str:
     return f"t=[{t[0]:.1f} {t[1]:.1f} {t[2]:.1f}]mm r=[{r[0]:.1f} {r[1]:.1f} {r[2]:.1f}]deg"
 
 
-def format_line(seq: int, poses: dict, T_true, methods) -> str:
-    """One monitor line for frame ``seq``: ``poses`` method -> PoseEstimate (missing: no pose)."""
-    parts = [f"seq {seq:5d}"]
-    for m in methods:
-        p = poses.get(m)
-        if p is None:
-            parts.append(f"{m} no pose")
-            continue
-        s = f"{m} {format_pose(p.T_ecm_needle)}"
-        if p.n_views > 1:
-            s += f" views {p.n_views}"
-        if T_true is not None:
-            dp, dr = pose_error(p.T_ecm_needle, T_true)
-            s += f" err {dp * 1e3:.2f}mm {np.degrees(dr):.1f}deg"
-        parts.append(s)
-    return " | ".join(parts)
+def format_method(method: str, pose, T_true) -> str:
+    """``method t=[..]mm r=[..]deg  err Xmm Ydeg`` (``no pose`` when ``pose`` is None)."""
+    if pose is None:
+        return f"{method:<8} no pose"
+    s = f"{method:<8} {format_pose(pose.T_ecm_needle)}"
+    if T_true is not None:
+        dp, dr = pose_error(pose.T_ecm_needle, T_true)
+        s += f" err {dp * 1e3:.2f}mm {np.degrees(dr):.1f}deg"
+    if pose.ambiguous:
+        s += " ambiguous"
+    if pose.n_views > 1:
+        s += f" views {pose.n_views}"
+    return s
+
+
+def final_method(methods) -> str:
+    """The method a line leads with: the first of ``FINAL_ORDER`` in ``methods``."""
+    return next((m for m in FINAL_ORDER if m in methods), methods[0])
+
+
+def format_lines(seq: int, poses: dict, T_true, methods, all_methods: bool = False) -> list[str]:
+    """The monitor's lines for frame ``seq``: ``poses`` method -> PoseEstimate (missing: no pose)."""
+    final = final_method(methods)
+    posed = sum(1 for m in methods if poses.get(m) is not None)
+    lines = [f"seq {seq:5d} {posed}/{len(methods)} {format_method(final, poses.get(final), T_true)}"]
+    if all_methods:
+        lines += [f"{'':4}{format_method(m, poses.get(m), T_true)}" for m in methods if m != final]
+    return [line if len(line) <= WIDTH else line[:WIDTH - 3] + "..." for line in lines]
 
 
 class MonitorNode(PoseMethodInputs, Node):
@@ -62,9 +80,15 @@ class MonitorNode(PoseMethodInputs, Node):
     OUTPUTS = ()
     KEEP_ALL = tuple(INPUTS)
 
+    @dataclass
+    class Params:
+        every_s: float = 1.0
+        methods: list[str] | None = None     # counted and shown methods (default: all wired)
+        all_methods: bool = False            # a line for each method, not only the final one
+
     def setup(self):
-        self.every_s = float(self.params.get("every_s", 1.0))
-        wanted = self.params.get("methods") or POSE_INPUTS
+        self.every_s = self.p.every_s
+        wanted = self.p.methods or POSE_INPUTS
         self.methods = [m for m in wanted if m in POSE_INPUTS and self.wired(m)]
         self.frames: OrderedDict = OrderedDict()     # seq -> {method: PoseEstimate}
         self.truths: OrderedDict = OrderedDict()     # seq -> GroundTruth
@@ -74,7 +98,7 @@ class MonitorNode(PoseMethodInputs, Node):
         self.out = sys.stdout
 
     def on_calib(self, msg):
-        self.arm = msg.arm()
+        self.arm = EcmArm.from_calibration(msg.ecm)
 
     def on_truth(self, msg):
         self.truths[msg.seq] = msg
@@ -101,7 +125,9 @@ class MonitorNode(PoseMethodInputs, Node):
         seq = max(ready)
         gt = self.truths.get(seq)
         T_true = true_T_ecm_needle(gt, self.arm) if gt is not None else None
-        print(format_line(seq, self.frames[seq], T_true, self.methods), file=self.out, flush=True)
+        for line in format_lines(seq, self.frames[seq], T_true, self.methods, self.p.all_methods):
+            print(line, file=self.out)
+        self.out.flush()
         self._last_print, self._printed = now, seq
         self.count("lines")
 

@@ -1,5 +1,5 @@
 """Dense refinement node: the needle pose fitted to its whole visible arc in both cameras, with
-an uncertainty (common/refine.py).
+an uncertainty (common/geometry/refine.py).
 
 Inputs: ``left``, ``right`` (Keypoints, paired by ``seq``; their ``centreline`` is the dense
 observation), ``calib`` (Calibration), ``ecm`` (EcmPose, optional: adds ``T_world_needle``; a
@@ -10,15 +10,15 @@ ECM frame; ``ambiguous`` when competing solutions fit nearly as well or the arc 
 edge-on, and then the covariance spans them).
 
 Per frame: the minima of the joint stereo PnP on the keypoints, from the IPPE starts and
-stopped early (``common.pnp.refine_starts``), are the starting poses; ``DenseRefiner.refine``
+stopped early (``common.geometry.pnp.refine_starts``), are the starting poses; ``DenseRefiner.refine``
 fits them, and their mirror images, to keypoints and centrelines of both cameras together and
-keeps the best. In tracking mode (``common.refine_tracking``) a frame that follows a
+keeps the best. In tracking mode (``common.geometry.refine_tracking``) a frame that follows a
 well-fitted one within ``max_gap_s`` starts from that pose instead and keeps the result only if
 it is as good, else it is refined cold (counted ``warm`` and ``cold``). A camera whose detector
 found nothing is left out. Frames without any centreline are refined on the keypoints alone
 (counted ``keypoints_only``). A frame with fewer than 4 sure keypoints (a needle mostly hidden)
 starts from all its keypoints, both ways round, and is posed only when that fit is unambiguous
-and within ``unsure_max_rms_px`` (``common.refine_tracking``).
+and within ``unsure_max_rms_px`` (``common.geometry.refine_tracking``).
 
 Params: ``min_score`` (0.5: keypoints scoring lower are not used, by the PnP nor the fit);
 ``max_rms_px`` (20: a worse fit is not published); ``outlier_px`` (10, the joint PnP's outlier
@@ -28,7 +28,7 @@ used instead; ``max_curve_points``, ``edge_on_deg``); ``tracking`` (true) and an
 (``max_gap_s``, ``cold_every``, ``max_start_px``, ``max_rms_growth``, ``rms_slack_px``,
 ``mirror_chi2``, ``unsure_starts`` (true), ``unsure_max_rms_px`` (2));
 ``support_normal_world`` (none: the normal, world frame, of the surface the needle may rest on,
-e.g. ``[0, 0, 1]`` for the simulator's phantom: with it, ``common.rest_prior`` picks between
+e.g. ``[0, 0, 1]`` for the simulator's phantom: with it, ``common.geometry.rest_prior`` picks between
 minima the images leave nearly equal; it needs the ``ecm`` input, and a frame whose ECM pose is
 not in yet uses the newest one; ``rest_prior``, ``rest_sigma_deg`` tune it). A frame
 that gives no pose is counted as
@@ -39,43 +39,36 @@ that gives no pose is counted as
 from __future__ import annotations
 
 import dataclasses
+from dataclasses import dataclass
 
 import numpy as np
 
-from common.messages import Calibration, EcmPose, Keypoints
-from common.node import run
-from common.observations import NoPose
-from common.pose_node import StereoPoseNode
-from common.refine import ArcObservation, DenseRefiner, RefineConfig, RefineError
-from common.refine_tracking import TrackingConfig, TrackingRefiner
+from common.geometry.needle import NeedleModel
+from common.geometry.observations import NoPose
+from common.geometry.refine import (
+    ArcObservation,
+    DenseRefiner,
+    RefineConfig,
+    RefineError,
+)
+from common.geometry.refine_tracking import TrackingConfig, TrackingRefiner
+from common.runtime.messages import Calibration, EcmPose, Keypoints
+from common.runtime.node import NodeError, run
+from common.runtime.params import merge_schemas
+from nodes._pose import StereoPoseNode
 
 
-def _config_from_params(cls, params: dict, rename: dict | None = None):
-    """A ``cls`` dataclass from the node params named like its fields (``rename``: param name
-    for a field); raises ValueError naming a param of the wrong type or value."""
-    kw = {}
-    for f in dataclasses.fields(cls):
-        key = (rename or {}).get(f.name, f.name)
-        if key in params:
-            typ = {"int": int, "float": float, "bool": bool}[str(f.type)]
-            v = params[key]
-            if typ is bool and not isinstance(v, bool):
-                raise ValueError(f"refine: params.{key} must be true or false, got {v!r}")
-            try:
-                kw[f.name] = typ(v)
-            except (TypeError, ValueError):
-                raise ValueError(f"refine: params.{key} must be {typ.__name__}, got {v!r}") from None
-    return cls(**kw)
+@dataclass
+class _NodeParams(StereoPoseNode.Params):
+    max_rms_px: float | None = 20.0       # larger refined RMS gives no pose; null: no gate
+    outlier_px: float | None = 10.0
+    support_normal_world: list[float] | None = None
+    tracking: bool = True                 # TrackingConfig.enabled
 
 
-def refine_config(params: dict) -> RefineConfig:
-    """A RefineConfig from node params (its fields, ``min_score`` shared with the PnP)."""
-    return _config_from_params(RefineConfig, params)
-
-
-def tracking_config(params: dict) -> TrackingConfig:
-    """A TrackingConfig from node params (``tracking`` switches it on or off)."""
-    return _config_from_params(TrackingConfig, params, {"enabled": "tracking"})
+def _config(cls, p, rename: dict | None = None):
+    """A ``cls`` dataclass from the typed node params named like its fields."""
+    return cls(**{f.name: getattr(p, (rename or {}).get(f.name, f.name)) for f in dataclasses.fields(cls)})
 
 
 class RefineNode(StereoPoseNode):
@@ -85,23 +78,28 @@ class RefineNode(StereoPoseNode):
     OUTPUTS = ("pose",)
     KEEP_ALL = StereoPoseNode.KEEP_ALL
 
+    # every RefineConfig and TrackingConfig field is a param of the same name (``tracking`` for
+    # TrackingConfig.enabled), beside the node's own
+    Params = merge_schemas("RefineParams", RefineConfig, TrackingConfig, _NodeParams, drop=("enabled",))
+
     def setup(self):
         super().setup()
-        self.config = refine_config(self.params)
-        self.tracking = tracking_config(self.params)
+        try:
+            self.config = _config(RefineConfig, self.p)
+            self.tracking = _config(TrackingConfig, self.p, {"enabled": "tracking"})
+            self.support_normal_world = support_normal(self.p.support_normal_world)
+        except ValueError as exc:
+            raise NodeError(str(exc)) from None
         self.min_score = self.config.min_score
-        mr = self.params.get("max_rms_px", 20.0)
-        self.max_rms_px = None if mr is None else float(mr)
-        op = self.params.get("outlier_px", 10.0)
-        self.outlier_px = None if op is None else float(op)
+        self.max_rms_px = self.p.max_rms_px
+        self.outlier_px = self.p.outlier_px
         self.tracker: TrackingRefiner | None = None
-        self.support_normal_world = support_normal(self.params.get("support_normal_world"))
 
     def on_calib(self, msg: Calibration):
         changed = self.calib is None or msg.cameras != self.calib.cameras or msg.needle != self.calib.needle
         super().on_calib(msg)
         if changed or self.tracker is None:
-            self.tracker = TrackingRefiner(DenseRefiner(self.rig, msg.needle_model(), self.config),
+            self.tracker = TrackingRefiner(DenseRefiner(self.rig, NeedleModel.from_dict(msg.needle), self.config),
                                            self.model_points, self.min_score, self.outlier_px, self.tracking)
 
     def on_pair(self, left: Keypoints, right: Keypoints):

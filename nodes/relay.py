@@ -3,8 +3,9 @@
 params: ``work_ms`` (default 0) simulated processing time per message.
 """
 import time
+from dataclasses import dataclass
 
-from common.node import Node, run
+from common.runtime.node import Node, run
 
 
 class Relay(Node):
@@ -14,8 +15,12 @@ class Relay(Node):
     OUTPUTS = ("out",)
     KEEP_ALL = ("in",)
 
+    @dataclass
+    class Params:
+        work_ms: float = 0.0     # simulated work per message
+
     def setup(self):
-        self.work_s = float(self.params.get("work_ms", 0.0)) / 1e3
+        self.work_s = self.p.work_ms / 1e3
 
     def on_in(self, msg):
         if self.work_s:

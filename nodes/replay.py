@@ -1,4 +1,4 @@
-"""``replay``: plays a dataset folder (``shared/specs/dataset.md``) as a stereo camera source.
+"""``replay``: plays a dataset folder (``docs/dataset.md``) as a stereo camera source.
 
 Outputs as ``sim``: ``left``/``right`` (``CameraImage`` carrying the PNG/JPEG file bytes as
 they are, ``seq`` = frame index, plus ``loop * frames`` when looping), ``joints`` (when the
@@ -25,12 +25,21 @@ and skipped.
 import os
 import time
 from collections import deque
+from dataclasses import dataclass
+from typing import Literal
 
 import numpy as np
 
-from common.messages import Calibration, CameraImage, EcmJoints, EndOfStream, GroundTruth
-from common.camera_source import CameraSourceNode
-from common.node import Prepared, run
+from common.runtime.camera_source import CameraSourceNode
+from common.runtime.messages import (
+    Calibration,
+    CameraImage,
+    EcmJoints,
+    EndOfStream,
+    GroundTruth,
+)
+from common.runtime.node import NodeError, Prepared, run
+from common.runtime.pacing import Pacer
 
 CAMS = ("left", "right")
 PACED = -1.0                  # parse_rate's value for ``paced``
@@ -75,16 +84,30 @@ class ReplayNode(CameraSourceNode):
     INPUTS = {"ack": None, "ack2": None}     # any message with a ``seq`` (``rate: paced``)
     KEEP_ALL = ACKS
 
+    @dataclass
+    class Params:
+        path: str = ""                        # the dataset folder (required)
+        rate: float | Literal["recorded", "max", "paced"] = "recorded"
+        loop: bool = False
+        start: int = 0
+        count: int = 0                        # 0: to the end
+        decode: bool = False
+        ack_timeout: float = 1.0
+        in_flight: int = 1
+
     def setup(self):
-        from common.dataset import Dataset
-        p = self.params
-        if not p.get("path"):
-            raise ValueError("replay: param 'path' (a dataset folder) is required")
-        self.ds = Dataset(str(p["path"]))
-        self.rate = parse_rate(p.get("rate", "recorded"))
-        self.loop = bool(p.get("loop", False))
-        start = int(p.get("start", 0))
-        count = int(p.get("count", 0))
+        from common.data.dataset import Dataset, DatasetError
+        p = self.p
+        if not p.path:
+            raise NodeError("param 'path' (a dataset folder) is required")
+        try:
+            self.ds = Dataset(p.path)
+            self.rate = parse_rate(p.rate)
+        except (DatasetError, ValueError) as exc:
+            raise NodeError(str(exc)) from None
+        self.loop = p.loop
+        start = p.start
+        count = p.count
         self.frames = self.ds.frames[start:start + count if count > 0 else None]
         if not self.frames:
             raise ValueError(f"replay: {self.ds.path} has no frames to play (start={start}, count={count})")
@@ -92,7 +115,7 @@ class ReplayNode(CameraSourceNode):
         self.calib = Calibration(stamp_ns=0, image_size=np.array(meta.image_size), cameras=meta.rig.to_dict(),
                                  needle=meta.needle.to_dict(), ecm=None if meta.arm is None else meta.arm.to_dict(),
                                  source=f"replay {self.ds.path}" + (f" ({meta.source})" if meta.source else ""))
-        self.decoded = self._decode_all() if p.get("decode", False) else None
+        self.decoded = self._decode_all() if p.decode else None
         self.pos = 0
         self.loops = 0
         self.next_images = None          # (seq, [Prepared left, right]): the next frame, copied
@@ -100,10 +123,10 @@ class ReplayNode(CameraSourceNode):
         self.last_calib = None
         self.t0_wall = None
         self.t0_rec = None
-        self.next_t = None
-        self.ack_timeout = float(p.get("ack_timeout", 1.0))
+        self.pacer = Pacer(self.rate if self.rate not in (None, PACED) else 0.0)
+        self.ack_timeout = p.ack_timeout
         self.acked = {name: -1 for name in ACKS if self.wired(name)}
-        self.in_flight = max(1, int(p.get("in_flight", 1)))
+        self.in_flight = max(1, p.in_flight)
         self.awaiting = deque()          # (seq, monotonic time) of the frames not yet acknowledged
         if self.rate == PACED and not self.acked:
             raise ValueError("replay: rate 'paced' needs an 'ack' input wired (e.g. a detector's keypoints)")
@@ -181,10 +204,7 @@ class ReplayNode(CameraSourceNode):
                 self.t0_wall, self.t0_rec = now, fr.stamp_ns
             delay = self.t0_wall + (fr.stamp_ns - self.t0_rec) * 1e-9 - now
         elif self.rate > 0:
-            if self.next_t is None:
-                self.next_t = now
-            delay = self.next_t - now
-            self.next_t = max(self.next_t + 1.0 / self.rate, now - 1.0 / self.rate)
+            delay = self.pacer.delay()
         else:
             delay = 0.0
         while delay > 0 and self.running:  # sleep in slices so a stop request is honoured

@@ -17,12 +17,21 @@ Commands: ``place_needle`` (args: optional ``seed`` int, or ``T_world_needle`` 4
 (args: ``motion``).
 """
 import time
+from dataclasses import dataclass
+from typing import Literal
 
 import numpy as np
 
-from common.messages import Calibration, CameraImage, Command, EcmJoints, GroundTruth
-from common.camera_source import CameraSourceNode
-from common.node import run
+from common.runtime.camera_source import CameraSourceNode
+from common.runtime.messages import (
+    Calibration,
+    CameraImage,
+    Command,
+    EcmJoints,
+    GroundTruth,
+)
+from common.runtime.node import NodeError, run
+from common.runtime.pacing import Pacer
 
 
 class SimNode(CameraSourceNode):
@@ -30,26 +39,40 @@ class SimNode(CameraSourceNode):
 
     OUTPUTS = ("left", "right", "joints", "truth", "calib")
 
+    @dataclass
+    class Params:
+        width: int = 1920
+        height: int = 1080
+        rate_hz: float = 30.0                 # a maximum; 0: as fast as it renders
+        encoding: Literal["jpeg", "png", "bgr8"] = "jpeg"
+        jpeg_quality: int = 95
+        count: int = 0                        # 0: forever
+        randomise: str = "test"
+        seed: int = 0
+        motion: str = "sweep"
+        steps: int = 5
+        hold_frames: int = 15
+        sweep_period_s: float = 8.0
+        sweep_amplitude_rad: float = 0.06
+        msaa: int = 4
+
     def setup(self):
-        import common.sim_render  # noqa: F401  (headless GL before mujoco)
-        from common.sim_live import LiveSim
-        p = self.params
-        rate = float(p.get("rate_hz", 30.0))
-        self.period = 1.0 / rate if rate > 0 else 0.0
-        self.encoding = str(p.get("encoding", "jpeg"))
-        if self.encoding not in ("jpeg", "png", "bgr8"):
-            raise ValueError(f"sim: encoding must be jpeg, png or bgr8, got {self.encoding!r}")
-        self.jpeg_quality = int(p.get("jpeg_quality", 95))
-        self.count_max = int(p.get("count", 0))
-        self.sim = LiveSim(width=int(p.get("width", 1920)), height=int(p.get("height", 1080)),
-                           randomise=str(p.get("randomise", "test")), seed=int(p.get("seed", 0)),
-                           motion=str(p.get("motion", "sweep")), steps=int(p.get("steps", 5)),
-                           hold_frames=int(p.get("hold_frames", 15)),
-                           sweep_period_s=float(p.get("sweep_period_s", 8.0)),
-                           sweep_amplitude_rad=float(p.get("sweep_amplitude_rad", 0.06)), rate_hz=rate,
-                           msaa=int(p.get("msaa", 4)))
+        import common.sim.render  # noqa: F401  (headless GL before mujoco)
+        from common.sim.live import LiveSim
+        p = self.p
+        rate = p.rate_hz
+        self.encoding = p.encoding
+        self.jpeg_quality = p.jpeg_quality
+        self.count_max = p.count
+        try:
+            self.sim = LiveSim(width=p.width, height=p.height, randomise=p.randomise, seed=p.seed,
+                               motion=p.motion, steps=p.steps, hold_frames=p.hold_frames,
+                               sweep_period_s=p.sweep_period_s, sweep_amplitude_rad=p.sweep_amplitude_rad,
+                               rate_hz=rate, msaa=p.msaa)
+        except (KeyError, ValueError) as exc:
+            raise NodeError(f"bad simulator params: {exc}") from None
         self.seq = 0
-        self.next_t = time.monotonic()
+        self.pacer = Pacer(rate)
         self.last_calib = None
         self.calib = Calibration(stamp_ns=0, image_size=np.array([self.sim.rig.left.width, self.sim.rig.left.height]),
                                  cameras=self.sim.rig.to_dict(), needle=self.sim.needle.to_dict(),
@@ -60,11 +83,7 @@ class SimNode(CameraSourceNode):
             return False
         if self.seq == 0:
             self._publish_calib(force=True)
-        if self.period:
-            delay = self.next_t - time.monotonic()
-            if delay > 0:
-                time.sleep(delay)
-            self.next_t = max(self.next_t + self.period, time.monotonic() - self.period)
+        self.pacer.wait()
         fr = self.sim.next_frame()
         stamp = time.time_ns()
         for cam in ("left", "right"):
@@ -89,7 +108,7 @@ class SimNode(CameraSourceNode):
             self.sim.place_needle(seed=args.get("seed"), T_world_needle=None if T is None else np.asarray(T, float))
             self.count("needle_placed")
         elif msg.name == "set_motion":
-            from common.sim_live import MOTIONS
+            from common.sim.live import MOTIONS
             motion = args.get("motion")
             if motion not in MOTIONS:
                 raise ValueError(f"set_motion: motion must be one of {MOTIONS}, got {motion!r}")

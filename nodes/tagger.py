@@ -6,11 +6,12 @@ params: ``tag`` (default "tagger"), ``fail_every`` (raise in the handler every N
 ``delay_s`` (sleep this long in the handler: a slow backend; default 0).
 """
 import time
+from dataclasses import dataclass
 
 import numpy as np
 
-from common.messages import Keypoints
-from common.node import Node, run
+from common.runtime.messages import Keypoints
+from common.runtime.node import Node, run
 
 
 class Tagger(Node):
@@ -19,10 +20,16 @@ class Tagger(Node):
     INPUTS = {"in": None}
     OUTPUTS = ("out",)
 
+    @dataclass
+    class Params:
+        tag: str = "tagger"
+        fail_every: int = 0
+        delay_s: float = 0.0
+
     def setup(self):
-        self.tag = str(self.params.get("tag", "tagger"))
-        self.fail_every = int(self.params.get("fail_every", 0))
-        self.delay_s = float(self.params.get("delay_s", 0.0))
+        self.tag = self.p.tag
+        self.fail_every = self.p.fail_every
+        self.delay_s = self.p.delay_s
 
     def on_in(self, msg):
         seq = int(msg.seq)

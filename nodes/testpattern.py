@@ -9,11 +9,13 @@ params: ``rate_hz`` (30; 0 = as fast as possible), ``width`` (1920), ``height`` 
 """
 import json
 import time
+from dataclasses import dataclass
 
 import numpy as np
 
-from common.messages import CameraImage
-from common.node import Node, run
+from common.runtime.messages import CameraImage
+from common.runtime.node import Node, run
+from common.runtime.pacing import Pacer
 
 
 def pattern_image(width: int, height: int, shift: int = 0) -> np.ndarray:
@@ -34,28 +36,33 @@ class TestPattern(Node):
 
     OUTPUTS = ("left", "right")
 
+    @dataclass
+    class Params:
+        rate_hz: float = 30.0      # 0: as fast as it goes
+        width: int = 1920
+        height: int = 1080
+        encoding: str = "bgr8"
+        count: int = 0
+        start_delay_s: float = 0.0
+        report: str | None = None
+
     def setup(self):
-        rate = float(self.params.get("rate_hz", 30.0))
-        self.period = 1.0 / rate if rate > 0 else 0.0
-        self.w, self.h = int(self.params.get("width", 1920)), int(self.params.get("height", 1080))
-        self.encoding = str(self.params.get("encoding", "bgr8"))
-        self.count_max = int(self.params.get("count", 0))
+        rate = self.p.rate_hz
+        self.w, self.h = self.p.width, self.p.height
+        self.encoding = self.p.encoding
+        self.count_max = self.p.count
         self.images = {"left": pattern_image(self.w, self.h, 0), "right": pattern_image(self.w, self.h, 8)}
         # bgr8 frames are built once as bytes, like a driver handing out its buffer: the
         # transport benchmark then measures the transport, not an array-to-bytes copy
         self.raw = {cam: img.tobytes() for cam, img in self.images.items()} if self.encoding == "bgr8" else None
         self.seq = 0
         self.cpu0 = time.process_time()
-        self.next_t = time.monotonic() + float(self.params.get("start_delay_s", 0.0))
+        self.pacer = Pacer(rate, start_delay_s=self.p.start_delay_s)
 
     def step(self):
         if self.count_max and self.seq >= self.count_max:
             return False
-        if self.period or self.seq == 0:
-            delay = self.next_t - time.monotonic()
-            if delay > 0:
-                time.sleep(delay)
-            self.next_t = max(self.next_t + self.period, time.monotonic() - self.period)
+        self.pacer.wait()
         for cam in ("left", "right"):
             if self.raw is not None:
                 msg = CameraImage(cam, self.seq, time.time_ns(), self.w, self.h, "bgr8", self.raw[cam])
@@ -66,8 +73,8 @@ class TestPattern(Node):
         return True
 
     def teardown(self):
-        if self.params.get("report"):
-            with open(self.params["report"], "w") as f:
+        if self.p.report:
+            with open(self.p.report, "w") as f:
                 json.dump({"frames": self.seq, "cpu_s": time.process_time() - self.cpu0}, f)
 
 

@@ -1,5 +1,5 @@
 """Pipeline II node: DLT triangulation of the keypoint pairs and Arun's registration
-(common/triangulation.py).
+(common/geometry/triangulation.py).
 
 Inputs: ``left``, ``right`` (Keypoints, paired by ``seq``), ``calib``, ``ecm`` (EcmPose,
 optional: adds ``T_world_ecm``/``T_world_needle``; when wired, a pose waits for its frame's ECM
@@ -14,13 +14,15 @@ keypoint noise the RMS is typically 8 mm, at most 4 cm).
 """
 from __future__ import annotations
 
+from dataclasses import dataclass
+
 import numpy as np
 
-from common.messages import Calibration, EcmPose, Keypoints, Points3D
-from common.node import run
-from common.observations import NoPose
-from common.pose_node import StereoPoseNode
-from common.triangulation import triangulate_keypoints, triangulation_pose
+from common.geometry.observations import NoPose
+from common.geometry.triangulation import triangulate_keypoints, triangulation_pose
+from common.runtime.messages import Calibration, EcmPose, Keypoints, Points3D
+from common.runtime.node import run
+from nodes._pose import StereoPoseNode
 
 
 class TriangulateNode(StereoPoseNode):
@@ -30,10 +32,13 @@ class TriangulateNode(StereoPoseNode):
     OUTPUTS = ("pose", "points")
     KEEP_ALL = StereoPoseNode.KEEP_ALL
 
+    @dataclass
+    class Params(StereoPoseNode.Params):
+        max_rms_m: float | None = 0.05    # larger Arun residuals give no pose; null: no gate
+
     def setup(self):
         super().setup()
-        v = self.params.get("max_rms_m", 0.05)
-        self.max_rms_m = None if v is None else float(v)
+        self.max_rms_m = self.p.max_rms_m
 
     def on_pair(self, left, right):
         uv, sc = self.stereo_arrays(left, right)

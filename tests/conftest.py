@@ -7,7 +7,8 @@ import pytest
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
-from graphtools import free_port as _free_port, launch_graph  # noqa: E402
+from graphtools import free_port as _free_port  # noqa: E402
+from graphtools import launch_graph
 
 
 @pytest.fixture

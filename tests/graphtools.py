@@ -48,8 +48,22 @@ REPO = Path(__file__).resolve().parent.parent
 if str(REPO) not in sys.path:
     sys.path.insert(0, str(REPO))
 
-from common.graph import Graph, launcher_key, live_key, load_graph, stats_key, zenoh_config  # noqa: E402
-from common.messages import Command, Message, MessageError, NodeStats, decode, encode  # noqa: E402
+from common.runtime.graph import (  # noqa: E402
+    Graph,
+    launcher_key,
+    live_key,
+    load_graph,
+    stats_key,
+    zenoh_config,
+)
+from common.runtime.messages import (  # noqa: E402
+    Command,
+    Message,
+    MessageError,
+    NodeStats,
+    decode,
+    encode,
+)
 
 _names = itertools.count()
 
@@ -250,9 +264,12 @@ class RunningGraph:
         """``needletrack CMD ARGS -g <this graph>``: e.g. ``g.cli("ps")``."""
         return cli(args[0], "-g", self.path, *args[1:], timeout=timeout)
 
-    def swap(self, node: str, module: Optional[str] = None, timeout: float = 120, **params) -> subprocess.CompletedProcess:
-        """``needletrack swap NODE [--module M] [--param k=v ...]`` against this graph."""
+    def swap(self, node: str, module: Optional[str] = None, timeout: float = 120, unset=(),
+             **params) -> subprocess.CompletedProcess:
+        """``needletrack swap NODE [--module M] [--param k=v ...] [--unset k ...]`` against this graph."""
         args = ["swap", node] + (["--module", module] if module else [])
+        for k in unset:
+            args += ["--unset", k]
         for k, v in params.items():
             args += ["--param", f"{k}={yaml.safe_dump(v, default_flow_style=True).strip().removesuffix('...').strip()}"]
         return self.cli(*args, timeout=timeout)

@@ -1,4 +1,4 @@
-"""The second renderer (common/alt_render.py, common/alt_generate.py): rasteriser exactness,
+"""The second renderer (common/sim/alt_render.py, common/sim/alt_generate.py): rasteriser exactness,
 ground truth on the rendered needle, spec-conforming folders. Small images: fast."""
 import json
 import subprocess
@@ -7,15 +7,31 @@ import sys
 import numpy as np
 import pytest
 
-from common.alt_generate import (DISTANCE_RANGE_M, MULTIVIEW_STEP_RAD, aim_joints, alt_arm, alt_meta,
-                                 plan_alt_sequence, view_direction)
-from common.alt_render import (LABELS, AltRenderer, AltScene, Material, NeedleShape, Tissue, box_mesh,
-                               make_tissue_textures, needle_mesh, rasterise)
-from common.camera import StereoRig
-from common.dataset import Dataset, check_dataset
-from common.dataset_cli import main as dataset_main
-from common.needle import NeedleModel
-from common.transforms import inv_T, make_T, rotvec_to_R, transform_points
+from common.data.dataset import Dataset, check_dataset
+from common.geometry.camera import StereoRig
+from common.geometry.needle import NeedleModel
+from common.geometry.transforms import inv_T, make_T, rotvec_to_R, transform_points
+from common.sim.alt_generate import (
+    DISTANCE_RANGE_M,
+    MULTIVIEW_STEP_RAD,
+    aim_joints,
+    alt_arm,
+    plan_alt_sequence,
+    view_direction,
+)
+from common.sim.alt_render import (
+    LABELS,
+    AltRenderer,
+    AltScene,
+    Material,
+    NeedleShape,
+    Tissue,
+    box_mesh,
+    make_tissue_textures,
+    needle_mesh,
+    rasterise,
+)
+from common.sim.cli import main as dataset_main
 
 METAL = Material((0.6, 0.6, 0.62), 0.4, 0.8, 60.0, env=0.5)
 
@@ -217,7 +233,7 @@ def test_aim_joints_points_the_scope_at_the_target():
 
 
 def test_renderer_uses_no_mujoco_code():
-    code = ("import sys, common.alt_generate, common.dataset_cli; "
+    code = ("import sys, common.sim.alt_generate, common.sim.cli; "
             "bad = [m for m in sys.modules if m == 'mujoco' or m.startswith('common.sim_')]; "
             "assert not bad, bad")
     subprocess.run([sys.executable, "-c", code], check=True, cwd=str(__import__("pathlib").Path(__file__).parents[1]))

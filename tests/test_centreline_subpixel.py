@@ -1,7 +1,11 @@
-"""Sub-pixel centreline refinement in the image (common.centreline_subpixel)."""
+"""Sub-pixel centreline refinement in the image (common.detector.centreline_subpixel)."""
 import numpy as np
 
-from common.centreline_subpixel import TRIM, ellipse_residual, refine_centreline
+from common.detector.centreline_subpixel import (
+    TRIM,
+    ellipse_residual,
+    refine_centreline,
+)
 
 CENTRE, RADIUS, HALF_WIDTH = np.array([400.3, 300.7]), 120.4, 2.2
 TISSUE, WIRE = np.array([120, 130, 215.0]), np.array([205, 205, 210.0])   # BGR

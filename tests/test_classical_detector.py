@@ -1,13 +1,12 @@
 """The classical (OpenCV-only) backend: finds a drawn needle, rejects blank and bad images."""
 import numpy as np
-import pytest
 
-from common.classical_detector import ClassicalDetector
-from common.keypoint_backends import load_backend
-from common.keypoint_data import _background, render_synthetic
-from common.camera import StereoRig
-from common.needle import NeedleModel
-from common.transforms import inv_T, make_T, rotvec_to_R, transform_points
+from common.detector.backends import load_backend
+from common.detector.classical import ClassicalDetector
+from common.detector.data import _background, render_synthetic
+from common.geometry.camera import StereoRig
+from common.geometry.needle import NeedleModel
+from common.geometry.transforms import make_T, rotvec_to_R, transform_points
 
 
 def _drawn_needle(seed=0):

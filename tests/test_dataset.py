@@ -7,12 +7,20 @@ import numpy as np
 import pytest
 import yaml
 
-from common.camera import StereoRig
-from common.dataset import (Dataset, DatasetError, DatasetMeta, DatasetWriter, Frame, check_dataset,
-                            project_keypoints, truncate_torn_tail)
-from common.ecm_kinematics import EcmArm
-from common.needle import NeedleModel
-from common.transforms import make_T, rotvec_to_R
+from common.data.dataset import (
+    Dataset,
+    DatasetError,
+    DatasetMeta,
+    DatasetWriter,
+    Frame,
+    check_dataset,
+    project_keypoints,
+    truncate_torn_tail,
+)
+from common.geometry.camera import StereoRig
+from common.geometry.ecm_kinematics import EcmArm
+from common.geometry.needle import NeedleModel
+from common.geometry.transforms import make_T, rotvec_to_R
 
 W, H = 160, 90
 

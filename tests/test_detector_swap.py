@@ -7,16 +7,18 @@ import signal
 
 import numpy as np
 
-from common.camera import StereoRig
-from common.dataset import DatasetMeta, DatasetWriter, Frame, project_keypoints
-from common.messages import Keypoints
-from common.needle import NeedleModel
-from common.sim_randomise import default_arm
-from common.transforms import make_T, rotvec_to_R
+from common.data.dataset import DatasetMeta, DatasetWriter, Frame, project_keypoints
+from common.geometry.camera import StereoRig
+from common.geometry.needle import NeedleModel
+from common.geometry.transforms import make_T, rotvec_to_R
+from common.runtime.messages import Keypoints
+from common.sim.randomise import default_arm
 
 W, H = 160, 90           # tiny images: the swap is under test, not the detectors' accuracy
 RATE_HZ = 10             # low enough for every backend to keep up on two busy cores
 ORDER = ("oracle", "classical", "learned", "oracle")
+BACKEND_PARAMS = {"oracle": {"noise_px": 0.5}, "classical": {}, "learned": {"device": "cpu", "threads": 1}}
+ALL_PARAMS = {k for p in BACKEND_PARAMS.values() for k in p}
 AFTER_SWAP = 5           # messages per camera each backend must publish after its swap
 
 
@@ -49,7 +51,7 @@ def _graph(folder, backend: str = "oracle") -> dict:
         {"id": "camera", "module": "replay", "outputs": ["left", "right", "joints", "truth", "calib", "eos"],
          "params": {"path": str(folder), "rate": RATE_HZ, "loop": True}},
         {"id": "detector", "module": "detector",
-         "params": {"backend": backend, "noise_px": 0.5, "device": "cpu", "threads": 1},
+         "params": {"backend": backend, **BACKEND_PARAMS[backend]},
          "inputs": {"left": "camera/left", "right": "camera/right", "truth": "camera/truth",
                     "calib": "camera/calib"},
          "outputs": ["left", "right"]}]}
@@ -66,7 +68,9 @@ def test_detector_backend_swaps_at_runtime_with_at_most_one_frame_missing(run_gr
     for backend in ORDER[1:]:
         # the new backend's outputs come after everything published before its swap
         marks = {cam: max(m.seq for m in sub.messages) for cam, sub in subs.items()}
-        res = g.swap("detector", backend=backend, timeout=90)
+        # the old backend's params go, the new one's come (each backend checks its own)
+        res = g.swap("detector", backend=backend, unset=[k for k in ALL_PARAMS if k not in BACKEND_PARAMS[backend]],
+                     timeout=90, **BACKEND_PARAMS[backend])
         assert res.returncode == 0, res.stdout + res.stderr + g.log()[-4000:]
         summaries.append(res.stdout.strip())
         for cam, sub in subs.items():
@@ -100,7 +104,7 @@ def test_a_failed_backend_swap_leaves_the_running_backend_in_place_for_good(run_
     g = run_graph(_graph(tmp_path / "ds", "oracle"), timeout=60)
     g.collect("detector/left", 3, timeout=30, expect=Keypoints)
     pid = g.pids()["detector"]
-    res = g.swap("detector", backend="learned", weights=str(tmp_path / "missing.pt"), timeout=90)
+    res = g.swap("detector", backend="learned", weights=str(tmp_path / "missing.pt"), unset=["noise_px"], timeout=90)
     assert res.returncode == 1 and "before taking over" in res.stderr, res.stdout + res.stderr
     assert "missing.pt" in g.log()                       # the node said which file it could not load
     assert g.pids()["detector"] == pid

@@ -1,4 +1,4 @@
-"""ECM forward kinematics (common/ecm_kinematics.py) against hand-computed values.
+"""ECM forward kinematics (common/geometry/ecm_kinematics.py) against hand-computed values.
 
 Working the spec's modified-DH chain through by hand (RotX(pi/2) maps z to -y, etc.) gives the
 closed form
@@ -11,8 +11,8 @@ direction), yaw turns about -y, pitch about -x and roll about -z, all about the 
 import numpy as np
 import pytest
 
-from common.ecm_kinematics import EcmArm, ecm_forward, mdh_link
-from common.transforms import is_rigid, make_T
+from common.geometry.ecm_kinematics import EcmArm, ecm_forward, mdh_link
+from common.geometry.transforms import is_rigid, make_T
 
 
 def RotX(a):

@@ -4,15 +4,39 @@ import json
 import numpy as np
 import pytest
 
-from common.camera import StereoRig
-from common.evaluation import (METHODS, RESULT_KEYS, Collected, build_results, check_results, pose_nees,
-                               evaluate, keypoint_errors_2d, last_steps, pearson, summary,
-                               to_jsonable)
-from common.evaluation_report import report_markdown, select_overlay_frames, write_outputs
-from common.messages import (Calibration, EndOfStream, GroundTruth, Keypoints, NodeStats,
-                             Points3D, PoseEstimate, decode, encode)
-from common.needle import NeedleModel
-from common.transforms import inv_T, make_T, rotvec_to_R, transform_points
+from common.evaluation.report import (
+    report_markdown,
+    select_overlay_frames,
+    write_outputs,
+)
+from common.evaluation.scoring import (
+    METHODS,
+    RESULT_KEYS,
+    Collected,
+    build_results,
+    check_results,
+    evaluate,
+    keypoint_errors_2d,
+    last_steps,
+    pearson,
+    pose_nees,
+    summary,
+    to_jsonable,
+)
+from common.geometry.camera import StereoRig
+from common.geometry.needle import NeedleModel
+from common.geometry.transforms import inv_T, make_T, rotvec_to_R, transform_points
+from common.runtime.messages import (
+    Calibration,
+    EndOfStream,
+    GroundTruth,
+    Keypoints,
+    NodeStats,
+    Points3D,
+    PoseEstimate,
+    decode,
+    encode,
+)
 
 RIG = StereoRig.default(480, 270)
 NEEDLE = NeedleModel()
@@ -242,7 +266,7 @@ def test_nees_of_a_stated_covariance():
 
 
 def test_the_nees_picture_is_drawn_when_covariances_are_stated(tmp_path):
-    from common.evaluation_report import chi2_6_cdf
+    from common.evaluation.report import chi2_6_cdf
     assert chi2_6_cdf(5.348) == pytest.approx(0.5, abs=1e-3) and chi2_6_cdf(16.81) == pytest.approx(0.99, abs=1e-3)
     col = synthetic(pos_err=0.001, ang_err=0.0)
     write_outputs(tmp_path / "none", col, dataset="d", detector="oracle")

@@ -2,14 +2,13 @@
 import json
 import shutil
 
-import numpy as np
 import pytest
 import yaml
 
-from common.dataset_cli import main as dataset_main
-from common.evaluation import METHODS, check_results
-from common.evaluation_cli import main as eval_main
-from common.graph_bench import main as bench_main
+from common.evaluation.cli import main as eval_main
+from common.evaluation.graph_bench import main as bench_main
+from common.evaluation.scoring import check_results
+from common.sim.cli import main as dataset_main
 
 
 @pytest.fixture(scope="module")
@@ -68,7 +67,7 @@ def test_oracle_with_noise_gives_errors_of_the_expected_size(small_dataset, tmp_
     assert 1.0 < k2["mean"] < 1.5 and 0.4 < k2["std"] < 0.9
     # a pixel of noise moves a triangulated point by millimetres at 10-25 cm with a 4 mm baseline
     assert 1.0 < res["keypoints_3d_mm"]["all"]["mean"] < 100.0
-    # shared/notes/pose-sensitivity.md: the joint stereo fit at 1 px averages a few mm
+    # docs/geometry.md#pose-sensitivity: the joint stereo fit at 1 px averages a few mm
     joint = res["pose"]["pnp_joint"]
     assert joint["n"] == 9
     assert 0.3 < joint["position_mm"]["mean"] < 50.0 and 0.3 < joint["orientation_deg"]["mean"] < 90.0

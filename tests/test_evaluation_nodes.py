@@ -4,11 +4,12 @@ import json
 import time
 
 import numpy as np
-
-from common.messages import EndOfStream
-from nodes.evaluator import EvaluatorNode
-from nodes.monitor import MonitorNode, format_line
 from test_evaluation import synthetic
+
+from common.geometry.transforms import rotvec_to_R
+from common.runtime.messages import EndOfStream
+from nodes.evaluator import EvaluatorNode
+from nodes.monitor import WIDTH, MonitorNode, format_lines
 
 
 def feed(node, col, methods):
@@ -59,7 +60,7 @@ def test_evaluator_drains_then_counts_missing_poses_as_failures(tmp_path):
     assert res["graph_methods"] == methods
 
 
-def test_monitor_prints_pose_and_error():
+def test_monitor_prints_the_final_pose_and_error_in_one_short_line():
     col = synthetic(n_seq=1, steps=3, pos_err=0.002, ang_err=np.radians(3.0))
     methods = ["pnp_joint", "multiview"]
     node = MonitorNode.offline(params={"every_s": 0}, wired=["truth", "calib", *methods])
@@ -67,12 +68,37 @@ def test_monitor_prints_pose_and_error():
     feed(node, col, methods)
     lines = node.out.getvalue().splitlines()
     assert len(lines) == 3
-    assert lines[0].startswith("seq     0 | pnp_joint t=[")
-    assert "err 2.00mm 3.0deg" in lines[0] and "err 1.00mm 1.5deg" in lines[0]
+    # multiview leads (it comes before pnp_joint in FINAL_ORDER); the other is only counted
+    assert lines[0].startswith("seq     0 2/2 multiview t=[")
+    assert "err 1.00mm 1.5deg" in lines[0] and "pnp_joint" not in lines[0]
     assert "views 3" in lines[2]
+
+
+def test_monitor_all_methods_and_the_width_of_the_longest_line():
+    col = synthetic(n_seq=1, steps=3, pos_err=0.002, ang_err=np.radians(3.0))
+    methods = ["pnp_joint", "multiview"]
+    node = MonitorNode.offline(params={"every_s": 0, "all_methods": True}, wired=["truth", "calib", *methods])
+    node.out = io.StringIO()
+    feed(node, col, methods)
+    lines = node.out.getvalue().splitlines()
+    assert len(lines) == 6 and lines[1].lstrip().startswith("pnp_joint t=[") and "err 2.00mm 3.0deg" in lines[1]
+    # the widest a pose in the working volume prints: every field at its longest, ambiguous, fused
+    worst = col.poses["pnp_joint"][0]
+    worst.T_ecm_needle = np.eye(4)
+    worst.T_ecm_needle[:3, 3] = [-0.1999, -0.1999, -0.9999]
+    worst.T_ecm_needle[:3, :3] = rotvec_to_R(np.radians([-100.0, -100.0, -101.0]))
+    worst.ambiguous, worst.n_views = True, 10
+    T_true = np.eye(4)
+    T_true[:3, 3] = [-0.19, -0.19, -0.93]
+    methods = ["refined", "multiview_refined"]
+    lines = format_lines(99999, {m: worst for m in methods}, T_true, methods, all_methods=True)
+    for line in lines:
+        assert len(line) <= WIDTH and not line.endswith("..."), (len(line), line)
+    assert "r=[-100.0 -100.0 -101.0]deg" in lines[1] and "ambiguous views 10" in lines[1]
 
 
 def test_monitor_line_without_truth_or_pose():
     col = synthetic(n_seq=1, steps=1)
-    line = format_line(0, {"pnp_joint": col.poses["pnp_joint"][0]}, None, ["pnp_joint", "refined"])
-    assert "err" not in line and "refined no pose" in line and "mm r=[" in line
+    lines = format_lines(0, {"pnp_joint": col.poses["pnp_joint"][0]}, None, ["refined", "pnp_joint"], True)
+    assert lines[0] == "seq     0 1/2 refined  no pose" and "err" not in lines[1]
+    assert "mm r=[" in lines[1]

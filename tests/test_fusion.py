@@ -1,18 +1,23 @@
-"""Multi-view fusion (common/fusion.py)."""
+"""Multi-view fusion (common/geometry/fusion.py)."""
 import numpy as np
 import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from common.camera import StereoRig
-from common.ecm_kinematics import EcmArm
-from common.fusion import (MultiViewFusion, covariance_to_frame, fuse_poses, information_mean,
-                           robust_centre)
-from common.geometry_eval import multiview_scenario
-from common.needle import NeedleModel
-from common.oracle import Oracle
-from common.pnp import pnp_joint
-from common.transforms import R_to_rotvec, make_T, pose_error, rotvec_to_R
+from common.evaluation.geometry_bench import multiview_scenario
+from common.geometry.camera import StereoRig
+from common.geometry.ecm_kinematics import EcmArm
+from common.geometry.fusion import (
+    MultiViewFusion,
+    covariance_to_frame,
+    fuse_poses,
+    information_mean,
+    robust_centre,
+)
+from common.geometry.needle import NeedleModel
+from common.geometry.oracle import Oracle
+from common.geometry.pnp import pnp_joint
+from common.geometry.transforms import R_to_rotvec, make_T, pose_error, rotvec_to_R
 
 RIG = StereoRig.default()
 MODEL = NeedleModel()

@@ -2,11 +2,18 @@
 import json
 
 import pytest
-
-import common.graph as graph_mod
-from common import cli as cli_mod
-from common.graph import (GraphError, load_graph, module_info, parse_param, validate_graph, zenoh_config)
 from graphtools import REPO, cli
+
+import common.runtime.graph as graph_mod
+from common import cli as cli_mod
+from common.runtime.graph import (
+    GraphError,
+    load_graph,
+    module_info,
+    parse_param,
+    validate_graph,
+    zenoh_config,
+)
 
 GOOD = {"graph": "g", "nodes": [
     {"id": "count", "module": "counter", "params": {"rate_hz": 5}},

@@ -3,8 +3,8 @@ import json
 
 import numpy as np
 
-from common.keypoint_bench import SURE_SCORE, main, run
-from common.keypoint_data import write_synthetic_dataset
+from common.detector.data import write_synthetic_dataset
+from common.evaluation.detector_bench import SURE_SCORE, main, run
 
 
 def test_bench_reports_accuracy_speed_and_false_detections(tmp_path, capsys):

@@ -6,12 +6,18 @@ import numpy as np
 import pytest
 import torch
 
-from common.keypoint_backends import BackendError, load_backend
-from common.keypoint_detector import (DEFAULT_WEIGHTS, KEYPOINT_SIGMA_PX, KeypointDetector, ModelFileError,
-                                      decode_centreline, load_model)
-from common.keypoint_model import KeypointModel, ModelConfig
-from common.keypoint_train import save_model
-from common.messages import CameraImage, Keypoints
+from common.detector.backends import BackendError, load_backend
+from common.detector.inference import (
+    DEFAULT_WEIGHTS,
+    KEYPOINT_SIGMA_PX,
+    KeypointDetector,
+    ModelFileError,
+    decode_centreline,
+    load_model,
+)
+from common.detector.model import KeypointModel, ModelConfig
+from common.detector.train import save_model
+from common.runtime.messages import CameraImage, Keypoints
 
 
 @pytest.fixture(scope="module")
@@ -22,8 +28,8 @@ def detector():
 @pytest.fixture(scope="module")
 def rendered_frames():
     """Three stereo frames freshly rendered by the simulator (test look, a seed used nowhere else)."""
-    from common.sim_generate import GenerateConfig, render_sequence
-    from common.sim_render import SceneRenderer
+    from common.sim.generate import GenerateConfig, render_sequence
+    from common.sim.render import SceneRenderer
     cfg = GenerateConfig(sequences=3, steps=1, seed=987_654, randomise="test", image_format="png")
     renderer = SceneRenderer()
     return [render_sequence(renderer, cfg, s)[0][:2] for s in range(3)]
@@ -56,9 +62,9 @@ def test_shipped_model_finds_the_needle_in_rendered_frames(detector, rendered_fr
 
 
 def test_centreline_is_sub_pixel_in_the_full_resolution_image(rendered_frames):
-    from common.camera import StereoRig
-    from common.needle import NeedleModel
-    from common.refine import project_centreline
+    from common.geometry.camera import StereoRig
+    from common.geometry.needle import NeedleModel
+    from common.geometry.refine import project_centreline
     rig, needle = StereoRig.default(), NeedleModel()
     dist = {}
     for subpixel in (False, True):
@@ -180,8 +186,13 @@ def test_centreline_decoding_finds_a_ridge_at_subcell_precision():
 
 
 def test_arc_fit_recovers_b_c_d_of_an_affine_arc():
-    from common.keypoint_detector import ARC_ANGLES_DEG, arc_at, fit_arc_affine, refine_along_arc
-    from common.keypoint_model import centreline_target
+    from common.detector.inference import (
+        ARC_ANGLES_DEG,
+        arc_at,
+        fit_arc_affine,
+        refine_along_arc,
+    )
+    from common.detector.model import centreline_target
     c = np.array([60.3, 70.6])
     U = np.array([[30.0, 8.0], [-5.0, -18.0]])      # a tilted, foreshortened circle
     t = np.deg2rad(np.asarray(ARC_ANGLES_DEG))
@@ -208,9 +219,9 @@ def test_arc_fit_recovers_b_c_d_of_an_affine_arc():
 def test_detector_node_with_the_learned_backend_on_one_camera(rendered):
     """One detector process per camera: only ``left`` wired; a JPEG frame gives keypoints, corrupt
     bytes give "no needle" with the reason, counted, and the node keeps going."""
-    from common.camera import StereoRig
-    from common.messages import Calibration, decode, encode
-    from common.needle import NeedleModel
+    from common.geometry.camera import StereoRig
+    from common.geometry.needle import NeedleModel
+    from common.runtime.messages import Calibration, decode, encode
     from nodes.detector import DetectorNode
     images, fields = rendered
     calib = Calibration(0, np.array([1920, 1080]), StereoRig.default().to_dict(), NeedleModel().to_dict())

@@ -3,9 +3,20 @@ import numpy as np
 import pytest
 import torch
 
-from common.keypoint_model import (CropNet, FrozenForInference, GlobalNet, KeypointModel, ModelConfig, apply_affine,
-                                   centreline_target, crop_affine, decode_global, decode_heatmaps,
-                                   fuse_conv_bn, gaussian_targets, invert_affine, keypoint_loss)
+from common.detector.model import (
+    FrozenForInference,
+    KeypointModel,
+    ModelConfig,
+    apply_affine,
+    centreline_target,
+    crop_affine,
+    decode_global,
+    decode_heatmaps,
+    fuse_conv_bn,
+    gaussian_targets,
+    invert_affine,
+    keypoint_loss,
+)
 
 
 @pytest.mark.parametrize("stride", [1, 2])
@@ -116,8 +127,8 @@ def test_model_config_rejects_unknown_fields():
 
 
 def test_a_perfect_heatmap_scores_one_after_normalisation():
-    from common.keypoint_detector import ideal_peak_mass
-    from common.keypoint_model import decode_heatmaps, gaussian_targets
+    from common.detector.inference import ideal_peak_mass
+    from common.detector.model import decode_heatmaps, gaussian_targets
     sigma = 1.5
     t = gaussian_targets(torch.tensor([[[30.0, 41.0]]]), torch.ones(1, 1), 64, sigma)
     _, score = decode_heatmaps(torch.log(t.clamp_min(1e-30)), 1)

@@ -7,10 +7,31 @@ import pytest
 import torch
 import yaml
 
-from common.keypoint_data import (AugConfig, DatasetError, _global_window, crop_sample, load_records,
-                                  read_dataset, write_synthetic_dataset)
-from common.keypoint_model import KeypointModel, ModelConfig, apply_affine, crop_affine, crop_side
-from common.keypoint_train import DEFAULT_TRAIN, crop_batch, global_batch, load_config, losses, main, train
+from common.detector.data import (
+    AugConfig,
+    DatasetError,
+    _global_window,
+    crop_sample,
+    load_records,
+    read_dataset,
+    write_synthetic_dataset,
+)
+from common.detector.model import (
+    KeypointModel,
+    ModelConfig,
+    apply_affine,
+    crop_affine,
+    crop_side,
+)
+from common.detector.train import (
+    DEFAULT_TRAIN,
+    crop_batch,
+    global_batch,
+    load_config,
+    losses,
+    main,
+    train,
+)
 
 TINY_MODEL = {"crop": 64, "crop_widths": [8, 16, 16, 24], "global_widths": [8, 8, 16], "crop_min": 40.0}
 

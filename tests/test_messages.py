@@ -6,10 +6,25 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 from hypothesis.extra import numpy as hnp
 
-from common.camera import StereoRig
-from common.messages import (MESSAGE_TYPES, CameraImage, Calibration, Command, EcmJoints, EcmPose, EndOfStream,
-                             GroundTruth, Keypoints, MessageError, NodeStats, Points3D, PoseEstimate, decode, encode)
-from common.needle import NeedleModel
+from common.geometry.camera import StereoRig
+from common.geometry.needle import NeedleModel
+from common.runtime.messages import (
+    MESSAGE_TYPES,
+    Calibration,
+    CameraImage,
+    Command,
+    EcmJoints,
+    EcmPose,
+    EndOfStream,
+    GroundTruth,
+    Keypoints,
+    MessageError,
+    NodeStats,
+    Points3D,
+    PoseEstimate,
+    decode,
+    encode,
+)
 
 
 def _calib():
@@ -65,7 +80,7 @@ def test_every_message_round_trips_exactly(msg):
 def test_calibration_round_trips():
     c = _calib()
     back = decode(encode(c), Calibration)
-    assert back.rig() is not None and back.source == "test"
+    assert StereoRig.from_dict(back.cameras, back.image_size) is not None and back.source == "test"
 
 
 def test_all_message_types_are_registered():

@@ -1,15 +1,28 @@
-"""The oracle detector (common/oracle.py) and the backend registry (common/keypoint_backends.py)."""
+"""The oracle detector (common/geometry/oracle.py) and the backend registry (common/detector/backends.py)."""
 import numpy as np
 import pytest
 
-from common.camera import StereoRig
-from common.keypoint_backends import (BACKENDS, BackendError, KeypointBackend, OracleBackend,
-                                      available_backends, load_backend, register_backend)
-from common.messages import Calibration, GroundTruth, Keypoints, decode, encode
-from common.needle import NeedleModel
-from common.oracle import (Oracle, arc_bbox, needle_pose_in_view, random_needle_pose, true_keypoints,
-                           view_tilt_rad)
-from common.transforms import make_T, transform_points
+from common.detector.backends import (
+    BACKENDS,
+    BackendError,
+    KeypointBackend,
+    OracleBackend,
+    available_backends,
+    load_backend,
+    register_backend,
+)
+from common.geometry.camera import StereoRig
+from common.geometry.needle import NeedleModel
+from common.geometry.oracle import (
+    Oracle,
+    arc_bbox,
+    needle_pose_in_view,
+    random_needle_pose,
+    true_keypoints,
+    view_tilt_rad,
+)
+from common.geometry.transforms import make_T, transform_points
+from common.runtime.messages import Calibration, GroundTruth, Keypoints, decode, encode
 
 RIG = StereoRig.default()
 MODEL = NeedleModel()
@@ -132,7 +145,7 @@ def test_registry_is_lazy_and_names_errors():
     try:
         with pytest.raises(BackendError, match="cannot import"):
             load_backend("broken")
-        register_backend("broken", "common.oracle:Oracle")          # not a KeypointBackend
+        register_backend("broken", "common.geometry.oracle:Oracle")          # not a KeypointBackend
         with pytest.raises(BackendError, match="no KeypointBackend"):
             load_backend("broken")
     finally:

@@ -1,7 +1,12 @@
 """The evaluation/benchmark graph document and the lossless node wrapper, with no process."""
-from common.graph import graph_from_dict
-from common.pipeline_graph import (SOURCE, keypoint_sources, lossless_class, pipeline_graph,
-                                   pose_inputs)
+from common.evaluation.pipeline_graph import (
+    SOURCE,
+    keypoint_sources,
+    lossless_class,
+    pipeline_graph,
+    pose_inputs,
+)
+from common.runtime.graph import graph_from_dict
 from nodes.epnp import EpnpNode
 from nodes.replay import ReplayNode
 
@@ -34,7 +39,7 @@ def test_split_detector_and_lossless_commands():
         if n.id == "sink":
             assert n.module == "monitor"      # sinks run as they are
             continue
-        assert n.module is None and n.command[1:4] == ["-m", "common.pipeline_graph", "--module"]
+        assert n.module is None and n.command[1:4] == ["-m", "common.evaluation.pipeline_graph", "--module"]
         assert n.command[4] in {"replay", "detector", "ecm", "epnp", "triangulate", "fusion"}
         peers = int(n.command[n.command.index("--peers") + 1])
         assert peers == (n_main + 2 if n.id == SOURCE else n_main)

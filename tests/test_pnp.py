@@ -1,16 +1,30 @@
-"""Pipeline I (common/pnp.py): exact at zero noise, joint beats average, no pose from bad input."""
+"""Pipeline I (common/geometry/pnp.py): exact at zero noise, joint beats average, no pose from bad input."""
 import numpy as np
 import pytest
 from hypothesis import HealthCheck, assume, given, settings
 from hypothesis import strategies as st
 
-from common.camera import StereoRig
-from common.needle import NeedleModel
-from common.observations import NoPose, stereo_observations
-from common.oracle import Oracle, needle_pose_in_view, random_needle_pose, true_keypoints, view_tilt_rad
-from common.pnp import (ReprojectionProblem, initial_poses, pnp_average, pnp_joint, pose_covariance,
-                        refine_pose_lm, refine_starts, unsure_starts)
-from common.transforms import inv_T, make_T, pose_error, rotvec_to_R
+from common.geometry.camera import StereoRig
+from common.geometry.needle import NeedleModel
+from common.geometry.observations import NoPose, stereo_observations
+from common.geometry.oracle import (
+    Oracle,
+    needle_pose_in_view,
+    random_needle_pose,
+    true_keypoints,
+    view_tilt_rad,
+)
+from common.geometry.pnp import (
+    ReprojectionProblem,
+    initial_poses,
+    pnp_average,
+    pnp_joint,
+    pose_covariance,
+    refine_pose_lm,
+    refine_starts,
+    unsure_starts,
+)
+from common.geometry.transforms import inv_T, make_T, pose_error, rotvec_to_R
 
 RIG = StereoRig.default()
 MODEL = NeedleModel()

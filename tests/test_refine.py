@@ -1,21 +1,35 @@
-"""Dense refinement (common/refine.py) on synthetic observations: no process, no network."""
+"""Dense refinement (common/geometry/refine.py) on synthetic observations: no process, no network."""
 from __future__ import annotations
 
 from dataclasses import replace
 
 import numpy as np
 import pytest
-from hypothesis import given, settings, strategies as st
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
-from common.camera import StereoRig
-from common.messages import Keypoints
-from common.needle import NeedleModel
-from common.observations import NoPose
-from common.oracle import perturb_pose
-from common.pnp import pnp_joint
-from common.refine import (ArcObservation, DenseRefiner, RefineConfig, RefineError, mirror_pose,
-                           project_centreline, refine_pose)
-from common.transforms import make_T, pose_error, quat_to_R, rotvec_to_R, transform_points
+from common.geometry.camera import StereoRig
+from common.geometry.needle import NeedleModel
+from common.geometry.observations import NoPose
+from common.geometry.oracle import perturb_pose
+from common.geometry.pnp import pnp_joint
+from common.geometry.refine import (
+    ArcObservation,
+    DenseRefiner,
+    RefineConfig,
+    RefineError,
+    mirror_pose,
+    project_centreline,
+    refine_pose,
+)
+from common.geometry.transforms import (
+    make_T,
+    pose_error,
+    quat_to_R,
+    rotvec_to_R,
+    transform_points,
+)
+from common.runtime.messages import Keypoints
 
 RIG = StereoRig.default()
 NEEDLE = NeedleModel()
@@ -201,7 +215,7 @@ def noisy_runs():
 
 
 def _delta(T, T_ref):
-    from common.transforms import R_to_rotvec
+    from common.geometry.transforms import R_to_rotvec
     return np.concatenate([R_to_rotvec(T[:3, :3] @ T_ref[:3, :3].T), T[:3, 3] - T_ref[:3, 3]])
 
 
@@ -295,7 +309,7 @@ def test_analytic_jacobian_matches_finite_differences():
     the arc are the residuals' exact derivatives (at a foot the distance needs no foot
     derivative); past an end the (normal, overshoot) pair leaves out the turn of the end's
     tangent, which cancels in the gradient of their squares: the cost's gradient is exact."""
-    from common.refine import _Problem
+    from common.geometry.refine import _Problem
     rng = np.random.default_rng(21)
     T = random_pose(rng)
     obs = observe(T, rng, kp_px=1.0, curve_px=0.5)
@@ -424,7 +438,7 @@ def test_config_is_checked():
 
 
 def test_bench_reports_errors_and_times():
-    from common.refine_bench import run, table
+    from common.evaluation.refine_bench import run, table
     rows = run([0.0, 0.5], frames=4, progress=False)
     assert [r["noise_px"] for r in rows] == [0.0, 0.5] and all(r["failed"] == 0 for r in rows)
     assert rows[0]["refined"]["position_mm"]["mean"] < 1e-4

@@ -1,18 +1,27 @@
 """The ``refine`` node: offline (message in, message out) and in a launched graph; its poses are
-the library's (common/refine.py on the joint PnP's candidates)."""
+the library's (common/geometry/refine.py on the joint PnP's candidates)."""
 import numpy as np
 import pytest
 
-from common.camera import StereoRig
-from common.ecm_kinematics import EcmArm
-from common.messages import Calibration, EcmPose, Keypoints, PoseEstimate, decode, encode
-from common.needle import NeedleModel
-from common.oracle import Oracle, random_needle_pose
-from common.pnp import refine_starts
-from common.refine import ArcObservation, DenseRefiner, RefineConfig
-from common.refine_tracking import TrackingConfig, TrackingRefiner
-from common.transforms import make_T, pose_error, rotvec_to_R
-from nodes.refine import RefineNode, refine_config
+from common.geometry.camera import StereoRig
+from common.geometry.ecm_kinematics import EcmArm
+from common.geometry.needle import NeedleModel
+from common.geometry.oracle import Oracle, random_needle_pose
+from common.geometry.pnp import refine_starts
+from common.geometry.refine import ArcObservation, DenseRefiner, RefineConfig
+from common.geometry.refine_tracking import TrackingConfig, TrackingRefiner
+from common.geometry.transforms import make_T, pose_error, rotvec_to_R
+from common.runtime.messages import (
+    Calibration,
+    EcmPose,
+    Keypoints,
+    PoseEstimate,
+    decode,
+    encode,
+)
+from common.runtime.node import NodeError
+from common.runtime.params import ParamError
+from nodes.refine import RefineNode
 
 RIG = StereoRig.default()
 MODEL = NeedleModel()
@@ -117,14 +126,19 @@ def test_node_tracks_a_video_as_the_library_does():
 
 
 def test_node_params_reach_the_fit():
-    cfg = refine_config({"sigma_curve_px": 0.3, "min_score": 0.7, "max_rms_px": 5, "other": 1,
-                         "max_curve_points": 48.0})
-    assert cfg.sigma_curve_px == 0.3 and cfg.min_score == 0.7 and cfg.max_curve_points == 48
-    assert refine_config({}).min_score == 0.5
-    with pytest.raises(ValueError):
+    node = RefineNode.offline({"sigma_curve_px": 0.3, "min_score": 0.7, "max_rms_px": 5, "max_curve_points": 48,
+                               "tracking": False, "cold_every": 7}, wired=["left", "right", "calib"])
+    assert node.config.sigma_curve_px == 0.3 and node.config.min_score == 0.7 and node.config.max_curve_points == 48
+    assert node.max_rms_px == 5 and not node.tracking.enabled and node.tracking.cold_every == 7
+    assert RefineNode.offline({}, wired=["left", "right", "calib"]).config.min_score == 0.5
+    with pytest.raises(NodeError, match="sigma_kp_px"):
         RefineNode.offline({"sigma_kp_px": -1.0})
-    with pytest.raises(ValueError, match="max_iter"):
+    with pytest.raises(ParamError, match="max_iter: expected int, got 'many'"):
         RefineNode.offline({"max_iter": "many"})
+    with pytest.raises(ParamError, match="max_curve_points: expected int, got 48.0"):
+        RefineNode.offline({"max_curve_points": 48.0})
+    with pytest.raises(ParamError, match="other: unknown param"):
+        RefineNode.offline({"other": 1})
 
 
 def test_node_without_centreline_refines_keypoints_and_counts_it():
@@ -187,7 +201,7 @@ def test_refine_node_in_a_launched_graph_matches_the_library(run_graph):
     kp_sub = g.subscribe("detector/*")
     calib = g.collect("camera/calib", n=1, timeout=30)[0]
     out = g.collect("refine/pose", n=3, timeout=60)
-    rig, model = calib.rig(), calib.needle_model()
+    rig, model = StereoRig.from_dict(calib.cameras, calib.image_size), NeedleModel.from_dict(calib.needle)
     kp_sub.wait(2, timeout=10)
     kps = {}
     for m in kp_sub.messages:

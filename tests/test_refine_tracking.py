@@ -1,15 +1,15 @@
-"""Frame-to-frame refinement (common/refine_tracking.py): warm starts in a video, the cold path
+"""Frame-to-frame refinement (common/geometry/refine_tracking.py): warm starts in a video, the cold path
 whenever the warm fit is not as good."""
 import numpy as np
 import pytest
 
-from common.camera import StereoRig
-from common.needle import NeedleModel
-from common.oracle import Oracle, random_needle_pose
-from common.pnp import refine_starts
-from common.refine import ArcObservation, DenseRefiner
-from common.refine_tracking import TrackingConfig, TrackingRefiner
-from common.transforms import make_T, pose_error, rotvec_to_R, transform_points
+from common.geometry.camera import StereoRig
+from common.geometry.needle import NeedleModel
+from common.geometry.oracle import Oracle, random_needle_pose
+from common.geometry.pnp import refine_starts
+from common.geometry.refine import ArcObservation, DenseRefiner
+from common.geometry.refine_tracking import TrackingConfig, TrackingRefiner
+from common.geometry.transforms import make_T, pose_error, rotvec_to_R, transform_points
 
 RIG = StereoRig.default()
 MODEL = NeedleModel()
@@ -143,7 +143,7 @@ def hidden(frame, sure=(0,), hide_from=0.5, kp_err_px=3.0, seed=0):
 
 def test_a_mostly_hidden_needle_is_posed_from_its_arc_and_one_sure_end(refiner):
     """Fewer than 4 sure keypoints: started from all of them both ways round, kept when sure."""
-    from common.observations import NoPose
+    from common.geometry.observations import NoPose
     T, uv, sc, obs = hidden(video(1, seed=11)[0])
     with pytest.raises(NoPose) as e:
         refine_starts(uv, RIG, MODEL.keypoints(), sc)
@@ -163,7 +163,7 @@ def test_a_mostly_hidden_needle_is_posed_from_its_arc_and_one_sure_end(refiner):
 def test_a_needle_without_a_sure_end_gives_no_pose(refiner):
     """No sure keypoint: the whole arc fits its tip-for-tail turned pose exactly as well (the arc
     is symmetric about C), so no pose rather than a coin flip."""
-    from common.observations import NoPose
+    from common.geometry.observations import NoPose
     T, uv, sc, obs = hidden(video(1, seed=7)[0], sure=(), hide_from=1.0)
     tracker = TrackingRefiner(refiner, MODEL.keypoints())
     with pytest.raises(NoPose) as e:
@@ -173,7 +173,7 @@ def test_a_needle_without_a_sure_end_gives_no_pose(refiner):
 
 
 def test_a_mostly_hidden_needle_is_tracked_warm_under_the_same_test(refiner):
-    from common.observations import NoPose
+    from common.geometry.observations import NoPose
     frames = [hidden(f, seed=i) for i, f in enumerate(video(8, seed=11))]
     tracker = TrackingRefiner(refiner, MODEL.keypoints())
     warm = []
@@ -196,8 +196,8 @@ def test_a_mostly_hidden_needle_is_tracked_warm_under_the_same_test(refiner):
 def test_a_warm_frame_whose_sure_keypoint_cannot_tell_the_ends_apart_gives_no_pose(refiner):
     """Only C sure (the arc's middle, which the end-for-end turn keeps in place): the turned
     pose fits as well, warm as cold, so no pose rather than an unambiguous-looking one."""
-    from common.observations import NoPose
-    from common.refine import tip_for_tail
+    from common.geometry.observations import NoPose
+    from common.geometry.refine import tip_for_tail
     frames = video(3, seed=11)
     T = frames[0][0]
     assert np.allclose(tip_for_tail(tip_for_tail(T, MODEL), MODEL), T)

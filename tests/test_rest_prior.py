@@ -1,12 +1,19 @@
-"""The resting prior (common/rest_prior.py) and how the refinement uses it: no process, no network."""
+"""The resting prior (common/geometry/rest_prior.py) and how the refinement uses it: no process, no network."""
 from __future__ import annotations
 
 import numpy as np
 import pytest
 
-from common.rest_prior import resting_log_prior
-from common.transforms import rotvec_to_R
-from tests.test_refine import REFINER, _delta, errors_mm_deg, joint_candidates, observe, random_pose
+from common.geometry.rest_prior import resting_log_prior
+from common.geometry.transforms import rotvec_to_R
+from tests.test_refine import (
+    REFINER,
+    _delta,
+    errors_mm_deg,
+    joint_candidates,
+    observe,
+    random_pose,
+)
 
 
 def test_flat_needles_are_likelier_either_side_up():

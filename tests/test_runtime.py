@@ -8,11 +8,11 @@ import time
 
 import numpy as np
 import pytest
-
-from common.graph import load_graph
-from common.messages import EcmJoints, Keypoints, encode
-from common.node import InputQueue, Node, NodeError, Runtime, Stats
 from graphtools import REPO, cli, prepare_graph
+
+from common.runtime.graph import load_graph
+from common.runtime.messages import EcmJoints, Keypoints, encode
+from common.runtime.node import InputQueue, Node, NodeError, Runtime, Stats
 
 COUNTER_RELAY = {"nodes": [
     {"id": "count", "module": "counter", "params": {"rate_hz": 40}},
@@ -162,7 +162,7 @@ def test_handover_never_publishes_a_seq_twice_and_leaves_no_gap():
     new.publish("y", frame(9))       # a stale frame after takeover is not published either
     new.publish("y", frame(12))
     seqs = [s for s in range(0, 10)] + [10, 11, 12]
-    from common.messages import decode
+    from common.runtime.messages import decode
     got = [decode(p).seq for _, p in old_sent] + [decode(p).seq for _, p in new_sent]
     assert got == seqs
     assert q2.answer["flushed"] == 2
@@ -183,7 +183,7 @@ def test_a_swapped_source_starts_its_own_sequence():
         rt.publish("y", EcmJoints(s, 0, np.zeros(4)))
     rt._q_takeover(_FakeQuery(json.dumps({"cuts": {"y": 500}}).encode()))
     rt.publish("y", EcmJoints(2, 0, np.zeros(4)))
-    from common.messages import decode
+    from common.runtime.messages import decode
     assert [decode(p).seq for _, p in sent] == [1, 2]
 
 
@@ -334,7 +334,7 @@ def test_cli_tools_see_the_running_graph(run_graph):
 
 
 def test_shared_memory_pool_full_falls_back_to_the_socket():
-    from common.node import ShmWriter
+    from common.runtime.node import ShmWriter
     w = ShmWriter(1 << 20)
     held = [w.payload(b"h", b"x" * 400_000), w.payload(b"h", b"x" * 400_000)]
     assert all(h is not None for h in held) and bytes(held[0].to_bytes())[:2] == b"hx"
@@ -342,7 +342,7 @@ def test_shared_memory_pool_full_falls_back_to_the_socket():
 
 
 def test_images_cross_processes_through_shared_memory_intact(run_graph):
-    from common.messages import CameraImage
+    from common.runtime.messages import CameraImage
     from nodes.testpattern import pattern_image
     g = run_graph({"nodes": [
         {"id": "camera", "module": "testpattern", "params": {"rate_hz": 20, "width": 320, "height": 240}},
@@ -356,7 +356,7 @@ def test_images_cross_processes_through_shared_memory_intact(run_graph):
 
 
 def test_handler_times_are_those_of_the_handlers_that_published():
-    from common.node import Stats
+    from common.runtime.node import Stats
     st = Stats()
     for ms, published in ((0.01, False), (12.0, True), (0.02, False), (0.03, False), (14.0, True)):
         st.proc(ms, published)
@@ -370,11 +370,11 @@ def test_handler_times_are_those_of_the_handlers_that_published():
 def test_a_replay_sends_its_prepared_raw_frames_intact_through_shared_memory(run_graph, tmp_path):
     """The replay copies its next frame into shared memory before sending it (``Node.prepare``);
     what arrives is the recorded image, stamped when sent."""
-    from common.camera import StereoRig
-    from common.dataset import DatasetMeta, DatasetWriter, Frame
-    from common.messages import CameraImage
-    from common.needle import NeedleModel
-    from common.sim_randomise import default_arm
+    from common.data.dataset import DatasetMeta, DatasetWriter, Frame
+    from common.geometry.camera import StereoRig
+    from common.geometry.needle import NeedleModel
+    from common.runtime.messages import CameraImage
+    from common.sim.randomise import default_arm
     w, h = 320, 240
     meta = DatasetMeta((w, h), StereoRig.default(w, h), NeedleModel(), default_arm(), "test")
     rng = np.random.default_rng(0)
@@ -383,14 +383,18 @@ def test_a_replay_sends_its_prepared_raw_frames_intact_through_shared_memory(run
         for i, img in enumerate(images):
             paths = wr.write_images(i, {"left": img, "right": img[::-1].copy()})
             wr.append(Frame(index=i, stamp_ns=i * 10_000_000, left=paths["left"], right=paths["right"]))
+    t0 = time.time_ns()
     g = run_graph({"nodes": [
         {"id": "replay", "module": "replay", "params": {"path": str(tmp_path / "ds"), "rate": 20, "loop": True,
                                                         "decode": True}},
         {"id": "sink", "module": "framesink", "inputs": {"left": "replay/left", "right": "replay/right"}}]})
     msgs = g.collect("replay/left", n=5, timeout=10, expect=CameraImage)
+    t1 = time.time_ns()
     for m in msgs:
         assert np.array_equal(m.to_bgr(), images[m.seq % 3])
+    # stamped when sent, not with the recorded stamps (0, 10, 20 ms): the pacing itself is
+    # tested with a clock of its own (test_pacing.py), as a loaded machine may send late
     stamps = [m.stamp_ns for m in msgs]
-    assert all(b - a > 20e6 for a, b in zip(stamps, stamps[1:]))     # stamped when sent, at 20 Hz
+    assert all(t0 < s < t1 for s in stamps) and stamps == sorted(set(stamps))
     st = g.wait_stats("replay", lambda st: st.counters.get("out_shm_prepared", 0) >= 4)
     assert st.counters.get("shm_pool_full", 0) == 0

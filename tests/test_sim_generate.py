@@ -1,20 +1,26 @@
 """Scene randomisation (no rendering) and dataset generation: determinism, resume, CLI."""
-import common.sim_render  # noqa: F401  (headless GL before mujoco)
-
 import json
 
 import numpy as np
 import pytest
 
-from common.camera import StereoRig
-from common.dataset import Dataset, check_dataset
-from common.dataset_cli import main as dataset_main
-from common.needle import NeedleModel
-from common.sim_generate import GenerateConfig, generate
-from common.sim_randomise import (DISTANCE_RANGE_M, MULTIVIEW_STEP_RAD, PRESETS, default_arm,
-                                  keypoints_in_view, plan_sequence, rotate_with_keypoints)
-from common.sim_scene import PHANTOM_SIZE, phantom_height
-from common.transforms import transform_points
+import common.sim.render  # noqa: F401  (headless GL before mujoco)
+from common.data.dataset import Dataset, check_dataset
+from common.geometry.camera import StereoRig
+from common.geometry.needle import NeedleModel
+from common.geometry.transforms import transform_points
+from common.sim.cli import main as dataset_main
+from common.sim.generate import GenerateConfig, generate
+from common.sim.randomise import (
+    DISTANCE_RANGE_M,
+    MULTIVIEW_STEP_RAD,
+    PRESETS,
+    default_arm,
+    keypoints_in_view,
+    plan_sequence,
+    rotate_with_keypoints,
+)
+from common.sim.scene import PHANTOM_SIZE, phantom_height
 
 
 @pytest.mark.parametrize("preset", sorted(PRESETS))
@@ -124,7 +130,7 @@ def test_dataset_cli_generate_check_show(tmp_path, capsys):
 
 
 def test_needle_free_frames_see_no_needle(tmp_path):
-    from common.sim_generate import generate_needle_free
+    from common.sim.generate import generate_needle_free
     folder = generate_needle_free(tmp_path / "neg", 1, seed=3, preset="train", progress=False)
     ds = Dataset(folder)
     rep = check_dataset(ds)
@@ -134,9 +140,9 @@ def test_needle_free_frames_see_no_needle(tmp_path):
 
 
 def test_needle_free_frames_can_lay_the_pale_thread_on_purpose(tmp_path, monkeypatch):
-    from common import sim_render
-    from common.sim_generate import generate_needle_free
-    from common.sim_randomise import PALE_THREAD_RGB
+    from common.sim import render as sim_render
+    from common.sim.generate import generate_needle_free
+    from common.sim.randomise import PALE_THREAD_RGB
     colours, load = [], sim_render.SceneRenderer.load
 
     def spy(self, spec, *a, **kw):

@@ -1,12 +1,12 @@
 """sim and replay publishing through a launched graph (real processes, Zenoh on loopback)."""
 import numpy as np
 
-from common.camera import StereoRig
-from common.dataset import DatasetMeta, DatasetWriter, Frame, project_keypoints
-from common.messages import Calibration, CameraImage, EndOfStream, GroundTruth
-from common.needle import NeedleModel
-from common.sim_randomise import default_arm
-from common.transforms import inv_T, make_T, rotvec_to_R, transform_points
+from common.data.dataset import DatasetMeta, DatasetWriter, Frame, project_keypoints
+from common.geometry.camera import StereoRig
+from common.geometry.needle import NeedleModel
+from common.geometry.transforms import inv_T, make_T, rotvec_to_R, transform_points
+from common.runtime.messages import Calibration, CameraImage, EndOfStream, GroundTruth
+from common.sim.randomise import default_arm
 
 
 def test_sim_node_in_a_graph(run_graph):
@@ -20,7 +20,7 @@ def test_sim_node_in_a_graph(run_graph):
     tr = truths.wait(3, timeout=30)
     img = lefts.messages[0].to_bgr()
     assert img.shape == (180, 320, 3) and img.std() > 5  # a scene, not a blank image
-    rig, needle = calib.rig(), calib.needle_model()
+    rig, needle = StereoRig.from_dict(calib.cameras, calib.image_size), NeedleModel.from_dict(calib.needle)
     t = tr[-1]
     p = transform_points(inv_T(t.T_world_ecm) @ t.T_world_needle, needle.keypoints())
     assert np.allclose(rig.left.project_from_ecm(p), t.keypoints["left"], atol=1e-9)
@@ -65,4 +65,4 @@ def test_replay_node_in_a_graph(run_graph, tmp_path):
     assert lefts.messages[-1].encoding == "jpeg" and lefts.messages[-1].to_bgr().shape == (90, 160, 3)
     last = truths.wait(1, timeout=10, where=lambda m: m.seq == 29)[-1]  # other keys may lag the eos a little
     assert last.keypoints["right"].shape == (5, 2)
-    assert calib.messages and np.allclose(calib.messages[0].rig().left.K, StereoRig.default(160, 90).left.K)
+    assert calib.messages and np.allclose(StereoRig.from_dict(calib.messages[0].cameras, calib.messages[0].image_size).left.K, StereoRig.default(160, 90).left.K)

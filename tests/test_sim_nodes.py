@@ -1,18 +1,30 @@
 """The camera source nodes, offline (no process, no network): sim and replay."""
-import common.sim_render  # noqa: F401  (headless GL before mujoco)
-
 import os
 
 import cv2
 import numpy as np
 import pytest
 
-from common.dataset import Dataset, DatasetMeta, DatasetWriter, Frame, project_keypoints
-from common.messages import Calibration, Command, EcmJoints, EndOfStream, decode, encode
-from common.sim_randomise import default_arm
-from common.camera import StereoRig
-from common.needle import NeedleModel
-from common.transforms import inv_T, make_T, rotvec_to_R, transform_points
+import common.sim.render  # noqa: F401  (headless GL before mujoco)
+from common.data.dataset import (
+    DatasetMeta,
+    DatasetWriter,
+    Frame,
+    project_keypoints,
+)
+from common.geometry.camera import StereoRig
+from common.geometry.ecm_kinematics import EcmArm
+from common.geometry.needle import NeedleModel
+from common.geometry.transforms import inv_T, make_T, rotvec_to_R, transform_points
+from common.runtime.messages import (
+    Calibration,
+    Command,
+    EcmJoints,
+    EndOfStream,
+    decode,
+    encode,
+)
+from common.sim.randomise import default_arm
 from nodes.replay import ReplayNode, parse_rate
 from nodes.sim import SimNode
 
@@ -66,8 +78,8 @@ def test_replay_publishes_calib_frames_truth_and_eos(tmp_path):
     eos = msgs[-1][1]
     assert isinstance(eos, EndOfStream) and eos.frames == 3
     calib = msgs[0][1]
-    assert isinstance(calib, Calibration) and np.allclose(calib.rig().left.K, meta.rig.left.K)
-    assert calib.arm() is not None
+    assert isinstance(calib, Calibration) and np.allclose(StereoRig.from_dict(calib.cameras, calib.image_size).left.K, meta.rig.left.K)
+    assert EcmArm.from_calibration(calib.ecm) is not None
 
 
 def test_replay_loop_and_no_truth(tmp_path):
@@ -106,7 +118,7 @@ def test_replay_decode_sends_raw_images_and_skips_a_broken_one(tmp_path, monkeyp
 
 
 def test_replay_paced_sends_the_next_frame_once_both_acks_are_in(tmp_path):
-    from common.messages import Keypoints
+    from common.runtime.messages import Keypoints
     _dataset(tmp_path, 4)
     ack = lambda cam, seq: Keypoints.not_found(cam, seq, 0, "oracle", "test")
     node = ReplayNode.offline(params={"path": str(tmp_path), "rate": "paced", "in_flight": 1,
@@ -151,7 +163,7 @@ def test_sim_node_publishes_consistent_frames_and_obeys_commands():
         msgs = [(o, _roundtrip(m)) for o, m in node.published]
         assert msgs[0][0] == "calib"
         calib = msgs[0][1]
-        rig, needle, arm = calib.rig(), calib.needle_model(), calib.arm()
+        rig, needle, arm = StereoRig.from_dict(calib.cameras, calib.image_size), NeedleModel.from_dict(calib.needle), EcmArm.from_calibration(calib.ecm)
         lefts = [m for o, m in msgs if o == "left"]
         assert [m.seq for m in lefts] == [0, 1, 2, 3]
         assert lefts[0].to_bgr().shape == (180, 320, 3)

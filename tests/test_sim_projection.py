@@ -1,16 +1,15 @@
 """MuJoCo renders with exactly the intrinsics and extrinsics written to data (issue 3, section 1)."""
-import common.sim_render  # noqa: F401  (sets MUJOCO_GL before mujoco is imported)
-
 import mujoco
 import numpy as np
 import pytest
 
-from common.camera import StereoRig
-from common.needle import NeedleModel
-from common.sim_randomise import default_arm
-from common.sim_render import LABELS, SceneRenderer
-from common.sim_scene import SceneSpec
-from common.transforms import inv_T, make_T, rotvec_to_R, transform_points
+import common.sim.render  # noqa: F401  (sets MUJOCO_GL before mujoco is imported)
+from common.geometry.camera import StereoRig
+from common.geometry.needle import NeedleModel
+from common.geometry.transforms import inv_T, make_T, rotvec_to_R, transform_points
+from common.sim.randomise import default_arm
+from common.sim.render import LABELS, SceneRenderer
+from common.sim.scene import SceneSpec
 
 
 def _sphere_image_centre(K, c_cam, radius):
@@ -87,7 +86,7 @@ def test_rig_and_arm_conventions():
 
 def test_ground_truth_keypoints_lie_on_the_needle_mask():
     """Every visible ground-truth keypoint lies on the rendered needle; A is the sharp end."""
-    from common.sim_randomise import get_preset, plan_sequence
+    from common.sim.randomise import get_preset, plan_sequence
     rig = StereoRig.default(640, 360)
     needle, arm = NeedleModel(), default_arm()
     checked = 0

@@ -1,15 +1,18 @@
 """A live graph's stereo frames: a camera whose detector lags at start-up and a detector that
 hears frames before the calibration beacon lose no frame, and per-camera detectors that cannot
-keep up pick the same frames (common/pairing.py, nodes/detector.py)."""
+keep up pick the same frames (common/runtime/pairing.py, nodes/detector.py)."""
+from dataclasses import dataclass
+
 import numpy as np
 import pytest
 
-from common.camera import StereoRig
-from common.messages import Calibration, CameraImage, GroundTruth
-from common.needle import NeedleModel
-from common.node import Node
-from common.oracle import random_needle_pose
-from common.pairing import StereoPairer
+from common.geometry.camera import StereoRig
+from common.geometry.needle import NeedleModel
+from common.geometry.oracle import random_needle_pose
+from common.runtime.messages import Calibration, CameraImage, GroundTruth
+from common.runtime.node import Node
+from common.runtime.pairing import StereoPairer
+from common.runtime.params import merge_schemas
 from nodes.detector import DetectorNode
 
 RIG = StereoRig.default()
@@ -109,13 +112,21 @@ def test_detector_without_a_calibration_gives_up_after_max_wait_frames():
 class _TimedDetector(DetectorNode):
     """A detector whose detections take ``busy_s`` of a simulated clock."""
 
+    @dataclass
+    class Timing:
+        busy_s: float = 0.0
+
+    @classmethod
+    def param_schema(cls, raw):
+        return merge_schemas("TimedParams", super().param_schema(raw), cls.Timing)
+
     def setup(self):
         super().setup()
         self.now = 0.0
         self.clock = lambda: self.now
 
     def _detect_image(self, msg):
-        self.now += self.params["busy_s"]
+        self.now += self.p.busy_s
         super()._detect_image(msg)
 
 
@@ -130,7 +141,7 @@ def _camera_run(busy_s, camera, frames=60, period_s=1 / 30):
 
 
 def test_stride_follows_sustained_detection_times_not_spikes():
-    from common.frame_stride import FrameStride
+    from common.runtime.frame_stride import FrameStride
     fs = FrameStride(1, adaptive=True)
     for s in range(90):                    # 30 Hz; a cold detection of 100 ms every 6th frame
         fs.frame(s, int(s / 30 * 1e9))

@@ -1,7 +1,7 @@
 """Rotation helpers: the batched Rodrigues agrees with the single one, small angles included."""
 import numpy as np
 
-from common.transforms import R_to_rotvec, rotvec_to_R, rotvecs_to_Rs
+from common.geometry.transforms import R_to_rotvec, rotvec_to_R, rotvecs_to_Rs
 
 
 def test_batched_rodrigues_matches_the_single_one():

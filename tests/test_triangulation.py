@@ -1,15 +1,31 @@
-"""Pipeline II (common/triangulation.py): DLT, Arun with the reflection case, the pose."""
+"""Pipeline II (common/geometry/triangulation.py): DLT, Arun with the reflection case, the pose."""
 import numpy as np
 import pytest
 from hypothesis import HealthCheck, assume, given, settings
 from hypothesis import strategies as st
 
-from common.camera import StereoRig
-from common.needle import NeedleModel
-from common.observations import NoPose
-from common.oracle import needle_pose_in_view, random_needle_pose, true_keypoints, view_tilt_rad
-from common.transforms import make_T, pose_error, quat_to_R, rotvec_to_R, transform_points
-from common.triangulation import arun_register, triangulate_dlt, triangulate_keypoints, triangulation_pose
+from common.geometry.camera import StereoRig
+from common.geometry.needle import NeedleModel
+from common.geometry.observations import NoPose
+from common.geometry.oracle import (
+    needle_pose_in_view,
+    random_needle_pose,
+    true_keypoints,
+    view_tilt_rad,
+)
+from common.geometry.transforms import (
+    make_T,
+    pose_error,
+    quat_to_R,
+    rotvec_to_R,
+    transform_points,
+)
+from common.geometry.triangulation import (
+    arun_register,
+    triangulate_dlt,
+    triangulate_keypoints,
+    triangulation_pose,
+)
 
 RIG = StereoRig.default()
 MODEL = NeedleModel()
@@ -153,8 +169,8 @@ def test_triangulation_degenerate_inputs():
 
 def test_triangulation_is_worse_than_joint_pnp_at_1px():
     """The paper's finding, reproduced: the 4 mm baseline makes DLT depth noisy."""
-    from common.oracle import Oracle
-    from common.pnp import pnp_joint
+    from common.geometry.oracle import Oracle
+    from common.geometry.pnp import pnp_joint
     rng = np.random.default_rng(0)
     oracle = Oracle(noise_px=1.0, seed=3)
     e_tri, e_joint = [], []

@@ -1,0 +1,2 @@
+"""The dataset folder format (docs/dataset.md): ``dataset`` reads, writes and checks folders.
+Imports ``geometry`` only."""

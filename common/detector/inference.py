@@ -1,0 +1,556 @@
+"""Inference with the learned keypoint detector: image -> ``Keypoints`` (A..E, scores, centreline).
+
+Two stages (see ``common.detector.model``): stage 1 on the downscaled image finds the needle
+and its box and gives the confidence; stage 2 on a full-resolution crop around the box gives A..E
+at sub-pixel precision, per-point scores, a presence confidence and the centreline (then moved
+onto the wire's centre in the full-resolution image, ``common.detector.centreline_subpixel``). Cold frames
+run stage 2 twice: the second time on the box of the first pass's keypoints, which puts the crop
+at the scale and centring the network knows best. In tracking mode (per camera) the previous
+frame's box is reused and stage 1 is skipped while stage 2's presence confidence stays at or above
+the threshold; otherwise the frame is processed cold. Below the threshold (0.5 by default, as in
+the paper) the result is "no needle" (``Keypoints.not_found``) with a reason; points are never
+guessed.
+
+Weights are loaded with ``torch.load(..., weights_only=True)``; a missing, corrupt or mismatched
+file raises ``ModelFileError`` saying how to retrain.
+"""
+from __future__ import annotations
+
+import logging
+from pathlib import Path
+
+import cv2
+import numpy as np
+import torch
+
+from common.detector.centreline_subpixel import (
+    CENTRELINE_CORR_POINTS,
+    CENTRELINE_SIGMA_PX,
+    ellipse_residual,
+    refine_centreline,
+)
+from common.detector.model import (
+    FrozenForInference,
+    KeypointModel,
+    ModelConfig,
+    apply_affine,
+    crop_affine,
+    crop_side,
+    decode_global_topk,
+    decode_heatmaps,
+    fuse_conv_bn,
+    invert_affine,
+)
+from common.geometry.observations import curve_normals
+from common.runtime.messages import CameraImage, Keypoints, MessageError
+
+MODEL_FORMAT = "needletrack-keypoint-detector"
+MODEL_VERSION = 1
+REPO = Path(__file__).resolve().parents[2]
+DEFAULT_WEIGHTS = REPO / "models" / "keypoint" / "model.pt"
+RETRAIN = ("retrain with `needletrack train --data DATASET --config models/train.yaml "
+           "--out models/keypoint` (models/README.md gives the full recipe)")
+CENTRELINE_POINTS = 48
+# The needle's smallest image extent in any view, its 5.1 mm sagitta seen from the side, is
+# 10 px at 40 cm with this endoscope (f ~ 790 px): keypoints closer together are a collapse.
+MIN_EXTENT_PX = 10.0
+# The perspective image of the needle's circle is an ellipse: the sub-pixel centreline of a
+# needle lies within 0.1 px of one (median; standard test set), a bent thread 0.3-2.7 px.
+MAX_ELLIPSE_PX = 0.25
+MIN_ELLIPSE_SHARE = 0.5      # of the centreline points on that ellipse (a jaw may bend the rest)
+MIN_ELLIPSE_POINTS = 8       # fewer (a needle mostly hidden) are not judged
+# The keypoints' 1-sigma error per image axis as a stereo fit should take it (stated in every
+# message): 0.75 px measured (0.94 px mean distance, standard test set), raised to 1 px because
+# the two cameras' nearly identical images give nearly alike errors, which a stereo fit absorbs
+# (its residuals: 0.25 px RMS). pnp_joint's covariance on the seed-5555 set: NEES median 50 from
+# its residuals alone, 4.7 with this (chi-square(6): 5.35); the dense fit's assumed 1 px as well.
+KEYPOINT_SIGMA_PX = 1.0
+log = logging.getLogger("needletrack.keypoint_detector")
+
+
+class ModelFileError(RuntimeError):
+    """A weights file that is missing, unreadable or made for another model."""
+
+
+def load_model(path=None, device="cpu") -> tuple[KeypointModel, dict]:
+    """(model in eval mode with BN folded, the file's meta) from a weights file."""
+    path = Path(path or DEFAULT_WEIGHTS)
+    if not path.is_file():
+        raise ModelFileError(f"{path}: no such weights file; {RETRAIN}")
+    try:
+        blob = torch.load(path, map_location="cpu", weights_only=True)
+    except Exception as exc:  # zip/unpickling errors of a truncated or foreign file
+        first = str(exc).split(". ")[0][:160]
+        raise ModelFileError(f"{path}: not a readable weights file, truncated or corrupt "
+                             f"({type(exc).__name__}: {first}); {RETRAIN}") from None
+    if not isinstance(blob, dict) or blob.get("format") != MODEL_FORMAT:
+        raise ModelFileError(f"{path}: not a needletrack keypoint-detector weights file "
+                             f"(format {blob.get('format') if isinstance(blob, dict) else type(blob).__name__!r}); {RETRAIN}")
+    if blob.get("version") != MODEL_VERSION:
+        raise ModelFileError(f"{path}: weights format version {blob.get('version')!r}, this code reads "
+                             f"version {MODEL_VERSION}; {RETRAIN}")
+    try:
+        cfg = ModelConfig.from_dict(dict(blob["config"]))
+        model = KeypointModel(cfg)
+        model.load_state_dict(blob["state_dict"], strict=True)
+    except (KeyError, TypeError, ValueError, RuntimeError) as exc:
+        why = " ".join(str(exc).split())[:300]
+        raise ModelFileError(f"{path}: weights do not match the network ({why}); {RETRAIN}") from None
+    model.eval()
+    fuse_conv_bn(model)
+    model = model.to(device=device, memory_format=torch.channels_last)
+    return model, dict(blob.get("meta") or {})
+
+
+def pick_device(device: str = "auto") -> torch.device:
+    if device == "auto":
+        return torch.device("cuda" if torch.cuda.is_available() else "cpu")
+    if device.startswith("cuda") and not torch.cuda.is_available():
+        raise ValueError(f"device {device!r} asked for, but CUDA is not available")
+    return torch.device(device)
+
+
+def image_problem(img) -> str | None:
+    """Why an array cannot be a camera image (None if it can be)."""
+    if not isinstance(img, np.ndarray):
+        return f"image is a {type(img).__name__}, not an array"
+    if img.size == 0:
+        return f"empty image (shape {img.shape})"
+    if img.dtype != np.uint8:
+        return f"image dtype {img.dtype}, expected uint8"
+    if img.ndim == 2:
+        return None
+    if img.ndim != 3 or img.shape[2] not in (1, 3, 4):
+        return f"image shape {img.shape}, expected (h, w, 3) BGR"
+    if min(img.shape[:2]) < 16:
+        return f"image too small ({img.shape[1]}x{img.shape[0]})"
+    return None
+
+
+def _as_bgr(img: np.ndarray) -> np.ndarray:
+    if img.ndim == 2:
+        return cv2.cvtColor(img, cv2.COLOR_GRAY2BGR)
+    if img.shape[2] == 1:
+        return cv2.cvtColor(img[:, :, 0], cv2.COLOR_GRAY2BGR)
+    if img.shape[2] == 4:
+        return cv2.cvtColor(img, cv2.COLOR_BGRA2BGR)
+    return img
+
+
+def _curve_through(pts: np.ndarray, n: int) -> np.ndarray:
+    """n points on a Catmull-Rom curve through the 5 points (from the first to the last)."""
+    P = np.vstack([2 * pts[0] - pts[1], pts, 2 * pts[-1] - pts[-2]])
+    t = np.linspace(0, len(pts) - 1, n)
+    i = np.minimum(t.astype(int), len(pts) - 2)
+    u = (t - i)[:, None]
+    p0, p1, p2, p3 = P[i], P[i + 1], P[i + 2], P[i + 3]
+    return 0.5 * (2 * p1 + (-p0 + p2) * u + (2 * p0 - 5 * p1 + 4 * p2 - p3) * u * u
+                  + (-p0 + 3 * p1 - 3 * p2 + p3) * u ** 3)
+
+
+def decode_centreline(line_logit: np.ndarray, kp_cells: np.ndarray, n: int = CENTRELINE_POINTS,
+                      search: float = 4.0, min_prob: float = 0.25):
+    """The needle's centreline from the centreline heatmap (m, m logits), ordered A..E.
+
+    A curve through the decoded keypoints (cell coordinates) seeds ``n`` stations; at each, the
+    ridge is searched along the curve's normal within +-``search`` cells and located at sub-cell
+    precision by a parabola fit to the log-probability. Returns (points (n, 2) in cells,
+    weights (n,) = ridge probability, 0 where no ridge was found)."""
+    prob = 1.0 / (1.0 + np.exp(-line_logit.astype(np.float32)))
+    logp = np.log(prob + 1e-6)
+    seed = _curve_through(kp_cells, n)
+    normal = curve_normals(seed)
+    steps = np.arange(-search, search + 1e-9, 0.5)
+    pts = seed[:, None, :] + steps[None, :, None] * normal[:, None, :]
+    mx = pts[..., 0].astype(np.float32)
+    my = pts[..., 1].astype(np.float32)
+    prof_p = cv2.remap(prob, mx, my, cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT, borderValue=0)
+    prof_l = cv2.remap(logp, mx, my, cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT, borderValue=-14)
+    j = np.clip(prof_p.argmax(1), 1, len(steps) - 2)
+    r = np.arange(n)
+    a, b, c = prof_l[r, j - 1], prof_l[r, j], prof_l[r, j + 1]
+    den = a - 2 * b + c
+    off = np.where(den < -1e-6, 0.5 * (a - c) / np.minimum(den, -1e-6), 0.0).clip(-0.5, 0.5)
+    t = steps[j] + 0.5 * off
+    out = seed + t[:, None] * normal
+    w = prof_p[r, j]
+    w = np.where(w >= min_prob, w, 0.0)
+    return out, w.astype(np.float64)
+
+
+ARC_ANGLES_DEG = (30.0, 60.0, 90.0, 120.0, 150.0)
+ARC_MIN_SCORE = 0.35   # A's and E's heatmap scores needed to place B..D on the fitted arc
+
+
+def ideal_peak_mass(sigma: float) -> float:
+    """Softmax mass within 2 cells of the peak (``decode_heatmaps``' score) of the Gaussian soft
+    target the loss trains towards: a perfect heatmap scores this, so scores are divided by it."""
+    x = np.arange(-12, 13, dtype=float)
+    g = np.exp(-x ** 2 / (2 * sigma ** 2))
+    return float((g[10:15].sum() / g.sum()) ** 2)
+
+
+def fit_arc_affine(a: np.ndarray, e: np.ndarray, line_logit: np.ndarray,
+                   angles_deg=ARC_ANGLES_DEG, min_prob: float = 0.3, iters: int = 8):
+    """Fit the needle's arc in a heatmap under an affine (weak-perspective) camera.
+
+    The arc is ``p(t) = c + U [cos t, sin t]`` (cell coordinates), t the needle-frame angle. It
+    passes through the tip ``a`` at ``angles_deg[0]`` and the tail ``e`` at ``angles_deg[-1]``
+    (both from their heatmaps) and along the centreline ridge (pixels of probability >=
+    ``min_prob``, weighted by it). Start: the ridge point farthest from the chord a-e is the
+    arc's midpoint (an affine map keeps ratios of distances to a line); then Gauss-Newton on the
+    orthogonal distances of the ridge pixels (each pixel's own angle eliminated, so the fit does
+    not crawl along the arc as plain alternation does) with a and e as heavily weighted
+    constraints. Returns (c (2,), U (2, 2)) for ``arc_at``, or None when the ridge is too weak or
+    the fit degenerate. Used for B, C, D, whose own heatmaps know "on the needle" far better than
+    "where along it"."""
+    prob = 1.0 / (1.0 + np.exp(-line_logit.astype(np.float32)))
+    ys, xs = np.nonzero(prob >= min_prob)
+    if len(xs) < 8:
+        return None
+    if len(xs) > 300:   # keep the strongest pixels: the cost grows with their number
+        keep = np.argsort(-prob[ys, xs])[:300]
+        ys, xs = ys[keep], xs[keep]
+    w = prob[ys, xs].astype(np.float64)
+    pts = np.stack([xs, ys], 1).astype(np.float64)
+    ang = np.deg2rad(np.asarray(angles_deg, float))
+    t0, t1 = ang[0], ang[-1]
+    chord = e - a
+    L = np.linalg.norm(chord)
+    if L < 2.0:
+        return None
+    d = (chord[0] * (pts[:, 1] - a[1]) - chord[1] * (pts[:, 0] - a[0])) / L
+    along = (pts - a) @ chord / (L * L)
+    inside = (along > 0.2) & (along < 0.8)
+    if inside.sum() < 3:
+        return None
+    k = np.argsort(-np.abs(d) * inside)[:5]
+    mid = (pts[k] * w[k, None]).sum(0) / w[k].sum()
+    T = np.array([t0, 0.5 * (t0 + t1), t1])
+    D = np.stack([np.ones(3), np.cos(T), np.sin(T)], 1)
+    sol = np.linalg.solve(D, np.stack([a, mid, e]))
+    c, U = sol[0], sol[1:].T
+    # initial angles: closest point on the initial curve (|p - q|^2 without the |p|^2 term)
+    ts = np.linspace(t0 - 0.3, t1 + 0.3, 100)
+    curve = c + np.stack([np.cos(ts), np.sin(ts)], 1) @ U.T
+    tt = ts[((curve * curve).sum(1) - 2.0 * pts @ curve.T).argmin(1)]
+    # a and e as heavily weighted constraints: rows of d(c + U [cos t, sin t]) / d(c, U) at t0, t1
+    w_end = 10.0 * max(1.0, w.sum())
+    ends = np.array([[1, 0, np.cos(t0), np.sin(t0), 0, 0], [0, 1, 0, 0, np.cos(t0), np.sin(t0)],
+                     [1, 0, np.cos(t1), np.sin(t1), 0, 0], [0, 1, 0, 0, np.cos(t1), np.sin(t1)]])
+    H_ends = w_end * ends.T @ ends
+    target = np.concatenate([a, e])
+    P = pts.T                                  # (2, N): row-wise arrays keep the loop cheap
+    quarter = np.array([[0.0, -1.0], [1.0, 0.0]])   # tangent = U [-sin t, cos t] = U quarter [cos t, sin t]
+    for it in range(iters):
+        CS = np.stack([np.cos(tt), np.sin(tt)])
+        tang = (U @ quarter) @ CS
+        nrm = np.stack([-tang[1], tang[0]]) / np.maximum(np.hypot(tang[0], tang[1]), 1e-9)
+        res = ((P - c[:, None] - U @ CS) * nrm).sum(0)
+        inl = (np.abs(res) < 2.5) & (tt > t0 - 0.15) & (tt < t1 + 0.15)
+        if inl.sum() < 5:
+            return None
+        J = np.concatenate([nrm, nrm[0] * CS, nrm[1] * CS])[:, inl]   # d res / d(c, U), (6, n)
+        JtW = J * w[inl]
+        r_ends = target - ends @ np.concatenate([c, U.ravel()])
+        try:   # normal equations of the weighted least squares (6 unknowns)
+            dx = np.linalg.solve(JtW @ J.T + H_ends, JtW @ res[inl] + w_end * ends.T @ r_ends)
+        except np.linalg.LinAlgError:
+            return None
+        c = c + dx[:2]
+        U = U + dx[2:].reshape(2, 2)
+        # each pixel's angle follows: one Newton step along the tangent of the new curve
+        tang = (U @ quarter) @ CS
+        tt = tt + ((P - c[:, None] - U @ CS) * tang).sum(0) / np.maximum((tang * tang).sum(0), 1e-9)
+        if np.abs(dx).max() < 1e-2:   # cells: B..D then move < 0.002 cell (measured); 1e-4 cost 2 more steps
+            break
+    if not (np.all(np.isfinite(U)) and np.all(np.isfinite(c))) or abs(np.linalg.det(U)) < 1e-6:
+        return None
+    # sanity: the fitted arc stays near the chord's scale and on the ridge
+    m = prob.shape[0]
+    pred = c + np.stack([np.cos(ang), np.sin(ang)], 1) @ U.T
+    if (np.abs(pred - np.clip(pred, -0.25 * m, 1.25 * m)).max() > 0 or np.linalg.norm(U, 2) > 4 * m
+            or np.linalg.norm(pred[0] - a) > 1.0 or np.linalg.norm(pred[-1] - e) > 1.0):
+        return None
+    cs, sn = np.cos(tt), np.sin(tt)
+    res = np.linalg.norm(pts - (c + np.stack([cs, sn], 1) @ U.T), axis=1)
+    inl = (res < 2.5) & (tt > t0 - 0.15) & (tt < t1 + 0.15)
+    if inl.sum() < 5 or np.sqrt((w[inl] * res[inl] ** 2).sum() / w[inl].sum()) > 1.5:
+        return None
+    return c, U
+
+
+def arc_at(fit, t_deg) -> np.ndarray:
+    """Points (N, 2) of a ``fit_arc_affine`` fit at needle angles ``t_deg`` (degrees)."""
+    c, U = fit
+    t = np.deg2rad(np.asarray(t_deg, float)).reshape(-1)
+    return c + np.stack([np.cos(t), np.sin(t)], 1) @ U.T
+
+
+def refine_along_arc(prob: np.ndarray, fit, t_pred_deg: float, half_deg: float = 15.0,
+                     band: float = 2.0) -> float:
+    """Angle (deg) of a keypoint on the fitted arc: the mean of its heatmap probability ``prob``
+    (m, m, cells) along the arc within +-``half_deg`` of the affine prediction (mass summed across
+    the arc within +-``band`` cells). A flat heatmap leaves ``t_pred_deg``; a peaked one moves the
+    point along the arc (perspective makes the true point differ from the affine one)."""
+    ts = np.linspace(t_pred_deg - half_deg, t_pred_deg + half_deg, 61)
+    curve = arc_at(fit, ts)
+    tang = np.gradient(curve, axis=0)
+    nrm = curve_normals(curve)
+    offs = np.arange(-band, band + 1e-9, 0.5)
+    pts = curve[:, None, :] + offs[None, :, None] * nrm[:, None, :]
+    samp = cv2.remap(prob.astype(np.float32), pts[..., 0].astype(np.float32), pts[..., 1].astype(np.float32),
+                     cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT, borderValue=0)
+    mass = samp.sum(1) * np.linalg.norm(tang, axis=1)   # mass per unit angle
+    if not np.isfinite(mass).all() or mass.sum() <= 1e-9:
+        return float(t_pred_deg)
+    return float((mass * ts).sum() / mass.sum())
+
+
+def _moved(box, new_box, tol: float = 0.1) -> bool:
+    """Whether the needle's box (cx, cy, w, h) moved by more than ``tol`` of its larger side
+    (centre or size): the tracked crop no longer frames it."""
+    side = max(box[2], box[3], 1.0)
+    return (abs(new_box[0] - box[0]) > tol * side or abs(new_box[1] - box[1]) > tol * side
+            or abs(max(new_box[2], new_box[3]) - side) > tol * side)
+
+
+class KeypointDetector:
+    """The learned two-stage detector; one instance keeps a tracking state per camera name."""
+
+    name = "learned"
+
+    def __init__(self, weights=None, device: str = "auto", threshold: float = 0.5,
+                 tracking: bool = True, threads: int | None = None, refine: bool = True,
+                 centreline: bool = True, arc_bcd: bool = True, along_arc: bool = False,
+                 proposal_threshold: float = 0.2, proposals: int = 3, subpixel: bool = True,
+                 min_extent_px: float = MIN_EXTENT_PX, max_ellipse_px: float = MAX_ELLIPSE_PX):
+        self.device = pick_device(device)
+        if threads:
+            torch.set_num_threads(int(threads))
+        self.weights = Path(weights or DEFAULT_WEIGHTS)
+        self.model, self.meta = load_model(self.weights, self.device)
+        self._glob, self._crop = FrozenForInference(self.model.glob), FrozenForInference(self.model.crop)
+        self.cfg = self.model.cfg
+        self.threshold = float(threshold)
+        self.tracking = bool(tracking)
+        self.refine = bool(refine)
+        self.centreline = bool(centreline)
+        self.arc_bcd = bool(arc_bcd)
+        self.along_arc = bool(along_arc)
+        self.proposal_threshold = float(proposal_threshold)
+        self.proposals = max(1, int(proposals))
+        self.subpixel = bool(subpixel)
+        self.min_extent_px = float(min_extent_px)
+        self.max_ellipse_px = float(max_ellipse_px)
+        self._track: dict[str, tuple] = {}
+        self.last_mode = ""
+
+    def reset(self, camera: str | None = None) -> None:
+        """Forget the tracking box (of one camera, or all)."""
+        if camera is None:
+            self._track.clear()
+        else:
+            self._track.pop(camera, None)
+
+    # ------------------------------------------------------------ stages
+    def _tensor(self, arr: np.ndarray) -> torch.Tensor:
+        t = torch.from_numpy(np.ascontiguousarray(arr)).permute(2, 0, 1)[None]
+        return t.to(self.device).contiguous(memory_format=torch.channels_last)
+
+    @torch.inference_mode()
+    def _stage1(self, img: np.ndarray):
+        from common.detector.data import global_input
+        h, w = img.shape[:2]
+        ds = self.cfg.global_downscale
+        small = cv2.resize(img, (max(1, round(w / ds)), max(1, round(h / ds))), interpolation=cv2.INTER_AREA)
+        out = self._glob(self._tensor(global_input(small)))
+        return decode_global_topk(out.float().cpu(), ds, self.proposals, self.proposal_threshold)
+
+    @torch.inference_mode()
+    def _stage2(self, img: np.ndarray, box):
+        cx, cy, bw, bh = box
+        M = crop_affine(cx, cy, crop_side(self.cfg, bw, bh), self.cfg.crop)
+        crop = cv2.warpAffine(img, M, (self.cfg.crop, self.cfg.crop), flags=cv2.INTER_LINEAR,
+                              borderMode=cv2.BORDER_REPLICATE)
+        heat, pres = self._crop(self._tensor(crop))
+        heat = heat.float().cpu()
+        uv, score = decode_heatmaps(heat[:, :5], self.cfg.out_stride)
+        uv_crop = uv[0].numpy().astype(np.float64)
+        sc = np.clip(score[0].numpy() / ideal_peak_mass(self.cfg.kp_sigma), 0.0, 1.0)
+        Minv = invert_affine(M)
+        return {"M": M, "Minv": Minv, "uv": apply_affine(Minv, uv_crop), "uv_crop": uv_crop, "scores": sc,
+                "presence": float(torch.sigmoid(pres[0])), "line": heat[0, 5].numpy(), "heat": heat}
+
+    def _place_bcd(self, res) -> None:
+        """B, C, D of the chosen crop on the arc through A and E (see fit_arc_affine), when A and
+        E are sure (an occluded end is a guess, and the arc pinned on it would drag B..D along).
+        Done once per frame, on the final crop only: the fit costs more than the heatmaps."""
+        sc, uv_crop, heat = res["scores"], res["uv_crop"], res["heat"]
+        if not self.arc_bcd or min(sc[0], sc[4]) < ARC_MIN_SCORE:
+            return
+        st = self.cfg.out_stride
+        cells = (uv_crop - (st - 1) / 2.0) / st
+        fit = fit_arc_affine(cells[0], cells[4], res["line"])
+        if fit is None:
+            return
+        t = np.asarray(ARC_ANGLES_DEG[1:4], float)
+        if self.along_arc:
+            m = heat.shape[-1]
+            prob = torch.softmax(heat[0, 1:4].reshape(3, -1), -1).reshape(3, m, m).numpy()
+            t = np.array([refine_along_arc(prob[i], fit, t[i]) for i in range(3)])
+        uv_crop[1:4] = arc_at(fit, t) * st + (st - 1) / 2.0
+        # B..D now rest on A, E and the ridge, not on their own (along-arc diffuse) heatmaps
+        sc[1:4] = min(sc[0], sc[4])
+        res["on_arc"] = np.array([False, True, True, True, False])
+        res["uv"] = apply_affine(res["Minv"], uv_crop)
+
+    def _box_of(self, res) -> tuple:
+        pts = res["uv"]
+        if res.get("centreline") is not None:
+            cl, cw = res["centreline"], res["centreline_w"]
+            pts = np.vstack([pts, cl[cw > 0]])
+        lo, hi = pts.min(0), pts.max(0)
+        return ((lo[0] + hi[0]) / 2, (lo[1] + hi[1]) / 2, hi[0] - lo[0] + 4, hi[1] - lo[1] + 4)
+
+    def _finish(self, res, img: np.ndarray) -> None:
+        """The centreline: decoded from the crop's ridge, then (``subpixel``) moved onto the wire's
+        centre in the full-resolution image (``common.detector.centreline_subpixel``)."""
+        res["centreline"], res["centreline_w"], res["centreline_sigma"] = None, None, None
+        if not self.centreline:
+            return
+        s = self.cfg.out_stride
+        kp_cells = (res["uv_crop"] - (s - 1) / 2.0) / s
+        pts_cells, w = decode_centreline(res["line"], kp_cells)
+        res["centreline"] = apply_affine(res["Minv"], pts_cells * s + (s - 1) / 2.0)
+        res["centreline_w"] = w
+        if self.subpixel:
+            res["centreline"], res["centreline_w"] = refine_centreline(img, res["centreline"], w)
+            res["centreline_sigma"] = CENTRELINE_SIGMA_PX
+
+    def _not_an_ellipse(self, res) -> str | None:
+        """Why the sub-pixel centreline is not the image of a circle (None if it is, or when it
+        cannot be judged: no sub-pixel centreline, or fewer than MIN_ELLIPSE_POINTS stations)."""
+        if not (self.max_ellipse_px > 0 and res.get("centreline_sigma") is not None):
+            return None
+        pts = res["centreline"][res["centreline_w"] > 0]
+        pts = pts[np.isfinite(pts).all(axis=1)]
+        if len(pts) < MIN_ELLIPSE_POINTS:
+            return None
+        med, share = ellipse_residual(pts)
+        if med <= self.max_ellipse_px and share >= MIN_ELLIPSE_SHARE:
+            return None
+        return (f"centreline is not an ellipse arc (median {med:.2f} px from its best ellipse over "
+                f"{share:.0%} of it; max_ellipse_px {self.max_ellipse_px:g})")
+
+    # ------------------------------------------------------------ public
+    @torch.inference_mode()
+    def detect(self, image, camera: str = "left", seq: int = 0, stamp_ns: int = 0) -> Keypoints:
+        """Keypoints of one BGR image (h, w, 3) uint8; "no needle" with a reason when the image is
+        unusable or the confidence is below the threshold."""
+        problem = image_problem(image)
+        if problem:
+            self.reset(camera)
+            log.warning("camera %s seq %d: bad image: %s", camera, seq, problem)
+            return Keypoints.not_found(camera, seq, stamp_ns, self.name, f"bad image: {problem}")
+        img = _as_bgr(image)
+        res, conf = None, 0.0
+        box = self._track.get(camera) if self.tracking else None
+        if box is not None:
+            res = self._stage2(img, box)
+            self.last_mode = "tracking"
+            conf = res["presence"]
+            # a needle that moved in the image is cut by the old crop and its keypoints go wrong
+            # (the crop still shows enough needle to score high): then find it anew, cold
+            if conf < self.threshold or _moved(box, self._box_of({"uv": res["uv"]})):
+                res = None
+        if res is None:
+            self.last_mode = "cold"
+            # stage 1 proposes (Keypoint R-CNN's RPN role, a low threshold); stage 2's presence
+            # on the re-centred crop decides, against the detection threshold
+            proposals = self._stage1(img)
+            if not proposals:
+                self.reset(camera)
+                return Keypoints.not_found(camera, seq, stamp_ns, self.name,
+                                           f"no needle: no proposal >= {self.proposal_threshold:.2f}")
+            best = None
+            for c1, cx, cy, bw, bh in proposals:
+                r = self._stage2(img, (cx, cy, bw, bh))
+                if self.refine and r["presence"] >= self.proposal_threshold:
+                    r = self._stage2(img, self._box_of(r))
+                if best is None or r["presence"] > best[0]["presence"]:
+                    best = (r, c1)
+                if r["presence"] >= self.threshold:
+                    break
+            res, c1 = best
+            conf = res["presence"]
+            if conf < self.threshold:
+                self.reset(camera)
+                return Keypoints.not_found(camera, seq, stamp_ns, self.name,
+                                           f"no needle: confidence {conf:.2f} < {self.threshold:.2f} "
+                                           f"(proposal {c1:.2f})", conf)
+        self._place_bcd(res)
+        extent = float(np.linalg.norm(res["uv"][:, None] - res["uv"][None], axis=2).max())
+        if not extent >= self.min_extent_px:
+            # a needle within ~40 cm spans >= 10 px in any view: the points collapsed on one spot
+            self.reset(camera)
+            return Keypoints.not_found(camera, seq, stamp_ns, self.name,
+                                       f"no needle: keypoints collapsed ({extent:.1f} px apart "
+                                       f"< min_extent_px {self.min_extent_px:g})", conf)
+        self._finish(res, img)
+        not_ellipse = self._not_an_ellipse(res)
+        if not_ellipse:
+            self.reset(camera)
+            return Keypoints.not_found(camera, seq, stamp_ns, self.name, f"no needle: {not_ellipse}", conf)
+        self._track[camera] = self._box_of({"uv": res["uv"]})   # as _moved compares it
+        cx, cy, bw, bh = self._box_of(res)
+        return Keypoints(camera, seq, stamp_ns, True, res["uv"].astype(np.float64),
+                         res["scores"].astype(np.float64), float(conf),
+                         np.array([cx - bw / 2, cy - bh / 2, cx + bw / 2, cy + bh / 2]), self.name, None,
+                         res["centreline"], res["centreline_w"], res["centreline_sigma"], res.get("on_arc"),
+                         None if res["centreline_sigma"] is None else CENTRELINE_CORR_POINTS,
+                         KEYPOINT_SIGMA_PX)
+
+    def detect_message(self, msg: CameraImage) -> Keypoints:
+        """Keypoints of a ``CameraImage``; corrupt or inconsistent image data -> "no needle"."""
+        try:
+            img = msg.to_bgr()
+        except (MessageError, ValueError) as exc:
+            self.reset(msg.camera)
+            log.warning("camera %s seq %d: %s", msg.camera, msg.seq, exc)
+            return Keypoints.not_found(msg.camera, msg.seq, msg.stamp_ns, self.name, f"bad image: {exc}")
+        return self.detect(img, msg.camera, msg.seq, msg.stamp_ns)
+
+
+# ---------------------------------------------------------------- detector-node backend
+
+from common.detector.backends import BackendError, KeypointBackend  # noqa: E402
+
+
+class LearnedBackend(KeypointBackend):
+    """Backend ``learned`` of the detector node. Params: ``weights`` (default
+    models/keypoint/model.pt), ``device`` (auto | cpu | cuda), ``threshold`` (0.5), ``tracking``
+    (true), ``threads`` (torch threads, default 1: in a graph the other nodes share the cores, and
+    torch's threads then wait on each other; run one detector per camera for parallelism),
+    ``refine`` (true), ``centreline`` (true), ``subpixel`` (true: the centreline refined in the
+    full-resolution image), ``min_extent_px`` (10: keypoints closer together are "no needle"),
+    ``max_ellipse_px`` (0.25: a sub-pixel centreline farther from one ellipse is "no needle"; 0: off),
+    ``arc_bcd`` (true), ``along_arc`` (false), ``proposals`` (stage-1 proposals tried, 3), ``proposal_threshold`` (0.2)."""
+
+    name = "learned"
+    needs_image = True
+
+    def __init__(self, params=None):
+        super().__init__(params)
+        p = self.p
+        try:
+            self.detector = KeypointDetector(
+                p.weights, device=p.device, threshold=p.threshold, tracking=p.tracking, threads=p.threads,
+                refine=p.refine, centreline=p.centreline, arc_bcd=p.arc_bcd, along_arc=p.along_arc,
+                proposals=p.proposals, proposal_threshold=p.proposal_threshold, subpixel=p.subpixel,
+                min_extent_px=p.min_extent_px, max_ellipse_px=p.max_ellipse_px)
+        except (ModelFileError, ValueError, TypeError) as exc:
+            raise BackendError(f"learned backend: {exc}") from exc
+
+    def detect(self, image, camera, truth, calib, *, seq=0, stamp_ns=0) -> Keypoints:
+        return self.detector.detect(image, camera, seq, stamp_ns)

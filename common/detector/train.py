@@ -1,0 +1,525 @@
+"""``needletrack train``: train the learned keypoint detector on a needle dataset, on the CPU.
+
+    needletrack train --data DIR [--data DIR2 ...] [--config models/train.yaml] --out models/NAME
+
+Writes into ``--out`` (a folder): ``model.pt`` (the best weights by validation keypoint error,
+what the detector loads), ``checkpoint.pt`` (everything needed to resume: the same command
+continues where it stopped), ``train.yaml`` (the configuration used), ``metrics.jsonl`` (one line
+per epoch) and ``curves.png``. Seeded: the same data, config and seed give the same model.
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import os
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import torch
+import torch.nn.functional as F
+import yaml
+
+from common.detector.data import (
+    AugConfig,
+    DatasetError,
+    crop_from,
+    crop_sample,
+    global_input,
+    global_sample,
+    load_cached,
+    load_records,
+    save_records,
+)
+from common.detector.model import (
+    KeypointModel,
+    ModelConfig,
+    apply_affine,
+    centreline_target,
+    crop_affine,
+    crop_side,
+    decode_global,
+    decode_heatmaps,
+    focal_heatmap_loss,
+    gaussian_targets,
+    invert_affine,
+    keypoint_loss,
+)
+
+MODEL_FORMAT = "needletrack-keypoint-detector"
+MODEL_VERSION = 1
+
+DEFAULT_TRAIN = {
+    "epochs": 20,
+    "batch": 32,              # stage-2 crops per step
+    "global_batch": 16,       # stage-1 images per step
+    "optimizer": "adamw",     # adamw | sgd (the paper's: lr 0.01, momentum 0.9, wd 0.0005)
+    "lr": 0.002,
+    "momentum": 0.9,
+    "weight_decay": 0.0005,
+    "warmup_steps": 100,
+    "steps_per_epoch": 0,     # 0: one crop per training image per epoch
+    "val_fraction": 0.1,
+    "val_every": 1,           # validate (and keep the best weights) every this many epochs, and at the end
+    "threads": 2,
+    "time_budget_min": 0,     # the cosine schedule ends at this training time if it comes first; 0 = none
+    "loss_weights": {"kp": 1.0, "line": 4.0, "presence": 0.3, "global": 1.0, "box": 1.0,
+                     "global_presence": 1.0},
+    "stages": ["global", "crop"],   # which networks to train (the other keeps its weights)
+    "hard_negatives": 0,      # >0: mine up to this many stage-1 false proposals per image
+                              # (instrument jaws, thread...) with the weights of that moment
+    "hard_mining_at": 0.0,    # when to mine: fraction(s) of the schedule (0 = before the first step)
+    "hard_mining_images": 0,  # mine on at most this many images (a seeded random subset); 0 = all
+    "hard_prob": 0.2,         # fraction of stage-2 samples drawn from the mined hard negatives
+}
+
+
+def load_config(path: str | None) -> dict:
+    """Training configuration: defaults overridden by the YAML file (sections seed, model,
+    augment, train); raises ValueError naming the file and field."""
+    cfg = {"seed": 0, "model": {}, "augment": {}, "train": dict(DEFAULT_TRAIN)}
+    if path:
+        try:
+            user = yaml.safe_load(Path(path).read_text()) or {}
+        except (OSError, yaml.YAMLError) as exc:
+            raise ValueError(f"{path}: cannot read config: {exc}") from None
+        if not isinstance(user, dict):
+            raise ValueError(f"{path}: expected a mapping at the top level")
+        unknown = set(user) - set(cfg)
+        if unknown:
+            raise ValueError(f"{path}: unknown section(s) {sorted(unknown)} (known: {sorted(cfg)})")
+        cfg["seed"] = int(user.get("seed", 0))
+        cfg["model"] = dict(user.get("model") or {})
+        cfg["augment"] = dict(user.get("augment") or {})
+        t = dict(user.get("train") or {})
+        bad = set(t) - set(DEFAULT_TRAIN)
+        if bad:
+            raise ValueError(f"{path}: train: unknown field(s) {sorted(bad)}")
+        lw = dict(DEFAULT_TRAIN["loss_weights"])
+        lw.update(t.pop("loss_weights", {}) or {})
+        cfg["train"].update(t)
+        cfg["train"]["loss_weights"] = lw
+    try:
+        ModelConfig.from_dict(cfg["model"])
+        AugConfig.from_dict(cfg["augment"])
+    except (TypeError, ValueError) as exc:
+        raise ValueError(f"{path or 'config'}: {exc}") from None
+    return cfg
+
+
+# ---------------------------------------------------------------- batches
+
+def crop_batch(records, idx, cfg: ModelConfig, aug, rng, hard=None, hard_prob: float = 0.0):
+    items = [hard_sample(hard[rng.integers(len(hard))], cfg, aug, rng)
+             if hard and rng.random() < hard_prob else crop_sample(records[i], cfg, aug, rng) for i in idx]
+    x = torch.from_numpy(np.stack([it[0] for it in items])).permute(0, 3, 1, 2).contiguous()
+    kpc = torch.from_numpy(np.stack([it[1] for it in items]))
+    valid = torch.from_numpy(np.stack([it[2] for it in items]))
+    line = centreline_target([it[3] for it in items], cfg.heat, cfg.line_sigma)
+    pres = torch.tensor([it[4] for it in items], dtype=torch.float32)
+    return x, kpc, valid, line, pres
+
+
+def hard_sample(h, cfg: ModelConfig, aug, rng):
+    """A stage-2 negative crop around a mined false proposal ``h`` = (region, origin, box)."""
+    region, origin, (cx, cy, bw, bh) = h
+    side = crop_side(cfg, bw, bh) * float(np.exp(rng.uniform(-0.25, 0.25)))
+    cx += rng.uniform(-0.12, 0.12) * side
+    cy += rng.uniform(-0.12, 0.12) * side
+    M = crop_affine(cx, cy, side, cfg.crop, rng.uniform(-np.pi, np.pi), bool(rng.random() < 0.5))
+    img = crop_from(region, origin, M, cfg.crop)
+    if aug is not None:
+        from common.detector.data import photometric
+        img = photometric(img, aug, rng)
+    return img, np.zeros((5, 2), np.float32), np.zeros(5, np.float32), None, 0.0
+
+
+@torch.inference_mode()
+def mine_hard_negatives(model: KeypointModel, data_dirs, per_image: int, progress=True,
+                        max_images: int = 0, seed: int = 0) -> list:
+    """Stage-1 proposals (confidence >= 0.15) far from the needle in the training images (all, or
+    a seeded random subset of ``max_images`` frames' cameras):
+    [(region uint8, origin (2,), box (cx, cy, w, h))], regions cut at full resolution."""
+    import cv2
+    from tqdm import tqdm
+
+    from common.detector.data import _cut, read_dataset
+    from common.detector.model import decode_global_topk
+    model.eval()
+    cfg = model.cfg
+    out = []
+    jobs = [(d, fr, cam) for d in data_dirs for fr in read_dataset(d)[1] for cam in ("left", "right")]
+    if 0 < max_images < len(jobs):
+        keep = np.random.default_rng(seed).choice(len(jobs), max_images, replace=False)
+        jobs = [jobs[i] for i in sorted(keep)]
+    for d, fr, cam in tqdm(jobs, desc="mining hard negatives", disable=not progress, unit="image"):
+        img = cv2.imread(str(Path(d) / fr[cam]), cv2.IMREAD_COLOR)
+        if img is None:
+            continue
+        h, w = img.shape[:2]
+        small = cv2.resize(img, (round(w / cfg.global_downscale), round(h / cfg.global_downscale)),
+                           interpolation=cv2.INTER_AREA)
+        g = model.glob(torch.from_numpy(global_input(small)).permute(2, 0, 1)[None].contiguous())
+        kp = np.asarray((fr.get("keypoints") or {}).get(cam) or np.full((5, 2), np.nan), float)
+        n_img = 0
+        for conf, cx, cy, bw, bh in decode_global_topk(g, cfg.global_downscale, per_image + 1, 0.15):
+            if np.isfinite(kp).all():
+                near = np.linalg.norm(kp - [cx, cy], axis=1).min()
+                if near < 0.6 * max(bw, bh, np.ptp(kp, 0).max()):
+                    continue
+            side = int(2.6 * max(bw, bh) + 48)
+            region, origin = _cut(img, int(cx - side / 2), int(cy - side / 2), side)
+            if region.size:
+                out.append((region, origin, (cx, cy, bw, bh)))
+                n_img += 1
+            if n_img >= per_image:
+                break
+    model.train()
+    return out
+
+
+def global_batch(records, idx, cfg: ModelConfig, aug, rng):
+    items = [global_sample(records[i], cfg, aug, rng) for i in idx]
+    shapes = {it[0].shape for it in items}
+    if len(shapes) > 1:  # mixed image sizes: train on the most common one only
+        common = max(shapes, key=lambda s: sum(it[0].shape == s for it in items))
+        items = [it for it in items if it[0].shape == common]
+    x = torch.from_numpy(np.stack([it[0] for it in items])).permute(0, 3, 1, 2).contiguous()
+    heat = torch.from_numpy(np.stack([it[1] for it in items]))
+    reg = torch.from_numpy(np.stack([it[2] for it in items]))
+    mask = torch.from_numpy(np.stack([it[3] for it in items]))
+    return x, heat, reg, mask
+
+
+def losses(model: KeypointModel, cb, gb, w: dict) -> dict:
+    """Loss terms of a stage-2 batch ``cb`` and a stage-1 batch ``gb`` (either may be None)."""
+    cfg = model.cfg
+    out = {}
+    if cb is not None:
+        x, kpc, valid, line, pres = cb
+        heat, p = model.crop(x)
+        out["kp"] = keypoint_loss(heat[:, :5], gaussian_targets(kpc, valid, cfg.heat, cfg.kp_sigma))
+        out["line"] = F.binary_cross_entropy_with_logits(heat[:, 5], line)
+        out["presence"] = F.binary_cross_entropy_with_logits(p, pres)
+    if gb is not None:
+        gx, gheat, greg, gmask = gb
+        g = model.glob(gx)
+        out["global"] = focal_heatmap_loss(g[:, 0], gheat)
+        m = gmask[:, None]
+        out["box"] = (F.smooth_l1_loss(g[:, 1:5], greg, reduction="none", beta=0.1) * m).sum() / m.sum().clamp_min(1) / 4
+        # image-level presence on the heatmap's peak (the detector's confidence): MIL-style
+        has = (gmask.flatten(1).sum(1) > 0).float()
+        out["global_presence"] = F.binary_cross_entropy_with_logits(g[:, 0].flatten(1).amax(1), has)
+    out["total"] = sum(w.get(k, 0.0) * v for k, v in out.items())
+    return out
+
+
+# ---------------------------------------------------------------- validation
+
+@torch.inference_mode()
+def validate(model: KeypointModel, records, threshold: float = 0.5) -> dict:
+    """Validation figures on prepared records: stage 2 with the ground-truth box, and the whole
+    two-stage pipeline (stage-1 box -> crop); per-keypoint pixel errors at full resolution."""
+    model.eval()
+    cfg = model.cfg
+    err_gt, err_pipe = [], []
+    found, n_pos, fp, n_neg = 0, 0, 0, 0
+    for rec in records:
+        gx = torch.from_numpy(global_input(rec.small)).permute(2, 0, 1)[None].contiguous()
+        conf, cx, cy, bw, bh = decode_global(model.glob(gx), cfg.global_downscale)
+        if not rec.has_needle:
+            n_neg += 1
+            if conf >= threshold:
+                M = crop_affine(cx, cy, crop_side(cfg, bw, bh), cfg.crop)
+                _, pres = model.crop(torch.from_numpy(crop_from(rec.neg if rec.neg.size else rec.region,
+                                     rec.neg_origin if rec.neg.size else rec.origin, M, cfg.crop)
+                                     ).permute(2, 0, 1)[None].contiguous())
+                fp += int(float(torch.sigmoid(pres[0])) >= threshold)
+            continue
+        if rec.vis.sum() < 2:
+            continue
+        n_pos += 1
+        boxes = [("gt", rec.box)]
+        if conf >= threshold:
+            boxes.append(("pipe", (cx, cy, bw, bh)))
+        for kind, box in boxes:
+            for rep in range(2 if kind == "pipe" else 1):   # the detector's second, re-centred pass
+                bx, by, bw_, bh_ = box
+                M = crop_affine(bx, by, crop_side(cfg, bw_, bh_), cfg.crop)
+                crop = crop_from(rec.region, rec.origin, M, cfg.crop)
+                heat, pres = model.crop(torch.from_numpy(crop).permute(2, 0, 1)[None].contiguous())
+                uv, _ = decode_heatmaps(heat[:, :5], cfg.out_stride)
+                uv_img = apply_affine(invert_affine(M), uv[0].numpy())
+                lo, hi = uv_img.min(0), uv_img.max(0)
+                box = ((lo[0] + hi[0]) / 2, (lo[1] + hi[1]) / 2, hi[0] - lo[0] + 4, hi[1] - lo[1] + 4)
+            if kind == "pipe" and float(torch.sigmoid(pres[0])) < threshold:
+                continue
+            e = np.where(rec.vis, np.linalg.norm(uv_img - rec.kp, axis=1), np.nan)  # visible points only
+            (err_gt if kind == "gt" else err_pipe).append(e)
+            if kind == "pipe":
+                found += 1
+    res = {"n_pos": n_pos, "n_neg": n_neg, "found": found,
+           "detection_rate": found / max(1, n_pos), "false_positives": fp}
+    for name, errs in (("gtbox", err_gt), ("pipe", err_pipe)):
+        if errs:
+            e = np.asarray(errs)
+            res[f"{name}_mean_px"] = float(np.nanmean(e))
+            res[f"{name}_median_px"] = float(np.nanmedian(e))
+            res[f"{name}_per_kp_px"] = [float(v) for v in np.nanmean(e, 0)]
+    model.train()
+    return res
+
+
+# ---------------------------------------------------------------- files
+
+def save_model(path, model: KeypointModel, meta: dict) -> None:
+    """The weights file the detector loads (tensors and plain types only: weights_only=True)."""
+    blob = {"format": MODEL_FORMAT, "version": MODEL_VERSION, "config": model.cfg.to_dict(),
+            "state_dict": {k: v.detach().clone() for k, v in model.state_dict().items()},
+            "meta": json.loads(json.dumps(meta))}
+    tmp = str(path) + ".tmp"
+    torch.save(blob, tmp)
+    os.replace(tmp, path)
+
+
+def plot_curves(metrics: list[dict], path) -> None:
+    import matplotlib
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    ep = [m["epoch"] for m in metrics]
+    fig, ax = plt.subplots(1, 2, figsize=(10, 4))
+    ax[0].plot(ep, [m["train_loss"] for m in metrics], "o-", label="train loss")
+    ax[0].set_xlabel("epoch"); ax[0].set_yscale("log"); ax[0].legend()
+    for key, lab in (("gtbox_mean_px", "val, ground-truth box"), ("pipe_mean_px", "val, two-stage")):
+        ax[1].plot(ep, [m["val"].get(key, np.nan) for m in metrics], "o-", label=lab)
+    ax[1].set_xlabel("epoch"); ax[1].set_ylabel("mean keypoint error (px)"); ax[1].set_yscale("log")
+    ax[1].grid(True, which="both", alpha=0.3); ax[1].legend()
+    fig.tight_layout()
+    fig.savefig(path, dpi=90)
+    plt.close(fig)
+
+
+def prepare_records(data_dirs, out: Path, mcfg: ModelConfig, seed: int, progress: bool = True):
+    """Records of all data folders, cached (outside the repository, in the temp folder) under a
+    key made of the folders, their frames.jsonl size and time, the downscale and the seed."""
+    import hashlib
+    import tempfile
+    def stamp(d):  # a folder that grew (or changed) invalidates the cache
+        f = Path(d) / "frames.jsonl"
+        return [str(Path(d).resolve()), f.stat().st_size if f.is_file() else -1,
+                f.stat().st_mtime_ns if f.is_file() else -1]
+    key = json.dumps({"data": [stamp(d) for d in data_dirs], "downscale": mcfg.global_downscale,
+                      "seed": seed})
+    cache_dir = Path(tempfile.gettempdir()) / "needletrack-keypoint-cache"
+    cache_dir.mkdir(parents=True, exist_ok=True)
+    h = hashlib.sha1(key.encode()).hexdigest()[:16]
+    cache, key_path = cache_dir / f"{h}.npz", cache_dir / f"{h}.key"
+    if cache.is_file() and key_path.is_file() and key_path.read_text() == key:
+        return load_cached(cache)
+    records = []
+    for i, d in enumerate(data_dirs):
+        records += load_records(d, mcfg, seed=seed + i, progress=progress)
+    save_records(cache, records)
+    key_path.write_text(key)
+    return records
+
+
+def split(records, fraction: float, seed: int):
+    """Train/validation split by frame (both cameras of a frame on the same side)."""
+    keys = sorted({(r.image_size, r.frame) for r in records})
+    rng = np.random.default_rng(seed)
+    order = rng.permutation(len(keys))
+    n_val = int(round(fraction * len(keys)))
+    val_keys = {keys[i] for i in order[:n_val]}
+    tr = [r for r in records if (r.image_size, r.frame) not in val_keys]
+    va = [r for r in records if (r.image_size, r.frame) in val_keys]
+    return tr, va
+
+
+# ---------------------------------------------------------------- main
+
+def train(data_dirs, out, config_path=None, log=print, progress=True, init=None) -> dict:
+    """Train (or resume) into the folder ``out``; returns the last epoch's metrics. ``init``: a
+    weights file to start from (fine-tuning) when ``out`` holds no checkpoint yet."""
+    cfg = load_config(config_path)
+    tcfg = cfg["train"]
+    mcfg = ModelConfig.from_dict(cfg["model"])
+    aug = AugConfig.from_dict(cfg["augment"])
+    seed = int(cfg["seed"])
+    out = Path(out)
+    out.mkdir(parents=True, exist_ok=True)
+    torch.set_num_threads(max(1, int(tcfg["threads"])))
+    (out / "train.yaml").write_text(yaml.safe_dump(cfg, sort_keys=False))
+
+    records = prepare_records(data_dirs, out, mcfg, seed, progress)
+    tr, va = split(records, float(tcfg["val_fraction"]), seed)
+    pos = [i for i, r in enumerate(tr) if r.has_needle]
+    if not pos:
+        raise DatasetError(f"{data_dirs}: no image with a visible needle to train on")
+    log(f"train: {len(tr)} images ({len(pos)} with a needle), validation: {len(va)}")
+
+    torch.manual_seed(seed)
+    model = KeypointModel(mcfg)
+    stages = list(tcfg["stages"])
+    if not stages or set(stages) - {"global", "crop"}:
+        raise ValueError(f"{config_path}: train.stages must list 'global' and/or 'crop', got {stages}")
+    if init and not (out / "checkpoint.pt").is_file():
+        try:
+            src = torch.load(init, map_location="cpu", weights_only=True)
+            if src.get("config") != mcfg.to_dict():
+                raise ValueError(f"--init {init}: its model config differs from {config_path}")
+            model.load_state_dict(src["state_dict"])
+        except (OSError, RuntimeError, KeyError, AttributeError) as exc:
+            raise ValueError(f"--init {init}: cannot load ({exc})") from None
+        log(f"starting from the weights of {init}")
+    hard = []
+    at = tcfg["hard_mining_at"]
+    # each mining adds the current weights' false proposals to the earlier ones
+    mine_at = sorted(float(a) for a in (at if isinstance(at, list) else [at])) \
+        if int(tcfg["hard_negatives"]) > 0 else []
+
+    def mine() -> list:
+        found = mine_hard_negatives(model, data_dirs, int(tcfg["hard_negatives"]), progress,
+                                    int(tcfg["hard_mining_images"]), seed)
+        log(f"{len(found)} hard negatives mined")
+        return found
+    steps_per_epoch = int(tcfg["steps_per_epoch"]) or max(1, len(tr) // int(tcfg["batch"]))
+    total = steps_per_epoch * int(tcfg["epochs"])
+    if tcfg["optimizer"] == "sgd":
+        opt = torch.optim.SGD(model.parameters(), lr=tcfg["lr"], momentum=tcfg["momentum"],
+                              weight_decay=tcfg["weight_decay"])
+    elif tcfg["optimizer"] == "adamw":
+        opt = torch.optim.AdamW(model.parameters(), lr=tcfg["lr"], weight_decay=tcfg["weight_decay"])
+    else:
+        raise ValueError(f"{config_path}: train.optimizer must be adamw or sgd, got {tcfg['optimizer']!r}")
+    warm = int(tcfg["warmup_steps"])
+    base_lr = float(tcfg["lr"])
+    budget = float(tcfg["time_budget_min"]) * 60.0
+
+    def progress_of(step: int, seconds: float) -> float:
+        """Fraction of the schedule done: by steps, or by training time when a budget is set
+        and runs out first (a shared machine can be much slower than planned)."""
+        frac = step / max(1, total)
+        return min(1.0, max(frac, seconds / budget) if budget else frac)
+
+    start_epoch, best, elapsed, metrics, step_count = 0, float("inf"), 0.0, [], 0
+    ckpt_path = out / "checkpoint.pt"
+    if ckpt_path.is_file():
+        ck = torch.load(ckpt_path, map_location="cpu", weights_only=True)
+        if ck.get("config") != mcfg.to_dict():
+            raise ValueError(f"{ckpt_path}: was trained with another model config; "
+                             f"delete it or use another --out")
+        model.load_state_dict(ck["state_dict"])
+        opt.load_state_dict(ck["optimizer"])
+        start_epoch, best, elapsed = int(ck["epoch"]), float(ck["best"]), float(ck["elapsed_s"])
+        step_count = int(ck["step"])
+        log(f"resuming from {ckpt_path} after epoch {start_epoch}")
+    mpath = out / "metrics.jsonl"
+    if mpath.is_file() and start_epoch:
+        metrics = [json.loads(l) for l in mpath.read_text().splitlines() if l.strip()][:start_epoch]
+
+    from tqdm import tqdm
+    w = tcfg["loss_weights"]
+    last = {}
+    model.train()
+    for epoch in range(start_epoch, int(tcfg["epochs"])):
+        if progress_of(step_count, elapsed) >= 1.0:
+            log(f"schedule finished after {step_count} steps, {elapsed / 60:.1f} min of training")
+            break
+        t0 = time.time()
+        rng = np.random.default_rng([seed, epoch])
+        torch.manual_seed(seed * 1000 + epoch)
+        order = rng.permutation(np.resize(rng.permutation(len(tr)), steps_per_epoch * int(tcfg["batch"])))
+        running = None
+        bar = tqdm(range(steps_per_epoch), desc=f"epoch {epoch + 1}/{tcfg['epochs']}", disable=not progress,
+                   unit="step", dynamic_ncols=True)
+        for step in bar:
+            frac = progress_of(step_count, elapsed + time.time() - t0)
+            if frac >= 1.0:
+                break
+            if mine_at and frac >= mine_at[0]:
+                mine_at = [a for a in mine_at if a > frac]
+                t_mine = time.time()
+                hard = hard + mine()
+                t0 += time.time() - t_mine   # mining is not training time
+            idx = order[step * int(tcfg["batch"]):(step + 1) * int(tcfg["batch"])]
+            gidx = rng.integers(0, len(tr), int(tcfg["global_batch"]))
+            cb = (crop_batch(tr, idx, mcfg, aug, rng, hard, float(tcfg["hard_prob"]))
+                  if "crop" in stages else None)
+            gb = global_batch(tr, gidx, mcfg, aug, rng) if "global" in stages else None
+            L = losses(model, cb, gb, w)
+            lr = base_lr * min(1.0, (step_count + 1) / max(1, warm)) * 0.5 * (1 + math.cos(math.pi * frac))
+            for g in opt.param_groups:
+                g["lr"] = lr
+            opt.zero_grad(set_to_none=True)
+            L["total"].backward()
+            torch.nn.utils.clip_grad_norm_(model.parameters(), 5.0)
+            opt.step()
+            step_count += 1
+            vals = {k: float(v.detach()) for k, v in L.items()}
+            running = vals if running is None else {k: 0.95 * running[k] + 0.05 * vals[k] for k in vals}
+            bar.set_postfix(loss=f"{running['total']:.3f}", kp=f"{running.get('kp', 0):.3f}",
+                            glob=f"{running.get('global', 0):.3f}", lr=f"{lr:.1e}")
+        bar.close()
+        if running is None:
+            break
+        done = (epoch + 1 == int(tcfg["epochs"])
+                or progress_of(step_count, elapsed + time.time() - t0) >= 1.0)
+        checked = bool(va) and (done or (epoch + 1) % max(1, int(tcfg["val_every"])) == 0)
+        val = validate(model, va) if checked else {}
+        elapsed += time.time() - t0
+        last = {"epoch": epoch + 1, "train_loss": running["total"], "train": running, "val": val,
+                "elapsed_s": round(elapsed, 1)}
+        metrics.append(last)
+        score = val.get("pipe_mean_px", val.get("gtbox_mean_px", running["total"]))
+        if val and val.get("detection_rate", 1.0) < 0.9:
+            score = score + 100.0   # a model that misses needles is never "best"
+        msg = (f"epoch {epoch + 1}: loss {running['total']:.4f}  ({elapsed / 60:.1f} min)" if not checked else
+               f"epoch {epoch + 1}: loss {running['total']:.4f}  val gt-box {val.get('gtbox_mean_px', float('nan')):.3f} px"
+               f"  two-stage {val.get('pipe_mean_px', float('nan')):.3f} px  detected {val.get('found', 0)}/{val.get('n_pos', 0)}"
+               f"  fp {val.get('false_positives', 0)}/{val.get('n_neg', 0)}  ({elapsed / 60:.1f} min)")
+        log(msg)
+        meta = {"epoch": epoch + 1, "val": val, "train_seconds": round(elapsed, 1),
+                "data": [str(d) for d in data_dirs], "seed": seed}
+        scored = checked or not va
+        if scored and score <= best or not (out / "model.pt").is_file():
+            if scored:   # a first model saved without validation sets no bar for the next
+                best = min(best, score)
+            save_model(out / "model.pt", model, meta)
+        with open(mpath, "w") as f:
+            f.write("".join(json.dumps(m) + "\n" for m in metrics))
+        ck = {"config": mcfg.to_dict(), "state_dict": model.state_dict(), "optimizer": opt.state_dict(),
+              "step": step_count, "epoch": epoch + 1, "best": best, "elapsed_s": elapsed}
+        torch.save(ck, str(ckpt_path) + ".tmp")
+        os.replace(str(ckpt_path) + ".tmp", ckpt_path)
+        try:
+            plot_curves(metrics, out / "curves.png")
+        except Exception as exc:  # a plotting problem must not stop training
+            log(f"could not plot curves: {exc}")
+    return last
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(prog="needletrack train",
+                                 description="Train the learned needle keypoint detector (CPU).")
+    ap.add_argument("--data", action="append", required=True, help="dataset folder (repeatable)")
+    ap.add_argument("--config", default=None, help="training YAML (e.g. models/train.yaml)")
+    ap.add_argument("--out", required=True, help="output folder, e.g. models/keypoint")
+    ap.add_argument("--init", default=None, help="start from these weights (fine-tuning)")
+    ap.add_argument("--no-progress", action="store_true", help="no progress bar")
+    a = ap.parse_args(argv)
+    try:
+        train(a.data, a.out, a.config, progress=not a.no_progress, init=a.init)
+    except (DatasetError, ValueError, OSError) as exc:
+        print(f"needletrack train: error: {exc}", file=sys.stderr)
+        return 2
+    except KeyboardInterrupt:
+        print("needletrack train: interrupted; run the same command again to resume", file=sys.stderr)
+        return 130
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

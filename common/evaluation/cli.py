@@ -1,0 +1,273 @@
+"""``needletrack eval --dataset DIR [--detector learned|classical|oracle] [--out OUTDIR]``
+
+Checks the folder against the dataset spec (exit 2 with file, line and field when it breaks
+it, or when it has no ground truth to compare with), then runs the real graph on it: replay ->
+detector -> epnp (average, joint) -> triangulate -> ecm -> fusion (-> refine -> fusion) ->
+evaluator, on a free loopback port. Every node queues all its inputs (none keeps only the
+newest, as in a live graph), so every frame is scored whatever the load. The evaluator writes
+OUTDIR (results.json, report.md, error_vs_distance.png, per_frame.csv, overlays/); this command
+prints the summary. The graph's log is OUTDIR/graph.log and the graph itself OUTDIR/graph.yaml.
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+import time
+from pathlib import Path
+
+import yaml
+
+DETECTORS = ("learned", "classical", "oracle")
+
+
+def _parser() -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(prog="needletrack eval", description=__doc__,
+                                formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("--dataset", required=True, help="dataset folder (docs/dataset.md) with ground truth")
+    p.add_argument("--detector", default="learned", choices=DETECTORS, help="keypoint backend (default learned)")
+    p.add_argument("--out", default="results", help="output folder (default results/)")
+    p.add_argument("--noise-px", type=float, default=0.0,
+                   help="oracle only: Gaussian keypoint noise per coordinate (px)")
+    p.add_argument("--seed", type=int, default=0, help="oracle only: noise seed")
+    p.add_argument("--model", help="learned only: weights file (default: the detector's shipped model)")
+    p.add_argument("--param", action="append", default=[], metavar="KEY=VALUE",
+                   help="a detector parameter (repeatable), e.g. --param tracking=false")
+    p.add_argument("--rate", default=None,
+                   help="replay rate in Hz, or 'max' (default: 30 for the oracle, 10 otherwise). Every "
+                        "frame is scored whatever the rate (the nodes queue their inputs here); "
+                        "`needletrack bench` measures speed")
+    p.add_argument("--no-refine", action="store_true", help="leave out the refinement node")
+    p.add_argument("--support-normal", metavar="X,Y,Z", type=_vector3,
+                   help="the refinement's prior that the needle may rest on a surface with this "
+                        "normal (world frame), e.g. 0,0,1 for the simulator's phantom (common/geometry/rest_prior.py; "
+                        "default: no prior)")
+    p.add_argument("--timeout", type=float, default=None, help="give up after this many seconds")
+    p.add_argument("--bench", type=float, default=0.0, metavar="SECONDS",
+                   help="then also measure the live graph's speed for this long (`needletrack bench`) "
+                        "and add it to results.json (key `bench`) and report.md")
+    p.add_argument("--quiet", action="store_true", help="no progress bar")
+    return p
+
+
+def _vector3(text: str) -> list:
+    try:
+        v = [float(x) for x in text.split(",")]
+    except ValueError:
+        v = []
+    if len(v) != 3 or not any(v):
+        raise argparse.ArgumentTypeError(f"expected three numbers X,Y,Z not all zero, got {text!r}")
+    return v
+
+
+def check_folder(path: str, progress: bool = True):
+    """The loaded Dataset, or raise DatasetError naming the file, line and field at fault.
+
+    Beyond the spec, evaluation needs ground truth: ``T_world_needle`` and the endoscope pose
+    (``T_world_ecm``, or ``ecm_joints`` with the ``ecm`` arm) on every frame.
+    """
+    from common.data.dataset import Dataset, DatasetError, check_dataset
+    ds = Dataset(path)
+    if len(ds) == 0:
+        raise DatasetError(f"{path}/frames.jsonl: no frames")
+    rep = check_dataset(ds, images=True, progress=progress)
+    if rep.errors:
+        more = f" (and {len(rep.errors) - 1} more)" if len(rep.errors) > 1 else ""
+        raise DatasetError(rep.errors[0] + more)
+    for fr in ds.frames:
+        where = f"frames.jsonl:{fr.line}"
+        if fr.T_world_needle is None:
+            raise DatasetError(f"{where}: T_world_needle: missing; evaluation needs the ground-truth "
+                               f"needle pose on every frame")
+        if fr.T_world_ecm is None and (fr.ecm_joints is None or ds.arm is None):
+            raise DatasetError(f"{where}: T_world_ecm: missing (and no ecm_joints with an ecm arm in "
+                               f"dataset.yaml); evaluation needs the endoscope pose")
+    return ds
+
+
+def print_summary(res: dict, out=sys.stdout) -> None:
+    k2 = res["keypoints_2d_px"]["all"]
+    k3 = res["keypoints_3d_mm"]["all"]
+    f = lambda x, nd=2: "n/a" if x is None else f"{x:.{nd}f}"
+    print(f"dataset {res['dataset']}: {res['frames']} frames, detector {res['detector']}", file=out)
+    dr = res["detection_rate"]
+    print(f"needle found in {f(None if dr is None else 100 * dr, 1)}% of the images; keypoints "
+          f"2D {f(k2['mean'])} +- {f(k2['std'])} px (paper 5.58), 3D {f(k3['mean'])} +- {f(k3['std'])} mm",
+          file=out)
+    print(f"{'method':<18} {'n':>9} {'pos mean':>9} {'median':>7} {'rot mean':>9} {'median':>7}   paper",
+          file=out)
+    paper = res.get("paper", {}).get("pose", {})
+    for m, d in res["pose"].items():
+        p, o = d["position_mm"], d["orientation_deg"]
+        pp = paper.get(m)
+        ps = f"{pp['position_mm']:.2f} mm / {pp['orientation_deg']:.2f} deg" if pp else "-"
+        print(f"{m:<18} {d['n']:>4}/{d.get('expected', d['n']):<4} {f(p['mean']):>6} mm {f(p['median']):>7} "
+              f"{f(o['mean']):>5} deg {f(o['median']):>7}   {ps}", file=out)
+    t = res["timing"]
+    for node, c in res.get("node_counters", {}).items():
+        errs = {k: v for k, v in c.items() if v and k in ("handler_errors", "decode_errors")}
+        if errs:
+            print(f"warning: node {node}: {errs} (see graph.log)", file=out)
+    print(f"throughput {f(t['throughput_hz'], 1)} frames/s at the replay's pace; latency p50 "
+          f"{f(t['latency_ms']['p50'], 1)} ms, p99 {f(t['latency_ms']['p99'], 1)} ms", file=out)
+
+
+def main(argv=None) -> int:
+    args = _parser().parse_args(argv)
+    from common.data.dataset import DatasetError
+    from common.evaluation.pipeline_graph import (
+        GraphRun,
+        GraphRunError,
+        keypoint_sources,
+        pipeline_graph,
+        pose_inputs,
+    )
+
+    dataset = str(Path(args.dataset))
+    try:
+        ds = check_folder(dataset, progress=not args.quiet)
+    except DatasetError as exc:
+        print(f"needletrack eval: {dataset} is not a usable dataset folder: {exc}", file=sys.stderr)
+        return 2
+    if args.noise_px and args.detector != "oracle":
+        print("needletrack eval: --noise-px applies to the oracle detector only", file=sys.stderr)
+        return 2
+
+    out = Path(args.out)
+    out.mkdir(parents=True, exist_ok=True)
+    for stale in ("results.json", "report.md", "error_vs_distance.png"):
+        (out / stale).unlink(missing_ok=True)
+    for png in (out / "overlays").glob("*.png") if (out / "overlays").is_dir() else []:
+        png.unlink()
+
+    det_params = {}
+    if args.detector == "oracle":
+        det_params = {"noise_px": args.noise_px, "seed": args.seed}
+    elif args.model:
+        det_params = {"weights": str(Path(args.model).resolve())}
+    split = args.detector != "oracle"   # one process per camera: images detected in parallel
+    from common.runtime.graph import parse_param
+    try:
+        det_params.update(dict(parse_param(p) for p in args.param))
+    except ValueError as exc:
+        print(f"needletrack eval: {exc}", file=sys.stderr)
+        return 2
+    rate = args.rate or (30 if args.detector == "oracle" else 10)
+    rate = rate if str(rate) == "max" else float(rate)
+    doc = pipeline_graph(dataset, detector=args.detector, detector_params=det_params, rate=rate,
+                         refine=False if args.no_refine else None, lossless=True,
+                         split_detector=split, refine_tracking=False,   # refined: a single-frame method
+                         refine_params={"support_normal_world": args.support_normal} if args.support_normal else None)
+    evaluator = {"id": "evaluator", "module": "evaluator",
+                 "params": {"out": str(out.resolve()), "dataset": str(Path(dataset).resolve()),
+                            "detector": args.detector, "noise_px": args.noise_px,
+                            "support_normal_world": args.support_normal},
+                 "inputs": {"truth": "replay/truth", "calib": "replay/calib", "eos": "replay/eos",
+                            **keypoint_sources(split),
+                            "points3d": "triangulate/points", **pose_inputs(doc)},
+                 "restart": "never"}
+    doc["nodes"].append(evaluator)
+    (out / "graph.yaml").write_text(yaml.safe_dump(doc, sort_keys=False))
+
+    n = len(ds)
+    timeout = args.timeout or (180 + n / (rate if rate != "max" else 5) * 3)
+    log_path = out / "graph.log"
+    t0 = time.monotonic()
+    with open(log_path, "w") as log:
+        try:
+            with GraphRun(doc, log) as run:
+                run.start()
+                _wait_with_progress(run, n, timeout, quiet=args.quiet)
+        except GraphRunError as exc:
+            log.flush()
+            print(f"needletrack eval: the graph failed: {exc}", file=sys.stderr)
+            text = log_path.read_text().splitlines()
+            errors = [l for l in text if " ERROR " in l]
+            if errors:
+                print("first errors:\n" + "\n".join(errors[:5]), file=sys.stderr)
+            print(f"last lines of {log_path}:\n" + "\n".join(text[-15:]), file=sys.stderr)
+            return 1
+    res_path = out / "results.json"
+    if not res_path.is_file():
+        print(f"needletrack eval: the evaluator wrote no {res_path}; see {log_path}", file=sys.stderr)
+        return 1
+    res = json.loads(res_path.read_text())
+    if args.bench > 0:
+        rc = _bench(args, dataset, out, res)
+        if rc:
+            return rc
+    print_summary(res)
+    print(f"wrote {out}/results.json, report.md, error_vs_distance.png, per_frame.csv, overlays/ "
+          f"({time.monotonic() - t0:.0f} s)")
+    return 0
+
+
+def _bench(args, dataset: str, out: Path, res: dict) -> int:
+    """Measure the live graph (``common.evaluation.graph_bench``) and add it to results.json/report.md."""
+    from common.evaluation.graph_bench import measure, report
+    from common.evaluation.pipeline_graph import GraphRunError
+    from common.evaluation.scoring import to_jsonable
+    bargs = argparse.Namespace(detector=args.detector, model=args.model, rate="30",
+                               duration=args.bench, warmup=4.0, one_detector=False,
+                               no_refine=args.no_refine)
+    log_path = out / "bench.log"
+    try:
+        with open(log_path, "w") as log:
+            r = measure(bargs, dataset, log)
+    except (GraphRunError, RuntimeError) as exc:
+        print(f"needletrack eval --bench: {exc}; see {log_path}", file=sys.stderr)
+        return 1
+    text = report(r)
+    res["bench"] = to_jsonable(r)
+    (out / "results.json").write_text(json.dumps(res, indent=2, allow_nan=False) + "\n")
+    with open(out / "report.md", "a") as f:
+        f.write("\n## Live graph speed (`needletrack bench`)\n\n```\n" + text + "\n```\n")
+    print(text)
+    return 0
+
+
+def _wait_with_progress(run, n_frames: int, timeout: float, quiet: bool) -> None:
+    """Wait for the evaluator, showing frames replayed (from the replay's stats) as a bar."""
+    import threading
+
+    from tqdm import tqdm
+    done = threading.Event()
+    err: list = []
+
+    def waiter():
+        try:
+            run.wait(["evaluator"], timeout)
+        except Exception as exc:
+            err.append(exc)
+        done.set()
+    threading.Thread(target=waiter, daemon=True).start()
+    bar = None if quiet else tqdm(total=n_frames, desc="eval", unit="frame")
+    sub = None
+    if bar is not None:
+        from common.runtime.graph import stats_key
+        from common.runtime.messages import NodeStats, decode
+        state = {"n": 0}
+
+        def on_stats(sample):
+            try:
+                st = decode(sample.payload.to_bytes(), NodeStats)
+            except Exception:
+                return
+            if st.node == "replay":
+                state["n"] = int(st.counters.get("out.left", 0))
+        try:
+            sub = run.client_session().declare_subscriber(stats_key(run.graph.name, "replay"), on_stats)
+        except Exception:
+            sub = None
+    while not done.wait(0.25):
+        if bar is not None and sub is not None and min(n_frames, state["n"]) != bar.n:
+            bar.n = min(n_frames, state["n"])
+            bar.refresh()
+    if bar is not None:
+        if not err:
+            bar.n = n_frames
+        bar.close()
+    if sub is not None:
+        sub.undeclare()
+    if err:
+        raise err[0]

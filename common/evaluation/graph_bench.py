@@ -1,0 +1,387 @@
+"""``needletrack bench [graph] [--dataset DIR]``: the live pipeline's speed, end to end.
+
+The tracking graph as deployed, i.e. with newest-only inputs (``common.evaluation.pipeline_graph``:
+replay -> one detector process per camera -> refine -> fusion over refined poses, with ecm),
+fed by the replay source looping over a 1920x1080 stereo dataset as fast as the graph goes
+(``--rate max``, the default: closed loop, the replay sends the next frame once both cameras'
+keypoints of the last one are out, ``rate: paced``), or at ``--rate`` Hz (30: the endoscope's). ``--all-methods`` adds the other pose methods
+(epnp average and joint, triangulate, fusion over joint poses), as in an evaluation; they are
+not on the path to the final pose. After a warm-up it measures for ``--duration`` seconds:
+
+- frames/s published by the source, stereo frames/s through the last single-frame pose node
+  (paired and processed, with or without a pose: with a detector that misses the needle most
+  frames give none) and fused poses/s (end to end);
+- latency from frame publish (``CameraImage.stamp_ns``, wall clock) to the fused pose, p50/p99,
+  and to each stage's output (keypoints, each pose method);
+- each node's CPU share and CPU time per published frame (from /proc over the window), its
+  handler times (its stats: p50/p99 over the messages whose handler published, i.e. a frame's
+  work: a detector's images, not its calibration or ground truth; the replay's step is not a
+  handler, its CPU ms/frame is its cost) and dropped inputs.
+
+Prints a table; ``--json FILE`` also writes the figures. Without ``--dataset`` it uses
+``data/test`` when present, else generates ``data/bench`` once (30 frames).
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import sys
+import threading
+import time
+from pathlib import Path
+
+import numpy as np
+
+BENCH_DATA = "data/bench"
+BENCH_GENERATE = ["generate", "--out", BENCH_DATA, "--sequences", "6", "--steps", "5",
+                  "--seed", "2000", "--randomise", "test"]
+TARGET_HZ, TARGET_P50_MS = 30.0, 50.0
+
+
+def _parser() -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(prog="needletrack bench graph", description=__doc__,
+                                formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("--dataset", help="dataset folder to loop over (default data/test, else data/bench)")
+    p.add_argument("--detector", default="learned", choices=("learned", "classical", "oracle"))
+    p.add_argument("--model", help="learned only: weights file (default: the shipped model)")
+    p.add_argument("--param", action="append", default=[], metavar="KEY=VALUE",
+                   help="a detector parameter (repeatable), e.g. --param stride=1")
+    p.add_argument("--rate", default="max",
+                   help="'max' (default): as fast as the graph goes (closed loop: the next frame once "
+                        "both cameras' keypoints of the last one are out; the detectors take every "
+                        "frame), or a replay rate in Hz (e.g. 30, the endoscope's)")
+    p.add_argument("--decode", action="store_true",
+                   help="the replay decodes the images once at start-up and sends them raw (bgr8, by "
+                        "shared memory), as a live capture card delivers them: the detectors then do "
+                        "not pay the dataset's JPEG decoding (9 ms per 1080p image)")
+    p.add_argument("--duration", type=float, default=20.0, help="measured seconds (default 20)")
+    p.add_argument("--warmup", type=float, default=4.0, help="seconds ignored after the first frame")
+    p.add_argument("--one-detector", action="store_true",
+                   help="one detector process for both cameras (default: one per camera)")
+    p.add_argument("--no-refine", action="store_true",
+                   help="leave out the refinement node (then the final pose is multiview over pnp_joint)")
+    p.add_argument("--all-methods", action="store_true",
+                   help="also run the pose methods not on the path to the final pose (epnp average, "
+                        "triangulate, ...), as an evaluation does")
+    p.add_argument("--json", help="also write the figures to this JSON file")
+    p.add_argument("--plot", help="also draw the latencies (per stage) and each node's CPU per frame "
+                                  "into this PNG")
+    p.add_argument("--log", help="write the graph's log here (default: a temporary file)")
+    return p
+
+
+class Recorder:
+    """Arrival times (wall clock, ns) of the messages the bench subscribes to, by stream.
+
+    The callbacks only keep each payload's bytes and arrival time; they are decoded when asked
+    for (``rows``, ``window``), so that the bench's own CPU stays small while it measures."""
+
+    def __init__(self):
+        self.lock = threading.Lock()
+        self._raw: dict = {}          # stream -> list of (payload bytes, msg type, arrival_ns)
+        self._rows: dict = {}         # stream -> list of (seq, stamp_ns, arrival_ns), decoded
+        self.stats: dict = {}         # node -> newest NodeStats
+
+    def callback(self, stream: str, msg_type):
+        from common.runtime.messages import MessageError, decode
+
+        def cb(sample):
+            now = time.time_ns()
+            if stream != "@stats":
+                with self.lock:
+                    self._raw.setdefault(stream, []).append((sample.payload.to_bytes(), msg_type, now))
+                return
+            try:
+                msg = decode(sample.payload.to_bytes(), msg_type)
+            except MessageError:
+                return
+            with self.lock:
+                self.stats[msg.node] = msg
+        return cb
+
+    def rows(self, stream: str) -> list:
+        """(seq, stamp_ns, arrival_ns) of every message of ``stream`` so far (malformed ones left out)."""
+        from common.runtime.messages import MessageError, decode
+        with self.lock:
+            raw, self._raw[stream] = self._raw.get(stream, []), []
+        out = []
+        for payload, msg_type, now in raw:
+            try:
+                msg = decode(payload, msg_type)
+            except MessageError:
+                continue
+            out.append((msg.seq, msg.stamp_ns, now))
+        with self.lock:
+            self._rows.setdefault(stream, []).extend(out)
+            return list(self._rows[stream])
+
+    def window(self, stream: str, t0_ns: int, t1_ns: int) -> list:
+        """Rows of ``stream`` whose frame was published within [t0, t1)."""
+        return [r for r in self.rows(stream) if t0_ns <= r[1] < t1_ns]
+
+
+def latency_ms(rows) -> dict:
+    lat = [(a - s) / 1e6 for _, s, a in rows]
+    if not lat:
+        return {"p50": None, "p99": None, "n": 0}
+    return {"p50": float(np.percentile(lat, 50)), "p99": float(np.percentile(lat, 99)), "n": len(lat)}
+
+
+def ensure_dataset(path) -> str:
+    if path:
+        return path
+    if Path("data/test/frames.jsonl").is_file():
+        return "data/test"
+    if not Path(BENCH_DATA, "frames.jsonl").is_file():
+        from common.sim.cli import main as dataset_main
+        print(f"bench: generating {BENCH_DATA} (30 stereo frames at 1920x1080, once)", file=sys.stderr)
+        if dataset_main(BENCH_GENERATE) != 0:
+            raise RuntimeError(f"could not generate {BENCH_DATA}")
+    return BENCH_DATA
+
+
+def measure(args, dataset: str, log) -> dict:
+    from common.data.dataset import Dataset
+    from common.evaluation.pipeline_graph import (
+        METHOD_NEEDS,
+        POSE_OUTPUTS,
+        GraphRun,
+        keypoint_sources,
+        pipeline_graph,
+        pose_inputs,
+    )
+    from common.evaluation.scoring import cpu_steal_seconds, process_cpu_seconds
+    from common.runtime.graph import output_key, stats_key
+    from common.runtime.messages import GroundTruth, Keypoints, NodeStats, PoseEstimate
+
+    ds = Dataset(dataset, check_files=False)
+    rate = "paced" if str(args.rate) == "max" else float(args.rate)
+    split = not args.one_detector
+    from common.runtime.graph import parse_param
+    det_params = {"weights": str(Path(args.model).resolve())} if args.model else {}
+    det_params.update(dict(parse_param(p) for p in getattr(args, "param", [])))
+    final = "multiview" if args.no_refine else "multiview_refined"
+    doc = pipeline_graph(dataset, detector=args.detector, detector_params=det_params, rate=rate, loop=True,
+                         refine=False if args.no_refine else None, split_detector=split,
+                         methods=None if getattr(args, "all_methods", False) else [final],
+                         name="needletrack-bench", decode=getattr(args, "decode", False))
+    poses = pose_inputs(doc)
+    if final not in poses:
+        final = next(m for m in ("multiview_refined", "multiview") if m in poses)
+    frame_node = POSE_OUTPUTS[METHOD_NEEDS[final][0]].split("/")[0]   # pairs stereo keypoints
+    rec = Recorder()
+    streams = {"published": ("replay/truth", GroundTruth)}
+    for cam, src in keypoint_sources(split).items():
+        streams[f"keypoints_{cam}"] = (src, Keypoints)
+    for m, src in poses.items():
+        streams[m] = (src, PoseEstimate)
+
+    with GraphRun(doc, log) as run:
+        run.start_consumers()
+        session = run.client_session()
+        subs = [session.declare_subscriber(output_key(run.graph.name, *src.split("/")),
+                                           rec.callback(name, typ))
+                for name, (src, typ) in streams.items()]
+        subs.append(session.declare_subscriber(stats_key(run.graph.name), rec.callback("@stats", NodeStats)))
+        run.start_source()
+        # the first frame's publish time starts the clock
+        deadline = time.monotonic() + 60
+        while not rec.rows("published"):
+            if time.monotonic() > deadline:
+                raise RuntimeError("the replay published no frame within 60 s")
+            _check_alive(run)
+            time.sleep(0.05)
+        first_ns = rec.rows("published")[0][1]
+        w0 = first_ns + int(args.warmup * 1e9)
+        while time.time_ns() < w0:
+            _check_alive(run)
+            time.sleep(0.1)
+        with rec.lock:
+            pids = {n: st.pid for n, st in rec.stats.items()}
+            drops0 = {n: _dropped(st) for n, st in rec.stats.items()}
+            pairs0 = _pairs(rec.stats.get(frame_node))
+        cpu0 = {n: process_cpu_seconds(p) for n, p in pids.items()}
+        steal0 = cpu_steal_seconds()
+        w1 = w0 + int(args.duration * 1e9)
+        while time.time_ns() < w1:
+            _check_alive(run)
+            time.sleep(0.1)
+        cpu1 = {n: process_cpu_seconds(p) for n, p in pids.items()}
+        steal1 = cpu_steal_seconds()
+        with rec.lock:
+            pairs1 = _pairs(rec.stats.get(frame_node))
+        time.sleep(0.5)  # outputs of the window's last frames still in flight
+        for s in subs:
+            s.undeclare()
+
+    span = (w1 - w0) / 1e9
+    published = rec.window("published", w0, w1)
+    out = {"dataset": dataset, "frames_in_dataset": len(ds), "image_size": list(ds.meta.image_size),
+           "detector": args.detector, "detector_processes": 2 if split else 1,
+           "rate": str(rate), "duration_s": span, "final_method": final,
+           "published_hz": len(published) / span}
+    fused = rec.window(final, w0, w1)
+    seqs = {r[0] for r in fused}
+    out["throughput_hz"] = len(seqs) / span
+    # stats come once a second: the pair counts span from one stats message to another
+    out["frame_node"] = frame_node
+    out["frames_processed_hz"] = ((pairs1[0] - pairs0[0]) / ((pairs1[1] - pairs0[1]) / 1e9)
+                                  if pairs0 and pairs1 and pairs1[1] > pairs0[1] else None)
+    out["frames_through"] = (len(seqs) / len(published)) if published else None
+    out["latency_ms"] = latency_ms(fused)
+    stages = {}
+    for name in streams:
+        if name == "published":
+            continue
+        stages[name] = {**latency_ms(rec.window(name, w0, w1)),
+                        "rate_hz": len({r[0] for r in rec.window(name, w0, w1)}) / span}
+    out["stages"] = stages
+    if getattr(args, "plot", None):
+        out["latency_samples_ms"] = {name: [(a - st) / 1e6 for _, st, a in rec.window(name, w0, w1)]
+                                     for name in streams if name != "published"}
+    nodes = {}
+    with rec.lock:
+        stats = dict(rec.stats)
+    for n, st in sorted(stats.items()):
+        c0, c1 = cpu0.get(n), cpu1.get(n)
+        share = (c1 - c0) / span if c0 is not None and c1 is not None else None
+        nodes[n] = {"proc_ms_p50": st.proc_ms_p50, "proc_ms_p99": st.proc_ms_p99,
+                    "cpu_share": share,
+                    "cpu_ms_per_frame": (1e3 * share / out["published_hz"]
+                                         if share is not None and out["published_hz"] else None),
+                    "dropped": _dropped(st) - drops0.get(n, 0),
+                    "in_hz": {k[3:]: v for k, v in st.rates_hz.items() if k.startswith("in.")}}
+    out["per_node"] = nodes
+    out["per_node_ms"] = {n: v["proc_ms_p50"] for n, v in nodes.items()}
+    out["cpu_total"] = sum(v["cpu_share"] or 0.0 for v in nodes.values())
+    out["cpus"] = os.cpu_count()
+    # the hypervisor's share of the CPUs during the window: how slow a minute this was
+    out["cpu_steal"] = ((steal1 - steal0) / span / (out["cpus"] or 1)
+                        if steal0 is not None and steal1 is not None else None)
+    return out
+
+
+def _pairs(st):
+    """(stereo frames paired so far, stamp_ns of that count) from a pose node's stats."""
+    if st is None:
+        return None
+    v = st.counters.get("pairs", 0)
+    return (v if isinstance(v, int) else 0, st.stamp_ns)
+
+
+def _dropped(st) -> int:
+    v = st.counters.get("dropped", 0)
+    return v if isinstance(v, int) else 0
+
+
+def _check_alive(run) -> None:
+    from common.evaluation.pipeline_graph import GraphRunError
+    dead = run.failed()
+    if dead:
+        raise GraphRunError(f"node(s) failed: {dead}")
+
+
+def report(r: dict) -> str:
+    f = lambda x, nd=1: "n/a" if x is None else f"{x:.{nd}f}"
+    w, h = r["image_size"]
+    L = [f"needletrack bench graph: {r['dataset']} ({w}x{h} stereo, {r['frames_in_dataset']} frames looped), "
+         f"detector {r['detector']} ({r['detector_processes']} process(es)), replay rate {r['rate']}, "
+         f"{r['duration_s']:.0f} s measured on {r['cpus']} CPU(s)",
+         f"  frames published      {f(r['published_hz'])} /s",
+         f"  frames processed      {f(r['frames_processed_hz'])} /s stereo frames paired and processed by "
+         f"{r['frame_node']} (with or without a pose)",
+         f"  end to end            {f(r['throughput_hz'])} /s fused poses ({r['final_method']}); "
+         f"{f(None if r['frames_through'] is None else 100 * r['frames_through'])}% of the published frames"
+         f"   [target >= {TARGET_HZ:.0f}; paper 10 Hz on an RTX 3080]",
+         f"  latency               p50 {f(r['latency_ms']['p50'])} ms, p99 {f(r['latency_ms']['p99'])} ms "
+         f"from frame publish to fused pose   [target p50 <= {TARGET_P50_MS:.0f} ms]",
+         "", f"  {'stage output':<22}{'frames/s':>9}{'p50 ms':>9}{'p99 ms':>9}   (latency from frame publish)"]
+    for name, s in r["stages"].items():
+        L.append(f"  {name:<22}{f(s['rate_hz']):>9}{f(s['p50']):>9}{f(s['p99']):>9}")
+    L += ["", f"  {'node':<18}{'cpu %':>7}{'cpu ms/frame':>14}{'handler p50':>13}{'p99 ms':>9}"
+               f"{'dropped':>9}   inputs Hz"]
+    for n, v in r["per_node"].items():
+        cpu = None if v["cpu_share"] is None else 100 * v["cpu_share"]
+        ins = " ".join(f"{k}={val:g}" for k, val in sorted(v["in_hz"].items()))
+        L.append(f"  {n:<18}{f(cpu, 0):>7}{f(v['cpu_ms_per_frame'], 2):>14}{f(v['proc_ms_p50'], 2):>13}"
+                 f"{f(v['proc_ms_p99'], 2):>9}"
+                 f"{v['dropped']:>9}   {ins}")
+    L.append(f"  total CPU {f(100 * r['cpu_total'], 0)}% of {100 * (r['cpus'] or 1)}%; "
+             f"cpu ms/frame = CPU time per published frame")
+    if r.get("cpu_steal") is not None:
+        L.append(f"  CPU steal {100 * r['cpu_steal']:.0f}% (taken by the hypervisor for other guests: "
+                 f"above a few %, this machine ran slow during the window)")
+    return "\n".join(L)
+
+
+def plot(r: dict, samples: dict, path) -> None:
+    """Latency distribution per stage (from frame publish, ms) beside each node's CPU time per
+    published frame (ms), with the issue 6 targets."""
+    import matplotlib
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    fig, (ax, bx) = plt.subplots(1, 2, figsize=(12, 4.5), gridspec_kw={"width_ratios": [3, 2]})
+    for name, lat in samples.items():
+        if lat:
+            x = np.sort(lat)
+            ax.plot(x, np.arange(1, len(x) + 1) / len(x), label=f"{name} (p50 {np.median(x):.0f} ms)")
+    ax.axvline(50, color="k", ls="--", lw=1, label="target p50 <= 50 ms")
+    ax.axhline(0.5, color="grey", lw=0.5)
+    ax.set_xlabel("latency from frame publish (ms)")
+    ax.set_ylabel("share of frames")
+    ax.set_xlim(0, max(120.0, min(400.0, max((max(v) for v in samples.values() if v), default=0))))
+    ax.legend(fontsize=8, loc="lower right")
+    ax.set_title(f"{r['throughput_hz']:.1f} fused poses/s ({r['final_method']}), rate {r['rate']}")
+    nodes = r["per_node"]
+    names = [n for n in nodes if nodes[n]["cpu_ms_per_frame"] is not None]
+    cpu = [nodes[n]["cpu_ms_per_frame"] for n in names]
+    bx.barh(names, cpu, color="tab:blue", label="CPU per published frame")
+    bx.scatter([nodes[n]["proc_ms_p50"] for n in names], names, color="tab:red", zorder=3,
+               label="handler p50 (wall)")
+    bx.set_xlabel("ms")
+    steal = "" if r.get("cpu_steal") is None else f", steal {100 * r['cpu_steal']:.0f}%"
+    bx.set_title(f"CPU {100 * r['cpu_total']:.0f}% of {100 * (r['cpus'] or 1)}%{steal}; "
+                 f"{sum(cpu):.1f} ms per frame in all")
+    bx.legend(fontsize=8, loc="center right")
+    fig.suptitle(f"needletrack bench: {r['dataset']}, detector {r['detector']}", fontsize=10)
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+
+
+def main(argv=None) -> int:
+    argv = list(argv or [])
+    if argv and argv[0] == "graph":
+        argv = argv[1:]
+    args = _parser().parse_args(argv)
+    from common.data.dataset import DatasetError
+    from common.evaluation.pipeline_graph import GraphRunError
+    try:
+        dataset = ensure_dataset(args.dataset)
+    except (DatasetError, RuntimeError) as exc:
+        print(f"needletrack bench: {exc}", file=sys.stderr)
+        return 2
+    import tempfile
+    log_path = args.log or tempfile.mktemp(prefix="needletrack-bench-", suffix=".log")
+    try:
+        with open(log_path, "w") as log:
+            r = measure(args, dataset, log)
+    except DatasetError as exc:
+        print(f"needletrack bench: {dataset}: {exc}", file=sys.stderr)
+        return 2
+    except (GraphRunError, RuntimeError) as exc:
+        print(f"needletrack bench: {exc}; last lines of {log_path}:", file=sys.stderr)
+        print("".join(Path(log_path).read_text().splitlines(True)[-25:]), file=sys.stderr)
+        return 1
+    samples = r.pop("latency_samples_ms", None)
+    print(report(r))
+    if args.plot and samples is not None:
+        plot(r, samples, args.plot)
+        print(f"wrote {args.plot}")
+    if args.json:
+        Path(args.json).write_text(json.dumps(r, indent=2) + "\n")
+        print(f"wrote {args.json}")
+    if not args.log:
+        os.unlink(log_path)
+    return 0

@@ -1,0 +1,451 @@
+"""What people look at after an evaluation: ``report.md``, ``error_vs_distance.png``,
+``nees.png``, ``overlays/``, ``per_frame.csv`` and ``results.json``, written from a
+``common.evaluation.scoring.Collected``.
+
+No process, no network. Overlays draw, per chosen frame, a crop of the left and right images
+around the needle: the true arc and keypoints in green, each method's estimated arc in its
+colour, and the detector's keypoints as circles.
+"""
+from __future__ import annotations
+
+import json
+import os
+from pathlib import Path
+from typing import Callable, Optional
+
+import numpy as np
+
+from common.evaluation.scoring import (
+    CAMERAS,
+    NEES_99PCT,
+    PAPER,
+    Collected,
+    Evaluation,
+    build_results,
+    check_results,
+    evaluate,
+    to_jsonable,
+)
+from common.geometry.needle import KEYPOINT_NAMES, NeedleModel
+from common.geometry.transforms import transform_points
+
+METHOD_COLOURS = {  # matplotlib colours; BGR for OpenCV below
+    "pnp_average": "#1f77b4", "pnp_joint": "#ff7f0e", "triangulation": "#9467bd",
+    "multiview": "#d62728", "refined": "#17becf", "multiview_refined": "#8c564b",
+}
+TRUTH_BGR = (60, 200, 60)
+
+
+def _bgr(hex_colour: str) -> tuple:
+    h = hex_colour.lstrip("#")
+    r, g, b = (int(h[i:i + 2], 16) for i in (0, 2, 4))
+    return (b, g, r)
+
+
+def _fmt(x, nd=2) -> str:
+    return "—" if x is None else f"{x:.{nd}f}"
+
+
+# ---------------------------------------------------------------- report.md
+
+def report_markdown(res: dict) -> str:
+    """Table II (keypoints) and Table III (poses) beside the paper's figures, with medians."""
+    L = ["# needletrack evaluation", "",
+         f"- dataset: `{res['dataset']}`",
+         f"- frames: {res['frames']} stereo frames ({res.get('images', 2 * res['frames'])} images)",
+         f"- detector: `{res['detector']}`" + (f" (noise {res['noise_px']} px)"
+                                               if res.get("noise_px") else ""),
+         *([f"- refinement's resting prior: support surface normal {res['support_normal_world']} "
+            "(world frame)"] if res.get("support_normal_world") else []),
+         f"- needle found in {_fmt(100 * res['detection_rate'] if res['detection_rate'] is not None else None, 1)}% "
+         f"of the images; false detections: {res.get('false_detections', 0)} "
+         f"of {res.get('images_without_needle', 0)} images without a needle", ""]
+
+    L += ["## Table II: keypoint errors", "",
+          "2D: pixel distance between detected and true keypoints over both cameras (points the "
+          "truth marks visible). 3D: distance between the triangulated and the true keypoint. "
+          "Correlation: Pearson, over frames, between a keypoint's 2D error (mean of the two "
+          "cameras) and its 3D error.", "",
+          "| keypoint | 2D mean (px) | 2D std | 2D median | 3D mean (mm) | 3D std | 3D median "
+          "| 2D-3D corr. | paper 2D mean (px) |",
+          "| --- | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: |"]
+    paper2d = PAPER["keypoints_2d_px"]
+    for name in (*KEYPOINT_NAMES, "all"):
+        k2, k3 = res["keypoints_2d_px"][name], res["keypoints_3d_mm"][name]
+        c = res.get("correlation_2d_3d", {}).get(name)
+        L.append(f"| {name} | {_fmt(k2['mean'])} | {_fmt(k2['std'])} | {_fmt(k2.get('median'))} "
+                 f"| {_fmt(k3['mean'])} | {_fmt(k3['std'])} | {_fmt(k3.get('median'))} "
+                 f"| {_fmt(c)} | {_fmt(paper2d.get(name))} |")
+    L += ["", "The paper reports only the overall mean 2D error (5.58 px, Keypoint R-CNN at "
+          "1920x1080).", ""]
+
+    L += ["## Table III: pose errors", "",
+          "Position: distance between estimated and true needle origins. Orientation: angle of "
+          "R_est^T R_true. Single-frame methods are scored on every frame, multi-view ones on the "
+          "last endoscope step of every sequence; a frame without a pose is a failure.", "",
+          "| method | n / counted | failures | position mean (mm) | median | std | max "
+          "| orientation mean (deg) | median | std | max | paper (mm / deg) |",
+          "| --- | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: |"]
+    for m, d in res["pose"].items():
+        p, o = d["position_mm"], d["orientation_deg"]
+        paper = PAPER["pose"].get(m)
+        fr = d.get("failure_rate")
+        L.append(f"| {m} | {d['n']} / {d.get('expected', d['n'])} | "
+                 f"{_fmt(100 * fr if fr is not None else None, 1)}% "
+                 f"| {_fmt(p['mean'])} | {_fmt(p['median'])} | {_fmt(p['std'])} | {_fmt(p['max'])} "
+                 f"| {_fmt(o['mean'])} | {_fmt(o['median'])} | {_fmt(o['std'])} | {_fmt(o['max'])} "
+                 f"| {f'{paper[0]:.2f} / {paper[1]:.2f}' if paper else '—'} |")
+    honest = [(m, d) for m, d in res["pose"].items() if d.get("nees")]
+    if honest:
+        L += ["", "Stated covariances against the errors (NEES: the squared error in the covariance's "
+              "metric; chi-square(6) has median 5.35 and exceeds 16.8 in 1% of the frames):", "",
+              "| method | NEES median | share over 16.8 | ambiguous |", "| --- | ---: | ---: | ---: |"]
+        L += [f"| {m} | {_fmt(d['nees']['median'], 1)} | {_fmt(100 * d['nees']['over_99pct'], 0)}% "
+              f"| {_fmt(100 * d['ambiguous_share'], 0) + '%' if d.get('ambiguous_share') is not None else '—'} |"
+              for m, d in honest]
+        L += ["", "![NEES against chi-square(6)](nees.png)"]
+    L += ["", "![error vs distance](error_vs_distance.png)", ""]
+
+    t = res["timing"]
+    L += ["## Speed", "",
+          f"- end to end: {_fmt(t['throughput_hz'], 1)} frames/s "
+          f"(final output `{t.get('final_method')}`; the paper: {PAPER['rate_hz']:.0f} Hz on an RTX 3080)",
+          f"- latency from frame publish to pose: p50 {_fmt(t['latency_ms']['p50'], 1)} ms, "
+          f"p99 {_fmt(t['latency_ms']['p99'], 1)} ms (at the replay's pace, every input queued: "
+          f"`needletrack bench` measures the live graph's speed)",
+          "- per node: CPU time per frame over the run, and the median handler time over every "
+          "message it handled (calibration and ECM poses included):", ""]
+    if t["per_node_ms"]:
+        cpu = t.get("per_node_cpu_ms_per_frame") or {}
+        L += ["| node | CPU ms / frame | handler p50 ms |", "| --- | ---: | ---: |"]
+        L += [f"| {n} | {_fmt(cpu.get(n))} | {_fmt(v)} |" for n, v in t["per_node_ms"].items()]
+    else:
+        L.append("(no node statistics received)")
+    why = {n: {k: v for k, v in c.items() if not k.startswith(("in.", "out."))}
+           for n, c in res.get("node_counters", {}).items()}
+    why = {n: c for n, c in why.items() if any(c.values())}
+    if why:
+        L += ["", "## Why frames gave no pose (node counters)", "",
+              "| node | counter | count |", "| --- | --- | ---: |"]
+        L += [f"| {n} | {k} | {v} |" for n, c in why.items() for k, v in sorted(c.items()) if v]
+    L += ["", "Overlays of chosen frames, worst cases included, are in `overlays/`.", ""]
+    return "\n".join(L)
+
+
+# ---------------------------------------------------------------- Fig. 8
+
+def plot_error_vs_distance(ev: Evaluation, path, bins: int = 6) -> None:
+    """Position (mm) and orientation (deg) error against camera distance (cm), one series per
+    method: the paper's Fig. 8. Each frame is a dot; the line is the median per distance bin;
+    frames without a pose are crosses on the x axis. The y axis is logarithmic when the errors
+    span more than two decades."""
+    import matplotlib
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, axes = plt.subplots(1, 2, figsize=(12, 4.8))
+    all_d = np.concatenate([t["distance_m"] for t in ev.pose.values()] or [np.zeros(0)]) * 100
+    edges = np.linspace(all_d.min(), all_d.max(), bins + 1) if all_d.size else np.zeros(0)
+    for ax_i, (ax, unit) in enumerate(((axes[0], "position error (mm)"), (axes[1], "orientation error (deg)"))):
+        vals_all = []
+        for m, t in ev.pose.items():
+            d = t["distance_m"] * 100
+            vals = t["position_m"] * 1e3 if ax_i == 0 else np.degrees(t["orientation_rad"])
+            colour = METHOD_COLOURS.get(m)
+            ok = np.isfinite(vals)
+            vals_all.append(vals[ok])
+            ax.scatter(d[ok], vals[ok], s=9, alpha=0.35, color=colour, linewidths=0)
+            if edges.size and ok.any():
+                idx = np.clip(np.digitize(d[ok], edges) - 1, 0, bins - 1)
+                centres, meds = [], []
+                for b in range(bins):
+                    sel = vals[ok][idx == b]
+                    if sel.size:
+                        centres.append((edges[b] + edges[b + 1]) / 2)
+                        meds.append(np.median(sel))
+                ax.plot(centres, meds, "o-", ms=4, lw=1.6, color=colour,
+                        label=f"{m} (n={int(ok.sum())}/{len(ok)})")
+            if (~ok).any():
+                ax.plot(d[~ok], np.zeros((~ok).sum()), "x", color=colour, ms=7, clip_on=False,
+                        transform=ax.get_xaxis_transform())
+        v = np.concatenate(vals_all) if vals_all else np.zeros(0)
+        v = v[v > 0]
+        if v.size and v.max() / max(v.min(), 1e-12) > 100 and v.min() > 1e-6:
+            ax.set_yscale("log")
+        else:
+            ax.set_ylim(bottom=0)
+        ax.set_xlabel("camera distance (cm)")
+        ax.set_ylabel(unit)
+        ax.grid(alpha=0.3, which="both")
+    axes[0].legend(fontsize=8)
+    fig.suptitle("Pose error vs camera distance: dots per frame, lines the median per distance bin, "
+                 "x: no pose", fontsize=10)
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+
+
+def chi2_6_cdf(x):
+    """CDF of chi-square with 6 degrees of freedom (closed form for even dof)."""
+    h = np.minimum(np.maximum(np.asarray(x, float), 0.0), 1e3) / 2.0    # 1 beyond (and at inf)
+    return 1.0 - np.exp(-h) * (1.0 + h + h * h / 2.0)
+
+
+def plot_nees(ev: Evaluation, path) -> bool:
+    """How honest each method's stated covariance is: the share of frames whose NEES is below x
+    against chi-square(6)'s (what an honest 6-dof covariance gives). A curve to the right of it
+    is over-confident, to the left under-confident. False (nothing drawn) when no method states
+    covariances."""
+    series = {m: np.sort(t["nees"][np.isfinite(t["nees"])]) for m, t in ev.pose.items()}
+    series = {m: v for m, v in series.items() if v.size}
+    if not series:
+        return False
+    import matplotlib
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, ax = plt.subplots(figsize=(6.5, 4.5))
+    lo = min(max(float(v[0]), 1e-3) for v in series.values())
+    hi = max(float(v[-1]) for v in series.values())
+    x = np.geomspace(min(lo, 0.1), max(hi, 100.0), 400)
+    ax.plot(x, chi2_6_cdf(x), "k--", lw=1.5, label="chi-square(6): honest")
+    for m, v in series.items():
+        ax.step(np.maximum(v, x[0]), np.arange(1, v.size + 1) / v.size, where="post",
+                color=METHOD_COLOURS.get(m), lw=1.6, label=f"{m} (median {np.median(v):.1f}, n={v.size})")
+    ax.axvline(NEES_99PCT, color="grey", lw=0.8, ls=":")
+    ax.set_xscale("log")
+    ax.set_ylim(0, 1)
+    ax.set_xlabel("NEES (squared pose error in the stated covariance's metric); dotted: 99% bound")
+    ax.set_ylabel("share of frames below")
+    ax.set_title("Stated covariance vs actual error: right of the dashed curve = over-confident",
+                 fontsize=9)
+    ax.grid(alpha=0.3, which="both")
+    ax.legend(fontsize=8, loc="lower right")
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+    return True
+
+
+# ---------------------------------------------------------------- overlays
+
+def select_overlay_frames(ev: Evaluation, k_worst: int = 3) -> list[tuple[int, str]]:
+    """Frames worth looking at: the worst ``k_worst`` of the best-scored single-frame method and
+    of the multi-view method, failures first, plus a typical (median) and the best frame."""
+    chosen: dict[int, str] = {}
+
+    def pick(m):
+        t = ev.pose.get(m)
+        if not t or not t["seqs"]:
+            return
+        pos = np.where(np.isfinite(t["position_m"]), t["position_m"], np.inf)
+        order = np.argsort(-pos, kind="stable")
+        failed = [i for i in order if not np.isfinite(pos[i])]
+        fin = [i for i in order if np.isfinite(pos[i])]
+        for i in failed[:2]:
+            chosen.setdefault(t["seqs"][i], f"nopose_{m}")
+        for i in fin[:k_worst]:
+            chosen.setdefault(t["seqs"][i], f"worst_{m}_{pos[i] * 1e3:.2f}mm")
+        if fin:
+            chosen.setdefault(t["seqs"][fin[len(fin) // 2]], f"median_{m}")
+            chosen.setdefault(t["seqs"][fin[-1]], f"best_{m}")
+
+    single = [m for m in ("refined", "pnp_joint", "pnp_average", "triangulation") if m in ev.pose]
+    if single:
+        pick(single[0])
+    for m in ("multiview_refined", "multiview"):
+        if m in ev.pose and ev.pose[m]["seqs"]:
+            pick(m)
+            break
+    return sorted(chosen.items(), key=lambda kv: kv[0])
+
+
+def _crop_box(uv_list, w, h, min_size=40, margin=0.2):
+    pts = np.concatenate([u for u in uv_list if u is not None and len(u)], axis=0)
+    pts = pts[np.all(np.isfinite(pts), axis=1)]
+    if not len(pts):
+        return 0, 0, w, h
+    (x0, y0), (x1, y1) = pts.min(0), pts.max(0)
+    size = max(x1 - x0, y1 - y0, min_size) * (1 + 2 * margin)
+    cx, cy = (x0 + x1) / 2, (y0 + y1) / 2
+    x0, y0 = int(max(0, cx - size / 2)), int(max(0, cy - size / 2))
+    x1, y1 = int(min(w, cx + size / 2)), int(min(h, cy + size / 2))
+    return x0, y0, max(x1, x0 + 2), max(y1, y0 + 2)
+
+
+def draw_overlay(images: dict, rig, needle: NeedleModel, T_true, estimates: dict,
+                 detections: dict, title: str = "", panel_px: int = 480) -> np.ndarray:
+    """One picture: for each camera a zoomed crop around the needle with the true arc and
+    keypoints (green, crosses), every method's estimated arc (its colour) and the detector's
+    keypoints (circles, labelled A..E). ``estimates``: method -> T_ecm_needle;
+    ``detections``: camera -> (5, 2) px or None; ``images``: camera -> BGR image or None."""
+    import cv2
+
+    arc = needle.sample_arc(64)
+    kps = needle.keypoints()
+    panels = []
+    for cam_name in CAMERAS:
+        cam = rig[cam_name]
+        img = images.get(cam_name)
+        if img is None:
+            img = np.zeros((cam.height, cam.width, 3), np.uint8)
+        h, w = img.shape[:2]
+
+        def proj(T, pts):
+            p = transform_points(cam.T_cam_ecm @ T, pts)
+            uv = cam.project(p)
+            uv[p[:, 2] <= 0] = np.nan
+            return uv
+
+        true_arc, true_kp = proj(T_true, arc), proj(T_true, kps)
+        est = {m: proj(T, arc) for m, T in estimates.items() if T is not None}
+        det = detections.get(cam_name)
+        x0, y0, x1, y1 = _crop_box([true_arc, true_kp, det], w, h)
+        scale = panel_px / max(x1 - x0, y1 - y0)
+        crop = cv2.resize(np.ascontiguousarray(img[y0:y1, x0:x1]),
+                          (max(1, int((x1 - x0) * scale)), max(1, int((y1 - y0) * scale))),
+                          interpolation=cv2.INTER_LINEAR)
+        canvas = np.zeros((panel_px, panel_px, 3), np.uint8)
+        canvas[:crop.shape[0], :crop.shape[1]] = crop
+
+        def to_px(uv):
+            return np.round((np.asarray(uv) - [x0 - 0.5, y0 - 0.5]) * scale - 0.5).astype(np.int64)
+
+        def polyline(uv, colour, thick):
+            ok = np.all(np.isfinite(uv), axis=1)
+            if ok.sum() >= 2:
+                cv2.polylines(canvas, [to_px(uv[ok]).reshape(-1, 1, 2).astype(np.int32)], False,
+                              colour, thick, cv2.LINE_AA)
+
+        polyline(true_arc, TRUTH_BGR, 2)
+        for p in true_kp:
+            if np.all(np.isfinite(p)):
+                cv2.drawMarker(canvas, tuple(int(c) for c in to_px(p)), TRUTH_BGR,
+                               cv2.MARKER_CROSS, 14, 2)
+        for m, uv in est.items():
+            polyline(uv, _bgr(METHOD_COLOURS.get(m, "#ffffff")), 1)
+        if det is not None:
+            for name, p in zip(KEYPOINT_NAMES, np.asarray(det, float).reshape(5, 2)):
+                if np.all(np.isfinite(p)):
+                    q = tuple(int(c) for c in to_px(p))
+                    cv2.circle(canvas, q, 6, (0, 220, 255), 1, cv2.LINE_AA)
+                    cv2.putText(canvas, name, (q[0] + 7, q[1] - 7), cv2.FONT_HERSHEY_SIMPLEX, 0.45,
+                                (0, 220, 255), 1, cv2.LINE_AA)
+        cv2.putText(canvas, cam_name, (8, 20), cv2.FONT_HERSHEY_SIMPLEX, 0.6, (255, 255, 255), 1,
+                    cv2.LINE_AA)
+        panels.append(canvas)
+    body = np.concatenate([panels[0], np.full((panel_px, 4, 3), 255, np.uint8), panels[1]], axis=1)
+    rows = [("truth (arc, + keypoints)", TRUTH_BGR), ("detector keypoints (o)", (0, 220, 255))]
+    rows += [(m, _bgr(METHOD_COLOURS.get(m, "#ffffff"))) for m in estimates]
+    head = title.split("\n")
+    legend = np.zeros((12 + 20 * len(head) + 20 * ((len(rows) + 2) // 3), body.shape[1], 3), np.uint8)
+    for i, line in enumerate(head):
+        cv2.putText(legend, line, (8, 18 + 20 * i), cv2.FONT_HERSHEY_SIMPLEX, 0.45, (255, 255, 255),
+                    1, cv2.LINE_AA)
+    for i, (label, colour) in enumerate(rows):
+        x, y = 8 + (i % 3) * 300, 22 + 20 * len(head) + (i // 3) * 20
+        cv2.line(legend, (x, y - 4), (x + 24, y - 4), colour, 2)
+        cv2.putText(legend, label, (x + 30, y), cv2.FONT_HERSHEY_SIMPLEX, 0.45, colour, 1,
+                    cv2.LINE_AA)
+    return np.concatenate([legend, body], axis=0)
+
+
+def write_overlays(outdir, col: Collected, ev: Evaluation, rig, needle: NeedleModel,
+                   load_images: Callable[[int], dict], k_worst: int = 3) -> list[str]:
+    """Write ``overlays/NNNNNN_<why>.png`` for the frames ``select_overlay_frames`` picks.
+    ``load_images(seq)`` returns {camera: BGR image or None}. Returns the file names."""
+    import cv2
+
+    out = Path(outdir) / "overlays"
+    out.mkdir(parents=True, exist_ok=True)
+    names = []
+    for seq, why in select_overlay_frames(ev, k_worst):
+        if seq not in ev.T_true:
+            continue
+        estimates = {m: col.poses.get(m, {}).get(seq).T_ecm_needle
+                     for m in ev.pose if col.poses.get(m, {}).get(seq) is not None}
+        dets = {}
+        for cam in CAMERAS:
+            kp = col.keypoints.get((cam, seq))
+            dets[cam] = kp.uv if kp is not None and kp.found else None
+        errs = []
+        for m in estimates:
+            t = ev.pose[m]
+            if seq in t["seqs"]:
+                i = t["seqs"].index(seq)
+                errs.append(f"{m} {t['position_m'][i] * 1e3:.2f}mm/"
+                            f"{np.degrees(t['orientation_rad'][i]):.1f}deg")
+        title = f"frame {seq}  ({why})\n" + "  ".join(errs[:3]) + ("\n" + "  ".join(errs[3:]) if errs[3:] else "")
+        try:
+            images = load_images(seq)
+        except Exception as exc:  # a missing image still gives an overlay on black
+            images = {}
+            title += f"\n[image not loaded: {exc}]"
+        pic = draw_overlay(images, rig, needle, ev.T_true[seq], estimates, dets, title)
+        name = f"{seq:06d}_{why}.png"
+        cv2.imwrite(str(out / name), pic)
+        names.append(name)
+    return names
+
+
+# ---------------------------------------------------------------- per frame
+
+def write_per_frame_csv(path, col: Collected, ev: Evaluation) -> None:
+    """One row per frame: seq, sequence, step, camera distance (mm), the keypoints' mean 2D
+    (px) and 3D (mm) errors, and each method's position (mm) and orientation (deg) errors:
+    empty where the method is not scored on that frame, ``nan`` where it gave no pose."""
+    import csv
+    idx = {m: {s: i for i, s in enumerate(t["seqs"])} for m, t in ev.pose.items()}
+    with open(path, "w", newline="") as f:
+        w = csv.writer(f)
+        w.writerow(["seq", "sequence", "step", "distance_mm", "kp2d_px", "kp3d_mm"]
+                   + [f"{m}_{q}" for m in ev.pose for q in ("mm", "deg")])
+        for s in ev.seqs:
+            gt = col.truths[s]
+            T = ev.T_true.get(s)
+            with np.errstate(invalid="ignore"):
+                e2 = np.nanmean(ev.err2d_px[s]) if np.isfinite(ev.err2d_px[s]).any() else np.nan
+                e3 = (np.nanmean(ev.err3d_m[s]) * 1e3 if s in ev.err3d_m
+                      and np.isfinite(ev.err3d_m[s]).any() else np.nan)
+            row = [s, "" if gt.sequence is None else gt.sequence, "" if gt.step is None else gt.step,
+                   "" if T is None else f"{np.linalg.norm(T[:3, 3]) * 1e3:.2f}", f"{e2:.4f}", f"{e3:.4f}"]
+            for m, t in ev.pose.items():
+                i = idx[m].get(s)
+                if i is None:
+                    row += ["", ""]
+                else:
+                    row += [f"{t['position_m'][i] * 1e3:.4f}", f"{np.degrees(t['orientation_rad'][i]):.4f}"]
+            w.writerow(row)
+
+
+# ---------------------------------------------------------------- everything
+
+def write_outputs(outdir, col: Collected, *, dataset: str, detector: str,
+                  load_images: Optional[Callable[[int], dict]] = None,
+                  extra: Optional[dict] = None, methods: Optional[list] = None) -> dict:
+    """Write results.json, report.md, error_vs_distance.png, nees.png (when a method states
+    covariances) and overlays/ into ``outdir``;
+    returns the results document. ``load_images`` as in ``write_overlays`` (None: black);
+    ``methods`` as in ``evaluate``."""
+    from common.geometry.camera import StereoRig
+
+    outdir = Path(outdir)
+    outdir.mkdir(parents=True, exist_ok=True)
+    ev = evaluate(col, methods)
+    res = to_jsonable(build_results(col, dataset=dataset, detector=detector, ev=ev, extra=extra))
+    problems = check_results(res)
+    if problems:  # a bug here, not bad input: say so rather than write a broken file
+        raise AssertionError("results.json would break its contract: " + "; ".join(problems))
+    rig = StereoRig.from_dict(col.calib.cameras, col.calib.image_size) if col.calib is not None else StereoRig.default()
+    needle = NeedleModel.from_dict(col.calib.needle) if col.calib is not None else NeedleModel()
+    overlays = write_overlays(outdir, col, ev, rig, needle, load_images or (lambda seq: {}))
+    res["overlays"] = overlays
+    tmp = outdir / "results.json.tmp"
+    tmp.write_text(json.dumps(res, indent=2, allow_nan=False) + "\n")
+    os.replace(tmp, outdir / "results.json")
+    (outdir / "report.md").write_text(report_markdown(res))
+    plot_error_vs_distance(ev, outdir / "error_vs_distance.png")
+    if not plot_nees(ev, outdir / "nees.png"):
+        (outdir / "nees.png").unlink(missing_ok=True)     # a stale one from an earlier run
+    write_per_frame_csv(outdir / "per_frame.csv", col, ev)
+    return res

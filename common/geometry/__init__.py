@@ -1,0 +1,14 @@
+"""Geometry: from keypoints to needle poses. Imports nothing of the rest of ``common``.
+
+Conventions: 4x4 ``T_a_b`` maps frame b to frame a (``p_a = T_a_b @ p_b``), metres and radians
+(degrees only in names ending ``_deg``); OpenCV cameras (x right, y down, z forward). Frames:
+``world``, ``ecm``, ``left``, ``right``, ``needle`` (docs/dataset.md).
+
+``transforms`` (rigid transforms, rotations, means, errors), ``camera`` (pinhole + distortion,
+the stereo rig), ``needle`` (the arc model and keypoints A..E), ``ecm_kinematics`` (the
+endoscope arm), ``observations`` (usable keypoints, ``NoPose``), ``pnp`` (EPnP per camera and
+the joint stereo PnP, Pipeline I), ``triangulation`` (DLT + Arun, Pipeline II), ``fusion``
+(multi-view), ``refine`` and ``refine_tracking`` (the dense arc fit, cold and warm),
+``rest_prior`` (the needle resting on a surface), ``oracle`` (true keypoints with simulated
+detector errors).
+"""

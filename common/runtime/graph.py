@@ -1,0 +1,478 @@
+"""The dataflow graph (``dataflow.yaml``): loading, validation, key names and Zenoh settings.
+
+A graph is a YAML map::
+
+    graph: needletrack            # key prefix of everything the graph publishes
+    zenoh: {mode: peer, listen: ["tcp/127.0.0.1:7447"], connect: []}
+    nodes:
+      - id: camera
+        module: sim               # nodes/sim.py, or `command: [prog, arg, ...]`
+        params: {rate_hz: 30}
+        inputs: {cmd_in: other/out}   # input name -> "<node id>/<output>"
+        outputs: [left, right]
+        restart: on-failure       # never | on-failure | always
+        env: {OMP_NUM_THREADS: "1"}
+
+``validate_graph`` returns every error at once, each with its place
+(``nodes[3].inputs.keypoints: no node 'detektor'``); ``load_graph`` raises ``GraphError`` carrying
+that list. Modules are checked without importing them: ``nodes/<module>.py`` must exist and is
+parsed (``ast``) for ``NODE``, ``INPUTS`` and ``OUTPUTS`` when they are literals.
+"""
+from __future__ import annotations
+
+import ast
+import copy
+import functools
+import json
+import re
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Optional
+
+import yaml
+
+DEFAULT_ENDPOINT = "tcp/127.0.0.1:7447"
+RESTART_POLICIES = ("never", "on-failure", "always")
+ZENOH_MODES = ("peer", "client", "router")
+NODES_DIR = Path(__file__).resolve().parents[2] / "nodes"
+REPO_ROOT = NODES_DIR.parent
+
+_NAME_RE = re.compile(r"^[A-Za-z0-9_][A-Za-z0-9_.-]*$")
+_MODULE_RE = re.compile(r"^[A-Za-z_][A-Za-z0-9_]*(\.[A-Za-z_][A-Za-z0-9_]*)*$")
+_ENDPOINT_RE = re.compile(r"^(tcp|udp|tls|quic|ws|unixsock-stream)/\S+$")
+_TOP_KEYS = {"graph", "zenoh", "nodes"}
+_ZENOH_KEYS = {"mode", "listen", "connect", "shm_pool_mb"}
+_NODE_KEYS = {"id", "module", "command", "params", "inputs", "outputs", "restart", "env"}
+
+
+class GraphError(ValueError):
+    """An invalid graph; ``errors`` lists every problem with its place."""
+
+    def __init__(self, errors: list[str], source: str = "graph"):
+        self.errors = list(errors)
+        self.source = source
+        super().__init__(f"{source}: {len(self.errors)} error(s)\n" + "\n".join(f"  {e}" for e in self.errors))
+
+
+@dataclass
+class ZenohSettings:
+    mode: str = "peer"
+    listen: list = field(default_factory=lambda: [DEFAULT_ENDPOINT])
+    connect: list = field(default_factory=list)
+    shm_pool_mb: int = 64
+
+
+@dataclass
+class NodeSpec:
+    id: str
+    module: Optional[str] = None
+    command: Optional[list] = None
+    params: dict = field(default_factory=dict)
+    inputs: dict = field(default_factory=dict)      # input name -> "node/output"
+    outputs: list = field(default_factory=list)
+    restart: str = "on-failure"
+    env: dict = field(default_factory=dict)
+
+    def to_dict(self) -> dict:
+        d = {"id": self.id}
+        if self.module is not None:
+            d["module"] = self.module
+        if self.command is not None:
+            d["command"] = list(self.command)
+        d.update(params=copy.deepcopy(self.params), inputs=dict(self.inputs), outputs=list(self.outputs),
+                 restart=self.restart)
+        if self.env:
+            d["env"] = dict(self.env)
+        return d
+
+
+@dataclass
+class Graph:
+    name: str
+    zenoh: ZenohSettings
+    nodes: list
+    path: Optional[Path] = None
+
+    def node(self, node_id: str) -> NodeSpec:
+        for n in self.nodes:
+            if n.id == node_id:
+                return n
+        raise KeyError(f"graph {self.name!r} has no node {node_id!r} (nodes: {', '.join(self.ids())})")
+
+    def ids(self) -> list:
+        return [n.id for n in self.nodes]
+
+    # keys -------------------------------------------------------------------------------
+    def output_key(self, node_id: str, output: str) -> str:
+        return output_key(self.name, node_id, output)
+
+    def input_key(self, spec: NodeSpec, name: str) -> str:
+        src, out = spec.inputs[name].split("/", 1)
+        return output_key(self.name, src, out)
+
+    def resolve_key(self, key: str) -> str:
+        """``camera/left`` -> ``<graph>/camera/left``; keys already under the graph stay as they are."""
+        key = key.strip("/")
+        return key if key == self.name or key.startswith(self.name + "/") else f"{self.name}/{key}"
+
+    def to_dict(self) -> dict:
+        z = self.zenoh
+        return {"graph": self.name,
+                "zenoh": {"mode": z.mode, "listen": list(z.listen), "connect": list(z.connect),
+                          "shm_pool_mb": z.shm_pool_mb},
+                "nodes": [n.to_dict() for n in self.nodes]}
+
+    def dump(self, path) -> Path:
+        path = Path(path)
+        path.write_text(yaml.safe_dump(self.to_dict(), sort_keys=False))
+        return path
+
+
+def output_key(graph: str, node_id: str, output: str) -> str:
+    return f"{graph}/{node_id}/{output}"
+
+
+def stats_key(graph: str, node_id: str = "*") -> str:
+    return f"{graph}/@stats/{node_id}"
+
+
+def live_key(graph: str, node_id: str = "*") -> str:
+    return f"{graph}/@live/{node_id}"
+
+
+def cmd_key(graph: str, node_id: str) -> str:
+    return f"{graph}/{node_id}/cmd"
+
+
+def ctl_key(graph: str, node_id: str, pid, op: str) -> str:
+    """Runtime control (swap handover) of one process of a node."""
+    return f"{graph}/@ctl/{node_id}/{pid}/{op}"
+
+
+def launcher_key(graph: str, op: str) -> str:
+    return f"{graph}/@launcher/{op}"
+
+
+# ------------------------------------------------------------------ module introspection
+
+def module_path(module: str) -> Path:
+    return NODES_DIR.joinpath(*module.split(".")).with_suffix(".py")
+
+
+@functools.lru_cache(maxsize=256)
+def _module_info_cached(path: str, mtime: float) -> dict:
+    info: dict[str, Any] = {"has_node": False, "inputs": None, "outputs": None, "syntax_error": None}
+    try:
+        tree = ast.parse(Path(path).read_text(), filename=path)
+    except SyntaxError as exc:
+        info["syntax_error"] = f"line {exc.lineno}: {exc.msg}"
+        return info
+    classes = {n.name: n for n in tree.body if isinstance(n, ast.ClassDef)}
+    node_cls = None
+    for stmt in tree.body:
+        if isinstance(stmt, ast.Assign) and any(isinstance(t, ast.Name) and t.id == "NODE" for t in stmt.targets):
+            info["has_node"] = True
+            if isinstance(stmt.value, ast.Name):
+                node_cls = classes.get(stmt.value.id)
+    if node_cls is not None:
+        for stmt in node_cls.body:
+            if not isinstance(stmt, ast.Assign) or len(stmt.targets) != 1 or not isinstance(stmt.targets[0], ast.Name):
+                continue
+            name = stmt.targets[0].id
+            if name == "INPUTS" and isinstance(stmt.value, ast.Dict):
+                keys = [k.value for k in stmt.value.keys if isinstance(k, ast.Constant)]
+                if len(keys) == len(stmt.value.keys):
+                    info["inputs"] = keys
+            elif name == "OUTPUTS" and isinstance(stmt.value, (ast.Tuple, ast.List)):
+                vals = [e.value for e in stmt.value.elts if isinstance(e, ast.Constant)]
+                if len(vals) == len(stmt.value.elts):
+                    info["outputs"] = vals
+    return info
+
+
+def module_info(module: str) -> Optional[dict]:
+    """What ``nodes/<module>.py`` declares, read without importing it; None if there is no file.
+
+    Returns ``{"has_node", "inputs", "outputs", "syntax_error"}``; ``inputs``/``outputs`` are None
+    when they are not plain literals in the class that ``NODE`` names.
+    """
+    p = module_path(module)
+    if not p.is_file():
+        return None
+    return _module_info_cached(str(p), p.stat().st_mtime)
+
+
+def available_modules() -> list:
+    return sorted(p.stem for p in NODES_DIR.glob("*.py") if not p.stem.startswith("_"))
+
+
+# ------------------------------------------------------------------ validation
+
+def _tname(v) -> str:
+    return {dict: "map", list: "list", str: "string", int: "int", float: "number", bool: "bool",
+            type(None): "null"}.get(type(v), type(v).__name__)
+
+
+def validate_graph(data: Any) -> list:
+    """Every error of a parsed graph document, each prefixed with its place; [] if valid."""
+    errs: list[str] = []
+    if not isinstance(data, dict):
+        return [f"top level: expected a map with keys graph, zenoh, nodes; got {_tname(data)}"]
+    for k in data:
+        if k not in _TOP_KEYS:
+            errs.append(f"{k}: unknown key (allowed: {', '.join(sorted(_TOP_KEYS))})")
+    name = data.get("graph")
+    if name is None:
+        errs.append("graph: missing (the key prefix of the graph, e.g. 'needletrack')")
+    elif not isinstance(name, str) or not _NAME_RE.match(name):
+        errs.append(f"graph: must be a name of letters, digits, '_', '-', '.'; got {name!r}")
+
+    z = data.get("zenoh", {})
+    if z is None:
+        z = {}
+    if not isinstance(z, dict):
+        errs.append(f"zenoh: expected a map, got {_tname(z)}")
+    else:
+        for k in z:
+            if k not in _ZENOH_KEYS:
+                errs.append(f"zenoh.{k}: unknown key (allowed: {', '.join(sorted(_ZENOH_KEYS))})")
+        if "mode" in z and z["mode"] not in ZENOH_MODES:
+            errs.append(f"zenoh.mode: must be one of {', '.join(ZENOH_MODES)}; got {z['mode']!r}")
+        for k in ("listen", "connect"):
+            if k in z:
+                v = z[k]
+                if not isinstance(v, list):
+                    errs.append(f"zenoh.{k}: expected a list of endpoints, got {_tname(v)}")
+                    continue
+                for i, e in enumerate(v):
+                    if not isinstance(e, str) or not _ENDPOINT_RE.match(e):
+                        errs.append(f"zenoh.{k}[{i}]: not an endpoint like 'tcp/127.0.0.1:7447': {e!r}")
+        if "shm_pool_mb" in z and (isinstance(z["shm_pool_mb"], bool) or not isinstance(z["shm_pool_mb"], int)
+                                   or z["shm_pool_mb"] < 0):
+            errs.append(f"zenoh.shm_pool_mb: expected a non-negative int, got {z['shm_pool_mb']!r}")
+
+    nodes = data.get("nodes")
+    if nodes is None:
+        errs.append("nodes: missing (a list of nodes)")
+        return errs
+    if not isinstance(nodes, list):
+        errs.append(f"nodes: expected a list, got {_tname(nodes)}")
+        return errs
+    if not nodes:
+        errs.append("nodes: empty")
+
+    # first pass: ids and outputs, so that inputs can be checked against them
+    ids: dict[str, int] = {}
+    outputs: dict[str, Optional[list]] = {}
+    for i, n in enumerate(nodes):
+        if not isinstance(n, dict):
+            continue
+        nid = n.get("id")
+        if isinstance(nid, str) and _NAME_RE.match(nid):
+            if nid in ids:
+                errs.append(f"nodes[{i}].id: duplicate id {nid!r} (also nodes[{ids[nid]}])")
+            else:
+                ids[nid] = i
+                outs = n.get("outputs")
+                if outs is None and isinstance(n.get("module"), str):
+                    info = module_info(n["module"]) if _MODULE_RE.match(n["module"]) else None
+                    outs = info["outputs"] if info else None
+                outputs[nid] = outs if isinstance(outs, list) else None
+
+    for i, n in enumerate(nodes):
+        at = f"nodes[{i}]"
+        if not isinstance(n, dict):
+            errs.append(f"{at}: expected a map with id and module, got {_tname(n)}")
+            continue
+        for k in n:
+            if k not in _NODE_KEYS:
+                errs.append(f"{at}.{k}: unknown key (allowed: {', '.join(sorted(_NODE_KEYS))})")
+        nid = n.get("id")
+        if nid is None:
+            errs.append(f"{at}.id: missing")
+        elif not isinstance(nid, str) or not _NAME_RE.match(nid) or nid in ("cmd",):
+            errs.append(f"{at}.id: must be a name of letters, digits, '_', '-', '.'; got {nid!r}")
+        info = None
+        has_mod, has_cmd = "module" in n, "command" in n
+        if has_mod == has_cmd:
+            errs.append(f"{at}: needs exactly one of 'module' (a module of nodes/) or 'command'")
+        if has_mod:
+            m = n["module"]
+            if not isinstance(m, str) or not _MODULE_RE.match(m):
+                errs.append(f"{at}.module: expected a module name like 'sim', got {m!r}")
+            else:
+                info = module_info(m)
+                if info is None:
+                    errs.append(f"{at}.module: unknown module {m!r}: no file nodes/{m.replace('.', '/')}.py "
+                                f"(available: {', '.join(available_modules())})")
+                elif info["syntax_error"]:
+                    errs.append(f"{at}.module: nodes/{m}.py has a syntax error at {info['syntax_error']}")
+                elif not info["has_node"]:
+                    errs.append(f"{at}.module: nodes/{m}.py defines no NODE")
+        if has_cmd:
+            c = n["command"]
+            if not isinstance(c, list) or not c or not all(isinstance(a, (str, int, float)) for a in c):
+                errs.append(f"{at}.command: expected a non-empty list of strings, got {c!r}")
+        if "params" in n and n["params"] is not None and not isinstance(n["params"], dict):
+            errs.append(f"{at}.params: expected a map, got {_tname(n['params'])}")
+        if "restart" in n and n["restart"] not in RESTART_POLICIES:
+            errs.append(f"{at}.restart: must be one of {', '.join(RESTART_POLICIES)}; got {n['restart']!r}")
+        if "env" in n and n["env"] is not None:
+            env = n["env"]
+            if not isinstance(env, dict):
+                errs.append(f"{at}.env: expected a map of NAME: value, got {_tname(env)}")
+            else:
+                for k, v in env.items():
+                    if not isinstance(k, str) or not re.match(r"^[A-Za-z_][A-Za-z0-9_]*$", k):
+                        errs.append(f"{at}.env.{k}: not a valid environment variable name")
+                    elif not isinstance(v, (str, int, float, bool)):
+                        errs.append(f"{at}.env.{k}: expected a scalar, got {_tname(v)}")
+        outs = n.get("outputs")
+        if outs is not None:
+            if not isinstance(outs, list):
+                errs.append(f"{at}.outputs: expected a list of output names, got {_tname(outs)}")
+            else:
+                seen = set()
+                for j, o in enumerate(outs):
+                    if not isinstance(o, str) or not _NAME_RE.match(o) or o == "cmd":
+                        errs.append(f"{at}.outputs[{j}]: bad output name {o!r}")
+                    elif o in seen:
+                        errs.append(f"{at}.outputs[{j}]: duplicate output {o!r}")
+                    elif info and info["outputs"] is not None and o not in info["outputs"]:
+                        errs.append(f"{at}.outputs[{j}]: module {n['module']!r} has no output {o!r} "
+                                    f"(outputs: {', '.join(info['outputs']) or 'none'})")
+                    seen.add(o)
+        ins = n.get("inputs")
+        if ins is not None:
+            if not isinstance(ins, dict):
+                errs.append(f"{at}.inputs: expected a map of input name -> 'node/output', got {_tname(ins)}")
+            else:
+                for name, src in ins.items():
+                    where = f"{at}.inputs.{name}"
+                    if not isinstance(name, str) or not _NAME_RE.match(name):
+                        errs.append(f"{where}: bad input name")
+                        continue
+                    if info and info["inputs"] is not None and name not in info["inputs"]:
+                        errs.append(f"{where}: module {n['module']!r} has no input {name!r} "
+                                    f"(inputs: {', '.join(info['inputs']) or 'none'})")
+                    if not isinstance(src, str) or src.count("/") != 1:
+                        errs.append(f"{where}: expected 'node/output', got {src!r}")
+                        continue
+                    sid, sout = src.split("/")
+                    if sid not in ids:
+                        errs.append(f"{where}: no node {sid!r}")
+                    elif outputs.get(sid) is not None and sout not in outputs[sid]:
+                        errs.append(f"{where}: node {sid!r} has no output {sout!r} "
+                                    f"(outputs: {', '.join(map(str, outputs[sid])) or 'none'})")
+    return errs
+
+
+def graph_from_dict(data: dict, path: Optional[Path] = None, source: str = "graph") -> Graph:
+    """A validated ``Graph`` from a parsed document; raises ``GraphError`` listing every error."""
+    errs = validate_graph(data)
+    if errs:
+        raise GraphError(errs, source)
+    z = data.get("zenoh") or {}
+    zs = ZenohSettings(mode=z.get("mode", "peer"), listen=list(z.get("listen", [DEFAULT_ENDPOINT])),
+                       connect=list(z.get("connect", [])), shm_pool_mb=int(z.get("shm_pool_mb", 64)))
+    nodes = []
+    for n in data["nodes"]:
+        outs = n.get("outputs")
+        if outs is None and n.get("module"):
+            outs = (module_info(n["module"]) or {}).get("outputs") or []
+        nodes.append(NodeSpec(id=n["id"], module=n.get("module"),
+                              command=[str(a) for a in n["command"]] if n.get("command") else None,
+                              params=dict(n.get("params") or {}), inputs=dict(n.get("inputs") or {}),
+                              outputs=list(outs or []), restart=n.get("restart", "on-failure"),
+                              env={k: str(v) for k, v in (n.get("env") or {}).items()}))
+    return Graph(name=data["graph"], zenoh=zs, nodes=nodes, path=path)
+
+
+def parse_yaml(text: str, source: str = "graph") -> Any:
+    try:
+        return yaml.safe_load(text)
+    except yaml.YAMLError as exc:
+        mark = getattr(exc, "problem_mark", None)
+        where = f"line {mark.line + 1}, column {mark.column + 1}" if mark else "?"
+        problem = getattr(exc, "problem", None) or str(exc)
+        raise GraphError([f"{where}: YAML syntax error: {problem}"], source) from None
+
+
+def load_graph(src) -> Graph:
+    """A graph from a YAML file path, YAML text or a dict; raises ``GraphError`` listing every error."""
+    if isinstance(src, dict):
+        return graph_from_dict(copy.deepcopy(src))
+    if isinstance(src, str) and "\n" in src:
+        return graph_from_dict(parse_yaml(src))
+    path = Path(src)
+    if not path.is_file():
+        raise GraphError([f"no such file: {path}"], str(path))
+    return graph_from_dict(parse_yaml(path.read_text(), str(path)), path=path.resolve(), source=str(path))
+
+
+def parse_param(text: str) -> tuple:
+    """``k=v`` -> (k, v) with v parsed as a YAML scalar (``noise_px=1.5`` -> ("noise_px", 1.5))."""
+    if "=" not in text:
+        raise ValueError(f"--param expects key=value, got {text!r}")
+    k, v = text.split("=", 1)
+    if not k:
+        raise ValueError(f"--param expects key=value, got {text!r}")
+    try:
+        val = yaml.safe_load(v) if v else ""
+    except yaml.YAMLError:
+        val = v
+    return k, val
+
+
+# ------------------------------------------------------------------ Zenoh configuration
+
+def close_session(session, declarations: list) -> None:
+    """Undeclare ``declarations`` (subscribers, queryables, tokens) and close ``session``, best
+    effort: at shutdown the session may already be gone, and nothing is left to report to."""
+    for d in declarations:
+        try:
+            d.undeclare()
+        except Exception:
+            pass
+    declarations.clear()
+    if session is not None:
+        try:
+            session.close()
+        except Exception:
+            pass
+
+
+def zenoh_config(z: ZenohSettings, role: str = "node", listen: Optional[list] = None):
+    """A ``zenoh.Config`` for a graph member.
+
+    ``role="hub"`` (the launcher) listens on the graph's ``listen`` endpoints; every other
+    member (nodes, CLI tools, tests) connects to them and listens on an ephemeral loopback port,
+    so peers gossip and connect directly. Multicast scouting is always off: graphs on different
+    endpoints never see each other.
+    """
+    import zenoh
+    c = zenoh.Config()
+    c.insert_json5("mode", json.dumps(z.mode))
+    c.insert_json5("scouting/multicast/enabled", "false")
+    if role == "hub":
+        lis = list(z.listen) if listen is None else listen
+        con = list(z.connect)
+    else:
+        lis = listen if listen is not None else [_ephemeral_like(e) for e in (z.listen or [DEFAULT_ENDPOINT])[:1]]
+        con = list(z.listen) + list(z.connect)
+    if z.mode == "client":
+        lis = []
+    c.insert_json5("listen/endpoints", json.dumps(lis))
+    c.insert_json5("connect/endpoints", json.dumps(con))
+    if z.shm_pool_mb > 0:
+        c.insert_json5("transport/shared_memory/enabled", "true")
+        c.insert_json5("transport/shared_memory/transport_optimization/pool_size", str(z.shm_pool_mb << 20))
+    else:
+        c.insert_json5("transport/shared_memory/enabled", "false")
+    return c
+
+
+def _ephemeral_like(endpoint: str) -> str:
+    """``tcp/127.0.0.1:7447`` -> ``tcp/127.0.0.1:0`` (same protocol and host, any free port)."""
+    m = re.match(r"^(tcp|udp|tls|quic|ws)/(.+):(\d+)$", endpoint)
+    return f"{m.group(1)}/{m.group(2)}:0" if m else "tcp/127.0.0.1:0"

@@ -1,0 +1,487 @@
+"""The launcher: runs a graph as one process per node, supervises and hot-swaps them.
+
+- Module nodes run as ``python -m common.runtime.node --graph RESOLVED.yaml --node ID``; ``command``
+  nodes run as given, with ``NEEDLETRACK_GRAPH``/``NEEDLETRACK_NODE`` in their environment.
+- Every output line of a node is printed prefixed with ``[node id]``.
+- A node that exits is restarted per its ``restart`` policy with exponential backoff
+  (0.5 s doubling to 10 s; reset after 10 s of uptime); exit status 2 (bad configuration: bad
+  params, an unreadable model) is never restarted, and stops the whole graph (``launch`` then
+  exits non-zero). Params are checked against each node's ``Params`` before anything starts. Restarts are counted, printed, and reported in the node's stats.
+- The launcher's own Zenoh session is the graph's hub: it listens on the graph's ``listen``
+  endpoints and the nodes connect to it (then to each other, by gossip). With ``--only`` and the
+  endpoint already taken (another launcher runs the rest of the graph), it connects instead.
+- It answers queries on ``<graph>/@launcher/status`` (its processes) and
+  ``<graph>/@launcher/swap`` (hot swap, make-before-break; see ``Launcher.swap``).
+- SIGINT/SIGTERM stop every node (SIGTERM, then SIGKILL after ``STOP_GRACE_S``); nodes also
+  get SIGTERM from the kernel if the launcher itself dies (``PR_SET_PDEATHSIG``).
+"""
+from __future__ import annotations
+
+import ctypes
+import json
+import os
+import queue
+import shutil
+import signal
+import subprocess
+import sys
+import tempfile
+import threading
+import time
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Iterable, Optional
+
+from common.runtime.graph import (
+    REPO_ROOT,
+    Graph,
+    GraphError,
+    NodeSpec,
+    close_session,
+    ctl_key,
+    graph_from_dict,
+    launcher_key,
+    zenoh_config,
+)
+from common.runtime.node import graph_param_errors
+
+STOP_GRACE_S = 5.0
+BACKOFF_MIN_S, BACKOFF_MAX_S, BACKOFF_RESET_S = 0.5, 10.0, 10.0
+SWAP_READY_TIMEOUT_S = 120.0
+SWAP_WARM_TIMEOUT_S = 5.0
+
+
+def _pdeathsig():
+    """In the child: get SIGTERM when the launcher dies, so no node outlives it."""
+    try:
+        ctypes.CDLL("libc.so.6", use_errno=True).prctl(1, signal.SIGTERM)  # PR_SET_PDEATHSIG
+    except OSError:
+        pass
+
+
+def describe_status(code: int) -> str:
+    if code is None:
+        return "running"
+    if code < 0:
+        try:
+            return f"killed by {signal.Signals(-code).name}"
+        except ValueError:
+            return f"killed by signal {-code}"
+    return f"status {code}"
+
+
+@dataclass
+class Proc:
+    spec: NodeSpec
+    popen: subprocess.Popen
+    started: float
+    restarts: int = 0
+    role: str = "active"            # active | standby | retired
+    reader: Optional[threading.Thread] = None
+
+    @property
+    def pid(self) -> int:
+        return self.popen.pid
+
+
+@dataclass
+class Slot:
+    """One node id: its current process and supervision state."""
+    spec: NodeSpec
+    proc: Optional[Proc] = None
+    restarts: int = 0
+    failures: int = 0               # consecutive quick failures (for backoff)
+    restart_at: Optional[float] = None
+    last_status: Optional[int] = None
+    done: bool = False              # exited and will not be restarted
+
+
+class Launcher:
+    def __init__(self, graph: Graph, only: Optional[list] = None, out=None, run_dir: Optional[str] = None,
+                 stop_on_config_error: bool = True):
+        self.graph = graph
+        self.stop_on_config_error = stop_on_config_error
+        ids = graph.ids()
+        if only:
+            unknown = [i for i in only if i not in ids]
+            if unknown:
+                raise GraphError([f"--only: no node {u!r} (nodes: {', '.join(ids)})" for u in unknown])
+        self.only = list(only) if only else ids
+        self.out = out or sys.stdout
+        self._out_lock = threading.Lock()
+        self._lock = threading.RLock()
+        self.slots = {nid: Slot(graph.node(nid)) for nid in self.only}
+        self._own_run_dir = run_dir is None
+        self.run_dir = Path(run_dir or tempfile.mkdtemp(prefix="needletrack-run-"))
+        self._gen = 0
+        self.graph_file = self._write_graph()
+        self._stop = threading.Event()
+        self._swaps: "queue.Queue" = queue.Queue()
+        self._retired: list = []
+        self.session = None
+        self._decl: list = []
+
+    # ---------------------------------------------------------------- output
+    def say(self, text: str, who: str = "launcher") -> None:
+        with self._out_lock:
+            try:
+                self.out.write(f"[{who}] {text}\n")
+                self.out.flush()
+            except (ValueError, OSError):
+                pass
+
+    def _pump(self, proc: Proc) -> None:
+        for raw in iter(proc.popen.stdout.readline, b""):
+            tag = proc.spec.id if proc.role == "active" else f"{proc.spec.id}:{proc.pid}"
+            self.say(raw.decode(errors="replace").rstrip("\n"), tag)
+        proc.popen.stdout.close()
+
+    # ---------------------------------------------------------------- processes
+    def _write_graph(self) -> Path:
+        self._gen += 1
+        return self.graph.dump(self.run_dir / f"graph.{self._gen}.yaml")
+
+    def _spawn(self, spec: NodeSpec, restarts: int = 0, standby: bool = False) -> Proc:
+        env = dict(os.environ)
+        env["PYTHONPATH"] = os.pathsep.join([str(REPO_ROOT)] + [p for p in env.get("PYTHONPATH", "").split(os.pathsep) if p])
+        env.update(PYTHONUNBUFFERED="1", NEEDLETRACK_GRAPH=str(self.graph_file), NEEDLETRACK_NODE=spec.id,
+                   NEEDLETRACK_RESTARTS=str(restarts), NEEDLETRACK_STANDBY="1" if standby else "0")
+        # glibc would map and unmap every image-sized buffer (page faults on each frame: ~2x the
+        # CPU of a receiver); keep freed memory in the heap for reuse instead
+        env.setdefault("MALLOC_MMAP_THRESHOLD_", str(1 << 30))
+        env.setdefault("MALLOC_TRIM_THRESHOLD_", str(1 << 30))
+        env.update(spec.env)
+        if spec.module:
+            argv = [sys.executable, "-m", "common.runtime.node", "--graph", str(self.graph_file), "--node", spec.id]
+        else:
+            argv = list(spec.command)
+        popen = subprocess.Popen(argv, stdin=subprocess.DEVNULL, stdout=subprocess.PIPE, stderr=subprocess.STDOUT,
+                                 env=env, cwd=str(REPO_ROOT), start_new_session=True, preexec_fn=_pdeathsig)
+        proc = Proc(spec, popen, time.monotonic(), restarts, "standby" if standby else "active")
+        proc.reader = threading.Thread(target=self._pump, args=(proc,), daemon=True)
+        proc.reader.start()
+        return proc
+
+    @staticmethod
+    def _signal(proc: Proc, sig) -> None:
+        try:
+            os.killpg(proc.pid, sig)
+        except (ProcessLookupError, PermissionError):
+            try:
+                proc.popen.send_signal(sig)
+            except ProcessLookupError:
+                pass
+
+    def _terminate(self, procs: list, grace: float = STOP_GRACE_S) -> None:
+        for p in procs:
+            if p.popen.poll() is None:
+                self._signal(p, signal.SIGTERM)
+        deadline = time.monotonic() + grace
+        for p in procs:
+            try:
+                p.popen.wait(max(0.0, deadline - time.monotonic()))
+            except subprocess.TimeoutExpired:
+                self.say(f"{p.spec.id} (pid {p.pid}) did not stop in {grace:.0f} s: SIGKILL")
+                self._signal(p, signal.SIGKILL)
+                p.popen.wait()
+            # a node's own children (command nodes) share its process group
+            try:
+                os.killpg(p.pid, signal.SIGKILL)
+            except (ProcessLookupError, PermissionError):
+                pass
+            if p.reader:
+                p.reader.join(1.0)
+
+    # ---------------------------------------------------------------- hub session
+    def open_session(self) -> None:
+        import zenoh
+        try:
+            self.session = zenoh.open(zenoh_config(self.graph.zenoh, role="hub"))
+            where = "listening on " + ", ".join(self.graph.zenoh.listen)
+        except Exception as exc:
+            if len(self.only) == len(self.graph.nodes):
+                raise RuntimeError(f"cannot listen on {', '.join(self.graph.zenoh.listen)} ({exc}); "
+                                   f"is another graph running there?") from None
+            self.session = zenoh.open(zenoh_config(self.graph.zenoh, role="node"))
+            where = "joining the graph at " + ", ".join(self.graph.zenoh.listen)
+        self.say(f"graph {self.graph.name!r}: {len(self.only)} node(s), {where}")
+        self._decl.append(self.session.declare_queryable(launcher_key(self.graph.name, "status"), self._q_status))
+        self._decl.append(self.session.declare_queryable(launcher_key(self.graph.name, "swap"), self._q_swap))
+
+    def _q_status(self, query) -> None:
+        with self._lock:
+            rows = []
+            for nid, s in self.slots.items():
+                p = s.proc
+                rows.append({"node": nid, "module": s.spec.module or " ".join(s.spec.command or []),
+                             "pid": p.pid if p else None, "restarts": s.restarts,
+                             "state": "running" if p and p.popen.poll() is None else
+                                      ("restarting" if s.restart_at else "exited"),
+                             "last_status": s.last_status, "restart": s.spec.restart,
+                             "uptime_s": round(time.monotonic() - p.started, 1) if p else None})
+        query.reply(query.key_expr, json.dumps({"graph": self.graph.name, "launcher_pid": os.getpid(),
+                                                "nodes": rows}).encode())
+
+    def _q_swap(self, query) -> None:
+        self._swaps.put(query)   # answered from the swap thread: never block a Zenoh callback
+
+    # ---------------------------------------------------------------- swap
+    def _ctl(self, node_id: str, pid: int, op: str, payload: Optional[dict] = None, timeout: float = 2.0):
+        kw = {"timeout": timeout}
+        if payload is not None:
+            kw["payload"] = json.dumps(payload).encode()
+        for reply in self.session.get(ctl_key(self.graph.name, node_id, pid, op), **kw):
+            if reply.ok is not None:
+                return json.loads(reply.ok.payload.to_bytes().decode())
+        return None
+
+    def _covers(self, node_id: str, old: Optional[Proc], status: dict) -> bool:
+        """Whether the standby process holds outputs from the frame after the old process's last
+        output on: a lagging old process (a slow backend) may not have reached the standby's
+        first frame yet, and handing over then would lose the frames in between."""
+        first = status.get("held_first") or {}
+        if old is None or old.popen.poll() is not None or not first:
+            return True
+        ans = self._ctl(node_id, old.pid, "status", timeout=0.5) or {}
+        last = ans.get("last_seq") or {}
+        return all(out not in last or last[out] + 1 >= seq for out, seq in first.items())
+
+    def swap(self, node_id: str, module: Optional[str] = None, params: Optional[dict] = None,
+             unset: Iterable[str] = ()) -> dict:
+        """Replace a running node by a new process (another module and/or params), make-before-break.
+        ``params`` are set over the node's own, then the names in ``unset`` are removed; the new
+        spec is checked like a launched graph's (its params against the node's ``Params``).
+
+        1. the new process starts in standby: it runs its handlers but holds its outputs;
+        2. once it is up and has produced an output, and its held outputs reach back to the frame
+           after the old process's last output (or ``SWAP_WARM_TIMEOUT_S`` passed), the old
+           process is told to hand over: it stops publishing at once and answers, per output, the
+           sequence number after the last one it published (the cut);
+        3. the new process publishes its held outputs with seq >= cut and goes live, dropping any
+           later output with seq < cut; so no frame seq is published by both;
+        4. the old process is stopped. Returns a summary; raises ValueError/RuntimeError.
+        """
+        with self._lock:
+            slot = self.slots.get(node_id)
+            if slot is None:
+                raise ValueError(f"no node {node_id!r} in this launcher (nodes: {', '.join(self.slots)})")
+            old = slot.proc
+            new_spec = NodeSpec(**{**slot.spec.__dict__})
+            new_spec.params = {k: v for k, v in {**slot.spec.params, **(params or {})}.items() if k not in set(unset)}
+            if module:
+                new_spec.module, new_spec.command = module, None
+            data = self.graph.to_dict()
+            data["nodes"] = [new_spec.to_dict() if n["id"] == node_id else n for n in data["nodes"]]
+            new_graph = graph_from_dict(data)       # raises GraphError with every problem
+            index = [n.id for n in new_graph.nodes].index(node_id)
+            errors = [e for e in graph_param_errors(new_graph) if e.startswith(f"nodes[{index}].")]
+            if errors:
+                raise GraphError(errors, f"swap {node_id}")
+            # a node process reads its spec from the graph file: a refused swap must restore it,
+            # or a later restart of the old node would run the refused spec
+            old_graph, old_graph_file = self.graph, self.graph_file
+            self.graph = new_graph
+            self.graph_file = self._write_graph()
+            new_spec = new_graph.node(node_id)
+            t0 = time.monotonic()
+            new = self._spawn(new_spec, restarts=slot.restarts, standby=True)
+        self.say(f"swap {node_id}: standby pid {new.pid} ({new_spec.module}, params {new_spec.params})")
+        try:
+            status = None
+            deadline = time.monotonic() + SWAP_READY_TIMEOUT_S
+            warm_deadline = None
+            while time.monotonic() < deadline:
+                if new.popen.poll() is not None:
+                    raise RuntimeError(f"new {node_id} process exited with {describe_status(new.popen.returncode)} "
+                                       f"before taking over")
+                if new_spec.module:
+                    status = self._ctl(node_id, new.pid, "status", timeout=0.5)
+                    if status and status.get("ready"):
+                        if not new_spec.outputs or (status.get("produced") and self._covers(node_id, old, status)):
+                            break
+                        warm_deadline = warm_deadline or time.monotonic() + SWAP_WARM_TIMEOUT_S
+                        if time.monotonic() > warm_deadline:
+                            break
+                elif time.monotonic() - t0 > 2.0:    # a command node: no handover protocol
+                    break
+                time.sleep(0.05)
+            else:
+                raise RuntimeError(f"new {node_id} process not ready after {SWAP_READY_TIMEOUT_S:.0f} s")
+            ready_s = time.monotonic() - t0
+            cuts = {}
+            if old is not None and old.popen.poll() is None:
+                ans = self._ctl(node_id, old.pid, "handover")
+                cuts = (ans or {}).get("cuts", {})
+            taken = self._ctl(node_id, new.pid, "takeover", {"cuts": cuts}) if new_spec.module else {}
+        except Exception:
+            self._terminate([new], grace=2.0)
+            with self._lock:
+                self.graph, self.graph_file = old_graph, old_graph_file
+            raise
+        with self._lock:
+            new.role = "active"
+            slot.spec, slot.proc = new_spec, new
+            slot.done, slot.restart_at = False, None
+            if old is not None:
+                old.role = "retired"
+                self._retired.append(old)
+        if old is not None:
+            threading.Thread(target=self._terminate, args=([old],), daemon=True).start()
+        summary = {"ok": True, "node": node_id, "module": new_spec.module, "params": new_spec.params,
+                   "old_pid": old.pid if old else None, "new_pid": new.pid, "cuts": cuts,
+                   "flushed": (taken or {}).get("flushed", 0), "ready_s": round(ready_s, 3)}
+        self.say(f"swap {node_id}: pid {summary['old_pid']} -> {new.pid} at cuts {cuts} "
+                 f"(ready in {ready_s:.2f} s)")
+        return summary
+
+    def _swap_loop(self) -> None:
+        while not self._stop.is_set():
+            try:
+                query = self._swaps.get(timeout=0.2)
+            except queue.Empty:
+                continue
+            try:
+                req = json.loads(query.payload.to_bytes().decode()) if query.payload else {}
+                ans = self.swap(req["node"], req.get("module"), req.get("params") or {}, req.get("unset") or ())
+            except GraphError as exc:
+                ans = {"ok": False, "error": "the swapped graph is invalid", "errors": exc.errors}
+            except Exception as exc:
+                ans = {"ok": False, "error": f"{type(exc).__name__}: {exc}"}
+            if not ans.get("ok"):
+                self.say(f"swap failed: {ans.get('error')} {ans.get('errors', '')}")
+            try:
+                query.reply(query.key_expr, json.dumps(ans).encode())
+            except Exception as exc:
+                self.say(f"swap reply not sent: {exc}")
+            del query
+
+    # ---------------------------------------------------------------- supervision
+    def start(self) -> None:
+        self.open_session()
+        with self._lock:
+            for nid, slot in self.slots.items():
+                slot.proc = self._spawn(slot.spec)
+        threading.Thread(target=self._swap_loop, name="swap", daemon=True).start()
+
+    def _supervise_once(self) -> None:
+        now = time.monotonic()
+        with self._lock:
+            for nid, slot in self.slots.items():
+                p = slot.proc
+                if p is not None and p.popen.poll() is not None:
+                    code = p.popen.returncode
+                    slot.last_status = code
+                    slot.proc = None
+                    if p.reader:
+                        p.reader.join(0.5)
+                    policy = slot.spec.restart
+                    again = (policy == "always" or (policy == "on-failure" and code != 0)) and code != 2
+                    if not again:
+                        slot.done = True
+                        self.say(f"{nid} exited with {describe_status(code)}"
+                                 + ("" if code in (0, None) else f" (restart policy {policy}"
+                                    + (", status 2 = bad configuration" if code == 2 else "") + ")"))
+                        if code == 2 and self.stop_on_config_error:
+                            self.say(f"{nid} cannot run as configured: stopping the graph (see its log above)")
+                            self._stop.set()
+                        continue
+                    ran = now - p.started
+                    slot.failures = 1 if ran > BACKOFF_RESET_S else slot.failures + 1
+                    delay = min(BACKOFF_MAX_S, BACKOFF_MIN_S * 2 ** (slot.failures - 1))
+                    slot.restart_at = now + delay
+                    self.say(f"{nid} exited with {describe_status(code)}; restart #{slot.restarts + 1} in {delay:.1f} s")
+                elif p is None and slot.restart_at is not None and now >= slot.restart_at:
+                    slot.restarts += 1
+                    slot.restart_at = None
+                    slot.proc = self._spawn(slot.spec, restarts=slot.restarts)
+                    self.say(f"{nid} restarted (pid {slot.proc.pid}, restart #{slot.restarts})")
+            self._retired = [p for p in self._retired if p.popen.poll() is None]
+
+    def run(self, duration: Optional[float] = None, until: Optional[list] = None) -> int:
+        """Supervise until every node is done, ``until`` nodes are done, ``duration`` passed or stop()."""
+        t_end = None if duration is None else time.monotonic() + duration
+        until = [u for u in (until or []) if u in self.slots]
+        while not self._stop.is_set():
+            self._supervise_once()
+            with self._lock:
+                if all(s.done for s in self.slots.values()):
+                    break
+                if until and all(self.slots[u].done for u in until):
+                    self.say(f"{', '.join(until)} finished: stopping the graph")
+                    break
+            if t_end is not None and time.monotonic() >= t_end:
+                self.say(f"ran for {duration:g} s: stopping the graph")
+                break
+            self._stop.wait(0.1)
+        return self.shutdown()
+
+    def stop(self) -> None:
+        self._stop.set()
+
+    def shutdown(self) -> int:
+        self._stop.set()
+        with self._lock:
+            procs = [s.proc for s in self.slots.values() if s.proc is not None] + self._retired
+            for s in self.slots.values():
+                s.restart_at = None
+        self._terminate(procs)
+        for p in procs:
+            slot = self.slots.get(p.spec.id)
+            if slot is not None and slot.proc is p:
+                slot.last_status = p.popen.returncode
+        close_session(self.session, self._decl)
+        self.session = None
+        if self._own_run_dir:
+            shutil.rmtree(self.run_dir, ignore_errors=True)
+        bad = {nid: s.last_status for nid, s in self.slots.items()
+               if s.last_status not in (0, None, -signal.SIGTERM, -signal.SIGKILL)}
+        self.say("stopped" + (f"; non-zero exits: {bad}" if bad else ""))
+        return 1 if bad else 0
+
+
+def launch_main(argv: list) -> int:
+    """``needletrack launch [GRAPH.yaml] [--only ID,...] [--duration S] [--until ID,...] [--all-methods]``."""
+    import argparse
+
+    from common.runtime.graph import load_graph
+    ap = argparse.ArgumentParser(prog="needletrack launch", description="Run a dataflow graph, one process per node.")
+    ap.add_argument("graph", nargs="?", default="dataflow.yaml", help="graph YAML (default: dataflow.yaml)")
+    ap.add_argument("--only", help="comma-separated node ids to run (the rest run elsewhere)")
+    ap.add_argument("--duration", type=float, help="stop the graph after this many seconds")
+    ap.add_argument("--until", help="stop the graph when these nodes (comma-separated) have finished")
+    ap.add_argument("--all-methods", action="store_true",
+                    help="monitor nodes print every method's pose, not only the final one")
+    args = ap.parse_args(argv)
+    path = Path(args.graph)
+    if not path.exists() and args.graph == "dataflow.yaml":
+        path = REPO_ROOT / "dataflow.yaml"
+    try:
+        graph = load_graph(path)
+        if args.all_methods:
+            for n in graph.nodes:
+                if n.module == "monitor":
+                    n.params["all_methods"] = True
+        errors = graph_param_errors(graph)
+        if errors:
+            raise GraphError(errors, str(path))
+        launcher = Launcher(graph, only=args.only.split(",") if args.only else None)
+    except GraphError as exc:
+        print(str(exc), file=sys.stderr)
+        return 2
+    stopping = []
+
+    def on_signal(signum, _frame):
+        if stopping:
+            return
+        stopping.append(signum)
+        launcher.say(f"{signal.Signals(signum).name}: stopping every node")
+        launcher.stop()
+    signal.signal(signal.SIGINT, on_signal)
+    signal.signal(signal.SIGTERM, on_signal)
+    try:
+        launcher.start()
+    except RuntimeError as exc:
+        print(f"needletrack launch: {exc}", file=sys.stderr)
+        launcher.shutdown()
+        return 1
+    return launcher.run(duration=args.duration, until=args.until.split(",") if args.until else None)

@@ -1,0 +1,204 @@
+"""Dataset generation from the built-in scene: N needle poses x K endoscope poses.
+
+Sequence ``s`` of a run seeded ``seed`` depends only on (seed, s, steps, preset, image size), so a
+run is reproducible, resumable after an interruption (finished sequences are kept) and can be
+extended with more sequences. Sequences are rendered by worker processes (spawned, one GL
+context each); the parent writes frames.jsonl in order.
+"""
+from __future__ import annotations
+
+import os
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from common.geometry.ecm_kinematics import MULTIVIEW_STEP_RAD
+
+FPS = 30.0
+GENERATE_FILE = "generate.json"
+
+
+@dataclass(frozen=True)
+class GenerateConfig:
+    sequences: int
+    steps: int
+    seed: int = 0
+    randomise: str = "train"
+    width: int = 1920
+    height: int = 1080
+    image_format: str = "jpg"
+    jpeg_quality: int = 95
+    msaa: int = 4
+    step_rad: float = MULTIVIEW_STEP_RAD   # ECM joint step between a sequence's endoscope poses
+
+    def stable(self) -> dict:
+        """What must match for a folder to be resumed or extended."""
+        d = dict(self.__dict__)
+        d.pop("sequences")
+        return d
+
+
+def scene_meta(width: int, height: int, source: str):
+    """dataset.yaml contents of the built-in scene."""
+    from common.data.dataset import DatasetMeta
+    from common.geometry.camera import StereoRig
+    from common.geometry.needle import NeedleModel
+    from common.sim.randomise import default_arm
+    return DatasetMeta((width, height), StereoRig.default(width, height), NeedleModel(), default_arm(), source)
+
+
+def render_sequence(renderer, cfg: GenerateConfig, sequence: int) -> list[tuple[dict, dict, int]]:
+    """Plan and render one sequence: per step (BGR images by camera, frame fields, JPEG quality)."""
+    from common.sim.randomise import (
+        degrade_stereo,
+        get_preset,
+        jpeg_quality,
+        plan_sequence,
+    )
+    meta = scene_meta(cfg.width, cfg.height, "")
+    preset = get_preset(cfg.randomise)
+    tex = 1024
+    plan = plan_sequence(cfg.seed, sequence, cfg.steps, preset, meta.rig, meta.needle, meta.arm, tex, cfg.msaa,
+                         cfg.step_rad)
+    renderer.load(plan.spec)
+    rng = np.random.default_rng(plan.image_seed)
+    out = []
+    for step, q in enumerate(plan.joints):
+        T_world_ecm = meta.arm.T_world_ecm(q)
+        renders = renderer.render(T_world_ecm)
+        gt = renderer.ground_truth(T_world_ecm, renders)
+        # JPEG artefacts come from the file's own compression when writing JPEG
+        images = degrade_stereo({c: r.bgr for c, r in renders.items()}, rng, preset,
+                                jpeg=cfg.image_format != "jpg")
+        quality = min(cfg.jpeg_quality, jpeg_quality(rng, preset))
+        fields = {"sequence": sequence, "step": step, "ecm_joints": np.asarray(q, float),
+                  "T_world_ecm": T_world_ecm, "T_world_needle": plan.spec.T_world_needle,
+                  "keypoints": gt["keypoints"], "visible": gt["visible"], "bbox": gt["bbox"]}
+        out.append((images, fields, quality))
+    return out
+
+
+# ---------------------------------------------------------------- worker processes
+
+_WORKER = {}
+
+
+def _init_worker(cfg: GenerateConfig, folder: str) -> None:
+    from common.sim.render import SceneRenderer
+    _WORKER["renderer"] = SceneRenderer()
+    _WORKER["cfg"], _WORKER["folder"] = cfg, folder
+
+
+def _work(sequence: int) -> list[dict]:
+    """Render sequence ``sequence``, write its images; returns its frames.jsonl objects."""
+    from common.data.dataset import Frame, write_frame_images
+    cfg, folder = _WORKER["cfg"], _WORKER["folder"]
+    frames = []
+    for images, fields, quality in render_sequence(_WORKER["renderer"], cfg, sequence):
+        index = sequence * cfg.steps + fields["step"]
+        paths = write_frame_images(folder, index, images, cfg.image_format, quality)
+        fr = Frame(index=index, stamp_ns=int(round(index * 1e9 / FPS)), left=paths["left"],
+                   right=paths["right"], **fields)
+        frames.append(fr.to_json())
+    return frames
+
+
+def generate(folder: str, cfg: GenerateConfig, jobs: int = 2, progress: bool = True,
+             overwrite: bool = False) -> int:
+    """Generate (or resume, or extend) a dataset folder; returns the number of frames in it."""
+    if not (np.isfinite(cfg.step_rad) and 0.0 <= cfg.step_rad <= 0.5):
+        raise ValueError(f"dataset generate: --step-rad must be in [0, 0.5] rad, got {cfg.step_rad}")
+    import multiprocessing as mp
+
+    import mujoco
+    from tqdm import tqdm
+
+    from common.data.dataset import DatasetWriter, resume_generation
+    # settings added later default to their old behaviour
+    resume, done = resume_generation(folder, GENERATE_FILE, cfg.stable(), cfg.sequences, cfg.steps,
+                                     "dataset generate", overwrite, GenerateConfig(1, 1).stable())
+    source = (f"needletrack dataset generate (MuJoCo {mujoco.__version__} built-in suturing scene): "
+              f"randomise={cfg.randomise} seed={cfg.seed} steps={cfg.steps} step_rad={cfg.step_rad:g}")
+    meta = scene_meta(cfg.width, cfg.height, source)
+    writer = DatasetWriter(folder, meta, cfg.image_format, cfg.jpeg_quality, resume=resume)
+    todo = list(range(done, cfg.sequences))
+    bar = tqdm(total=cfg.sequences * cfg.steps, initial=done * cfg.steps, unit="frame",
+               desc="generate", disable=not progress, smoothing=0.1)
+    try:
+        if jobs <= 1 or len(todo) <= 1:
+            _init_worker(cfg, folder)
+            results = map(_work, todo)
+            _consume(results, writer, bar)
+        else:
+            ctx = mp.get_context("spawn")
+            env_threads = os.environ.get("LP_NUM_THREADS")
+            os.environ["LP_NUM_THREADS"] = env_threads or str(max(1, (os.cpu_count() or 2) // jobs))
+            try:
+                with ctx.Pool(jobs, initializer=_init_worker, initargs=(cfg, folder)) as pool:
+                    _consume(pool.imap(_work, todo), writer, bar)
+            finally:
+                if env_threads is None:
+                    os.environ.pop("LP_NUM_THREADS", None)
+    finally:
+        bar.close()
+        writer.close()
+    return writer.n_frames
+
+
+def _consume(results, writer, bar) -> None:
+    from common.data.dataset import parse_frame
+    for frames in results:
+        for obj in frames:
+            writer.append(parse_frame(obj))
+            bar.update(1)
+
+
+def generate_needle_free(folder, n_frames: int, seed: int = 777, preset: str = "test",
+                         progress: bool = True, pale_thread: float | None = None) -> Path:
+    """Render ``n_frames`` stereo frames of the built-in scene with the needle moved out of sight
+    (instruments, thread and tissue stay) as a dataset folder whose frames see no keypoint:
+    negatives for training the detector and for measuring its false detections.
+
+    ``pale_thread``: share of frames whose thread takes the palette's pale, needle-like colour
+    (default: the preset's draw, 1 in 5) — a lone pale thread curled on the tissue is the
+    decoy a detector most easily takes for a needle."""
+    from dataclasses import replace
+
+    from tqdm import tqdm
+
+    from common.data.dataset import DatasetWriter, Frame
+    from common.sim.randomise import (
+        PALE_THREAD_RGB,
+        THREAD_RGBS,
+        degrade_stereo,
+        get_preset,
+        plan_sequence,
+    )
+    from common.sim.render import SceneRenderer
+    folder = Path(folder)
+    meta = scene_meta(1920, 1080, f"needle-free frames, preset {preset}, seed {seed}")
+    pre = get_preset(preset)
+    renderer = SceneRenderer()
+    with DatasetWriter(str(folder), meta, "jpg", 95) as writer:
+        for i in tqdm(range(n_frames), desc="needle-free frames", unit="frame", disable=not progress):
+            plan = plan_sequence(seed, i, 1, pre, meta.rig, meta.needle, meta.arm, 2048)
+            T_hidden = plan.spec.T_world_needle.copy()
+            T_hidden[:3, 3] = [0.0, 0.0, -5.0]
+            spec = replace(plan.spec, T_world_needle=T_hidden)
+            if pale_thread is not None:
+                rng = np.random.default_rng([seed, i, 1])
+                dyed = [c for c in THREAD_RGBS if c != PALE_THREAD_RGB]
+                rgb = PALE_THREAD_RGB if rng.random() < pale_thread else dyed[rng.integers(len(dyed))]
+                spec = replace(spec, appearance=replace(spec.appearance, thread_rgb=rgb))
+            renderer.load(spec)
+            T_world_ecm = meta.arm.T_world_ecm(plan.joints[0])
+            renders = renderer.render(T_world_ecm)
+            rng = np.random.default_rng([seed, i])
+            images = degrade_stereo({c: r.bgr for c, r in renders.items()}, rng, pre)
+            paths = writer.write_images(i, images)
+            writer.append(Frame(index=i, stamp_ns=int(i * 33_333_333), left=paths["left"], right=paths["right"],
+                                T_world_ecm=T_world_ecm,
+                                visible={c: np.zeros(5, bool) for c in ("left", "right")},
+                                bbox={c: None for c in ("left", "right")}))
+    return folder

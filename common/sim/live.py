@@ -1,0 +1,125 @@
+"""The live simulator behind the ``sim`` node: scene, endoscope motion scripts and frames.
+
+Motion scripts (``MOTIONS``):
+- ``static``: the endoscope stays where it was placed;
+- ``multiview``: the paper's protocol: ``steps`` endoscope poses per needle pose, one random
+  revolute ECM joint moving 0.05 rad between poses, each held ``hold_frames`` frames; then a new
+  needle pose (a new ``sequence``);
+- ``sweep``: smooth yaw/pitch oscillation of ``sweep_amplitude_rad`` over ``sweep_period_s``.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from common.geometry.camera import StereoRig
+from common.geometry.needle import NeedleModel
+from common.geometry.transforms import transform_points
+from common.sim.randomise import (
+    aim_joints,
+    default_arm,
+    degrade_stereo,
+    get_preset,
+    keypoints_in_view,
+    multiview_joints,
+    plan_sequence,
+)
+from common.sim.render import SceneRenderer
+
+MOTIONS = ("static", "multiview", "sweep")
+
+
+@dataclass
+class SimFrame:
+    """One stereo frame: BGR images by camera, ECM joints, T_world_ecm and ground truth."""
+
+    images: dict
+    q: np.ndarray
+    T_world_ecm: np.ndarray
+    T_world_needle: np.ndarray
+    truth: dict            # keypoints / visible / bbox by camera
+    sequence: int
+    step: int
+
+
+class LiveSim:
+    """Renders an endless stream of frames of the built-in scene under a motion script."""
+
+    def __init__(self, width: int = 1920, height: int = 1080, randomise: str = "test", seed: int = 0,
+                 motion: str = "sweep", steps: int = 5, hold_frames: int = 15, sweep_period_s: float = 8.0,
+                 sweep_amplitude_rad: float = 0.06, rate_hz: float = 30.0, texture_size: int = 1024,
+                 msaa: int = 4):
+        if motion not in MOTIONS:
+            raise ValueError(f"sim: motion must be one of {MOTIONS}, got {motion!r}")
+        self.rig = StereoRig.default(width, height)
+        self.needle = NeedleModel()
+        self.arm = default_arm()
+        self.preset = get_preset(randomise)
+        self.seed, self.motion, self.steps = int(seed), motion, max(1, int(steps))
+        self.hold_frames = max(1, int(hold_frames))
+        self.sweep_period_s, self.sweep_amplitude = float(sweep_period_s), float(sweep_amplitude_rad)
+        self.dt = 1.0 / rate_hz if rate_hz > 0 else 1.0 / 30.0
+        self.texture_size, self.msaa = texture_size, int(msaa)
+        self.renderer = SceneRenderer()
+        self.sequence = -1
+        self.frame_in_sequence = 0
+        self._rng = np.random.default_rng([self.seed, 7])
+        self.place_needle()
+
+    def place_needle(self, seed: int | None = None, T_world_needle=None) -> None:
+        """A new needle pose (and scene look): the next planned one, the one planned for ``seed``,
+        or exactly ``T_world_needle`` (4x4, world) with the endoscope aimed at it."""
+        self.sequence += 1
+        key = self.sequence if seed is None else int(seed)
+        plan = plan_sequence(self.seed, key, self.steps, self.preset, self.rig, self.needle, self.arm,
+                             self.texture_size, self.msaa)
+        if T_world_needle is not None:
+            T = np.asarray(T_world_needle, dtype=float)
+            if T.shape != (4, 4) or not np.all(np.isfinite(T)):
+                raise ValueError("place_needle: T_world_needle must be a finite 4x4 matrix")
+            plan.spec.T_world_needle = T
+            plan.spec.instruments = []
+            centre = transform_points(T, self.needle.keypoints()).mean(axis=0)
+            q0 = aim_joints(self.arm, centre, 0.0, 0.15)
+            plan.joints = multiview_joints(np.random.default_rng(key), self.arm, self.rig, self.needle, T,
+                                           q0, self.steps)
+        self.renderer.load(plan.spec)
+        self.plan = plan
+        self.frame_in_sequence = 0
+        self._img_rng = np.random.default_rng(plan.image_seed)
+
+    def joints(self) -> tuple[np.ndarray, int]:
+        """Joints of the current frame under the motion script, and the multiview step."""
+        q0 = self.plan.joints[0]
+        if self.motion == "static":
+            return q0.copy(), 0
+        if self.motion == "multiview":
+            step = min(self.frame_in_sequence // self.hold_frames, len(self.plan.joints) - 1)
+            return self.plan.joints[step].copy(), step
+        t = self.frame_in_sequence * self.dt
+        w = 2 * np.pi / self.sweep_period_s
+        q = q0.copy()
+        q[0] += self.sweep_amplitude * np.sin(w * t)
+        q[1] += 0.6 * self.sweep_amplitude * np.sin(2 * w * t)
+        return q, 0
+
+    def next_frame(self) -> SimFrame:
+        """Render the next frame and advance the script."""
+        if self.motion == "multiview" and self.frame_in_sequence >= self.hold_frames * self.steps:
+            self.place_needle()
+        q, step = self.joints()
+        T_world_ecm = self.arm.T_world_ecm(q)
+        renders = self.renderer.render(T_world_ecm)
+        truth = self.renderer.ground_truth(T_world_ecm, renders)
+        images = degrade_stereo({c: r.bgr for c, r in renders.items()}, self._img_rng, self.preset)
+        self.frame_in_sequence += 1
+        return SimFrame(images, q, T_world_ecm, self.plan.spec.T_world_needle.copy(), truth,
+                        self.sequence, step)
+
+    def needle_in_view(self) -> bool:
+        q, _ = self.joints()
+        return keypoints_in_view(self.rig, self.needle, self.plan.spec.T_world_needle, self.arm.T_world_ecm(q))
+
+    def close(self) -> None:
+        self.renderer.close()

@@ -1,0 +1,157 @@
+"""Shared wiring of the pose nodes: calibration, ECM poses by frame, stereo keypoint pairing.
+
+``StereoPoseNode`` is a ``Node`` base for nodes that turn the two ``Keypoints`` of a stereo
+frame into a pose (``epnp``, ``triangulate``): it keeps the latest ``Calibration``, remembers
+recent ``EcmPose`` messages by ``seq``, pairs left/right keypoints by ``seq`` and calls
+``on_pair(left, right)``; it counts the stereo frames paired (``pairs``) and why a frame gave no
+pose (``no_pose.<reason>``), and builds the ``PoseEstimate`` with ``T_world_needle`` when the ECM pose of that frame is known.
+
+``publish_pose`` publishes a pose once its frame's ECM pose is in (with ``ecm`` wired): a pose
+computed before the ECM pose arrived waits for it, at most ``max_wait`` frames (param, default
+30), and then goes out without the world pose (counted ``no_ecm_pose``).
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from common.geometry.camera import StereoRig
+from common.geometry.needle import NeedleModel
+from common.runtime.messages import Calibration, EcmPose, Keypoints, PoseEstimate
+from common.runtime.node import Node
+from common.runtime.pairing import SeqCache, StereoPairer
+
+
+class StereoPoseNode(Node):
+    """Base of the stereo keypoint -> pose nodes (see the module docstring).
+
+    Params read here: ``min_score`` (0.5, keypoints scoring lower are not used).
+    """
+
+    INPUTS = {"left": Keypoints, "right": Keypoints, "calib": Calibration, "ecm": EcmPose}
+    KEEP_ALL = ("calib", "ecm")
+
+    @dataclass
+    class Params:
+        min_score: float = 0.5     # keypoints scoring lower are not used
+        max_wait: int = 30         # frames a pose waits for its ECM pose
+
+    def setup(self):
+        self.min_score = self.p.min_score
+        self.max_wait = self.p.max_wait
+        self.waiting: list[tuple[str, PoseEstimate]] = []     # poses waiting for their ECM pose
+        self.newest_seq = -1
+        self.calib: Calibration | None = None
+        self.rig = None
+        self.model_points = None
+        self.ecm_poses = SeqCache()
+        self.pairer = StereoPairer()
+
+    # ---------------------------------------------------------------- inputs
+    def on_calib(self, msg: Calibration):
+        if self.calib is None or msg.cameras != self.calib.cameras or msg.needle != self.calib.needle:
+            self.rig = StereoRig.from_dict(msg.cameras, msg.image_size)
+            self.model_points = NeedleModel.from_dict(msg.needle).keypoints()
+        self.calib = msg
+
+    def on_ecm(self, msg: EcmPose):
+        self.ecm_poses.put(msg.seq, np.asarray(msg.T_world_ecm, dtype=float))
+        self._release()
+
+    def on_left(self, msg: Keypoints):
+        self._push(msg)
+
+    def on_right(self, msg: Keypoints):
+        self._push(msg)
+
+    def _push(self, msg: Keypoints):
+        if msg.camera not in ("left", "right"):
+            self.count("bad_input")
+            return
+        dropped = self.pairer.dropped
+        pair = self.pairer.push(msg.camera, msg.seq, msg)
+        if self.pairer.dropped > dropped:
+            self.count("unpaired", self.pairer.dropped - dropped)
+        self.newest_seq = max(self.newest_seq, msg.seq)
+        self._release()
+        if pair is None:
+            return
+        self.count("pairs")
+        if self.rig is None:
+            self.count("no_pose.no_calibration")
+            return
+        self.on_pair(*pair)
+
+    def on_pair(self, left: Keypoints, right: Keypoints) -> None:
+        raise NotImplementedError
+
+    # ---------------------------------------------------------------- helpers
+    @staticmethod
+    def stereo_arrays(left: Keypoints, right: Keypoints) -> tuple[dict, dict]:
+        """(uv, scores) maps for the solvers; a camera whose detector found nothing is left out."""
+        uv, sc = {}, {}
+        for kp in (left, right):
+            if kp.found:
+                uv[kp.camera] = np.asarray(kp.uv, dtype=float)
+                sc[kp.camera] = np.asarray(kp.scores, dtype=float)
+        return uv, sc
+
+    def no_pose(self, reason: str, seq: int, detail: str = "") -> None:
+        self.count(f"no_pose.{reason}")
+        self.log.debug("seq %d: no pose (%s) %s", seq, reason, detail)
+
+    def publish_pose(self, pose: PoseEstimate, output: str = "pose") -> None:
+        """Publish ``pose`` now, or once its frame's ECM pose is in (module docstring)."""
+        if pose.T_world_ecm is None and self.wired("ecm"):
+            self.waiting.append((output, pose))
+            self._release()
+        else:
+            self.publish(output, pose)
+
+    def _release(self) -> None:
+        keep = []
+        for output, pose in self.waiting:
+            T_world_ecm = self.ecm_poses.get(pose.seq)
+            if T_world_ecm is not None:
+                pose.T_world_ecm = T_world_ecm
+                pose.T_world_needle = T_world_ecm @ pose.T_ecm_needle
+                self.publish(output, pose)
+            elif self.newest_seq - pose.seq >= self.max_wait:
+                self.count("no_ecm_pose")
+                self.publish(output, pose)
+            else:
+                keep.append((output, pose))
+        self.waiting = keep
+
+    def pose_message(self, seq: int, stamp_ns: int, method: str, T_ecm_needle, residual: float,
+                     residual_unit: str, **extra) -> PoseEstimate:
+        """A PoseEstimate, with T_world_ecm/T_world_needle when the frame's ECM pose is known."""
+        T_world_ecm = self.ecm_poses.get(seq)
+        T_world_needle = None if T_world_ecm is None else T_world_ecm @ T_ecm_needle
+        return PoseEstimate(seq, stamp_ns, method, np.asarray(T_ecm_needle, dtype=float),
+                            T_world_needle, T_world_ecm, float(residual), residual_unit, **extra)
+
+
+POSE_METHODS = ("pnp_average", "pnp_joint", "triangulation", "multiview", "refined",
+                "multiview_refined")
+"""The pose methods a graph can produce: the input names of nodes that consume them all."""
+
+
+class PoseMethodInputs:
+    """Mixin for nodes that take every method's pose (evaluator, monitor): an input named after
+    each method in ``POSE_METHODS`` calls ``self.on_pose(method, msg)``."""
+
+    def on_pose(self, method: str, msg: PoseEstimate) -> None:
+        raise NotImplementedError
+
+
+def _pose_handler(method):
+    def handler(self, msg):
+        self.on_pose(method, msg)
+    handler.__name__ = f"on_{method}"
+    return handler
+
+
+for _method in POSE_METHODS:
+    setattr(PoseMethodInputs, f"on_{_method}", _pose_handler(_method))
