@@ -55,11 +55,14 @@ class AltGenerateConfig:
     image_format: str = "jpg"
     jpeg_quality: int = 95
     supersample: int = 3
+    thread: str = "random"      # "none": no suture thread drawn (a threadless twin)
 
     def stable(self) -> dict:
         """What must match for a folder to be resumed or extended."""
         d = dict(self.__dict__)
         d.pop("sequences")
+        if d["thread"] == "random":        # folders made before the option resume as they were
+            d.pop("thread")
         return d
 
 
@@ -280,7 +283,7 @@ def sample_instruments(rng, tissue: Tissue, needle: NeedleModel, T_world_needle,
     return meshes
 
 
-def sample_scene(rng: np.random.Generator, needle: NeedleModel) -> AltScene:
+def sample_scene(rng: np.random.Generator, needle: NeedleModel, thread: bool = True) -> AltScene:
     """A random scene: tissue, needle (its own mesh and finish) at rest, thread, instruments,
     two lights on the scope tip, optics blur and sensor noise."""
     shape = sample_needle_shape(rng)
@@ -299,8 +302,10 @@ def sample_scene(rng: np.random.Generator, needle: NeedleModel) -> AltScene:
     if rng.random() < 0.85:
         r = rng.uniform(0.00012, 0.00022)
         th = _THREAD_RGB[int(rng.integers(len(_THREAD_RGB)))]
-        meshes.append(tube_mesh(sample_thread(rng, tissue, needle, T, r), r, 6, LABELS["thread"],
-                                Material(th, 1.0, 0.12, 12.0)))
+        tube = tube_mesh(sample_thread(rng, tissue, needle, T, r), r, 6, LABELS["thread"],
+                         Material(th, 1.0, 0.12, 12.0))
+        if thread:          # drawn or not, the same draws: a threadless twin of the scene
+            meshes.append(tube)
     meshes += sample_instruments(rng, tissue, needle, T, needle_world.V, held, shape)
     a, b = rng.uniform(0.0015, 0.0035), rng.uniform(0.001, 0.003)
     tint = rng.normal(0, 0.03, 3)
@@ -320,11 +325,11 @@ class AltSequencePlan:
 
 
 def plan_alt_sequence(seed: int, sequence: int, steps: int, rig: StereoRig, needle: NeedleModel,
-                      arm: EcmArm) -> AltSequencePlan:
+                      arm: EcmArm, thread: bool = True) -> AltSequencePlan:
     """Deterministic plan of sequence ``sequence`` of a run seeded ``seed``."""
     rng = np.random.default_rng([seed, sequence, steps, 0xA17])
     for _ in range(50):
-        scene = sample_scene(rng, needle)
+        scene = sample_scene(rng, needle, thread)
         q0 = sample_first_view(rng, arm, rig, needle, scene.T_world_needle)
         if q0 is not None:
             return AltSequencePlan(scene, multiview_joints(rng, arm, rig, needle, scene.T_world_needle, q0, steps))
@@ -342,7 +347,7 @@ def alt_meta(width: int, height: int, source: str):
 def render_alt_sequence(renderer: AltRenderer, cfg: AltGenerateConfig, sequence: int):
     """Yield (images {camera: BGR}, frame fields) per step of sequence ``sequence``."""
     meta = alt_meta(cfg.width, cfg.height, "")
-    plan = plan_alt_sequence(cfg.seed, sequence, cfg.steps, meta.rig, meta.needle, meta.arm)
+    plan = plan_alt_sequence(cfg.seed, sequence, cfg.steps, meta.rig, meta.needle, meta.arm, cfg.thread != "none")
     for step, q in enumerate(plan.joints):
         T_world_ecm = meta.arm.T_world_ecm(q)
         renders = renderer.render(plan.scene, T_world_ecm)

@@ -20,6 +20,8 @@ def _generate_args(p: argparse.ArgumentParser) -> None:
     p.add_argument("--height", type=int, default=1080)
     p.add_argument("--format", default="jpg", choices=["jpg", "png"], help="image files (default jpg)")
     p.add_argument("--quality", type=int, default=95, help="JPEG quality (default 95)")
+    p.add_argument("--thread", default="random", choices=["random", "none"],
+                   help="suture thread: as the scene draws it (default), or none (a threadless twin of the same scenes)")
     p.add_argument("--overwrite", action="store_true", help="start over in a folder made with other settings")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
 
@@ -112,7 +114,7 @@ def _generate(args) -> int:
     import common.sim.render  # noqa: F401  (selects the headless GL backend first)
     from common.sim.generate import GenerateConfig, generate
     cfg = GenerateConfig(args.sequences, args.steps, args.seed, args.randomise, args.width, args.height,
-                         args.format, args.quality, args.msaa, args.step_rad)
+                         args.format, args.quality, args.msaa, args.step_rad, args.thread)
     t0 = time.time()
     n = generate(args.out, cfg, jobs=args.jobs, progress=not args.quiet, overwrite=args.overwrite)
     print(f"{args.out}: {n} frames ({args.sequences} sequences x {args.steps} steps, "
@@ -126,7 +128,7 @@ def _generate_alt(args) -> int:
 
     from common.sim.alt_generate import AltGenerateConfig, generate_alt
     cfg = AltGenerateConfig(args.sequences, args.steps, args.seed, args.width, args.height, args.format,
-                            args.quality, args.supersample)
+                            args.quality, args.supersample, args.thread)
     t0 = time.time()
     n = generate_alt(args.out, cfg, progress=not args.quiet, overwrite=args.overwrite)
     print(f"{args.out}: {n} frames ({args.sequences} sequences x {args.steps} steps, {args.width}x{args.height}, "

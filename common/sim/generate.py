@@ -31,11 +31,14 @@ class GenerateConfig:
     jpeg_quality: int = 95
     msaa: int = 4
     step_rad: float = MULTIVIEW_STEP_RAD   # ECM joint step between a sequence's endoscope poses
+    thread: str = "random"                 # "none": no suture thread drawn (a threadless twin)
 
     def stable(self) -> dict:
         """What must match for a folder to be resumed or extended."""
         d = dict(self.__dict__)
         d.pop("sequences")
+        if d["thread"] == "random":        # folders made before the option resume as they were
+            d.pop("thread")
         return d
 
 
@@ -60,7 +63,7 @@ def render_sequence(renderer, cfg: GenerateConfig, sequence: int) -> list[tuple[
     preset = get_preset(cfg.randomise)
     tex = 1024
     plan = plan_sequence(cfg.seed, sequence, cfg.steps, preset, meta.rig, meta.needle, meta.arm, tex, cfg.msaa,
-                         cfg.step_rad)
+                         cfg.step_rad, thread=cfg.thread != "none")
     renderer.load(plan.spec)
     rng = np.random.default_rng(plan.image_seed)
     out = []

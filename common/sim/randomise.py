@@ -281,8 +281,9 @@ class SequencePlan:
 
 def plan_sequence(seed: int, sequence: int, steps: int, preset: Preset, rig: StereoRig,
                   needle: NeedleModel, arm: EcmArm, texture_size: int = 1024, msaa: int = 4,
-                  step_rad: float = MULTIVIEW_STEP_RAD) -> SequencePlan:
-    """Deterministic plan of sequence ``sequence`` for a run seeded ``seed``."""
+                  step_rad: float = MULTIVIEW_STEP_RAD, thread: bool = True) -> SequencePlan:
+    """Deterministic plan of sequence ``sequence`` for a run seeded ``seed``; ``thread=False``
+    plans the same scene with no thread drawn (the same random draws: a threadless twin)."""
     rng = np.random.default_rng([seed, sequence])
     for _ in range(100):
         ap = sample_appearance(rng, preset)
@@ -292,6 +293,8 @@ def plan_sequence(seed: int, sequence: int, steps: int, preset: Preset, rig: Ste
         if q0 is None:
             continue
         inst = sample_instruments(rng, T, needle, held, preset)
+        if not thread:
+            ap = replace(ap, thread_visible=False)
         spec = SceneSpec(rig=rig, needle=needle, T_world_needle=T, appearance=ap, instruments=inst,
                          thread_seed=int(rng.integers(1 << 30)), texture_size=texture_size, msaa=msaa)
         qs = multiview_joints(rng, arm, rig, needle, T, q0, steps, step_rad)

@@ -275,6 +275,7 @@ class Appearance:
     thread_rgb: tuple = (0.35, 0.15, 0.55)
     thread_diameter_m: float = 0.00035
     thread_length_m: float = 0.06
+    thread_visible: bool = True  # False: no thread drawn (the threadless looks)
     light_diffuse: float = 0.75
     light_rgb: tuple = (1.0, 0.97, 0.92)
     light_offset: tuple = (0.0, 0.004, 0.0)  # position of the scope's light in the ECM frame
@@ -516,7 +517,7 @@ class SceneModel:
         m.mat_specular[mat["needle"]] = ap.needle_specular
         m.mat_shininess[mat["needle"]] = ap.needle_shininess
         m.mat_reflectance[mat["needle"]] = ap.needle_reflectance
-        m.mat_rgba[mat["thread"]] = [*ap.thread_rgb, 1]
+        m.mat_rgba[mat["thread"]] = [*ap.thread_rgb, 1.0 if ap.thread_visible else 0.0]
         m.mat_specular[mat["thread"]] = 0.15
         m.mat_shininess[mat["thread"]] = 0.2
         rgb = np.asarray(ap.light_rgb) * ap.light_diffuse
