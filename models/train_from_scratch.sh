@@ -1,5 +1,5 @@
 #!/usr/bin/env bash
-# From nothing to the shipped keypoint detector (issue 5): render the training data with the
+# From nothing to the shipped keypoint detector: render the training data with the
 # built-in simulator, then train both networks in one run. Prints the wall-clock of each stage.
 #   bash models/train_from_scratch.sh [DATA_DIR=data/train] [OUT=models/keypoint]
 # Resumable: rerun the same command (the generators and the trainer pick up where they stopped).
