@@ -29,6 +29,7 @@ from common.detector.centreline_subpixel import (
     ellipse_residual,
     refine_centreline,
 )
+from common.detector.end_identity import EndEvidence, network_evidence, shape_evidence
 from common.detector.model import (
     FrozenForInference,
     KeypointModel,
@@ -428,6 +429,16 @@ class KeypointDetector:
             res["centreline"], res["centreline_w"] = refine_centreline(img, res["centreline"], w)
             res["centreline_sigma"] = CENTRELINE_SIGMA_PX
 
+    def _end_evidence(self, res, img: np.ndarray) -> EndEvidence:
+        """Which end is the tip, from the wire's taper in the image and the network's heatmaps."""
+        s = self.cfg.out_stride
+        cells = (res["uv_crop"] - (s - 1) / 2.0) / s
+        net = network_evidence(res["heat"][0, :5].numpy(), cells)
+        if res.get("centreline") is None:
+            return EndEvidence(float("nan"), net)
+        shape, r_a, r_e = shape_evidence(img, res["centreline"])
+        return EndEvidence(shape, net, r_a, r_e)
+
     def _not_an_ellipse(self, res) -> str | None:
         """Why the sub-pixel centreline is not the image of a circle (None if it is, or when it
         cannot be judged: no sub-pixel centreline, or fewer than MIN_ELLIPSE_POINTS stations)."""
@@ -502,6 +513,7 @@ class KeypointDetector:
         if not_ellipse:
             self.reset(camera)
             return Keypoints.not_found(camera, seq, stamp_ns, self.name, f"no needle: {not_ellipse}", conf)
+        self.last_evidence = self._end_evidence(res, img)
         self._track[camera] = self._box_of({"uv": res["uv"]})   # as _moved compares it
         cx, cy, bw, bh = self._box_of(res)
         return Keypoints(camera, seq, stamp_ns, True, res["uv"].astype(np.float64),
