@@ -9,14 +9,25 @@ pose (``no_pose.<reason>``), and builds the ``PoseEstimate`` with ``T_world_need
 ``publish_pose`` publishes a pose once its frame's ECM pose is in (with ``ecm`` wired): a pose
 computed before the ECM pose arrived waits for it, at most ``max_wait`` frames (param, default
 30), and then goes out without the world pose (counted ``no_ecm_pose``).
+
+End identity: when the detectors state which end is the tip (``Keypoints.end_identity``), the
+stereo frame's probability (``common.geometry.end_identity``) decides: at most
+``1 - min_end_identity`` the pair is turned end for end before solving (``end_identity.turned``);
+below ``min_end_identity`` (0.95) the pose goes out flagged ``ambiguous`` with a covariance that
+spans the turned answer (``end_identity.unsure``). Without a statement, A is taken as said.
 """
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 
 from common.geometry.camera import StereoRig
+from common.geometry.end_identity import (
+    identity_covariance,
+    stereo_end_identity,
+    turn_observation,
+)
 from common.geometry.needle import NeedleModel
 from common.runtime.messages import Calibration, EcmPose, Keypoints, PoseEstimate
 from common.runtime.node import Node
@@ -36,6 +47,7 @@ class StereoPoseNode(Node):
     class Params:
         min_score: float = 0.5     # keypoints scoring lower are not used
         max_wait: int = 30         # frames a pose waits for its ECM pose
+        min_end_identity: float = 0.95   # a frame whose tip is surer than this is posed as is
 
     def setup(self):
         self.min_score = self.p.min_score
@@ -45,6 +57,8 @@ class StereoPoseNode(Node):
         self.calib: Calibration | None = None
         self.rig = None
         self.model_points = None
+        self.needle = None
+        self.identity = SeqCache()       # seq -> the frame's probability that A is the tip
         self.ecm_poses = SeqCache()
         self.pairer = StereoPairer()
 
@@ -52,7 +66,8 @@ class StereoPoseNode(Node):
     def on_calib(self, msg: Calibration):
         if self.calib is None or msg.cameras != self.calib.cameras or msg.needle != self.calib.needle:
             self.rig = StereoRig.from_dict(msg.cameras, msg.image_size)
-            self.model_points = NeedleModel.from_dict(msg.needle).keypoints()
+            self.needle = NeedleModel.from_dict(msg.needle)
+            self.model_points = self.needle.keypoints()
         self.calib = msg
 
     def on_ecm(self, msg: EcmPose):
@@ -81,7 +96,20 @@ class StereoPoseNode(Node):
         if self.rig is None:
             self.count("no_pose.no_calibration")
             return
-        self.on_pair(*pair)
+        self.on_pair(*self.settle_end_identity(*pair))
+
+    def settle_end_identity(self, left: Keypoints, right: Keypoints) -> tuple[Keypoints, Keypoints]:
+        """The pair as the solvers take it: turned end for end when the detectors' evidence says
+        their A is the tail (``end_identity`` below ``1 - min_end_identity``); the frame's
+        probability is kept for ``publish_pose``, which flags an undecided frame."""
+        p = stereo_end_identity(*(kp.end_identity if kp.found else None for kp in (left, right)))
+        if p is None:
+            return left, right
+        if p <= 1.0 - self.p.min_end_identity:
+            self.count("end_identity.turned")
+            left, right, p = turn_keypoints(left), turn_keypoints(right), 1.0 - p
+        self.identity.put(left.seq, p)
+        return left, right
 
     def on_pair(self, left: Keypoints, right: Keypoints) -> None:
         raise NotImplementedError
@@ -102,7 +130,15 @@ class StereoPoseNode(Node):
         self.log.debug("seq %d: no pose (%s) %s", seq, reason, detail)
 
     def publish_pose(self, pose: PoseEstimate, output: str = "pose") -> None:
-        """Publish ``pose`` now, or once its frame's ECM pose is in (module docstring)."""
+        """Publish ``pose`` now, or once its frame's ECM pose is in (module docstring). A frame
+        whose tip the images could not tell from its tail goes out flagged ``ambiguous``, its
+        covariance widened to span the end-for-end turn."""
+        p = self.identity.get(pose.seq)
+        if p is not None and p < self.p.min_end_identity:
+            self.count("end_identity.unsure")
+            pose.ambiguous = True
+            if pose.covariance is not None:
+                pose.covariance = identity_covariance(pose.T_ecm_needle, pose.covariance, self.needle, p)
         if pose.T_world_ecm is None and self.wired("ecm"):
             self.waiting.append((output, pose))
             self._release()
@@ -131,6 +167,16 @@ class StereoPoseNode(Node):
         T_world_needle = None if T_world_ecm is None else T_world_ecm @ T_ecm_needle
         return PoseEstimate(seq, stamp_ns, method, np.asarray(T_ecm_needle, dtype=float),
                             T_world_needle, T_world_ecm, float(residual), residual_unit, **extra)
+
+
+def turn_keypoints(kp: Keypoints) -> Keypoints:
+    """A detection read end for end (its E..A as A..E), its end identity turned with it."""
+    if not kp.found:
+        return kp
+    uv, sc, cl, cw = turn_observation(kp.uv, kp.scores, kp.centreline, kp.centreline_w)
+    return replace(kp, uv=uv, scores=sc, centreline=cl, centreline_w=cw,
+                   on_arc=None if kp.on_arc is None else np.asarray(kp.on_arc)[::-1].copy(),
+                   end_identity=None if kp.end_identity is None else 1.0 - kp.end_identity)
 
 
 POSE_METHODS = ("pnp_average", "pnp_joint", "triangulation", "multiview", "refined",

@@ -396,7 +396,9 @@ class Keypoints(Message):
     the keypoints the detector placed on its fitted arc instead of observing them on their own.
     ``keypoint_sigma_px`` optionally states the 1-sigma error of a keypoint per image axis as a
     stereo fit should take it (px; errors the two cameras' detections share included; absent:
-    the consumer's default).
+    the consumer's default). ``end_identity`` optionally states the probability that A is the
+    needle's tip as said (0.5: the image cannot tell the tip from the tail; absent: A is taken as
+    said).
     """
 
     SCHEMA = "needletrack.Keypoints"
@@ -409,7 +411,8 @@ class Keypoints(Message):
               "centreline_sigma_px": ("float", "optional"),
               "on_arc": ("array", (5,), "optional"),
               "centreline_corr_points": ("float", "optional"),
-              "keypoint_sigma_px": ("float", "optional")}
+              "keypoint_sigma_px": ("float", "optional"),
+              "end_identity": ("float", "optional")}
     camera: str
     seq: int
     stamp_ns: int
@@ -426,6 +429,7 @@ class Keypoints(Message):
     on_arc: Optional[np.ndarray] = None
     centreline_corr_points: Optional[float] = None
     keypoint_sigma_px: Optional[float] = None
+    end_identity: Optional[float] = None
 
     def validate(self):
         s = self.centreline_sigma_px
@@ -437,6 +441,9 @@ class Keypoints(Message):
         k = self.keypoint_sigma_px
         if k is not None and not (np.isfinite(k) and k > 0):
             raise MessageError(f"Keypoints.keypoint_sigma_px: must be positive, got {k}")
+        e = self.end_identity
+        if e is not None and not (0.0 <= e <= 1.0):
+            raise MessageError(f"Keypoints.end_identity: must be a probability in [0, 1], got {e}")
 
     @classmethod
     def not_found(cls, camera: str, seq: int, stamp_ns: int, detector: str, reason: str,

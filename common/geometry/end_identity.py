@@ -1,0 +1,62 @@
+"""Which end of the needle is the tip: combining the cameras' evidence, turning observations end
+for end, and a covariance that spans both answers when the images cannot decide.
+
+A detector states per image ``p``, the probability that its keypoint A is the tip (A..E as
+said) rather than the tail (then its A..E are E..A). Keypoints A..E are equally spaced on the arc,
+so turning an observation end for end reverses them (and the centreline); the pose that fits the
+turned observation is ``refine.tip_for_tail`` of the other: a half turn about the arc's axis of
+symmetry, the same origin. Probabilities are in [0, 1]; covariances are 6x6 over
+[rotation vector (rad), translation (m)] in the ECM frame, as the pose solvers give them.
+"""
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from common.geometry.needle import NeedleModel
+
+CAMERA_CORRELATION = 0.5
+"""How much of a second camera's evidence is new: the two views see the same needle, so their
+errors share a cause (the same thread hidden, the same light); their log-odds are averaged and
+scaled up by 1 + this, not summed."""
+
+
+def logit(p: float) -> float:
+    p = min(max(float(p), 1e-9), 1.0 - 1e-9)
+    return math.log(p / (1.0 - p))
+
+
+def stereo_end_identity(p_left: float | None, p_right: float | None) -> float | None:
+    """The stereo frame's probability that A is the tip, from each camera's (None: not stated)."""
+    ps = [p for p in (p_left, p_right) if p is not None and math.isfinite(p)]
+    if not ps:
+        return None
+    scale = 1.0 + CAMERA_CORRELATION * (len(ps) - 1)
+    z = scale * sum(logit(p) for p in ps) / len(ps)
+    return 1.0 / (1.0 + math.exp(-max(min(z, 40.0), -40.0)))
+
+
+def turn_observation(uv: np.ndarray, scores: np.ndarray, centreline: np.ndarray | None = None,
+                     centreline_w: np.ndarray | None = None):
+    """The observation read end for end: keypoints E..A as A..E, the centreline reversed."""
+    return (np.asarray(uv)[::-1].copy(), np.asarray(scores)[::-1].copy(),
+            None if centreline is None else np.asarray(centreline)[::-1].copy(),
+            None if centreline_w is None else np.asarray(centreline_w)[::-1].copy())
+
+
+def end_for_end_delta(T_ecm_needle: np.ndarray, needle: NeedleModel) -> np.ndarray:
+    """[rotation vector, translation] (6,) from a pose to its end-for-end turn (ECM frame): a
+    half turn about the arc's axis of symmetry, which passes through the origin."""
+    m = 0.5 * sum(needle.arc_span_rad)
+    u = T_ecm_needle[:3, :3] @ np.array([math.cos(m), math.sin(m), 0.0])
+    return np.concatenate([math.pi * u, np.zeros(3)])
+
+
+def identity_covariance(T_ecm_needle: np.ndarray, covariance: np.ndarray, needle: NeedleModel,
+                        p: float) -> np.ndarray:
+    """The error's second moment about this pose when it is right with probability ``p`` and
+    turned end for end otherwise: ``C + (1 - p) d d^T`` with ``d`` the turn (so a consumer's
+    NEES stays honest whichever answer is true)."""
+    d = end_for_end_delta(T_ecm_needle, needle)
+    return np.asarray(covariance, float) + (1.0 - p) * np.outer(d, d)

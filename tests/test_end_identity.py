@@ -1,0 +1,114 @@
+"""Which end is the tip (common/geometry/end_identity.py) and how the pose nodes use a detector's
+statement of it (nodes/_pose.py): turned when sure of the other end, flagged when unsure."""
+import dataclasses
+
+import numpy as np
+import pytest
+
+from common.geometry.camera import StereoRig
+from common.geometry.end_identity import (
+    end_for_end_delta,
+    identity_covariance,
+    stereo_end_identity,
+    turn_observation,
+)
+from common.geometry.needle import NeedleModel
+from common.geometry.oracle import random_needle_pose, true_keypoints
+from common.geometry.refine import tip_for_tail
+from common.geometry.transforms import R_to_rotvec, pose_error
+from common.runtime.messages import Calibration, Keypoints
+from nodes.epnp import EpnpNode
+
+RIG = StereoRig.default()
+MODEL = NeedleModel()
+CALIB = Calibration(0, np.array([1920, 1080]), RIG.to_dict(), MODEL.to_dict())
+
+
+def test_two_cameras_agreeing_are_surer_than_one_but_not_twice_as_sure():
+    assert stereo_end_identity(None, None) is None
+    assert stereo_end_identity(0.9, None) == pytest.approx(0.9)
+    both = stereo_end_identity(0.9, 0.9)
+    one_sure = 1 / (1 + (0.1 / 0.9) ** 2)        # as if the cameras were independent
+    assert 0.9 < both < one_sure
+    assert stereo_end_identity(0.9, 0.1) == pytest.approx(0.5)
+    assert stereo_end_identity(0.2, 0.3) < 0.5
+
+
+def test_a_turned_observation_is_the_observation_of_the_turned_pose():
+    T = random_needle_pose(np.random.default_rng(3), RIG, MODEL)
+    for cam in RIG.cameras:
+        uv, _ = true_keypoints(cam, T, MODEL)
+        uv_turned, _ = true_keypoints(cam, tip_for_tail(T, MODEL), MODEL)
+        t_uv, t_sc, _, _ = turn_observation(uv, np.arange(5.0))
+        assert np.allclose(t_uv, uv_turned, atol=1e-9) and list(t_sc) == [4, 3, 2, 1, 0]
+
+
+def test_the_turn_delta_and_the_covariance_that_spans_it():
+    T = random_needle_pose(np.random.default_rng(4), RIG, MODEL)
+    d = end_for_end_delta(T, MODEL)
+    T2 = tip_for_tail(T, MODEL)
+    dt, dr = pose_error(T2, T)
+    assert dt < 1e-12 and dr == pytest.approx(np.pi)
+    # the rotation vector between them is the stated delta (up to the sign of a half turn)
+    w = R_to_rotvec(T2[:3, :3] @ T[:3, :3].T)
+    assert min(np.linalg.norm(w - d[:3]), np.linalg.norm(w + d[:3])) < 1e-6
+    C = np.diag([1e-4] * 3 + [1e-8] * 3)
+    for p in (0.5, 0.8, 0.95):
+        Cw = identity_covariance(T, C, MODEL, p)
+        # the turned truth's error is d: its NEES is 1 / (1 - p) at most, never thousands
+        assert d @ np.linalg.solve(Cw, d) <= 1.0 / (1.0 - p) + 1e-6
+        assert np.allclose(Cw, Cw.T) and np.linalg.eigvalsh(Cw).min() > 0
+    assert np.allclose(identity_covariance(T, C, MODEL, 1.0), C)
+
+
+def _pair(T, p, turned=False):
+    """The stereo keypoints of pose T as a detector reports them: read end for end when
+    ``turned``, with ``end_identity`` p on both cameras."""
+    out = []
+    for cam in RIG.cameras:
+        uv, vis = true_keypoints(cam, T, MODEL)
+        sc = np.ones(5)
+        if turned:
+            uv, sc, _, _ = turn_observation(uv, sc)
+        out.append(Keypoints(cam.name, 7, 7000, True, uv, sc, 0.99, end_identity=p))
+    return out
+
+
+def _pose(params, pair):
+    node = EpnpNode.offline({"method": "joint", **params}, wired=["left", "right", "calib"])
+    node.on_calib(CALIB)
+    for kp in pair:
+        getattr(node, f"on_{kp.camera}")(kp)
+    (_, pose), = node.published
+    return node, pose
+
+
+def test_a_pair_the_detector_says_is_turned_is_posed_the_right_way_round():
+    T = random_needle_pose(np.random.default_rng(5), RIG, MODEL)
+    node, pose = _pose({}, _pair(T, 0.01, turned=True))
+    dt, dr = pose_error(pose.T_ecm_needle, T)
+    assert dt < 1e-6 and dr < 1e-6 and not pose.ambiguous
+    assert node.counters["end_identity.turned"] == 1
+
+
+def test_an_undecided_pair_is_published_flagged_with_a_covariance_that_spans_both_answers():
+    T = random_needle_pose(np.random.default_rng(6), RIG, MODEL)
+    node, sure = _pose({}, _pair(T, 0.99, turned=True))
+    dt, dr = pose_error(sure.T_ecm_needle, T)
+    assert dr == pytest.approx(np.pi, abs=1e-6) and not sure.ambiguous   # a confident detector is believed
+    node, unsure = _pose({}, _pair(T, 0.7, turned=True))
+    assert unsure.ambiguous and node.counters["end_identity.unsure"] == 1
+    assert np.allclose(unsure.T_ecm_needle, sure.T_ecm_needle, atol=1e-9)
+    # the turned truth (the right answer here) is within the stated covariance
+    d = end_for_end_delta(unsure.T_ecm_needle, MODEL)
+    p = stereo_end_identity(0.7, 0.7)
+    assert 0.7 < p < 0.95
+    assert d @ np.linalg.solve(unsure.covariance, d) < 1.0 / (1.0 - p) + 1e-6
+    assert d @ np.linalg.solve(sure.covariance, d) > 1e4        # a confident pose excludes the turn
+
+
+def test_without_a_statement_a_is_taken_as_said():
+    T = random_needle_pose(np.random.default_rng(7), RIG, MODEL)
+    pair = [dataclasses.replace(kp, end_identity=None) for kp in _pair(T, 0.5)]
+    node, pose = _pose({}, pair)
+    assert not pose.ambiguous and "end_identity.unsure" not in node.counters
