@@ -31,6 +31,7 @@ BENCHES = {
     "detector": ("common.evaluation.detector_bench:main", "keypoint detector speed and accuracy"),
     "graph": ("common.evaluation.graph_bench:main", "the full graph end to end"),
     "refine": ("common.evaluation.refine_bench:main", "dense pose refinement speed and accuracy (synthetic)"),
+    "end-identity": ("common.evaluation.end_identity_bench:main", "tip vs tail: the detector's end identity on dataset folders"),
     "geometry": ("common.evaluation.geometry_bench:main", "pose methods (PnP, triangulation, fusion) vs keypoint noise, on the oracle"),
 }
 

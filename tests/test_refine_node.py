@@ -224,3 +224,30 @@ def test_refine_node_in_a_launched_graph_matches_the_library(run_graph):
     assert checked >= 1
     st = g.stats("refine")
     assert st.counters.get("handler_errors", 0) == 0 and st.counters.get("decode_errors", 0) == 0
+
+
+def test_end_identity_belongs_to_the_tracked_needle_not_to_a_frame():
+    """A detector unsure of the tip (0.8 per image) in every frame: the first pose is flagged,
+    the next ones are not (the frames agree); a frame it reads the other way round, as unsure,
+    is turned back to the track's reading."""
+    import dataclasses
+
+    from nodes._pose import turn_keypoints
+    from tests.test_refine_tracking import FRAME_NS, video
+    node = RefineNode.offline({}, wired=["left", "right", "calib"])
+    node.on_calib(CALIB)
+    frames = video(8)
+    for seq, (T, uv, sc, obs) in enumerate(frames):
+        for cam in ("right", "left"):
+            o = obs[cam]
+            kp = Keypoints(cam, seq, seq * FRAME_NS, True, o.uv, o.scores, 1.0,
+                           centreline=o.centreline, centreline_w=o.centreline_w, end_identity=0.8)
+            if seq == 5:
+                kp = dataclasses.replace(turn_keypoints(kp), end_identity=0.8)
+            getattr(node, f"on_{cam}")(kp)
+    out = poses(node)
+    assert len(out) == 8
+    for (T, *_), pose in zip(frames, out):
+        assert pose_error(pose.T_ecm_needle, T)[1] < np.radians(5.0)
+    assert out[0].ambiguous and not any(p.ambiguous for p in out[1:])
+    assert node.counters["end_identity.turned"] == 1

@@ -16,6 +16,7 @@ file raises ``ModelFileError`` saying how to retrain.
 """
 from __future__ import annotations
 
+import json
 import logging
 from pathlib import Path
 
@@ -67,6 +68,21 @@ MIN_ELLIPSE_POINTS = 8       # fewer (a needle mostly hidden) are not judged
 # its residuals alone, 4.7 with this (chi-square(6): 5.35); the dense fit's assumed 1 px as well.
 KEYPOINT_SIGMA_PX = 1.0
 log = logging.getLogger("needletrack.keypoint_detector")
+
+
+def load_end_coefficients(weights) -> np.ndarray | None:
+    """The end-identity coefficients fitted for these weights (``end_identity.json`` beside
+    them; ``needletrack bench end-identity --fit``), or None: then no end identity is stated."""
+    path = Path(weights or DEFAULT_WEIGHTS).with_name("end_identity.json")
+    if not path.is_file():
+        return None
+    try:
+        coef = np.asarray(json.loads(path.read_text())["coef"], float)
+    except (OSError, ValueError, KeyError, TypeError) as exc:
+        raise ModelFileError(f"{path}: not an end-identity coefficient file ({exc})") from None
+    if coef.shape != (3,) or not np.isfinite(coef).all():
+        raise ModelFileError(f"{path}: coef must be 3 finite numbers, got {coef.tolist()}")
+    return coef
 
 
 class ModelFileError(RuntimeError):
@@ -346,6 +362,8 @@ class KeypointDetector:
         self.max_ellipse_px = float(max_ellipse_px)
         self._track: dict[str, tuple] = {}
         self.last_mode = ""
+        self.end_coef = load_end_coefficients(self.weights)
+        self.last_evidence: EndEvidence | None = None
 
     def reset(self, camera: str | None = None) -> None:
         """Forget the tracking box (of one camera, or all)."""
@@ -521,7 +539,8 @@ class KeypointDetector:
                          np.array([cx - bw / 2, cy - bh / 2, cx + bw / 2, cy + bh / 2]), self.name, None,
                          res["centreline"], res["centreline_w"], res["centreline_sigma"], res.get("on_arc"),
                          None if res["centreline_sigma"] is None else CENTRELINE_CORR_POINTS,
-                         KEYPOINT_SIGMA_PX)
+                         KEYPOINT_SIGMA_PX,
+                         None if self.end_coef is None else self.last_evidence.p_a_is_tip(self.end_coef))
 
     def detect_message(self, msg: CameraImage) -> Keypoints:
         """Keypoints of a ``CameraImage``; corrupt or inconsistent image data -> "no needle"."""

@@ -138,6 +138,18 @@ class TrackingRefiner:
         self._prev, self._prev_stamp_ns = res, stamp_ns
         return res
 
+    def track(self, stamp_ns: int) -> Optional[np.ndarray]:
+        """The previous frame's pose when a frame taken at ``stamp_ns`` may follow it (within
+        ``max_gap_s``, tracking on), else None."""
+        cfg = self.config
+        if cfg.enabled and self._prev is not None and 0 <= stamp_ns - self._prev_stamp_ns <= cfg.max_gap_s * 1e9:
+            return self._prev.T_ecm_needle
+        return None
+
+    def reprojects(self, uv, scores, T_ecm_needle) -> bool:
+        """Whether ``T_ecm_needle`` reprojects the usable keypoints within ``max_start_px``."""
+        return self._reprojects(uv, scores, T_ecm_needle)
+
     def _cold(self, uv, scores, observations, support_normal) -> RefineResult:
         """A frame refined from the PnP's minima, or from unsure keypoints (module docstring)."""
         rig, cfg = self.refiner.rig, self.config

@@ -1,0 +1,107 @@
+"""``needletrack bench end-identity``: how well the learned detector tells the tip from the tail.
+
+Runs the detector (cold, each image on its own) over dataset folders with ground truth and
+labels each detection: its A at the true tip (A..E as said) or at the true tail (turned). Per
+folder it prints the network's own swap rate, how often each piece of evidence
+(``common.detector.end_identity``) points the right way, and what the stated probability does:
+sure and right, sure and wrong (the failure that matters), and unsure (the pose nodes flag it).
+``--fit FILE`` fits the evidence's coefficients on the given folders and writes them as JSON
+(the detector reads ``end_identity.json`` beside its weights); fit on folders that are not the
+ones you report.
+"""
+from __future__ import annotations
+
+import argparse
+import json
+from pathlib import Path
+
+import cv2
+import numpy as np
+from tqdm import tqdm
+
+SURE = 0.95
+
+
+def collect(folder: str, detector, step: int = 1) -> dict:
+    """Features (N, 3), labels (N,) (1: A at the true tip) and the images seen, for one folder."""
+    from common.data.dataset import Dataset
+    ds = Dataset(folder)
+    feats, labels, seen = [], [], 0
+    frames = ds.frames[::step]
+    for fr in tqdm(frames, desc=Path(folder).name, unit="frame", leave=False):
+        if fr.keypoints is None:
+            continue
+        for cam in ("left", "right"):
+            img = cv2.imread(str(Path(ds.path) / getattr(fr, cam)))
+            if img is None:
+                continue
+            seen += 1
+            detector.reset()
+            kp = detector.detect(img, cam)
+            true = np.asarray(fr.keypoints[cam], float)
+            if not kp.found or not np.isfinite(true[[0, 4]]).all():
+                continue
+            as_said = np.linalg.norm(kp.uv[0] - true[0]) + np.linalg.norm(kp.uv[4] - true[4])
+            turned = np.linalg.norm(kp.uv[0] - true[4]) + np.linalg.norm(kp.uv[4] - true[0])
+            feats.append(detector.last_evidence.features())
+            labels.append(float(as_said < turned))
+    return {"features": np.array(feats).reshape(-1, 3), "labels": np.array(labels), "images": seen}
+
+
+def summary(name: str, data: dict, coef: np.ndarray) -> dict:
+    """The figures of one folder under coefficients ``coef``."""
+    X, y = data["features"], data["labels"]
+    n = len(y)
+    if n == 0:
+        return {"set": name, "found": 0}
+    p = 1.0 / (1.0 + np.exp(-X @ coef))
+    right = np.where(p >= 0.5, y == 1, y == 0)        # the stated side is the true one
+    sure = (p >= SURE) | (p <= 1 - SURE)
+    return {"set": name, "images": data["images"], "found": n,
+            "network_swaps": float(np.mean(y == 0)),
+            "shape_right": float(np.mean((X[:, 0] > 0) == (y == 1))),
+            "network_right": float(np.mean((X[:, 1] > 0) == (y == 1))),
+            "sure_right": float(np.mean(sure & right)), "sure_wrong": float(np.mean(sure & ~right)),
+            "unsure": float(np.mean(~sure))}
+
+
+def main(argv=None) -> int:
+    from common.detector.end_identity import COEF, fit_coefficients
+    from common.detector.inference import (
+        DEFAULT_WEIGHTS,
+        KeypointDetector,
+        load_end_coefficients,
+    )
+    ap = argparse.ArgumentParser(prog="needletrack bench end-identity", description=__doc__,
+                                 formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--data", action="append", required=True, help="dataset folder with ground truth (repeatable)")
+    ap.add_argument("--weights", default=str(DEFAULT_WEIGHTS))
+    ap.add_argument("--step", type=int, default=1, help="every step-th frame (default 1)")
+    ap.add_argument("--fit", metavar="FILE", help="fit the coefficients on these folders and write them here")
+    ap.add_argument("--json", help="write the figures here")
+    args = ap.parse_args(argv)
+    det = KeypointDetector(args.weights, device="cpu", tracking=False, threads=1)
+    data = {d: collect(d, det, args.step) for d in args.data}
+    coef = load_end_coefficients(args.weights)
+    coef = COEF if coef is None else coef
+    if args.fit:
+        X = np.vstack([d["features"] for d in data.values()])
+        y = np.concatenate([d["labels"] for d in data.values()])
+        coef = fit_coefficients(X, y)
+        Path(args.fit).write_text(json.dumps({
+            "features": ["shape_llr", "net_llr", "bias"], "coef": [float(c) for c in coef],
+            "fitted_on": [str(Path(d)) for d in args.data], "images": int(len(y))}, indent=1) + "\n")
+        print(f"wrote {args.fit}: coef {np.round(coef, 3).tolist()} from {len(y)} detections")
+    rows = [summary(name, d, coef) for name, d in data.items()]
+    print(f"{'set':<28} {'found':>6} {'net swaps':>9} {'shape ok':>8} {'net ok':>7} "
+          f"{'sure ok':>8} {'SURE WRONG':>10} {'unsure':>7}")
+    for r in rows:
+        if not r["found"]:
+            print(f"{Path(r['set']).name:<28} {0:>6}")
+            continue
+        print(f"{Path(r['set']).name:<28} {r['found']:>6} {r['network_swaps']:>9.1%} {r['shape_right']:>8.1%} "
+              f"{r['network_right']:>7.1%} {r['sure_right']:>8.1%} {r['sure_wrong']:>10.1%} {r['unsure']:>7.1%}")
+    print(f"(per image, cold; sure = stated probability beyond {SURE:g}; coefficients {np.round(coef, 3).tolist()})")
+    if args.json:
+        Path(args.json).write_text(json.dumps(rows, indent=1) + "\n")
+    return 0
