@@ -94,15 +94,17 @@ def print_summary(res: dict, out=sys.stdout) -> None:
     print(f"needle found in {f(None if dr is None else 100 * dr, 1)}% of the images; keypoints "
           f"2D {f(k2['mean'])} +- {f(k2['std'])} px (paper 5.58), 3D {f(k3['mean'])} +- {f(k3['std'])} mm",
           file=out)
-    print(f"{'method':<18} {'n':>9} {'pos mean':>9} {'median':>7} {'rot mean':>9} {'median':>7}   paper",
-          file=out)
+    print(f"{'method':<18} {'n':>9} {'pos mean':>9} {'median':>7} {'rot mean':>9} {'median':>7} "
+          f"{'turned':>7} {'sure':>5}   paper", file=out)
     paper = res.get("paper", {}).get("pose", {})
     for m, d in res["pose"].items():
         p, o = d["position_mm"], d["orientation_deg"]
         pp = paper.get(m)
         ps = f"{pp['position_mm']:.2f} mm / {pp['orientation_deg']:.2f} deg" if pp else "-"
+        sw = d.get("end_for_end") or {}
+        turned = " ".join(f"{100 * sw[k]:>4.0f}%" if k in sw else "    -" for k in ("share", "confident_share"))
         print(f"{m:<18} {d['n']:>4}/{d.get('expected', d['n']):<4} {f(p['mean']):>6} mm {f(p['median']):>7} "
-              f"{f(o['mean']):>5} deg {f(o['median']):>7}   {ps}", file=out)
+              f"{f(o['mean']):>5} deg {f(o['median']):>7}  {turned}   {ps}", file=out)
     t = res["timing"]
     for node, c in res.get("node_counters", {}).items():
         errs = {k: v for k, v in c.items() if v and k in ("handler_errors", "decode_errors")}

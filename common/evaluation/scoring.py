@@ -269,6 +269,8 @@ def pose_error_table(poses: dict, T_true: dict, seqs) -> dict:
 
 
 NEES_99PCT = 16.81   # chi-square(6) exceeds this in 1% of the draws (its median: 5.35)
+SWAP_DEG = 150.0
+"""A pose this far off in orientation is the needle turned end for end (tip for tail)."""
 
 
 def pose_nees(T_est: np.ndarray, covariance, T_true: np.ndarray) -> float:
@@ -411,6 +413,12 @@ def pose_table(ev: Evaluation) -> dict:
         amb = t["ambiguous"][np.isfinite(t["ambiguous"])]
         if len(amb):
             out[m]["ambiguous_share"] = float(amb.mean())
+        if n:
+            # turned end for end: about a half turn off; "confident" ones were not flagged ambiguous
+            turned = ok & (np.degrees(np.nan_to_num(t["orientation_rad"])) > SWAP_DEG)
+            flagged = np.isfinite(t["ambiguous"]) & (np.nan_to_num(t["ambiguous"]) > 0)
+            out[m]["end_for_end"] = {"share": float(turned.sum() / n),
+                                     "confident_share": float((turned & ~flagged).sum() / n)}
     return out
 
 
