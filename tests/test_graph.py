@@ -164,3 +164,35 @@ def test_validate_command(tmp_path):
     res = cli("validate", bad)
     assert res.returncode == 2
     assert "nodes[1].inputs.in: node 'a' has no output 'nope' (outputs: out)" in res.stderr
+
+
+def test_validate_and_launch_check_every_nodes_typed_params(tmp_path):
+    """A misspelt param or a value of the wrong type is reported with its place (exit 2) by
+    validate and by launch, before any node starts (no node crash-loops on a bad param)."""
+    bad = tmp_path / "params.yaml"
+    bad.write_text("graph: typed\nnodes:\n"
+                   "  - {id: a, module: counter, params: {rate_hz: 5, cont: 3}}\n"
+                   "  - {id: b, module: relay, params: {work_ms: fast}, inputs: {in: a/out}}\n"
+                   "  - {id: d, module: detector, params: {backend: learned, threads: five}}\n")
+    for command in ("validate", "launch"):
+        res = cli(command, bad, timeout=60)
+        assert res.returncode == 2, (command, res.stdout, res.stderr)
+        for text in ("nodes[0].params.cont: unknown param (did you mean 'count'?)",
+                     "nodes[1].params.work_ms: expected number, got 'fast'",
+                     "nodes[2].params.threads: expected int, got 'five'"):
+            assert text in res.stderr, (command, res.stderr)
+    assert "up (pid" not in res.stdout + res.stderr          # launch started no node
+
+
+def test_a_node_that_cannot_run_as_configured_stops_the_graph_and_launch_fails(tmp_path):
+    """Params of the right types that still cannot work (a dataset folder that is not there):
+    the node exits 2, is not restarted, and launch says so and exits non-zero."""
+    g = tmp_path / "g.yaml"
+    g.write_text("graph: exit2\nnodes:\n"
+                 f"  - {{id: camera, module: replay, restart: always, params: {{path: {tmp_path / 'missing'}}}}}\n"
+                 "  - {id: count, module: counter, params: {rate_hz: 5}}\n")
+    res = cli("launch", g, timeout=120)
+    assert res.returncode != 0, res.stdout + res.stderr
+    out = res.stdout + res.stderr
+    assert "status 2 = bad configuration" in out and "camera cannot run as configured: stopping the graph" in out
+    assert "restart #" not in out
