@@ -1,0 +1,79 @@
+"""The learned detector's end-identity evidence (common/detector/end_identity.py) on drawn
+images: a tapered end against a blunt one, heatmaps, the coefficient fit and file."""
+import json
+
+import cv2
+import numpy as np
+import pytest
+
+from common.detector.end_identity import (
+    EndEvidence,
+    fit_coefficients,
+    network_evidence,
+    shape_evidence,
+)
+from common.detector.inference import ModelFileError, load_end_coefficients
+
+
+def drawn_needle(taper_px=12.0, wire_px=5.0, radius_px=90.0, size=320):
+    """A grey image with a white arc: tapered to a point at its start (the tip, A), blunt at
+    its end (the tail, E); returns the image (drawn 4x larger, then downscaled) and its
+    centreline A -> E (px)."""
+    s = 4
+    big = np.full((size * s, size * s, 3), (80, 90, 170), np.uint8)
+    ang = np.radians(np.linspace(200, 340, 400))
+    c = np.array([size / 2, size / 2 + radius_px * 0.6])
+    pts = c + radius_px * np.stack([np.cos(ang), np.sin(ang)], axis=1)
+    arc = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(pts, axis=0), axis=1))])
+    for p, a in zip(pts, arc):
+        r = 0.5 * wire_px * min(1.0, a / taper_px) ** 0.75
+        if r > 0.05:
+            cv2.circle(big, tuple(np.round(p * s).astype(int)), max(1, int(round(r * s))), (235, 235, 235), -1)
+    img = cv2.resize(big, (size, size), interpolation=cv2.INTER_AREA)
+    return cv2.GaussianBlur(img, (0, 0), 0.7), pts
+
+
+def test_the_tapered_end_is_told_from_the_blunt_one():
+    img, line = drawn_needle()
+    llr, rise_a, rise_e = shape_evidence(img, line)
+    assert llr > 0.5 and rise_a > rise_e           # A, the tapered end, rises slowly
+    llr_turned, ra, re = shape_evidence(img, line[::-1])
+    assert llr_turned == pytest.approx(-llr, abs=0.3) and ra == pytest.approx(rise_e, abs=0.6)
+
+
+def test_no_shape_evidence_from_too_little_curve_or_no_wire():
+    img, line = drawn_needle()
+    assert np.isnan(shape_evidence(img, line[:5])[0])
+    assert np.isnan(shape_evidence(np.full_like(img, 100), line)[0])
+
+
+def test_network_evidence_reads_which_end_each_heatmap_chose():
+    m = 32
+    logits = np.full((5, m, m), -10.0)
+    A, E = np.array([5.0, 6.0]), np.array([25.0, 20.0])
+    logits[0, 6, 5] = logits[4, 20, 25] = 10.0            # A's map at A, E's map at E
+    cells = np.array([A, [10, 10], [15, 15], [20, 18], E])
+    assert network_evidence(logits, cells) > 10
+    logits[0, 20, 25] = logits[4, 6, 5] = 10.0            # both maps split between the ends
+    assert network_evidence(logits, cells) == pytest.approx(0.0, abs=0.01)
+    logits[0, 6, 5] = -10.0                               # A's map now at E only: turned
+    assert network_evidence(logits, cells) < -10
+
+
+def test_the_evidence_becomes_a_probability_and_the_fit_recovers_known_weights():
+    assert EndEvidence(float("nan"), float("nan")).p_a_is_tip(np.array([1.0, 1.0, 0.0])) == 0.5
+    rng = np.random.default_rng(0)
+    X = np.column_stack([rng.normal(0, 2, 4000), rng.normal(0, 2, 4000), np.ones(4000)])
+    w_true = np.array([1.5, -0.5, 0.3])
+    y = (rng.random(4000) < 1 / (1 + np.exp(-X @ w_true))).astype(float)
+    assert np.allclose(fit_coefficients(X, y), w_true, atol=0.15)
+
+
+def test_the_coefficient_file_beside_the_weights(tmp_path):
+    weights = tmp_path / "model.pt"
+    assert load_end_coefficients(weights) is None              # no file: nothing is stated
+    (tmp_path / "end_identity.json").write_text(json.dumps({"coef": [1.0, 0.5, -0.1]}))
+    assert np.allclose(load_end_coefficients(weights), [1.0, 0.5, -0.1])
+    (tmp_path / "end_identity.json").write_text(json.dumps({"coef": [1.0, "x"]}))
+    with pytest.raises(ModelFileError, match="end_identity.json"):
+        load_end_coefficients(weights)
