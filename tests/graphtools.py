@@ -157,7 +157,7 @@ class RunningGraph:
         self.graph: Graph = load_graph(path)
         self.name = self.graph.name
         import zenoh
-        self.session = zenoh.open(zenoh_config(self.graph.zenoh, role="node"))
+        self.session = zenoh.open(zenoh_config(self.graph, role="node"))
         self._subs: list = []
         self._seen_pids: set = set()
         self._stats_lock = threading.Lock()
