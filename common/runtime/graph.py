@@ -620,8 +620,9 @@ def access_control(graph: "Graph") -> dict:
     - the launcher identity (launchers, CLI tools) may do everything: it alone sends commands
       (``<graph>/<node>/cmd``), swaps (``@launcher/swap``) and handovers (``@ctl``);
     - node ``n`` may publish only its own outputs (``<graph>/n/<output>``) and stats, declare its
-      own liveliness token and ``@ctl/n`` queryables (and reply on them), and subscribe to and
-      query the graph;
+      own liveliness token and ``@ctl/n`` queryables (and reply on them), subscribe to the
+      graph's keys, stats and liveliness, and ask the launcher's status; nothing else (no
+      command, swap or handover, no output of another node);
     - anything may be sent to a member (egress); what a member accepts (ingress) is the check.
     Every peer is a member: mutual TLS refuses a certificate the graph's CA did not sign.
     """
@@ -631,9 +632,12 @@ def access_control(graph: "Graph") -> dict:
               "key_exprs": ["**"] + verbatim},
              {"id": "to-members", "permission": "allow", "flows": ["egress"], "messages": list(_ALL_MESSAGES),
               "key_exprs": ["**"] + verbatim},
-             {"id": "members-read", "permission": "allow", "flows": ["ingress"],
-              "messages": ["declare_subscriber", "query", "declare_liveliness_subscriber", "liveliness_query"],
-              "key_exprs": [f"{g}/**"] + verbatim}]
+             {"id": "members-subscribe", "permission": "allow", "flows": ["ingress"],
+              "messages": ["declare_subscriber"], "key_exprs": [f"{g}/**", f"{g}/@stats/**"]},
+             {"id": "members-liveliness", "permission": "allow", "flows": ["ingress"],
+              "messages": ["declare_liveliness_subscriber", "liveliness_query"], "key_exprs": [f"{g}/@live/**"]},
+             {"id": "members-status", "permission": "allow", "flows": ["ingress"],
+              "messages": ["query"], "key_exprs": [launcher_key(g, "status")]}]
     subjects = [{"id": LAUNCHER_IDENTITY, "cert_common_names": [identity_name(g, LAUNCHER_IDENTITY)]}]
     policies = [{"rules": ["launcher"], "subjects": [LAUNCHER_IDENTITY]}]
     node_subjects = []
@@ -648,7 +652,8 @@ def access_control(graph: "Graph") -> dict:
                   {"id": f"{sid}:ctl", "permission": "allow", "flows": ["ingress"],
                    "messages": ["declare_queryable", "reply"], "key_exprs": [f"{g}/@ctl/{n.id}/**"]}]
         policies.append({"rules": [f"{sid}:publish", f"{sid}:live", f"{sid}:ctl"], "subjects": [sid]})
-    policies.append({"rules": ["to-members", "members-read"], "subjects": node_subjects})
+    policies.append({"rules": ["to-members", "members-subscribe", "members-liveliness", "members-status"],
+                     "subjects": node_subjects})
     return {"enabled": True, "default_permission": "deny", "rules": rules, "subjects": subjects,
             "policies": policies}
 
