@@ -457,7 +457,8 @@ def graph_from_dict(data: dict, path: Optional[Path] = None, source: str = "grap
     if errs:
         raise GraphError(errs, source)
     z = data.get("zenoh") or {}
-    zs = ZenohSettings(mode=z.get("mode", "peer"), listen=list(z.get("listen", [DEFAULT_ENDPOINT])),
+    default_listen = DEFAULT_ENDPOINT.replace("tcp/", "tls/") if z.get("tls") else DEFAULT_ENDPOINT
+    zs = ZenohSettings(mode=z.get("mode", "peer"), listen=list(z.get("listen", [default_listen])),
                        connect=list(z.get("connect", [])), shm_pool_mb=int(z.get("shm_pool_mb", 64)))
     if z.get("tls"):
         base = path.parent if path is not None else Path.cwd()
