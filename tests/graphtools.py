@@ -15,8 +15,9 @@ or, without the fixture, ``with launch_graph(graph, tmp_path) as g: ...``.
 
 - ``graph`` is a dict, YAML text or a path. ``graph`` (the name) and ``zenoh.listen`` are filled in
   with a unique name and a free port (a listen endpoint already given is replaced; ``tls/`` when
-  the graph has ``zenoh.tls``), so two graphs never cross. The graph is written to ``<dir>/graph.yaml`` (``g.path``) and launched as
-  ``python -m common.cli launch <graph.yaml>``; its output goes to ``g.log_path`` (``g.log()``).
+  the graph has ``zenoh.tls``), so two graphs never cross. The graph is written to
+  ``<dir>/graph.yaml`` (``g.path``) and launched as ``python -m common.cli launch <graph.yaml>``;
+  its output goes to ``g.log_path`` (``g.log()``).
 - Launching waits until every launched node is live (its liveliness token) and raises with the
   launcher's log if one is not within ``timeout``.
 - Keys are relative to the graph (``"relay/out"``) or absolute; wildcards work.

@@ -75,7 +75,7 @@ def main(argv: list) -> dict:
             got: list = []
             sub = session.declare_subscriber(stats_key(g, args[0]),
                                              lambda s: got.append(decode(s.payload.to_bytes(), NodeStats)))
-            t_end = time.monotonic() + 15.0
+            t_end = time.monotonic() + 60.0
             while time.monotonic() < t_end and not got:
                 time.sleep(0.05)
             sub.undeclare()

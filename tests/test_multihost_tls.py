@@ -79,7 +79,8 @@ class TwoHosts:
 
     def probe(self, ns: str, graph: Path, who: str, *action: str) -> dict:
         res = self.run(ns, [sys.executable, str(PROBE), str(graph), who, *action])
-        assert res.returncode == 0, f"probe {who} {action} in {ns}: {res.returncode}\n{res.stdout}\n{res.stderr[-3000:]}"
+        assert res.returncode == 0, (f"probe {who} {action} in {ns}: {res.returncode}\n"
+                                     f"{res.stdout}\n{res.stderr[-3000:]}")
         return json.loads(res.stdout.strip().splitlines()[-1])
 
     def close(self) -> None:
