@@ -86,6 +86,7 @@ def test_certificates_and_session_configuration(tmp_path):
     c = zenoh_config(g, role="node", identity="det")
     tls = json.loads(c.get_json("transport/link/tls"))
     assert tls["enable_mtls"] is True and tls["connect_certificate"] == str(certs / "det.pem")
+    assert tls["verify_name_on_connect"] is False
     assert tls["listen_private_key"] == str(certs / "det.key")
     assert json.loads(c.get_json("listen/endpoints")) == ["tls/127.0.0.1:0"]
     acl = json.loads(c.get_json("access_control"))
@@ -100,6 +101,7 @@ def test_a_tls_graph_swaps_and_takes_commands_only_from_the_launcher_identity(ru
     name = f"tls{secrets.token_hex(3)}"
     certs = tmp_path / "certs"
     tls = {k: str(certs / v.split("/")[-1]) for k, v in TLS.items()}
+    tls["verify_name"] = True                          # the certificates name 127.0.0.1
     data = {"graph": name, "zenoh": {"listen": ["tls/127.0.0.1:7447"], "tls": tls}, "nodes": NODES}
     make_graph_certs(load_graph(data))
     g = run_graph(data)                                # the test's own session: the launcher identity
