@@ -14,9 +14,10 @@ Use the ``run_graph`` fixture (tests/conftest.py); it stops every graph it start
 or, without the fixture, ``with launch_graph(graph, tmp_path) as g: ...``.
 
 - ``graph`` is a dict, YAML text or a path. ``graph`` (the name) and ``zenoh.listen`` are filled in
-  with a unique name and a free port (a listen endpoint already given is replaced), so two
-  graphs never cross. The graph is written to ``<dir>/graph.yaml`` (``g.path``) and launched as
-  ``python -m common.cli launch <graph.yaml>``; its output goes to ``g.log_path`` (``g.log()``).
+  with a unique name and a free port (a listen endpoint already given is replaced; ``tls/`` when
+  the graph has ``zenoh.tls``), so two graphs never cross. The graph is written to
+  ``<dir>/graph.yaml`` (``g.path``) and launched as ``python -m common.cli launch <graph.yaml>``;
+  its output goes to ``g.log_path`` (``g.log()``).
 - Launching waits until every launched node is live (its liveliness token) and raises with the
   launcher's log if one is not within ``timeout``.
 - Keys are relative to the graph (``"relay/out"``) or absolute; wildcards work.
@@ -88,7 +89,7 @@ def prepare_graph(graph, directory: Path) -> Path:
     if isinstance(data, dict):
         data.setdefault("graph", f"t{os.getpid()}x{next(_names)}p{port}")
         z = data.get("zenoh") if isinstance(data.get("zenoh"), dict) else {}
-        z["listen"] = [f"tcp/127.0.0.1:{port}"]
+        z["listen"] = [f"{'tls' if z.get('tls') else 'tcp'}/127.0.0.1:{port}"]
         data["zenoh"] = z
     directory.mkdir(parents=True, exist_ok=True)
     path = directory / "graph.yaml"
@@ -157,7 +158,7 @@ class RunningGraph:
         self.graph: Graph = load_graph(path)
         self.name = self.graph.name
         import zenoh
-        self.session = zenoh.open(zenoh_config(self.graph.zenoh, role="node"))
+        self.session = zenoh.open(zenoh_config(self.graph, role="node"))
         self._subs: list = []
         self._seen_pids: set = set()
         self._stats_lock = threading.Lock()

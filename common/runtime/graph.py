@@ -4,6 +4,9 @@ A graph is a YAML map::
 
     graph: needletrack            # key prefix of everything the graph publishes
     zenoh: {mode: peer, listen: ["tcp/127.0.0.1:7447"], connect: []}
+    # across hosts: mutual TLS and access control (docs/multi-host.md)
+    #   zenoh: {listen: ["tls/10.0.0.1:7447"],
+    #           tls: {ca: certs/ca.pem, cert: "certs/{id}.pem", key: "certs/{id}.key"}}
     nodes:
       - id: camera
         module: sim               # nodes/sim.py, or `command: [prog, arg, ...]`
@@ -24,7 +27,9 @@ import ast
 import copy
 import functools
 import json
+import os
 import re
+import socket
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Optional
@@ -41,7 +46,9 @@ _NAME_RE = re.compile(r"^[A-Za-z0-9_][A-Za-z0-9_.-]*$")
 _MODULE_RE = re.compile(r"^[A-Za-z_][A-Za-z0-9_]*(\.[A-Za-z_][A-Za-z0-9_]*)*$")
 _ENDPOINT_RE = re.compile(r"^(tcp|udp|tls|quic|ws|unixsock-stream)/\S+$")
 _TOP_KEYS = {"graph", "zenoh", "nodes"}
-_ZENOH_KEYS = {"mode", "listen", "connect", "shm_pool_mb"}
+_ZENOH_KEYS = {"mode", "listen", "connect", "shm_pool_mb", "tls"}
+_TLS_KEYS = {"ca", "cert", "key", "verify_name"}
+LAUNCHER_IDENTITY = "launcher"     # the TLS identity of launchers and CLI tools (the operator)
 _NODE_KEYS = {"id", "module", "command", "params", "inputs", "outputs", "restart", "env"}
 
 
@@ -55,11 +62,33 @@ class GraphError(ValueError):
 
 
 @dataclass
+class TlsSettings:
+    """Mutual TLS of a graph: ``ca`` (PEM of the CA that signed every member), ``cert``/``key``
+    (PEM paths with ``{id}``: the node id, or ``launcher`` for launchers and CLI tools).
+    Paths are absolute once loaded (relative ones are taken from the graph file's folder)."""
+    ca: str
+    cert: str
+    key: str
+    verify_name: bool = False      # check the peer's certificate names the address connected to
+
+    def files(self, identity: str) -> tuple:
+        """(ca, cert, key) paths of ``identity``."""
+        return self.ca, self.cert.replace("{id}", identity), self.key.replace("{id}", identity)
+
+    def to_dict(self) -> dict:
+        d = {"ca": self.ca, "cert": self.cert, "key": self.key}
+        if self.verify_name:
+            d["verify_name"] = True
+        return d
+
+
+@dataclass
 class ZenohSettings:
     mode: str = "peer"
     listen: list = field(default_factory=lambda: [DEFAULT_ENDPOINT])
     connect: list = field(default_factory=list)
     shm_pool_mb: int = 64
+    tls: Optional[TlsSettings] = None
 
 
 @dataclass
@@ -117,10 +146,10 @@ class Graph:
 
     def to_dict(self) -> dict:
         z = self.zenoh
-        return {"graph": self.name,
-                "zenoh": {"mode": z.mode, "listen": list(z.listen), "connect": list(z.connect),
-                          "shm_pool_mb": z.shm_pool_mb},
-                "nodes": [n.to_dict() for n in self.nodes]}
+        zd = {"mode": z.mode, "listen": list(z.listen), "connect": list(z.connect), "shm_pool_mb": z.shm_pool_mb}
+        if z.tls is not None:
+            zd["tls"] = z.tls.to_dict()
+        return {"graph": self.name, "zenoh": zd, "nodes": [n.to_dict() for n in self.nodes]}
 
     def dump(self, path) -> Path:
         path = Path(path)
@@ -247,6 +276,14 @@ def validate_graph(data: Any) -> list:
                 for i, e in enumerate(v):
                     if not isinstance(e, str) or not _ENDPOINT_RE.match(e):
                         errs.append(f"zenoh.{k}[{i}]: not an endpoint like 'tcp/127.0.0.1:7447': {e!r}")
+                    elif e.startswith("tls/") and "tls" not in z:
+                        errs.append(f"zenoh.{k}[{i}]: {e!r} is a TLS endpoint: configure zenoh.tls "
+                                    f"{{ca, cert, key}} (certificates: `needletrack certs`; docs/multi-host.md)")
+                    elif "tls" in z and not e.startswith("tls/"):
+                        errs.append(f"zenoh.{k}[{i}]: {e!r}: with zenoh.tls every endpoint must be tls/ "
+                                    f"(another protocol would bypass TLS and access control)")
+        if "tls" in z:
+            errs += _tls_errors(z["tls"])
         if "shm_pool_mb" in z and (isinstance(z["shm_pool_mb"], bool) or not isinstance(z["shm_pool_mb"], int)
                                    or z["shm_pool_mb"] < 0):
             errs.append(f"zenoh.shm_pool_mb: expected a non-negative int, got {z['shm_pool_mb']!r}")
@@ -292,6 +329,8 @@ def validate_graph(data: Any) -> list:
             errs.append(f"{at}.id: missing")
         elif not isinstance(nid, str) or not _NAME_RE.match(nid) or nid in ("cmd",):
             errs.append(f"{at}.id: must be a name of letters, digits, '_', '-', '.'; got {nid!r}")
+        elif nid == LAUNCHER_IDENTITY and isinstance(z, dict) and "tls" in z:
+            errs.append(f"{at}.id: {nid!r} is the launcher's TLS identity (zenoh.tls): rename the node")
         info = None
         has_mod, has_cmd = "module" in n, "command" in n
         if has_mod == has_cmd:
@@ -367,14 +406,65 @@ def validate_graph(data: Any) -> list:
     return errs
 
 
+def _tls_errors(t: Any) -> list:
+    if not isinstance(t, dict):
+        return [f"zenoh.tls: expected a map {{ca, cert, key}}, got {_tname(t)}"]
+    errs = [f"zenoh.tls.{k}: unknown key (allowed: {', '.join(sorted(_TLS_KEYS))})" for k in t if k not in _TLS_KEYS]
+    for k in ("ca", "cert", "key"):
+        v = t.get(k)
+        if v is None:
+            errs.append(f"zenoh.tls.{k}: missing (a PEM file path" + (")" if k == "ca" else ", with {id})"))
+        elif not isinstance(v, str) or not v:
+            errs.append(f"zenoh.tls.{k}: expected a file path, got {v!r}")
+        elif k != "ca" and "{id}" not in v:
+            errs.append(f"zenoh.tls.{k}: must contain '{{id}}' (each node, and the launcher, has its own "
+                        f"certificate: e.g. 'certs/{{id}}.{'pem' if k == 'cert' else 'key'}'); got {v!r}")
+    if "verify_name" in t and not isinstance(t["verify_name"], bool):
+        errs.append(f"zenoh.tls.verify_name: expected true or false, got {t['verify_name']!r}")
+    return errs
+
+
+def graph_warnings(graph: "Graph") -> list:
+    """What is allowed but unsafe: a listen endpoint on a non-loopback address without TLS."""
+    warns = []
+    for i, e in enumerate(graph.zenoh.listen):
+        host = _endpoint_host(e)
+        if not e.startswith("tls/") and host is not None and not _is_loopback(host):
+            warns.append(f"zenoh.listen[{i}]: {e!r} listens beyond this host without TLS: any process "
+                         f"that reaches it can publish poses and send commands (use tls/ and zenoh.tls; "
+                         f"docs/multi-host.md)")
+    return warns
+
+
+def _endpoint_host(endpoint: str) -> Optional[str]:
+    m = re.match(r"^[a-z-]+/(\[[^\]]*\]|[^:/#?]*):\d+", endpoint)
+    return m.group(1).strip("[]") if m else None
+
+
+def _is_loopback(host: str) -> bool:
+    if host == "localhost":
+        return True
+    try:
+        import ipaddress
+        return ipaddress.ip_address(host).is_loopback
+    except ValueError:
+        return False
+
+
 def graph_from_dict(data: dict, path: Optional[Path] = None, source: str = "graph") -> Graph:
     """A validated ``Graph`` from a parsed document; raises ``GraphError`` listing every error."""
     errs = validate_graph(data)
     if errs:
         raise GraphError(errs, source)
     z = data.get("zenoh") or {}
-    zs = ZenohSettings(mode=z.get("mode", "peer"), listen=list(z.get("listen", [DEFAULT_ENDPOINT])),
+    default_listen = DEFAULT_ENDPOINT.replace("tcp/", "tls/") if z.get("tls") else DEFAULT_ENDPOINT
+    zs = ZenohSettings(mode=z.get("mode", "peer"), listen=list(z.get("listen", [default_listen])),
                        connect=list(z.get("connect", [])), shm_pool_mb=int(z.get("shm_pool_mb", 64)))
+    if z.get("tls"):
+        base = path.parent if path is not None else Path.cwd()
+        t = z["tls"]
+        zs.tls = TlsSettings(*(str((base / Path(t[k]).expanduser()).resolve()) for k in ("ca", "cert", "key")),
+                             verify_name=bool(t.get("verify_name", False)))
     nodes = []
     for n in data["nodes"]:
         outs = n.get("outputs")
@@ -442,15 +532,23 @@ def close_session(session, declarations: list) -> None:
             pass
 
 
-def zenoh_config(z: ZenohSettings, role: str = "node", listen: Optional[list] = None):
-    """A ``zenoh.Config`` for a graph member.
+def zenoh_config(graph, role: str = "node", listen: Optional[list] = None, identity: str = LAUNCHER_IDENTITY):
+    """A ``zenoh.Config`` for a member of ``graph`` (a ``Graph``; a bare ``ZenohSettings`` only
+    without TLS).
 
     ``role="hub"`` (the launcher) listens on the graph's ``listen`` endpoints; every other
-    member (nodes, CLI tools, tests) connects to them and listens on an ephemeral loopback port,
-    so peers gossip and connect directly. Multicast scouting is always off: graphs on different
-    endpoints never see each other.
+    member (nodes, CLI tools, tests) connects to them and listens on an ephemeral port of the
+    local address that reaches the first of them (loopback for a loopback graph, this host's
+    address on that network otherwise), so peers gossip and connect directly. Multicast
+    scouting is always off: graphs on different endpoints never see each other.
+
+    With ``zenoh.tls`` every link is mutual TLS: the member presents the certificate of
+    ``identity`` (its node id, or ``launcher`` for launchers and CLI tools) and accepts only
+    peers whose certificates the graph's CA signed; access control (``access_control``) lets
+    each peer publish only what its identity may. Raises ``GraphError`` naming a missing file.
     """
     import zenoh
+    z, g = (graph.zenoh, graph) if isinstance(graph, Graph) else (graph, None)
     c = zenoh.Config()
     c.insert_json5("mode", json.dumps(z.mode))
     c.insert_json5("scouting/multicast/enabled", "false")
@@ -458,7 +556,7 @@ def zenoh_config(z: ZenohSettings, role: str = "node", listen: Optional[list] = 
         lis = list(z.listen) if listen is None else listen
         con = list(z.connect)
     else:
-        lis = listen if listen is not None else [_ephemeral_like(e) for e in (z.listen or [DEFAULT_ENDPOINT])[:1]]
+        lis = listen if listen is not None else [_local_like(e) for e in (z.listen or [DEFAULT_ENDPOINT])[:1]]
         con = list(z.listen) + list(z.connect)
     if z.mode == "client":
         lis = []
@@ -469,10 +567,116 @@ def zenoh_config(z: ZenohSettings, role: str = "node", listen: Optional[list] = 
         c.insert_json5("transport/shared_memory/transport_optimization/pool_size", str(z.shm_pool_mb << 20))
     else:
         c.insert_json5("transport/shared_memory/enabled", "false")
+    if z.tls is not None:
+        if g is None:
+            raise ValueError("zenoh_config: a graph with zenoh.tls needs the Graph (its access control "
+                             "is built from its nodes), not its ZenohSettings")
+        errs = tls_file_errors(g, [identity])
+        if errs:
+            raise GraphError(errs, g.name)
+        ca, cert, key = z.tls.files(identity)
+        t = "transport/link/tls/"
+        c.insert_json5(t + "root_ca_certificate", json.dumps(ca))
+        for side in ("listen", "connect"):
+            c.insert_json5(t + f"{side}_private_key", json.dumps(key))
+            c.insert_json5(t + f"{side}_certificate", json.dumps(cert))
+        c.insert_json5(t + "enable_mtls", "true")
+        c.insert_json5(t + "verify_name_on_connect", json.dumps(z.tls.verify_name))
+        c.insert_json5("access_control", json.dumps(access_control(g)))
     return c
 
 
-def _ephemeral_like(endpoint: str) -> str:
-    """``tcp/127.0.0.1:7447`` -> ``tcp/127.0.0.1:0`` (same protocol and host, any free port)."""
+def tls_file_errors(graph: "Graph", identities) -> list:
+    """Missing or unreadable TLS files of ``identities`` (node ids or ``launcher``), each with its place."""
+    t = graph.zenoh.tls
+    if t is None:
+        return []
+    errs, seen = [], set()
+    for ident in identities:
+        for what, f in zip(("ca", "cert", "key"), t.files(ident)):
+            if f in seen:
+                continue
+            seen.add(f)
+            p = Path(f)
+            if not p.is_file():
+                errs.append(f"zenoh.tls.{what}: no file {f}" + ("" if what == "ca" else f" (identity {ident!r})")
+                            + "; make the certificates with `needletrack certs` (docs/multi-host.md)")
+            elif not os.access(p, os.R_OK):
+                errs.append(f"zenoh.tls.{what}: {f} is not readable")
+    return errs
+
+
+def identity_name(graph_name: str, identity: str) -> str:
+    """The certificate common name of a member: ``<graph>:<node id>`` or ``<graph>:launcher``."""
+    return f"{graph_name}:{identity}"
+
+
+_ALL_MESSAGES = ["put", "delete", "declare_subscriber", "query", "reply", "declare_queryable",
+                 "liveliness_token", "declare_liveliness_subscriber", "liveliness_query"]
+
+
+def access_control(graph: "Graph") -> dict:
+    """Zenoh ``access_control`` of a TLS graph: deny unless allowed, by certificate common name.
+
+    - the launcher identity (launchers, CLI tools) may do everything: it alone sends commands
+      (``<graph>/<node>/cmd``), swaps (``@launcher/swap``) and handovers (``@ctl``);
+    - node ``n`` may publish only its own outputs (``<graph>/n/<output>``) and stats, declare its
+      own liveliness token and ``@ctl/n`` queryables (and reply on them), subscribe to the
+      graph's keys, stats and liveliness, and ask the launcher's status; nothing else (no
+      command, swap or handover, no output of another node);
+    - anything may be sent to a member (egress); what a member accepts (ingress) is the check.
+    Every peer is a member: mutual TLS refuses a certificate the graph's CA did not sign.
+    """
+    g = graph.name
+    verbatim = [f"{g}/@live/**", f"{g}/@stats/**", f"{g}/@ctl/**", f"{g}/@launcher/**"]
+    rules = [{"id": "launcher", "permission": "allow", "messages": list(_ALL_MESSAGES),
+              "key_exprs": ["**"] + verbatim},
+             {"id": "to-members", "permission": "allow", "flows": ["egress"], "messages": list(_ALL_MESSAGES),
+              "key_exprs": ["**"] + verbatim},
+             {"id": "members-subscribe", "permission": "allow", "flows": ["ingress"],
+              "messages": ["declare_subscriber"], "key_exprs": [f"{g}/**", f"{g}/@stats/**"]},
+             {"id": "members-liveliness", "permission": "allow", "flows": ["ingress"],
+              "messages": ["declare_liveliness_subscriber", "liveliness_query"], "key_exprs": [f"{g}/@live/**"]},
+             {"id": "members-status", "permission": "allow", "flows": ["ingress"],
+              "messages": ["query"], "key_exprs": [launcher_key(g, "status")]}]
+    subjects = [{"id": LAUNCHER_IDENTITY, "cert_common_names": [identity_name(g, LAUNCHER_IDENTITY)]}]
+    policies = [{"rules": ["launcher"], "subjects": [LAUNCHER_IDENTITY]}]
+    node_subjects = []
+    for n in graph.nodes:
+        sid = f"node:{n.id}"
+        subjects.append({"id": sid, "cert_common_names": [identity_name(g, n.id)]})
+        node_subjects.append(sid)
+        rules += [{"id": f"{sid}:publish", "permission": "allow", "flows": ["ingress"], "messages": ["put", "delete"],
+                   "key_exprs": [output_key(g, n.id, o) for o in n.outputs] + [stats_key(g, n.id)]},
+                  {"id": f"{sid}:live", "permission": "allow", "flows": ["ingress"], "messages": ["liveliness_token"],
+                   "key_exprs": [live_key(g, n.id)]},
+                  {"id": f"{sid}:ctl", "permission": "allow", "flows": ["ingress"],
+                   "messages": ["declare_queryable", "reply"], "key_exprs": [f"{g}/@ctl/{n.id}/**"]}]
+        policies.append({"rules": [f"{sid}:publish", f"{sid}:live", f"{sid}:ctl"], "subjects": [sid]})
+    policies.append({"rules": ["to-members", "members-subscribe", "members-liveliness", "members-status"],
+                     "subjects": node_subjects})
+    return {"enabled": True, "default_permission": "deny", "rules": rules, "subjects": subjects,
+            "policies": policies}
+
+
+def _local_like(endpoint: str) -> str:
+    """An ephemeral endpoint of the same protocol on the local address that reaches ``endpoint``:
+    ``tcp/127.0.0.1:7447`` -> ``tcp/127.0.0.1:0``; on another host of ``tls/10.0.0.1:7447``,
+    ``tls/10.0.0.2:0`` (the address of the interface the route to 10.0.0.1 leaves by)."""
     m = re.match(r"^(tcp|udp|tls|quic|ws)/(.+):(\d+)$", endpoint)
-    return f"{m.group(1)}/{m.group(2)}:0" if m else "tcp/127.0.0.1:0"
+    if not m:
+        return "tcp/127.0.0.1:0"
+    proto, host, port = m.group(1), m.group(2), int(m.group(3))
+    bare = host.strip("[]")
+    if _is_loopback(bare) or bare in ("0.0.0.0", "::"):
+        return f"{proto}/{host}:0"
+    try:
+        family = socket.AF_INET6 if ":" in bare else socket.AF_INET
+        with socket.socket(family, socket.SOCK_DGRAM) as s:
+            s.connect((bare, port))          # no packet is sent: this only picks the route
+            local = s.getsockname()[0]
+    except OSError:
+        return f"{proto}/{host}:0"
+    if local == bare:
+        return f"{proto}/{host}:0"
+    return f"{proto}/[{local}]:0" if ":" in local else f"{proto}/{local}:0"

@@ -11,7 +11,10 @@
   endpoints and the nodes connect to it (then to each other, by gossip). With ``--only`` and the
   endpoint already taken (another launcher runs the rest of the graph), it connects instead.
 - It answers queries on ``<graph>/@launcher/status`` (its processes) and
-  ``<graph>/@launcher/swap`` (hot swap, make-before-break; see ``Launcher.swap``).
+  ``<graph>/@launcher/swap`` (hot swap, make-before-break; see ``Launcher.swap``). With
+  ``zenoh.tls`` every link is mutual TLS and access control lets only the launcher identity
+  (launchers, CLI tools) send swaps, handovers and commands (``graph.access_control``); a
+  listen endpoint beyond loopback without TLS is warned about.
 - SIGINT/SIGTERM stop every node (SIGTERM, then SIGKILL after ``STOP_GRACE_S``); nodes also
   get SIGTERM from the kernel if the launcher itself dies (``PR_SET_PDEATHSIG``).
 """
@@ -33,6 +36,7 @@ from pathlib import Path
 from typing import Iterable, Optional
 
 from common.runtime.graph import (
+    LAUNCHER_IDENTITY,
     REPO_ROOT,
     Graph,
     GraphError,
@@ -40,7 +44,9 @@ from common.runtime.graph import (
     close_session,
     ctl_key,
     graph_from_dict,
+    graph_warnings,
     launcher_key,
+    tls_file_errors,
     zenoh_config,
 )
 from common.runtime.node import graph_param_errors
@@ -194,16 +200,25 @@ class Launcher:
 
     # ---------------------------------------------------------------- hub session
     def open_session(self) -> None:
+        """Open the hub session (or join the graph's hub with ``--only``), as the launcher identity
+        under TLS; raises RuntimeError saying why not."""
         import zenoh
+        for w in graph_warnings(self.graph):
+            self.say(f"WARNING {w}")
+        errors = tls_file_errors(self.graph, [LAUNCHER_IDENTITY] + self.only)
+        if errors:
+            raise RuntimeError("TLS files missing:\n  " + "\n  ".join(errors))
         try:
-            self.session = zenoh.open(zenoh_config(self.graph.zenoh, role="hub"))
+            self.session = zenoh.open(zenoh_config(self.graph, role="hub", identity=LAUNCHER_IDENTITY))
             where = "listening on " + ", ".join(self.graph.zenoh.listen)
         except Exception as exc:
             if len(self.only) == len(self.graph.nodes):
                 raise RuntimeError(f"cannot listen on {', '.join(self.graph.zenoh.listen)} ({exc}); "
                                    f"is another graph running there?") from None
-            self.session = zenoh.open(zenoh_config(self.graph.zenoh, role="node"))
+            self.session = zenoh.open(zenoh_config(self.graph, role="node", identity=LAUNCHER_IDENTITY))
             where = "joining the graph at " + ", ".join(self.graph.zenoh.listen)
+        if self.graph.zenoh.tls is not None:
+            where += " (mutual TLS, access control by certificate)"
         self.say(f"graph {self.graph.name!r}: {len(self.only)} node(s), {where}")
         self._decl.append(self.session.declare_queryable(launcher_key(self.graph.name, "status"), self._q_status))
         self._decl.append(self.session.declare_queryable(launcher_key(self.graph.name, "swap"), self._q_swap))
@@ -461,10 +476,11 @@ def launch_main(argv: list) -> int:
             for n in graph.nodes:
                 if n.module == "monitor":
                     n.params["all_methods"] = True
-        errors = graph_param_errors(graph)
+        only = args.only.split(",") if args.only else None
+        errors = graph_param_errors(graph) + tls_file_errors(graph, [LAUNCHER_IDENTITY] + (only or graph.ids()))
         if errors:
             raise GraphError(errors, str(path))
-        launcher = Launcher(graph, only=args.only.split(",") if args.only else None)
+        launcher = Launcher(graph, only=only)
     except GraphError as exc:
         print(str(exc), file=sys.stderr)
         return 2

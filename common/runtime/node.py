@@ -405,7 +405,7 @@ class Runtime:
 
         from common.runtime.graph import cmd_key, ctl_key, zenoh_config
         g, nid = self.graph.name, self.node_id
-        self.session = zenoh.open(zenoh_config(self.graph.zenoh, role="node"))
+        self.session = zenoh.open(zenoh_config(self.graph, role="node", identity=self.node_id))
         for out in self.node.OUTPUTS:
             self._pubs[out] = self.session.declare_publisher(
                 self.graph.output_key(nid, out), congestion_control=zenoh.CongestionControl.BLOCK,
@@ -743,7 +743,11 @@ def _run(node_cls: Optional[type], argv: Optional[list]) -> int:
     signal.signal(signal.SIGTERM, on_signal)
     signal.signal(signal.SIGINT, on_signal)
     try:
-        rt.open()
+        try:
+            rt.open()
+        except GraphError as exc:       # a TLS file missing: bad configuration, not restarted
+            log.error("%s", exc)
+            return 2
         return rt.serve()
     finally:
         rt.close()

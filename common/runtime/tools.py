@@ -48,12 +48,13 @@ def _load_or_report(path: str):
 
 
 def open_session(graph, wait_s: float = 2.0):
-    """A Zenoh session joined to ``graph`` (connects to its listen endpoints); waits up to
+    """A Zenoh session joined to ``graph`` (connects to its listen endpoints; under TLS with the
+    launcher's certificate, the operator's identity that may send commands); waits up to
     ``wait_s`` for a first peer so that queries and liveliness see the graph at once."""
     import zenoh
 
     from common.runtime.graph import zenoh_config
-    session = zenoh.open(zenoh_config(graph.zenoh, role="node"))
+    session = zenoh.open(zenoh_config(graph, role="node"))     # as the launcher identity under TLS
     deadline = time.monotonic() + wait_s
     while time.monotonic() < deadline and not list(session.info.peers_zid()):
         time.sleep(0.02)
@@ -81,7 +82,11 @@ def validate_main(argv: list) -> int:
             print(f"{path}: {len(errors)} error(s):\n" + "\n".join(f"  {e}" for e in errors), file=sys.stderr)
             rc = 2
             continue
-        print(f"{path}: ok: graph {g.name!r}, {len(g.nodes)} nodes ({', '.join(g.ids())})")
+        from common.runtime.graph import graph_warnings
+        for w in graph_warnings(g):
+            print(f"{path}: WARNING {w}", file=sys.stderr)
+        print(f"{path}: ok: graph {g.name!r}, {len(g.nodes)} nodes ({', '.join(g.ids())})"
+              + (" over mutual TLS with access control" if g.zenoh.tls is not None else ""))
     return rc
 
 
