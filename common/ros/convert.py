@@ -4,7 +4,10 @@ as a dataset folder (docs/dataset.md), so ``eval``, ``train`` and fine-tuning ru
 The rig (K, dist, T_ecm_cam) must stay constant over the bag (the dataset's ``dataset.yaml``
 holds one); ground truth (``T_world_needle``, with ``T_world_ecm``) gives the keypoints, their
 visibility (in front of the camera and inside the image: a bag has no occlusion information) and
-the arc's box, all through the distortion model when there is one.
+the arc's box, all through the distortion model when there is one. Consecutive frames whose
+ground-truth needle pose stays put (within ``REST_TOL``: 1 um, 1 urad) form a ``sequence``
+(the spec's multi-view group: the needle at rest while the endoscope moves), ``step`` counting
+within it.
 """
 from __future__ import annotations
 
@@ -19,6 +22,14 @@ from common.geometry.transforms import inv_T
 from common.ros.bag import BagError, BagStereo
 
 CAMS = ("left", "right")
+REST_TOL = 1e-6          # m and rad: the needle has not moved between two frames
+
+
+def _at_rest(a: np.ndarray, b: np.ndarray) -> bool:
+    if np.linalg.norm(a[:3, 3] - b[:3, 3]) > REST_TOL:
+        return False
+    c = (np.trace(a[:3, :3].T @ b[:3, :3]) - 1.0) / 2.0
+    return float(np.arccos(np.clip(c, -1.0, 1.0))) <= REST_TOL * 10   # arccos near 1 is coarse
 
 
 def _same_rig(a: dict, b: dict) -> str | None:
@@ -40,6 +51,7 @@ def from_bag(bag: str, out: str, preset: str | None = None, topics=None, image_f
     t0 = time.perf_counter()
     writer = None
     n = truth = 0
+    sequence, step, last_needle = -1, 0, None
     with BagStereo(bag, preset, topics) as src:
         hint = src.frame_count_hint()
         bar = None
@@ -73,6 +85,12 @@ def from_bag(bag: str, out: str, preset: str | None = None, topics=None, image_f
                 fr = Frame(index=n, stamp_ns=s.stamp_ns, left=paths["left"], right=paths["right"],
                            ecm_joints=s.ecm_joints, T_world_ecm=s.T_world_ecm)
                 if s.T_world_needle is not None and s.T_world_ecm is not None:
+                    if last_needle is not None and _at_rest(last_needle, s.T_world_needle):
+                        step += 1
+                    else:
+                        sequence, step = sequence + 1, 0
+                    last_needle = s.T_world_needle
+                    fr.sequence, fr.step = sequence, step
                     fr.T_world_needle = s.T_world_needle
                     T_en = inv_T(s.T_world_ecm) @ s.T_world_needle
                     kp, vis, box = {}, {}, {}

@@ -32,6 +32,7 @@ CAMS = ("left", "right")
 AMBF_TOPICS = {"left": "/ambf/env/cameras/cameraL", "right": "/ambf/env/cameras/cameraR"}
 DVRK_RIG = "jhu_daVinci"
 DVRK_JOINTS = ["outer_yaw", "outer_pitch", "insertion", "outer_roll"]
+STAMP_BASE_NS = 1_700_000_000 * 1_000_000_000   # bag stamps = this + the dataset's stamp_ns (ROS time 0 means unset)
 
 
 def _rigid_body_state(store, stamp, T, scale, name):
@@ -98,7 +99,7 @@ def dataset_to_bag(dataset: str, out: str, convention: str, *, unit: str | None 
     result = {"bag": out, "frames": len(frames)}
     try:
         for i, fr in enumerate(frames):
-            t = int(fr.stamp_ns) if fr.stamp_ns > 0 else (i + 1) * 33_333_333
+            t = STAMP_BASE_NS + int(fr.stamp_ns)
             if convention == "ambf":
                 if fr.T_world_ecm is not None:
                     bag.write("/ambf/env/CameraFrame/State",
