@@ -161,8 +161,8 @@ def distortion_maps(K: np.ndarray, dist: np.ndarray, size) -> tuple[np.ndarray, 
     w, h = int(size[0]), int(size[1])
     u, v = np.meshgrid(np.arange(w, dtype=np.float64), np.arange(h, dtype=np.float64))
     pts = np.stack([u.ravel(), v.ravel()], axis=1).reshape(-1, 1, 2)
-    ideal = cv2.undistortPointsIter(pts, K, dist, None, K,
-                                    (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 40, 1e-10))
+    ideal = cv2.undistortPoints(pts, K, dist, None, None, K,
+                                (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 40, 1e-10))
     ideal = ideal.reshape(h, w, 2).astype(np.float32)
     return ideal[..., 0], ideal[..., 1]
 
