@@ -28,8 +28,38 @@ REST_TOL = 1e-6          # m and rad: the needle has not moved between two frame
 def _at_rest(a: np.ndarray, b: np.ndarray) -> bool:
     if np.linalg.norm(a[:3, 3] - b[:3, 3]) > REST_TOL:
         return False
-    c = (np.trace(a[:3, :3].T @ b[:3, :3]) - 1.0) / 2.0
-    return float(np.arccos(np.clip(c, -1.0, 1.0))) <= REST_TOL * 10   # arccos near 1 is coarse
+    return float(np.abs(a[:3, :3] - b[:3, :3]).max()) <= REST_TOL
+
+
+class RestGroups:
+    """``(sequence, step)`` of successive ground-truth needle poses: a new sequence whenever
+    the needle moved (more than ``REST_TOL``) since the last frame."""
+
+    def __init__(self):
+        self.sequence, self.step, self.last = -1, 0, None
+
+    def __call__(self, T_world_needle: np.ndarray) -> tuple[int, int]:
+        if self.last is not None and _at_rest(self.last, T_world_needle):
+            self.step += 1
+        else:
+            self.sequence, self.step = self.sequence + 1, 0
+        self.last = T_world_needle
+        return self.sequence, self.step
+
+
+def truth_projections(rig, needle, T_world_ecm, T_world_needle):
+    """(keypoints, visible, bbox) per camera from the poses (through the distortion), or
+    (None, None, None) when a keypoint is behind a camera."""
+    from common.geometry.oracle import arc_bbox, true_keypoints
+    T_en = inv_T(T_world_ecm) @ T_world_needle
+    kp, vis, box = {}, {}, {}
+    for c in CAMS:
+        kp[c], vis[c] = true_keypoints(rig[c], T_en, needle)
+        b = arc_bbox(rig[c], T_en, needle)
+        box[c] = None if b is None else b.tolist()
+    if not all(np.all(np.isfinite(kp[c])) for c in CAMS):
+        return None, None, None
+    return kp, vis, box
 
 
 def _same_rig(a: dict, b: dict) -> str | None:
@@ -45,13 +75,12 @@ def from_bag(bag: str, out: str, preset: str | None = None, topics=None, image_f
              jpeg_quality: int = 95, max_frames: int = 0, stride: int = 1, progress: bool = False) -> dict:
     """Convert ``bag`` into the dataset folder ``out``; returns a summary dict (frames, with_truth,
     unit, topics, unpaired images, seconds). Raises BagError (bad bag/topics) or ValueError."""
-    from common.geometry.oracle import arc_bbox, true_keypoints
     if os.path.exists(os.path.join(out, "frames.jsonl")):
         raise ValueError(f"{out} already holds a dataset; use another --out")
     t0 = time.perf_counter()
     writer = None
     n = truth = 0
-    sequence, step, last_needle = -1, 0, None
+    groups = RestGroups()
     with BagStereo(bag, preset, topics) as src:
         hint = src.frame_count_hint()
         bar = None
@@ -85,21 +114,10 @@ def from_bag(bag: str, out: str, preset: str | None = None, topics=None, image_f
                 fr = Frame(index=n, stamp_ns=s.stamp_ns, left=paths["left"], right=paths["right"],
                            ecm_joints=s.ecm_joints, T_world_ecm=s.T_world_ecm)
                 if s.T_world_needle is not None and s.T_world_ecm is not None:
-                    if last_needle is not None and _at_rest(last_needle, s.T_world_needle):
-                        step += 1
-                    else:
-                        sequence, step = sequence + 1, 0
-                    last_needle = s.T_world_needle
-                    fr.sequence, fr.step = sequence, step
+                    fr.sequence, fr.step = groups(s.T_world_needle)
                     fr.T_world_needle = s.T_world_needle
-                    T_en = inv_T(s.T_world_ecm) @ s.T_world_needle
-                    kp, vis, box = {}, {}, {}
-                    for c in CAMS:
-                        uv, v = true_keypoints(rig[c], T_en, needle)
-                        kp[c], vis[c] = uv, v
-                        b = arc_bbox(rig[c], T_en, needle)
-                        box[c] = None if b is None else b.tolist()
-                    if all(np.all(np.isfinite(kp[c])) for c in CAMS):
+                    kp, vis, box = truth_projections(rig, needle, s.T_world_ecm, s.T_world_needle)
+                    if kp is not None:
                         fr.keypoints, fr.visible, fr.bbox = kp, vis, box
                     truth += 1
                 writer.append(fr)
