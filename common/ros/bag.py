@@ -88,50 +88,16 @@ def open_reader(path):
     return reader
 
 
-class BagStereo:
-    """Iterate a bag's stereo frames (see the module docstring). ``preset`` ambf | dvrk | None;
-    ``topics`` a topic map (YAML path or dict). ``info`` says which topics and unit were used;
-    ``counts`` how many images went unpaired and how many messages were bad."""
+class StereoAssembler:
+    """Turns a stream of deserialised ROS messages into ``StereoSample``s, whatever carries them
+    (a bag, or live ROS 2 on Zenoh): ``feed(topic, msg)`` returns the samples completed by that
+    message (a list, usually empty or one). ``m`` is a resolved topic map; ``where`` names the
+    source in errors. ``roles`` maps each used topic to (role, camera or None)."""
 
-    def __init__(self, path, preset: str | None = None, topics=None):
-        self.path = str(path)
-        self.reader = open_reader(path)
-        conns = self.reader.connections
-        self.types = {c.topic: c.msgtype for c in conns}
-        try:
-            m = load_topic_map(preset, topics)
-            m = resolve_rig(m, set(self.types))
-        except TopicMapError as exc:
-            self.close()
-            raise BagError(f"{self.path}: {exc}") from None
-        self.map = m
-        self.topic_role = {}          # topic -> (role, camera or None)
-        self.info = {"bag": self.path, "preset": m.get("preset"), "topics": {}}
-
-        def pick(role, value, cam=None, required=False, types=None):
-            for t in candidates(value):
-                if t in self.types:
-                    if types and self.types[t] not in types:
-                        self.close()
-                        raise BagError(f"{self.path}: topic {t} ({role}) has type {self.types[t]}, "
-                                       f"expected {' or '.join(types)}")
-                    self.topic_role[t] = (role, cam)
-                    self.info["topics"][role + (f".{cam}" if cam else "")] = t
-                    return t
-            if required:
-                listing = ", ".join(f"{t} ({ty})" for t, ty in sorted(self.types.items())) or "none"
-                self.close()
-                raise BagError(f"{self.path}: no {role} topic for the {cam} camera: looked for "
-                               f"{', '.join(candidates(value))}; the bag has: {listing}")
-            return None
-
-        for c in CAMS:
-            pick("image", m["images"][c], c, required=True, types=IMAGE_TYPES)
-            pick("camera_info", (m.get("camera_info") or {}).get(c), c,
-                 types=("sensor_msgs/msg/CameraInfo",))
-            pick("camera_state", (m.get("camera_states") or {}).get(c), c)
-        for role in ("ecm_joints", "ecm_pose", "needle_pose", "camera_frame"):
-            pick(role, m.get(role), types=("sensor_msgs/msg/JointState",) if role == "ecm_joints" else None)
+    def __init__(self, m: dict, where: str, roles: dict):
+        self.map, self.path, self.topic_role = m, where, roles
+        self.info = {"source": where, "preset": m.get("preset"),
+                     "topics": {r + (f".{c}" if c else ""): t for t, (r, c) in roles.items()}}
         self.tol_ns = int(m["stereo_tolerance_ms"] * 1e6)
         self.counts = {"unpaired_left": 0, "unpaired_right": 0}
         self.scale = None if m["unit"] == "auto" else unit_scale(m["unit"])
@@ -140,6 +106,9 @@ class BagStereo:
         self.T_given_needle = m.get("T_given_needle")
         if self.T_given_needle is None:
             self.T_given_needle = T_AMBF_NEEDLE if m["needle_frame"] == "ambf" else np.eye(4)
+        self.state: dict = {}
+        self.queues = {"left": deque(), "right": deque()}
+        self.index = 0
 
     # ------------------------------------------------------------------ helpers
 
@@ -152,23 +121,6 @@ class BagStereo:
         if self.map.get("needle_radius_units") and self.scale is not None:
             return NeedleModel(radius_m=float(self.map["needle_radius_units"]) * self.scale)
         return NeedleModel()
-
-    def close(self) -> None:
-        try:
-            self.reader.close()
-        except Exception:
-            pass
-
-    def __enter__(self):
-        return self
-
-    def __exit__(self, *exc):
-        self.close()
-
-    def frame_count_hint(self) -> int:
-        """Images on the left topic (an upper bound of the stereo frames)."""
-        t = self.info["topics"]["image.left"]
-        return sum(c.msgcount for c in self.reader.connections if c.topic == t)
 
     # ------------------------------------------------------------------ iteration
 
@@ -258,34 +210,118 @@ class BagStereo:
             T_world_needle = pose_of(state["needle_pose"], self.scale) @ self.T_given_needle
         return StereoSample(index, left[0], imgs, cams, (w, h), q, T_world_ecm, T_world_needle)
 
+    def feed(self, topic: str, msg) -> list:
+        """Take one message of a used topic; returns the stereo samples it completes."""
+        role, cam = self.topic_role[topic]
+        out = []
+        if role == "image":
+            self.queues[cam].append((stamp_ns(msg.header), msg))
+            L, R = self.queues["left"], self.queues["right"]
+            while L and R:
+                dl, dr = L[0][0], R[0][0]
+                if abs(dl - dr) <= self.tol_ns:
+                    out.append(self._sample(self.index, L.popleft(), R.popleft(), self.state))
+                    self.index += 1
+                elif dl < dr:
+                    L.popleft()
+                    self.counts["unpaired_left"] += 1
+                else:
+                    R.popleft()
+                    self.counts["unpaired_right"] += 1
+            for q in (L, R):            # a live stream with one camera gone: do not grow
+                while len(q) > 64:
+                    q.popleft()
+                    self.counts["unpaired_left" if q is L else "unpaired_right"] += 1
+        elif cam is not None:
+            self.state.setdefault(role, {})[cam] = msg
+        else:
+            self.state[role] = msg
+        return out
+
+    def finish(self) -> None:
+        """End of stream: images still waiting for a partner count as unpaired."""
+        self.counts["unpaired_left"] += len(self.queues["left"])
+        self.counts["unpaired_right"] += len(self.queues["right"])
+        self.queues["left"].clear()
+        self.queues["right"].clear()
+
+
+def resolve_roles(m: dict, topics: dict, where: str) -> dict:
+    """``{topic: (role, camera)}`` of a topic map against the available ``topics`` ({topic:
+    type}): for each role the first alternative present; BagError naming what is missing."""
+    roles = {}
+
+    def pick(role, value, cam=None, required=False, types=None):
+        for t in candidates(value):
+            if t in topics:
+                if types and topics[t] not in types:
+                    raise BagError(f"{where}: topic {t} ({role}) has type {topics[t]}, "
+                                   f"expected {' or '.join(types)}")
+                roles[t] = (role, cam)
+                return t
+        if required:
+            listing = ", ".join(f"{t} ({ty})" for t, ty in sorted(topics.items())) or "none"
+            raise BagError(f"{where}: no {role} topic for the {cam} camera: looked for "
+                           f"{', '.join(candidates(value))}; the bag has: {listing}")
+        return None
+
+    for c in CAMS:
+        pick("image", m["images"][c], c, required=True, types=IMAGE_TYPES)
+        pick("camera_info", (m.get("camera_info") or {}).get(c), c, types=("sensor_msgs/msg/CameraInfo",))
+        pick("camera_state", (m.get("camera_states") or {}).get(c), c)
+    for role in ("ecm_joints", "ecm_pose", "needle_pose", "camera_frame"):
+        pick(role, m.get(role), types=("sensor_msgs/msg/JointState",) if role == "ecm_joints" else None)
+    return roles
+
+
+class BagStereo:
+    """Iterate a bag's stereo frames (see the module docstring). ``preset`` ambf | dvrk | None;
+    ``topics`` a topic map (YAML path or dict). ``info`` says which topics and unit were used;
+    ``counts`` how many images went unpaired."""
+
+    def __init__(self, path, preset: str | None = None, topics=None):
+        self.path = str(path)
+        self.reader = open_reader(path)
+        self.types = {c.topic: c.msgtype for c in self.reader.connections}
+        try:
+            m = load_topic_map(preset, topics)
+            m = resolve_rig(m, set(self.types))
+            roles = resolve_roles(m, self.types, self.path)
+        except (TopicMapError, BagError) as exc:
+            self.close()
+            msg = str(exc)
+            raise BagError(msg if msg.startswith(self.path) else f"{self.path}: {msg}") from None
+        self.map = m
+        self.asm = StereoAssembler(m, self.path, roles)
+        self.info = self.asm.info
+        self.counts = self.asm.counts
+
+    def needle_model(self) -> NeedleModel:
+        return self.asm.needle_model()
+
+    def close(self) -> None:
+        try:
+            self.reader.close()
+        except Exception:
+            pass
+
+    def __enter__(self):
+        return self
+
+    def __exit__(self, *exc):
+        self.close()
+
+    def frame_count_hint(self) -> int:
+        """Images on the left topic (an upper bound of the stereo frames)."""
+        t = self.info["topics"]["image.left"]
+        return sum(c.msgcount for c in self.reader.connections if c.topic == t)
+
     def __iter__(self):
-        state: dict = {}
-        queues = {"left": deque(), "right": deque()}
-        conns = [c for c in self.reader.connections if c.topic in self.topic_role]
-        index = 0
+        conns = [c for c in self.reader.connections if c.topic in self.asm.topic_role]
         for conn, _t, raw in self.reader.messages(connections=conns):
-            role, cam = self.topic_role[conn.topic]
             try:
                 msg = self.reader.deserialize(raw, conn.msgtype)
             except Exception as exc:
                 raise BagError(f"{self.path}: {conn.topic}: cannot deserialise a {conn.msgtype}: {exc}") from None
-            if role == "image":
-                queues[cam].append((stamp_ns(msg.header), msg))
-                L, R = queues["left"], queues["right"]
-                while L and R:
-                    dl, dr = L[0][0], R[0][0]
-                    if abs(dl - dr) <= self.tol_ns:
-                        yield self._sample(index, L.popleft(), R.popleft(), state)
-                        index += 1
-                    elif dl < dr:
-                        L.popleft()
-                        self.counts["unpaired_left"] += 1
-                    else:
-                        R.popleft()
-                        self.counts["unpaired_right"] += 1
-            elif cam is not None:
-                state.setdefault(role, {})[cam] = msg
-            else:
-                state[role] = msg
-        self.counts["unpaired_left"] += len(queues["left"])
-        self.counts["unpaired_right"] += len(queues["right"])
+            yield from self.asm.feed(conn.topic, msg)
+        self.asm.finish()
