@@ -23,23 +23,13 @@ import time
 from dataclasses import dataclass
 from typing import Literal
 
-import numpy as np
 
 from common.runtime.camera_source import CameraSourceNode
-from common.runtime.messages import Calibration, CameraImage, EcmPose, EndOfStream, GroundTruth
+from common.runtime.messages import EndOfStream
 from common.runtime.node import NodeError, run
 from common.runtime.pacing import Pacer
 
 CAMS = ("left", "right")
-
-
-def calibration_of(sample, needle, source: str, ecm: dict | None = None) -> Calibration:
-    """The Calibration message of a StereoSample's rig."""
-    cams = {c: {"K": np.asarray(sample.cameras[c]["K"], float).tolist(),
-                "dist": [float(x) for x in sample.cameras[c]["dist"]],
-                "T_ecm_cam": np.asarray(sample.cameras[c]["T_ecm_cam"], float).tolist()} for c in CAMS}
-    return Calibration(stamp_ns=0, image_size=np.array(sample.image_size), cameras=cams,
-                       needle=needle.to_dict(), ecm=ecm, source=source)
 
 
 class RosbagNode(CameraSourceNode):
@@ -74,9 +64,10 @@ class RosbagNode(CameraSourceNode):
         if self.first is None:
             raise NodeError(f"rosbag: {p.path}: no stereo pair in the bag (unpaired: {self.bag.counts})")
         self.log.info("rosbag: %s: topics %s, unit %s", p.path, self.bag.info["topics"], self.bag.info.get("unit"))
-        self.needle = self.bag.needle_model()
-        self.calib = calibration_of(self.first, self.needle, f"rosbag {p.path}", self.bag.map.get("ecm"))
-        self.rig_key = self._rig_key(self.first)
+        from common.ros.source import SamplePublisher
+        self.out = SamplePublisher(self, self.bag.needle_model(), f"rosbag {p.path}", self.bag.map.get("ecm"),
+                                   p.encoding)
+        self.out.rig_key = None
         self.pending = self.first
         self.loops = 0
         self.n_frames = None           # pairs in one pass, known after the first
@@ -86,14 +77,9 @@ class RosbagNode(CameraSourceNode):
 
     def _open(self):
         from common.ros.bag import BagStereo
-        from common.ros.convert import RestGroups
-        self.bag = BagStereo(self.p.path, self.p.preset, self.p.topics)
+        from common.ros.source import topics_param
+        self.bag = BagStereo(self.p.path, self.p.preset, topics_param(self.p.topics))
         self.it = iter(self.bag)
-        self.groups = RestGroups()
-
-    @staticmethod
-    def _rig_key(s) -> bytes:
-        return b"".join(np.asarray(s.cameras[c][k], float).tobytes() for c in CAMS for k in ("K", "dist", "T_ecm_cam"))
 
     def _next(self):
         s, self.pending = self.pending, None
@@ -125,7 +111,7 @@ class RosbagNode(CameraSourceNode):
 
     def step(self):
         from common.ros.bag import BagError
-        from common.ros.convert import truth_projections
+        from common.ros.convert import RestGroups
         if self.p.count and self.published >= self.p.count:
             s = None
         else:
@@ -138,35 +124,13 @@ class RosbagNode(CameraSourceNode):
         if s is None:
             self.publish("eos", EndOfStream(frames=self.published, stamp_ns=time.time_ns()))
             return False
-        if self.published == 0:
-            self._publish_calib(force=True)
-        key = self._rig_key(s)
-        if key != self.rig_key:          # camera_info changed: the new rig goes out first
-            self.rig_key = key
-            self.calib = calibration_of(s, self.needle, self.calib.source, self.calib.ecm)
-            self._publish_calib(force=True)
+        if s.index == 0:
+            self.out.groups = RestGroups()      # a new pass over the bag
+        self.out.calibrate(s)                 # before the first frame, and when camera_info changes
         self._pace(s)
         seq = s.index + self.loops * (self.n_frames or 0)
-        stamp = s.stamp_ns
-        for c in CAMS:
-            self.publish(c, CameraImage.from_bgr(c, seq, stamp, s.images[c], self.p.encoding))
-        if s.T_world_ecm is not None:
-            self.publish("measured", EcmPose(seq, stamp, np.asarray(s.T_world_ecm, float),
-                                             None if s.ecm_joints is None else np.asarray(s.ecm_joints, float)))
-        if s.T_world_needle is not None and s.T_world_ecm is not None:
-            from common.geometry.camera import StereoRig
-            rig = StereoRig.from_dict(self.calib.cameras, self.calib.image_size)
-            kp, vis, box = truth_projections(rig, self.needle, s.T_world_ecm, s.T_world_needle)
-            sequence, step = self.groups(s.T_world_needle)
-            self.publish("truth", GroundTruth(
-                seq=seq, stamp_ns=stamp, sequence=sequence + 1_000_000 * self.loops, step=step,
-                ecm_joints=s.ecm_joints, T_world_ecm=s.T_world_ecm, T_world_needle=s.T_world_needle,
-                keypoints=None if kp is None else {c: np.asarray(kp[c], float) for c in CAMS},
-                visible=None if vis is None else {c: np.asarray(vis[c], bool) for c in CAMS},
-                bbox=None if box is None else {c: None if box[c] is None else np.asarray(box[c], float)
-                                               for c in CAMS}))
+        self.out.publish(s, seq, s.stamp_ns, 1_000_000 * self.loops)
         self.published += 1
-        self._publish_calib()
         return True
 
     def teardown(self):
