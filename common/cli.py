@@ -23,6 +23,7 @@ COMMANDS = {
     "dataset": ("common.sim.cli:main", "make and check datasets"),
     "train": ("common.detector.train:main", "train the keypoint detector"),
     "eval": ("common.evaluation.cli:main", "evaluate pose pipelines"),
+    "record": ("common.ros.record:record_main", "record a running graph to MCAP with ROS 2 schemas"),
 }
 
 BENCHES = {

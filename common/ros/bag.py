@@ -33,11 +33,16 @@ from common.ros.images import ImageError, image_to_bgr
 from common.ros.topicmap import TopicMapError, candidates, load_topic_map, resolve_rig
 
 IMAGE_TYPES = ("sensor_msgs/msg/Image", "sensor_msgs/msg/CompressedImage")
+TIMED_ROLES = ("ecm_joints", "ecm_pose", "needle_pose", "camera_frame")
 CAMS = ("left", "right")
 
 
 class BagError(ValueError):
     """A bag that cannot give stereo frames; the text names the bag, topic and what is wrong."""
+
+
+class _NotReady(Exception):
+    """A pair that came before a state it needs (camera_info, camera states): skipped, counted."""
 
 
 @dataclass
@@ -109,6 +114,9 @@ class StereoAssembler:
         self.state: dict = {}
         self.queues = {"left": deque(), "right": deque()}
         self.index = 0
+        self.has_role = {r for r, _ in roles.values()}
+        self.hist: dict = {}             # time-varying states: role -> deque of (stamp or None, msg)
+        self.pending: deque = deque()    # completed pairs waiting for their states
 
     # ------------------------------------------------------------------ helpers
 
@@ -141,6 +149,8 @@ class StereoAssembler:
             if len(D) not in (0, 4, 5, 8, 12, 14):
                 raise BagError(f"{self.path}: camera_info.{cam}: {len(D)} distortion coefficients")
             return K, (D if len(D) else np.zeros(5))
+        if "camera_info" in self.has_role:
+            raise _NotReady("camera_info")
         fovy = self.map.get("fovy_rad")
         if fovy is None:
             raise BagError(f"{self.path}: no intrinsics for the {cam} camera: the bag has no camera_info "
@@ -151,6 +161,8 @@ class StereoAssembler:
         if self.scale is not None:
             return
         cs = state.get("camera_state", {})
+        if not ("left" in cs and "right" in cs) and "camera_state" in self.has_role:
+            raise _NotReady("camera_states")
         if "left" in cs and "right" in cs:
             b = float(np.linalg.norm(pose_of(cs["left"])[:3, 3] - pose_of(cs["right"])[:3, 3]))
             try:
@@ -171,6 +183,8 @@ class StereoAssembler:
             return {c: pose_of(cs[c], self.scale) @ fix for c in CAMS}
         if reg is not None:
             return {c: np.asarray(reg[c], float) for c in CAMS}
+        if "camera_state" in self.has_role:
+            raise _NotReady("camera_states")
         raise BagError(f"{self.path}: no camera poses: the bag has no camera State topics and the topic map "
                        f"gives no registration (T_ecm_cam of left and right)")
 
@@ -211,17 +225,20 @@ class StereoAssembler:
         return StereoSample(index, left[0], imgs, cams, (w, h), q, T_world_ecm, T_world_needle)
 
     def feed(self, topic: str, msg) -> list:
-        """Take one message of a used topic; returns the stereo samples it completes."""
+        """Take one message of a used topic; returns the stereo samples it completes.
+
+        A pair goes out once every time-varying state seen so far (ECM joints and pose, needle
+        pose, CameraFrame) has a message stamped at or after it (or two newer pairs wait), with
+        for each the message stamped last at or before the pair (the latest received when none
+        is): states recorded just after their images still belong to them."""
         role, cam = self.topic_role[topic]
-        out = []
         if role == "image":
             self.queues[cam].append((stamp_ns(msg.header), msg))
             L, R = self.queues["left"], self.queues["right"]
             while L and R:
                 dl, dr = L[0][0], R[0][0]
                 if abs(dl - dr) <= self.tol_ns:
-                    out.append(self._sample(self.index, L.popleft(), R.popleft(), self.state))
-                    self.index += 1
+                    self.pending.append((L.popleft(), R.popleft()))
                 elif dl < dr:
                     L.popleft()
                     self.counts["unpaired_left"] += 1
@@ -232,18 +249,52 @@ class StereoAssembler:
                 while len(q) > 64:
                     q.popleft()
                     self.counts["unpaired_left" if q is L else "unpaired_right"] += 1
+        elif role in TIMED_ROLES:
+            hdr = getattr(msg, "header", None)
+            self.hist.setdefault(role, deque(maxlen=256)).append((None if hdr is None else stamp_ns(hdr), msg))
         elif cam is not None:
             self.state.setdefault(role, {})[cam] = msg
         else:
             self.state[role] = msg
+        return self._release(final=False)
+
+    def _caught_up(self, t: int) -> bool:
+        return all(h[-1][0] is None or h[-1][0] >= t - self.tol_ns for h in self.hist.values() if h)
+
+    def _state_at(self, t: int) -> dict:
+        state = dict(self.state)
+        for role, h in self.hist.items():
+            best = None
+            for st, msg in h:
+                if st is None or st <= t + self.tol_ns:
+                    if best is None or st is None or best[0] is None or st >= best[0]:
+                        best = (st, msg)
+            state[role] = (best or h[-1])[1]
+        return state
+
+    def _release(self, final: bool) -> list:
+        out = []
+        while self.pending:
+            left, right = self.pending[0]
+            if not final and len(self.pending) <= 2 and not self._caught_up(left[0]):
+                break
+            self.pending.popleft()
+            try:
+                out.append(self._sample(self.index, left, right, self._state_at(left[0])))
+                self.index += 1
+            except _NotReady as why:
+                key = f"waiting_for_{why}"
+                self.counts[key] = self.counts.get(key, 0) + 1
         return out
 
-    def finish(self) -> None:
-        """End of stream: images still waiting for a partner count as unpaired."""
+    def finish(self) -> list:
+        """End of stream: the pairs still waiting go out; images without a partner are counted."""
+        out = self._release(final=True)
         self.counts["unpaired_left"] += len(self.queues["left"])
         self.counts["unpaired_right"] += len(self.queues["right"])
         self.queues["left"].clear()
         self.queues["right"].clear()
+        return out
 
 
 def resolve_roles(m: dict, topics: dict, where: str) -> dict:
@@ -324,4 +375,4 @@ class BagStereo:
             except Exception as exc:
                 raise BagError(f"{self.path}: {conn.topic}: cannot deserialise a {conn.msgtype}: {exc}") from None
             yield from self.asm.feed(conn.topic, msg)
-        self.asm.finish()
+        yield from self.asm.finish()

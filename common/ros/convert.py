@@ -132,7 +132,7 @@ def from_bag(bag: str, out: str, preset: str | None = None, topics=None, image_f
         if writer is None:
             raise BagError(f"{bag}: no stereo pair found on {src.info['topics'].get('image.left')} and "
                            f"{src.info['topics'].get('image.right')} (left/right header stamps within "
-                           f"{src.map['stereo_tolerance_ms']} ms; unpaired: {src.counts})")
+                           f"{src.map['stereo_tolerance_ms']} ms; images left out: {src.counts})")
         return {"frames": n, "with_truth": truth, "unit": src.info.get("unit"), "topics": src.info["topics"],
                 "unpaired": dict(src.counts), "image_size": list(meta.image_size),
                 "seconds": time.perf_counter() - t0}
