@@ -33,6 +33,8 @@ BENCHES = {
     "graph": ("common.evaluation.graph_bench:main", "the full graph end to end"),
     "refine": ("common.evaluation.refine_bench:main", "dense pose refinement speed and accuracy (synthetic)"),
     "geometry": ("common.evaluation.geometry_bench:main", "pose methods (PnP, triangulation, fusion) vs keypoint noise, on the oracle"),
+    "ros-bag": ("common.ros.bench:bag_main", "ROS bag read speed (stereo frames/s)"),
+    "ros-live": ("common.ros.bench:live_main", "latency the live ROS 2 path adds (p50/p99) against the native graph"),
 }
 
 
