@@ -51,7 +51,8 @@ class SamplePublisher:
         self.calibrate(s)
         node = self.node
         for c in CAMS:
-            node.publish(c, CameraImage.from_bgr(c, seq, stamp_ns, s.images[c], self.encoding))
+            # the sample's arrays are fresh and not modified after: no copy for raw bgr8
+            node.publish(c, CameraImage.from_bgr(c, seq, stamp_ns, s.images[c], self.encoding, copy=False))
         if s.T_world_ecm is not None:
             node.publish("measured", EcmPose(seq, stamp_ns, np.asarray(s.T_world_ecm, float),
                                              None if s.ecm_joints is None else np.asarray(s.ecm_joints, float)))
