@@ -75,14 +75,15 @@ class Ros2Node(CameraSourceNode):
         from common.ros.bag import StereoAssembler
         from common.ros.live import topic_key
         from common.ros.source import SamplePublisher, topics_param
-        from common.ros.topicmap import TopicMapError, candidates, load_topic_map
+        from common.ros.topicmap import TopicMapError, candidates, load_topic_map, resolve_rig_name
         p = self.p
         try:
             m = load_topic_map(p.preset, topics_param(p.topics))
         except TopicMapError as exc:
             raise NodeError(str(exc)) from None
-        m = json.loads(json.dumps(m, default=lambda a: a.tolist()).replace("{rig}", p.rig)) if p.rig else m
-        if "{rig}" in json.dumps(m, default=lambda a: a.tolist()):
+        if p.rig:
+            m = resolve_rig_name(m, p.rig)
+        if "{rig}" in json.dumps(m["images"]) + json.dumps(m.get("camera_info")):
             raise NodeError("the dvrk preset's topics name the stereo rig: set param 'rig' (e.g. jhu_daVinci) "
                             "or give images/camera_info topics in a topic map")
         if p.preset == "ambf" and m.get("unit") == "auto" and not m.get("camera_states"):

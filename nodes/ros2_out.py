@@ -28,20 +28,10 @@ from typing import Literal
 import numpy as np
 
 from common.runtime.messages import Calibration, PoseEstimate
+from common.ros.conventions import ros_covariance
 from common.runtime.node import Node, NodeError, run
 
 UNITS = {"m": 1.0, "dm": 0.1, "cm": 0.01, "mm": 0.001}
-
-
-def ros_covariance(cov_rt: np.ndarray, R_frame_ecm: np.ndarray, scale: float) -> np.ndarray:
-    """(6, 6) over [rotvec, translation] in the ECM frame -> ROS's (x, y, z, rx, ry, rz) in the
-    header frame, positions divided by ``scale`` (metres per unit)."""
-    from common.geometry.fusion import covariance_to_frame
-    c = covariance_to_frame(np.asarray(cov_rt, float), R_frame_ecm)
-    P = np.zeros((6, 6))
-    P[0:3, 3:6] = np.eye(3) / scale      # translation first
-    P[3:6, 0:3] = np.eye(3)
-    return P @ c @ P.T
 
 
 class Ros2OutNode(Node):

@@ -14,7 +14,7 @@ import zenoh.ext
 from common.data.dataset import Dataset
 from common.geometry.transforms import inv_T, pose_error
 from common.ros import build
-from common.ros.conventions import pose_to_T
+from common.ros.conventions import pose_to_T, ros_covariance
 from common.ros.live import (
     attachment,
     dds_type_name,
@@ -29,7 +29,6 @@ from common.ros.live import (
 from common.ros.types import typestore
 from common.sim.cli import main as dataset_main
 from graphtools import free_port
-from nodes.ros2_out import ros_covariance
 
 RIG = "jhu_daVinci"
 

@@ -181,3 +181,21 @@ def test_pairs_need_stamps_within_the_tolerance(ds640, tmp_path):
     assert s["frames"] == 2 and s["with_truth"] == 0
     ds = Dataset(tmp_path / "b")
     np.testing.assert_allclose(ds.rig.left.K, src.rig.left.K)      # fovy 1.2 at 640x480
+
+
+def test_topic_maps_name_what_is_wrong(tmp_path):
+    from common.ros.topicmap import TopicMapError, load_topic_map
+    bad = tmp_path / "map.yaml"
+    bad.write_text("preset: dvrk\nimage: {left: /a, right: /b}\n")
+    with pytest.raises(TopicMapError, match=r"map.yaml: unknown key 'image'"):
+        load_topic_map(None, str(bad))
+    with pytest.raises(TopicMapError, match=r"registration: expected \{left: 4x4 T_ecm_cam"):
+        load_topic_map("dvrk", {"registration": {"left": np.eye(4).tolist()}})
+    with pytest.raises(TopicMapError, match=r"left: expected a 4x4 rigid transform"):
+        load_topic_map("dvrk", {"registration": {"left": np.ones((4, 4)).tolist(), "right": np.eye(4).tolist()}})
+    with pytest.raises(TopicMapError, match="unit: must be one of"):
+        load_topic_map("ambf", {"unit": "furlong"})
+    (tmp_path / "reg.yaml").write_text(f"T_ecm_cam: {{left: {np.eye(4).tolist()}, right: {np.eye(4).tolist()}}}\n")
+    bad.write_text("preset: dvrk\nregistration: reg.yaml\n")          # relative to the map's folder
+    m = load_topic_map(None, str(bad))
+    assert np.array_equal(m["registration"]["right"], np.eye(4)) and m["preset"] == "dvrk"

@@ -86,3 +86,14 @@ def stamp_ns(header) -> int:
     if nsec is None:
         nsec = getattr(s, "nsecs", 0)
     return int(sec) * 1_000_000_000 + int(nsec)
+
+
+def ros_covariance(cov_rt: np.ndarray, R_frame_ecm: np.ndarray, scale: float) -> np.ndarray:
+    """(6, 6) over [rotvec, translation] in the ECM frame -> ROS's (x, y, z, rx, ry, rz) in the
+    header frame, positions divided by ``scale`` (metres per unit)."""
+    from common.geometry.fusion import covariance_to_frame
+    c = covariance_to_frame(np.asarray(cov_rt, float), R_frame_ecm)
+    P = np.zeros((6, 6))
+    P[0:3, 3:6] = np.eye(3) / scale      # translation first
+    P[3:6, 0:3] = np.eye(3)
+    return P @ c @ P.T

@@ -76,7 +76,7 @@ def _pose_stamped(st, T, stamp, frame):
 def ros_messages(base: str, msg) -> list:
     """[(topic, ROS 2 message)] of a graph message published on ``/<node>/<output>`` = ``base``."""
     from common.runtime import messages as M
-    from nodes.ros2_out import ros_covariance
+    from common.ros.conventions import ros_covariance
     st = typestore(2)
     out = []
     if isinstance(msg, M.CameraImage):

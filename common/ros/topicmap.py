@@ -181,8 +181,11 @@ def resolve_rig(m: dict, topics) -> dict:
         raise TopicMapError(f"preset {m.get('preset')}: {what} stereo rig found: expected topics like "
                             f"{pats[0]} and its right twin among {sorted(topics)[:20]}; give images: "
                             f"{{left: TOPIC, right: TOPIC}} in a topic map (--topics)")
-    rig = rigs.pop()
+    return resolve_rig_name(m, rigs.pop())
 
+
+def resolve_rig_name(m: dict, rig: str) -> dict:
+    """The map with ``{rig}`` in its image and camera_info topics replaced by ``rig``."""
     def sub(v):
         if isinstance(v, str):
             return v.replace("{rig}", rig)
