@@ -24,6 +24,7 @@ COMMANDS = {
     "dataset": ("common.sim.cli:main", "make and check datasets"),
     "train": ("common.detector.train:main", "train the keypoint detector"),
     "eval": ("common.evaluation.cli:main", "evaluate pose pipelines"),
+    "record": ("common.ros.record:record_main", "record a running graph to MCAP with ROS 2 schemas"),
 }
 
 BENCHES = {
@@ -34,6 +35,8 @@ BENCHES = {
     "refine": ("common.evaluation.refine_bench:main", "dense pose refinement speed and accuracy (synthetic)"),
     "end-identity": ("common.evaluation.end_identity_bench:main", "tip vs tail: the detector's end identity on dataset folders"),
     "geometry": ("common.evaluation.geometry_bench:main", "pose methods (PnP, triangulation, fusion) vs keypoint noise, on the oracle"),
+    "ros-bag": ("common.ros.bench:bag_main", "ROS bag read speed (stereo frames/s)"),
+    "ros-live": ("common.ros.bench:live_main", "latency the live ROS 2 path adds (p50/p99) against the native graph"),
 }
 
 

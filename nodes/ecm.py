@@ -1,6 +1,9 @@
 """ECM kinematics node: joint states -> endoscope pose ``T_world_ecm`` (common/geometry/ecm_kinematics.py).
 
-Inputs: ``joints`` (EcmJoints, every message is used), ``calib`` (Calibration, optional).
+Inputs: ``joints`` (EcmJoints, every message is used), ``calib`` (Calibration, optional),
+``measured`` (EcmPose, optional: a measured endoscope pose, e.g. a dVRK's or AMBF's
+``measured_cp`` played from a bag or a dataset without joints: passed on with the cameras' poses
+added; a source sends a frame either joints or a measured pose).
 Output: ``pose`` (EcmPose with the same ``seq``/``stamp_ns`` and ``q``; with a calibration, also
 the cameras' poses ``T_world_left`` and ``T_world_right``).
 
@@ -42,9 +45,9 @@ def arm_from_params(params: dict) -> EcmArm | None:
 class EcmNode(Node):
     """Forward kinematics of the endoscope arm at the rate joint states arrive."""
 
-    INPUTS = {"joints": EcmJoints, "calib": Calibration}
+    INPUTS = {"joints": EcmJoints, "calib": Calibration, "measured": EcmPose}
     OUTPUTS = ("pose",)
-    KEEP_ALL = ("joints", "calib")
+    KEEP_ALL = ("joints", "calib", "measured")
 
     @dataclass
     class Params:
@@ -91,6 +94,14 @@ class EcmNode(Node):
             return
         cams = {f"T_world_{name}": T @ T_cam for name, T_cam in self.T_ecm_cams.items()}
         self.publish("pose", EcmPose(msg.seq, msg.stamp_ns, T, np.asarray(msg.q, dtype=float), **cams))
+
+    def on_measured(self, msg: EcmPose):
+        if self.wired("calib") and not self.have_calib:
+            self.count("no_pose.no_calibration")
+            return
+        T = np.asarray(msg.T_world_ecm, dtype=float)
+        cams = {f"T_world_{name}": T @ T_cam for name, T_cam in self.T_ecm_cams.items()}
+        self.publish("pose", EcmPose(msg.seq, msg.stamp_ns, T, msg.q, **cams))
 
 
 NODE = EcmNode

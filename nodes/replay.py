@@ -2,7 +2,8 @@
 
 Outputs as ``sim``: ``left``/``right`` (``CameraImage`` carrying the PNG/JPEG file bytes as
 they are, ``seq`` = frame index, plus ``loop * frames`` when looping), ``joints`` (when the
-folder has ``ecm_joints``), ``truth`` (when it has any ground truth), ``calib`` (before the first
+folder has ``ecm_joints``), ``measured`` (``EcmPose`` of a frame with ``T_world_ecm`` but no
+joints, e.g. a converted bag: wire it to the ``ecm`` node's ``measured`` input), ``truth`` (when it has any ground truth), ``calib`` (before the first
 frame, then once a second), and ``eos`` (``EndOfStream``) after the last frame when not looping.
 ``stamp_ns`` is the wall-clock time of publishing (the recorded stamps set the pace).
 
@@ -35,6 +36,7 @@ from common.runtime.messages import (
     Calibration,
     CameraImage,
     EcmJoints,
+    EcmPose,
     EndOfStream,
     GroundTruth,
 )
@@ -80,7 +82,7 @@ def truth_message(fr, seq: int, stamp_ns: int):
 class ReplayNode(CameraSourceNode):
     """Dataset folder source."""
 
-    OUTPUTS = ("left", "right", "joints", "truth", "calib", "eos")
+    OUTPUTS = ("left", "right", "joints", "measured", "truth", "calib", "eos")
     INPUTS = {"ack": None, "ack2": None}     # any message with a ``seq`` (``rate: paced``)
     KEEP_ALL = ACKS
 
@@ -240,6 +242,8 @@ class ReplayNode(CameraSourceNode):
             self.publish(cam, msg)
         if fr.ecm_joints is not None:
             self.publish("joints", EcmJoints(seq, stamp, np.asarray(fr.ecm_joints, float)))
+        elif fr.T_world_ecm is not None:
+            self.publish("measured", EcmPose(seq, stamp, np.asarray(fr.T_world_ecm, float)))
         truth = truth_message(fr, seq, stamp)
         if truth is not None:
             self.publish("truth", truth)

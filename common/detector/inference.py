@@ -457,13 +457,17 @@ class KeypointDetector:
         shape, r_a, r_e = shape_evidence(img, res["centreline"])
         return EndEvidence(shape, net, r_a, r_e)
 
-    def _not_an_ellipse(self, res) -> str | None:
+    def _not_an_ellipse(self, res, undistort=None) -> str | None:
         """Why the sub-pixel centreline is not the image of a circle (None if it is, or when it
-        cannot be judged: no sub-pixel centreline, or fewer than MIN_ELLIPSE_POINTS stations)."""
+        cannot be judged: no sub-pixel centreline, or fewer than MIN_ELLIPSE_POINTS stations).
+        ``undistort`` (observed pixels -> ideal pinhole pixels) first takes out the lens
+        distortion, under which a circle's image is no ellipse."""
         if not (self.max_ellipse_px > 0 and res.get("centreline_sigma") is not None):
             return None
         pts = res["centreline"][res["centreline_w"] > 0]
         pts = pts[np.isfinite(pts).all(axis=1)]
+        if undistort is not None and len(pts):
+            pts = undistort(pts)
         if len(pts) < MIN_ELLIPSE_POINTS:
             return None
         med, share = ellipse_residual(pts)
@@ -474,9 +478,12 @@ class KeypointDetector:
 
     # ------------------------------------------------------------ public
     @torch.inference_mode()
-    def detect(self, image, camera: str = "left", seq: int = 0, stamp_ns: int = 0) -> Keypoints:
-        """Keypoints of one BGR image (h, w, 3) uint8; "no needle" with a reason when the image is
-        unusable or the confidence is below the threshold."""
+    def detect(self, image, camera: str = "left", seq: int = 0, stamp_ns: int = 0,
+               undistort=None) -> Keypoints:
+        """Keypoints of one BGR image (h, w, 3) uint8, in the image's own (distorted) pixels;
+        "no needle" with a reason when the image is unusable or the confidence is below the
+        threshold. ``undistort`` (pixels -> ideal pinhole pixels, for a camera with distortion)
+        is used where the detector's checks assume a pinhole (the ellipse test)."""
         problem = image_problem(image)
         if problem:
             self.reset(camera)
@@ -527,7 +534,7 @@ class KeypointDetector:
                                        f"no needle: keypoints collapsed ({extent:.1f} px apart "
                                        f"< min_extent_px {self.min_extent_px:g})", conf)
         self._finish(res, img)
-        not_ellipse = self._not_an_ellipse(res)
+        not_ellipse = self._not_an_ellipse(res, undistort)
         if not_ellipse:
             self.reset(camera)
             return Keypoints.not_found(camera, seq, stamp_ns, self.name, f"no needle: {not_ellipse}", conf)
@@ -584,4 +591,14 @@ class LearnedBackend(KeypointBackend):
             raise BackendError(f"learned backend: {exc}") from exc
 
     def detect(self, image, camera, truth, calib, *, seq=0, stamp_ns=0) -> Keypoints:
-        return self.detector.detect(image, camera, seq, stamp_ns)
+        return self.detector.detect(image, camera, seq, stamp_ns, undistort=_undistorter(calib, camera))
+
+
+def _undistorter(calib, camera: str):
+    """pixels -> ideal pixels of ``camera`` from a Calibration, or None without distortion."""
+    cam = None if calib is None else calib.cameras.get(camera)
+    if not cam or cam.get("dist") is None or not np.any(np.asarray(cam["dist"], float)):
+        return None
+    from common.geometry.camera import undistort_pixels
+    K, dist = np.asarray(cam["K"], float), np.asarray(cam["dist"], float)
+    return lambda uv: undistort_pixels(K, dist, uv)

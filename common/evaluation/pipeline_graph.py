@@ -96,7 +96,7 @@ def pipeline_graph(dataset: str, *, detector: str = "learned", detector_params: 
         {"id": SOURCE, "module": "replay",
          "params": {"path": str(Path(dataset).resolve()), "rate": rate, "loop": bool(loop),
                     "count": int(count), "decode": bool(decode)},
-         "outputs": ["left", "right", "joints", "truth", "calib", "eos"]}]
+         "outputs": ["left", "right", "joints", "measured", "truth", "calib", "eos"]}]
     if split_detector:   # one process per camera: the two images are detected in parallel
         for cam in ("left", "right"):
             nodes.append({"id": f"detector_{cam}", "module": "detector", "params": dict(det_params),
@@ -111,7 +111,8 @@ def pipeline_graph(dataset: str, *, detector: str = "learned", detector_params: 
     if paced:
         nodes[0]["inputs"] = {"ack": kp["left"], "ack2": kp["right"]}
     nodes += [
-        {"id": "ecm", "module": "ecm", "inputs": {"joints": "replay/joints", "calib": "replay/calib"},
+        {"id": "ecm", "module": "ecm", "inputs": {"joints": "replay/joints", "calib": "replay/calib",
+                                                  "measured": "replay/measured"},
          "outputs": ["pose"], "env": one},
     ]
     stereo = {**kp, "calib": "replay/calib", "ecm": "ecm/pose"}

@@ -15,6 +15,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from common.geometry.camera import Camera, StereoRig
+from common.geometry.camera import undistort_pixels as _undistort
 
 REASONS = ("too_few_points", "non_finite", "coincident", "collinear", "behind_camera",
            "solver_failed", "high_residual", "unsure_keypoints")
@@ -59,12 +60,7 @@ def usable_mask(uv, scores=None, min_score: float = 0.5) -> np.ndarray:
 
 def undistort_pixels(camera: Camera, uv: np.ndarray) -> np.ndarray:
     """(N, 2) observed pixels -> ideal pinhole pixels with the same K (no-op without distortion)."""
-    uv = np.asarray(uv, dtype=float).reshape(-1, 2)
-    if not np.any(camera.dist) or len(uv) == 0:
-        return uv.copy()
-    import cv2
-    out = cv2.undistortPoints(uv.reshape(-1, 1, 2), camera.K, camera.dist, P=camera.K)
-    return out.reshape(-1, 2)
+    return _undistort(camera.K, camera.dist, uv)
 
 
 def check_spread(uv: np.ndarray, where: str = "", min_spread_px: float = 1.0,

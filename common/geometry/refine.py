@@ -491,11 +491,8 @@ class _Problem:
 
 
 def _undistort(cam, uv):
-    uv = np.asarray(uv, float).reshape(-1, 2)
-    if not np.any(cam.dist) or len(uv) == 0:
-        return uv
-    import cv2
-    return cv2.undistortPoints(uv.reshape(-1, 1, 2), cam.K, cam.dist, P=cam.K).reshape(-1, 2)
+    from common.geometry.camera import undistort_pixels
+    return undistort_pixels(cam.K, cam.dist, uv)
 
 
 def _select_curve(name: str, pts, w, m: int, w_min: float):

@@ -1,0 +1,378 @@
+"""Stereo frames out of a ROS bag: ROS 1 ``.bag``, ROS 2 ``.db3`` or ``.mcap`` (a file or a bag
+directory), read with ``rosbags`` (no ROS installation).
+
+``BagStereo(path, preset, topics)`` iterates ``StereoSample``s in bag order: the left and right
+images paired by header stamp (within ``stereo_tolerance_ms``; an image without a partner is
+dropped and counted), with the intrinsics (camera_info, or the vertical field of view), the
+cameras' poses ``T_ecm_cam`` (OpenCV axes, metres), and, when the bag has them, the ECM joints,
+``T_world_ecm`` and the ground-truth ``T_world_needle`` (dataset needle frame, metres). States
+(joints, poses, camera_info) are the last ones the bag holds before the pair completes.
+The conventions (frames, fixed transforms, units) are in ``common/ros/conventions.py`` and
+docs/ros.md.
+"""
+from __future__ import annotations
+
+from collections import deque
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Optional
+
+import numpy as np
+
+from common.geometry.camera import intrinsics_from_fovy
+from common.geometry.needle import NeedleModel
+from common.ros.conventions import (
+    T_AMBF_NEEDLE,
+    T_AMBFCAM_CV,
+    infer_ambf_unit,
+    pose_to_T,
+    stamp_ns,
+    unit_scale,
+)
+from common.ros.images import ImageError, image_to_bgr
+from common.ros.topicmap import TopicMapError, candidates, load_topic_map, resolve_rig
+
+IMAGE_TYPES = ("sensor_msgs/msg/Image", "sensor_msgs/msg/CompressedImage")
+TIMED_ROLES = ("ecm_joints", "ecm_pose", "needle_pose", "camera_frame")
+CAMS = ("left", "right")
+
+
+class BagError(ValueError):
+    """A bag that cannot give stereo frames; the text names the bag, topic and what is wrong."""
+
+
+class _NotReady(Exception):
+    """A pair that came before a state it needs (camera_info, camera states): skipped, counted."""
+
+
+@dataclass
+class StereoSample:
+    """One stereo frame of a bag. Poses 4x4 in metres; ``K`` 3x3 px; ``dist`` OpenCV order."""
+
+    index: int
+    stamp_ns: int
+    images: dict                               # {camera: (h, w, 3) uint8 BGR}
+    cameras: dict                              # {camera: {"K", "dist", "T_ecm_cam"}}
+    image_size: tuple                          # (w, h)
+    ecm_joints: Optional[np.ndarray] = None    # [yaw, pitch, insertion, roll] rad, rad, m, rad
+    T_world_ecm: Optional[np.ndarray] = None
+    T_world_needle: Optional[np.ndarray] = None
+    info: dict = field(default_factory=dict)
+
+
+def pose_of(msg, scale: float = 1.0) -> np.ndarray:
+    """T from a PoseStamped, Pose, PoseWithCovariance(Stamped), TransformStamped, Transform
+    or ambf RigidBodyState/CameraState message; positions times ``scale``."""
+    m = msg
+    for _ in range(3):
+        if hasattr(m, "position") and hasattr(m, "orientation"):
+            return pose_to_T(m, scale)
+        if hasattr(m, "translation") and hasattr(m, "rotation"):
+            class _P:  # a Transform read as a Pose
+                position, orientation = m.translation, m.rotation
+            return pose_to_T(_P, scale)
+        m = getattr(m, "pose", None) or getattr(m, "transform", None)
+        if m is None:
+            break
+    raise ValueError(f"{getattr(msg, '__msgtype__', type(msg).__name__)} carries no pose")
+
+
+def open_reader(path):
+    """An opened rosbags AnyReader over ``path`` (ROS 1 .bag, ROS 2 .db3/.mcap file or directory)."""
+    from rosbags.highlevel import AnyReader
+
+    from common.ros.types import typestore
+    p = Path(path)
+    if not p.exists():
+        raise BagError(f"{p}: no such bag file or folder")
+    try:
+        reader = AnyReader([p], default_typestore=typestore(2))
+        reader.open()
+    except Exception as exc:   # rosbags raises its own reader errors for unreadable bags
+        raise BagError(f"{p}: not a readable ROS 1 .bag or ROS 2 .db3/.mcap bag: {exc}") from None
+    return reader
+
+
+class StereoAssembler:
+    """Turns a stream of deserialised ROS messages into ``StereoSample``s, whatever carries them
+    (a bag, or live ROS 2 on Zenoh): ``feed(topic, msg)`` returns the samples completed by that
+    message (a list, usually empty or one). ``m`` is a resolved topic map; ``where`` names the
+    source in errors. ``roles`` maps each used topic to (role, camera or None)."""
+
+    def __init__(self, m: dict, where: str, roles: dict):
+        self.map, self.path, self.topic_role = m, where, roles
+        self.info = {"source": where, "preset": m.get("preset"),
+                     "topics": {r + (f".{c}" if c else ""): t for t, (r, c) in roles.items()}}
+        self.tol_ns = int(m["stereo_tolerance_ms"] * 1e6)
+        self.counts = {"unpaired_left": 0, "unpaired_right": 0}
+        self.scale = None if m["unit"] == "auto" else unit_scale(m["unit"])
+        if self.scale is not None:
+            self.info["unit"] = m["unit"]
+        self.T_given_needle = m.get("T_given_needle")
+        if self.T_given_needle is None:
+            self.T_given_needle = T_AMBF_NEEDLE if m["needle_frame"] == "ambf" else np.eye(4)
+        self.state: dict = {}
+        self.queues = {"left": deque(), "right": deque()}
+        self.index = 0
+        self.has_role = {r for r, _ in roles.values()}
+        self.hist: dict = {}             # time-varying states: role -> deque of (stamp or None, msg)
+        self.pending: deque = deque()    # completed pairs waiting for their states
+
+    # ------------------------------------------------------------------ helpers
+
+    def needle_model(self) -> NeedleModel:
+        """The needle: the map's ``needle``, else the preset's radius in metres, else the default."""
+        nd = self.map.get("needle")
+        if nd:
+            return NeedleModel(radius_m=float(nd["radius_m"]),
+                               keypoint_angles_deg=tuple(nd.get("keypoint_angles_deg", (30, 60, 90, 120, 150))))
+        if self.map.get("needle_radius_units") and self.scale is not None:
+            return NeedleModel(radius_m=float(self.map["needle_radius_units"]) * self.scale)
+        return NeedleModel()
+
+    # ------------------------------------------------------------------ iteration
+
+    def _intrinsics(self, cam: str, info_msg, w: int, h: int):
+        if info_msg is not None:
+            K = np.asarray(getattr(info_msg, "k", getattr(info_msg, "K", None)), float).reshape(3, 3)
+            D = np.asarray(getattr(info_msg, "d", getattr(info_msg, "D", [])), float).reshape(-1)
+            if (int(info_msg.width), int(info_msg.height)) not in ((w, h), (0, 0)):
+                raise BagError(f"{self.path}: {self.info['topics'].get('camera_info.' + cam)}: camera_info says "
+                               f"{info_msg.width}x{info_msg.height}, the images are {w}x{h}")
+            if K[0, 0] <= 0:
+                raise BagError(f"{self.path}: {self.info['topics'].get('camera_info.' + cam)}: K is not a "
+                               f"camera matrix (uncalibrated camera?): {K.tolist()}")
+            model = str(getattr(info_msg, "distortion_model", "plumb_bob") or "plumb_bob")
+            if model not in ("plumb_bob", "rational_polynomial") and np.any(D):
+                raise BagError(f"{self.path}: camera_info.{cam}: distortion_model {model!r} is not supported "
+                               f"(plumb_bob, rational_polynomial)")
+            if len(D) not in (0, 4, 5, 8, 12, 14):
+                raise BagError(f"{self.path}: camera_info.{cam}: {len(D)} distortion coefficients")
+            return K, (D if len(D) else np.zeros(5))
+        if "camera_info" in self.has_role:
+            raise _NotReady("camera_info")
+        fovy = self.map.get("fovy_rad")
+        if fovy is None:
+            raise BagError(f"{self.path}: no intrinsics for the {cam} camera: the bag has no camera_info "
+                           f"topic and the topic map gives no fovy_rad")
+        return intrinsics_from_fovy(w, h, float(fovy)), np.zeros(5)
+
+    def _ensure_scale(self, state: dict) -> None:
+        if self.scale is not None:
+            return
+        cs = state.get("camera_state", {})
+        if not ("left" in cs and "right" in cs) and "camera_state" in self.has_role:
+            raise _NotReady("camera_states")
+        if "left" in cs and "right" in cs:
+            b = float(np.linalg.norm(pose_of(cs["left"])[:3, 3] - pose_of(cs["right"])[:3, 3]))
+            try:
+                unit = infer_ambf_unit(b)
+            except ValueError as exc:
+                raise BagError(f"{self.path}: {exc}") from None
+            self.scale = unit_scale(unit)
+            self.info["unit"] = f"{unit} (inferred from the cameras' baseline {b:.6g})"
+        else:
+            raise BagError(f"{self.path}: unit: auto needs both cameras' State topics to infer the unit "
+                           f"from the baseline; set unit: m|dm in a topic map")
+
+    def _camera_poses(self, state: dict) -> dict:
+        reg = self.map.get("registration")
+        cs = state.get("camera_state", {})
+        if "left" in cs and "right" in cs:
+            fix = T_AMBFCAM_CV if self.map["camera_axes"] == "ambf" else np.eye(4)
+            return {c: pose_of(cs[c], self.scale) @ fix for c in CAMS}
+        if reg is not None:
+            return {c: np.asarray(reg[c], float) for c in CAMS}
+        if "camera_state" in self.has_role:
+            raise _NotReady("camera_states")
+        raise BagError(f"{self.path}: no camera poses: the bag has no camera State topics and the topic map "
+                       f"gives no registration (T_ecm_cam of left and right)")
+
+    def _sample(self, index: int, left, right, state: dict) -> StereoSample:
+        imgs = {}
+        for c, (t, msg) in zip(CAMS, (left, right)):
+            try:
+                imgs[c] = image_to_bgr(msg, f"{self.path}: {self.info['topics']['image.' + c]}")
+            except ImageError as exc:
+                raise BagError(str(exc)) from None
+        h, w = imgs["left"].shape[:2]
+        if imgs["right"].shape[:2] != (h, w):
+            raise BagError(f"{self.path}: left image {w}x{h} and right image "
+                           f"{imgs['right'].shape[1]}x{imgs['right'].shape[0]} differ in size")
+        self._ensure_scale(state)
+        poses = self._camera_poses(state)
+        cams = {}
+        for c in CAMS:
+            K, D = self._intrinsics(c, state.get("camera_info", {}).get(c), w, h)
+            cams[c] = {"K": K, "dist": D, "T_ecm_cam": poses[c]}
+        T_world_ecm = None
+        if "camera_frame" in state:
+            T_world_ecm = pose_of(state["camera_frame"], self.scale)
+        elif "ecm_pose" in state:
+            T_world_ecm = pose_of(state["ecm_pose"], self.scale)
+        q = None
+        if "ecm_joints" in state:
+            pos = np.asarray(state["ecm_joints"].position, float).reshape(-1)
+            if len(pos) >= 4:
+                q = pos[:4].copy()
+                q[2] *= self.scale
+        if T_world_ecm is None and q is not None and self.map.get("ecm"):
+            from common.geometry.ecm_kinematics import EcmArm
+            T_world_ecm = EcmArm.from_dict(self.map["ecm"]).T_world_ecm(q)
+        T_world_needle = None
+        if "needle_pose" in state:
+            T_world_needle = pose_of(state["needle_pose"], self.scale) @ self.T_given_needle
+        return StereoSample(index, left[0], imgs, cams, (w, h), q, T_world_ecm, T_world_needle)
+
+    def feed(self, topic: str, msg) -> list:
+        """Take one message of a used topic; returns the stereo samples it completes.
+
+        A pair goes out once every time-varying state seen so far (ECM joints and pose, needle
+        pose, CameraFrame) has a message stamped at or after it (or two newer pairs wait), with
+        for each the message stamped last at or before the pair (the latest received when none
+        is): states recorded just after their images still belong to them."""
+        role, cam = self.topic_role[topic]
+        if role == "image":
+            self.queues[cam].append((stamp_ns(msg.header), msg))
+            L, R = self.queues["left"], self.queues["right"]
+            while L and R:
+                dl, dr = L[0][0], R[0][0]
+                if abs(dl - dr) <= self.tol_ns:
+                    self.pending.append((L.popleft(), R.popleft()))
+                elif dl < dr:
+                    L.popleft()
+                    self.counts["unpaired_left"] += 1
+                else:
+                    R.popleft()
+                    self.counts["unpaired_right"] += 1
+            for q in (L, R):            # a live stream with one camera gone: do not grow
+                while len(q) > 64:
+                    q.popleft()
+                    self.counts["unpaired_left" if q is L else "unpaired_right"] += 1
+        elif role in TIMED_ROLES:
+            hdr = getattr(msg, "header", None)
+            self.hist.setdefault(role, deque(maxlen=256)).append((None if hdr is None else stamp_ns(hdr), msg))
+        elif cam is not None:
+            self.state.setdefault(role, {})[cam] = msg
+        else:
+            self.state[role] = msg
+        return self._release(final=False)
+
+    def _caught_up(self, t: int) -> bool:
+        return all(h[-1][0] is None or h[-1][0] >= t - self.tol_ns for h in self.hist.values() if h)
+
+    def _state_at(self, t: int) -> dict:
+        state = dict(self.state)
+        for role, h in self.hist.items():
+            best = None
+            for st, msg in h:
+                if st is None or st <= t + self.tol_ns:
+                    if best is None or st is None or best[0] is None or st >= best[0]:
+                        best = (st, msg)
+            state[role] = (best or h[-1])[1]
+        return state
+
+    def _release(self, final: bool) -> list:
+        out = []
+        while self.pending:
+            left, right = self.pending[0]
+            if not final and len(self.pending) <= 2 and not self._caught_up(left[0]):
+                break
+            self.pending.popleft()
+            try:
+                out.append(self._sample(self.index, left, right, self._state_at(left[0])))
+                self.index += 1
+            except _NotReady as why:
+                key = f"waiting_for_{why}"
+                self.counts[key] = self.counts.get(key, 0) + 1
+        return out
+
+    def finish(self) -> list:
+        """End of stream: the pairs still waiting go out; images without a partner are counted."""
+        out = self._release(final=True)
+        self.counts["unpaired_left"] += len(self.queues["left"])
+        self.counts["unpaired_right"] += len(self.queues["right"])
+        self.queues["left"].clear()
+        self.queues["right"].clear()
+        return out
+
+
+def resolve_roles(m: dict, topics: dict, where: str) -> dict:
+    """``{topic: (role, camera)}`` of a topic map against the available ``topics`` ({topic:
+    type}): for each role the first alternative present; BagError naming what is missing."""
+    roles = {}
+
+    def pick(role, value, cam=None, required=False, types=None):
+        for t in candidates(value):
+            if t in topics:
+                if types and topics[t] not in types:
+                    raise BagError(f"{where}: topic {t} ({role}) has type {topics[t]}, "
+                                   f"expected {' or '.join(types)}")
+                roles[t] = (role, cam)
+                return t
+        if required:
+            listing = ", ".join(f"{t} ({ty})" for t, ty in sorted(topics.items())) or "none"
+            raise BagError(f"{where}: no {role} topic for the {cam} camera: looked for "
+                           f"{', '.join(candidates(value))}; the bag has: {listing}")
+        return None
+
+    for c in CAMS:
+        pick("image", m["images"][c], c, required=True, types=IMAGE_TYPES)
+        pick("camera_info", (m.get("camera_info") or {}).get(c), c, types=("sensor_msgs/msg/CameraInfo",))
+        pick("camera_state", (m.get("camera_states") or {}).get(c), c)
+    for role in ("ecm_joints", "ecm_pose", "needle_pose", "camera_frame"):
+        pick(role, m.get(role), types=("sensor_msgs/msg/JointState",) if role == "ecm_joints" else None)
+    return roles
+
+
+class BagStereo:
+    """Iterate a bag's stereo frames (see the module docstring). ``preset`` ambf | dvrk | None;
+    ``topics`` a topic map (YAML path or dict). ``info`` says which topics and unit were used;
+    ``counts`` how many images went unpaired."""
+
+    def __init__(self, path, preset: str | None = None, topics=None):
+        self.path = str(path)
+        self.reader = open_reader(path)
+        self.types = {c.topic: c.msgtype for c in self.reader.connections}
+        try:
+            m = load_topic_map(preset, topics)
+            m = resolve_rig(m, set(self.types))
+            roles = resolve_roles(m, self.types, self.path)
+        except (TopicMapError, BagError) as exc:
+            self.close()
+            msg = str(exc)
+            raise BagError(msg if msg.startswith(self.path) else f"{self.path}: {msg}") from None
+        self.map = m
+        self.asm = StereoAssembler(m, self.path, roles)
+        self.info = self.asm.info
+        self.counts = self.asm.counts
+
+    def needle_model(self) -> NeedleModel:
+        return self.asm.needle_model()
+
+    def close(self) -> None:
+        try:
+            self.reader.close()
+        except Exception:
+            pass
+
+    def __enter__(self):
+        return self
+
+    def __exit__(self, *exc):
+        self.close()
+
+    def frame_count_hint(self) -> int:
+        """Images on the left topic (an upper bound of the stereo frames)."""
+        t = self.info["topics"]["image.left"]
+        return sum(c.msgcount for c in self.reader.connections if c.topic == t)
+
+    def __iter__(self):
+        conns = [c for c in self.reader.connections if c.topic in self.asm.topic_role]
+        for conn, _t, raw in self.reader.messages(connections=conns):
+            try:
+                msg = self.reader.deserialize(raw, conn.msgtype)
+            except Exception as exc:
+                raise BagError(f"{self.path}: {conn.topic}: cannot deserialise a {conn.msgtype}: {exc}") from None
+            yield from self.asm.feed(conn.topic, msg)
+        yield from self.asm.finish()

@@ -1,0 +1,186 @@
+"""``ros2``: a live ROS 2 system carried on Zenoh as a stereo camera source (no ROS installed).
+
+Subscribes, on its own Zenoh session (``connect``: the rmw_zenoh router or the
+zenoh-bridge-ros2dds, ``tcp/127.0.0.1:7447`` by default), to the topics of a topic map
+(presets ``ambf``/``dvrk``, ``topics``; docs/ros.md), by bridge keys or rmw_zenoh keys
+(``keys``), decodes the CDR samples with ``rosbags``, pairs the stereo images by header stamp
+and publishes as ``rosbag`` does (``common/ros/source.py``): ``left``/``right``, ``measured``,
+``truth``, ``calib``. ``seq`` counts the stereo pairs; ``stamp_ns`` is the images' header stamp.
+
+params: ``preset``, ``topics`` (file or mapping), ``rig`` (the dVRK preset's ``{rig}``, e.g.
+``jhu_daVinci``), ``keys`` (bridge | rmw_zenoh), ``domain_id`` (0), ``namespace`` (the bridge's
+key prefix), ``connect`` (endpoints), ``mode`` (peer | client), ``types`` ({topic: msgtype}
+where bridge keys do not carry it and the role's default does not fit), ``encoding`` (bgr8),
+``max_queue`` (samples waiting to be decoded; older ones are dropped and counted ``dropped``).
+A sample that does not decode is counted ``bad_samples`` and logged once a second.
+"""
+from __future__ import annotations
+
+import json
+import queue
+import threading
+import time
+from dataclasses import dataclass, field
+from typing import Literal
+
+from common.runtime.camera_source import CameraSourceNode
+from common.runtime.node import NodeError, run
+
+DEFAULT_TYPES = {"camera_info": "sensor_msgs/msg/CameraInfo", "ecm_joints": "sensor_msgs/msg/JointState",
+                 "ecm_pose": "geometry_msgs/msg/PoseStamped", "camera_frame": "ambf_msgs/msg/RigidBodyState",
+                 "camera_state": "ambf_msgs/msg/CameraState"}
+
+
+def open_session(connect: list, mode: str = "peer"):
+    """A Zenoh session to a ROS 2 system: ``connect`` endpoints, no multicast scouting."""
+    import zenoh
+    c = zenoh.Config()
+    c.insert_json5("mode", json.dumps(mode))
+    c.insert_json5("scouting/multicast/enabled", "false")
+    c.insert_json5("connect/endpoints", json.dumps(list(connect)))
+    if mode != "client":
+        c.insert_json5("listen/endpoints", json.dumps(["tcp/127.0.0.1:0"]))
+    return zenoh.open(c)
+
+
+def role_type(role: str, topic: str, m: dict) -> str:
+    """The message type a role's topic carries when the key does not say (bridge keys)."""
+    if role == "image":
+        return "sensor_msgs/msg/CompressedImage" if topic.endswith("/compressed") else "sensor_msgs/msg/Image"
+    if role == "needle_pose":
+        return "ambf_msgs/msg/RigidBodyState" if m.get("needle_frame") == "ambf" else "geometry_msgs/msg/PoseStamped"
+    return DEFAULT_TYPES[role]
+
+
+class Ros2Node(CameraSourceNode):
+    """Live ROS 2 (over Zenoh) camera source."""
+
+    OUTPUTS = ("left", "right", "measured", "truth", "calib")
+
+    @dataclass
+    class Params:
+        preset: str | None = None
+        topics: str | dict | None = None
+        rig: str = ""
+        keys: Literal["bridge", "rmw_zenoh"] = "bridge"
+        domain_id: int = 0
+        namespace: str = ""
+        connect: list[str] = field(default_factory=lambda: ["tcp/127.0.0.1:7447"])
+        mode: Literal["peer", "client"] = "peer"
+        types: dict = field(default_factory=dict)
+        encoding: Literal["bgr8", "jpeg", "png"] = "bgr8"
+        max_queue: int = 16
+
+    def setup(self):
+        from common.ros.bag import StereoAssembler
+        from common.ros.live import topic_key
+        from common.ros.source import SamplePublisher, topics_param
+        from common.ros.topicmap import TopicMapError, candidates, load_topic_map, resolve_rig_name
+        p = self.p
+        try:
+            m = load_topic_map(p.preset, topics_param(p.topics))
+        except TopicMapError as exc:
+            raise NodeError(str(exc)) from None
+        if p.rig:
+            m = resolve_rig_name(m, p.rig)
+        if "{rig}" in json.dumps(m["images"]) + json.dumps(m.get("camera_info")):
+            raise NodeError("the dvrk preset's topics name the stereo rig: set param 'rig' (e.g. jhu_daVinci) "
+                            "or give images/camera_info topics in a topic map")
+        if p.preset == "ambf" and m.get("unit") == "auto" and not m.get("camera_states"):
+            raise NodeError("unit: auto needs the cameras' State topics; set unit in the topic map")
+        # every alternative topic of every role is subscribed; the first to speak is used
+        roles = {}
+        for c in ("left", "right"):
+            for t in candidates(m["images"][c]):
+                roles[t] = ("image", c)
+            for t in candidates((m.get("camera_info") or {}).get(c)):
+                roles[t] = ("camera_info", c)
+            for t in candidates((m.get("camera_states") or {}).get(c)):
+                roles[t] = ("camera_state", c)
+        for role in ("ecm_joints", "ecm_pose", "needle_pose", "camera_frame"):
+            for t in candidates(m.get(role)):
+                roles[t] = (role, None)
+        self.map = m
+        self.asm = StereoAssembler(m, f"ros2 ({p.keys})", roles)
+        self.queue: queue.Queue = queue.Queue(maxsize=max(1, p.max_queue))
+        self.qlock = threading.Lock()
+        try:
+            self.session = open_session(p.connect, p.mode)
+        except Exception as exc:
+            raise NodeError(f"cannot open a Zenoh session to {p.connect}: {exc}") from None
+        self.subs = []
+        self.keys = {}
+        for t in roles:
+            key = topic_key(t, None, p.keys, p.domain_id, p.namespace, wildcard_type=True)
+            self.keys[t] = key
+            self.subs.append(self.session.declare_subscriber(key, self._callback(t)))
+        self.out = SamplePublisher(self, self.asm.needle_model(), f"ros2 {p.keys} {','.join(p.connect)}",
+                                   m.get("ecm"), p.encoding)
+        self.seq = 0
+        self.last_bad_log = 0.0
+        self.log.info("ros2: subscribed %s", sorted(self.keys.values()))
+
+    def _callback(self, topic: str):
+        def cb(sample):
+            item = (topic, str(sample.key_expr), bytes(sample.payload.to_bytes()), time.time_ns())
+            with self.qlock:
+                while True:
+                    try:
+                        self.queue.put_nowait(item)
+                        return
+                    except queue.Full:
+                        try:
+                            self.queue.get_nowait()
+                            self.count("dropped")
+                        except queue.Empty:
+                            pass
+        return cb
+
+    def _msgtype(self, topic: str, key: str) -> str:
+        from common.ros.live import topic_of_key
+        if topic in self.p.types:
+            return self.p.types[topic]
+        if self.p.keys == "rmw_zenoh":
+            _, t = topic_of_key(key, "rmw_zenoh")
+            if t:
+                return t
+        return role_type(self.asm.topic_role[topic][0], topic, self.map)
+
+    def step(self):
+        from common.ros.bag import BagError
+        from common.ros.live import decode
+        try:
+            topic, key, payload, _t_rx = self.queue.get(timeout=0.1)
+        except queue.Empty:
+            if self.calib is not None:
+                self._publish_calib()
+            return True
+        msgtype = self._msgtype(topic, key)
+        try:
+            msg = decode(payload, msgtype)
+            samples = self.asm.feed(topic, msg)
+        except (BagError, ValueError, KeyError, AssertionError, IndexError, TypeError) as exc:
+            self.count("bad_samples")
+            now = time.monotonic()
+            if now - self.last_bad_log > 1.0:
+                self.last_bad_log = now
+                self.log.error("ros2: %s (%s on %s): %s", topic, msgtype, key, exc)
+            return True
+        for s in samples:
+            self.out.publish(s, self.seq, s.stamp_ns)
+            self.seq += 1
+        return True
+
+    def teardown(self):
+        for s in getattr(self, "subs", []):
+            try:
+                s.undeclare()
+            except Exception:
+                pass
+        if getattr(self, "session", None) is not None:
+            self.session.close()
+
+
+NODE = Ros2Node
+if __name__ == "__main__":
+    run(NODE)

@@ -1,0 +1,148 @@
+"""``ros2_out``: publishes the tracked needle pose to ROS 2 over Zenoh (no ROS installed).
+
+Input ``pose`` (PoseEstimate; ``calib``, optional, is needed for ``frame: left``). Each pose goes
+out as ``geometry_msgs/PoseStamped`` on ``topic`` and, when it has a covariance,
+``geometry_msgs/PoseWithCovarianceStamped`` on ``cov_topic`` (empty: not published), CDR-encoded,
+on bridge keys or rmw_zenoh keys (``keys``; with rmw_zenoh, every sample carries rmw_zenoh's
+attachment and the node declares the liveliness tokens of a node ``node_name`` and its two
+publishers, so that ``ros2 topic list`` / ``ros2 node list`` see them).
+
+Frames (``frame``): ``ecm`` (default): ``T_ecm_needle``, header ``frame_id`` = ``frame_ids.ecm``
+(the ECM tip: dVRK's ECM end effector, AMBF's CameraFrame); ``left``: the left camera's OpenCV
+optical frame (x right, y down, z forward; ``frame_ids.left``); ``world``: ``T_world_needle``
+when the pose has it (else the pose is skipped, counted ``no_world_pose``; ``frame_ids.world``).
+The pose is the dataset needle frame (docs/dataset.md: origin at the arc's centre, z its normal,
+the tip A at 30 deg): ``T_frame_needle``. Positions in ``unit`` (m; ``dm`` for the 2021-22 AMBF
+challenge's scene units). The covariance is ROS's: 6x6 row-major over (x, y, z, rotation about
+x, y, z) in the header frame, from the PoseEstimate's [rotation vector, translation] in the ECM
+frame (rotated into the header frame; scaled by the unit). Header stamp = the pose's
+``stamp_ns`` (the source image's stamp).
+"""
+from __future__ import annotations
+
+import os
+import time
+from dataclasses import dataclass, field
+from typing import Literal
+
+import numpy as np
+
+from common.runtime.messages import Calibration, PoseEstimate
+from common.ros.conventions import ros_covariance
+from common.runtime.node import Node, NodeError, run
+
+UNITS = {"m": 1.0, "dm": 0.1, "cm": 0.01, "mm": 0.001}
+
+
+class Ros2OutNode(Node):
+    """PoseEstimate -> ROS 2 PoseStamped / PoseWithCovarianceStamped over Zenoh."""
+
+    INPUTS = {"pose": PoseEstimate, "calib": Calibration}
+    OUTPUTS = ()
+    KEEP_ALL = ("calib",)
+
+    @dataclass
+    class Params:
+        topic: str = "/needletrack/needle_pose"
+        cov_topic: str = "/needletrack/needle_pose_with_covariance"
+        frame: Literal["ecm", "left", "world"] = "ecm"
+        frame_ids: dict = field(default_factory=lambda: {"ecm": "ECM", "left": "left_camera_optical",
+                                                         "world": "world"})
+        unit: Literal["m", "dm", "cm", "mm"] = "m"
+        keys: Literal["bridge", "rmw_zenoh"] = "bridge"
+        domain_id: int = 0
+        namespace: str = ""
+        connect: list[str] = field(default_factory=lambda: ["tcp/127.0.0.1:7447"])
+        mode: Literal["peer", "client"] = "peer"
+        node_name: str = "needletrack"
+
+    def setup(self):
+        from common.ros.live import liveliness_token, topic_key
+        from nodes.ros2 import open_session
+        p = self.p
+        if p.frame == "left" and not self.wired("calib"):
+            raise NodeError("frame: left needs the calib input wired (the left camera's pose in the ECM)")
+        if not p.topic.startswith("/"):
+            raise NodeError(f"topic must be an absolute ROS name, got {p.topic!r}")
+        self.scale = UNITS[p.unit]
+        self.T_ecm_left = None
+        try:
+            self.session = open_session(p.connect, p.mode)
+        except Exception as exc:
+            raise NodeError(f"cannot open a Zenoh session to {p.connect}: {exc}") from None
+        self.pubs = {}
+        self.tokens = []
+        targets = [("pose", p.topic, "geometry_msgs/msg/PoseStamped")]
+        if p.cov_topic:
+            targets.append(("cov", p.cov_topic, "geometry_msgs/msg/PoseWithCovarianceStamped"))
+        zid = str(self.session.zid())
+        if p.keys == "rmw_zenoh":
+            self.tokens.append(self.session.liveliness().declare_token(
+                liveliness_token("NN", zid, p.node_name, domain_id=p.domain_id)))
+        for i, (name, topic, msgtype) in enumerate(targets, start=1):
+            key = topic_key(topic, msgtype, p.keys, p.domain_id, p.namespace)
+            self.pubs[name] = self.session.declare_publisher(key)
+            if p.keys == "rmw_zenoh":
+                self.tokens.append(self.session.liveliness().declare_token(
+                    liveliness_token("MP", zid, p.node_name, domain_id=p.domain_id, entity_id=i, topic=topic,
+                                     msgtype=msgtype)))
+        self.gid = {name: os.urandom(16) for name in self.pubs}
+        self.sent = {name: 0 for name in self.pubs}
+        self.log.info("ros2_out: %s", {n: str(pb.key_expr) for n, pb in self.pubs.items()})
+
+    def on_calib(self, msg: Calibration):
+        self.T_ecm_left = np.asarray(msg.cameras["left"]["T_ecm_cam"], float)
+
+    def _put(self, name: str, msg) -> None:
+        from common.ros.live import attachment, encode
+        data = encode(msg)
+        self.sent[name] += 1
+        if self.p.keys == "rmw_zenoh":
+            self.pubs[name].put(data, attachment=attachment(self.sent[name], time.time_ns(), self.gid[name]))
+        else:
+            self.pubs[name].put(data)
+        self.count(f"sent.{name}")
+
+    def on_pose(self, msg: PoseEstimate):
+        from common.geometry.transforms import inv_T
+        from common.ros import build
+        from common.ros.types import typestore
+        p = self.p
+        T = np.asarray(msg.T_ecm_needle, float)
+        R_frame_ecm = np.eye(3)
+        if p.frame == "world":
+            if msg.T_world_needle is None or msg.T_world_ecm is None:
+                self.count("no_world_pose")
+                return
+            T = np.asarray(msg.T_world_needle, float)
+            R_frame_ecm = np.asarray(msg.T_world_ecm, float)[:3, :3]
+        elif p.frame == "left":
+            if self.T_ecm_left is None:
+                self.count("no_calibration")
+                return
+            T_left_ecm = inv_T(self.T_ecm_left)
+            T = T_left_ecm @ T
+            R_frame_ecm = T_left_ecm[:3, :3]
+        st = typestore(2)
+        frame_id = str(p.frame_ids.get(p.frame, p.frame))
+        hdr = build.header(st, msg.stamp_ns, frame_id)
+        pose = build.pose(st, T, self.scale)
+        self._put("pose", build.make(st, "geometry_msgs/msg/PoseStamped", header=hdr, pose=pose))
+        if "cov" in self.pubs and msg.covariance is not None:
+            cov = ros_covariance(msg.covariance, R_frame_ecm, self.scale)
+            pwc = build.make(st, "geometry_msgs/msg/PoseWithCovariance", pose=pose, covariance=cov.reshape(-1))
+            self._put("cov", build.make(st, "geometry_msgs/msg/PoseWithCovarianceStamped", header=hdr, pose=pwc))
+
+    def teardown(self):
+        for t in getattr(self, "tokens", []):
+            try:
+                t.undeclare()
+            except Exception:
+                pass
+        if getattr(self, "session", None) is not None:
+            self.session.close()
+
+
+NODE = Ros2OutNode
+if __name__ == "__main__":
+    run(NODE)

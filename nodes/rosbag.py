@@ -1,0 +1,144 @@
+"""``rosbag``: plays a ROS 1 ``.bag`` or ROS 2 ``.db3``/``.mcap`` bag as a stereo camera source.
+
+The bag is read with ``common.ros.bag.BagStereo`` (presets ``ambf``/``dvrk``, a topic map;
+docs/ros.md): stereo pairs by header stamp, intrinsics, camera poses, ECM pose and the needle's
+ground truth, in the project's frames and metres.
+
+Outputs (as ``replay``): ``left``/``right`` (``CameraImage``, ``encoding`` param: ``bgr8`` raw
+as a capture card, or ``jpeg``/``png``; ``seq`` = the stereo frame's index in the bag, plus
+``loop * frames`` when looping; ``stamp_ns`` the image header stamp), ``measured`` (``EcmPose``
+with the bag's ``T_world_ecm`` and joints: wire it to the ``ecm`` node's ``measured`` input),
+``truth`` (``GroundTruth`` when the bag has the needle's pose: keypoints projected through the
+rig, ``sequence``/``step`` from the needle at rest), ``calib`` (from the first pair, then once a
+second, and at once when the bag's camera_info changes), ``eos`` after the last pair when not
+looping.
+
+params: ``path`` (required), ``preset`` (ambf | dvrk | none), ``topics`` (a topic map file or
+mapping), ``rate`` (``recorded``: the header stamps' timing; ``max``; or Hz), ``loop``,
+``count`` (pairs to play; 0 all), ``encoding`` (bgr8).
+"""
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass
+from typing import Literal
+
+
+from common.runtime.camera_source import CameraSourceNode
+from common.runtime.messages import EndOfStream
+from common.runtime.node import NodeError, run
+from common.runtime.pacing import Pacer
+
+CAMS = ("left", "right")
+
+
+class RosbagNode(CameraSourceNode):
+    """ROS bag source."""
+
+    OUTPUTS = ("left", "right", "measured", "truth", "calib", "eos")
+
+    @dataclass
+    class Params:
+        path: str = ""
+        preset: str | None = None
+        topics: str | dict | None = None
+        rate: float | Literal["recorded", "max"] = "recorded"
+        loop: bool = False
+        count: int = 0
+        encoding: Literal["bgr8", "jpeg", "png"] = "bgr8"
+
+    def setup(self):
+        from common.ros.bag import BagError
+        from nodes.replay import parse_rate
+        p = self.p
+        if not p.path:
+            raise NodeError("param 'path' (a ROS 1 .bag or ROS 2 .db3/.mcap bag) is required")
+        if p.preset not in (None, "ambf", "dvrk"):
+            raise NodeError(f"param 'preset' must be ambf or dvrk, got {p.preset!r}")
+        try:
+            self.rate = parse_rate(p.rate)
+            self._open()
+            self.first = next(self.it, None)
+        except (BagError, ValueError) as exc:
+            raise NodeError(str(exc)) from None
+        if self.first is None:
+            raise NodeError(f"rosbag: {p.path}: no stereo pair in the bag (unpaired: {self.bag.counts})")
+        self.log.info("rosbag: %s: topics %s, unit %s", p.path, self.bag.info["topics"], self.bag.info.get("unit"))
+        from common.ros.source import SamplePublisher
+        self.out = SamplePublisher(self, self.bag.needle_model(), f"rosbag {p.path}", self.bag.map.get("ecm"),
+                                   p.encoding)
+        self.out.rig_key = None
+        self.pending = self.first
+        self.loops = 0
+        self.n_frames = None           # pairs in one pass, known after the first
+        self.published = 0
+        self.pacer = Pacer(self.rate if self.rate else 0.0)
+        self.t0 = None
+
+    def _open(self):
+        from common.ros.bag import BagStereo
+        from common.ros.source import topics_param
+        self.bag = BagStereo(self.p.path, self.p.preset, topics_param(self.p.topics))
+        self.it = iter(self.bag)
+
+    def _next(self):
+        s, self.pending = self.pending, None
+        if s is None:
+            s = next(self.it, None)
+        if s is None and self.p.loop:
+            self.n_frames = self.n_frames or self.published
+            self.bag.close()
+            self._open()
+            self.loops += 1
+            self.t0 = None
+            s = next(self.it, None)
+        return s
+
+    def _pace(self, s) -> None:
+        now = time.monotonic()
+        if self.rate is None:
+            if self.t0 is None:
+                self.t0 = (now, s.stamp_ns)
+            delay = self.t0[0] + (s.stamp_ns - self.t0[1]) * 1e-9 - now
+        elif self.rate > 0:
+            delay = self.pacer.delay()
+        else:
+            delay = 0.0
+        while delay > 0 and self.running:
+            time.sleep(min(delay, 0.1))
+            self._publish_calib()
+            delay -= 0.1
+
+    def step(self):
+        from common.ros.bag import BagError
+        from common.ros.convert import RestGroups
+        if self.p.count and self.published >= self.p.count:
+            s = None
+        else:
+            try:
+                s = self._next()
+            except BagError as exc:
+                self.count("bag_errors")
+                self.log.error("rosbag: %s", exc)
+                s = None
+        if s is None:
+            self.publish("eos", EndOfStream(frames=self.published, stamp_ns=time.time_ns()))
+            return False
+        if s.index == 0:
+            self.out.groups = RestGroups()      # a new pass over the bag
+        self.out.calibrate(s)                 # before the first frame, and when camera_info changes
+        self._pace(s)
+        seq = s.index + self.loops * (self.n_frames or 0)
+        self.out.publish(s, seq, s.stamp_ns, 1_000_000 * self.loops)
+        self.published += 1
+        return True
+
+    def teardown(self):
+        bag = getattr(self, "bag", None)
+        if bag is not None:
+            bag.close()
+
+
+NODE = RosbagNode
+if __name__ == "__main__":
+    run(NODE)

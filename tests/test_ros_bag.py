@@ -1,0 +1,201 @@
+"""ROS bags in, dataset folders out (common/ros): bags written here with ``rosbags`` from the
+project's own renders in the AMBF (ROS 1, ambf_msgs, decimetres, 640x480) and dVRK (ROS 2 MCAP,
+1920x1080, camera_info with distortion) conventions, converted back and evaluated: the oracle
+geometry is exact at 0 px, so the conventions (axes, needle frame, units, distortion) are right."""
+import json
+
+import numpy as np
+import pytest
+
+from common.data.dataset import Dataset, check_dataset
+from common.evaluation.cli import main as eval_main
+from common.ros.bag import BagError, BagStereo
+from common.ros.conventions import AMBF_NEEDLE_RADIUS, T_AMBF_NEEDLE
+from common.ros.convert import from_bag
+from common.ros.synth import dataset_to_bag, distort_dataset
+from common.sim.cli import main as dataset_main
+
+DIST = [-0.12, 0.05, 0.0005, -0.0004, 0.0]
+
+
+def _generate(path, w, h, sequences, steps, seed):
+    rc = dataset_main(["generate", "--out", str(path), "--sequences", str(sequences), "--steps", str(steps),
+                       "--width", str(w), "--height", str(h), "--seed", str(seed), "--randomise", "none",
+                       "--jobs", "1", "--quiet", "--format", "png"])
+    assert rc == 0
+    return path
+
+
+@pytest.fixture(scope="module")
+def ds640(tmp_path_factory):
+    return _generate(tmp_path_factory.mktemp("ros") / "ds640", 640, 480, 2, 2, 3)
+
+
+@pytest.fixture(scope="module")
+def ds1080_distorted(tmp_path_factory):
+    root = tmp_path_factory.mktemp("ros1080")
+    src = _generate(root / "pinhole", 1920, 1080, 1, 2, 5)
+    distort_dataset(str(src), str(root / "distorted"), DIST)
+    return root / "distorted"
+
+
+def assert_same_truth(a: Dataset, b: Dataset, px=1e-6):
+    assert len(a) == len(b)
+    for fa, fb in zip(a, b):
+        assert np.abs(fa.T_world_ecm - fb.T_world_ecm).max() < 1e-9
+        assert np.abs(fa.T_world_needle - fb.T_world_needle).max() < 1e-9
+        for c in ("left", "right"):
+            assert np.abs(fa.keypoints[c] - fb.keypoints[c]).max() < px
+    for c in ("left", "right"):
+        np.testing.assert_allclose(a.rig[c].K, b.rig[c].K, atol=1e-9)
+        np.testing.assert_allclose(a.rig[c].dist, b.rig[c].dist, atol=1e-12)
+        np.testing.assert_allclose(a.rig[c].T_ecm_cam, b.rig[c].T_ecm_cam, atol=1e-12)
+
+
+def run_oracle_eval(dataset, out):
+    rc = eval_main(["--dataset", str(dataset), "--detector", "oracle", "--out", str(out), "--quiet",
+                    "--timeout", "240"])
+    assert rc == 0
+    res = json.loads((out / "results.json").read_text())
+    for m in ("pnp_joint", "triangulation", "multiview", "refined"):
+        d = res["pose"][m]
+        assert d["n"] == d["expected"] and d["n"] >= 1, m
+        assert d["position_mm"]["max"] < 1e-4, m
+        assert d["orientation_deg"]["max"] < 1e-3, m
+    return res
+
+
+def test_ambf_needle_frame_puts_the_tip_where_the_challenge_does():
+    """The challenge's scripts span the arc 60..180 deg; its evaluation puts the tip at
+    (0.056, 0.085, 0) (56.6 deg) and the base (thread end) at (-0.102, 0, 0) in the needle body
+    frame (decimetres): A (30 deg) and E (150 deg) of the dataset frame land on the 60 and 180 deg
+    ends, A within 3.5 deg of the evaluation's tip (docs/ros.md)."""
+    r = AMBF_NEEDLE_RADIUS
+    A = T_AMBF_NEEDLE[:3, :3] @ (r * np.array([np.cos(np.radians(30)), np.sin(np.radians(30)), 0]))
+    E = T_AMBF_NEEDLE[:3, :3] @ (r * np.array([np.cos(np.radians(150)), np.sin(np.radians(150)), 0]))
+    assert abs(np.degrees(np.arctan2(A[1], A[0])) - 60.0) < 1e-9
+    assert abs(np.degrees(np.arctan2(A[1], A[0])) - np.degrees(np.arctan2(0.085, 0.056))) < 3.5
+    assert np.linalg.norm(E - [-0.1018, 0.0, 0]) < 1e-12
+    assert np.linalg.norm(E - [-0.102, 0.0, 0]) < 0.001
+
+
+def test_ambf_ros1_bag_in_decimetres_converts_exactly(ds640, tmp_path):
+    bag = tmp_path / "ambf.bag"
+    dataset_to_bag(str(ds640), str(bag), "ambf")           # ROS 1, rgb8, ambf_msgs, unit dm
+    from common.ros.bag import open_reader
+    r = open_reader(bag)
+    types = {c.topic: c.msgtype for c in r.connections}
+    r.close()
+    assert types["/ambf/env/Needle/State"] == "ambf_msgs/msg/RigidBodyState"
+    assert types["/ambf/env/cameras/cameraL/State"] == "ambf_msgs/msg/CameraState"
+    assert types["/ambf/env/cameras/cameraL/ImageData"] == "sensor_msgs/msg/Image"
+    out = tmp_path / "ds"
+    summary = from_bag(str(bag), str(out), preset="ambf")
+    assert summary["frames"] == 4 and summary["with_truth"] == 4
+    assert summary["unit"].startswith("dm")
+    src, ds = Dataset(ds640), Dataset(out)
+    assert check_dataset(ds).ok
+    assert ds.meta.image_size == (640, 480)
+    assert abs(ds.needle.radius_m - 0.01018) < 1e-12
+    assert_same_truth(src, ds)
+    assert [f.sequence for f in ds] == [0, 0, 1, 1]          # the needle at rest: two groups
+    assert np.array_equal(src.image(0, "left"), ds.image(0, "left"))   # rgb8 -> BGR, lossless
+    run_oracle_eval(out, tmp_path / "eval")
+
+
+def test_ambf_si_bag_infers_metres_and_a_wrong_unit_is_a_tenfold_error(ds640, tmp_path):
+    bag = tmp_path / "si.bag"
+    dataset_to_bag(str(ds640), str(bag), "ambf", unit="m", max_frames=1)
+    s = from_bag(str(bag), str(tmp_path / "a"), preset="ambf")
+    assert s["unit"].startswith("m ")
+    src, a = Dataset(ds640)[0], Dataset(tmp_path / "a")[0]
+    assert np.abs(src.T_world_needle - a.T_world_needle).max() < 1e-9
+    s = from_bag(str(bag), str(tmp_path / "b"), topics={"preset": "ambf", "unit": "dm"})
+    assert s["unit"] == "dm"
+    a, b = Dataset(tmp_path / "a")[0], Dataset(tmp_path / "b")[0]
+    np.testing.assert_allclose(b.T_world_needle[:3, 3], a.T_world_needle[:3, 3] / 10)
+
+
+def test_dvrk_mcap_1080p_with_distortion_converts_exactly(ds1080_distorted, tmp_path):
+    bag = tmp_path / "dvrk"
+    r = dataset_to_bag(str(ds1080_distorted), str(bag), "dvrk")     # ROS 2 MCAP + camera_info
+    assert any(p.suffix == ".mcap" for p in bag.iterdir())
+    out = tmp_path / "ds"
+    s = from_bag(str(bag), str(out), topics=r["topics_file"])
+    assert s["topics"]["camera_info.left"] == "/jhu_daVinci/left/camera_info"
+    assert s["topics"]["ecm_joints"] == "/ECM/measured_js"
+    ds = Dataset(out)
+    assert ds.meta.image_size == (1920, 1080)
+    np.testing.assert_allclose(ds.rig.left.dist, DIST)
+    assert check_dataset(ds).ok
+    assert_same_truth(Dataset(ds1080_distorted), ds)
+    np.testing.assert_allclose(ds[1].ecm_joints, Dataset(ds1080_distorted)[1].ecm_joints)
+    run_oracle_eval(out, tmp_path / "eval")
+
+
+def test_compressed_image_bag(ds640, tmp_path):
+    bag = tmp_path / "compressed.db3"
+    r = dataset_to_bag(str(ds640), str(bag.with_suffix("")), "dvrk", compressed=True, storage="sqlite3",
+                       max_frames=2)
+    out = tmp_path / "ds"
+    s = from_bag(r["bag"], str(out), topics=r["topics_file"])
+    assert s["topics"]["image.left"] == "/jhu_daVinci/left/image_raw/compressed"
+    ds, src = Dataset(out), Dataset(ds640)
+    assert len(ds) == 2
+    diff = np.abs(ds.image(1, "right").astype(int) - src.image(1, "right")).mean()
+    assert diff < 3.0                              # JPEG quality 95
+    assert np.abs(ds[1].T_world_needle - src[1].T_world_needle).max() < 1e-9
+
+
+def test_bag_without_the_topics_is_refused_naming_them(ds640, tmp_path, capsys):
+    bag = tmp_path / "ambf.bag"
+    dataset_to_bag(str(ds640), str(bag), "ambf", max_frames=1)
+    with pytest.raises(BagError, match=r"no image topic for the left camera.*looked for /jhu_daVinci|rig found"):
+        BagStereo(bag, "dvrk")
+    with pytest.raises(BagError, match=r"no image topic for the left camera: looked for /cam/left.*"
+                                       r"the bag has: /ambf/env"):
+        BagStereo(bag, topics={"images": {"left": "/cam/left", "right": "/cam/right"}})
+    rc = dataset_main(["from-bag", str(bag), "--preset", "dvrk", "--out", str(tmp_path / "x"), "--quiet"])
+    assert rc == 1 and "error:" in capsys.readouterr().err
+    (tmp_path / "junk.bag").write_bytes(b"not a bag")
+    with pytest.raises(BagError, match="not a readable"):
+        BagStereo(tmp_path / "junk.bag", "ambf")
+
+
+def test_pairs_need_stamps_within_the_tolerance(ds640, tmp_path):
+    """Right images 20 ms after the left: no pair at the default 5 ms, all pairs at 30 ms."""
+    from common.ros import build
+    from common.ros.synth import _Out
+    src = Dataset(ds640)
+    out = _Out(str(tmp_path / "late"), 2, "mcap")
+    for i, fr in enumerate(src.frames[:2]):
+        t = 10**18 + i * 100_000_000
+        for c, dt in (("left", 0), ("right", 20_000_000)):
+            out.write(f"/cam/{c}/image_raw", build.image(out.store, t + dt, src.image(fr, c), "bgr8"), t + dt)
+    out.close()
+    tm = {"images": {"left": "/cam/left/image_raw", "right": "/cam/right/image_raw"}, "fovy_rad": 1.2,
+          "registration": {c: src.rig[c].T_ecm_cam.tolist() for c in ("left", "right")}}
+    with pytest.raises(BagError, match="no stereo pair"):
+        from_bag(str(tmp_path / "late"), str(tmp_path / "a"), topics=tm)
+    s = from_bag(str(tmp_path / "late"), str(tmp_path / "b"), topics={**tm, "stereo_tolerance_ms": 30})
+    assert s["frames"] == 2 and s["with_truth"] == 0
+    ds = Dataset(tmp_path / "b")
+    np.testing.assert_allclose(ds.rig.left.K, src.rig.left.K)      # fovy 1.2 at 640x480
+
+
+def test_topic_maps_name_what_is_wrong(tmp_path):
+    from common.ros.topicmap import TopicMapError, load_topic_map
+    bad = tmp_path / "map.yaml"
+    bad.write_text("preset: dvrk\nimage: {left: /a, right: /b}\n")
+    with pytest.raises(TopicMapError, match=r"map.yaml: unknown key 'image'"):
+        load_topic_map(None, str(bad))
+    with pytest.raises(TopicMapError, match=r"registration: expected \{left: 4x4 T_ecm_cam"):
+        load_topic_map("dvrk", {"registration": {"left": np.eye(4).tolist()}})
+    with pytest.raises(TopicMapError, match=r"left: expected a 4x4 rigid transform"):
+        load_topic_map("dvrk", {"registration": {"left": np.ones((4, 4)).tolist(), "right": np.eye(4).tolist()}})
+    with pytest.raises(TopicMapError, match="unit: must be one of"):
+        load_topic_map("ambf", {"unit": "furlong"})
+    (tmp_path / "reg.yaml").write_text(f"T_ecm_cam: {{left: {np.eye(4).tolist()}, right: {np.eye(4).tolist()}}}\n")
+    bad.write_text("preset: dvrk\nregistration: reg.yaml\n")          # relative to the map's folder
+    m = load_topic_map(None, str(bad))
+    assert np.array_equal(m["registration"]["right"], np.eye(4)) and m["preset"] == "dvrk"
