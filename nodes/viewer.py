@@ -1,0 +1,263 @@
+"""Viewer: the tracker live in a browser (issue 21). A fan-out consumer: any number of them,
+every input newest-only (except the calibration), so a slow viewer drops frames, never slows
+the pipeline.
+
+Two outputs, both on loopback:
+
+- its own page (``common.viewer.page``), ``viewer: http://127.0.0.1:<port>/`` printed at start:
+  the paper's Fig. 1 on both cameras (``common.viewer.draw.draw_fig1``), each method's pose,
+  error, rate and latency, and plots of them;
+- Rerun (when ``rerun-sdk`` is installed, the ``viewer`` extra): the same pictures in the two
+  cameras' frusta, every method's needle arc in 3D, the ECM's path, the time series; its web
+  viewer is served on ``web_port`` and printed (``viewer 3D (Rerun): ...``); ``save`` records
+  the session to an .rrd file (``needletrack view FILE.rrd``).
+
+Images are sampled at most ``rate_hz`` per camera, shrunk to fit ``width x height`` and JPEG'd;
+a sampled frame is drawn once its final pose is in, or after ``pose_wait_s`` without it.
+"""
+from __future__ import annotations
+
+import collections
+import time
+import urllib.parse
+from dataclasses import dataclass
+from typing import Optional
+
+import numpy as np
+
+from common.evaluation.scoring import true_T_ecm_needle
+from common.geometry.camera import StereoRig
+from common.geometry.ecm_kinematics import EcmArm
+from common.geometry.needle import NeedleModel
+from common.runtime.messages import (
+    Calibration,
+    CameraImage,
+    EcmPose,
+    GroundTruth,
+    Keypoints,
+    MessageError,
+    PoseEstimate,
+)
+from common.runtime.node import Node, NodeError, run
+from common.viewer.draw import PoseToDraw, downscale, draw_fig1, encode_jpeg
+from common.viewer.page import PageServer
+from common.viewer.state import ViewerState
+from nodes._pose import POSE_METHODS, PoseMethodInputs
+from nodes.monitor import FINAL_ORDER
+
+CAMERAS = ("left", "right")
+KEEP = 16           # frames remembered per input (by seq)
+PATH_POINTS = 600   # ECM path length (frames)
+
+
+def _put(d: collections.OrderedDict, key, value, keep: int = KEEP) -> None:
+    d[key] = value
+    while len(d) > keep:
+        d.popitem(last=False)
+
+
+class ViewerNode(PoseMethodInputs, Node):
+    """See the module docstring."""
+
+    INPUTS = {"left": CameraImage, "right": CameraImage,
+              "keypoints_left": Keypoints, "keypoints_right": Keypoints,
+              "truth": GroundTruth, "calib": Calibration, "ecm": EcmPose,
+              **{m: PoseEstimate for m in POSE_METHODS}}
+    OUTPUTS = ()
+    KEEP_ALL = ("calib",)
+
+    @dataclass
+    class Params:
+        host: str = "127.0.0.1"       # the page's address (loopback)
+        port: int = 9090              # the page's port (0: any free port)
+        rerun: bool = True            # also log to Rerun when rerun-sdk is installed
+        web_port: int = 9091          # Rerun's web viewer (0: no web viewer, gRPC only)
+        grpc_port: int = 9876         # Rerun's data server on 127.0.0.1 (0: none)
+        save: Optional[str] = None    # record the Rerun stream to this .rrd file
+        rate_hz: float = 10.0         # pictures per second at most (per camera)
+        width: int = 960              # pictures shrunk to fit width x height (px)
+        height: int = 540
+        jpeg_quality: int = 75
+        final: Optional[str] = None   # the method drawn in full (default: first wired of FINAL_ORDER)
+        pose_wait_s: float = 0.5      # a sampled frame waits this long for its final pose
+
+    def setup(self):
+        p = self.p
+        if p.rate_hz <= 0 or p.width < 16 or p.height < 16:
+            raise NodeError("viewer: rate_hz must be > 0 and width, height at least 16")
+        wired = [m for m in POSE_METHODS if self.wired(m)]
+        if p.final is not None and p.final not in POSE_METHODS:
+            raise NodeError(f"viewer.params.final: {p.final!r} is not one of {POSE_METHODS}")
+        self.final = p.final or next((m for m in FINAL_ORDER if m in wired), wired[0] if wired else None)
+        self.images = {c: collections.OrderedDict() for c in CAMERAS}   # seq -> (img, scale, stamp, t)
+        self.keypoints = {c: collections.OrderedDict() for c in CAMERAS}
+        self.poses = {m: collections.OrderedDict() for m in POSE_METHODS}
+        self.truths = collections.OrderedDict()
+        self.ecm = collections.OrderedDict()
+        self.path = collections.deque(maxlen=PATH_POINTS)
+        self.last_sample = {c: -1e9 for c in CAMERAS}
+        self.rendered = -1
+        self.rig = self.needle = self.arm = None
+        self.calib_key = None
+        self.state = ViewerState()
+        self.rec = None
+        rerun_url = None
+        if p.rerun:
+            rerun_url = self._start_rerun()
+        self.page = PageServer(p.host, p.port, poll_ms=int(1000 / p.rate_hz), rerun_url=rerun_url)
+        print(f"viewer: {self.page.url}", flush=True)
+        if rerun_url:
+            print(f"viewer 3D (Rerun): {rerun_url}", flush=True)
+        if p.save:
+            print(f"viewer: recording to {p.save}", flush=True)
+
+    def _start_rerun(self) -> Optional[str]:
+        p = self.p
+        try:
+            import rerun as rr
+
+            from common.viewer import rerun_log
+        except ImportError:
+            self.log.warning("rerun-sdk is not installed (pip install -e '.[viewer]'): no 3D view, "
+                             "no recording; the page still works")
+            return None
+        self.rl = rerun_log
+        self.rec = rerun_log.new_recording()
+        grpc = rerun_log.set_sinks(self.rec, p.grpc_port or None, p.save)
+        if grpc and p.web_port:
+            rr.serve_web_viewer(web_port=p.web_port, open_browser=False, connect_to=grpc)
+            return (f"http://127.0.0.1:{p.web_port}/?url=" + urllib.parse.quote(grpc, safe=""))
+        return None
+
+    def teardown(self):
+        if getattr(self, "page", None) is not None:
+            self.page.close()
+        if self.rec is not None:
+            self.rec.flush()
+            self.rec.disconnect()
+
+    # ---------------------------------------------------------------- inputs
+    def on_calib(self, msg: Calibration):
+        key = (repr(msg.cameras), repr(msg.needle), repr(msg.ecm), tuple(np.asarray(msg.image_size).tolist()))
+        if key == self.calib_key:
+            return
+        self.calib_key = key
+        self.rig = StereoRig.from_dict(msg.cameras, msg.image_size)
+        self.needle = NeedleModel.from_dict(msg.needle)
+        self.arm = EcmArm.from_calibration(msg.ecm)
+        if self.rec is not None:
+            w, h = (int(x) for x in np.asarray(msg.image_size))
+            self.rl.log_rig(self.rec, self.rig, min(1.0, self.p.width / w, self.p.height / h))
+
+    def on_left(self, msg: CameraImage):
+        self._sample(msg)
+
+    def on_right(self, msg: CameraImage):
+        self._sample(msg)
+
+    def _sample(self, msg: CameraImage):
+        now = time.monotonic()
+        if now - self.last_sample[msg.camera] < 1.0 / self.p.rate_hz:
+            self.count("images_skipped")
+            return
+        try:
+            img = msg.to_bgr()
+        except MessageError as exc:
+            self.count("bad_input")
+            self.log.warning("seq %d %s: %s", msg.seq, msg.camera, exc)
+            return
+        self.last_sample[msg.camera] = now
+        small, scale = downscale(img, self.p.width, self.p.height)
+        _put(self.images[msg.camera], msg.seq, (small, scale, msg.stamp_ns, now))
+        self._render_ready(now)
+
+    def on_keypoints_left(self, msg: Keypoints):
+        self._keypoints(msg)
+
+    def on_keypoints_right(self, msg: Keypoints):
+        self._keypoints(msg)
+
+    def _keypoints(self, msg: Keypoints):
+        _put(self.keypoints[msg.camera], msg.seq, msg)
+        self.state.add_point("confidence", msg.camera, time.monotonic(), msg.confidence)
+
+    def on_truth(self, msg: GroundTruth):
+        _put(self.truths, msg.seq, msg)
+
+    def on_ecm(self, msg: EcmPose):
+        T = np.asarray(msg.T_world_ecm, float)
+        _put(self.ecm, msg.seq, T)
+        self.path.append(T[:3, 3].copy())
+
+    def on_pose(self, method: str, msg: PoseEstimate):
+        now = time.monotonic()
+        _put(self.poses[method], msg.seq, msg)
+        self.state.add_pose(method, msg.seq, msg.T_ecm_needle, self._true(msg.seq),
+                            (time.time_ns() - msg.stamp_ns) * 1e-6, bool(msg.ambiguous), now)
+        self._render_ready(now)
+
+    # ---------------------------------------------------------------- drawing
+    def _true(self, seq: int):
+        gt = self.truths.get(seq)
+        return None if gt is None else true_T_ecm_needle(gt, self.arm)
+
+    def _render_ready(self, now: float) -> None:
+        """Draw the newest sampled stereo frame whose final pose is in (or that waited long enough)."""
+        both = [s for s in self.images["left"] if s in self.images["right"] and s > self.rendered]
+        final = self.poses.get(self.final, {}) if self.final else {}
+        ready = [s for s in both if s in final
+                 or now - max(self.images[c][s][3] for c in CAMERAS) >= self.p.pose_wait_s]
+        if ready and self.rig is not None:
+            self._render(max(ready), now)
+
+    def _render(self, seq: int, now: float) -> None:
+        self.rendered = seq
+        poses = {m: PoseToDraw(d[seq].T_ecm_needle, bool(d[seq].ambiguous))
+                 for m, d in self.poses.items() if seq in d}
+        T_true = self._true(seq)
+        stamp_ns = self.images["left"][seq][2]
+        if self.rec is not None:
+            self.rl.set_frame(self.rec, seq, stamp_ns)
+        for cam in CAMERAS:
+            small, scale, _, _ = self.images[cam][seq]
+            kp = self.keypoints[cam].get(seq)
+            uv = np.asarray(kp.uv, float) if kp is not None and kp.found else None
+            caption = f"{cam}  seq {seq}  {self.final or 'no pose input'}" + ("" if self.final in poses else ": no pose")
+            pic = draw_fig1(small, scale, self.rig[cam], self.needle, poses, self.final, uv, T_true, caption)
+            jpeg = encode_jpeg(pic, self.p.jpeg_quality)
+            self.page.set_frame(cam, jpeg)
+            if self.rec is not None:
+                self.rl.log_image(self.rec, cam, jpeg)
+        row = self.state.methods.get(self.final, {})
+        err = "" if row.get("pos_err_mm") is None else f"  err {row['pos_err_mm']:.2f} mm {row['rot_err_deg']:.2f} deg"
+        self.state.head = f"seq {seq}  final: {self.final}{err}"
+        self.page.set_state(self.state.to_json(now))
+        if self.rec is not None:
+            self._log_rerun(seq, poses, T_true)
+        self.count("frames_drawn")
+
+    def _log_rerun(self, seq: int, poses: dict, T_true) -> None:
+        rl, rec = self.rl, self.rec
+        T_we = self.ecm.get(seq)
+        if T_we is not None:
+            rl.log_ecm(rec, T_we, np.array(self.path))
+        arc = self.needle.sample_arc(48)
+        for m, pose in poses.items():
+            rl.log_needle(rec, m, arc, pose.T_ecm_needle, pose.ambiguous)
+        if T_true is not None:
+            rl.log_needle(rec, "truth", arc, T_true)
+        for m, row in self.state.methods.items():
+            if row["seq"] != seq and m not in poses:
+                continue
+            for k in ("pos_err_mm", "rot_err_deg", "rate_hz", "latency_ms"):
+                if row.get(k) is not None:
+                    rl.log_scalar(rec, k, m, row[k])
+        for cam in CAMERAS:
+            kp = self.keypoints[cam].get(seq)
+            if kp is not None:
+                rl.log_scalar(rec, "confidence", cam, kp.confidence)
+
+
+NODE = ViewerNode
+if __name__ == "__main__":
+    run(NODE)
