@@ -35,11 +35,10 @@ from common.runtime.messages import (
     EcmPose,
     GroundTruth,
     Keypoints,
-    MessageError,
     PoseEstimate,
 )
 from common.runtime.node import Node, NodeError, run
-from common.viewer.draw import PoseToDraw, downscale, draw_fig1, encode_jpeg
+from common.viewer.draw import PoseToDraw, decode_small, draw_fig1, encode_jpeg
 from common.viewer.page import PageServer
 from common.viewer.state import ViewerState
 from nodes._pose import POSE_METHODS, PoseMethodInputs
@@ -161,13 +160,13 @@ class ViewerNode(PoseMethodInputs, Node):
             self.count("images_skipped")
             return
         try:
-            img = msg.to_bgr()
-        except MessageError as exc:
+            small, scale = decode_small(msg.data, msg.encoding, msg.width, msg.height,
+                                        self.p.width, self.p.height)
+        except ValueError as exc:
             self.count("bad_input")
             self.log.warning("seq %d %s: %s", msg.seq, msg.camera, exc)
             return
         self.last_sample[msg.camera] = now
-        small, scale = downscale(img, self.p.width, self.p.height)
         _put(self.images[msg.camera], msg.seq, (small, scale, msg.stamp_ns, now))
         self._render_ready(now)
 

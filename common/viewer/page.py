@@ -27,7 +27,7 @@ PAGE = """<!doctype html>
 <table id="tab"></table>
 <div class="plots" id="plots"></div>
 <script>
-const POLL = %(poll_ms)d, RR = %(rerun_url)s;
+const POLL = @POLL_MS@, RR = @RERUN_URL@;
 if (RR) document.getElementById('rr').href = RR; else document.getElementById('rr').remove();
 const PLOTS = [["pos_err_mm","position error (mm)"],["rot_err_deg","orientation error (deg)"],
                ["rate_hz","poses/s"],["latency_ms","latency (ms)"],["confidence","detector confidence"]];
@@ -78,7 +78,7 @@ class PageServer:
         self._frames: dict = {}
         self._state = b"{}"
         self.requests = 0
-        page = (PAGE % {"poll_ms": poll_ms, "rerun_url": json.dumps(rerun_url)}).encode()
+        page = PAGE.replace("@POLL_MS@", str(int(poll_ms))).replace("@RERUN_URL@", json.dumps(rerun_url)).encode()
         server = self
 
         class Handler(BaseHTTPRequestHandler):
