@@ -23,6 +23,7 @@ COMMANDS = {
     "dataset": ("common.sim.cli:main", "make and check datasets"),
     "train": ("common.detector.train:main", "train the keypoint detector"),
     "eval": ("common.evaluation.cli:main", "evaluate pose pipelines"),
+    "view": ("common.viewer.cli:main", "open a recording (.rrd) in Rerun's web viewer on 127.0.0.1"),
 }
 
 BENCHES = {

@@ -19,7 +19,6 @@ from __future__ import annotations
 
 import collections
 import time
-import urllib.parse
 from dataclasses import dataclass
 from typing import Optional
 
@@ -38,7 +37,7 @@ from common.runtime.messages import (
     PoseEstimate,
 )
 from common.runtime.node import Node, NodeError, run
-from common.viewer.draw import PoseToDraw, decode_small, draw_fig1, encode_jpeg
+from common.viewer.draw import PoseToDraw, decode_small, encode_jpeg, fig1_with_zoom
 from common.viewer.page import PageServer
 from common.viewer.state import ViewerState
 from nodes._pose import POSE_METHODS, PoseMethodInputs
@@ -99,7 +98,7 @@ class ViewerNode(PoseMethodInputs, Node):
         self.rig = self.needle = self.arm = None
         self.calib_key = None
         self.state = ViewerState()
-        self.rec = None
+        self.rec = self.web = None
         rerun_url = None
         if p.rerun:
             rerun_url = self._start_rerun()
@@ -113,7 +112,7 @@ class ViewerNode(PoseMethodInputs, Node):
     def _start_rerun(self) -> Optional[str]:
         p = self.p
         try:
-            import rerun as rr
+            import rerun  # noqa: F401
 
             from common.viewer import rerun_log
         except ImportError:
@@ -124,13 +123,17 @@ class ViewerNode(PoseMethodInputs, Node):
         self.rec = rerun_log.new_recording()
         grpc = rerun_log.set_sinks(self.rec, p.grpc_port or None, p.save)
         if grpc and p.web_port:
-            rr.serve_web_viewer(web_port=p.web_port, open_browser=False, connect_to=grpc)
-            return (f"http://127.0.0.1:{p.web_port}/?url=" + urllib.parse.quote(grpc, safe=""))
+            from common.viewer.cli import serve_web, web_url
+            self.web = serve_web(p.web_port, grpc)
+            return web_url(p.web_port, grpc)
         return None
 
     def teardown(self):
         if getattr(self, "page", None) is not None:
             self.page.close()
+        if self.web is not None:
+            self.web.terminate()
+            self.web.wait(10)
         if self.rec is not None:
             self.rec.flush()
             self.rec.disconnect()
@@ -222,7 +225,7 @@ class ViewerNode(PoseMethodInputs, Node):
             kp = self.keypoints[cam].get(seq)
             uv = np.asarray(kp.uv, float) if kp is not None and kp.found else None
             caption = f"{cam}  seq {seq}  {self.final or 'no pose input'}" + ("" if self.final in poses else ": no pose")
-            pic = draw_fig1(small, scale, self.rig[cam], self.needle, poses, self.final, uv, T_true, caption)
+            pic = fig1_with_zoom(small, scale, self.rig[cam], self.needle, poses, self.final, uv, T_true, caption)
             jpeg = encode_jpeg(pic, self.p.jpeg_quality)
             self.page.set_frame(cam, jpeg)
             if self.rec is not None:

@@ -440,7 +440,7 @@ class Launcher:
 
 
 def launch_main(argv: list) -> int:
-    """``needletrack launch [GRAPH.yaml] [--only ID,...] [--duration S] [--until ID,...] [--all-methods]``."""
+    """``needletrack launch [GRAPH.yaml] [--only ID,...] [--duration S] [--until ID,...] [--all-methods] [--no-viewer]``."""
     import argparse
 
     from common.runtime.graph import load_graph
@@ -451,12 +451,16 @@ def launch_main(argv: list) -> int:
     ap.add_argument("--until", help="stop the graph when these nodes (comma-separated) have finished")
     ap.add_argument("--all-methods", action="store_true",
                     help="monitor nodes print every method's pose, not only the final one")
+    ap.add_argument("--no-viewer", action="store_true",
+                    help="leave out the graph's viewer nodes (module viewer)")
     args = ap.parse_args(argv)
     path = Path(args.graph)
     if not path.exists() and args.graph == "dataflow.yaml":
         path = REPO_ROOT / "dataflow.yaml"
     try:
         graph = load_graph(path)
+        if args.no_viewer:
+            graph.nodes = [n for n in graph.nodes if n.module != "viewer"]
         if args.all_methods:
             for n in graph.nodes:
                 if n.module == "monitor":

@@ -79,13 +79,20 @@ def decode_small(data, encoding: str, width: int, height: int, max_width: int,
     return small, small.shape[1] / width
 
 
-def project(cam, T_ecm_needle: np.ndarray, pts_needle: np.ndarray, scale: float = 1.0) -> np.ndarray:
-    """(N, 2) pixels in an image scaled by ``scale`` of needle-frame points (N, 3) at pose
+def to_picture(uv, scale: float, offset=(0.0, 0.0)) -> np.ndarray:
+    """Full-size pixels -> a picture scaled by ``scale`` and shifted by ``offset`` (px of the
+    scaled picture): ``(uv + 0.5) * scale - 0.5 - offset``."""
+    return (np.asarray(uv, float) + 0.5) * scale - 0.5 - np.asarray(offset, float)
+
+
+def project(cam, T_ecm_needle: np.ndarray, pts_needle: np.ndarray, scale: float = 1.0,
+            offset=(0.0, 0.0)) -> np.ndarray:
+    """(N, 2) pixels in a picture (``to_picture``) of needle-frame points (N, 3) at pose
     ``T_ecm_needle``; NaN for points behind the camera."""
     p = transform_points(cam.T_cam_ecm @ np.asarray(T_ecm_needle, float), pts_needle)
     uv = cam.project(p)
     uv[p[:, 2] <= 1e-6] = np.nan
-    return (uv + 0.5) * scale - 0.5
+    return to_picture(uv, scale, offset)
 
 
 def _ipt(p) -> tuple:
@@ -119,8 +126,8 @@ class PoseToDraw:
 
 def draw_fig1(img: np.ndarray, scale: float, cam, needle: NeedleModel, poses: dict,
               final: Optional[str], keypoints: Optional[np.ndarray] = None,
-              T_true: Optional[np.ndarray] = None, caption: str = "") -> np.ndarray:
-    """Fig. 1 on a copy of ``img`` (already scaled by ``scale`` from ``cam``'s full size):
+              T_true: Optional[np.ndarray] = None, caption: str = "", offset=(0.0, 0.0)) -> np.ndarray:
+    """Fig. 1 on a copy of ``img`` (``cam``'s full-size image through ``to_picture(scale, offset)``):
     ``poses`` method -> PoseToDraw, ``final`` the method drawn in full (module docstring),
     ``keypoints`` the detector's (5, 2) full-size pixels (NaN rows: not found), ``T_true`` the
     true ``T_ecm_needle``. ``caption`` goes top left."""
@@ -128,29 +135,29 @@ def draw_fig1(img: np.ndarray, scale: float, cam, needle: NeedleModel, poses: di
     arc, kps = needle.sample_arc(48), needle.keypoints()
     lw = max(1, int(round(2 * max(1.0, out.shape[1] / 960))))
     if T_true is not None:
-        _polyline(out, project(cam, T_true, arc, scale), TRUTH_BGR, 1)
-        for p in project(cam, T_true, kps, scale):
+        _polyline(out, project(cam, T_true, arc, scale, offset), TRUTH_BGR, 1)
+        for p in project(cam, T_true, kps, scale, offset):
             if np.all(np.isfinite(p)):
                 cv2.drawMarker(out, _ipt(p), TRUTH_BGR, cv2.MARKER_CROSS, 10, 1)
     for m, pose in poses.items():
         if m != final and pose is not None:
-            _polyline(out, project(cam, pose.T_ecm_needle, arc, scale), method_bgr(m), 1,
+            _polyline(out, project(cam, pose.T_ecm_needle, arc, scale, offset), method_bgr(m), lw,
                       dashed=bool(pose.ambiguous))
     if keypoints is not None:
-        for p in (np.asarray(keypoints, float).reshape(-1, 2) + 0.5) * scale - 0.5:
+        for p in to_picture(np.asarray(keypoints, float).reshape(-1, 2), scale, offset):
             if np.all(np.isfinite(p)):
                 cv2.circle(out, _ipt(p), 6, DETECTION_BGR, 1, cv2.LINE_AA)
     pose = poses.get(final) if final else None
     if pose is not None:
         colour = method_bgr(final)
-        _polyline(out, project(cam, pose.T_ecm_needle, arc, scale), colour, 2 * lw,
+        _polyline(out, project(cam, pose.T_ecm_needle, arc, scale, offset), colour, 2 * lw,
                   dashed=bool(pose.ambiguous))
-        for name, p in zip(KEYPOINT_NAMES, project(cam, pose.T_ecm_needle, kps, scale)):
+        for name, p in zip(KEYPOINT_NAMES, project(cam, pose.T_ecm_needle, kps, scale, offset)):
             if np.all(np.isfinite(p)):
                 cv2.circle(out, _ipt(p), 2 + lw, colour, -1, cv2.LINE_AA)
                 _label(out, name, (_ipt(p)[0] + 6, _ipt(p)[1] - 6), colour)
         axes = np.vstack([np.zeros(3), np.eye(3) * needle.radius_m])
-        o, *ends = project(cam, pose.T_ecm_needle, axes, scale)
+        o, *ends = project(cam, pose.T_ecm_needle, axes, scale, offset)
         if np.all(np.isfinite(o)):
             for e, c in zip(ends, AXIS_BGR):
                 if np.all(np.isfinite(e)):
@@ -159,6 +166,48 @@ def draw_fig1(img: np.ndarray, scale: float, cam, needle: NeedleModel, poses: di
             _label(out, "AMBIGUOUS", (8, out.shape[0] - 10), AMBIGUOUS_BGR, 0.6)
     if caption:
         _label(out, caption, (8, 20), TEXT_BGR, 0.5)
+    return out
+
+
+def fig1_with_zoom(img: np.ndarray, scale: float, cam, needle: NeedleModel, poses: dict,
+                   final: Optional[str], keypoints: Optional[np.ndarray] = None,
+                   T_true: Optional[np.ndarray] = None, caption: str = "",
+                   zoom_frac: float = 0.42) -> np.ndarray:
+    """``draw_fig1`` plus, in the top right corner, a zoomed crop around the needle (the final
+    pose's arc, else the truth, else the detections) drawn at the zoomed resolution; its box is
+    outlined on the picture. Same arguments as ``draw_fig1``; ``zoom_frac``: the inset's width
+    over the picture's."""
+    from common.evaluation.report import _crop_box
+    out = draw_fig1(img, scale, cam, needle, poses, final, keypoints, T_true, caption)
+    arc = needle.sample_arc(24)
+    pose = poses.get(final) if final else None
+    if pose is not None:
+        pts = project(cam, pose.T_ecm_needle, arc, scale)
+    elif T_true is not None:
+        pts = project(cam, T_true, arc, scale)
+    elif keypoints is not None:
+        pts = to_picture(np.asarray(keypoints, float).reshape(-1, 2), scale)
+    else:
+        return out
+    h, w = img.shape[:2]
+    pts = pts[np.all(np.isfinite(pts), axis=1)]
+    if not len(pts) or not ((pts[:, 0] > 0) & (pts[:, 0] < w) & (pts[:, 1] > 0) & (pts[:, 1] < h)).any():
+        return out
+    x0, y0, x1, y1 = _crop_box([pts], w, h, min_size=24, margin=0.35)
+    side = int(w * zoom_frac)
+    z = side / max(x1 - x0, y1 - y0)
+    if z <= 1.2:
+        return out
+    crop = cv2.resize(np.ascontiguousarray(img[y0:y1, x0:x1]),
+                      (max(1, int(round((x1 - x0) * z))), max(1, int(round((y1 - y0) * z)))),
+                      interpolation=cv2.INTER_CUBIC)
+    inset = draw_fig1(crop, scale * z, cam, needle, poses, final, keypoints, T_true,
+                      f"x{z:.1f}", offset=(x0 * z, y0 * z))
+    ih, iw = inset.shape[:2]
+    ih, iw = min(ih, h - 4), min(iw, w - 4)
+    cv2.rectangle(out, (x0, y0), (x1, y1), TEXT_BGR, 1)
+    out[2:2 + ih, w - 2 - iw:w - 2] = inset[:ih, :iw]
+    cv2.rectangle(out, (w - 3 - iw, 1), (w - 1, 2 + ih), TEXT_BGR, 1)
     return out
 
 

@@ -1,0 +1,77 @@
+"""``needletrack view FILE.rrd [--port 9091] [--grpc-port 9877]``: serve a recording (a live
+viewer's ``save``, or ``needletrack eval --rrd``) in Rerun's web viewer on 127.0.0.1 and print
+its URL; Ctrl-C stops it. Needs the ``viewer`` extra (``pip install -e '.[viewer]'``).
+
+Rerun's web viewer is served by Rerun's own command line (``python -m rerun --serve-web
+--bind 127.0.0.1``), which, unlike the SDK's ``serve_web_viewer``, can bind loopback only.
+"""
+from __future__ import annotations
+
+import argparse
+import ctypes
+import signal
+import subprocess
+import sys
+import time
+import urllib.parse
+from pathlib import Path
+
+
+def _pdeathsig():
+    """In the child: die with the parent (Linux ``PR_SET_PDEATHSIG``)."""
+    try:
+        ctypes.CDLL("libc.so.6", use_errno=True).prctl(1, signal.SIGTERM)
+    except OSError:
+        pass
+
+
+def web_url(web_port: int, grpc_url: str) -> str:
+    """The web viewer's address that opens ``grpc_url`` (``rerun+http://...``)."""
+    return f"http://127.0.0.1:{web_port}/?url=" + urllib.parse.quote(grpc_url, safe="")
+
+
+def serve_web(web_port: int, source: str, grpc_port: int | None = None) -> subprocess.Popen:
+    """Start Rerun's web viewer on 127.0.0.1:``web_port`` showing ``source``: a gRPC URL
+    (``rerun+http://127.0.0.1:PORT/proxy``: web server only) or an .rrd file (then also a gRPC
+    server on ``grpc_port`` serving it). The process dies with its parent."""
+    cmd = [sys.executable, "-m", "rerun", "--serve-web", "--bind", "127.0.0.1",
+           "--web-viewer-port", str(web_port)]
+    if grpc_port is not None:
+        cmd += ["--port", str(grpc_port)]
+    return subprocess.Popen(cmd + [str(source)], stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL,
+                            stdin=subprocess.DEVNULL, preexec_fn=_pdeathsig)
+
+
+def main(argv=None) -> int:
+    p = argparse.ArgumentParser(prog="needletrack view", description=__doc__,
+                                formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("rrd", help="a recording (.rrd)")
+    p.add_argument("--port", type=int, default=9091, help="web viewer port (default 9091)")
+    p.add_argument("--grpc-port", type=int, default=9877, help="Rerun gRPC port (default 9877)")
+    p.add_argument("--duration", type=float, help="stop after this many seconds")
+    a = p.parse_args(argv)
+    if not Path(a.rrd).is_file():
+        print(f"needletrack view: {a.rrd}: no such file", file=sys.stderr)
+        return 2
+    try:
+        import rerun  # noqa: F401
+    except ImportError:
+        print("needletrack view: needs rerun-sdk: pip install -e '.[viewer]'", file=sys.stderr)
+        return 1
+    proc = serve_web(a.port, Path(a.rrd).resolve(), a.grpc_port)
+    print(f"viewer: {web_url(a.port, f'rerun+http://127.0.0.1:{a.grpc_port}/proxy')}", flush=True)
+    deadline = None if a.duration is None else time.monotonic() + a.duration
+    try:
+        while proc.poll() is None and (deadline is None or time.monotonic() < deadline):
+            time.sleep(0.2)
+    except KeyboardInterrupt:
+        pass
+    finally:
+        if proc.poll() is None:
+            proc.terminate()
+            proc.wait(10)
+    return 0 if proc.returncode in (0, -signal.SIGTERM) else 1
+
+
+if __name__ == "__main__":
+    sys.exit(main())
