@@ -221,7 +221,8 @@ def test_launch_no_viewer_leaves_the_viewer_out(tmp_path):
 
 
 def test_view_serves_a_recording_on_loopback(tmp_path):
-    pytest.importorskip("rerun", reason="needs the viewer extra (.ci/run installs it)")
+    import rerun  # noqa: F401  (the viewer extra: pip install -e '.[viewer]')
+
     from common.viewer import rerun_log
     rrd = tmp_path / "r.rrd"
     rec = rerun_log.new_recording()
