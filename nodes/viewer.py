@@ -37,7 +37,8 @@ from common.runtime.messages import (
     PoseEstimate,
 )
 from common.runtime.node import Node, NodeError, run
-from common.viewer.draw import PoseToDraw, decode_small, encode_jpeg, fig1_with_zoom
+from common.viewer.draw import PoseToDraw, decode_small
+from common.viewer.frame import log_frame, pictures
 from common.viewer.page import PageServer
 from common.viewer.state import ViewerState
 from nodes._pose import POSE_METHODS, PoseMethodInputs
@@ -217,47 +218,28 @@ class ViewerNode(PoseMethodInputs, Node):
         poses = {m: PoseToDraw(d[seq].T_ecm_needle, bool(d[seq].ambiguous))
                  for m, d in self.poses.items() if seq in d}
         T_true = self._true(seq)
-        stamp_ns = self.images["left"][seq][2]
-        if self.rec is not None:
-            self.rl.set_frame(self.rec, seq, stamp_ns)
+        kps = {}
         for cam in CAMERAS:
-            small, scale, _, _ = self.images[cam][seq]
             kp = self.keypoints[cam].get(seq)
-            uv = np.asarray(kp.uv, float) if kp is not None and kp.found else None
-            caption = f"{cam}  seq {seq}  {self.final or 'no pose input'}" + ("" if self.final in poses else ": no pose")
-            pic = fig1_with_zoom(small, scale, self.rig[cam], self.needle, poses, self.final, uv, T_true, caption)
-            jpeg = encode_jpeg(pic, self.p.jpeg_quality)
+            kps[cam] = np.asarray(kp.uv, float) if kp is not None and kp.found else None
+        images = {cam: self.images[cam][seq][:2] for cam in CAMERAS}
+        jpegs = pictures(images, self.rig, self.needle, poses, self.final, kps, T_true, seq,
+                         self.p.jpeg_quality)
+        for cam, jpeg in jpegs.items():
             self.page.set_frame(cam, jpeg)
-            if self.rec is not None:
-                self.rl.log_image(self.rec, cam, jpeg)
         row = self.state.methods.get(self.final, {})
         err = "" if row.get("pos_err_mm") is None else f"  err {row['pos_err_mm']:.2f} mm {row['rot_err_deg']:.2f} deg"
         self.state.head = f"seq {seq}  final: {self.final}{err}"
         self.page.set_state(self.state.to_json(now))
         if self.rec is not None:
-            self._log_rerun(seq, poses, T_true)
+            scalars = {k: {m: row.get(k) for m, row in self.state.methods.items() if m in poses}
+                       for k in ("pos_err_mm", "rot_err_deg", "rate_hz", "latency_ms")}
+            scalars["confidence"] = {c: self.keypoints[c][seq].confidence
+                                     for c in CAMERAS if seq in self.keypoints[c]}
+            log_frame(self.rec, self.rl, seq, self.images["left"][seq][2], jpegs, self.needle, poses,
+                      T_true, self.ecm.get(seq), np.array(self.path) if len(self.path) >= 2 else None,
+                      scalars)
         self.count("frames_drawn")
-
-    def _log_rerun(self, seq: int, poses: dict, T_true) -> None:
-        rl, rec = self.rl, self.rec
-        T_we = self.ecm.get(seq)
-        if T_we is not None:
-            rl.log_ecm(rec, T_we, np.array(self.path))
-        arc = self.needle.sample_arc(48)
-        for m, pose in poses.items():
-            rl.log_needle(rec, m, arc, pose.T_ecm_needle, pose.ambiguous)
-        if T_true is not None:
-            rl.log_needle(rec, "truth", arc, T_true)
-        for m, row in self.state.methods.items():
-            if row["seq"] != seq and m not in poses:
-                continue
-            for k in ("pos_err_mm", "rot_err_deg", "rate_hz", "latency_ms"):
-                if row.get(k) is not None:
-                    rl.log_scalar(rec, k, m, row[k])
-        for cam in CAMERAS:
-            kp = self.keypoints[cam].get(seq)
-            if kp is not None:
-                rl.log_scalar(rec, "confidence", cam, kp.confidence)
 
 
 NODE = ViewerNode

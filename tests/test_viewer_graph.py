@@ -84,3 +84,23 @@ def test_viewer_page_shows_the_image_and_the_needle_in_a_browser(run_graph, free
     for p in ("/world/ecm/left/image", f"/world/ecm/needle/{FINAL}", "/world/ecm/needle/truth",
               f"/plots/pos_err_mm/{FINAL}"):
         assert p in paths, (p, sorted(paths))
+
+
+def test_eval_rrd_records_every_frame_with_poses_and_errors(tmp_path):
+    """``needletrack eval --rrd``: a frame-by-frame recording of an evaluation."""
+    from common.evaluation.cli import main as eval_main
+    from common.sim.cli import main as dataset_main
+    ds = tmp_path / "ds"
+    assert dataset_main(["generate", "--out", str(ds), "--sequences", "2", "--steps", "3", "--width", "480",
+                         "--height", "270", "--seed", "3", "--randomise", "none", "--jobs", "1", "--quiet"]) == 0
+    rrd = tmp_path / "eval.rrd"
+    assert eval_main(["--dataset", str(ds), "--detector", "oracle", "--out", str(tmp_path / "out"), "--quiet",
+                      "--timeout", "150", "--no-refine", "--rrd", str(rrd)]) == 0
+    from rerun.chunk import RrdReader
+    rows: dict = {}
+    for c in RrdReader(rrd).stream():
+        if not c.is_static:
+            rows[str(c.entity_path)] = rows.get(str(c.entity_path), 0) + c.num_rows
+    assert rows.get("/world/ecm/left/image") == 6 and rows.get("/world/ecm/right/image") == 6
+    assert rows.get("/world/ecm/needle/truth") == 6 and rows.get("/world/ecm/needle/pnp_joint") == 6
+    assert rows.get("/plots/pos_err_mm/pnp_joint") == 6 and rows.get("/world/ecm") == 6
