@@ -70,7 +70,10 @@ def _parser() -> argparse.ArgumentParser:
                    help="also run the pose methods not on the path to the final pose (epnp average, "
                         "triangulate, ...), as an evaluation does")
     p.add_argument("--viewer", action="store_true",
-                   help="measure the graph without and with a viewer node and print what it costs")
+                   help="measure the graph without and with a viewer node (its params as in "
+                        "dataflow.yaml) and print what it costs")
+    p.add_argument("--viewer-param", action="append", default=[], metavar="KEY=VALUE",
+                   help="with --viewer: a viewer parameter (repeatable), e.g. --viewer-param rate_hz=10")
     p.add_argument("--json", help="also write the figures to this JSON file")
     p.add_argument("--plot", help="also draw the latencies (per stage) and each node's CPU per frame "
                                   "into this PNG")
@@ -148,13 +151,19 @@ def ensure_dataset(path) -> str:
     return BENCH_DATA
 
 
-def viewer_node(doc: dict, split: bool) -> dict:
+def viewer_node(doc: dict, split: bool, params: dict | None = None) -> dict:
     """A viewer node wired to everything ``doc`` (a ``pipeline_graph``) produces, as in
-    dataflow.yaml, on free ports (its page and Rerun's in-process gRPC server; no web viewer)."""
+    dataflow.yaml, with dataflow.yaml's viewer params, then ``params``, on free ports (its page
+    and Rerun's in-process gRPC server; no web viewer process)."""
+    import yaml
+
     from common.evaluation.pipeline_graph import SOURCE, free_port, keypoint_sources, pose_inputs
+    from common.runtime.graph import REPO_ROOT
+    flow = yaml.safe_load((REPO_ROOT / "dataflow.yaml").read_text())
+    base = next((n.get("params") or {} for n in flow["nodes"] if n.get("module") == "viewer"), {})
     kp = keypoint_sources(split)
     return {"id": "viewer", "module": "viewer",
-            "params": {"port": free_port(), "grpc_port": free_port(), "web_port": 0},
+            "params": {**base, **(params or {}), "port": free_port(), "grpc_port": free_port(), "web_port": 0},
             "inputs": {"left": f"{SOURCE}/left", "right": f"{SOURCE}/right", "truth": f"{SOURCE}/truth",
                        "calib": f"{SOURCE}/calib", "ecm": "ecm/pose", "keypoints_left": kp["left"],
                        "keypoints_right": kp["right"], **pose_inputs(doc)},
@@ -187,8 +196,11 @@ def measure(args, dataset: str, log, viewer: bool = False) -> dict:
                          methods=None if getattr(args, "all_methods", False) else [final],
                          name="needletrack-bench", decode=getattr(args, "decode", False))
     poses = pose_inputs(doc)
+    viewer_params = None
     if viewer:
-        doc["nodes"].append(viewer_node(doc, split))
+        vparams = dict(parse_param(p) for p in getattr(args, "viewer_param", []))
+        doc["nodes"].append(viewer_node(doc, split, vparams))
+        viewer_params = doc["nodes"][-1]["params"]
     if final not in poses:
         final = next(m for m in ("multiview_refined", "multiview") if m in poses)
     frame_node = POSE_OUTPUTS[METHOD_NEEDS[final][0]].split("/")[0]   # pairs stereo keypoints
@@ -243,6 +255,8 @@ def measure(args, dataset: str, log, viewer: bool = False) -> dict:
            "detector": args.detector, "detector_processes": 2 if split else 1,
            "rate": str(rate), "duration_s": span, "final_method": final,
            "published_hz": len(published) / span}
+    if viewer_params is not None:
+        out["viewer_params"] = viewer_params
     fused = rec.window(final, w0, w1)
     seqs = {r[0] for r in fused}
     out["throughput_hz"] = len(seqs) / span
@@ -345,8 +359,10 @@ def viewer_report(without: dict, with_viewer: dict) -> str:
     change = None if not a else 100 * (b - a) / a
     la, lb = without["latency_ms"], with_viewer["latency_ms"]
     share = v.get("cpu_share")
+    vp = with_viewer.get("viewer_params", {})
     return "\n".join([
-        "needletrack bench --viewer: the viewer's cost",
+        "needletrack bench --viewer: the viewer's cost (pictures "
+        f"{vp.get('width', '?')}x{vp.get('height', '?')} at {vp.get('rate_hz', '?')} Hz)",
         f"  viewer CPU            {f(v.get('cpu_ms_per_frame'), 2)} ms per published frame "
         f"({f(None if share is None else 100 * share, 0)}% of one core); handler p50 "
         f"{f(v.get('proc_ms_p50'), 2)} ms, dropped inputs {v.get('dropped', 'n/a')}",
