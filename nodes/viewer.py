@@ -49,6 +49,19 @@ KEEP = 16           # frames remembered per input (by seq)
 PATH_POINTS = 600   # ECM path length (frames)
 
 
+def port_or_free(port: int, host: str = "127.0.0.1") -> int:
+    """``port`` when it is free on ``host``, else (or for 0) a free port picked by the system."""
+    import socket
+    for candidate in ((port, 0) if port else (0,)):
+        with socket.socket() as s:
+            try:
+                s.bind((host, candidate))
+            except OSError:
+                continue
+            return s.getsockname()[1]
+    raise OSError(f"no free port on {host}")
+
+
 def _put(d: collections.OrderedDict, key, value, keep: int = KEEP) -> None:
     d[key] = value
     while len(d) > keep:
@@ -68,10 +81,10 @@ class ViewerNode(PoseMethodInputs, Node):
     @dataclass
     class Params:
         host: str = "127.0.0.1"       # the page's address (loopback)
-        port: int = 9090              # the page's port (0: any free port)
+        port: int = 9090              # the page's port (0, or taken: any free port)
         rerun: bool = True            # also log to Rerun when rerun-sdk is installed
-        web_port: int = 9091          # Rerun's web viewer (0: no web viewer, gRPC only)
-        grpc_port: int = 9876         # Rerun's data server on 127.0.0.1 (0: none)
+        web_port: int = 9091          # Rerun's web viewer on 127.0.0.1 (0: none; taken: any free port)
+        grpc_port: int = 9876         # Rerun's data server on 127.0.0.1 (0: none; taken: any free port)
         save: Optional[str] = None    # record the Rerun stream to this .rrd file
         rate_hz: float = 10.0         # pictures per second at most (per camera)
         width: int = 960              # pictures shrunk to fit width x height (px)
@@ -103,7 +116,11 @@ class ViewerNode(PoseMethodInputs, Node):
         rerun_url = None
         if p.rerun:
             rerun_url = self._start_rerun()
-        self.page = PageServer(p.host, p.port, poll_ms=int(1000 / p.rate_hz), rerun_url=rerun_url)
+        try:
+            self.page = PageServer(p.host, p.port, poll_ms=int(1000 / p.rate_hz), rerun_url=rerun_url)
+        except OSError as exc:      # taken (another viewer?): any free port rather than no viewer
+            self.page = PageServer(p.host, 0, poll_ms=int(1000 / p.rate_hz), rerun_url=rerun_url)
+            self.log.warning("port %d: %s; serving on %d instead", p.port, exc, self.page.port)
         print(f"viewer: {self.page.url}", flush=True)
         if rerun_url:
             print(f"viewer 3D (Rerun): {rerun_url}", flush=True)
@@ -122,11 +139,13 @@ class ViewerNode(PoseMethodInputs, Node):
             return None
         self.rl = rerun_log
         self.rec = rerun_log.new_recording()
-        grpc = rerun_log.set_sinks(self.rec, p.grpc_port or None, p.save)
+        grpc_port = port_or_free(p.grpc_port) if p.grpc_port else None
+        grpc = rerun_log.set_sinks(self.rec, grpc_port, p.save)
         if grpc and p.web_port:
             from common.viewer.cli import serve_web, web_url
-            self.web = serve_web(p.web_port, grpc)
-            return web_url(p.web_port, grpc)
+            web_port = port_or_free(p.web_port)
+            self.web = serve_web(web_port, grpc)
+            return web_url(web_port, grpc)
         return None
 
     def teardown(self):

@@ -190,6 +190,23 @@ def test_viewer_node_offline_draws_sampled_frames_with_their_pose(capsys):
         node.teardown()
 
 
+def test_a_taken_port_falls_back_to_a_free_one(capsys):
+    import socket
+
+    from nodes.viewer import ViewerNode, port_or_free
+    with socket.socket() as taken:
+        taken.bind(("127.0.0.1", 0))
+        taken.listen()
+        port = taken.getsockname()[1]
+        assert port_or_free(port) != port
+        node = ViewerNode.offline({"port": port, "rerun": False}, wired=["left", "right", "calib"])
+        try:
+            assert node.page.port != port
+            assert f"viewer: http://127.0.0.1:{node.page.port}/" in capsys.readouterr().out
+        finally:
+            node.teardown()
+
+
 def test_a_frame_without_its_pose_is_drawn_after_pose_wait():
     from nodes.viewer import ViewerNode
     node = ViewerNode.offline({"port": 0, "rerun": False, "rate_hz": 1000, "pose_wait_s": 0.05},
