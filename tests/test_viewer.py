@@ -269,4 +269,13 @@ def test_view_serves_a_recording_on_loopback(tmp_path):
     finally:
         proc.terminate()
         proc.wait(20)
+    deadline = time.monotonic() + 20          # the server went with it
+    while time.monotonic() < deadline:
+        try:
+            urllib.request.urlopen(f"http://127.0.0.1:{web}/", timeout=2)
+            time.sleep(0.3)
+        except (urllib.error.URLError, ConnectionError):
+            break
+    else:
+        raise AssertionError("the web viewer outlived `needletrack view`")
     assert cli("view", tmp_path / "missing.rrd").returncode == 2

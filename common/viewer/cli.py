@@ -2,8 +2,10 @@
 viewer's ``save``, or ``needletrack eval --rrd``) in Rerun's web viewer on 127.0.0.1 and print
 its URL; Ctrl-C stops it. Needs the ``viewer`` extra (``pip install -e '.[viewer]'``).
 
-Rerun's web viewer is served by Rerun's own command line (``python -m rerun --serve-web
---bind 127.0.0.1``), which, unlike the SDK's ``serve_web_viewer``, can bind loopback only.
+Rerun's web viewer is served by Rerun's own command line (the ``rerun`` binary of the
+``rerun-sdk`` wheel, ``--serve-web --bind 127.0.0.1``), which, unlike the SDK's
+``serve_web_viewer``, can bind loopback only. It is started directly (not through
+``python -m rerun``, whose binary would outlive a killed wrapper) and dies with its parent.
 """
 from __future__ import annotations
 
@@ -25,16 +27,29 @@ def _pdeathsig():
         pass
 
 
+def _interrupt(signum, frame):
+    raise KeyboardInterrupt
+
+
 def web_url(web_port: int, grpc_url: str) -> str:
     """The web viewer's address that opens ``grpc_url`` (``rerun+http://...``)."""
     return f"http://127.0.0.1:{web_port}/?url=" + urllib.parse.quote(grpc_url, safe="")
+
+
+def rerun_binary() -> str:
+    """The ``rerun`` command line binary shipped in the rerun-sdk wheel."""
+    import rerun_cli
+    exe = Path(rerun_cli.__file__).parent / "rerun"
+    if not exe.is_file():
+        raise FileNotFoundError(f"{exe}: the rerun binary is missing from rerun-sdk")
+    return str(exe)
 
 
 def serve_web(web_port: int, source: str, grpc_port: int | None = None) -> subprocess.Popen:
     """Start Rerun's web viewer on 127.0.0.1:``web_port`` showing ``source``: a gRPC URL
     (``rerun+http://127.0.0.1:PORT/proxy``: web server only) or an .rrd file (then also a gRPC
     server on ``grpc_port`` serving it). The process dies with its parent."""
-    cmd = [sys.executable, "-m", "rerun", "--serve-web", "--bind", "127.0.0.1",
+    cmd = [rerun_binary(), "--serve-web", "--bind", "127.0.0.1",
            "--web-viewer-port", str(web_port)]
     if grpc_port is not None:
         cmd += ["--port", str(grpc_port)]
@@ -59,6 +74,7 @@ def main(argv=None) -> int:
         print("needletrack view: needs rerun-sdk: pip install -e '.[viewer]'", file=sys.stderr)
         return 1
     proc = serve_web(a.port, Path(a.rrd).resolve(), a.grpc_port)
+    signal.signal(signal.SIGTERM, _interrupt)     # stop the server too, as Ctrl-C does
     print(f"viewer: {web_url(a.port, f'rerun+http://127.0.0.1:{a.grpc_port}/proxy')}", flush=True)
     deadline = None if a.duration is None else time.monotonic() + a.duration
     try:
