@@ -1,6 +1,7 @@
 """Viewer: the tracker live in a browser (issue 21). A fan-out consumer: any number of them,
-every input newest-only (except the calibration), so a slow viewer drops frames, never slows
-the pipeline.
+never slowing the pipeline: the images (the only large inputs) are newest-only, so a slow
+viewer drops frames; the small messages (poses, keypoints, truth, ECM poses, calibration) queue,
+each handled in microseconds, so that every pose counts in the rates and finds its truth.
 
 Two outputs, both on loopback:
 
@@ -76,7 +77,7 @@ class ViewerNode(PoseMethodInputs, Node):
               "truth": GroundTruth, "calib": Calibration, "ecm": EcmPose,
               **{m: PoseEstimate for m in POSE_METHODS}}
     OUTPUTS = ()
-    KEEP_ALL = ("calib",)
+    KEEP_ALL = tuple(k for k in INPUTS if k not in ("left", "right"))
 
     @dataclass
     class Params:
@@ -86,7 +87,7 @@ class ViewerNode(PoseMethodInputs, Node):
         web_port: int = 9091          # Rerun's web viewer on 127.0.0.1 (0: none; taken: any free port)
         grpc_port: int = 9876         # Rerun's data server on 127.0.0.1 (0: none; taken: any free port)
         save: Optional[str] = None    # record the Rerun stream to this .rrd file
-        rate_hz: float = 10.0         # pictures per second at most (per camera)
+        rate_hz: float = 5.0          # pictures per second at most (per camera; docs/viewer.md: cost)
         width: int = 960              # pictures shrunk to fit width x height (px)
         height: int = 540
         jpeg_quality: int = 75

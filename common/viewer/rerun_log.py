@@ -113,6 +113,16 @@ def log_needle(rec, name: str, arc_needle: np.ndarray, T_ecm_needle: np.ndarray,
             rr.LineStrips3D([pts], colors=[colour], radii=[0.0002 if ambiguous else 0.0004]))
 
 
+_STYLED: set = set()     # (recording id, entity path) whose line colour is logged
+
+
 def log_scalar(rec, series: str, line: str, value: float) -> None:
+    """``value`` on ``plots/<series>/<line>``; a method's line gets its colour (once, static)."""
     import rerun as rr
-    rec.log(f"plots/{series}/{line}", rr.Scalars(float(value)))
+    path = f"plots/{series}/{line}"
+    key = (rec.get_recording_id(), path)
+    if key not in _STYLED:
+        _STYLED.add(key)
+        colour = {"left": [255, 220, 0], "right": [255, 140, 0]}.get(line) or _rgb(method_bgr(line))
+        rec.log(path, rr.SeriesLines(colors=[colour], names=[line]), static=True)
+    rec.log(path, rr.Scalars(float(value)))
