@@ -13,6 +13,7 @@ from pathlib import Path
 
 import cv2
 import numpy as np
+import pytest
 
 from common.runtime.messages import CameraImage
 from common.viewer.browser import find_chromium, screenshot
@@ -86,13 +87,19 @@ def test_viewer_page_shows_the_image_and_the_needle_in_a_browser(run_graph, free
         assert p in paths, (p, sorted(paths))
 
 
-def test_eval_rrd_records_every_frame_with_poses_and_errors(tmp_path):
-    """``needletrack eval --rrd``: a frame-by-frame recording of an evaluation."""
-    from common.evaluation.cli import main as eval_main
+@pytest.fixture(scope="module")
+def tiny_dataset(tmp_path_factory):
     from common.sim.cli import main as dataset_main
-    ds = tmp_path / "ds"
+    ds = tmp_path_factory.mktemp("viewer") / "ds"
     assert dataset_main(["generate", "--out", str(ds), "--sequences", "2", "--steps", "3", "--width", "480",
                          "--height", "270", "--seed", "3", "--randomise", "none", "--jobs", "1", "--quiet"]) == 0
+    return ds
+
+
+def test_eval_rrd_records_every_frame_with_poses_and_errors(tiny_dataset, tmp_path):
+    """``needletrack eval --rrd``: a frame-by-frame recording of an evaluation."""
+    from common.evaluation.cli import main as eval_main
+    ds = tiny_dataset
     rrd = tmp_path / "eval.rrd"
     assert eval_main(["--dataset", str(ds), "--detector", "oracle", "--out", str(tmp_path / "out"), "--quiet",
                       "--timeout", "150", "--no-refine", "--rrd", str(rrd)]) == 0
@@ -104,3 +111,16 @@ def test_eval_rrd_records_every_frame_with_poses_and_errors(tmp_path):
     assert rows.get("/world/ecm/left/image") == 6 and rows.get("/world/ecm/right/image") == 6
     assert rows.get("/world/ecm/needle/truth") == 6 and rows.get("/world/ecm/needle/pnp_joint") == 6
     assert rows.get("/plots/pos_err_mm/pnp_joint") == 6 and rows.get("/world/ecm") == 6
+
+
+def test_bench_viewer_prints_what_the_viewer_costs(tiny_dataset, tmp_path, capsys):
+    """``needletrack bench --viewer`` runs (its figures are printed, not asserted)."""
+    from common.evaluation.graph_bench import main as bench_main
+    out = tmp_path / "bench.json"
+    assert bench_main(["graph", "--dataset", str(tiny_dataset), "--detector", "oracle", "--rate", "10",
+                       "--duration", "3", "--warmup", "1", "--no-refine", "--viewer",
+                       "--viewer-param", "rate_hz=10", "--json", str(out)]) == 0
+    text = capsys.readouterr().out
+    assert "the viewer's cost (pictures 960x540 at 10 Hz)" in text and "viewer CPU" in text
+    r = json.loads(out.read_text())
+    assert "viewer" in r["with_viewer"]["per_node"] and "viewer" not in r["per_node"]
