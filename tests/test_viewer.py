@@ -224,15 +224,17 @@ def test_a_frame_without_its_pose_is_drawn_after_pose_wait():
         node.teardown()
 
 
-def test_launch_no_viewer_leaves_the_viewer_out(tmp_path):
+def test_launch_save_records_and_no_viewer_leaves_the_viewer_out(tmp_path):
     port = free_port()
     graph = tmp_path / "g.yaml"
     graph.write_text(json.dumps({"graph": f"nv{os.getpid()}", "zenoh": {"listen": [f"tcp/127.0.0.1:{free_port()}"]},
                                  "nodes": [{"id": "count", "module": "counter", "params": {"rate_hz": 5}},
                                            {"id": "viewer", "module": "viewer",
-                                            "params": {"port": port, "rerun": False}}]}))
-    with_viewer = cli("launch", graph, "--duration", "6", timeout=90)
+                                            "params": {"port": port, "grpc_port": 0, "web_port": 0}}]}))
+    rrd = tmp_path / "s.rrd"
+    with_viewer = cli("launch", graph, "--duration", "6", "--save", rrd, timeout=90)
     assert f"viewer: http://127.0.0.1:{port}/" in with_viewer.stdout, with_viewer.stdout + with_viewer.stderr
+    assert f"viewer: recording to {rrd}" in with_viewer.stdout and rrd.stat().st_size > 0
     without = cli("launch", graph, "--duration", "3", "--no-viewer", timeout=90)
     assert without.returncode == 0 and "viewer" not in without.stdout, without.stdout
 
