@@ -16,7 +16,13 @@ from graphtools import REPO, cli, free_port
 from common.geometry.camera import StereoRig
 from common.geometry.needle import NeedleModel
 from common.geometry.transforms import make_T, rotvec_to_R
-from common.runtime.messages import Calibration, CameraImage, GroundTruth, Keypoints, PoseEstimate
+from common.runtime.messages import (
+    Calibration,
+    CameraImage,
+    GroundTruth,
+    Keypoints,
+    PoseEstimate,
+)
 from common.viewer.draw import (
     AMBIGUOUS_BGR,
     DETECTION_BGR,

@@ -152,14 +152,14 @@ def draw_fig1(img: np.ndarray, scale: float, cam, needle: NeedleModel, poses: di
         colour = method_bgr(final)
         _polyline(out, project(cam, pose.T_ecm_needle, arc, scale, offset), colour, 2 * lw,
                   dashed=bool(pose.ambiguous))
-        for name, p in zip(KEYPOINT_NAMES, project(cam, pose.T_ecm_needle, kps, scale, offset)):
+        for name, p in zip(KEYPOINT_NAMES, project(cam, pose.T_ecm_needle, kps, scale, offset), strict=True):
             if np.all(np.isfinite(p)):
                 cv2.circle(out, _ipt(p), 2 + lw, colour, -1, cv2.LINE_AA)
                 _label(out, name, (_ipt(p)[0] + 6, _ipt(p)[1] - 6), colour)
         axes = np.vstack([np.zeros(3), np.eye(3) * needle.radius_m])
         o, *ends = project(cam, pose.T_ecm_needle, axes, scale, offset)
         if np.all(np.isfinite(o)):
-            for e, c in zip(ends, AXIS_BGR):
+            for e, c in zip(ends, AXIS_BGR, strict=True):
                 if np.all(np.isfinite(e)):
                     cv2.arrowedLine(out, _ipt(o), _ipt(e), c, lw, cv2.LINE_AA, tipLength=0.15)
         if pose.ambiguous:
