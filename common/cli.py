@@ -25,6 +25,7 @@ COMMANDS = {
     "train": ("common.detector.train:main", "train the keypoint detector"),
     "eval": ("common.evaluation.cli:main", "evaluate pose pipelines"),
     "record": ("common.ros.record:record_main", "record a running graph to MCAP with ROS 2 schemas"),
+    "view": ("common.viewer.cli:main", "open a recording (.rrd) in Rerun's web viewer on 127.0.0.1"),
 }
 
 BENCHES = {

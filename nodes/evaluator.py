@@ -6,7 +6,8 @@ exits 0.
 Params: ``out`` (folder, required), ``dataset`` (the folder replayed: named in the results and
 read for the overlays' images; frame ``seq`` = frames.jsonl ``index``), ``detector`` (name for
 the results), ``noise_px`` (oracle noise, reported), ``support_normal_world`` (the refinement's
-resting prior, reported), ``drain_s`` (default 3: how long to wait
+resting prior, reported), ``rrd`` (also write a Rerun recording of the frames, poses
+and errors there: ``common.viewer.recording``), ``drain_s`` (default 3: how long to wait
 after EndOfStream when some poses never come), ``quiet``.
 
 Inputs named after the pose methods (``pnp_average``, ``pnp_joint``, ``triangulation``,
@@ -57,6 +58,7 @@ class EvaluatorNode(PoseMethodInputs, Node):
         drain_s: float = 3.0
         noise_px: float = 0.0
         support_normal_world: list[float] | None = None
+        rrd: str | None = None            # also write the frames, poses and errors as a Rerun recording
 
     def setup(self):
         if not self.p.out:
@@ -168,6 +170,21 @@ class EvaluatorNode(PoseMethodInputs, Node):
                             methods=list(METHODS) + [m for m in EXTRA_METHODS
                                                      if m in self.methods or self.col.poses.get(m)])
         self.log.info("wrote %s (frames %d)", self.out, res["frames"])
+        if self.p.rrd:
+            self._write_rrd(loader)
+
+    def _write_rrd(self, loader):
+        from common.geometry.camera import StereoRig
+        from common.geometry.ecm_kinematics import EcmArm
+        from common.geometry.needle import NeedleModel
+        from common.viewer.recording import write_rrd
+        cal = self.col.calib
+        if cal is None:
+            self.log.error("no calibration came: no recording written")
+            return
+        n = write_rrd(self.p.rrd, self.col, StereoRig.from_dict(cal.cameras, cal.image_size),
+                      NeedleModel.from_dict(cal.needle), EcmArm.from_calibration(cal.ecm), loader)
+        self.log.info("wrote %s (%d frames)", self.p.rrd, n)
 
     def _image_loader(self):
         if not self.dataset_path:

@@ -46,6 +46,10 @@ def _parser() -> argparse.ArgumentParser:
     p.add_argument("--bench", type=float, default=0.0, metavar="SECONDS",
                    help="then also measure the live graph's speed for this long (`needletrack bench`) "
                         "and add it to results.json (key `bench`) and report.md")
+    p.add_argument("--rrd", metavar="FILE",
+                   help="also write the frames (Fig. 1 pictures), every method's pose and the errors "
+                        "as a Rerun recording, to scrub frame by frame: `needletrack view FILE` "
+                        "(needs the viewer extra)")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
     return p
 
@@ -135,6 +139,13 @@ def main(argv=None) -> int:
         print("needletrack eval: --noise-px applies to the oracle detector only", file=sys.stderr)
         return 2
 
+    if args.rrd:
+        try:
+            import rerun  # noqa: F401
+        except ImportError:
+            print("needletrack eval: --rrd needs rerun-sdk: pip install -e '.[viewer]'", file=sys.stderr)
+            return 2
+        Path(args.rrd).unlink(missing_ok=True)
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     for stale in ("results.json", "report.md", "error_vs_distance.png"):
@@ -163,7 +174,8 @@ def main(argv=None) -> int:
     evaluator = {"id": "evaluator", "module": "evaluator",
                  "params": {"out": str(out.resolve()), "dataset": str(Path(dataset).resolve()),
                             "detector": args.detector, "noise_px": args.noise_px,
-                            "support_normal_world": args.support_normal},
+                            "support_normal_world": args.support_normal,
+                            "rrd": str(Path(args.rrd).resolve()) if args.rrd else None},
                  "inputs": {"truth": "replay/truth", "calib": "replay/calib", "eos": "replay/eos",
                             **keypoint_sources(split),
                             "points3d": "triangulate/points", **pose_inputs(doc)},
@@ -201,6 +213,11 @@ def main(argv=None) -> int:
     print_summary(res)
     print(f"wrote {out}/results.json, report.md, error_vs_distance.png, per_frame.csv, overlays/ "
           f"({time.monotonic() - t0:.0f} s)")
+    if args.rrd:
+        if not Path(args.rrd).is_file():
+            print(f"needletrack eval: the evaluator wrote no {args.rrd}; see {log_path}", file=sys.stderr)
+            return 1
+        print(f"wrote {args.rrd}: needletrack view {args.rrd}")
     return 0
 
 

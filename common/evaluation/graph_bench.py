@@ -18,6 +18,11 @@ not on the path to the final pose. After a warm-up it measures for ``--duration`
   work: a detector's images, not its calibration or ground truth; the replay's step is not a
   handler, its CPU ms/frame is its cost) and dropped inputs.
 
+``--viewer``: what the live viewer (nodes/viewer.py, docs/viewer.md) costs: the graph is measured
+twice, without and then with a viewer node attached as in dataflow.yaml (every method's pose, the
+images, keypoints, truth; its page and Rerun logging on, Rerun's web viewer process off), and the
+difference is printed: the viewer's CPU ms per published frame, fused poses/s and latency.
+
 Prints a table; ``--json FILE`` also writes the figures. Without ``--dataset`` it uses
 ``data/test`` when present, else generates ``data/bench`` once (30 frames).
 """
@@ -64,6 +69,11 @@ def _parser() -> argparse.ArgumentParser:
     p.add_argument("--all-methods", action="store_true",
                    help="also run the pose methods not on the path to the final pose (epnp average, "
                         "triangulate, ...), as an evaluation does")
+    p.add_argument("--viewer", action="store_true",
+                   help="measure the graph without and with a viewer node (its params as in "
+                        "dataflow.yaml) and print what it costs")
+    p.add_argument("--viewer-param", action="append", default=[], metavar="KEY=VALUE",
+                   help="with --viewer: a viewer parameter (repeatable), e.g. --viewer-param rate_hz=10")
     p.add_argument("--json", help="also write the figures to this JSON file")
     p.add_argument("--plot", help="also draw the latencies (per stage) and each node's CPU per frame "
                                   "into this PNG")
@@ -141,7 +151,26 @@ def ensure_dataset(path) -> str:
     return BENCH_DATA
 
 
-def measure(args, dataset: str, log) -> dict:
+def viewer_node(doc: dict, split: bool, params: dict | None = None) -> dict:
+    """A viewer node wired to everything ``doc`` (a ``pipeline_graph``) produces, as in
+    dataflow.yaml, with dataflow.yaml's viewer params, then ``params``, on free ports (its page
+    and Rerun's in-process gRPC server; no web viewer process)."""
+    import yaml
+
+    from common.evaluation.pipeline_graph import SOURCE, free_port, keypoint_sources, pose_inputs
+    from common.runtime.graph import REPO_ROOT
+    flow = yaml.safe_load((REPO_ROOT / "dataflow.yaml").read_text())
+    base = next((n.get("params") or {} for n in flow["nodes"] if n.get("module") == "viewer"), {})
+    kp = keypoint_sources(split)
+    return {"id": "viewer", "module": "viewer",
+            "params": {**base, **(params or {}), "port": free_port(), "grpc_port": free_port(), "web_port": 0},
+            "inputs": {"left": f"{SOURCE}/left", "right": f"{SOURCE}/right", "truth": f"{SOURCE}/truth",
+                       "calib": f"{SOURCE}/calib", "ecm": "ecm/pose", "keypoints_left": kp["left"],
+                       "keypoints_right": kp["right"], **pose_inputs(doc)},
+            "restart": "never", "env": {"OMP_NUM_THREADS": "1"}}
+
+
+def measure(args, dataset: str, log, viewer: bool = False) -> dict:
     from common.data.dataset import Dataset
     from common.evaluation.pipeline_graph import (
         METHOD_NEEDS,
@@ -167,6 +196,11 @@ def measure(args, dataset: str, log) -> dict:
                          methods=None if getattr(args, "all_methods", False) else [final],
                          name="needletrack-bench", decode=getattr(args, "decode", False))
     poses = pose_inputs(doc)
+    viewer_params = None
+    if viewer:
+        vparams = dict(parse_param(p) for p in getattr(args, "viewer_param", []))
+        doc["nodes"].append(viewer_node(doc, split, vparams))
+        viewer_params = doc["nodes"][-1]["params"]
     if final not in poses:
         final = next(m for m in ("multiview_refined", "multiview") if m in poses)
     frame_node = POSE_OUTPUTS[METHOD_NEEDS[final][0]].split("/")[0]   # pairs stereo keypoints
@@ -221,6 +255,8 @@ def measure(args, dataset: str, log) -> dict:
            "detector": args.detector, "detector_processes": 2 if split else 1,
            "rate": str(rate), "duration_s": span, "final_method": final,
            "published_hz": len(published) / span}
+    if viewer_params is not None:
+        out["viewer_params"] = viewer_params
     fused = rec.window(final, w0, w1)
     seqs = {r[0] for r in fused}
     out["throughput_hz"] = len(seqs) / span
@@ -315,6 +351,27 @@ def report(r: dict) -> str:
     return "\n".join(L)
 
 
+def viewer_report(without: dict, with_viewer: dict) -> str:
+    """What the viewer costs: its CPU, and the change in fused poses/s and latency."""
+    f = lambda x, nd=1: "n/a" if x is None else f"{x:.{nd}f}"
+    v = with_viewer["per_node"].get("viewer", {})
+    a, b = without["throughput_hz"], with_viewer["throughput_hz"]
+    change = None if not a else 100 * (b - a) / a
+    la, lb = without["latency_ms"], with_viewer["latency_ms"]
+    share = v.get("cpu_share")
+    vp = with_viewer.get("viewer_params", {})
+    return "\n".join([
+        "needletrack bench --viewer: the viewer's cost (pictures "
+        f"{vp.get('width', '?')}x{vp.get('height', '?')} at {vp.get('rate_hz', '?')} Hz)",
+        f"  viewer CPU            {f(v.get('cpu_ms_per_frame'), 2)} ms per published frame "
+        f"({f(None if share is None else 100 * share, 0)}% of one core); handler p50 "
+        f"{f(v.get('proc_ms_p50'), 2)} ms, dropped inputs {v.get('dropped', 'n/a')}",
+        f"  fused poses/s         {f(a)} without -> {f(b)} with ({f(change)}%)   [target: at most 10% fewer]",
+        f"  latency p50           {f(la['p50'])} -> {f(lb['p50'])} ms; p99 {f(la['p99'])} -> {f(lb['p99'])} ms",
+        f"  frames published      {f(without['published_hz'])} -> {f(with_viewer['published_hz'])} /s "
+        f"(replay rate {with_viewer['rate']})"])
+
+
 def plot(r: dict, samples: dict, path) -> None:
     """Latency distribution per stage (from frame publish, ms) beside each node's CPU time per
     published frame (ms), with the issue 6 targets."""
@@ -367,6 +424,7 @@ def main(argv=None) -> int:
     try:
         with open(log_path, "w") as log:
             r = measure(args, dataset, log)
+            r_viewer = measure(args, dataset, log, viewer=True) if args.viewer else None
     except DatasetError as exc:
         print(f"needletrack bench: {dataset}: {exc}", file=sys.stderr)
         return 2
@@ -376,6 +434,10 @@ def main(argv=None) -> int:
         return 1
     samples = r.pop("latency_samples_ms", None)
     print(report(r))
+    if r_viewer is not None:
+        r_viewer.pop("latency_samples_ms", None)
+        print("\nwith the viewer:\n" + report(r_viewer) + "\n\n" + viewer_report(r, r_viewer))
+        r = {**r, "with_viewer": r_viewer}
     if args.plot and samples is not None:
         plot(r, samples, args.plot)
         print(f"wrote {args.plot}")

@@ -455,7 +455,7 @@ class Launcher:
 
 
 def launch_main(argv: list) -> int:
-    """``needletrack launch [GRAPH.yaml] [--only ID,...] [--duration S] [--until ID,...] [--all-methods]``."""
+    """``needletrack launch [GRAPH.yaml] [--only ID,...] [--duration S] [--until ID,...] [--all-methods] [--no-viewer] [--save FILE.rrd]``."""
     import argparse
 
     from common.runtime.graph import load_graph
@@ -466,12 +466,27 @@ def launch_main(argv: list) -> int:
     ap.add_argument("--until", help="stop the graph when these nodes (comma-separated) have finished")
     ap.add_argument("--all-methods", action="store_true",
                     help="monitor nodes print every method's pose, not only the final one")
+    ap.add_argument("--no-viewer", action="store_true",
+                    help="leave out the graph's viewer nodes (module viewer)")
+    ap.add_argument("--save", metavar="FILE.rrd",
+                    help="the viewer records the session to FILE.rrd (a second viewer node to "
+                         "FILE.<id>.rrd); open it with `needletrack view FILE.rrd`")
     args = ap.parse_args(argv)
     path = Path(args.graph)
     if not path.exists() and args.graph == "dataflow.yaml":
         path = REPO_ROOT / "dataflow.yaml"
     try:
         graph = load_graph(path)
+        if args.no_viewer:
+            graph.nodes = [n for n in graph.nodes if n.module != "viewer"]
+        if args.save:
+            viewers = [n for n in graph.nodes if n.module == "viewer"]
+            if not viewers:
+                print(f"needletrack launch: --save: {path} has no viewer node", file=sys.stderr)
+                return 2
+            for i, n in enumerate(viewers):
+                save = Path(args.save).resolve()
+                n.params["save"] = str(save if i == 0 else save.with_suffix(f".{n.id}.rrd"))
         if args.all_methods:
             for n in graph.nodes:
                 if n.module == "monitor":

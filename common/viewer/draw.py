@@ -1,0 +1,229 @@
+"""The viewer's pictures: the paper's Fig. 1 (the endoscope image with the tracked needle drawn
+on it), computed with no process and no network.
+
+Conventions: images are BGR uint8; pixel coordinates have their origin at the centre of the
+top-left pixel (OpenCV); poses are 4x4 ``T_a_b`` (frame b to frame a, metres). A picture is drawn
+on the *downscaled* image: a full-size pixel ``uv`` lands at ``(uv + 0.5) * scale - 0.5``.
+
+What ``draw_fig1`` draws on one camera's image:
+
+- the final pose's projected arc (thick, the method's colour; dashed and labelled AMBIGUOUS
+  when the pose is ``ambiguous``) with its keypoints A..E (filled dots, labelled);
+- the needle's axes at its origin (x red, y green, z blue, one radius long);
+- every other method's arc (thin, its colour);
+- the detector's keypoints (yellow circles);
+- the ground truth's arc and keypoints (green crosses) when known.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Optional
+
+import cv2
+import numpy as np
+
+from common.evaluation.report import METHOD_COLOURS, TRUTH_BGR, _bgr
+from common.geometry.needle import KEYPOINT_NAMES, NeedleModel
+from common.geometry.transforms import transform_points
+
+DETECTION_BGR = (0, 220, 255)
+AMBIGUOUS_BGR = (0, 140, 255)
+AXIS_BGR = ((40, 40, 230), (60, 200, 60), (230, 120, 40))     # x red, y green, z blue
+TEXT_BGR = (255, 255, 255)
+
+
+def method_bgr(method: str) -> tuple:
+    """A method's colour (as in the evaluation's figures), BGR."""
+    return _bgr(METHOD_COLOURS.get(method, "#ffffff"))
+
+
+def fit_size(width: int, height: int, max_width: int, max_height: int) -> tuple[int, int]:
+    """The largest (w, h) with the image's aspect that fits ``max_width x max_height``; never
+    larger than the image itself."""
+    s = min(1.0, max_width / width, max_height / height)
+    return max(1, int(round(width * s))), max(1, int(round(height * s)))
+
+
+def downscale(img: np.ndarray, max_width: int, max_height: int) -> tuple[np.ndarray, float]:
+    """(image, scale): ``img`` shrunk to fit (area averaging), and the factor applied."""
+    h, w = img.shape[:2]
+    w2, h2 = fit_size(w, h, max_width, max_height)
+    if (w2, h2) == (w, h):
+        return np.ascontiguousarray(img), 1.0
+    return cv2.resize(img, (w2, h2), interpolation=cv2.INTER_AREA), w2 / w
+
+
+_REDUCED = ((8, cv2.IMREAD_REDUCED_COLOR_8), (4, cv2.IMREAD_REDUCED_COLOR_4),
+            (2, cv2.IMREAD_REDUCED_COLOR_2))
+
+
+def decode_small(data, encoding: str, width: int, height: int, max_width: int,
+                 max_height: int) -> tuple[np.ndarray, float]:
+    """(image, scale): a camera image's bytes (``bgr8`` raw, or a JPEG/PNG file of
+    ``width x height``) decoded and shrunk to fit ``max_width x max_height``. A JPEG is decoded
+    at 1/2, 1/4 or 1/8 size directly when that is still at least the target (libjpeg's DCT
+    scaling: a 1080p frame at 960x540 costs about a quarter of a full decode). Raises
+    ValueError on corrupt data."""
+    if encoding == "bgr8":
+        if len(data) != width * height * 3:
+            raise ValueError(f"bgr8 {width}x{height} needs {width * height * 3} bytes, got {len(data)}")
+        return downscale(np.frombuffer(data, np.uint8).reshape(height, width, 3), max_width, max_height)
+    tw, th = fit_size(width, height, max_width, max_height)
+    flag = cv2.IMREAD_COLOR
+    if encoding == "jpeg":
+        flag = next((f for k, f in _REDUCED if width // k >= tw and height // k >= th), flag)
+    img = cv2.imdecode(np.frombuffer(data, np.uint8), flag)
+    if img is None:
+        raise ValueError(f"corrupt {encoding} ({len(data)} bytes)")
+    small, s = downscale(img, tw, th)
+    return small, small.shape[1] / width
+
+
+def to_picture(uv, scale: float, offset=(0.0, 0.0)) -> np.ndarray:
+    """Full-size pixels -> a picture scaled by ``scale`` and shifted by ``offset`` (px of the
+    scaled picture): ``(uv + 0.5) * scale - 0.5 - offset``."""
+    return (np.asarray(uv, float) + 0.5) * scale - 0.5 - np.asarray(offset, float)
+
+
+def project(cam, T_ecm_needle: np.ndarray, pts_needle: np.ndarray, scale: float = 1.0,
+            offset=(0.0, 0.0)) -> np.ndarray:
+    """(N, 2) pixels in a picture (``to_picture``) of needle-frame points (N, 3) at pose
+    ``T_ecm_needle``; NaN for points behind the camera."""
+    p = transform_points(cam.T_cam_ecm @ np.asarray(T_ecm_needle, float), pts_needle)
+    uv = cam.project(p)
+    uv[p[:, 2] <= 1e-6] = np.nan
+    return to_picture(uv, scale, offset)
+
+
+def _ipt(p) -> tuple:
+    return int(round(float(p[0]))), int(round(float(p[1])))
+
+
+def _polyline(img, uv, colour, thick, dashed=False) -> None:
+    uv = np.asarray(uv, float)
+    ok = np.all(np.isfinite(uv), axis=1) & (np.abs(uv) < 1e5).all(axis=1)
+    pts = np.round(uv[ok]).astype(np.int32)
+    if len(pts) < 2:
+        return
+    if not dashed:
+        cv2.polylines(img, [pts.reshape(-1, 1, 2)], False, colour, thick, cv2.LINE_AA)
+        return
+    for i in range(0, len(pts) - 1, 2):
+        cv2.line(img, tuple(map(int, pts[i])), tuple(map(int, pts[i + 1])), colour, thick, cv2.LINE_AA)
+
+
+def _label(img, text, org, colour, size=0.45) -> None:
+    cv2.putText(img, text, org, cv2.FONT_HERSHEY_SIMPLEX, size, (0, 0, 0), 3, cv2.LINE_AA)
+    cv2.putText(img, text, org, cv2.FONT_HERSHEY_SIMPLEX, size, colour, 1, cv2.LINE_AA)
+
+
+@dataclass
+class PoseToDraw:
+    """A method's pose for one frame: ``T_ecm_needle`` (m) and whether it is ambiguous."""
+    T_ecm_needle: np.ndarray
+    ambiguous: bool = False
+
+
+def draw_fig1(img: np.ndarray, scale: float, cam, needle: NeedleModel, poses: dict,
+              final: Optional[str], keypoints: Optional[np.ndarray] = None,
+              T_true: Optional[np.ndarray] = None, caption: str = "", offset=(0.0, 0.0)) -> np.ndarray:
+    """Fig. 1 on a copy of ``img`` (``cam``'s full-size image through ``to_picture(scale, offset)``):
+    ``poses`` method -> PoseToDraw, ``final`` the method drawn in full (module docstring),
+    ``keypoints`` the detector's (5, 2) full-size pixels (NaN rows: not found), ``T_true`` the
+    true ``T_ecm_needle``. ``caption`` goes top left."""
+    out = img.copy()
+    arc, kps = needle.sample_arc(48), needle.keypoints()
+    lw = max(1, int(round(2 * max(1.0, out.shape[1] / 960))))
+    if T_true is not None:
+        _polyline(out, project(cam, T_true, arc, scale, offset), TRUTH_BGR, 1)
+        for p in project(cam, T_true, kps, scale, offset):
+            if np.all(np.isfinite(p)):
+                cv2.drawMarker(out, _ipt(p), TRUTH_BGR, cv2.MARKER_CROSS, 10, 1)
+    for m, pose in poses.items():
+        if m != final and pose is not None:
+            _polyline(out, project(cam, pose.T_ecm_needle, arc, scale, offset), method_bgr(m), lw,
+                      dashed=bool(pose.ambiguous))
+    if keypoints is not None:
+        for p in to_picture(np.asarray(keypoints, float).reshape(-1, 2), scale, offset):
+            if np.all(np.isfinite(p)):
+                cv2.circle(out, _ipt(p), 6, DETECTION_BGR, 1, cv2.LINE_AA)
+    pose = poses.get(final) if final else None
+    if pose is not None:
+        colour = method_bgr(final)
+        _polyline(out, project(cam, pose.T_ecm_needle, arc, scale, offset), colour, 2 * lw,
+                  dashed=bool(pose.ambiguous))
+        for name, p in zip(KEYPOINT_NAMES, project(cam, pose.T_ecm_needle, kps, scale, offset), strict=True):
+            if np.all(np.isfinite(p)):
+                cv2.circle(out, _ipt(p), 2 + lw, colour, -1, cv2.LINE_AA)
+                _label(out, name, (_ipt(p)[0] + 6, _ipt(p)[1] - 6), colour)
+        axes = np.vstack([np.zeros(3), np.eye(3) * needle.radius_m])
+        o, *ends = project(cam, pose.T_ecm_needle, axes, scale, offset)
+        if np.all(np.isfinite(o)):
+            for e, c in zip(ends, AXIS_BGR, strict=True):
+                if np.all(np.isfinite(e)):
+                    cv2.arrowedLine(out, _ipt(o), _ipt(e), c, lw, cv2.LINE_AA, tipLength=0.15)
+        if pose.ambiguous:
+            _label(out, "AMBIGUOUS", (8, out.shape[0] - 10), AMBIGUOUS_BGR, 0.6)
+    if caption:
+        _label(out, caption, (8, 20), TEXT_BGR, 0.5)
+    return out
+
+
+def fig1_with_zoom(img: np.ndarray, scale: float, cam, needle: NeedleModel, poses: dict,
+                   final: Optional[str], keypoints: Optional[np.ndarray] = None,
+                   T_true: Optional[np.ndarray] = None, caption: str = "",
+                   zoom_frac: float = 0.42) -> np.ndarray:
+    """``draw_fig1`` plus, in the top right corner, a zoomed crop around the needle (the final
+    pose's arc, else the truth, else the detections) drawn at the zoomed resolution; its box is
+    outlined on the picture. Same arguments as ``draw_fig1``; ``zoom_frac``: the inset's width
+    over the picture's."""
+    from common.evaluation.report import _crop_box
+    out = draw_fig1(img, scale, cam, needle, poses, final, keypoints, T_true, caption)
+    arc = needle.sample_arc(24)
+    pose = poses.get(final) if final else None
+    if pose is not None:
+        pts = project(cam, pose.T_ecm_needle, arc, scale)
+    elif T_true is not None:
+        pts = project(cam, T_true, arc, scale)
+    elif keypoints is not None:
+        pts = to_picture(np.asarray(keypoints, float).reshape(-1, 2), scale)
+    else:
+        return out
+    h, w = img.shape[:2]
+    pts = pts[np.all(np.isfinite(pts), axis=1)]
+    if not len(pts) or not ((pts[:, 0] > 0) & (pts[:, 0] < w) & (pts[:, 1] > 0) & (pts[:, 1] < h)).any():
+        return out
+    x0, y0, x1, y1 = _crop_box([pts], w, h, min_size=24, margin=0.35)
+    side = int(w * zoom_frac)
+    z = side / max(x1 - x0, y1 - y0)
+    if z <= 1.2:
+        return out
+    crop = cv2.resize(np.ascontiguousarray(img[y0:y1, x0:x1]),
+                      (max(1, int(round((x1 - x0) * z))), max(1, int(round((y1 - y0) * z)))),
+                      interpolation=cv2.INTER_CUBIC)
+    inset = draw_fig1(crop, scale * z, cam, needle, poses, final, keypoints, T_true,
+                      f"x{z:.1f}", offset=(x0 * z, y0 * z))
+    ih, iw = inset.shape[:2]
+    ih, iw = min(ih, h - 4), min(iw, w - 4)
+    cv2.rectangle(out, (x0, y0), (x1, y1), TEXT_BGR, 1)
+    out[2:2 + ih, w - 2 - iw:w - 2] = inset[:ih, :iw]
+    cv2.rectangle(out, (w - 3 - iw, 1), (w - 1, 2 + ih), TEXT_BGR, 1)
+    return out
+
+
+def side_by_side(left: np.ndarray, right: np.ndarray, gap: int = 4) -> np.ndarray:
+    """The two camera pictures next to each other (the right one padded/cropped to the left's
+    height), separated by a ``gap``-pixel grey bar."""
+    h = left.shape[0]
+    r = right[:h]
+    if r.shape[0] < h:
+        r = np.vstack([r, np.zeros((h - r.shape[0],) + r.shape[1:], np.uint8)])
+    return np.hstack([left, np.full((h, gap, 3), 90, np.uint8), r])
+
+
+def encode_jpeg(img: np.ndarray, quality: int = 80) -> bytes:
+    """``img`` (BGR) as a JPEG file's bytes."""
+    ok, buf = cv2.imencode(".jpg", img, [cv2.IMWRITE_JPEG_QUALITY, int(quality)])
+    if not ok:
+        raise ValueError("JPEG encoding failed")
+    return buf.tobytes()

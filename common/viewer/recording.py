@@ -1,0 +1,77 @@
+"""``needletrack eval --rrd FILE``: an evaluation's frames, poses and errors as a Rerun
+recording, to scrub frame by frame (``needletrack view FILE``). Needs the ``viewer`` extra.
+
+Every frame of the ``Collected`` evaluation (by ``seq``) gets the two Fig. 1 pictures (the
+dataset's images, downscaled to fit ``width x height``), every method's needle arc, the truth's,
+the ECM pose and path, and per method the position (mm) and orientation (deg) error and the
+latency (ms, frame stamp to the evaluator's arrival), and the detector's confidence.
+"""
+from __future__ import annotations
+
+from typing import Callable, Optional
+
+import numpy as np
+
+from common.evaluation.scoring import true_T_ecm_needle
+from common.geometry.transforms import pose_error
+from common.viewer.draw import PoseToDraw, downscale
+from common.viewer.frame import CAMERAS, log_frame, pictures
+
+# the method drawn in full: the first present of (as nodes/monitor.py)
+FINAL_ORDER = ("refined", "multiview_refined", "multiview", "pnp_joint", "pnp_average", "triangulation")
+
+
+def write_rrd(path, col, rig, needle, arm=None, load_images: Optional[Callable[[int], dict]] = None,
+              width: int = 960, height: int = 540, quality: int = 80) -> int:
+    """Write the recording; returns the number of frames written. ``col``: a
+    ``common.evaluation.scoring.Collected``; ``load_images(seq)`` -> {camera: BGR or None}
+    (None: black pictures)."""
+    from common.viewer import rerun_log as rl
+    rec = rl.new_recording("needletrack-eval")
+    rl.set_sinks(rec, save=str(path))
+    scale = min(1.0, width / rig.left.width, height / rig.left.height)
+    rl.log_rig(rec, rig, scale)
+    methods = [m for m in FINAL_ORDER if col.poses.get(m)] + \
+              [m for m in col.poses if m not in FINAL_ORDER and col.poses[m]]
+    final = methods[0] if methods else None
+    path_pts = []
+    n = 0
+    for seq in sorted(col.truths):
+        gt = col.truths[seq]
+        T_true = true_T_ecm_needle(gt, arm)
+        T_world_ecm = gt.T_world_ecm if gt.T_world_ecm is not None else (
+            arm.T_world_ecm(gt.ecm_joints) if arm is not None and gt.ecm_joints is not None else None)
+        if T_world_ecm is not None:
+            path_pts.append(np.asarray(T_world_ecm, float)[:3, 3])
+        imgs = load_images(seq) if load_images is not None else {}
+        images = {}
+        for cam in CAMERAS:
+            img = imgs.get(cam)
+            if img is None:
+                img = np.zeros((rig[cam].height, rig[cam].width, 3), np.uint8)
+            images[cam] = downscale(img, width, height)
+        poses, scalars = {}, {"pos_err_mm": {}, "rot_err_deg": {}, "latency_ms": {}, "confidence": {}}
+        for m in methods:
+            msg = col.poses[m].get(seq)
+            if msg is None:
+                continue
+            poses[m] = PoseToDraw(np.asarray(msg.T_ecm_needle, float), bool(msg.ambiguous))
+            if T_true is not None:
+                dp, dr = pose_error(poses[m].T_ecm_needle, T_true)
+                scalars["pos_err_mm"][m], scalars["rot_err_deg"][m] = dp * 1e3, float(np.degrees(dr))
+            arrived = col.arrivals_ns.get(m, {}).get(seq)
+            if arrived is not None:
+                scalars["latency_ms"][m] = (arrived - msg.stamp_ns) * 1e-6
+        kps = {}
+        for cam in CAMERAS:
+            kp = col.keypoints.get((cam, seq))
+            if kp is not None:
+                scalars["confidence"][cam] = kp.confidence
+                kps[cam] = np.asarray(kp.uv, float) if kp.found else None
+        jpegs = pictures(images, rig, needle, poses, final, kps, T_true, seq, quality)
+        log_frame(rec, rl, seq, gt.stamp_ns, jpegs, needle, poses, T_true, T_world_ecm,
+                  np.array(path_pts) if len(path_pts) >= 2 else None, scalars)
+        n += 1
+    rec.flush()
+    rec.disconnect()
+    return n
