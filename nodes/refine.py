@@ -102,6 +102,11 @@ class RefineNode(StereoPoseNode):
             self.tracker = TrackingRefiner(DenseRefiner(self.rig, NeedleModel.from_dict(msg.needle), self.config),
                                            self.model_points, self.min_score, self.outlier_px, self.tracking)
 
+    def on_stream_reset(self):
+        super().on_stream_reset()
+        if self.tracker is not None:
+            self.tracker.reset()          # the last pose is of the old stream
+
     def on_pair(self, left: Keypoints, right: Keypoints):
         uv, sc = self.stereo_arrays(left, right)
         obs = {kp.camera: ArcObservation.from_keypoints(kp) for kp in (left, right) if kp.found}

@@ -82,6 +82,7 @@ class ReplayNode(CameraSourceNode):
 
     OUTPUTS = ("left", "right", "joints", "truth", "calib", "eos")
     INPUTS = {"ack": None, "ack2": None}     # any message with a ``seq`` (``rate: paced``)
+    FEEDBACK = ("ack", "ack2")               # acknowledgements from downstream: a declared cycle
     KEEP_ALL = ACKS
 
     @dataclass

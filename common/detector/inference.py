@@ -554,3 +554,6 @@ class LearnedBackend(KeypointBackend):
 
     def detect(self, image, camera, truth, calib, *, seq=0, stamp_ns=0) -> Keypoints:
         return self.detector.detect(image, camera, seq, stamp_ns)
+
+    def reset(self) -> None:
+        self.detector.reset()

@@ -134,7 +134,7 @@ def _check(msg_name: str, fname: str, value, spec):
             raise MessageError(f"{where}: expected number, got {type(value).__name__}")
         value = float(value)
         if not abs(value) <= MAX_COORD:          # NaN and inf fail this too
-            raise MessageError(f"{where}: must be finite and at most {MAX_COORD:g} in size, got {value}")
+            raise MessageError(f"{where}: not finite, or beyond {MAX_COORD:g}: got {value}")
         return value
     if kind == "bool":
         if not isinstance(value, bool):
@@ -204,7 +204,7 @@ def _check_values(where: str, a: np.ndarray, nan_ok: bool) -> None:
         if nan_ok:
             bad &= ~np.isnan(a)
         if bad.any():
-            raise MessageError(f"{where}: {int(bad.sum())} element(s) not finite or beyond {MAX_COORD:g}")
+            raise MessageError(f"{where}: not finite, or beyond {MAX_COORD:g} ({int(bad.sum())} element(s))")
     elif a.dtype.kind in "iu" and a.size and np.abs(a.astype(np.float64)).max() > MAX_COORD:
         raise MessageError(f"{where}: element(s) beyond {MAX_COORD:g}")
 
@@ -490,8 +490,12 @@ class CameraImage(Message):
         if self.encoding == "bgr8":
             return np.frombuffer(self.data, np.uint8).reshape(self.height, self.width, 3)
         import cv2
-        if image_header_size(self.data) != (self.width, self.height):      # checked before decoding
-            raise MessageError(f"CameraImage.data: {self.encoding} header does not say {self.width}x{self.height}")
+        size = image_header_size(self.data)                       # checked before decoding
+        if size is None:
+            raise MessageError(f"CameraImage.data: corrupt {self.encoding} ({len(self.data)} bytes, no header)")
+        if size != (self.width, self.height):
+            raise MessageError(f"CameraImage.data: the {self.encoding} header says {size[0]}x{size[1]}, "
+                               f"the message {self.width}x{self.height}")
         try:
             img = cv2.imdecode(np.frombuffer(self.data, np.uint8), cv2.IMREAD_COLOR)
         except cv2.error as exc:
