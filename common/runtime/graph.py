@@ -431,8 +431,11 @@ def graph_from_dict(data: dict, path: Optional[Path] = None, source: str = "grap
 
 
 def parse_yaml(text: str, source: str = "graph") -> Any:
+    from common.runtime.limits import InputLimitError, load_yaml
     try:
-        return yaml.safe_load(text)
+        return load_yaml(text, source)           # with an alias budget (a YAML bomb is refused)
+    except InputLimitError as exc:
+        raise GraphError([str(exc)], source) from None
     except yaml.YAMLError as exc:
         mark = getattr(exc, "problem_mark", None)
         where = f"line {mark.line + 1}, column {mark.column + 1}" if mark else "?"
