@@ -86,10 +86,11 @@ class SeqClock:
     A message is *in stream* when its epoch is the current one (or either is None) and its seq
     lies within ``window`` frames of the newest seen. Anything else is *off stream*: it is held
     as a candidate and dropped ("outlier") unless the next off-stream message confirms it (same
-    epoch, seq within ``window`` of it); then the node resynchronises at once ("reset": the
+    epoch, a later seq within ``window`` of it: the new stream moves on, as a real source does
+    and a repeated poison frame does not); then the node resynchronises at once ("reset": the
     node clears its per-frame state, then handles the candidate and the confirming message).
-    So one poison message (a far-future seq, a foreign epoch) costs nothing and cannot stall the
-    stream, and a restarted source is followed from its second message. Messages of the epoch
+    So poison (a far-future seq, a foreign epoch, even a stereo pair of it) costs nothing and
+    cannot stall the stream, and a restarted source is followed from its second frame. Messages of the epoch
     just replaced are dropped ("stale") while the new one is alive (seen within the last
     ``alive`` messages), so frames in flight from a killed source do not reset the node again.
     """
@@ -128,7 +129,8 @@ class SeqClock:
         if epoch is not None and epoch == self.previous and self._since_current <= self.alive:
             return "stale"
         cand = self.candidate
-        if cand is not None and (epoch is None or cand[0] is None or cand[0] == epoch) and self._near(seq, cand[1]):
+        if (cand is not None and (epoch is None or cand[0] is None or cand[0] == epoch)
+                and cand[1] < seq <= cand[1] + self.window):
             if epoch is not None and epoch != self.epoch:
                 self.previous = self.epoch
             self.epoch = epoch if epoch is not None else cand[0]
