@@ -31,6 +31,8 @@ BENCHES = {
     "detector": ("common.evaluation.detector_bench:main", "keypoint detector speed and accuracy"),
     "graph": ("common.evaluation.graph_bench:main", "the full graph end to end"),
     "refine": ("common.evaluation.refine_bench:main", "dense pose refinement speed and accuracy (synthetic)"),
+    "fuzz": ("common.evaluation.fuzz:main", "poison payloads into every input of every node (in process)"),
+    "soak": ("common.evaluation.soak:main", "the default graph from a replay for a long run: accounting, RSS, restarts"),
     "geometry": ("common.evaluation.geometry_bench:main", "pose methods (PnP, triangulation, fusion) vs keypoint noise, on the oracle"),
 }
 
