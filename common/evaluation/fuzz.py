@@ -401,13 +401,94 @@ def summary(results: list) -> dict:
             "max_recovery_frames": max((x for x in rec if x is not None), default=0)}
 
 
+def live_check(args) -> int:
+    """``--live``: the default graph in processes (camera: a replay at 30 Hz, as the soak), a
+    clean period, then ``--poison-s`` seconds of poison payloads of every kind on every input
+    key at ``--poison-hz``; prints, per output, the longest gap between messages in the clean
+    period and the time from the end of the poison to its first message; and restarts."""
+    import tempfile
+
+    import zenoh  # noqa: F401
+
+    from common.evaluation.graph_bench import ensure_dataset
+    from common.evaluation.pipeline_graph import GraphRun
+    from common.evaluation.soak import soak_graph
+    from common.runtime.graph import graph_from_dict, output_key
+
+    doc = soak_graph(ensure_dataset(args.dataset), 30.0)
+    graph = graph_from_dict(doc)
+    stream = CleanStream(seed=args.seed)
+    rng, np_rng = random.Random(args.seed), np.random.default_rng(args.seed)
+    targets = sorted({src for spec in graph.nodes for src in spec.inputs.values()})
+    outputs = [f"{spec.id}/{o}" for spec in graph.nodes for o in spec.outputs
+               if spec.id != "camera" and o != "points"] + ["camera/truth"]
+    arrivals: dict = {k: [] for k in outputs}
+    log_path = tempfile.mktemp(prefix="fuzz-live-", suffix=".log")
+    with open(log_path, "w") as log, GraphRun(doc, log, source="camera") as run:
+        run.start_consumers()
+        session = run.client_session()
+
+        def cb_for(key):
+            def cb(_sample):
+                arrivals[key].append(time.monotonic())
+            return cb
+        subs = [session.declare_subscriber(output_key(graph.name, *k.split("/")), cb_for(k)) for k in outputs]
+        run.start_source()
+        time.sleep(args.clean_s)                 # warm-up and the clean period
+        t_clean0 = time.monotonic() - args.clean_s / 2
+        t_poison0 = time.monotonic()
+        kinds_sent: Counter = Counter()
+        seq = 0
+        while time.monotonic() - t_poison0 < args.poison_s:
+            key = rng.choice(targets)
+            clean = stream.message(key, seq) or stream.message(key, seq + 1)
+            seq += 1
+            if clean is None:
+                continue
+            kind = rng.choice(KINDS)
+            session.put(output_key(graph.name, *key.split("/")), poison(clean, kind, rng, np_rng))
+            kinds_sent[kind] += 1
+            time.sleep(1.0 / args.poison_hz)
+        t_stop = time.monotonic()
+        time.sleep(args.after_s)
+        failed = run.failed()
+        restarts = {nid: s.restarts for l in (run.main, run.src) for nid, s in l.slots.items()}
+        for s in subs:
+            s.undeclare()
+    print(f"fuzz --live: {sum(kinds_sent.values())} poison payloads in {args.poison_s:g} s on "
+          f"{len(targets)} keys ({', '.join(targets)}); graph log {log_path}")
+    worst = 0.0
+    for k in outputs:
+        ts = arrivals[k]
+        clean = [t for t in ts if t_clean0 <= t < t_poison0]
+        gaps = [b - a for a, b in zip(clean, clean[1:])]
+        during = sum(t_poison0 <= t < t_stop for t in ts)
+        after = [t - t_stop for t in ts if t >= t_stop]
+        first = after[0] if after else None
+        worst = max(worst, first if first is not None else float("inf"))
+        print(f"  {k:22s} clean: {len(clean):4d} msgs, longest gap {max(gaps) if gaps else float('nan'):5.2f} s;"
+              f" during poison {during:4d} msgs; first after it {'NEVER' if first is None else f'{first:.2f} s'}")
+    print(f"fuzz --live: every output published again within {worst:.2f} s of the poison stopping; "
+          f"restarts {sum(restarts.values())}; failed nodes {failed or 'none'}")
+    return 0 if worst <= 2.0 and not any(restarts.values()) and not failed else 1
+
+
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(prog="needletrack bench fuzz", description=__doc__.split("\n\n")[0])
     ap.add_argument("--graph", default=str(Path(__file__).resolve().parents[2] / "dataflow.yaml"))
     ap.add_argument("--per-input", type=int, default=10_000, help="poison payloads per input (10000)")
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--node", action="append", help="only these node ids (repeatable)")
+    ap.add_argument("--live", action="store_true",
+                    help="instead: poison the default graph in processes (see live_check)")
+    ap.add_argument("--dataset", help="--live: the replay's folder (default data/test, else data/bench)")
+    ap.add_argument("--clean-s", type=float, default=25.0, help="--live: seconds before the poison")
+    ap.add_argument("--poison-s", type=float, default=10.0, help="--live: seconds of poison")
+    ap.add_argument("--poison-hz", type=float, default=200.0, help="--live: poison payloads per second")
+    ap.add_argument("--after-s", type=float, default=8.0, help="--live: seconds watched after the poison")
     args = ap.parse_args(argv)
+    if args.live:
+        return live_check(args)
     from common.runtime.graph import load_graph
     import logging
     logging.disable(logging.CRITICAL)          # the nodes log every refused message

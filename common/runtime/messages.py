@@ -786,6 +786,33 @@ class Calibration(Message):
             _finite_array("Calibration.ecm.T_world_base", self.ecm.get("T_world_base", np.eye(4)), (4, 4))
             for key in ("L_rcc", "L_scopelen"):
                 _finite_array(f"Calibration.ecm.{key}", self.ecm.get(key, 0.0), ())
+        # ranges, and what every consumer builds from it (rig, needle, arm), built once here
+        for name in ("left", "right"):
+            K = np.asarray(self.cameras[name]["K"], dtype=float)
+            if not (K[0, 0] > 0 and K[1, 1] > 0 and abs(K[0, 0]) < MAX_COORD and abs(K[1, 1]) < MAX_COORD):
+                raise MessageError(f"Calibration.cameras.{name}.K: focal lengths must be positive, got "
+                                   f"{K[0, 0]:g}, {K[1, 1]:g}")
+            _rigid(self.cameras[name]["T_ecm_cam"], f"Calibration.cameras.{name}.T_ecm_cam")
+        r = float(np.asarray(self.needle.get("radius_m", 0.01), dtype=float))
+        if not 0 < r < 1:
+            raise MessageError(f"Calibration.needle.radius_m: must be in (0, 1) m, got {r:g}")
+        if self.ecm is not None:
+            _rigid(self.ecm.get("T_world_base", np.eye(4)), "Calibration.ecm.T_world_base")
+            for key in ("L_rcc", "L_scopelen"):
+                v = float(np.asarray(self.ecm.get(key, 0.0), dtype=float))
+                if not abs(v) <= 10:
+                    raise MessageError(f"Calibration.ecm.{key}: must be within 10 m, got {v:g}")
+        from common.geometry.camera import StereoRig
+        from common.geometry.ecm_kinematics import EcmArm
+        from common.geometry.needle import NeedleModel
+        try:
+            StereoRig.from_dict(self.cameras, self.image_size)
+            NeedleModel.from_dict(self.needle).keypoints()
+            EcmArm.from_calibration(self.ecm)
+        except MessageError:
+            raise
+        except Exception as exc:
+            raise MessageError(f"Calibration: unusable ({type(exc).__name__}: {exc})"[:300]) from None
 
 
 def _finite_array(where: str, value, shape) -> np.ndarray:

@@ -120,6 +120,8 @@ class Node:
         self.counters: collections.Counter = collections.Counter()
         self.frame_clock = SeqClock()
         self.source_epoch = int.from_bytes(os.urandom(7), "big")   # this process's stream, if a source
+        if self.is_source():
+            self.frame_clock.pin(self.source_epoch)                 # its inputs are acknowledgements
         self.pose_volume_m = POSE_VOLUME_M if runtime is None else runtime.pose_volume_m
         self._candidate = None                                     # (input, msg) held by the clock
         self._badlog = _RateLimitedLog(self.log)
@@ -172,7 +174,8 @@ class Node:
             if verdict in ("outlier", "stale"):
                 self.count(f"seq_{verdict}")
                 if verdict == "outlier":
-                    self._candidate = (name, msg)
+                    held = self.frame_clock.candidate == (getattr(msg, "epoch", None), seq)
+                    self._candidate = (name, msg) if held else None
                     self._badlog.error("seq", f"{name}: seq {seq} epoch {getattr(msg, 'epoch', None)} off the "
                                        f"stream (newest {self.frame_clock.newest}); dropped unless confirmed")
                 return False

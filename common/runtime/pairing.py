@@ -104,9 +104,17 @@ class SeqClock:
         self._since_current = 0               # messages since the current epoch was last seen
         self.resets = 0
 
+    pinned: bool = False
+
+    def pin(self, epoch: int) -> None:
+        """Follow only ``epoch`` (a source's own: its acknowledgements); others are outliers."""
+        self.reset()
+        self.epoch, self.pinned = epoch, True
+
     def reset(self) -> None:
         self.epoch = self.newest = self.previous = self.candidate = None
         self._since_current = 0
+        self.pinned = False
 
     def _near(self, seq: int, ref: int) -> bool:
         return ref - self.window <= seq <= ref + self.window
@@ -115,6 +123,8 @@ class SeqClock:
         """``"ok"``, ``"reset"`` (a new stream begins with the held candidate), ``"outlier"``
         (dropped, held as candidate) or ``"stale"`` (of the replaced epoch; dropped)."""
         same_epoch = epoch is None or self.epoch is None or epoch == self.epoch
+        if self.pinned and not same_epoch:
+            return "outlier"
         if self.newest is None:
             self.newest, self.epoch, self.candidate = seq, epoch if epoch is not None else self.epoch, None
             self._since_current = 0
