@@ -789,9 +789,9 @@ class Calibration(Message):
         # ranges, and what every consumer builds from it (rig, needle, arm), built once here
         for name in ("left", "right"):
             K = np.asarray(self.cameras[name]["K"], dtype=float)
-            if not (K[0, 0] > 0 and K[1, 1] > 0 and abs(K[0, 0]) < MAX_COORD and abs(K[1, 1]) < MAX_COORD):
-                raise MessageError(f"Calibration.cameras.{name}.K: focal lengths must be positive, got "
-                                   f"{K[0, 0]:g}, {K[1, 1]:g}")
+            if not (K[0, 0] > 0 and K[1, 1] > 0 and K[1, 0] == 0 and (K[2] == (0.0, 0.0, 1.0)).all()):
+                raise MessageError(f"Calibration.cameras.{name}.K: must be a pinhole matrix [[fx, s, cx], "
+                                   f"[0, fy, cy], [0, 0, 1]] with positive focal lengths, got {K.tolist()}"[:300])
             _rigid(self.cameras[name]["T_ecm_cam"], f"Calibration.cameras.{name}.T_ecm_cam")
         r = float(np.asarray(self.needle.get("radius_m", 0.01), dtype=float))
         if not 0 < r < 1:
