@@ -84,7 +84,9 @@ class SeqClock:
     (the runtime does this). A source stamps an ``epoch`` (random, per process) on everything it
     publishes and every node passes it on, so a restarted or swapped-in source is a new stream.
     A message is *in stream* when its epoch is the current one (or either is None) and its seq
-    lies within ``window`` frames of the newest seen. Anything else is *off stream*: it is held
+    lies at most ``window`` frames behind the newest seen (inputs lag one another) and at most
+    ``ahead`` frames beyond it (60: 2 s at 30 Hz; a poison seq just ahead of the stream can
+    hold the pairers back no longer than that). Anything else is *off stream*: it is held
     as a candidate and dropped ("outlier") unless the next off-stream message confirms it (same
     epoch, a later seq within ``window`` of it: the new stream moves on, as a real source does
     and a repeated poison frame does not); then the node resynchronises at once ("reset": the
@@ -95,8 +97,8 @@ class SeqClock:
     ``alive`` messages), so frames in flight from a killed source do not reset the node again.
     """
 
-    def __init__(self, window: int = 1000, alive: int = 16):
-        self.window, self.alive = window, alive
+    def __init__(self, window: int = 1000, alive: int = 16, ahead: int = 60):
+        self.window, self.alive, self.ahead = window, alive, ahead
         self.epoch: int | None = None
         self.newest: int | None = None
         self.previous: int | None = None      # the epoch replaced last
@@ -117,7 +119,7 @@ class SeqClock:
         self.pinned = False
 
     def _near(self, seq: int, ref: int) -> bool:
-        return ref - self.window <= seq <= ref + self.window
+        return ref - self.window <= seq <= ref + self.ahead
 
     def observe(self, seq: int, epoch: int | None = None) -> str:
         """``"ok"``, ``"reset"`` (a new stream begins with the held candidate), ``"outlier"``
