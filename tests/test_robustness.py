@@ -127,6 +127,22 @@ def test_one_far_future_keypoints_pair_does_not_stop_the_poses():
     assert node.counters["seq_outlier"] == 2
 
 
+def test_a_seq_a_few_hundred_frames_ahead_is_dropped_too():
+    """Found by ``bench fuzz --live``: a poison seq 500 frames ahead (inside the old 1000-frame
+    window) made the pairer drop the other camera's frames until the stream caught up."""
+    from nodes.epnp import EpnpNode
+    node = _stereo_pose_node(EpnpNode, method="joint")
+    frames = _frames(range(10, 20), epoch=None)
+    for l, r, e in frames[:3]:
+        feed(node, "ecm", e), feed(node, "left", l), feed(node, "right", r)
+    bad = decode(encode(frames[3][0]))
+    bad.seq += 500
+    assert feed(node, "left", bad) is False
+    for l, r, e in frames[3:]:
+        feed(node, "ecm", e), feed(node, "left", l), feed(node, "right", r)
+    assert [m.seq for _, m in node.published] == list(range(10, 20))
+
+
 # ====================================================================== defect 3: empty images
 
 def test_an_empty_jpeg_is_refused_and_the_detector_keeps_detecting():
@@ -315,6 +331,8 @@ def test_validate_reports_a_cycle_and_allows_declared_feedback():
          "inputs": {"ack": "det/left"}},
         {"id": "det", "module": "detector", "inputs": {"left": "camera/left"}, "outputs": ["left"]}]}
     assert validate_graph(fb) == []
+    cyc["nodes"][0]["feedback"] = ["in"]                  # a declared feedback edge in the graph
+    assert validate_graph(cyc) == []
 
 
 # ====================================================================== defect 10: model files

@@ -42,7 +42,7 @@ _MODULE_RE = re.compile(r"^[A-Za-z_][A-Za-z0-9_]*(\.[A-Za-z_][A-Za-z0-9_]*)*$")
 _ENDPOINT_RE = re.compile(r"^(tcp|udp|tls|quic|ws|unixsock-stream)/\S+$")
 _TOP_KEYS = {"graph", "zenoh", "nodes", "pose_volume_m"}
 _ZENOH_KEYS = {"mode", "listen", "connect", "shm_pool_mb"}
-_NODE_KEYS = {"id", "module", "command", "params", "inputs", "outputs", "restart", "env"}
+_NODE_KEYS = {"id", "module", "command", "params", "inputs", "outputs", "restart", "env", "feedback"}
 
 
 class GraphError(ValueError):
@@ -72,6 +72,7 @@ class NodeSpec:
     outputs: list = field(default_factory=list)
     restart: str = "on-failure"
     env: dict = field(default_factory=dict)
+    feedback: list = field(default_factory=list)    # inputs that close a declared cycle (acks)
 
     def to_dict(self) -> dict:
         d = {"id": self.id}
@@ -83,6 +84,8 @@ class NodeSpec:
                  restart=self.restart)
         if self.env:
             d["env"] = dict(self.env)
+        if self.feedback:
+            d["feedback"] = list(self.feedback)
         return d
 
 
@@ -334,6 +337,10 @@ def validate_graph(data: Any) -> list:
                         errs.append(f"{at}.env.{k}: not a valid environment variable name")
                     elif not isinstance(v, (str, int, float, bool)):
                         errs.append(f"{at}.env.{k}: expected a scalar, got {_tname(v)}")
+        fb = n.get("feedback")
+        if fb is not None and (not isinstance(fb, list) or not all(isinstance(x, str) for x in fb)
+                               or not set(fb) <= set(n.get("inputs") or {})):
+            errs.append(f"{at}.feedback: expected a list of this node's input names, got {fb!r}")
         outs = n.get("outputs")
         if outs is not None:
             if not isinstance(outs, list):
@@ -379,11 +386,12 @@ def validate_graph(data: Any) -> list:
 def graph_cycles(nodes: list) -> list:
     """Errors for the cycles of a graph's wiring: a message could circulate for ever. An input a
     module lists in its class's ``FEEDBACK`` (e.g. replay's ``ack``: acknowledgements, never
-    published on) is a declared feedback edge and left out."""
+    published on), or a node lists under ``feedback:`` in the graph, is a declared feedback edge
+    and left out."""
     edges: dict = {n["id"]: set() for n in nodes}
     for n in nodes:
         info = module_info(n["module"]) if n.get("module") else None
-        feedback = set((info or {}).get("feedback") or ())
+        feedback = set((info or {}).get("feedback") or ()) | set(n.get("feedback") or ())
         for name, src in (n.get("inputs") or {}).items():
             if name not in feedback:
                 edges.setdefault(src.split("/")[0], set()).add(n["id"])
@@ -425,7 +433,8 @@ def graph_from_dict(data: dict, path: Optional[Path] = None, source: str = "grap
                               command=[str(a) for a in n["command"]] if n.get("command") else None,
                               params=dict(n.get("params") or {}), inputs=dict(n.get("inputs") or {}),
                               outputs=list(outs or []), restart=n.get("restart", "on-failure"),
-                              env={k: str(v) for k, v in (n.get("env") or {}).items()}))
+                              env={k: str(v) for k, v in (n.get("env") or {}).items()},
+                              feedback=list(n.get("feedback") or [])))
     return Graph(name=data["graph"], zenoh=zs, nodes=nodes, path=path,
                  pose_volume_m=None if data.get("pose_volume_m") is None else float(data["pose_volume_m"]))
 
