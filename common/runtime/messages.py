@@ -370,6 +370,10 @@ def pose_error(msg: "PoseEstimate", max_range_m: Optional[float] = None) -> Opti
         err = covariance_error(msg.covariance, "PoseEstimate.covariance")
         if err:
             return err
+        if not np.abs(np.asarray(msg.covariance, dtype=float)).max() <= MAX_COORD:
+            return f"PoseEstimate.covariance: beyond {MAX_COORD:g}"
+    if not abs(float(msg.residual)) <= MAX_COORD:     # what decode would refuse downstream
+        return f"PoseEstimate.residual: not finite, or beyond {MAX_COORD:g}: {msg.residual}"
     if max_range_m is not None:
         d = float(np.linalg.norm(np.asarray(msg.T_ecm_needle, dtype=float)[:3, 3]))
         if not d <= max_range_m:
