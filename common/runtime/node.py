@@ -120,8 +120,8 @@ class Node:
         self.counters: collections.Counter = collections.Counter()
         self.frame_clock = SeqClock()
         self.source_epoch = int.from_bytes(os.urandom(7), "big")   # this process's stream, if a source
-        if self.is_source():
-            self.frame_clock.pin(self.source_epoch)                 # its inputs are acknowledgements
+        if self.is_source() and self.FEEDBACK:
+            self.frame_clock.pin(self.source_epoch)     # a source's feedback: acks of its own stream
         self.pose_volume_m = POSE_VOLUME_M if runtime is None else runtime.pose_volume_m
         self._candidate = None                                     # (input, msg) held by the clock
         self._badlog = _RateLimitedLog(self.log)
