@@ -384,7 +384,7 @@ def test_kill_9_of_the_camera_poses_resume_from_its_first_frames(run_graph, tmp_
     new = lambda m: m.epoch != old.epoch and m.seq < 20     # noqa: E731
     tri.wait(3, timeout=60, where=new)
     fus.wait(3, timeout=60, where=new)
-    assert all(np.isfinite(m.T_world_needle).all() for m in tri.messages + fus.messages)
+    assert all(m.T_world_needle is None or np.isfinite(m.T_world_needle).all() for m in tri.messages + fus.messages)
     st = g.stats("triangulate")
     assert st.counters["stream_resets"] >= 1 and st.counters["handler_errors"] == 0
 
@@ -411,7 +411,8 @@ def test_poison_messages_neither_crash_nor_stall_a_graph(run_graph, tmp_path):
     tri = g.subscribe("triangulate/pose")
     sub.wait(10, timeout=90)
     tri.wait(10, timeout=90)
-    assert all(np.isfinite(m.T_world_needle).all() and np.linalg.norm(m.T_ecm_needle[:3, 3]) < 1
+    assert all(np.isfinite(m.T_ecm_needle).all() and np.linalg.norm(m.T_ecm_needle[:3, 3]) < 1
+               and (m.T_world_needle is None or np.isfinite(m.T_world_needle).all())
                for m in sub.messages + tri.messages)
     assert all(r["restarts"] == 0 for r in g.status()["nodes"])
     for node in ("detector", "ecm", "triangulate", "fusion"):
