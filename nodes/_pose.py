@@ -62,6 +62,16 @@ class StereoPoseNode(Node):
         self.ecm_poses = SeqCache()
         self.pairer = StereoPairer()
 
+    def on_stream_reset(self):
+        """A new source stream: pending halves, ECM poses and waiting poses are of the old one."""
+        self.pairer.reset()
+        self.ecm_poses.clear()
+        if self.waiting:
+            self.count("no_pose.source_restart", len(self.waiting))
+        self.waiting = []
+        self.identity.clear()
+        self.newest_seq = -1
+
     # ---------------------------------------------------------------- inputs
     def on_calib(self, msg: Calibration):
         if self.calib is None or msg.cameras != self.calib.cameras or msg.needle != self.calib.needle:

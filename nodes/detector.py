@@ -94,6 +94,16 @@ class DetectorNode(Node):
         self.newest_seq = -1
         self.log.info("detector backend %s", self.backend_name)
 
+    def on_stream_reset(self):
+        """A new source stream: truths and waiting frames are of the old one."""
+        self.truths.clear()
+        self.waiting, self.waiting_truths = [], []
+        self.newest_seq = -1
+        self.frames.reset()
+        reset = getattr(self.backend, "reset", None)
+        if callable(reset):
+            reset()                       # tracking state is of the old stream
+
     def on_calib(self, msg: Calibration):
         self.calib = msg
         self._release()
@@ -131,22 +141,18 @@ class DetectorNode(Node):
                                            or seq in self.truths)
 
     def _release(self):
-        keep = []
-        for img in self.waiting:
-            if self._ready(img.seq) or self.newest_seq - img.seq >= self.max_wait:
-                self._run(img)
-            else:
-                keep.append(img)
-        self.waiting = keep
-        keep = []
-        for seq in self.waiting_truths:
-            if self.calib is not None or self.newest_seq - seq >= self.max_wait:
-                truth = self.truths.get(seq)
-                for cam in ("left", "right"):
-                    self._detect(cam, seq, truth.stamp_ns if truth else 0, None)
-            else:
-                keep.append(seq)
-        self.waiting_truths = keep
+        # the lists are cut before anything runs: a frame whose detection raises is gone, not
+        # retried (and raising again) on every later message
+        due = [img for img in self.waiting if self._ready(img.seq) or self.newest_seq - img.seq >= self.max_wait]
+        self.waiting = [img for img in self.waiting if not any(img is d for d in due)]
+        due_truths = [s for s in self.waiting_truths if self.calib is not None or self.newest_seq - s >= self.max_wait]
+        self.waiting_truths = [s for s in self.waiting_truths if s not in due_truths]
+        for img in due:
+            self._run(img)
+        for seq in due_truths:
+            truth = self.truths.get(seq)
+            for cam in ("left", "right"):
+                self._detect(cam, seq, truth.stamp_ns if truth else 0, None)
 
     @property
     def stride(self) -> int:

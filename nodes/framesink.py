@@ -27,6 +27,9 @@ class FrameSink(Node):
         report: str | None = None    # JSON file written at the end
         log_every_s: float = 5.0
 
+    def on_stream_reset(self):
+        self.pairer.reset()
+
     def setup(self):
         self.pairer = StereoPairer(depth=16)
         self.lat_ms: list = []

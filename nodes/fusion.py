@@ -61,6 +61,16 @@ class FusionNode(Node):
         self.pending: list[PoseEstimate] = []
         self.newest_seq = -1
 
+    def on_stream_reset(self):
+        """A new source stream: the window of views and every per-frame cache start again."""
+        self.ecm_poses.clear()
+        self.sequences.clear()
+        if self.pending:
+            self.count("no_pose.source_restart", len(self.pending))
+        self.pending = []
+        self.newest_seq = -1
+        self.fusion.reset()
+
     # ---------------------------------------------------------------- inputs
     def on_ecm(self, msg: EcmPose):
         self.ecm_poses.put(msg.seq, np.asarray(msg.T_world_ecm, dtype=float))

@@ -97,6 +97,11 @@ class MonitorNode(PoseMethodInputs, Node):
         self._printed = -1
         self.out = sys.stdout
 
+    def on_stream_reset(self):
+        self.frames.clear()
+        self.truths.clear()
+        self._printed = -1
+
     def on_calib(self, msg):
         self.arm = EcmArm.from_calibration(msg.ecm)
 

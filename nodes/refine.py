@@ -108,6 +108,12 @@ class RefineNode(StereoPoseNode):
             self.tracker = TrackingRefiner(DenseRefiner(self.rig, NeedleModel.from_dict(msg.needle), self.config),
                                            self.model_points, self.min_score, self.outlier_px, self.tracking)
 
+    def on_stream_reset(self):
+        super().on_stream_reset()
+        if self.tracker is not None:
+            self.tracker.reset()          # the last pose is of the old stream
+        self._track_logit = None
+
     def settle_end_identity(self, left: Keypoints, right: Keypoints) -> tuple[Keypoints, Keypoints]:
         """The frame's end identity, with the tracked needle's: a frame that reads the needle the
         other way round than the previous pose adds its evidence against that reading; the sum

@@ -23,7 +23,6 @@ pipeline's; at most ``MAX_DECODED_BYTES``, use ``count`` for longer folders).
 A frame whose image file cannot be read (or decoded) is logged, counted (``image_errors``)
 and skipped.
 """
-import os
 import time
 from collections import deque
 from dataclasses import dataclass
@@ -31,6 +30,7 @@ from typing import Literal
 
 import numpy as np
 
+from common.data.dataset import DatasetError
 from common.runtime.camera_source import CameraSourceNode
 from common.runtime.messages import (
     Calibration,
@@ -84,6 +84,7 @@ class ReplayNode(CameraSourceNode):
 
     OUTPUTS = ("left", "right", "joints", "measured", "truth", "calib", "eos")
     INPUTS = {"ack": None, "ack2": None}     # any message with a ``seq`` (``rate: paced``)
+    FEEDBACK = ("ack", "ack2")               # acknowledgements from downstream: a declared cycle
     KEEP_ALL = ACKS
 
     @dataclass
@@ -112,7 +113,7 @@ class ReplayNode(CameraSourceNode):
         count = p.count
         self.frames = self.ds.frames[start:start + count if count > 0 else None]
         if not self.frames:
-            raise ValueError(f"replay: {self.ds.path} has no frames to play (start={start}, count={count})")
+            raise NodeError(f"replay: {self.ds.path} has no frames to play (start={start}, count={count})")
         meta = self.ds.meta
         self.calib = Calibration(stamp_ns=0, image_size=np.array(meta.image_size), cameras=meta.rig.to_dict(),
                                  needle=meta.needle.to_dict(), ecm=None if meta.arm is None else meta.arm.to_dict(),
@@ -131,7 +132,7 @@ class ReplayNode(CameraSourceNode):
         self.in_flight = max(1, p.in_flight)
         self.awaiting = deque()          # (seq, monotonic time) of the frames not yet acknowledged
         if self.rate == PACED and not self.acked:
-            raise ValueError("replay: rate 'paced' needs an 'ack' input wired (e.g. a detector's keypoints)")
+            raise NodeError("replay: rate 'paced' needs an 'ack' input wired (e.g. a detector's keypoints)")
 
     def _ack(self, name: str, msg) -> None:
         self.acked[name] = max(self.acked.get(name, -1), int(getattr(msg, "seq", -1)))
@@ -156,17 +157,19 @@ class ReplayNode(CameraSourceNode):
 
     def _decode_all(self) -> list:
         """Per frame: {camera: raw bgr8 bytes}, or None for a frame whose images fail."""
-        import cv2
         w, h = self.ds.meta.image_size
         need = len(self.frames) * len(CAMS) * w * h * 3
         if need > MAX_DECODED_BYTES:
-            raise ValueError(f"replay: decode=true would hold {need / 2**30:.1f} GiB of images "
+            raise NodeError(f"replay: decode=true would hold {need / 2**30:.1f} GiB of images "
                              f"({len(self.frames)} frames); play fewer with 'count'")
         out = []
         for fr in self.frames:
             imgs = {}
             for cam in CAMS:
-                img = cv2.imread(os.path.join(self.ds.path, fr.image(cam)), cv2.IMREAD_COLOR)
+                try:
+                    img = self.ds.image(fr, cam)      # size and header checked before decoding
+                except DatasetError:
+                    img = None
                 if img is None or img.shape[:2] != (h, w):
                     self.count("image_errors")
                     self.log.error("replay: frames.jsonl:%s: cannot decode the %s image (or not %dx%d)",
@@ -189,11 +192,10 @@ class ReplayNode(CameraSourceNode):
         for cam in CAMS:
             rel = fr.image(cam)
             try:
-                with open(os.path.join(self.ds.path, rel), "rb") as f:
-                    data = f.read()
-            except OSError as exc:
+                data = self.ds.image_bytes(fr, cam)     # size and header checked, not decoded
+            except (OSError, DatasetError) as exc:
                 self.count("image_errors")
-                self.log.error("replay: frames.jsonl:%s: cannot read image: %s", fr.line, exc)
+                self.log.error("replay: cannot read image: %s", exc)
                 return None
             enc = "png" if rel.lower().endswith(".png") else "jpeg"
             msgs.append(CameraImage(cam, seq, stamp, w, h, enc, data))

@@ -75,7 +75,12 @@ class Ros2Node(CameraSourceNode):
         from common.ros.bag import StereoAssembler
         from common.ros.live import topic_key
         from common.ros.source import SamplePublisher, topics_param
-        from common.ros.topicmap import TopicMapError, candidates, load_topic_map, resolve_rig_name
+        from common.ros.topicmap import (
+            TopicMapError,
+            candidates,
+            load_topic_map,
+            resolve_rig_name,
+        )
         p = self.p
         try:
             m = load_topic_map(p.preset, topics_param(p.topics))

@@ -27,8 +27,8 @@ from typing import Literal
 
 import numpy as np
 
-from common.runtime.messages import Calibration, PoseEstimate
 from common.ros.conventions import ros_covariance
+from common.runtime.messages import Calibration, PoseEstimate
 from common.runtime.node import Node, NodeError, run
 
 UNITS = {"m": 1.0, "dm": 0.1, "cm": 0.01, "mm": 0.001}

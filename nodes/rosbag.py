@@ -23,7 +23,6 @@ import time
 from dataclasses import dataclass
 from typing import Literal
 
-
 from common.runtime.camera_source import CameraSourceNode
 from common.runtime.messages import EndOfStream
 from common.runtime.node import NodeError, run

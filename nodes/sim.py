@@ -29,6 +29,7 @@ from common.runtime.messages import (
     Command,
     EcmJoints,
     GroundTruth,
+    rigid_error,
 )
 from common.runtime.node import NodeError, run
 from common.runtime.pacing import Pacer
@@ -104,14 +105,24 @@ class SimNode(CameraSourceNode):
     def on_command(self, msg: Command):
         args = msg.args or {}
         if msg.name == "place_needle":
-            T = args.get("T_world_needle")
-            self.sim.place_needle(seed=args.get("seed"), T_world_needle=None if T is None else np.asarray(T, float))
+            T, seed = args.get("T_world_needle"), args.get("seed")
+            err = None if T is None else rigid_error(_as_float(T), "place_needle.T_world_needle")
+            if seed is not None and (isinstance(seed, bool) or not isinstance(seed, int) or not 0 <= seed < 2 ** 32):
+                err = f"place_needle.seed: expected an int in 0..2^32-1, got {seed!r}"[:200]
+            if err:
+                self.count("bad_commands")
+                self.log.warning("sim: command refused: %s", err)
+                return
+            self.sim.place_needle(seed=seed, T_world_needle=None if T is None else np.asarray(T, float))
             self.count("needle_placed")
         elif msg.name == "set_motion":
             from common.sim.live import MOTIONS
             motion = args.get("motion")
-            if motion not in MOTIONS:
-                raise ValueError(f"set_motion: motion must be one of {MOTIONS}, got {motion!r}")
+            if not isinstance(motion, str) or motion not in MOTIONS:
+                self.count("bad_commands")
+                self.log.warning("sim: command refused: set_motion: motion must be one of %s, got %r",
+                                 MOTIONS, motion)
+                return
             self.sim.motion = motion
         else:
             self.count("commands_ignored")
@@ -120,6 +131,13 @@ class SimNode(CameraSourceNode):
     def teardown(self):
         if hasattr(self, "sim"):
             self.sim.close()
+
+
+def _as_float(v):
+    try:
+        return np.asarray(v, dtype=float)
+    except (TypeError, ValueError):
+        return np.full(1, np.nan)
 
 
 NODE = SimNode

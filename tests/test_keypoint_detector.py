@@ -221,13 +221,16 @@ def test_detector_node_with_the_learned_backend_on_one_camera(rendered):
     bytes give "no needle" with the reason, counted, and the node keeps going."""
     from common.geometry.camera import StereoRig
     from common.geometry.needle import NeedleModel
-    from common.runtime.messages import Calibration, decode, encode
+    from common.runtime.messages import Calibration, MessageError, decode, encode
     from nodes.detector import DetectorNode
     images, fields = rendered
     calib = Calibration(0, np.array([1920, 1080]), StereoRig.default().to_dict(), NeedleModel().to_dict())
     node = DetectorNode.offline({"backend": "learned", "device": "cpu", "threads": 1}, wired=["left", "calib"])
     node.on_calib(decode(encode(calib), Calibration))
-    node.on_left(decode(encode(CameraImage("left", 1, 10, 1, 1, "png", b"corrupt")), CameraImage))
+    corrupt = CameraImage("left", 1, 10, 1, 1, "png", b"corrupt")
+    with pytest.raises(MessageError, match="not a png"):          # the codec refuses it ...
+        decode(encode(corrupt), CameraImage)
+    node.on_left(corrupt)                                          # ... a handler given it copes
     node.on_left(decode(encode(CameraImage.from_bgr("left", 2, 20, images["left"], "jpeg")), CameraImage))
     (o1, bad), (o2, good) = node.published
     assert o1 == o2 == "left"

@@ -1,7 +1,6 @@
 """``needletrack record``: a running graph to MCAP with ROS 2 schemas, read back with rosbags, and
 replayed through the ``rosbag`` source: the same poses come out."""
 import threading
-import time
 
 import numpy as np
 import pytest

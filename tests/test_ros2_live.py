@@ -10,6 +10,7 @@ import numpy as np
 import pytest
 import zenoh
 import zenoh.ext
+from graphtools import free_port
 
 from common.data.dataset import Dataset
 from common.geometry.transforms import inv_T, pose_error
@@ -28,7 +29,6 @@ from common.ros.live import (
 )
 from common.ros.types import typestore
 from common.sim.cli import main as dataset_main
-from graphtools import free_port
 
 RIG = "jhu_daVinci"
 

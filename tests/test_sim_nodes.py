@@ -191,7 +191,11 @@ def test_sim_node_publishes_consistent_frames_and_obeys_commands():
         node.step()
         t = [m for o, m in node.published if o == "truth"][0]
         assert np.allclose(t.T_world_needle, T)
-        with pytest.raises(ValueError):
-            node.on_command(Command("set_motion", {"motion": "dance"}))
+        node.on_command(Command("set_motion", {"motion": "dance"}))        # refused, counted, not raised
+        node.on_command(Command("place_needle", {"T_world_needle": np.full((4, 4), np.nan)}))
+        assert node.counters["bad_commands"] == 2
+        node.published.clear()
+        node.step()
+        assert np.allclose([m for o, m in node.published if o == "truth"][0].T_world_needle, T)
     finally:
         node.teardown()

@@ -22,11 +22,20 @@ from common.geometry.camera import StereoRig
 from common.geometry.ecm_kinematics import EcmArm
 from common.geometry.needle import NeedleModel
 from common.geometry.transforms import inv_T, transform_points
+from common.runtime.limits import (
+    InputLimitError,
+    compose_yaml,
+    describe_path,
+    inside,
+    load_yaml,
+    read_image_file,
+)
 
 FORMAT = "needle-dataset"
 VERSION = 1
 META_FILE = "dataset.yaml"
 FRAMES_FILE = "frames.jsonl"
+MAX_META_BYTES = 1 << 20           # dataset.yaml is a few KB
 CAMERAS = ("left", "right")
 IMAGE_EXTS = (".png", ".jpg", ".jpeg")
 _DIST_LENGTHS = (0, 4, 5, 8, 12, 14)
@@ -131,11 +140,15 @@ def _yaml_lines(text: str) -> dict:
     """Map key paths (tuples) of a YAML document to their 1-based line numbers."""
     lines = {}
     try:
-        root = yaml.compose(text, Loader=yaml.SafeLoader)
-    except yaml.YAMLError:
+        root = compose_yaml(text)         # parse_meta has checked the alias budget
+    except (yaml.YAMLError, InputLimitError):
         return lines
+    seen = set()
 
     def walk(node, path):
+        if id(node) in seen:              # an alias: its place is that of its anchor
+            return
+        seen.add(id(node))
         lines[path] = node.start_mark.line + 1
         if isinstance(node, yaml.MappingNode):
             for k, v in node.value:
@@ -153,7 +166,9 @@ def _yaml_lines(text: str) -> dict:
 def parse_meta(text: str, file: str = META_FILE) -> DatasetMeta:
     """Parse and validate dataset.yaml text."""
     try:
-        d = yaml.safe_load(text)
+        d = load_yaml(text, file)
+    except InputLimitError as exc:
+        raise DatasetError(str(exc)) from None
     except yaml.YAMLError as exc:
         mark = getattr(exc, "problem_mark", None)
         line = mark.line + 1 if mark is not None else None
@@ -396,17 +411,30 @@ class Dataset:
         self.path = os.fspath(path)
         if not os.path.isdir(self.path):
             raise DatasetError(f"{self.path}: not a folder")
+        for name in (META_FILE, FRAMES_FILE):
+            try:
+                inside(self.path, name)
+            except InputLimitError as exc:
+                raise DatasetError(str(exc)) from None
         mpath = os.path.join(self.path, META_FILE)
         if not os.path.isfile(mpath):
-            raise DatasetError(_where(META_FILE, None, f"file missing in {self.path}"))
+            what = "missing" if not os.path.lexists(mpath) else describe_path(mpath)
+            raise DatasetError(_where(META_FILE, None, f"file {what} in {self.path}"))
+        if os.path.getsize(mpath) > MAX_META_BYTES:
+            raise DatasetError(_where(META_FILE, None, f"{os.path.getsize(mpath)} bytes, over the limit of {MAX_META_BYTES}"))
         with open(mpath, "r", encoding="utf-8-sig") as f:
             self.meta = parse_meta(f.read())
         self.frames = read_frames(self.path)
         if check_files:
             for fr in self.frames:
                 for c in CAMERAS:
-                    if not os.path.isfile(os.path.join(self.path, fr.image(c))):
-                        raise DatasetError(_where(FRAMES_FILE, fr.line, f"{c}: image file {fr.image(c)!r} does not exist"))
+                    try:
+                        path = inside(self.path, fr.image(c))
+                    except InputLimitError as exc:
+                        raise DatasetError(_where(FRAMES_FILE, fr.line, f"{c}: {exc}")) from None
+                    if not os.path.isfile(path):
+                        raise DatasetError(_where(FRAMES_FILE, fr.line, f"{c}: image file {fr.image(c)!r} "
+                                                  f"{describe_path(path)}"))
 
     @property
     def rig(self) -> StereoRig:
@@ -433,17 +461,28 @@ class Dataset:
         """The (h, w, 3) uint8 BGR image of ``frame`` (a Frame or an index) for ``camera``."""
         fr = self.frames[frame] if isinstance(frame, (int, np.integer)) else frame
         rel = fr.image(camera)
-        path = os.path.join(self.path, rel)
-        data = np.fromfile(path, np.uint8) if os.path.isfile(path) else None
-        if data is None:
-            raise DatasetError(_where(FRAMES_FILE, fr.line, f"{camera}: image file {rel!r} does not exist"))
-        img = cv2.imdecode(data, cv2.IMREAD_COLOR)
+        w, h = self.meta.image_size
+        data = self.image_bytes(fr, camera)
+        try:
+            img = cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_COLOR)
+        except cv2.error:
+            img = None
         if img is None:
             raise DatasetError(f"{rel}: not a readable PNG/JPEG image ({len(data)} bytes; frames.jsonl:{fr.line})")
         w, h = self.meta.image_size
         if img.shape[:2] != (h, w):
             raise DatasetError(f"{rel}: image is {img.shape[1]}x{img.shape[0]}, dataset.yaml image_size says {w}x{h}")
         return img
+
+    def image_bytes(self, frame, camera: str) -> bytes:
+        """The PNG/JPEG file of ``frame``'s ``camera`` image, not decoded, after the checks of
+        ``common.runtime.limits.read_image_file`` (inside the folder, a regular file, 1 byte to
+        ``MAX_IMAGE_BYTES``, a header stating ``image_size``); DatasetError naming the file."""
+        fr = self.frames[frame] if isinstance(frame, (int, np.integer)) else frame
+        try:
+            return read_image_file(self.path, fr.image(camera), tuple(self.meta.image_size))
+        except InputLimitError as exc:
+            raise DatasetError(_where(FRAMES_FILE, fr.line, f"{camera}: {exc}")) from None
 
     def sequences(self) -> dict:
         """Frames grouped by ``sequence`` (frames without one are left out), in file order."""
@@ -655,6 +694,8 @@ def check_dataset(ds: Dataset, tol_px: float = 0.1, images: bool = True, progres
         steps = [f.step for f in frs if f.step is not None]
         if steps and steps != sorted(set(steps)):
             rep.warnings.append(f"sequence {s}: steps {steps[:10]} are not strictly increasing")
+    if not len(ds):
+        errs.append(f"{FRAMES_FILE}: no frames (a dataset needs at least one)")
     rep.errors = errs
     rep.with_truth = len(reprojs)
     if reprojs:

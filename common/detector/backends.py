@@ -106,6 +106,9 @@ class KeypointBackend:
                calib: Calibration, *, seq: int = 0, stamp_ns: int = 0) -> Keypoints:
         raise NotImplementedError(f"{type(self).__name__}.detect")
 
+    def reset(self) -> None:
+        """A new source stream: forget any state carried from frame to frame (none here)."""
+
     def detect_stereo(self, images: dict, truth: Optional[GroundTruth], calib: Calibration, *,
                       seq: int = 0, stamp_ns: int = 0) -> dict[str, Keypoints]:
         """``{camera: Keypoints}`` for the cameras in ``images`` (camera -> image or None)."""

@@ -18,6 +18,7 @@ from __future__ import annotations
 
 import json
 import logging
+import pickle
 from pathlib import Path
 
 import cv2
@@ -95,8 +96,12 @@ def load_model(path=None, device="cpu") -> tuple[KeypointModel, dict]:
     if not path.is_file():
         raise ModelFileError(f"{path}: no such weights file; {RETRAIN}")
     try:
-        blob = torch.load(path, map_location="cpu", weights_only=True)
-    except Exception as exc:  # zip/unpickling errors of a truncated or foreign file
+        blob = torch.load(path, map_location="cpu", weights_only=True)    # never unpickles code
+    except pickle.UnpicklingError as exc:  # a pickle of objects other than tensors and plain data
+        first = " ".join(str(exc).split())[:200]
+        raise ModelFileError(f"{path}: refused: the file holds pickled Python objects that a weights "
+                             f"file does not (torch.load weights_only: {first}); not loaded; {RETRAIN}") from None
+    except Exception as exc:  # zip errors of a truncated or foreign file
         first = str(exc).split(". ")[0][:160]
         raise ModelFileError(f"{path}: not a readable weights file, truncated or corrupt "
                              f"({type(exc).__name__}: {first}); {RETRAIN}") from None
@@ -110,13 +115,15 @@ def load_model(path=None, device="cpu") -> tuple[KeypointModel, dict]:
         cfg = ModelConfig.from_dict(dict(blob["config"]))
         model = KeypointModel(cfg)
         model.load_state_dict(blob["state_dict"], strict=True)
-    except (KeyError, TypeError, ValueError, RuntimeError) as exc:
+        model.eval()
+        fuse_conv_bn(model)
+        meta = dict(blob.get("meta") or {})
+    except Exception as exc:      # any field of the wrong kind: the file, not the code, is wrong
         why = " ".join(str(exc).split())[:300]
-        raise ModelFileError(f"{path}: weights do not match the network ({why}); {RETRAIN}") from None
-    model.eval()
-    fuse_conv_bn(model)
+        raise ModelFileError(f"{path}: weights do not match the network ({type(exc).__name__}: {why}); "
+                             f"{RETRAIN}") from None
     model = model.to(device=device, memory_format=torch.channels_last)
-    return model, dict(blob.get("meta") or {})
+    return model, meta
 
 
 def pick_device(device: str = "auto") -> torch.device:
@@ -592,6 +599,9 @@ class LearnedBackend(KeypointBackend):
 
     def detect(self, image, camera, truth, calib, *, seq=0, stamp_ns=0) -> Keypoints:
         return self.detector.detect(image, camera, seq, stamp_ns, undistort=_undistorter(calib, camera))
+
+    def reset(self) -> None:
+        self.detector.reset()
 
 
 def _undistorter(calib, camera: str):

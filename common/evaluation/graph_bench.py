@@ -157,7 +157,12 @@ def viewer_node(doc: dict, split: bool, params: dict | None = None) -> dict:
     and Rerun's in-process gRPC server; no web viewer process)."""
     import yaml
 
-    from common.evaluation.pipeline_graph import SOURCE, free_port, keypoint_sources, pose_inputs
+    from common.evaluation.pipeline_graph import (
+        SOURCE,
+        free_port,
+        keypoint_sources,
+        pose_inputs,
+    )
     from common.runtime.graph import REPO_ROOT
     flow = yaml.safe_load((REPO_ROOT / "dataflow.yaml").read_text())
     base = next((n.get("params") or {} for n in flow["nodes"] if n.get("module") == "viewer"), {})

@@ -148,6 +148,9 @@ def pipeline_graph(dataset: str, *, detector: str = "learned", detector_params: 
         source = n["id"] == SOURCE
         # a node waits for its links to every other node (and the hub, and for the source its
         # own launcher) before it goes live; the source then also waits start_delay_s
+        feedback = (module_info(n["module"]) or {}).get("feedback") or []
+        if feedback:
+            n["feedback"] = [k for k in feedback if k in n.get("inputs", {})]   # a command hides FEEDBACK
         n["command"] = lossless_command(n.pop("module"), start_delay_s if source else 0.0,
                                         peers=n_main + 2 if source else n_main)
     for n in nodes:

@@ -75,8 +75,8 @@ def _pose_stamped(st, T, stamp, frame):
 
 def ros_messages(base: str, msg) -> list:
     """[(topic, ROS 2 message)] of a graph message published on ``/<node>/<output>`` = ``base``."""
-    from common.runtime import messages as M
     from common.ros.conventions import ros_covariance
+    from common.runtime import messages as M
     st = typestore(2)
     out = []
     if isinstance(msg, M.CameraImage):

@@ -26,7 +26,12 @@ import tempfile
 from pathlib import Path
 from typing import Iterable, Optional
 
-from common.runtime.graph import LAUNCHER_IDENTITY, GraphError, identity_name, load_graph
+from common.runtime.graph import (
+    LAUNCHER_IDENTITY,
+    GraphError,
+    identity_name,
+    load_graph,
+)
 
 DEFAULT_DAYS = 30
 

@@ -40,6 +40,10 @@ class FrameStride:
             p = (stamp_ns - last[1]) * 1e-9 / (seq - last[0])
             self._period_s = p if self._period_s is None else 0.9 * self._period_s + 0.1 * p
 
+    def reset(self) -> None:
+        """A new source stream: forget the last frame (its seq and stamp are of the old stream)."""
+        self._last_frame = None
+
     def detected(self, busy_s: float) -> None:
         """A detection took ``busy_s`` seconds: adapts the stride (when adaptive)."""
         if not self.adaptive:

@@ -45,11 +45,11 @@ REPO_ROOT = NODES_DIR.parent
 _NAME_RE = re.compile(r"^[A-Za-z0-9_][A-Za-z0-9_.-]*$")
 _MODULE_RE = re.compile(r"^[A-Za-z_][A-Za-z0-9_]*(\.[A-Za-z_][A-Za-z0-9_]*)*$")
 _ENDPOINT_RE = re.compile(r"^(tcp|udp|tls|quic|ws|unixsock-stream)/\S+$")
-_TOP_KEYS = {"graph", "zenoh", "nodes"}
+_TOP_KEYS = {"graph", "zenoh", "nodes", "pose_volume_m"}
 _ZENOH_KEYS = {"mode", "listen", "connect", "shm_pool_mb", "tls"}
 _TLS_KEYS = {"ca", "cert", "key", "verify_name"}
 LAUNCHER_IDENTITY = "launcher"     # the TLS identity of launchers and CLI tools (the operator)
-_NODE_KEYS = {"id", "module", "command", "params", "inputs", "outputs", "restart", "env"}
+_NODE_KEYS = {"id", "module", "command", "params", "inputs", "outputs", "restart", "env", "feedback"}
 
 
 class GraphError(ValueError):
@@ -101,6 +101,7 @@ class NodeSpec:
     outputs: list = field(default_factory=list)
     restart: str = "on-failure"
     env: dict = field(default_factory=dict)
+    feedback: list = field(default_factory=list)    # inputs that close a declared cycle (acks)
 
     def to_dict(self) -> dict:
         d = {"id": self.id}
@@ -112,6 +113,8 @@ class NodeSpec:
                  restart=self.restart)
         if self.env:
             d["env"] = dict(self.env)
+        if self.feedback:
+            d["feedback"] = list(self.feedback)
         return d
 
 
@@ -121,6 +124,7 @@ class Graph:
     zenoh: ZenohSettings
     nodes: list
     path: Optional[Path] = None
+    pose_volume_m: Optional[float] = None    # the pose invariant's working volume (m from the ECM; None: 1 m)
 
     def node(self, node_id: str) -> NodeSpec:
         for n in self.nodes:
@@ -149,7 +153,8 @@ class Graph:
         zd = {"mode": z.mode, "listen": list(z.listen), "connect": list(z.connect), "shm_pool_mb": z.shm_pool_mb}
         if z.tls is not None:
             zd["tls"] = z.tls.to_dict()
-        return {"graph": self.name, "zenoh": zd, "nodes": [n.to_dict() for n in self.nodes]}
+        return {"graph": self.name, "zenoh": zd, "nodes": [n.to_dict() for n in self.nodes],
+                **({"pose_volume_m": self.pose_volume_m} if self.pose_volume_m is not None else {})}
 
     def dump(self, path) -> Path:
         path = Path(path)
@@ -190,7 +195,8 @@ def module_path(module: str) -> Path:
 
 @functools.lru_cache(maxsize=256)
 def _module_info_cached(path: str, mtime: float) -> dict:
-    info: dict[str, Any] = {"has_node": False, "inputs": None, "outputs": None, "syntax_error": None}
+    info: dict[str, Any] = {"has_node": False, "inputs": None, "outputs": None, "feedback": None,
+                            "syntax_error": None}
     try:
         tree = ast.parse(Path(path).read_text(), filename=path)
     except SyntaxError as exc:
@@ -212,10 +218,10 @@ def _module_info_cached(path: str, mtime: float) -> dict:
                 keys = [k.value for k in stmt.value.keys if isinstance(k, ast.Constant)]
                 if len(keys) == len(stmt.value.keys):
                     info["inputs"] = keys
-            elif name == "OUTPUTS" and isinstance(stmt.value, (ast.Tuple, ast.List)):
+            elif name in ("OUTPUTS", "FEEDBACK") and isinstance(stmt.value, (ast.Tuple, ast.List)):
                 vals = [e.value for e in stmt.value.elts if isinstance(e, ast.Constant)]
                 if len(vals) == len(stmt.value.elts):
-                    info["outputs"] = vals
+                    info[name.lower()] = vals
     return info
 
 
@@ -287,6 +293,10 @@ def validate_graph(data: Any) -> list:
         if "shm_pool_mb" in z and (isinstance(z["shm_pool_mb"], bool) or not isinstance(z["shm_pool_mb"], int)
                                    or z["shm_pool_mb"] < 0):
             errs.append(f"zenoh.shm_pool_mb: expected a non-negative int, got {z['shm_pool_mb']!r}")
+
+    pv = data.get("pose_volume_m")
+    if pv is not None and (isinstance(pv, bool) or not isinstance(pv, (int, float)) or not 0 < pv < 1e6):
+        errs.append(f"pose_volume_m: expected a positive number of metres, got {pv!r}")
 
     nodes = data.get("nodes")
     if nodes is None:
@@ -366,6 +376,10 @@ def validate_graph(data: Any) -> list:
                         errs.append(f"{at}.env.{k}: not a valid environment variable name")
                     elif not isinstance(v, (str, int, float, bool)):
                         errs.append(f"{at}.env.{k}: expected a scalar, got {_tname(v)}")
+        fb = n.get("feedback")
+        if fb is not None and (not isinstance(fb, list) or not all(isinstance(x, str) for x in fb)
+                               or not set(fb) <= set(n.get("inputs") or {})):
+            errs.append(f"{at}.feedback: expected a list of this node's input names, got {fb!r}")
         outs = n.get("outputs")
         if outs is not None:
             if not isinstance(outs, list):
@@ -403,6 +417,41 @@ def validate_graph(data: Any) -> list:
                     elif outputs.get(sid) is not None and sout not in outputs[sid]:
                         errs.append(f"{where}: node {sid!r} has no output {sout!r} "
                                     f"(outputs: {', '.join(map(str, outputs[sid])) or 'none'})")
+    if not errs:
+        errs += graph_cycles(nodes)
+    return errs
+
+
+def graph_cycles(nodes: list) -> list:
+    """Errors for the cycles of a graph's wiring: a message could circulate for ever. An input a
+    module lists in its class's ``FEEDBACK`` (e.g. replay's ``ack``: acknowledgements, never
+    published on), or a node lists under ``feedback:`` in the graph, is a declared feedback edge
+    and left out."""
+    edges: dict = {n["id"]: set() for n in nodes}
+    for n in nodes:
+        info = module_info(n["module"]) if n.get("module") else None
+        feedback = set((info or {}).get("feedback") or ()) | set(n.get("feedback") or ())
+        for name, src in (n.get("inputs") or {}).items():
+            if name not in feedback:
+                edges.setdefault(src.split("/")[0], set()).add(n["id"])
+    errs, state, stack = [], {}, []
+
+    def visit(u):
+        state[u] = 1
+        stack.append(u)
+        for v in sorted(edges.get(u, ())):
+            if state.get(v) == 1:
+                cyc = stack[stack.index(v):] + [v]
+                errs.append(f"nodes: cycle {' -> '.join(cyc)}: a message can circulate for ever "
+                            "(a feedback input must be listed in its module's FEEDBACK)")
+            elif v not in state:
+                visit(v)
+        stack.pop()
+        state[u] = 2
+
+    for u in sorted(edges):
+        if u not in state:
+            visit(u)
     return errs
 
 
@@ -474,13 +523,18 @@ def graph_from_dict(data: dict, path: Optional[Path] = None, source: str = "grap
                               command=[str(a) for a in n["command"]] if n.get("command") else None,
                               params=dict(n.get("params") or {}), inputs=dict(n.get("inputs") or {}),
                               outputs=list(outs or []), restart=n.get("restart", "on-failure"),
-                              env={k: str(v) for k, v in (n.get("env") or {}).items()}))
-    return Graph(name=data["graph"], zenoh=zs, nodes=nodes, path=path)
+                              env={k: str(v) for k, v in (n.get("env") or {}).items()},
+                              feedback=list(n.get("feedback") or [])))
+    return Graph(name=data["graph"], zenoh=zs, nodes=nodes, path=path,
+                 pose_volume_m=None if data.get("pose_volume_m") is None else float(data["pose_volume_m"]))
 
 
 def parse_yaml(text: str, source: str = "graph") -> Any:
+    from common.runtime.limits import InputLimitError, load_yaml
     try:
-        return yaml.safe_load(text)
+        return load_yaml(text, source)           # with an alias budget (a YAML bomb is refused)
+    except InputLimitError as exc:
+        raise GraphError([str(exc)], source) from None
     except yaml.YAMLError as exc:
         mark = getattr(exc, "problem_mark", None)
         where = f"line {mark.line + 1}, column {mark.column + 1}" if mark else "?"

@@ -25,6 +25,16 @@ _DTYPES = {"bool", "uint8", "uint16", "int32", "int64", "float32", "float64"}
 MAX_IMAGE_SIDE = 16384
 """Largest image width or height (px) a message may state or carry."""
 
+MAX_INT = (1 << 63) - 1
+"""Largest ``seq``/``stamp_ns``/``epoch`` (int64): a msgpack uint64 beyond it is refused."""
+
+MAX_COORD = 1e7
+"""Largest magnitude of any array element or float a message may carry (px, m, rad all fit):
+values beyond are refused at decode, so no handler sees an overflow-prone 1e300."""
+
+RIGID_TOL = 1e-6
+"""Tolerance of the rigid-transform check: |R^T R - I|, |det R - 1| and the bottom row."""
+
 
 class MessageError(ValueError):
     """A payload that is not a valid message; the text names the message type and field."""
@@ -110,17 +120,22 @@ def _check(msg_name: str, fname: str, value, spec):
     kind = spec[0]
     where = f"{msg_name}.{fname}"
     if value is None:
-        if spec[-1] == "optional":
+        if "optional" in spec[1:]:
             return None
         raise MessageError(f"{where}: required, got null")
     if kind == "int":
         if isinstance(value, bool) or not isinstance(value, int):
             raise MessageError(f"{where}: expected int, got {type(value).__name__}")
+        if not -MAX_INT <= value <= MAX_INT:
+            raise MessageError(f"{where}: out of the int64 range, got {value}")
         return value
     if kind == "float":
         if isinstance(value, bool) or not isinstance(value, (int, float)):
             raise MessageError(f"{where}: expected number, got {type(value).__name__}")
-        return float(value)
+        value = float(value)
+        if not abs(value) <= MAX_COORD:          # NaN and inf fail this too
+            raise MessageError(f"{where}: not finite, or beyond {MAX_COORD:g}: got {value}")
+        return value
     if kind == "bool":
         if not isinstance(value, bool):
             raise MessageError(f"{where}: expected bool, got {type(value).__name__}")
@@ -151,12 +166,82 @@ def _check(msg_name: str, fname: str, value, spec):
         if len(value.shape) != len(shape) or any(s is not None and s != v for s, v in zip(shape, value.shape)):
             want = tuple("N" if s is None else s for s in shape)
             raise MessageError(f"{where}: expected shape {want}, got {value.shape}")
+        if value.size > MAX_ARRAY_ELEMENTS:
+            raise MessageError(f"{where}: {value.size} elements, at most {MAX_ARRAY_ELEMENTS}")
+        _check_values(where, value, "nan" in spec)
         return value
-    if kind == "camera_map":  # {"left": array, "right": array}
+    if kind == "camera_map":  # {"left": array, "right": array}, each of shape spec[1]
         if not isinstance(value, dict) or set(value) - {"left", "right"}:
             raise MessageError(f"{where}: expected a map with keys left/right")
-        return {k: (None if v is None else np.asarray(v)) for k, v in value.items()}
+        out = {}
+        for k, v in value.items():
+            if v is None:
+                out[k] = None
+                continue
+            try:
+                a = v if isinstance(v, np.ndarray) else np.asarray(v, dtype=float)
+            except (TypeError, ValueError):
+                raise MessageError(f"{where}.{k}: expected a numeric array") from None
+            if a.shape != spec[1]:
+                raise MessageError(f"{where}.{k}: expected shape {spec[1]}, got {a.shape}")
+            _check_values(f"{where}.{k}", a, True)
+            out[k] = a
+        return out
     raise AssertionError(kind)
+
+
+MAX_ARRAY_ELEMENTS = 1 << 20
+"""Largest number of elements of an array field (a centreline has a few hundred points)."""
+
+
+def _check_values(where: str, a: np.ndarray, nan_ok: bool) -> None:
+    """Numeric arrays: every element finite (NaN allowed when ``nan_ok``: "missing") and at most
+    ``MAX_COORD`` in size; inf is never allowed."""
+    if a.dtype.kind not in "fiub":
+        raise MessageError(f"{where}: expected a numeric array, got dtype {a.dtype}")
+    if a.dtype.kind == "f":
+        bad = ~(np.abs(a) <= MAX_COORD)
+        if nan_ok:
+            bad &= ~np.isnan(a)
+        if bad.any():
+            raise MessageError(f"{where}: not finite, or beyond {MAX_COORD:g} ({int(bad.sum())} element(s))")
+    elif a.dtype.kind in "iu" and a.size and np.abs(a.astype(np.float64)).max() > MAX_COORD:
+        raise MessageError(f"{where}: element(s) beyond {MAX_COORD:g}")
+
+
+def rigid_error(T, where: str) -> Optional[str]:
+    """None if ``T`` is a 4x4 rigid transform (finite, R orthonormal with det +1 and bottom row
+    [0 0 0 1] within ``RIGID_TOL``), else why not, prefixed by ``where``."""
+    T = np.asarray(T, dtype=float)
+    if T.shape != (4, 4):
+        return f"{where}: expected shape (4, 4), got {T.shape}"
+    if not np.isfinite(T).all():
+        return f"{where}: not finite"
+    R = T[:3, :3]
+    if (np.abs(T[3] - (0.0, 0.0, 0.0, 1.0)).max() > RIGID_TOL
+            or np.abs(R.T @ R - np.eye(3)).max() > RIGID_TOL or abs(np.linalg.det(R) - 1.0) > RIGID_TOL):
+        return f"{where}: not a rigid transform (rotation not orthonormal with det 1, or bottom row not 0 0 0 1)"
+    return None
+
+
+def _rigid(T, where: str) -> None:
+    if T is not None:
+        err = rigid_error(T, where)
+        if err:
+            raise MessageError(err)
+
+
+def covariance_error(C, where: str) -> Optional[str]:
+    """None if ``C`` is a finite symmetric positive semi-definite matrix, else why not."""
+    C = np.asarray(C, dtype=float)
+    if not np.isfinite(C).all():
+        return f"{where}: not finite"
+    scale = max(1.0, float(np.abs(C).max()))
+    if np.abs(C - C.T).max() > 1e-9 * scale:
+        return f"{where}: not symmetric"
+    if np.linalg.eigvalsh(0.5 * (C + C.T)).min() < -1e-9 * scale:
+        return f"{where}: not positive semi-definite"
+    return None
 
 
 class Message:
@@ -238,6 +323,64 @@ def _unpack_with_tail(buf: bytes):
     return None
 
 
+_NONNEGATIVE = ("seq", "stamp_ns", "epoch", "frames")
+
+
+def image_header_size(data) -> Optional[tuple]:
+    """``(width, height)`` read from a PNG's IHDR or a JPEG's SOF header without decoding the
+    pixels, or None for data that is neither (empty, truncated, another format)."""
+    b = bytes(data[:65536]) if len(data) > 65536 else bytes(data)
+    if b[:8] == b"\x89PNG\r\n\x1a\n" and len(b) >= 24 and b[12:16] == b"IHDR":
+        return int.from_bytes(b[16:20], "big"), int.from_bytes(b[20:24], "big")
+    if b[:2] != b"\xff\xd8":
+        return None
+    p = 2
+    while p + 4 <= len(b):
+        if b[p] != 0xFF:
+            return None
+        marker = b[p + 1]
+        if marker == 0xFF:                  # fill byte
+            p += 1
+            continue
+        if marker in (0xD8, 0x01) or 0xD0 <= marker <= 0xD7:
+            p += 2
+            continue
+        length = int.from_bytes(b[p + 2:p + 4], "big")
+        if 0xC0 <= marker <= 0xCF and marker not in (0xC4, 0xC8, 0xCC):
+            if p + 9 > len(b):
+                return None
+            return int.from_bytes(b[p + 7:p + 9], "big"), int.from_bytes(b[p + 5:p + 7], "big")
+        if length < 2:
+            return None
+        p += 2 + length
+    return None
+
+
+def pose_error(msg: "PoseEstimate", max_range_m: Optional[float] = None) -> Optional[str]:
+    """The pose invariant: None if ``msg`` holds, else the first violation. Every transform
+    rigid (finite, rotation orthonormal with det +1), ``covariance`` symmetric positive
+    semi-definite, and, with ``max_range_m``, the needle within that distance of the ECM (m)."""
+    for name in ("T_ecm_needle", "T_world_needle", "T_world_ecm"):
+        T = getattr(msg, name)
+        if T is not None:
+            err = rigid_error(T, f"PoseEstimate.{name}")
+            if err:
+                return err
+    if msg.covariance is not None:
+        err = covariance_error(msg.covariance, "PoseEstimate.covariance")
+        if err:
+            return err
+        if not np.abs(np.asarray(msg.covariance, dtype=float)).max() <= MAX_COORD:
+            return f"PoseEstimate.covariance: beyond {MAX_COORD:g}"
+    if not abs(float(msg.residual)) <= MAX_COORD:     # what decode would refuse downstream
+        return f"PoseEstimate.residual: not finite, or beyond {MAX_COORD:g}: {msg.residual}"
+    if max_range_m is not None:
+        d = float(np.linalg.norm(np.asarray(msg.T_ecm_needle, dtype=float)[:3, 3]))
+        if not d <= max_range_m:
+            return f"PoseEstimate.T_ecm_needle: needle {d:.3g} m from the ECM, beyond the working volume ({max_range_m} m)"
+    return None
+
+
 def decode(payload, expect: type | None = None) -> Message:
     """msgpack bytes -> validated Message. ``expect`` restricts the accepted message type."""
     try:
@@ -268,12 +411,20 @@ def decode(payload, expect: type | None = None) -> Message:
     kwargs = {}
     for fname, spec in cls.FIELDS.items():
         if fname not in body:
-            if spec[-1] == "optional":
+            if "optional" in spec[1:]:
                 continue
             raise MessageError(f"{cls.__name__}.{fname}: missing")
         kwargs[fname] = _check(cls.__name__, fname, body[fname], spec)
+    for fname in _NONNEGATIVE:
+        if kwargs.get(fname) is not None and kwargs[fname] < 0:
+            raise MessageError(f"{cls.__name__}.{fname}: must not be negative, got {kwargs[fname]}")
     msg = cls(**kwargs)
-    msg.validate()
+    try:
+        msg.validate()
+    except MessageError:
+        raise
+    except Exception as exc:   # a validate() that trips on a value it did not foresee
+        raise MessageError(f"{cls.__name__}: invalid ({type(exc).__name__}: {exc})") from None
     return msg
 
 
@@ -295,7 +446,7 @@ class CameraImage(Message):
     SCHEMA = "needletrack.CameraImage"
     FIELDS = {"camera": ("str", CAMERAS), "seq": ("int",), "stamp_ns": ("int",),
               "width": ("int",), "height": ("int",), "encoding": ("str", ENCODINGS),
-              "data": ("bytes",)}
+              "data": ("bytes",), "epoch": ("int", "optional")}
     camera: str
     seq: int
     stamp_ns: int
@@ -303,13 +454,21 @@ class CameraImage(Message):
     height: int
     encoding: str
     data: bytes
+    epoch: Optional[int] = None
 
     def validate(self):
-        if self.width <= 0 or self.height <= 0:
-            raise MessageError(f"CameraImage.width/height: must be positive, got {self.width}x{self.height}")
+        if not (1 <= self.width <= MAX_IMAGE_SIDE and 1 <= self.height <= MAX_IMAGE_SIDE):
+            raise MessageError(f"CameraImage.width/height: must be in 1..{MAX_IMAGE_SIDE}, got {self.width}x{self.height}")
         if self.encoding == "bgr8" and len(self.data) != self.width * self.height * 3:
             raise MessageError(f"CameraImage.data: bgr8 {self.width}x{self.height} needs "
                                f"{self.width * self.height * 3} bytes, got {len(self.data)}")
+        if self.encoding != "bgr8":
+            size = image_header_size(self.data)
+            if size is None:
+                raise MessageError(f"CameraImage.data: not a {self.encoding} file ({len(self.data)} bytes)")
+            if size != (self.width, self.height):
+                raise MessageError(f"CameraImage.data: the {self.encoding} header says {size[0]}x{size[1]}, "
+                                   f"the message {self.width}x{self.height}")
 
     @classmethod
     def from_bgr(cls, camera: str, seq: int, stamp_ns: int, img: np.ndarray, encoding: str = "bgr8",
@@ -335,7 +494,16 @@ class CameraImage(Message):
         if self.encoding == "bgr8":
             return np.frombuffer(self.data, np.uint8).reshape(self.height, self.width, 3)
         import cv2
-        img = cv2.imdecode(np.frombuffer(self.data, np.uint8), cv2.IMREAD_COLOR)
+        size = image_header_size(self.data)                       # checked before decoding
+        if size is None:
+            raise MessageError(f"CameraImage.data: corrupt {self.encoding} ({len(self.data)} bytes, no header)")
+        if size != (self.width, self.height):
+            raise MessageError(f"CameraImage.data: the {self.encoding} header says {size[0]}x{size[1]}, "
+                               f"the message {self.width}x{self.height}")
+        try:
+            img = cv2.imdecode(np.frombuffer(self.data, np.uint8), cv2.IMREAD_COLOR)
+        except cv2.error as exc:
+            raise MessageError(f"CameraImage.data: corrupt {self.encoding}: {str(exc).strip()[:200]}") from None
         if img is None:
             raise MessageError(f"CameraImage.data: corrupt {self.encoding} ({len(self.data)} bytes)")
         if img.shape[:2] != (self.height, self.width):
@@ -350,10 +518,11 @@ class EcmJoints(Message):
     """ECM joint state q = [yaw, pitch, insertion, roll] (rad, rad, m, rad)."""
 
     SCHEMA = "needletrack.EcmJoints"
-    FIELDS = {"seq": ("int",), "stamp_ns": ("int",), "q": ("array", (4,))}
+    FIELDS = {"seq": ("int",), "stamp_ns": ("int",), "q": ("array", (4,)), "epoch": ("int", "optional")}
     seq: int
     stamp_ns: int
     q: np.ndarray
+    epoch: Optional[int] = None
 
     def validate(self):
         if not np.all(np.isfinite(self.q)):
@@ -369,16 +538,18 @@ class EcmPose(Message):
     SCHEMA = "needletrack.EcmPose"
     FIELDS = {"seq": ("int",), "stamp_ns": ("int",), "T_world_ecm": ("array", (4, 4)),
               "q": ("array", (4,), "optional"), "T_world_left": ("array", (4, 4), "optional"),
-              "T_world_right": ("array", (4, 4), "optional")}
+              "T_world_right": ("array", (4, 4), "optional"), "epoch": ("int", "optional")}
     seq: int
     stamp_ns: int
     T_world_ecm: np.ndarray
     q: Optional[np.ndarray] = None
     T_world_left: Optional[np.ndarray] = None
     T_world_right: Optional[np.ndarray] = None
+    epoch: Optional[int] = None
 
     def validate(self):
-        pass
+        for name in ("T_world_ecm", "T_world_left", "T_world_right"):
+            _rigid(getattr(self, name), f"EcmPose.{name}")
 
 
 @register
@@ -403,7 +574,7 @@ class Keypoints(Message):
 
     SCHEMA = "needletrack.Keypoints"
     FIELDS = {"camera": ("str", CAMERAS), "seq": ("int",), "stamp_ns": ("int",),
-              "found": ("bool",), "uv": ("array", (5, 2)), "scores": ("array", (5,)),
+              "found": ("bool",), "uv": ("array", (5, 2), "nan"), "scores": ("array", (5,)),
               "confidence": ("float",), "bbox": ("array", (4,), "optional"),
               "detector": ("str",), "reason": ("str", "optional"),
               "centreline": ("array", (None, 2), "optional"),
@@ -412,7 +583,7 @@ class Keypoints(Message):
               "on_arc": ("array", (5,), "optional"),
               "centreline_corr_points": ("float", "optional"),
               "keypoint_sigma_px": ("float", "optional"),
-              "end_identity": ("float", "optional")}
+              "end_identity": ("float", "optional"), "epoch": ("int", "optional")}
     camera: str
     seq: int
     stamp_ns: int
@@ -430,6 +601,7 @@ class Keypoints(Message):
     centreline_corr_points: Optional[float] = None
     keypoint_sigma_px: Optional[float] = None
     end_identity: Optional[float] = None
+    epoch: Optional[int] = None
 
     def validate(self):
         s = self.centreline_sigma_px
@@ -466,8 +638,8 @@ class PoseEstimate(Message):
               "T_world_ecm": ("array", (4, 4), "optional"),
               "residual": ("float",), "residual_unit": ("str", "optional"),
               "n_views": ("int",), "covariance": ("array", (6, 6), "optional"),
-              "ambiguous": ("bool", "optional"), "points_ecm": ("array", (None, 3), "optional"),
-              "sequence": ("int", "optional")}
+              "ambiguous": ("bool", "optional"), "points_ecm": ("array", (None, 3), "optional", "nan"),
+              "sequence": ("int", "optional"), "epoch": ("int", "optional")}
     seq: int
     stamp_ns: int
     method: str
@@ -481,10 +653,12 @@ class PoseEstimate(Message):
     ambiguous: Optional[bool] = None
     points_ecm: Optional[np.ndarray] = None
     sequence: Optional[int] = None
+    epoch: Optional[int] = None
 
     def validate(self):
-        if not np.all(np.isfinite(self.T_ecm_needle)):
-            raise MessageError("PoseEstimate.T_ecm_needle: not finite")
+        err = pose_error(self)
+        if err:
+            raise MessageError(err)
 
 
 @register
@@ -493,12 +667,13 @@ class Points3D(Message):
     """Triangulated keypoints A..E in the ECM frame (m); NaN rows where a point is missing."""
 
     SCHEMA = "needletrack.Points3D"
-    FIELDS = {"seq": ("int",), "stamp_ns": ("int",), "points_ecm": ("array", (5, 3)),
-              "valid": ("array", (5,))}
+    FIELDS = {"seq": ("int",), "stamp_ns": ("int",), "points_ecm": ("array", (5, 3), "nan"),
+              "valid": ("array", (5,)), "epoch": ("int", "optional")}
     seq: int
     stamp_ns: int
     points_ecm: np.ndarray
     valid: np.ndarray
+    epoch: Optional[int] = None
 
     def validate(self):
         pass
@@ -514,8 +689,8 @@ class GroundTruth(Message):
               "step": ("int", "optional"), "ecm_joints": ("array", (4,), "optional"),
               "T_world_ecm": ("array", (4, 4), "optional"),
               "T_world_needle": ("array", (4, 4), "optional"),
-              "keypoints": ("camera_map", "optional"), "visible": ("camera_map", "optional"),
-              "bbox": ("camera_map", "optional")}
+              "keypoints": ("camera_map", (5, 2), "optional"), "visible": ("camera_map", (5,), "optional"),
+              "bbox": ("camera_map", (4,), "optional"), "epoch": ("int", "optional")}
     seq: int
     stamp_ns: int
     sequence: Optional[int] = None
@@ -526,9 +701,11 @@ class GroundTruth(Message):
     keypoints: Optional[dict] = None
     visible: Optional[dict] = None
     bbox: Optional[dict] = None
+    epoch: Optional[int] = None
 
     def validate(self):
-        pass
+        for name in ("T_world_ecm", "T_world_needle"):
+            _rigid(getattr(self, name), f"GroundTruth.{name}")
 
 
 @register
@@ -602,7 +779,7 @@ class Calibration(Message):
 
     def validate(self):
         w, h = (float(x) for x in np.asarray(self.image_size, dtype=float))
-        if not (w == int(w) and h == int(h) and 1 <= w <= MAX_IMAGE_SIDE and 1 <= h <= MAX_IMAGE_SIDE):
+        if not (1 <= w <= MAX_IMAGE_SIDE and 1 <= h <= MAX_IMAGE_SIDE and w == int(w) and h == int(h)):
             raise MessageError(f"Calibration.image_size: expected two whole numbers in 1..{MAX_IMAGE_SIDE}, "
                                f"got {self.image_size.tolist()}")
         for name in ("left", "right"):
@@ -620,6 +797,33 @@ class Calibration(Message):
             _finite_array("Calibration.ecm.T_world_base", self.ecm.get("T_world_base", np.eye(4)), (4, 4))
             for key in ("L_rcc", "L_scopelen"):
                 _finite_array(f"Calibration.ecm.{key}", self.ecm.get(key, 0.0), ())
+        # ranges, and what every consumer builds from it (rig, needle, arm), built once here
+        for name in ("left", "right"):
+            K = np.asarray(self.cameras[name]["K"], dtype=float)
+            if not (K[0, 0] > 0 and K[1, 1] > 0 and K[1, 0] == 0 and (K[2] == (0.0, 0.0, 1.0)).all()):
+                raise MessageError(f"Calibration.cameras.{name}.K: must be a pinhole matrix [[fx, s, cx], "
+                                   f"[0, fy, cy], [0, 0, 1]] with positive focal lengths, got {K.tolist()}"[:300])
+            _rigid(self.cameras[name]["T_ecm_cam"], f"Calibration.cameras.{name}.T_ecm_cam")
+        r = float(np.asarray(self.needle.get("radius_m", 0.01), dtype=float))
+        if not 0 < r < 1:
+            raise MessageError(f"Calibration.needle.radius_m: must be in (0, 1) m, got {r:g}")
+        if self.ecm is not None:
+            _rigid(self.ecm.get("T_world_base", np.eye(4)), "Calibration.ecm.T_world_base")
+            for key in ("L_rcc", "L_scopelen"):
+                v = float(np.asarray(self.ecm.get(key, 0.0), dtype=float))
+                if not abs(v) <= 10:
+                    raise MessageError(f"Calibration.ecm.{key}: must be within 10 m, got {v:g}")
+        from common.geometry.camera import StereoRig
+        from common.geometry.ecm_kinematics import EcmArm
+        from common.geometry.needle import NeedleModel
+        try:
+            StereoRig.from_dict(self.cameras, self.image_size)
+            NeedleModel.from_dict(self.needle).keypoints()
+            EcmArm.from_calibration(self.ecm)
+        except MessageError:
+            raise
+        except Exception as exc:
+            raise MessageError(f"Calibration: unusable ({type(exc).__name__}: {exc})"[:300]) from None
 
 
 def _finite_array(where: str, value, shape) -> np.ndarray:

@@ -21,7 +21,16 @@ Runtime behaviour (see README "Runtime"):
   thread, handlers run one at a time there; a newest-only input that is not yet handled when a
   newer message comes drops the older (counted ``dropped``); a ``KEEP_ALL`` input queues all;
 - undecodable payloads and raising handlers are logged (rate limited) with the key and counted
-  (``decode_errors``, ``handler_errors``); the node keeps running;
+  (``decode_errors``, ``handler_errors``); the node keeps running; ``decode`` validates every
+  field (finite, bounded, shaped: see ``messages``), so a handler sees only well-formed messages;
+- source epochs: a source stamps a random ``epoch`` (per process) on every frame message it
+  publishes and every other node stamps its input's epoch on what it publishes; each node's
+  ``SeqClock`` (``Node.frame_clock``) sees every message's ``(epoch, seq)`` before its handler:
+  a restarted source is a new stream (``on_stream_reset`` clears the node's per-frame state,
+  counted ``stream_resets``), a lone far-off seq or foreign epoch is dropped (``seq_outlier``);
+- the pose invariant: a ``PoseEstimate`` that is not rigid and finite, has a covariance that is
+  not symmetric PSD, or lies beyond the graph's ``pose_volume_m`` (default 1 m) from the ECM is
+  not published: counted ``invalid_pose`` and logged;
 - outputs are published ``express`` (not batched: a hop costs ~2 ms less); payloads with a
   large field (images) go by Zenoh shared memory; a source may ``prepare`` its next message
   (the copy into shared memory done ahead) and ``wait_for_input`` between steps;
@@ -53,17 +62,22 @@ from typing import Any, Iterable, Optional
 
 from common.runtime.messages import (
     Command,
+    Message,
     MessageError,
     NodeStats,
+    PoseEstimate,
     decode,
     encode,
     encode_parts,
+    pose_error,
 )
+from common.runtime.pairing import SeqClock
 from common.runtime.params import ParamError, param_errors, parse_params
 
 STATS_PERIOD_S = 1.0
 KEEP_ALL_LIMIT = 1000          # a KEEP_ALL input queues at most this many (then drops the oldest)
 STANDBY_BUFFER = 64            # outputs a standby process holds for the takeover
+POSE_VOLUME_M = 1.0            # default working volume: a published needle pose is this close to the ECM (m)
 
 
 class NodeError(ValueError):
@@ -87,6 +101,8 @@ class Node:
     INPUTS: dict = {}
     OUTPUTS: tuple = ()
     KEEP_ALL: tuple = ()
+    FEEDBACK: tuple = ()
+    """Inputs that close a declared cycle (acknowledgements): ``validate`` does not report it."""
     Params: Optional[type] = None
     """The node's params as a dataclass (``common.runtime.params``); ``self.p`` is its instance."""
 
@@ -102,6 +118,13 @@ class Node:
         self.log = logging.getLogger(node_id)
         self.published: list = []      # (output, msg) when there is no runtime (offline use)
         self.counters: collections.Counter = collections.Counter()
+        self.frame_clock = SeqClock()
+        self.source_epoch = int.from_bytes(os.urandom(7), "big")   # this process's stream, if a source
+        if self.is_source() and self.FEEDBACK:
+            self.frame_clock.pin(self.source_epoch)     # a source's feedback: acks of its own stream
+        self.pose_volume_m = POSE_VOLUME_M if runtime is None else runtime.pose_volume_m
+        self._candidate = None                                     # (input, msg) held by the clock
+        self._badlog = _RateLimitedLog(self.log)
 
     @classmethod
     def offline(cls, params: Optional[dict] = None, wired: Optional[Iterable[str]] = None,
@@ -130,17 +153,66 @@ class Node:
         """Sources override this: called in a loop; pace yourself; return False when done."""
         raise NotImplementedError
 
+    def on_stream_reset(self) -> None:
+        """The source restarted (a new epoch) or jumped: forget per-frame state (pairers, caches
+        keyed by ``seq``, frames waiting); the new stream's first messages follow at once."""
+
     def on_command(self, msg: Command) -> None:
         """A ``Command`` sent to ``<graph>/<node id>/cmd``."""
         self.log.warning("command %r ignored: node %s has no on_command", msg.name, type(self).__name__)
         self.count("commands_ignored")
 
     # ---------------------------------------------------------------- services
+    def deliver(self, name: str, msg) -> bool:
+        """Hand a decoded message to its handler (``name``: an input, or ``@cmd``) through the
+        frame clock (see ``SeqClock``); returns False if the clock dropped it. The runtime calls
+        this for every message; offline tests and the fuzzer may too."""
+        handler = self.on_command if name == "@cmd" else getattr(self, f"on_{name}")
+        seq = _seq_of(msg)
+        if seq is not None:
+            verdict = self.frame_clock.observe(seq, getattr(msg, "epoch", None))
+            if verdict in ("outlier", "stale"):
+                self.count(f"seq_{verdict}")
+                if verdict == "outlier":
+                    held = self.frame_clock.candidate == (getattr(msg, "epoch", None), seq)
+                    self._candidate = (name, msg) if held else None
+                    self._badlog.error("seq", f"{name}: seq {seq} epoch {getattr(msg, 'epoch', None)} off the "
+                                       f"stream (newest {self.frame_clock.newest}); dropped unless confirmed")
+                return False
+            if verdict == "reset":
+                self.count("stream_resets")
+                self.log.warning("%s: a new source stream (epoch %s, seq %d): resynchronising", name,
+                                 self.frame_clock.epoch, seq)
+                self.on_stream_reset()
+                cand, self._candidate = self._candidate, None
+                if cand is not None:
+                    (self.on_command if cand[0] == "@cmd" else getattr(self, f"on_{cand[0]}"))(cand[1])
+            else:
+                self._candidate = None
+        handler(msg)
+        return True
+
+    def _stamp(self, msg) -> None:
+        """Give an outgoing frame message without an ``epoch`` this stream's epoch."""
+        if isinstance(msg, Message) and getattr(msg, "epoch", 0) is None:
+            msg.epoch = self.source_epoch if self.is_source() else self.frame_clock.epoch
+
     def publish(self, output: str, msg) -> None:
         """Encode ``msg`` (a Message, already encoded bytes, or ``Prepared``) and publish it on
-        ``output``."""
+        ``output``. Frame messages get the stream's ``epoch``; a ``PoseEstimate`` that breaks the
+        pose invariant (``messages.pose_error`` within ``pose_volume_m``) is counted
+        (``invalid_pose``), logged and not published."""
         if output not in self.OUTPUTS:
             raise NodeError(f"{type(self).__name__}.publish: {output!r} is not in OUTPUTS {self.OUTPUTS}")
+        inner = msg.msg if isinstance(msg, Prepared) else msg
+        self._stamp(inner)
+        if isinstance(inner, PoseEstimate):
+            err = pose_error(inner, self.pose_volume_m)
+            if err:
+                self.count("invalid_pose")
+                self._badlog.error("invalid_pose", f"{output}: seq {inner.seq} {inner.method}: pose not "
+                                   f"published: {err}")
+                return
         if self._runtime is None:
             self.published.append((output, msg.msg if isinstance(msg, Prepared) else msg))
         else:
@@ -149,6 +221,7 @@ class Node:
     def prepare(self, msg) -> Prepared:
         """``msg`` ready to ``publish`` later, its large field (an image) copied now into shared
         memory when the transport uses it (offline: nothing to copy)."""
+        self._stamp(msg)
         return Prepared(msg) if self._runtime is None else self._runtime.prepare(msg)
 
     def count(self, name: str, n: int = 1) -> None:
@@ -371,6 +444,7 @@ class Runtime:
         self.exit_status = 0
         self._ready = threading.Event()
         self._shm: Optional[ShmWriter] = None
+        self.pose_volume_m = float(getattr(graph, "pose_volume_m", None) or POSE_VOLUME_M)
 
     # ---------------------------------------------------------------- setup
     def build(self, cls: type) -> Node:
@@ -568,9 +642,9 @@ class Runtime:
         key, payload, _t = item
         node = self.node
         if name == "@cmd":
-            expect, handler, counter = Command, node.on_command, "in.cmd"
+            expect, counter = Command, "in.cmd"
         else:
-            expect, handler, counter = node.INPUTS[name], getattr(node, f"on_{name}"), f"in.{name}"
+            expect, counter = node.INPUTS[name], f"in.{name}"
         self.stats.add(counter)
         try:
             msg = decode(payload.to_bytes() if hasattr(payload, "to_bytes") else payload, expect)
@@ -580,7 +654,7 @@ class Runtime:
             return
         t0, n0 = time.perf_counter(), self._publishes
         try:
-            handler(msg)
+            node.deliver(name, msg)
         except Exception as exc:  # a handler bug must not kill the node
             self.stats.add("handler_errors")
             self.errlog.error(f"handler:{name}", f"{key}: on_{name.lstrip('@')} raised "

@@ -1,4 +1,5 @@
-"""Stereo pairing of per-camera messages by frame ``seq``, and a bounded cache keyed by ``seq``."""
+"""Stereo pairing of per-camera messages by frame ``seq``, a bounded cache keyed by ``seq``, and
+the frame clock (``SeqClock``) that tells a node when its source restarted or a seq is poison."""
 from __future__ import annotations
 
 from collections import OrderedDict
@@ -45,6 +46,13 @@ class StereoPairer:
             self.dropped += 1
         return None
 
+    def reset(self) -> None:
+        """Forget every pending half and the stream position (a new source stream begins)."""
+        self.dropped += len(self._pending)
+        self._pending.clear()
+        self._newest = {"left": -1, "right": -1}
+        self._last_paired = -1
+
     def _discard(self, stale) -> None:
         for s in [s for s in self._pending if stale(s)]:
             del self._pending[s]
@@ -67,3 +75,80 @@ class SeqCache(OrderedDict):
         self.move_to_end(seq)
         while len(self) > self.size:
             self.popitem(last=False)
+
+
+class SeqClock:
+    """The frame clock of one node: which source stream (``epoch``) and how far (``seq``) it is.
+
+    Every message that carries a frame ``seq`` passes ``observe(seq, epoch)`` before its handler
+    (the runtime does this). A source stamps an ``epoch`` (random, per process) on everything it
+    publishes and every node passes it on, so a restarted or swapped-in source is a new stream.
+    A message is *in stream* when its epoch is the current one (or either is None) and its seq
+    lies at most ``window`` frames behind the newest seen (inputs lag one another) and at most
+    ``ahead`` frames beyond it (60: 2 s at 30 Hz; a poison seq just ahead of the stream can
+    hold the pairers back no longer than that). Anything else is *off stream*: it is held
+    as a candidate and dropped ("outlier") unless the next off-stream message confirms it (same
+    epoch, a later seq within ``window`` of it: the new stream moves on, as a real source does
+    and a repeated poison frame does not); then the node resynchronises at once ("reset": the
+    node clears its per-frame state, then handles the candidate and the confirming message).
+    So poison (a far-future seq, a foreign epoch, even a stereo pair of it) costs nothing and
+    cannot stall the stream, and a restarted source is followed from its second frame. Messages of the epoch
+    just replaced are dropped ("stale") while the new one is alive (seen within the last
+    ``alive`` messages), so frames in flight from a killed source do not reset the node again.
+    """
+
+    def __init__(self, window: int = 1000, alive: int = 16, ahead: int = 60):
+        self.window, self.alive, self.ahead = window, alive, ahead
+        self.epoch: int | None = None
+        self.newest: int | None = None
+        self.previous: int | None = None      # the epoch replaced last
+        self.candidate: tuple | None = None   # (epoch, seq) of the last off-stream message
+        self._since_current = 0               # messages since the current epoch was last seen
+        self.resets = 0
+
+    pinned: bool = False
+
+    def pin(self, epoch: int) -> None:
+        """Follow only ``epoch`` (a source's own: its acknowledgements); others are outliers."""
+        self.reset()
+        self.epoch, self.pinned = epoch, True
+
+    def reset(self) -> None:
+        self.epoch = self.newest = self.previous = self.candidate = None
+        self._since_current = 0
+        self.pinned = False
+
+    def _near(self, seq: int, ref: int) -> bool:
+        return ref - self.window <= seq <= ref + self.ahead
+
+    def observe(self, seq: int, epoch: int | None = None) -> str:
+        """``"ok"``, ``"reset"`` (a new stream begins with the held candidate), ``"outlier"``
+        (dropped, held as candidate) or ``"stale"`` (of the replaced epoch; dropped)."""
+        same_epoch = epoch is None or self.epoch is None or epoch == self.epoch
+        if self.pinned and not same_epoch:
+            return "outlier"
+        if self.newest is None:
+            self.newest, self.epoch, self.candidate = seq, epoch if epoch is not None else self.epoch, None
+            self._since_current = 0
+            return "ok"
+        if same_epoch and self._near(seq, self.newest):
+            self.newest = max(self.newest, seq)
+            if self.epoch is None:
+                self.epoch = epoch
+            self.candidate, self._since_current = None, 0
+            return "ok"
+        self._since_current += 1
+        if epoch is not None and epoch == self.previous and self._since_current <= self.alive:
+            return "stale"
+        cand = self.candidate
+        if (cand is not None and (epoch is None or cand[0] is None or cand[0] == epoch)
+                and cand[1] < seq <= cand[1] + self.window):
+            if epoch is not None and epoch != self.epoch:
+                self.previous = self.epoch
+            self.epoch = epoch if epoch is not None else cand[0]
+            self.newest = max(seq, cand[1])
+            self.candidate, self._since_current = None, 0
+            self.resets += 1
+            return "reset"
+        self.candidate = (epoch, seq)
+        return "outlier"
