@@ -1,4 +1,4 @@
-"""Viewer: the tracker live in a browser (issue 21). A fan-out consumer: any number of them,
+"""Viewer: the tracker live in a browser. A fan-out consumer: any number of them,
 never slowing the pipeline: the images (the only large inputs) are newest-only, so a slow
 viewer drops frames; the small messages (poses, keypoints, truth, ECM poses, calibration) queue,
 each handled in microseconds, so that every pose counts in the rates and finds its truth.

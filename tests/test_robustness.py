@@ -1,4 +1,4 @@
-"""Regression tests of issue 19's robustness defects (docs/robustness.md): source epochs, poison
+"""Regression tests of the robustness defects found by probing the default graph (docs/robustness.md): source epochs, poison
 messages validated at the codec, the pose invariant at publish, limits on disk input. Most run
 in process; the restart and the poison run real processes, as the defects needed them."""
 import os

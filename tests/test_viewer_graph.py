@@ -1,4 +1,4 @@
-"""The viewer node in a launched graph, looked at in headless Chromium (issue 21).
+"""The viewer node in a launched graph, looked at in headless Chromium.
 
 sim (640x360 JPEG) -> oracle detector -> epnp joint -> viewer (page + Rerun recording). The
 browser's screenshot of the viewer's page must show the endoscope image (a scene, not a flat
