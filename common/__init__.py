@@ -8,7 +8,9 @@ Packages, each importing only those listed before it (``nodes/`` wires them to Z
 - ``data``: the dataset folder format (``docs/dataset.md``): read, write, check.
 - ``sim``: the two renderers and the dataset generators, and the ``dataset`` command.
 - ``detector``: the keypoint network, its training, inference and the detector backends.
+- ``ros``: ROS bags in, live ROS 2 over Zenoh in and out, recordings as MCAP.
 - ``evaluation``: scoring against ground truth, reports, the pipeline graph, the benchmarks.
+- ``viewer``: the live viewer's drawing, page and Rerun logging, and recordings.
 
 ``cli`` is the one entry point (``needletrack COMMAND``).
 """

@@ -789,7 +789,10 @@ class Calibration(Message):
             for key, shape in (("K", (3, 3)), ("T_ecm_cam", (4, 4)), ("dist", None)):
                 if key == "dist" and cam.get(key) is None:
                     continue
-                _finite_array(f"Calibration.cameras.{name}.{key}", cam.get(key), shape)
+                a = _finite_array(f"Calibration.cameras.{name}.{key}", cam.get(key), shape)
+                if key == "dist" and len(a) not in (4, 5, 8, 12, 14):
+                    raise MessageError(f"Calibration.cameras.{name}.dist: OpenCV takes 4, 5, 8, 12 or 14 "
+                                       f"coefficients, got {len(a)}")
         _finite_array("Calibration.needle.radius_m", self.needle.get("radius_m", 0.01), ())
         if "keypoint_angles_deg" in self.needle:
             _finite_array("Calibration.needle.keypoint_angles_deg", self.needle["keypoint_angles_deg"], (5,))
@@ -813,17 +816,11 @@ class Calibration(Message):
                 v = float(np.asarray(self.ecm.get(key, 0.0), dtype=float))
                 if not abs(v) <= 10:
                     raise MessageError(f"Calibration.ecm.{key}: must be within 10 m, got {v:g}")
-        from common.geometry.camera import StereoRig
-        from common.geometry.ecm_kinematics import EcmArm
-        from common.geometry.needle import NeedleModel
-        try:
-            StereoRig.from_dict(self.cameras, self.image_size)
-            NeedleModel.from_dict(self.needle).keypoints()
-            EcmArm.from_calibration(self.ecm)
-        except MessageError:
-            raise
-        except Exception as exc:
-            raise MessageError(f"Calibration: unusable ({type(exc).__name__}: {exc})"[:300]) from None
+        # the rest of what consumers build from it (the runtime builds no geometry itself)
+        if "wire_diameter_m" in self.needle:
+            w = _finite_array("Calibration.needle.wire_diameter_m", self.needle["wire_diameter_m"], ())
+            if not 0 < float(w) < 0.01:
+                raise MessageError(f"Calibration.needle.wire_diameter_m: must be in (0, 0.01) m, got {float(w):g}")
 
 
 def _finite_array(where: str, value, shape) -> np.ndarray:
