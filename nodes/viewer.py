@@ -87,6 +87,8 @@ class ViewerNode(PoseMethodInputs, Node):
         web_port: int = 9091          # Rerun's web viewer on 127.0.0.1 (0: none; taken: any free port)
         grpc_port: int = 9876         # Rerun's data server on 127.0.0.1 (0: none; taken: any free port)
         save: Optional[str] = None    # record the Rerun stream to this .rrd file
+        history_mb: int = 16          # Rerun's server keeps this much for a web viewer that joins
+                                      # late (then drops the oldest): the node's memory is bounded
         rate_hz: float = 5.0          # pictures per second at most (per camera; docs/viewer.md: cost)
         width: int = 960              # pictures shrunk to fit width x height (px)
         height: int = 540
@@ -141,7 +143,7 @@ class ViewerNode(PoseMethodInputs, Node):
         self.rl = rerun_log
         self.rec = rerun_log.new_recording()
         grpc_port = port_or_free(p.grpc_port) if p.grpc_port else None
-        grpc = rerun_log.set_sinks(self.rec, grpc_port, p.save)
+        grpc = rerun_log.set_sinks(self.rec, grpc_port, p.save, memory_limit=f"{max(1, p.history_mb)}MiB")
         if grpc and p.web_port:
             from common.viewer.cli import serve_web, web_url
             web_port = port_or_free(p.web_port)
