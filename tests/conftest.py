@@ -1,9 +1,11 @@
 """Shared fixtures. ``run_graph`` launches real graphs (see tests/graphtools.py)."""
+import os
 import sys
 from pathlib import Path
 
 import pytest
 
+os.environ.setdefault("MUJOCO_GL", "egl")  # before any test module imports mujoco
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 

@@ -29,6 +29,7 @@ from common.detector.model import (
     apply_affine,
     crop_affine,
     crop_side,
+    global_size,
 )
 from common.geometry.camera import StereoRig
 from common.geometry.needle import NeedleModel
@@ -134,8 +135,8 @@ def make_record(img: np.ndarray, kp, vis, arc, cfg: ModelConfig, rng: np.random.
     """ImageRecord of one BGR image and its ground truth (kp (5,2) or None, vis (5,),
     arc (P,2) or None; full-image pixels)."""
     h, w = img.shape[:2]
-    ds = cfg.global_downscale
-    small = cv2.resize(img, (max(1, round(w / ds)), max(1, round(h / ds))), interpolation=cv2.INTER_AREA)
+    ws, hs, _, _ = global_size(cfg, w, h)
+    small = cv2.resize(img, (ws, hs), interpolation=cv2.INTER_AREA)
     kp = np.full((5, 2), np.nan) if kp is None else np.asarray(kp, float).reshape(5, 2)
     vis = np.zeros(5, bool) if vis is None else np.asarray(vis, bool).reshape(5)
     inside = lambda p: (p[:, 0] >= -0.5) & (p[:, 0] <= w - 0.5) & (p[:, 1] >= -0.5) & (p[:, 1] <= h - 0.5)
@@ -407,8 +408,8 @@ def global_sample(rec: ImageRecord, cfg: ModelConfig, aug: AugConfig | None, rng
     reg mask (hc, wc)). Targets: CenterNet Gaussian at the box centre; log size; sub-cell offset."""
     img = rec.small
     box = rec.box.copy()
-    ds = cfg.global_downscale
     W, H = rec.image_size
+    _, _, ds, box_scale = global_size(cfg, W, H)
     if aug is not None:
         if rng.random() < 0.5:
             img = img[:, ::-1]
@@ -432,7 +433,8 @@ def global_sample(rec: ImageRecord, cfg: ModelConfig, aug: AugConfig | None, rng
         yy, xx = np.mgrid[0:hc, 0:wc]
         heat = np.exp(-((xx - iu) ** 2 + (yy - iv) ** 2) / (2 * sig * sig)).astype(np.float32)
         heat[iv, iu] = 1.0
-        reg[:, iv, iu] = [np.log(max(box[2], 4) / BOX_UNIT), np.log(max(box[3], 4) / BOX_UNIT), u - iu, v - iv]
+        unit = BOX_UNIT * box_scale
+        reg[:, iv, iu] = [np.log(max(box[2], 4) / unit), np.log(max(box[3], 4) / unit), u - iu, v - iv]
         mask[iv, iu] = 1.0
     return img, heat, reg, mask
 

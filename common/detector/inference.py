@@ -42,6 +42,7 @@ from common.detector.model import (
     decode_global_topk,
     decode_heatmaps,
     fuse_conv_bn,
+    global_size,
     invert_affine,
 )
 from common.geometry.observations import curve_normals
@@ -388,10 +389,11 @@ class KeypointDetector:
     def _stage1(self, img: np.ndarray):
         from common.detector.data import global_input
         h, w = img.shape[:2]
-        ds = self.cfg.global_downscale
-        small = cv2.resize(img, (max(1, round(w / ds)), max(1, round(h / ds))), interpolation=cv2.INTER_AREA)
+        ws, hs, ds, box_scale = global_size(self.cfg, w, h)
+        small = cv2.resize(img, (ws, hs), interpolation=cv2.INTER_AREA)
         out = self._glob(self._tensor(global_input(small)))
-        return decode_global_topk(out.float().cpu(), ds, self.proposals, self.proposal_threshold)
+        return decode_global_topk(out.float().cpu(), ds, self.proposals, self.proposal_threshold,
+                                  box_scale=box_scale)
 
     @torch.inference_mode()
     def _stage2(self, img: np.ndarray, box):

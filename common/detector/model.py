@@ -28,7 +28,8 @@ import torch.nn.functional as F
 
 N_KP = 5
 GLOBAL_STRIDE = 4      # GlobalNet output cell = 4 small pixels
-BOX_UNIT = 64.0        # box sizes are regressed as log(size_px / BOX_UNIT)
+BOX_UNIT = 64.0        # box sizes are regressed as log(size_px / (BOX_UNIT * box scale))
+REFERENCE_WIDTH = 1920  # px: stage 1 downscales an image this wide by exactly ``global_downscale``
 
 
 @dataclass
@@ -321,7 +322,19 @@ def _vertex(a: np.ndarray, b: np.ndarray, c: np.ndarray) -> np.ndarray:
     return np.clip(off, -0.5, 0.5)
 
 
-def decode_global(out: torch.Tensor, downscale: int):
+def global_size(cfg: ModelConfig, w: int, h: int) -> tuple[int, int, float, float]:
+    """Stage 1's input (ws, hs) for a w x h image, its downscale w / ws and its box scale.
+
+    Any image is seen at the scale of a ``REFERENCE_WIDTH`` one of the same field of view (downscale
+    ``global_downscale`` there, in proportion elsewhere, never upscaled), so a needle spans the
+    same cells at 640x480 as at 1920x1080; box sizes are regressed relative to that scale."""
+    ds = max(1.0, cfg.global_downscale * w / REFERENCE_WIDTH)
+    ws, hs = max(1, round(w / ds)), max(1, round(h / ds))
+    ds = w / ws
+    return ws, hs, ds, ds / cfg.global_downscale
+
+
+def decode_global(out: torch.Tensor, downscale: float, box_scale: float = 1.0):
     """Best box from GlobalNet output (1, 5, h, w): (confidence, cx, cy, w, h) in full-res px."""
     heat = out[0, 0]
     h, w = heat.shape
@@ -332,11 +345,12 @@ def decode_global(out: torch.Tensor, downscale: int):
     cell = GLOBAL_STRIDE * downscale
     cx = (ix + ox) * cell + (cell - 1) / 2.0
     cy = (iy + oy) * cell + (cell - 1) / 2.0
-    return conf, cx, cy, BOX_UNIT * float(np.exp(np.clip(lw, -4, 4))), BOX_UNIT * float(np.exp(np.clip(lh, -4, 4)))
+    unit = BOX_UNIT * box_scale
+    return conf, cx, cy, unit * float(np.exp(np.clip(lw, -4, 4))), unit * float(np.exp(np.clip(lh, -4, 4)))
 
 
-def decode_global_topk(out: torch.Tensor, downscale: int, k: int = 2, min_conf: float = 0.0,
-                       min_dist_cells: int = 2):
+def decode_global_topk(out: torch.Tensor, downscale: float, k: int = 2, min_conf: float = 0.0,
+                       min_dist_cells: int = 2, box_scale: float = 1.0):
     """Up to ``k`` boxes (confidence, cx, cy, w, h), best first, from the local maxima of the
     GlobalNet heatmap at least ``min_dist_cells`` apart with confidence >= ``min_conf``."""
     heat = out[0, 0]
@@ -350,8 +364,8 @@ def decode_global_topk(out: torch.Tensor, downscale: int, k: int = 2, min_conf: 
         iy, ix = int(ys[i]), int(xs[i])
         lw, lh, ox, oy = (float(v) for v in out[0, 1:5, iy, ix])
         boxes.append((float(torch.sigmoid(heat[iy, ix])), (ix + ox) * cell + (cell - 1) / 2.0,
-                      (iy + oy) * cell + (cell - 1) / 2.0, BOX_UNIT * float(np.exp(np.clip(lw, -4, 4))),
-                      BOX_UNIT * float(np.exp(np.clip(lh, -4, 4)))))
+                      (iy + oy) * cell + (cell - 1) / 2.0, BOX_UNIT * box_scale * float(np.exp(np.clip(lw, -4, 4))),
+                      BOX_UNIT * box_scale * float(np.exp(np.clip(lh, -4, 4)))))
     return boxes
 
 

@@ -44,6 +44,7 @@ from common.detector.model import (
     decode_heatmaps,
     focal_heatmap_loss,
     gaussian_targets,
+    global_size,
     invert_affine,
     keypoint_loss,
 )
@@ -159,12 +160,12 @@ def mine_hard_negatives(model: KeypointModel, data_dirs, per_image: int, progres
         if img is None:
             continue
         h, w = img.shape[:2]
-        small = cv2.resize(img, (round(w / cfg.global_downscale), round(h / cfg.global_downscale)),
-                           interpolation=cv2.INTER_AREA)
+        ws, hs, ds, box_scale = global_size(cfg, w, h)
+        small = cv2.resize(img, (ws, hs), interpolation=cv2.INTER_AREA)
         g = model.glob(torch.from_numpy(global_input(small)).permute(2, 0, 1)[None].contiguous())
         kp = np.asarray((fr.get("keypoints") or {}).get(cam) or np.full((5, 2), np.nan), float)
         n_img = 0
-        for conf, cx, cy, bw, bh in decode_global_topk(g, cfg.global_downscale, per_image + 1, 0.15):
+        for conf, cx, cy, bw, bh in decode_global_topk(g, ds, per_image + 1, 0.15, box_scale=box_scale):
             if np.isfinite(kp).all():
                 near = np.linalg.norm(kp - [cx, cy], axis=1).min()
                 if near < 0.6 * max(bw, bh, np.ptp(kp, 0).max()):
@@ -228,7 +229,8 @@ def validate(model: KeypointModel, records, threshold: float = 0.5) -> dict:
     found, n_pos, fp, n_neg = 0, 0, 0, 0
     for rec in records:
         gx = torch.from_numpy(global_input(rec.small)).permute(2, 0, 1)[None].contiguous()
-        conf, cx, cy, bw, bh = decode_global(model.glob(gx), cfg.global_downscale)
+        _, _, ds, box_scale = global_size(cfg, *rec.image_size)
+        conf, cx, cy, bw, bh = decode_global(model.glob(gx), ds, box_scale)
         if not rec.has_needle:
             n_neg += 1
             if conf >= threshold:
@@ -310,7 +312,7 @@ def prepare_records(data_dirs, out: Path, mcfg: ModelConfig, seed: int, progress
         f = Path(d) / "frames.jsonl"
         return [str(Path(d).resolve()), f.stat().st_size if f.is_file() else -1,
                 f.stat().st_mtime_ns if f.is_file() else -1]
-    key = json.dumps({"data": [stamp(d) for d in data_dirs], "downscale": mcfg.global_downscale,
+    key = json.dumps({"data": [stamp(d) for d in data_dirs], "downscale": mcfg.global_downscale, "stage1_scale": "width",
                       "seed": seed})
     cache_dir = Path(tempfile.gettempdir()) / "needletrack-keypoint-cache"
     cache_dir.mkdir(parents=True, exist_ok=True)

@@ -7,6 +7,9 @@ Presets (``PRESETS``):
   (sometimes holding the needle), mild sensor noise; no image-space augmentation.
 - ``train``: wide variation of light, tissue, needle finish and wire diameter, instruments that
   may occlude the needle, sensor noise, blur, JPEG artefacts, brightness/contrast +-30%.
+- ``wide``: ``train`` across looks: tissue from pale pink through red, magenta and purple to
+  yellowish; flat-lit scenes in a third of the frames; tip tapers from short to long and blunter
+  or thicker tails; the thread cut short or tissue-coloured in a third of the frames.
 
 Image rotation (the paper's other augmentation) changes the camera model, so it is not baked
 into data that claims a pinhole ``K``; trainers apply ``rotate_with_keypoints`` on the fly.
@@ -67,6 +70,7 @@ class Preset:
     brightness: float             # +- relative gain
     contrast: float               # +- relative contrast
     p_shadows: float = 0.0        # probability of cast shadows (they make a frame ~3x slower to render)
+    looks: bool = False           # the ``wide`` looks (drawn after the others: other presets keep their draws)
 
 
 PRESETS = {
@@ -74,6 +78,12 @@ PRESETS = {
     "test": Preset("test", 0.5, True, 0.3, 0.1, 0.4, 0.07, (0.5, 2.0), (0, 0.4), (100, 100), 0.1, 0.1),
     "train": Preset("train", 1.0, True, 0.35, 0.25, 0.8, 0.09, (0, 5.0), (0, 1.2), (55, 100), 0.3, 0.3, 0.25),
 }
+PRESETS["wide"] = replace(PRESETS["train"], name="wide", looks=True)
+
+# tissue colours of the ``wide`` preset (RGB 0..1): pale pink, salmon, red, dark red, magenta,
+# purple, yellowish (fat), tan
+TISSUE_RGBS = ((0.93, 0.72, 0.72), (0.90, 0.55, 0.48), (0.80, 0.25, 0.22), (0.55, 0.12, 0.12),
+               (0.85, 0.35, 0.62), (0.52, 0.28, 0.55), (0.90, 0.80, 0.45), (0.80, 0.62, 0.45))
 
 
 def get_preset(name: str) -> Preset:
@@ -96,7 +106,7 @@ def sample_appearance(rng: np.random.Generator, preset: Preset) -> Appearance:
 
     hue = rng.uniform(-1, 1) * j
     tissue = np.array([0.86, 0.52 + 0.12 * hue, 0.50 + 0.08 * hue]) * rng.uniform(1 - 0.25 * j, 1 + 0.1 * j)
-    return replace(
+    a = replace(
         a,
         tissue_rgb=tuple(np.clip(tissue + rng.normal(0, 0.04 * j, 3), 0.1, 1.0)),
         tissue_specular=jit(0.35, 0.25), tissue_shininess=jit(0.25, 0.2),
@@ -114,6 +124,24 @@ def sample_appearance(rng: np.random.Generator, preset: Preset) -> Appearance:
         ambient=jit(0.12, 0.08, 0.02, 0.3),
         shadows=shadows,
     )
+    return sample_looks(rng, a) if preset.looks else a
+
+
+def sample_looks(rng: np.random.Generator, a: Appearance) -> Appearance:
+    """The ``wide`` preset's looks on top of an appearance (see the module docstring)."""
+    i, k = rng.integers(len(TISSUE_RGBS), size=2)
+    tissue = np.asarray(TISSUE_RGBS[i]) + rng.uniform(0, 1) * (np.asarray(TISSUE_RGBS[k]) - TISSUE_RGBS[i])
+    a = replace(a, tissue_rgb=tuple(np.clip(tissue * rng.uniform(0.85, 1.1) + rng.normal(0, 0.03, 3), 0.05, 1.0)),
+                tip_length_m=float(rng.uniform(0.0006, 0.0045)), tip_exponent=float(rng.uniform(0.5, 1.2)),
+                swage_scale=float(rng.uniform(1.0, 1.35)))
+    if rng.random() < 1 / 3:   # flat-lit: strong ambient, weak key light
+        a = replace(a, ambient=float(rng.uniform(0.35, 0.6)), light_diffuse=float(rng.uniform(0.2, 0.45)))
+    u = rng.random()
+    if u < 1 / 6:              # cut short at the swage
+        a = replace(a, thread_length_m=float(rng.uniform(0.002, 0.008)))
+    elif u < 1 / 3:            # the tissue's colour
+        a = replace(a, thread_rgb=tuple(np.clip(np.asarray(a.tissue_rgb) * rng.uniform(0.8, 1.05), 0, 1)))
+    return a
 
 
 # ---------------------------------------------------------------- needle and instruments

@@ -102,11 +102,12 @@ def sweep_tube(points: np.ndarray, radii: np.ndarray, n_ring: int = 16,
 
 
 def needle_mesh(needle: NeedleModel, wire_diameter_m: float | None = None, tip_length_m: float = 0.0018,
-                n_arc: int = 120, n_ring: int = 16):
+                n_arc: int = 120, n_ring: int = 16, tip_exponent: float = 0.75, swage_scale: float = 1.08):
     """The needle body in the needle frame: a wire swept along the arc from A (tip) to E (tail).
 
-    The last ``tip_length_m`` before A taper to a sharp point exactly at A; the tail at E is a
-    blunt, slightly thicker swage closed by a flat cap exactly at E.
+    The last ``tip_length_m`` before A taper to a sharp point exactly at A (radius ~ distance **
+    ``tip_exponent``: < 1 a convex, blunter taper); the tail at E is a blunt swage ``swage_scale``
+    x thicker over its last 1.5 mm, closed by a flat cap exactly at E.
     """
     rw = 0.5 * (wire_diameter_m or needle.wire_diameter_m)
     a0, a1 = needle.arc_span_rad
@@ -119,8 +120,8 @@ def needle_mesh(needle: NeedleModel, wire_diameter_m: float | None = None, tip_l
     dist = s * arc_len
     radii = np.full(len(s), rw)
     tip = dist < tip_length_m
-    radii[tip] = rw * (dist[tip] / tip_length_m) ** 0.75
-    radii[dist > arc_len - 0.0015] = rw * 1.08
+    radii[tip] = rw * (dist[tip] / tip_length_m) ** tip_exponent
+    radii[dist > arc_len - 0.0015] = rw * swage_scale
     return sweep_tube(pts, radii, n_ring, cap_start=False, cap_end=True)
 
 
@@ -272,6 +273,9 @@ class Appearance:
     needle_shininess: float = 0.85
     needle_reflectance: float = 0.0
     wire_diameter_m: float = 0.0008
+    tip_length_m: float = 0.0018
+    tip_exponent: float = 0.75
+    swage_scale: float = 1.08
     thread_rgb: tuple = (0.35, 0.15, 0.55)
     thread_diameter_m: float = 0.00035
     thread_length_m: float = 0.06
@@ -490,8 +494,10 @@ class SceneModel:
             raise ValueError("scene: structure differs from the compiled model")
         m, ap = self.model, spec.appearance
         meshes, textures = [], []
-        wire = ap.wire_diameter_m
-        if self._write_mesh("needle", *needle_mesh(spec.needle, wire)[:2], state=wire):
+        shape = (ap.wire_diameter_m, ap.tip_length_m, ap.tip_exponent, ap.swage_scale)
+        if self._write_mesh("needle", *needle_mesh(spec.needle, ap.wire_diameter_m, ap.tip_length_m,
+                                                   tip_exponent=ap.tip_exponent,
+                                                   swage_scale=ap.swage_scale)[:2], state=shape):
             meshes.append(self.mesh["needle"])
         tstate = (spec.thread_seed, ap.thread_length_m, ap.thread_diameter_m, spec.T_world_needle.tobytes())
         if self._mesh_state.get("thread") != tstate:
