@@ -1,6 +1,11 @@
 #!/usr/bin/env bash
-# From nothing to the shipped keypoint detector: render the training data with the
-# built-in simulator, then train both networks in one run. Prints the wall-clock of each stage.
+# From nothing to the shipped keypoint detector. Stage A: render the train look with the built-in
+# simulator and train both networks from scratch (models/train.yaml). Stage B: render the looks
+# (the `wide` preset, threadless needles, 640x480 with and without lens distortion, the second
+# renderer's threaded scenes) and
+# train both networks on them from stage A's weights (models/looks.yaml). The second renderer's
+# threadless needles are never rendered here: they are the held-out look.
+# Prints the wall-clock of each stage.
 #   bash models/train_from_scratch.sh [DATA_DIR=data/train] [OUT=models/keypoint]
 # Resumable: rerun the same command (the generators and the trainer pick up where they stopped).
 set -euo pipefail
@@ -21,5 +26,21 @@ stamp "data: $DATA/b done"
 wait "$neg"
 stamp "data: $DATA/neg done"
 
-needletrack train --data "$DATA/a" --data "$DATA/b" --data "$DATA/neg" --config "$HERE/train.yaml" --out "$OUT"
+needletrack train --data "$DATA/a" --data "$DATA/b" --data "$DATA/neg" --config "$HERE/train.yaml" --out "$OUT/stage_a"
+stamp "stage A trained: $OUT/stage_a/model.pt"
+
+L="$DATA/looks"
+gen() { needletrack dataset generate --quiet "$@"; }
+gen --out "$L/std" --sequences 300 --steps 2 --seed 8105 --randomise train --msaa 4
+gen --out "$L/wide" --sequences 350 --steps 2 --seed 8101 --randomise wide --msaa 0
+gen --out "$L/wide_none" --sequences 350 --steps 2 --seed 8102 --randomise wide --msaa 4 --thread none
+gen --out "$L/640" --sequences 200 --steps 2 --seed 8103 --randomise wide --width 640 --height 480
+gen --out "$L/640_none" --sequences 150 --steps 2 --seed 8104 --randomise wide --width 640 --height 480 --thread none
+needletrack dataset distort "$L/640_none" --out "$L/640_none_dist" --dist=-0.28,0.09,0.0005,-0.0004 --quiet
+needletrack dataset generate-negatives --out "$L/neg" --frames 200 --seed 8107 --randomise wide --quiet
+needletrack dataset generate-alt --out "$L/alt" --sequences 150 --steps 2 --seed 8106 --supersample 2 --quiet
+stamp "data: $L done"
+
+needletrack train --init "$OUT/stage_a/model.pt" --data "$L/std" --data "$L/wide" --data "$L/wide_none" \
+    --data "$L/640" --data "$L/640_none_dist" --data "$L/neg" --data "$L/alt" --config "$HERE/looks.yaml" --out "$OUT"
 stamp "trained: $OUT/model.pt"

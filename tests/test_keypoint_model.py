@@ -14,6 +14,7 @@ from common.detector.model import (
     decode_heatmaps,
     fuse_conv_bn,
     gaussian_targets,
+    global_size,
     invert_affine,
     keypoint_loss,
 )
@@ -136,3 +137,17 @@ def test_a_perfect_heatmap_scores_one_after_normalisation():
     flat = torch.zeros(1, 1, 64, 64)                       # no peak at all
     _, score = decode_heatmaps(flat, 1)
     assert float(score[0, 0]) / ideal_peak_mass(sigma) < 0.01
+
+
+def test_stage1_sees_any_image_size_at_the_reference_scale():
+    cfg = ModelConfig(global_downscale=4)
+    assert global_size(cfg, 1920, 1080) == (480, 270, 4.0, 1.0)
+    ws, hs, ds, box_scale = global_size(cfg, 640, 480)     # same field of view, a third of the pixels
+    assert (ws, hs) == (480, 360) and ds == pytest.approx(4 / 3) and box_scale == pytest.approx(1 / 3)
+    assert global_size(cfg, 320, 240)[:3] == (320, 240, 1.0)  # never upscaled
+    # a box decoded at 640x480 is in that image's pixels: a third of the 1920 px one
+    out = torch.full((1, 5, 34, 60), -10.0)
+    out[0, 0, 12, 20] = 3.0
+    out[0, 1:5, 12, 20] = torch.tensor([0.0, 0.0, 0.0, 0.0])
+    _, cx, _, w, _ = decode_global(out, ds, box_scale)
+    assert w == pytest.approx(64.0 / 3) and cx == pytest.approx(20 * 4 * ds + (4 * ds - 1) / 2)

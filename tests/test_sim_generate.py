@@ -19,8 +19,9 @@ from common.sim.randomise import (
     keypoints_in_view,
     plan_sequence,
     rotate_with_keypoints,
+    sample_appearance,
 )
-from common.sim.scene import PHANTOM_SIZE, phantom_height
+from common.sim.scene import PHANTOM_SIZE, needle_mesh, phantom_height
 
 
 @pytest.mark.parametrize("preset", sorted(PRESETS))
@@ -155,3 +156,28 @@ def test_needle_free_frames_can_lay_the_pale_thread_on_purpose(tmp_path, monkeyp
                              pale_thread=share)
     assert colours[:2] == [PALE_THREAD_RGB] * 2
     assert all(c != PALE_THREAD_RGB for c in colours[2:]) and len(colours) == 4
+
+
+def test_the_wide_preset_adds_looks_and_leaves_the_others_draws_alone():
+    train, wide = PRESETS["train"], PRESETS["wide"]
+    tissue_hues, flat, tips = set(), 0, []
+    for seed in range(60):
+        a = sample_appearance(np.random.default_rng(seed), train)
+        b = sample_appearance(np.random.default_rng(seed), wide)
+        assert a.wire_diameter_m == b.wire_diameter_m and a.texture_seed == b.texture_seed
+        assert (a.tip_length_m, a.swage_scale) == (0.0018, 1.08)     # train keeps the one needle
+        tips.append(b.tip_length_m)
+        flat += b.ambient >= 0.35
+        r, g, bl = b.tissue_rgb
+        tissue_hues.add("yellowish" if g > 0.6 and bl < 0.55 else "purple" if bl > g and bl > 0.4 * r else "red")
+    assert min(tips) < 0.0012 and max(tips) > 0.0035
+    assert 8 <= flat <= 35
+    assert tissue_hues == {"yellowish", "purple", "red"}
+
+
+def test_needle_meshes_of_any_taper_fit_the_compiled_slots():
+    needle = NeedleModel()
+    n = len(needle_mesh(needle, 0.0008)[0])
+    for tip, expo, swage in [(0.0006, 0.5, 1.0), (0.0045, 1.2, 1.35)]:
+        v, _, _ = needle_mesh(needle, 0.0008, tip, tip_exponent=expo, swage_scale=swage)
+        assert len(v) == n
