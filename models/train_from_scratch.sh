@@ -32,6 +32,8 @@ stamp "stage A trained: $OUT/stage_a/model.pt"
 L="$DATA/looks"
 gen() { needletrack dataset generate --quiet "$@"; }
 gen --out "$L/std" --sequences 300 --steps 2 --seed 8105 --randomise train --msaa 4
+gen --out "$L/std2" --sequences 400 --steps 2 --seed 8109 --randomise train --msaa 0
+gen --out "$L/std_none" --sequences 250 --steps 2 --seed 8108 --randomise train --msaa 4 --thread none
 gen --out "$L/wide" --sequences 350 --steps 2 --seed 8101 --randomise wide --msaa 0
 gen --out "$L/wide_none" --sequences 350 --steps 2 --seed 8102 --randomise wide --msaa 4 --thread none
 gen --out "$L/640" --sequences 200 --steps 2 --seed 8103 --randomise wide --width 640 --height 480
@@ -41,6 +43,6 @@ needletrack dataset generate-negatives --out "$L/neg" --frames 200 --seed 8107 -
 needletrack dataset generate-alt --out "$L/alt" --sequences 150 --steps 2 --seed 8106 --supersample 2 --quiet
 stamp "data: $L done"
 
-needletrack train --init "$OUT/stage_a/model.pt" --data "$L/std" --data "$L/wide" --data "$L/wide_none" \
+needletrack train --init "$OUT/stage_a/model.pt" --data "$L/std" --data "$L/std2" --data "$L/std_none" --data "$L/wide" --data "$L/wide_none" \
     --data "$L/640" --data "$L/640_none_dist" --data "$L/neg" --data "$L/alt" --config "$HERE/looks.yaml" --out "$OUT"
 stamp "trained: $OUT/model.pt"

@@ -1,0 +1,23 @@
+#!/usr/bin/env bash
+# Adapt the shipped detector to your scene: fine-tune it on your own dataset folder(s), then score
+# the shipped and the fine-tuned weights on a test folder of the same look that training never saw.
+#   bash models/finetune.sh OUT TEST_DIR TRAIN_DIR [TRAIN_DIR ...]
+# e.g. 400 stereo frames recorded in your simulator (needletrack dataset from-bag ...) in TRAIN_DIR
+# and other sequences in TEST_DIR. Takes at most ~20 min on 2 CPU cores (models/finetune.yaml:
+# a 15-minute schedule); resumable (rerun the same command). Then use OUT/model.pt as the
+# detector's `weights` (dataflow.yaml) or `needletrack eval --model OUT/model.pt`.
+set -euo pipefail
+if [ $# -lt 3 ]; then sed -n 2,8p "$0"; exit 2; fi
+OUT=$1; TEST=$2; shift 2
+HERE=$(cd "$(dirname "$0")" && pwd)
+INIT=${INIT:-$HERE/keypoint/model.pt}
+NORMAL=${SUPPORT_NORMAL:-}   # e.g. SUPPORT_NORMAL=0,0,1 when the needle may rest on a surface of that normal
+t0=$(date +%s)
+data=(); for d in "$@"; do data+=(--data "$d"); done
+needletrack train --init "$INIT" "${data[@]}" --config "$HERE/finetune.yaml" --out "$OUT"
+echo "[$(( $(date +%s) - t0 )) s] fine-tuned: $OUT/model.pt"
+extra=(); [ -n "$NORMAL" ] && extra=(--support-normal "$NORMAL")
+for w in before:"$INIT" after:"$OUT/model.pt"; do
+  echo "== ${w%%:*}: ${w#*:}"
+  needletrack eval --dataset "$TEST" --model "${w#*:}" --out "$OUT/eval_${w%%:*}" --quiet "${extra[@]}"
+done
