@@ -11,10 +11,11 @@ if [ $# -lt 3 ]; then sed -n 2,8p "$0"; exit 2; fi
 OUT=$1; TEST=$2; shift 2
 HERE=$(cd "$(dirname "$0")" && pwd)
 INIT=${INIT:-$HERE/keypoint/model.pt}
+CONFIG=${CONFIG:-$HERE/finetune.yaml}
 NORMAL=${SUPPORT_NORMAL:-}   # e.g. SUPPORT_NORMAL=0,0,1 when the needle may rest on a surface of that normal
 t0=$(date +%s)
 data=(); for d in "$@"; do data+=(--data "$d"); done
-needletrack train --init "$INIT" "${data[@]}" --config "$HERE/finetune.yaml" --out "$OUT"
+needletrack train --init "$INIT" "${data[@]}" --config "$CONFIG" --out "$OUT"
 echo "[$(( $(date +%s) - t0 )) s] fine-tuned: $OUT/model.pt"
 extra=(); [ -n "$NORMAL" ] && extra=(--support-normal "$NORMAL")
 for w in before:"$INIT" after:"$OUT/model.pt"; do
