@@ -703,7 +703,7 @@ class AltRenderer:
         axis = (-T_world_ecm[:3, 2]).astype(np.float32)
         ref = float(np.linalg.norm(scene.needle_centre - T_world_ecm[:3, 3]))
         vx, vy, vz = eye[0] - P[0], eye[1] - P[1], eye[2] - P[2]
-        inv = 1.0 / np.sqrt(vx * vx + vy * vy + vz * vz)
+        inv = 1.0 / np.sqrt(np.maximum(vx * vx + vy * vy + vz * vz, f32(1e-18)))  # a point at the eye: no view direction
         vx, vy, vz = vx * inv, vy * inv, vz * inv
         diff = [0.0, 0.0, 0.0]
         spec = [0.0, 0.0, 0.0]
