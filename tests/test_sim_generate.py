@@ -181,3 +181,8 @@ def test_needle_meshes_of_any_taper_fit_the_compiled_slots():
     for tip, expo, swage in [(0.0006, 0.5, 1.0), (0.0045, 1.2, 1.35)]:
         v, _, _ = needle_mesh(needle, 0.0008, tip, tip_exponent=expo, swage_scale=swage)
         assert len(v) == n
+
+
+def test_the_cli_offers_every_preset():
+    from common.sim.cli import PRESET_NAMES
+    assert sorted(PRESET_NAMES) == sorted(PRESETS)

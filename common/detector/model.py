@@ -336,17 +336,7 @@ def global_size(cfg: ModelConfig, w: int, h: int) -> tuple[int, int, float, floa
 
 def decode_global(out: torch.Tensor, downscale: float, box_scale: float = 1.0):
     """Best box from GlobalNet output (1, 5, h, w): (confidence, cx, cy, w, h) in full-res px."""
-    heat = out[0, 0]
-    h, w = heat.shape
-    idx = int(torch.argmax(heat))
-    iy, ix = idx // w, idx % w
-    conf = float(torch.sigmoid(heat[iy, ix]))
-    lw, lh, ox, oy = (float(v) for v in out[0, 1:5, iy, ix])
-    cell = GLOBAL_STRIDE * downscale
-    cx = (ix + ox) * cell + (cell - 1) / 2.0
-    cy = (iy + oy) * cell + (cell - 1) / 2.0
-    unit = BOX_UNIT * box_scale
-    return conf, cx, cy, unit * float(np.exp(np.clip(lw, -4, 4))), unit * float(np.exp(np.clip(lh, -4, 4)))
+    return decode_global_topk(out, downscale, 1, box_scale=box_scale)[0]
 
 
 def decode_global_topk(out: torch.Tensor, downscale: float, k: int = 2, min_conf: float = 0.0,
@@ -358,14 +348,14 @@ def decode_global_topk(out: torch.Tensor, downscale: float, k: int = 2, min_conf
     peaks = (heat == pooled) & (torch.sigmoid(heat) >= min_conf)
     ys, xs = torch.nonzero(peaks, as_tuple=True)
     order = torch.argsort(heat[ys, xs], descending=True)[:k]
-    cell = GLOBAL_STRIDE * downscale
+    cell, unit = GLOBAL_STRIDE * downscale, BOX_UNIT * box_scale
     boxes = []
     for i in order.tolist():
         iy, ix = int(ys[i]), int(xs[i])
         lw, lh, ox, oy = (float(v) for v in out[0, 1:5, iy, ix])
         boxes.append((float(torch.sigmoid(heat[iy, ix])), (ix + ox) * cell + (cell - 1) / 2.0,
-                      (iy + oy) * cell + (cell - 1) / 2.0, BOX_UNIT * box_scale * float(np.exp(np.clip(lw, -4, 4))),
-                      BOX_UNIT * box_scale * float(np.exp(np.clip(lh, -4, 4)))))
+                      (iy + oy) * cell + (cell - 1) / 2.0, unit * float(np.exp(np.clip(lw, -4, 4))),
+                      unit * float(np.exp(np.clip(lh, -4, 4)))))
     return boxes
 
 

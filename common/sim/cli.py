@@ -7,6 +7,8 @@ import sys
 
 from common.geometry.ecm_kinematics import MULTIVIEW_STEP_RAD
 
+PRESET_NAMES = ["none", "test", "train", "wide"]   # common.sim.randomise.PRESETS (not imported: fast start)
+
 STANDARD_TEST_SET = ("needletrack dataset generate --out data/test --sequences 30 --steps 5 "
                      "--seed 1000 --randomise test")
 
@@ -37,7 +39,7 @@ def _parser() -> argparse.ArgumentParser:
                                    "Resumable: rerun the same command after an interruption. "
                                    f"Standard test set: {STANDARD_TEST_SET}")
     _generate_args(g)
-    g.add_argument("--randomise", default="train", choices=["none", "test", "train", "wide"],
+    g.add_argument("--randomise", default="train", choices=PRESET_NAMES,
                    help="randomisation preset (default train)")
     g.add_argument("--jobs", type=int, default=2, help="render processes (default 2)")
     g.add_argument("--msaa", type=int, default=4, choices=[0, 2, 4, 8],
@@ -62,7 +64,7 @@ def _parser() -> argparse.ArgumentParser:
     n.add_argument("--out", required=True, help="output folder")
     n.add_argument("--frames", type=int, required=True, help="number of stereo frames")
     n.add_argument("--seed", type=int, default=777)
-    n.add_argument("--randomise", default="train", choices=["none", "test", "train", "wide"],
+    n.add_argument("--randomise", default="train", choices=PRESET_NAMES,
                    help="randomisation preset (default train)")
     n.add_argument("--pale-thread", type=float, default=None, metavar="SHARE",
                    help="share of frames with the undyed, needle-pale thread (default: the preset's 1 in 5)")
