@@ -31,6 +31,9 @@ stamp "stage A trained: $OUT/stage_a/model.pt"
 
 L="$DATA/looks"
 gen() { needletrack dataset generate --quiet "$@"; }
+# the second renderer (numpy, one core) runs beside the MuJoCo sets
+needletrack dataset generate-alt --out "$L/alt" --sequences 150 --steps 2 --seed 8106 --supersample 2 --quiet &
+alt=$!
 gen --out "$L/std" --sequences 300 --steps 2 --seed 8105 --randomise train --msaa 4
 gen --out "$L/std2" --sequences 400 --steps 2 --seed 8109 --randomise train --msaa 0
 gen --out "$L/std_none" --sequences 250 --steps 2 --seed 8108 --randomise train --msaa 4 --thread none
@@ -40,7 +43,7 @@ gen --out "$L/640" --sequences 200 --steps 2 --seed 8103 --randomise wide --widt
 gen --out "$L/640_none" --sequences 150 --steps 2 --seed 8104 --randomise wide --width 640 --height 480 --thread none
 needletrack dataset distort "$L/640_none" --out "$L/640_none_dist" --dist=-0.28,0.09,0.0005,-0.0004 --quiet
 needletrack dataset generate-negatives --out "$L/neg" --frames 200 --seed 8107 --randomise wide --quiet
-needletrack dataset generate-alt --out "$L/alt" --sequences 150 --steps 2 --seed 8106 --supersample 2 --quiet
+wait "$alt"
 stamp "data: $L done"
 
 needletrack train --init "$OUT/stage_a/model.pt" --data "$L/std" --data "$L/std2" --data "$L/std_none" --data "$L/wide" --data "$L/wide_none" \
