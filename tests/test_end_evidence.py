@@ -7,6 +7,7 @@ import numpy as np
 import pytest
 
 from common.detector.end_identity import (
+    FEATURES,
     EndEvidence,
     fit_coefficients,
     network_evidence,
@@ -74,6 +75,25 @@ def test_the_coefficient_file_beside_the_weights(tmp_path):
     assert load_end_coefficients(weights) is None              # no file: nothing is stated
     (tmp_path / "end_identity.json").write_text(json.dumps({"coef": [1.0, 0.5, -0.1]}))
     assert np.allclose(load_end_coefficients(weights), [1.0, 0.5, -0.1])
+    six = [1.0, 0.5, -0.1, 0.2, -0.3, -0.4]
+    (tmp_path / "end_identity.json").write_text(json.dumps({"features": list(FEATURES), "coef": six}))
+    assert np.allclose(load_end_coefficients(weights), six)
     (tmp_path / "end_identity.json").write_text(json.dumps({"coef": [1.0, "x"]}))
     with pytest.raises(ModelFileError, match="end_identity.json"):
         load_end_coefficients(weights)
+
+
+def test_a_small_needle_weighs_its_evidence_by_the_fitted_size_terms():
+    """features(): [shape, net, 1, small, small shape, small net] with small = log2 of how many
+    times shorter than LENGTH_REF_PX the needle is (0 for a long one or an unknown length)."""
+    big = EndEvidence(1.0, 2.0, length_px=400.0)
+    small = EndEvidence(1.0, 2.0, length_px=40.0)            # a quarter of 160 px: small = 2
+    assert np.allclose(big.features(), [1, 2, 1, 0, 0, 0])
+    assert np.allclose(small.features(), [1, 2, 1, 2, 2, 4])
+    assert np.allclose(EndEvidence(1.0, 2.0).features(), [1, 2, 1, 0, 0, 0])
+    assert len(big.features()) == len(FEATURES)
+    coef = np.array([0.0, 1.0, 0.0, 0.0, 0.0, -0.5])        # the network not trusted when this small
+    assert big.p_a_is_tip(coef) == pytest.approx(1 / (1 + np.exp(-2.0)))
+    assert small.p_a_is_tip(coef) == pytest.approx(0.5)
+    # an older 3-coefficient fit reads the first three features
+    assert small.p_a_is_tip(np.array([0.0, 1.0, 0.0])) == pytest.approx(1 / (1 + np.exp(-2.0)))

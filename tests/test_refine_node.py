@@ -1,5 +1,7 @@
 """The ``refine`` node: offline (message in, message out) and in a launched graph; its poses are
 the library's (common/geometry/refine.py on the joint PnP's candidates)."""
+from dataclasses import replace
+
 import numpy as np
 import pytest
 
@@ -183,6 +185,21 @@ def test_node_counts_why_there_is_no_pose_and_never_publishes_one():
     strict.on_right(right)
     assert strict.counters["no_pose.high_residual"] == 1 and poses(strict) == []
     assert poses(node) == []
+
+
+def test_a_fit_far_worse_than_the_stated_noise_is_not_published():
+    """Residuals many times the noise the detector states (a jaw's edge taken for the wire) give
+    no pose (``poor_fit``); the same frame stating its real noise is posed."""
+    (T, left, right), = oracle_frames(1, noise_px=2.0)
+    claimed = [replace(k, keypoint_sigma_px=0.2, centreline_sigma_px=0.1) for k in (left, right)]
+    honest = [replace(k, keypoint_sigma_px=2.0, centreline_sigma_px=1.0) for k in (left, right)]
+    for kps, gate, posed in ((claimed, 1.5, False), (honest, 1.5, True), (claimed, None, True)):
+        node = RefineNode.offline({"max_residual_variance": gate}, wired=["left", "right", "calib"])
+        node.on_calib(CALIB)
+        node.on_left(kps[0])
+        node.on_right(kps[1])
+        assert (len(poses(node)) == 1) == posed, (gate, kps[0].keypoint_sigma_px)
+        assert node.counters.get("no_pose.poor_fit", 0) == (0 if posed else 1)
 
 
 def test_refine_node_in_a_launched_graph_matches_the_library(run_graph):

@@ -154,7 +154,8 @@ class OracleBackend(KeypointBackend):
     ``missing_prob``, ``outlier_prob``, ``outlier_px``, ``seed``. Uses the true poses when the
     ground truth has them (``T_world_ecm`` and ``T_world_needle``), else its ``keypoints``.
     With the poses it also gives the dense ``centreline`` (params ``centreline``, default true,
-    and ``centreline_noise_px``, default noise_px / 2)."""
+    and ``centreline_noise_px``, default noise_px / 2). It states the noise it adds
+    (``keypoint_sigma_px``, ``centreline_sigma_px``)."""
 
     name = "oracle"
     needs_image = False
@@ -196,5 +197,10 @@ class OracleBackend(KeypointBackend):
             bbox = np.asarray(truth.bbox[camera], dtype=float).reshape(4)
         if not np.any(scores > 0):
             return Keypoints.not_found(camera, seq, stamp_ns, self.name, "needle not visible")
+        # the noise it adds is the noise it states (none stated without noise: the consumer's default)
+        kp_sigma = self.oracle.noise_px or None
+        cl_sigma = (self.oracle.noise_px / 2 if self.oracle.centreline_noise_px is None
+                    else self.oracle.centreline_noise_px) or None
         return Keypoints(camera, seq, stamp_ns, True, uv, scores, float(scores.mean()), bbox, self.name,
-                         centreline=line, centreline_w=line_w)
+                         centreline=line, centreline_w=line_w,
+                         centreline_sigma_px=None if line is None else cl_sigma, keypoint_sigma_px=kp_sigma)

@@ -13,8 +13,12 @@ The network's own evidence: its A heatmap's probability mass at the reported A a
 reported E, times the same for its E heatmap: ``net_llr = log(pA(A) pE(E)) - log(pA(E) pE(A))``.
 A network that learned the end from the thread puts A's mass on both ends when there is none.
 
-``p_a_is_tip = sigmoid(COEF . [shape_llr, net_llr, 1])``, the coefficients fitted by logistic
-regression on the project's own renders with and without thread (``fit_coefficients``).
+Both pieces of evidence weaken as the needle gets smaller in the image (a 640x480 stream shows
+the taper over a pixel or two): with ``small = clip(log2(LENGTH_REF_PX / length_px), 0, 3)``, the
+keypoints' polyline A..E length in pixels, ``p_a_is_tip = sigmoid(COEF . [shape_llr, net_llr, 1,
+small, small shape_llr, small net_llr])``, the coefficients fitted by logistic regression on the
+project's own renders with and without thread, at 1920x1080 and 640x480 (``fit_coefficients``).
+Three coefficients (an older fit) stand for the first three, the rest zero.
 Pixel convention: integer coordinates are pixel centres.
 """
 from __future__ import annotations
@@ -35,7 +39,9 @@ CORE_PX = 4.0            # the mass is summed within this distance of the centre
 OUTSIDE_PX = 6.0         # the end profiles start this far past each end
 PEAK_RADIUS_CELLS = 2    # heatmap mass within this radius of a keypoint
 LLR_CLIP = 8.0
-COEF = np.array([1.0, 0.5, 0.0])   # [shape, net, bias]: see fit_coefficients
+LENGTH_REF_PX = 160.0    # a needle this long in the image (or longer) is not "small"
+FEATURES = ("shape_llr", "net_llr", "bias", "small", "small_shape_llr", "small_net_llr")
+COEF = np.array([1.0, 0.5, 0.0, 0.0, 0.0, 0.0])   # see FEATURES and fit_coefficients
 
 
 @dataclass
@@ -44,17 +50,29 @@ class EndEvidence:
 
     shape_llr: float
     net_llr: float
-    r_a: float = float("nan")       # mass near A / the middle's
+    r_a: float = float("nan")       # rise length at A, px
     r_e: float = float("nan")
+    length_px: float = float("nan")  # the keypoints' polyline A..E, px (NaN: not small)
 
     def features(self) -> np.ndarray:
-        """[shape_llr, net_llr, 1] with unmeasured terms as 0 (no evidence)."""
+        """The FEATURES vector, unmeasured evidence as 0 (no evidence)."""
         f = np.array([self.shape_llr, self.net_llr], float)
-        return np.append(np.where(np.isfinite(f), np.clip(f, -LLR_CLIP, LLR_CLIP), 0.0), 1.0)
+        f = np.where(np.isfinite(f), np.clip(f, -LLR_CLIP, LLR_CLIP), 0.0)
+        small = (float(np.clip(np.log2(LENGTH_REF_PX / self.length_px), 0.0, 3.0))
+                 if np.isfinite(self.length_px) and self.length_px > 0 else 0.0)
+        return np.array([f[0], f[1], 1.0, small, small * f[0], small * f[1]])
 
     def p_a_is_tip(self, coef: np.ndarray = COEF) -> float:
-        """Probability that A is the tip as said (0.5: the images cannot tell)."""
-        return float(1.0 / (1.0 + np.exp(-float(self.features() @ coef))))
+        """Probability that A is the tip as said (0.5: the images cannot tell); ``coef`` of 3
+        (an older fit) or len(FEATURES)."""
+        coef = np.asarray(coef, float)
+        z = float(self.features()[:len(coef)] @ coef)
+        return float(1.0 / (1.0 + np.exp(-z)))
+
+
+def polyline_length(uv: np.ndarray) -> float:
+    """Length (px) of the polyline through the points (N, 2) in order."""
+    return float(np.linalg.norm(np.diff(np.asarray(uv, float), axis=0), axis=1).sum())
 
 
 def _resample(curve: np.ndarray, fractions: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -158,7 +176,7 @@ def network_evidence(kp_logits: np.ndarray, uv_cells: np.ndarray) -> float:
 
 def fit_coefficients(features: np.ndarray, labels: np.ndarray, l2: float = 1e-2, iters: int = 50) -> np.ndarray:
     """Logistic regression (Newton's method, a little L2) of labels (1: A is the tip as said) on
-    features (N, 3) as ``EndEvidence.features`` gives them."""
+    features (N, len(FEATURES)) as ``EndEvidence.features`` gives them."""
     X, y = np.asarray(features, float), np.asarray(labels, float)
     w = np.zeros(X.shape[1])
     for _ in range(iters):

@@ -31,7 +31,7 @@ from common.detector.centreline_subpixel import (
     ellipse_residual,
     refine_centreline,
 )
-from common.detector.end_identity import EndEvidence, network_evidence, shape_evidence
+from common.detector.end_identity import FEATURES, EndEvidence, network_evidence, polyline_length, shape_evidence
 from common.detector.model import (
     FrozenForInference,
     KeypointModel,
@@ -82,8 +82,9 @@ def load_end_coefficients(weights) -> np.ndarray | None:
         coef = np.asarray(json.loads(path.read_text())["coef"], float)
     except (OSError, ValueError, KeyError, TypeError) as exc:
         raise ModelFileError(f"{path}: not an end-identity coefficient file ({exc})") from None
-    if coef.shape != (3,) or not np.isfinite(coef).all():
-        raise ModelFileError(f"{path}: coef must be 3 finite numbers, got {coef.tolist()}")
+    if coef.shape not in ((3,), (len(FEATURES),)) or not np.isfinite(coef).all():
+        raise ModelFileError(f"{path}: coef must be 3 or {len(FEATURES)} finite numbers "
+                             f"({', '.join(FEATURES)}), got {coef.tolist()}")
     return coef
 
 
@@ -461,10 +462,11 @@ class KeypointDetector:
         s = self.cfg.out_stride
         cells = (res["uv_crop"] - (s - 1) / 2.0) / s
         net = network_evidence(res["heat"][0, :5].numpy(), cells)
+        length = polyline_length(res["uv"])
         if res.get("centreline") is None:
-            return EndEvidence(float("nan"), net)
+            return EndEvidence(float("nan"), net, length_px=length)
         shape, r_a, r_e = shape_evidence(img, res["centreline"])
-        return EndEvidence(shape, net, r_a, r_e)
+        return EndEvidence(shape, net, r_a, r_e, length)
 
     def _not_an_ellipse(self, res, undistort=None) -> str | None:
         """Why the sub-pixel centreline is not the image of a circle (None if it is, or when it

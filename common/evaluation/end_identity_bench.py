@@ -19,6 +19,8 @@ import cv2
 import numpy as np
 from tqdm import tqdm
 
+from common.detector.end_identity import FEATURES
+
 SURE = 0.95
 
 
@@ -45,7 +47,7 @@ def collect(folder: str, detector, step: int = 1) -> dict:
             turned = np.linalg.norm(kp.uv[0] - true[4]) + np.linalg.norm(kp.uv[4] - true[0])
             feats.append(detector.last_evidence.features())
             labels.append(float(as_said < turned))
-    return {"features": np.array(feats).reshape(-1, 3), "labels": np.array(labels), "images": seen}
+    return {"features": np.array(feats).reshape(-1, len(FEATURES)), "labels": np.array(labels), "images": seen}
 
 
 def summary(name: str, data: dict, coef: np.ndarray) -> dict:
@@ -54,7 +56,7 @@ def summary(name: str, data: dict, coef: np.ndarray) -> dict:
     n = len(y)
     if n == 0:
         return {"set": name, "found": 0}
-    p = 1.0 / (1.0 + np.exp(-X @ coef))
+    p = 1.0 / (1.0 + np.exp(-X[:, :len(coef)] @ coef))
     right = np.where(p >= 0.5, y == 1, y == 0)        # the stated side is the true one
     sure = (p >= SURE) | (p <= 1 - SURE)
     return {"set": name, "images": data["images"], "found": n,
@@ -89,7 +91,7 @@ def main(argv=None) -> int:
         y = np.concatenate([d["labels"] for d in data.values()])
         coef = fit_coefficients(X, y)
         Path(args.fit).write_text(json.dumps({
-            "features": ["shape_llr", "net_llr", "bias"], "coef": [float(c) for c in coef],
+            "features": list(FEATURES), "coef": [float(c) for c in coef],
             "fitted_on": [str(Path(d)) for d in args.data], "images": int(len(y))}, indent=1) + "\n")
         print(f"wrote {args.fit}: coef {np.round(coef, 3).tolist()} from {len(y)} detections")
     rows = [summary(name, d, coef) for name, d in data.items()]

@@ -20,8 +20,8 @@ Jacobians) over six parameters: a rotation-vector increment left-multiplied in t
 a translation increment in the ECM frame, ``R <- exp(dr) R``, ``t <- t + dt``. The covariance,
 ``s^2 (J^T W J)^-1`` at the optimum with ``s^2`` the residual variance (and a centreline
 point's weight divided by the number of neighbours its error moves with, when the detector
-states it), is in that same order and frame: ``[rotation vector (rad), translation (m)]``, as
-``PoseEstimate.covariance``.
+states it), plus the model's own position error (``model_sigma_mm`` per axis), is in that same
+order and frame: ``[rotation vector (rad), translation (m)]``, as ``PoseEstimate.covariance``.
 
 A planar arc has a two-fold ambiguity (seen edge-on, whether it bulges towards or away from the
 camera); every candidate's mirror image about the line of sight is added and refined too. When
@@ -137,6 +137,12 @@ class RefineConfig:
     min_depth_m: float = 1e-3       # every point must be this far in front of both cameras
     max_depth_m: float = 2.0        # and the needle nearer than this (a PnP start may run off)
     min_sigma_ratio: float = 0.25   # the covariance assumes at least this fraction of the sigmas
+    # The position error no image noise explains (the needle's wire and arc against the model, the
+    # rig's calibration), 1 sigma per axis, added to the covariance: a dense fit's covariance from
+    # the images alone is tens of micrometres thin across some directions, and errors the two
+    # nearly alike cameras share go into the pose, not the residuals (NEES median on the second
+    # renderer 15 without it, 6.0-6.4 with 0.05 mm; the standard set 7.2 -> 5.4; 640x480 4.9 -> 3.5)
+    model_sigma_mm: float = 0.05
     # with a support surface's normal given (``refine(support_normal=)``): probability that the
     # needle rests on it, and the spread of its tilt then (common/geometry/rest_prior.py)
     rest_prior: float = 0.5
@@ -156,6 +162,8 @@ class RefineConfig:
                          ("foot_steps", 1), ("warm_steps", 1)):
             if int(getattr(self, name)) < lo:
                 raise ValueError(f"RefineConfig.{name}: must be at least {lo}, got {getattr(self, name)}")
+        if not (np.isfinite(self.model_sigma_mm) and self.model_sigma_mm >= 0):
+            raise ValueError(f"RefineConfig.model_sigma_mm: must be a number >= 0, got {self.model_sigma_mm}")
         if not 0.0 <= self.rest_prior < 1.0:
             raise ValueError(f"RefineConfig.rest_prior: must be in [0, 1), got {self.rest_prior}")
 
@@ -171,7 +179,10 @@ class RefineResult:
     plane and a camera's line of sight (0 = edge-on, 90 = face-on); ``candidates`` every distinct
     converged solution as ``(T_ecm_needle, cost)``, best first; ``competitor_chi2`` how much
     the cost of the nearest of the others differs, in residual variances (inf: no other
-    solution; a support surface's prior may pick a minimum that costs a little more).
+    solution; a support surface's prior may pick a minimum that costs a little more);
+    ``residual_variance`` the fit's robust residual variance in units of the assumed sigmas
+    (0.1-0.5 on the project's renders; well above 1, the images are not the needle model's:
+    e.g. a jaw's edge taken for the wire).
     """
 
     T_ecm_needle: np.ndarray
@@ -187,6 +198,7 @@ class RefineResult:
     n_residuals: int = 0
     candidates: list = field(default_factory=list)
     competitor_chi2: float = float("inf")
+    residual_variance: float = float("nan")
 
 
 def project_centreline(camera: Camera, needle: NeedleModel, T_ecm_needle: np.ndarray,
@@ -754,6 +766,7 @@ def _result(prob: _Problem, s, cfg: RefineConfig, log_prior=None) -> RefineResul
     n_res = prob.n_res
     H = J.T @ ((wr * prob.cov_scale)[:, None] * J)
     cov = s2 * _inv_psd(H)
+    cov[3:, 3:] += (cfg.model_sigma_mm * 1e-3) ** 2 * np.eye(3)
     # RMS per keypoint coordinate and per curve point (its two residuals, normal and
     # overshoot, make one distance)
     r2 = r * r
@@ -792,7 +805,8 @@ def _result(prob: _Problem, s, cfg: RefineConfig, log_prior=None) -> RefineResul
         cost=float(s["cost"][b]), ambiguous=bool(reasons),
         reasons=tuple(reasons), view_angle_deg=view, n_iter=int(s["iters"]),
         n_residuals=n_res, candidates=cands,
-        competitor_chi2=float(min((dchi for _, dchi in competitors), default=np.inf)))
+        competitor_chi2=float(min((dchi for _, dchi in competitors), default=np.inf)),
+        residual_variance=float(s2))
 
 
 def _inv_psd(H):
