@@ -178,7 +178,8 @@ class RefineNode(StereoPoseNode):
             self.count("ambiguous")
         self.publish_pose(self.pose_message(left.seq, left.stamp_ns, "refined", res.T_ecm_needle,
                                             res.rms_px, "px", covariance=res.covariance,
-                                            ambiguous=bool(res.ambiguous)))
+                                            ambiguous=bool(res.ambiguous),
+                                            model_sigma_m=self.config.model_sigma_mm * 1e-3 or None))
 
     def support_normal_ecm(self, seq: int):
         """The support surface's normal in frame ``seq``'s ECM frame (None: not configured, or

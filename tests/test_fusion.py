@@ -189,3 +189,28 @@ def test_covariance_weighting_is_used_when_every_view_has_one():
     assert out.covariance is None
     off = MultiViewFusion(use_covariance=False)
     assert off.add(T0, covariance=cov).covariance is None
+
+
+def test_a_shared_position_error_is_not_averaged_nor_weighs_the_views():
+    """Two views: one pins x, the other y, each within the shared model error declared inside
+    its covariance. Weighed by their own parts, the fused position takes x from the first and y
+    from the second; the shared error is added back once."""
+    s = 5e-4                                                        # 0.5 mm, shared
+    own_x, own_y = np.diag([1e-4] * 3 + [1e-10, 1e-6, 1e-6]), np.diag([1e-4] * 3 + [1e-6, 1e-10, 1e-6])
+    common = np.diag([0.0] * 3 + [s * s] * 3)
+    T_true = make_T(np.eye(3), [0.0, 0.0, -0.15])
+    Ta = make_T(np.eye(3), [0.0, 0.0005, -0.15])                   # right in x, 0.5 mm off in y
+    Tb = make_T(np.eye(3), [0.0005, 0.0, -0.15])                   # right in y, 0.5 mm off in x
+    for shared, expect_mm in ((True, 0.0), (False, 0.05)):
+        f = MultiViewFusion()
+        f.add(Ta, covariance=own_x + common, common_sigma_m=s if shared else 0.0)
+        out = f.add(Tb, covariance=own_y + common, common_sigma_m=s if shared else 0.0)
+        err_mm = pose_error(out.T_ecm_needle, T_true)[0] * 1e3
+        assert err_mm < 0.01 if shared else err_mm > expect_mm      # else each view's y/x drags
+        if shared:
+            assert out.common_sigma_m == s
+            assert np.linalg.eigvalsh(out.covariance[3:, 3:]).min() >= s * s
+    # a producer that did not put it in: its covariance is used as it is
+    f = MultiViewFusion()
+    out = f.add(Ta, covariance=np.diag([1e-4] * 3 + [1e-10] * 3), common_sigma_m=s)
+    assert np.isfinite(out.covariance).all()

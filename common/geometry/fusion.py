@@ -6,7 +6,10 @@ was made. At every new estimate all queued ones are mapped into the current ECM 
 ``max_dist_m`` or ``max_angle_rad`` from a robust centre, the medoid), and the inliers are
 averaged: chordal rotation mean and mean translation, or, when every inlier carries a 6x6
 covariance, their information-weighted mean (Gauss-Newton on the Mahalanobis distances), whose
-stated covariance allows for the views' errors being alike (``fuse_poses``).
+stated covariance allows for the views' errors being alike (``fuse_poses``). A position error
+every view shares (``common_sigma_m``, the needle model's own, declared inside each covariance)
+is taken out before the views are weighed and added back once to the fused covariance:
+averaging views does not shrink it, and it must not hide what each view's images pin down.
 
 Covariances follow ``common.geometry.pnp``: over ``[w, v]`` with ``R = exp([w]x) R0``, ``t = t0 + v``
 (rotation in ECM axes about the needle origin, translation of the origin, rad and m). Moving
@@ -35,6 +38,7 @@ class QueuedEstimate:
     T_world_ecm: np.ndarray
     covariance: np.ndarray | None = None
     seq: int | None = None
+    common_sigma_m: float = 0.0      # inside covariance, shared by every view (module docstring)
 
     @property
     def T_world_needle(self) -> np.ndarray:
@@ -48,7 +52,8 @@ class FusedPose:
     ``n_views``: estimates averaged (the inliers); ``n_queued``: estimates in the queue;
     ``inliers``: mask over the queue, oldest first; ``covariance`` (6, 6) in the current ECM
     frame when the inputs carried covariances; ``reset``: this estimate started a new queue;
-    ``rms_m``: RMS distance of the inliers' positions to the fused one.
+    ``rms_m``: RMS distance of the inliers' positions to the fused one; ``common_sigma_m`` the
+    inliers' shared position error, inside ``covariance``.
     """
 
     T_ecm_needle: np.ndarray
@@ -59,6 +64,18 @@ class FusedPose:
     covariance: np.ndarray | None = None
     reset: bool = False
     rms_m: float = 0.0
+    common_sigma_m: float = 0.0
+
+
+def without_common(cov: np.ndarray, sigma_m: float) -> np.ndarray:
+    """``cov`` less a shared isotropic position variance ``sigma_m**2`` (the views' own part);
+    ``cov`` unchanged when that would not leave it positive definite (a producer that did not
+    add it)."""
+    if not sigma_m > 0:
+        return cov
+    out = np.array(cov, dtype=float)
+    out[3:, 3:] -= sigma_m ** 2 * np.eye(3)
+    return out if np.linalg.eigvalsh(0.5 * (out + out.T)).min() > 0 else cov
 
 
 def covariance_to_frame(cov: np.ndarray, R_a_b: np.ndarray) -> np.ndarray:
@@ -177,12 +194,14 @@ class MultiViewFusion:
         self.sequence = None
 
     def add(self, T_ecm_needle, T_world_ecm=None, covariance=None, seq: int | None = None,
-            sequence: int | None = None) -> FusedPose:
+            sequence: int | None = None, common_sigma_m: float = 0.0) -> FusedPose:
         """Queue an estimate made at ``T_world_ecm`` (identity when unknown: a still endoscope)
-        and return the fused pose in the current ECM frame."""
+        and return the fused pose in the current ECM frame. ``common_sigma_m``: the position
+        error (m, per axis) inside ``covariance`` that every view shares."""
         T_world_ecm = np.eye(4) if T_world_ecm is None else np.asarray(T_world_ecm, dtype=float)
         est = QueuedEstimate(np.asarray(T_ecm_needle, dtype=float), T_world_ecm,
-                             None if covariance is None else np.asarray(covariance, dtype=float), seq)
+                             None if covariance is None else np.asarray(covariance, dtype=float), seq,
+                             float(common_sigma_m or 0.0))
         reset = False
         if sequence is not None and self.sequence is not None and sequence != self.sequence:
             self.queue.clear()
@@ -222,9 +241,13 @@ class MultiViewFusion:
             T_now_i = T_now_world @ e.T_world_ecm
             Ts.append(T_now_i @ e.T_ecm_needle)
             covs.append(None if e.covariance is None
-                        else covariance_to_frame(e.covariance, T_now_i[:3, :3]))
+                        else covariance_to_frame(without_common(e.covariance, e.common_sigma_m), T_now_i[:3, :3]))
         T, inl, cov = fuse_poses(Ts, covs if self.use_covariance else None,
                                  self.max_dist_m, self.max_angle_rad)
+        common = max((e.common_sigma_m for e, ok in zip(self.queue, inl) if ok), default=0.0)
+        if cov is not None and common > 0:
+            cov = cov.copy()
+            cov[3:, 3:] += common ** 2 * np.eye(3)
         d = np.array([Ti[:3, 3] - T[:3, 3] for Ti, ok in zip(Ts, inl) if ok])
         rms = float(np.sqrt(np.mean(np.sum(d * d, axis=1))))
-        return FusedPose(T, T_world_ecm_now @ T, int(inl.sum()), len(Ts), inl, cov, reset, rms)
+        return FusedPose(T, T_world_ecm_now @ T, int(inl.sum()), len(Ts), inl, cov, reset, rms, common)

@@ -372,6 +372,9 @@ def pose_error(msg: "PoseEstimate", max_range_m: Optional[float] = None) -> Opti
             return err
         if not np.abs(np.asarray(msg.covariance, dtype=float)).max() <= MAX_COORD:
             return f"PoseEstimate.covariance: beyond {MAX_COORD:g}"
+    sm = getattr(msg, "model_sigma_m", None)
+    if sm is not None and not 0.0 <= float(sm) <= 1.0:
+        return f"PoseEstimate.model_sigma_m: must be in [0, 1] m, got {sm}"
     if not abs(float(msg.residual)) <= MAX_COORD:     # what decode would refuse downstream
         return f"PoseEstimate.residual: not finite, or beyond {MAX_COORD:g}: {msg.residual}"
     if max_range_m is not None:
@@ -630,6 +633,9 @@ class PoseEstimate(Message):
     """A needle pose. ``T_ecm_needle`` maps needle to ECM frame (m). ``residual`` is the
     method's RMS (reprojection px, or registration m, as ``residual_unit`` says).
     ``covariance`` (6, 6) over [rotation vector (rad), translation (m)] in the ECM frame, when known.
+    ``model_sigma_m``: the part of the position error, 1 sigma per axis (m), that every estimate
+    of this needle shares (the needle model's and the rig's own error; already inside
+    ``covariance``): a fusion of views does not average it down.
     """
 
     SCHEMA = "needletrack.PoseEstimate"
@@ -639,7 +645,8 @@ class PoseEstimate(Message):
               "residual": ("float",), "residual_unit": ("str", "optional"),
               "n_views": ("int",), "covariance": ("array", (6, 6), "optional"),
               "ambiguous": ("bool", "optional"), "points_ecm": ("array", (None, 3), "optional", "nan"),
-              "sequence": ("int", "optional"), "epoch": ("int", "optional")}
+              "sequence": ("int", "optional"), "epoch": ("int", "optional"),
+              "model_sigma_m": ("float", "optional")}
     seq: int
     stamp_ns: int
     method: str
@@ -654,6 +661,7 @@ class PoseEstimate(Message):
     points_ecm: Optional[np.ndarray] = None
     sequence: Optional[int] = None
     epoch: Optional[int] = None
+    model_sigma_m: Optional[float] = None
 
     def validate(self):
         err = pose_error(self)
