@@ -163,10 +163,24 @@ def fuse_poses(Ts, covariances=None, max_dist_m: float = 0.005,
     if covariances is not None:
         covs = [C for C, ok in zip(covariances, inl) if ok]
         if all(C is not None for C in covs):
-            res = information_mean(sel, covs, T)
-            if res is not None:
-                T, cov = res[0], len(sel) * res[1]
+            # Weighed by covariances no wider than the inlier gate: every inlier lies within it,
+            # so a wider spread (a view unsure which end is the tip) says "no weight", and is
+            # not left to decide a direction every view leaves open. The stated covariance
+            # keeps each view's own.
+            gate = np.array([max_angle_rad] * 3 + [max_dist_m] * 3)
+            res = information_mean(sel, [_clip_to_gate(C, gate) for C in covs], T)
+            stated = information_mean(sel, covs, T, iterations=0)
+            if res is not None and stated is not None:
+                T, cov = res[0], len(sel) * stated[1]
     return T, inl, cov
+
+
+def _clip_to_gate(C: np.ndarray, gate: np.ndarray) -> np.ndarray:
+    """``C`` with its spread in units of ``gate`` (6,) limited to 1 sigma."""
+    S = np.diag(1.0 / gate)
+    w, V = np.linalg.eigh(S @ (0.5 * (C + C.T)) @ S)
+    Si = np.diag(gate)
+    return Si @ (V * np.minimum(w, 1.0)) @ V.T @ Si
 
 
 class MultiViewFusion:
