@@ -237,3 +237,18 @@ def test_views_unsure_of_the_tip_do_not_decide_the_turn_between_them():
         raw.append(pose_error(information_mean(Ts, Cs)[0], T0)[1])
         worst.append(max(pose_error(t, T0)[1] for t in Ts))
     assert np.mean(fused) < 1.25 * np.mean(worst) and np.mean(raw) > 2.0 * np.mean(worst)
+
+
+def test_views_that_each_could_not_decide_give_an_ambiguous_fused_pose():
+    """Averaging views that are each flagged does not decide: the fused pose is flagged and
+    keeps their spread; one view that did decide is enough to fuse as before."""
+    rng = np.random.default_rng(4)
+    T0 = make_T(rotvec_to_R([0.1, 0.2, 0.3]), [0.0, 0.01, -0.2])
+    turn = np.r_[0.0, 0.0, np.pi, 0.0, 0.0, 0.0]
+    unsure = np.diag([1e-4] * 3 + [1e-6] * 3) + 0.5 * np.outer(turn, turn)
+    f = MultiViewFusion()
+    for _ in range(3):
+        out = f.add(jitter(T0, rng, 0.3, 0.3), covariance=unsure, ambiguous=True)
+    assert out.ambiguous and np.linalg.eigvalsh(out.covariance[:3, :3]).max() > 4.0   # spans the turn
+    out = f.add(jitter(T0, rng, 0.3, 0.3), covariance=np.diag([1e-4] * 3 + [1e-6] * 3), ambiguous=False)
+    assert not out.ambiguous and out.n_views == 4

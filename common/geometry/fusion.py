@@ -39,6 +39,7 @@ class QueuedEstimate:
     covariance: np.ndarray | None = None
     seq: int | None = None
     common_sigma_m: float = 0.0      # inside covariance, shared by every view (module docstring)
+    ambiguous: bool = False          # the view's images could not decide (e.g. which end is the tip)
 
     @property
     def T_world_needle(self) -> np.ndarray:
@@ -53,7 +54,9 @@ class FusedPose:
     ``inliers``: mask over the queue, oldest first; ``covariance`` (6, 6) in the current ECM
     frame when the inputs carried covariances; ``reset``: this estimate started a new queue;
     ``rms_m``: RMS distance of the inliers' positions to the fused one; ``common_sigma_m`` the
-    inliers' shared position error, inside ``covariance``.
+    inliers' shared position error, inside ``covariance``; ``ambiguous`` when every inlier was
+    (averaging views that each could not decide does not decide: the covariance is then the
+    inliers' mean one, which spans what each left open).
     """
 
     T_ecm_needle: np.ndarray
@@ -65,6 +68,7 @@ class FusedPose:
     reset: bool = False
     rms_m: float = 0.0
     common_sigma_m: float = 0.0
+    ambiguous: bool = False
 
 
 def without_common(cov: np.ndarray, sigma_m: float) -> np.ndarray:
@@ -208,14 +212,16 @@ class MultiViewFusion:
         self.sequence = None
 
     def add(self, T_ecm_needle, T_world_ecm=None, covariance=None, seq: int | None = None,
-            sequence: int | None = None, common_sigma_m: float = 0.0) -> FusedPose:
+            sequence: int | None = None, common_sigma_m: float = 0.0,
+            ambiguous: bool = False) -> FusedPose:
         """Queue an estimate made at ``T_world_ecm`` (identity when unknown: a still endoscope)
         and return the fused pose in the current ECM frame. ``common_sigma_m``: the position
-        error (m, per axis) inside ``covariance`` that every view shares."""
+        error (m, per axis) inside ``covariance`` that every view shares; ``ambiguous``: the
+        estimate was flagged so."""
         T_world_ecm = np.eye(4) if T_world_ecm is None else np.asarray(T_world_ecm, dtype=float)
         est = QueuedEstimate(np.asarray(T_ecm_needle, dtype=float), T_world_ecm,
                              None if covariance is None else np.asarray(covariance, dtype=float), seq,
-                             float(common_sigma_m or 0.0))
+                             float(common_sigma_m or 0.0), bool(ambiguous))
         reset = False
         if sequence is not None and self.sequence is not None and sequence != self.sequence:
             self.queue.clear()
@@ -262,6 +268,12 @@ class MultiViewFusion:
         if cov is not None and common > 0:
             cov = cov.copy()
             cov[3:, 3:] += common ** 2 * np.eye(3)
+        ambiguous = all(e.ambiguous for e, ok in zip(self.queue, inl) if ok)
+        if ambiguous and cov is not None:
+            own = [covariance_to_frame(e.covariance, (T_now_world @ e.T_world_ecm)[:3, :3])
+                   for e, ok in zip(self.queue, inl) if ok]
+            cov = np.mean(own, axis=0)
         d = np.array([Ti[:3, 3] - T[:3, 3] for Ti, ok in zip(Ts, inl) if ok])
         rms = float(np.sqrt(np.mean(np.sum(d * d, axis=1))))
-        return FusedPose(T, T_world_ecm_now @ T, int(inl.sum()), len(Ts), inl, cov, reset, rms, common)
+        return FusedPose(T, T_world_ecm_now @ T, int(inl.sum()), len(Ts), inl, cov, reset, rms, common,
+                         ambiguous)
