@@ -46,7 +46,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from common.geometry.end_identity import logit, stereo_end_identity
+from common.geometry.end_identity import stereo_end_identity, track_identity
 from common.geometry.needle import NeedleModel
 from common.geometry.observations import NoPose
 from common.geometry.refine import (
@@ -76,10 +76,6 @@ class _NodeParams(StereoPoseNode.Params):
 def _config(cls, p, rename: dict | None = None):
     """A ``cls`` dataclass from the typed node params named like its fields."""
     return cls(**{f.name: getattr(p, (rename or {}).get(f.name, f.name)) for f in dataclasses.fields(cls)})
-
-
-IDENTITY_DECAY = 0.8     # a frame's end-identity evidence counts this much less each frame after
-IDENTITY_CAP = logit(0.999)
 
 
 class RefineNode(StereoPoseNode):
@@ -121,34 +117,25 @@ class RefineNode(StereoPoseNode):
         self._track_logit = None
 
     def settle_end_identity(self, left: Keypoints, right: Keypoints) -> tuple[Keypoints, Keypoints]:
-        """The frame's end identity, with the tracked needle's: a frame that reads the needle the
-        other way round than the previous pose adds its evidence against that reading; the sum
-        (decaying by ``IDENTITY_DECAY`` a frame, capped) decides which way round the frame is
-        solved and how sure the published pose is (identity belongs to the needle, not to a
-        frame: one frame's weak evidence does not turn a needle tracked with strong evidence)."""
+        """The frame's end identity, with the tracked needle's (``track_identity``): the pair
+        turned end for end when the track says so, its probability kept for ``publish_pose``."""
         p = stereo_end_identity(*(kp.end_identity if kp.found else None for kp in (left, right)))
         prev = self.tracker.track(left.stamp_ns) if self.tracker is not None else None
         if p is None:
             self._track_logit = None
             return left, right
-        z = logit(p)                            # evidence that the frame's A is the tip
-        same = True
+        same = None
         if prev is not None and self._track_logit is not None:
             uv, sc = self.stereo_arrays(left, right)
-            tl, tr = turn_keypoints(left), turn_keypoints(right)
-            tuv, tsc = self.stereo_arrays(tl, tr)
+            tuv, tsc = self.stereo_arrays(turn_keypoints(left), turn_keypoints(right))
             as_read, turned = self.tracker.reprojects(uv, sc, prev), self.tracker.reprojects(tuv, tsc, prev)
             if as_read != turned:               # the frame relates to the track one way only
                 same = as_read
-                z = IDENTITY_DECAY * self._track_logit + (z if same else -z)   # about the track's reading
-        z = float(np.clip(z, -IDENTITY_CAP, IDENTITY_CAP))
-        # z > 0: the reading (the frame's if same, else the track's) is right
-        turn = (z < 0) == same
+        turn, self._track_logit = track_identity(p, self._track_logit, same)
         if turn:
             left, right = turn_keypoints(left), turn_keypoints(right)
             self.count("end_identity.turned")
-        self._track_logit = abs(z)
-        self.identity.put(left.seq, 1.0 / (1.0 + np.exp(-abs(z))))
+        self.identity.put(left.seq, 1.0 / (1.0 + np.exp(-self._track_logit)))
         return left, right
 
     def on_pair(self, left: Keypoints, right: Keypoints):

@@ -9,7 +9,9 @@ from common.geometry.camera import StereoRig
 from common.geometry.end_identity import (
     end_for_end_delta,
     identity_covariance,
+    TRACK_CAP,
     stereo_end_identity,
+    track_identity,
     turn_observation,
 )
 from common.geometry.needle import NeedleModel
@@ -112,3 +114,25 @@ def test_without_a_statement_a_is_taken_as_said():
     pair = [dataclasses.replace(kp, end_identity=None) for kp in _pair(T, 0.5)]
     node, pose = _pose({}, pair)
     assert not pose.ambiguous and "end_identity.unsure" not in node.counters
+
+
+def test_identity_is_the_tracked_needles_not_one_frames():
+    """track_identity: alone a frame decides by itself; against a sure track its weak contrary
+    evidence does not turn the needle (the frame is turned to the track's reading); weak but
+    consistent frames become sure, up to the cap."""
+    turn, z = track_identity(0.3, None, None)                 # no track: the frame's own call
+    assert turn and z == pytest.approx(np.log(0.7 / 0.3))
+    turn, z = track_identity(0.3, 5.0, None)                  # cannot relate it to the track
+    assert turn and z == pytest.approx(np.log(0.7 / 0.3))
+    # the frame reads the needle the other way round than the sure track, with weak evidence
+    turn, z = track_identity(0.7, 5.0, False)
+    assert turn and z == pytest.approx(0.8 * 5.0 - np.log(0.7 / 0.3))
+    # strong contrary evidence wins
+    turn, z = track_identity(0.9999, 1.0, False)
+    assert not turn
+    z = None
+    for _ in range(40):                                        # weak, consistent: sure, capped
+        turn, z = track_identity(0.7, z, True if z is not None else None)
+        assert not turn
+    assert np.log(0.95 / 0.05) < z <= TRACK_CAP                # 0.85 / (1 - 0.8) = 4.2
+    assert track_identity(0.9999, TRACK_CAP, True)[1] == TRACK_CAP

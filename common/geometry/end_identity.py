@@ -27,6 +27,33 @@ def logit(p: float) -> float:
     return math.log(p / (1.0 - p))
 
 
+TRACK_DECAY = 0.8
+"""A frame's end-identity evidence counts this much less each frame after (``track_identity``)."""
+TRACK_CAP = math.log(0.999 / 0.001)
+"""The tracked needle's log-odds are capped here: a track is never surer than 0.999."""
+
+
+def track_identity(p_frame: float, track_logodds: float | None, same_as_track: bool | None
+                   ) -> tuple[bool, float]:
+    """Identity is the needle's, not a frame's: a frame's probability ``p_frame`` that its A is
+    the tip, combined with the tracked needle's log-odds that its own reading is right
+    (``track_logodds`` >= 0; None: no track). ``same_as_track``: whether the frame reads the needle
+    the way the track does (its keypoints reproject the tracked pose as read, not turned); None
+    when that cannot be told, and then the frame stands alone. The frame's evidence is added to
+    the track's, decayed by ``TRACK_DECAY`` and capped at ``TRACK_CAP``, so one frame's weak
+    evidence does not turn a needle tracked with strong evidence, and weak but consistent frames
+    become sure. Returns (turn: read the frame end for end, the new track log-odds >= 0: how
+    sure the reading that is kept is)."""
+    z = logit(p_frame)                       # evidence that the frame's A is the tip
+    same = True
+    if track_logodds is not None and same_as_track is not None:
+        same = same_as_track
+        z = TRACK_DECAY * track_logodds + (z if same else -z)     # about the track's reading
+    z = min(max(z, -TRACK_CAP), TRACK_CAP)
+    # z > 0: the reading (the frame's if same, else the track's) is right
+    return (z < 0) == same, abs(z)
+
+
 def stereo_end_identity(p_left: float | None, p_right: float | None) -> float | None:
     """The stereo frame's probability that A is the tip, from each camera's (None: not stated)."""
     ps = [p for p in (p_left, p_right) if p is not None and math.isfinite(p)]
