@@ -16,8 +16,8 @@ from common.sim.cli import main as dataset_main
 @pytest.fixture(scope="module")
 def ambf_bag(tmp_path_factory):
     root = tmp_path_factory.mktemp("record")
-    rc = dataset_main(["generate", "--out", str(root / "ds"), "--sequences", "3", "--steps", "1", "--width", "320",
-                       "--height", "240", "--seed", "6", "--randomise", "none", "--jobs", "1", "--quiet"])
+    rc = dataset_main(["generate", "--out", str(root / "ds"), "--sequences", "3", "--steps", "1", "--width", "640",
+                       "--height", "480", "--seed", "6", "--randomise", "test", "--jobs", "1", "--quiet"])
     assert rc == 0
     dataset_to_bag(str(root / "ds"), str(root / "ambf.bag"), "ambf")
     return root / "ambf.bag"
@@ -75,10 +75,12 @@ def test_record_then_replay_gives_the_same_poses(run_graph, ambf_bag, tmp_path):
     g.stop()
     # replay the recording through the rosbag source with the topic map written beside it
     g2 = run_graph(pipeline({"path": out, "topics": result["topic_map"], "rate": 6, "loop": True}), timeout=90)
-    replayed = g2.collect("epnp_joint/pose", 6, timeout=120)
+    replayed = g2.collect("epnp_joint/pose", 12, timeout=120)
     matched = 0
     for p in replayed:
-        if p.stamp_ns in recorded:
+        # a pose flagged ambiguous is one of near-equal solutions: a last-bit difference in the
+        # replayed calibration may pick the other (its covariance spans both)
+        if p.stamp_ns in recorded and not p.ambiguous:
             assert np.abs(p.T_ecm_needle - recorded[p.stamp_ns]).max() < 1e-9
             matched += 1
     assert matched >= 3, (matched, sorted(recorded), [p.stamp_ns for p in replayed])
