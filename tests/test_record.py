@@ -77,7 +77,10 @@ def test_record_then_replay_gives_the_same_poses(run_graph, ambf_bag, tmp_path):
     g2 = run_graph(pipeline({"path": out, "topics": result["topic_map"], "rate": 6, "loop": True}), timeout=90)
     replayed = g2.collect("epnp_joint/pose", 12, timeout=120)
     matched = 0
-    for p in replayed:
+    # The first replayed frame is left out: the recording starts mid-stream, and its first
+    # frame can be on record before that frame's ground truth, so on replay the oracle draws it
+    # from a neighbouring frame's truth (seen in about 1 run in 4, always frame 0 of the replay).
+    for p in replayed[1:]:
         # a pose flagged ambiguous is one of near-equal solutions: a last-bit difference in the
         # replayed calibration may pick the other (its covariance spans both)
         if p.stamp_ns in recorded and not p.ambiguous:
