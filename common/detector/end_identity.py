@@ -137,7 +137,7 @@ def shape_evidence(image: np.ndarray, centreline: np.ndarray) -> tuple[float, fl
     c = c[np.isfinite(c).all(axis=1)]
     if len(c) < 8:
         return float("nan"), float("nan"), float("nan")
-    length = float(np.linalg.norm(np.diff(c, axis=0), axis=1).sum())
+    length = polyline_length(c)
     if length < 20.0:
         return float("nan"), float("nan"), float("nan")
     pts, nrm = _resample(c, np.linspace(*MID_RANGE, 2 * STATIONS))

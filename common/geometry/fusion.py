@@ -256,12 +256,13 @@ class MultiViewFusion:
 
     def _fuse(self, T_world_ecm_now, reset: bool) -> FusedPose:
         T_now_world = inv_T(T_world_ecm_now)
-        Ts, covs = [], []
+        Ts, covs, Rs = [], [], []
         for e in self.queue:
             T_now_i = T_now_world @ e.T_world_ecm
             Ts.append(T_now_i @ e.T_ecm_needle)
+            Rs.append(T_now_i[:3, :3])
             covs.append(None if e.covariance is None
-                        else covariance_to_frame(without_common(e.covariance, e.common_sigma_m), T_now_i[:3, :3]))
+                        else covariance_to_frame(without_common(e.covariance, e.common_sigma_m), Rs[-1]))
         T, inl, cov = fuse_poses(Ts, covs if self.use_covariance else None,
                                  self.max_dist_m, self.max_angle_rad)
         common = max((e.common_sigma_m for e, ok in zip(self.queue, inl) if ok), default=0.0)
@@ -270,8 +271,7 @@ class MultiViewFusion:
             cov[3:, 3:] += common ** 2 * np.eye(3)
         ambiguous = all(e.ambiguous for e, ok in zip(self.queue, inl) if ok)
         if ambiguous and cov is not None:
-            own = [covariance_to_frame(e.covariance, (T_now_world @ e.T_world_ecm)[:3, :3])
-                   for e, ok in zip(self.queue, inl) if ok]
+            own = [covariance_to_frame(e.covariance, R) for e, R, ok in zip(self.queue, Rs, inl) if ok]
             cov = np.mean(own, axis=0)
         d = np.array([Ti[:3, 3] - T[:3, 3] for Ti, ok in zip(Ts, inl) if ok])
         rms = float(np.sqrt(np.mean(np.sum(d * d, axis=1))))

@@ -372,9 +372,8 @@ def pose_error(msg: "PoseEstimate", max_range_m: Optional[float] = None) -> Opti
             return err
         if not np.abs(np.asarray(msg.covariance, dtype=float)).max() <= MAX_COORD:
             return f"PoseEstimate.covariance: beyond {MAX_COORD:g}"
-    sm = getattr(msg, "model_sigma_m", None)
-    if sm is not None and not 0.0 <= float(sm) <= 1.0:
-        return f"PoseEstimate.model_sigma_m: must be in [0, 1] m, got {sm}"
+    if msg.model_sigma_m is not None and not 0.0 <= float(msg.model_sigma_m) <= 1.0:
+        return f"PoseEstimate.model_sigma_m: must be in [0, 1] m, got {msg.model_sigma_m}"
     if not abs(float(msg.residual)) <= MAX_COORD:     # what decode would refuse downstream
         return f"PoseEstimate.residual: not finite, or beyond {MAX_COORD:g}: {msg.residual}"
     if max_range_m is not None:
