@@ -3,8 +3,10 @@
 # simulator and train both networks from scratch (models/train.yaml). Stage B: render the looks
 # (the `wide` preset, threadless needles, 640x480 with and without lens distortion, the second
 # renderer's threaded scenes) and
-# train both networks on them from stage A's weights (models/looks.yaml). The second renderer's
-# threadless needles are never rendered here: they are the held-out look.
+# train both networks on them from stage A's weights (models/looks.yaml). End identity: fit the
+# coefficients of P(A is the tip) on five small folders that no training stage sees
+# (end_identity.json beside the weights). The second renderer's threadless needles are never
+# rendered here: they are the held-out look.
 # Prints the wall-clock of each stage.
 #   bash models/train_from_scratch.sh [DATA_DIR=data/train] [OUT=models/keypoint]
 # Resumable: rerun the same command (the generators and the trainer pick up where they stopped).
@@ -43,9 +45,19 @@ gen --out "$L/640" --sequences 200 --steps 2 --seed 8103 --randomise wide --widt
 gen --out "$L/640_none" --sequences 150 --steps 2 --seed 8104 --randomise wide --width 640 --height 480 --thread none
 needletrack dataset distort "$L/640_none" --out "$L/640_none_dist" --dist=-0.28,0.09,0.0005,-0.0004 --quiet
 needletrack dataset generate-negatives --out "$L/neg" --frames 200 --seed 8107 --randomise wide --quiet
+# end-identity folders (fit only, never trained on): the train look, `wide`, `wide` threadless, 640x480 both kinds
+C="$DATA/end_identity"
+gen --out "$C/std" --sequences 40 --steps 2 --seed 8203 --randomise train --msaa 4
+gen --out "$C/wide" --sequences 40 --steps 2 --seed 8201 --randomise wide --msaa 4
+gen --out "$C/wide_none" --sequences 40 --steps 2 --seed 8202 --randomise wide --msaa 4 --thread none
+gen --out "$C/640" --sequences 40 --steps 2 --seed 9642 --randomise wide --msaa 4 --width 640 --height 480
+gen --out "$C/640_none" --sequences 40 --steps 2 --seed 9641 --randomise wide --msaa 4 --width 640 --height 480 --thread none
 wait "$alt"
 stamp "data: $L done"
 
 needletrack train --init "$OUT/stage_a/model.pt" --data "$L/std" --data "$L/std2" --data "$L/std_none" --data "$L/wide" --data "$L/wide_none" \
     --data "$L/640" --data "$L/640_none_dist" --data "$L/neg" --data "$L/alt" --config "$HERE/looks.yaml" --out "$OUT"
 stamp "trained: $OUT/model.pt"
+needletrack bench end-identity --weights "$OUT/model.pt" --data "$C/std" --data "$C/wide" --data "$C/wide_none" \
+    --data "$C/640" --data "$C/640_none" --fit "$OUT/end_identity.json"
+stamp "end identity fitted: $OUT/end_identity.json"

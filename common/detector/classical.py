@@ -24,6 +24,7 @@ import logging
 import cv2
 import numpy as np
 
+from common.detector.end_identity import polyline_length
 from common.runtime.messages import Keypoints
 
 log = logging.getLogger("needletrack.classical_detector")
@@ -124,7 +125,7 @@ class ClassicalDetector:
         span = t1 - t0
         ts = np.linspace(t0, t1, 200)
         curve = c + np.cos(ts)[:, None] * u + np.sin(ts)[:, None] * v
-        length = float(np.linalg.norm(np.diff(curve, axis=0), axis=1).sum())
+        length = polyline_length(curve)
         if length < 10:
             return None
         width = inl.sum() / length

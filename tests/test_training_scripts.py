@@ -1,0 +1,61 @@
+"""The documented training scripts (models/train_from_scratch.sh, models/finetune.sh) call
+``needletrack`` with options its commands accept: every call is parsed by the command's own
+argument parser (nothing runs), so a renamed option fails here, not 90 minutes into a run."""
+import argparse
+import re
+import shlex
+from pathlib import Path
+
+import pytest
+
+from common.cli import main as needletrack
+
+ROOT = Path(__file__).resolve().parent.parent
+VALUES = {"DATA": "data/train", "OUT": "models/keypoint", "HERE": "models", "L": "data/train/looks",
+          "C": "data/train/end_identity", "CONFIG": "models/finetune.yaml", "INIT": "models/keypoint/model.pt",
+          "TEST": "data/test", "data[@]": "--data data/mine", "extra[@]": "--support-normal 0,0,1"}
+
+
+class Parsed(Exception):
+    pass
+
+
+def calls(script: Path) -> list[list[str]]:
+    """The script's ``needletrack`` calls (its ``gen`` shorthand expanded), as argument lists."""
+    text = re.sub(r"\\\n\s*", " ", script.read_text())
+    out = []
+    for line in text.splitlines():
+        line = line.split(" #")[0].strip().rstrip("&").strip()
+        if line.startswith("gen ") and "()" not in line:
+            line = "needletrack dataset generate --quiet " + line[4:]
+        if not line.startswith("needletrack "):
+            continue
+        line = re.sub(r"\"?\$\{(\w+\[@\])\}\"?", lambda m: VALUES[m.group(1)], line)     # bash arrays
+        line = re.sub(r"\$\{?(\w+)(?::-[^}]*)?\}?", lambda m: VALUES.get(m.group(1), "X"), line)
+        out.append(shlex.split(line)[1:])
+    return out
+
+
+@pytest.mark.parametrize("script", ["train_from_scratch.sh", "finetune.sh"])
+def test_every_needletrack_call_in_the_script_parses(script, monkeypatch):
+    parse = argparse.ArgumentParser.parse_args
+
+    def parse_then_stop(self, args=None, namespace=None):
+        parse(self, args, namespace)   # exits (SystemExit 2) on an option the command does not take
+        raise Parsed
+
+    monkeypatch.setattr(argparse.ArgumentParser, "parse_args", parse_then_stop)
+    found = calls(ROOT / "models" / script)
+    assert found, f"no needletrack call found in {script}"
+    for argv in found:
+        with pytest.raises(Parsed):
+            needletrack(argv)
+
+
+def test_the_from_scratch_script_fits_the_end_identity_on_folders_it_does_not_train_on():
+    found = calls(ROOT / "models/train_from_scratch.sh")
+    fit = [a for a in found if a[:2] == ["bench", "end-identity"]]
+    assert len(fit) == 1 and "--fit" in fit[0]
+    fit_dirs = {fit[0][i + 1] for i, a in enumerate(fit[0]) if a == "--data"}
+    trained = {a[i + 1] for a in found if a[0] == "train" for i, x in enumerate(a) if x == "--data"}
+    assert fit_dirs and not fit_dirs & trained
