@@ -3,6 +3,7 @@ project's own renders in the AMBF (ROS 1, ambf_msgs, decimetres, 640x480) and dV
 1920x1080, camera_info with distortion) conventions, converted back and evaluated: the oracle
 geometry is exact at 0 px, so the conventions (axes, needle frame, units, distortion) are right."""
 import json
+from collections import deque
 
 import numpy as np
 import pytest
@@ -199,3 +200,14 @@ def test_topic_maps_name_what_is_wrong(tmp_path):
     bad.write_text("preset: dvrk\nregistration: reg.yaml\n")          # relative to the map's folder
     m = load_topic_map(None, str(bad))
     assert np.array_equal(m["registration"]["right"], np.eye(4)) and m["preset"] == "dvrk"
+
+
+def test_a_state_stamped_only_after_the_pair_is_taken_nearest_not_latest():
+    """A recording begun between a frame's images and its state: the pair takes the state stamped
+    nearest after it, not the newest one received (that belongs to a later frame)."""
+    from common.ros.bag import StereoAssembler
+    asm = StereoAssembler({"stereo_tolerance_ms": 5, "unit": "m", "needle_frame": "cv"}, "test", {})
+    asm.hist["needle_pose"] = deque([(1_040_000_000, "first"), (1_073_000_000, "second"), (1_106_000_000, "third")])
+    assert asm._state_at(1_030_000_000)["needle_pose"] == "first"
+    assert asm._state_at(1_080_000_000)["needle_pose"] == "second"     # stamped last at or before
+    assert asm._state_at(1_200_000_000)["needle_pose"] == "third"

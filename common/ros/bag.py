@@ -229,8 +229,8 @@ class StereoAssembler:
 
         A pair goes out once every time-varying state seen so far (ECM joints and pose, needle
         pose, CameraFrame) has a message stamped at or after it (or two newer pairs wait), with
-        for each the message stamped last at or before the pair (the latest received when none
-        is): states recorded just after their images still belong to them."""
+        for each the message stamped last at or before the pair (the one stamped nearest to it
+        when none is): states recorded just after their images still belong to them."""
         role, cam = self.topic_role[topic]
         if role == "image":
             self.queues[cam].append((stamp_ns(msg.header), msg))
@@ -269,7 +269,9 @@ class StereoAssembler:
                 if st is None or st <= t + self.tol_ns:
                     if best is None or st is None or best[0] is None or st >= best[0]:
                         best = (st, msg)
-            state[role] = (best or h[-1])[1]
+            if best is None:   # all stamped after the pair (a recording begun between them): the nearest
+                best = min(h, key=lambda e: abs(e[0] - t))
+            state[role] = best[1]
         return state
 
     def _release(self, final: bool) -> list:
