@@ -280,3 +280,17 @@ def test_the_nees_picture_is_drawn_when_covariances_are_stated(tmp_path):
         p.covariance = None
     write_outputs(tmp_path / "cov", col, dataset="d", detector="oracle")   # the same folder again
     assert not (tmp_path / "cov" / "nees.png").exists()
+
+
+def test_pose_table_scores_the_unflagged_poses_apart():
+    from types import SimpleNamespace
+    from common.evaluation.scoring import pose_table
+    t = {"seqs": [0, 1, 2, 3], "position_m": np.array([0.001, 0.002, 0.010, np.nan]),
+         "orientation_rad": np.radians([1.0, 3.0, 179.0, np.nan]), "distance_m": np.full(4, 0.15),
+         "n_views": np.ones(4), "nees": np.array([4.0, 6.0, 1.0, np.nan]),
+         "ambiguous": np.array([0.0, 0.0, 1.0, np.nan])}
+    d = pose_table(SimpleNamespace(pose={"refined": t}))["refined"]
+    assert d["n"] == 3 and d["end_for_end"] == {"share": pytest.approx(1 / 3), "confident_share": 0.0}
+    assert d["sure"]["n"] == 2
+    assert d["sure"]["position_mm"]["mean"] == pytest.approx(1.5)
+    assert d["sure"]["orientation_deg"]["mean"] == pytest.approx(2.0)

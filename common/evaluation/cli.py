@@ -109,6 +109,11 @@ def print_summary(res: dict, out=sys.stdout) -> None:
         turned = " ".join(f"{100 * sw[k]:>4.0f}%" if k in sw else "    -" for k in ("share", "confident_share"))
         print(f"{m:<18} {d['n']:>4}/{d.get('expected', d['n']):<4} {f(p['mean']):>6} mm {f(p['median']):>7} "
               f"{f(o['mean']):>5} deg {f(o['median']):>7}  {turned}   {ps}", file=out)
+    for m, d in res["pose"].items():
+        s = d.get("sure")
+        if s and s["n"] < d["n"]:
+            print(f"{m}: the {s['n']} poses not flagged ambiguous: {f(s['position_mm']['mean'])} mm / "
+                  f"{f(s['orientation_deg']['mean'])} deg mean", file=out)
     t = res["timing"]
     for node, c in res.get("node_counters", {}).items():
         errs = {k: v for k, v in c.items() if v and k in ("handler_errors", "decode_errors")}

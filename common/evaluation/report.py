@@ -48,6 +48,13 @@ def _fmt(x, nd=2) -> str:
 
 # ---------------------------------------------------------------- report.md
 
+def _sure(d: dict) -> str:
+    s = d.get("sure")
+    if not s:
+        return "—"
+    return f"{s['n']}, {_fmt(s['position_mm']['mean'])} / {_fmt(s['orientation_deg']['mean'])}"
+
+
 def _swaps(d: dict) -> str:
     sw = d.get("end_for_end")
     if not sw:
@@ -106,11 +113,12 @@ def report_markdown(res: dict) -> str:
     if honest:
         L += ["", "Stated covariances against the errors (NEES: the squared error in the covariance's "
               "metric; chi-square(6) has median 5.35 and exceeds 16.8 in 1% of the frames):", "",
-              "| method | NEES median | share over 16.8 | ambiguous | turned end for end (not flagged) |",
-              "| --- | ---: | ---: | ---: | ---: |"]
+              "| method | NEES median | share over 16.8 | ambiguous | turned end for end (not flagged) "
+              "| not flagged: n, mm / deg mean |",
+              "| --- | ---: | ---: | ---: | ---: | ---: |"]
         L += [f"| {m} | {_fmt(d['nees']['median'], 1)} | {_fmt(100 * d['nees']['over_99pct'], 0)}% "
               f"| {_fmt(100 * d['ambiguous_share'], 0) + '%' if d.get('ambiguous_share') is not None else '—'} "
-              f"| {_swaps(d)} |"
+              f"| {_swaps(d)} | {_sure(d)} |"
               for m, d in honest]
         L += ["", "![NEES against chi-square(6)](nees.png)"]
     L += ["", "![error vs distance](error_vs_distance.png)", ""]

@@ -393,7 +393,9 @@ def keypoint_table(ev: Evaluation) -> dict:
 
 
 def pose_table(ev: Evaluation) -> dict:
-    """Table III: per method position (mm) and orientation (deg) summaries, n, failures."""
+    """Table III: per method position (mm) and orientation (deg) summaries, n, failures; for
+    methods that flag poses, the NEES, the ambiguous share, the poses turned end for end and
+    ``sure``: the same summaries over the poses not flagged ambiguous."""
     out = {}
     for m, t in ev.pose.items():
         expected = len(t["seqs"])
@@ -419,6 +421,11 @@ def pose_table(ev: Evaluation) -> dict:
             flagged = np.isfinite(t["ambiguous"]) & (np.nan_to_num(t["ambiguous"]) > 0)
             out[m]["end_for_end"] = {"share": float(turned.sum() / n),
                                      "confident_share": float((turned & ~flagged).sum() / n)}
+            if len(amb):   # what a robot that acts only on unflagged poses gets
+                sure = ok & np.isfinite(t["ambiguous"]) & ~flagged
+                out[m]["sure"] = {"n": int(sure.sum()),
+                                  "position_mm": summary(t["position_m"][sure] * 1e3),
+                                  "orientation_deg": summary(np.degrees(t["orientation_rad"][sure]))}
     return out
 
 
