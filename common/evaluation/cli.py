@@ -111,7 +111,7 @@ def print_summary(res: dict, out=sys.stdout) -> None:
               f"{f(o['mean']):>5} deg {f(o['median']):>7}  {turned}   {ps}", file=out)
     for m, d in res["pose"].items():
         s = d.get("sure")
-        if s and s["n"] < d["n"]:
+        if s and 0 < s["n"] < d["n"]:
             print(f"{m}: the {s['n']} poses not flagged ambiguous: {f(s['position_mm']['mean'])} mm / "
                   f"{f(s['orientation_deg']['mean'])} deg mean", file=out)
     t = res["timing"]
