@@ -26,7 +26,7 @@ def calls(script: Path) -> list[list[str]]:
     out = []
     for line in text.splitlines():
         line = line.split(" #")[0].strip().rstrip("&").strip()
-        if line.startswith("gen ") and "()" not in line:
+        if line.startswith("gen "):
             line = "needletrack dataset generate --quiet " + line[4:]
         if not line.startswith("needletrack "):
             continue
