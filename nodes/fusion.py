@@ -7,8 +7,8 @@ endoscope is taken to be still), ``truth`` (GroundTruth, optional: only its ``se
 is used, to reset the queue when a recording starts a new multi-view group).
 Output: ``pose`` (PoseEstimate, method ``params.method``, default ``multiview``; ``n_views`` =
 estimates averaged; residual = RMS distance of those to the fused position, m; covariance when
-every input carried one; ``model_sigma_m``, the inputs' shared position error, is taken out
-before the views are weighed and added back once; ``ambiguous`` when every averaged estimate
+every input carried one; ``model_sigma_m`` and ``model_sigma_rad``, the inputs' shared position
+and orientation error, are taken out before the views are weighed and added back once; ``ambiguous`` when every averaged estimate
 was, its covariance then their mean one).
 
 Params: ``k`` (5), ``max_dist_mm`` (5), ``max_angle_deg`` (15) for outliers; ``reset_dist_mm``
@@ -127,14 +127,16 @@ class FusionNode(Node):
             sequence = self.sequences.get(msg.seq)
         out = self.fusion.add(msg.T_ecm_needle, T_world_ecm, msg.covariance, seq=msg.seq,
                               sequence=sequence if self.reset_on_sequence else None,
-                              common_sigma_m=msg.model_sigma_m or 0.0, ambiguous=bool(msg.ambiguous))
+                              common_sigma_m=msg.model_sigma_m or 0.0, ambiguous=bool(msg.ambiguous),
+                              common_sigma_rad=msg.model_sigma_rad or 0.0)
         if out.reset:
             self.count("resets")
         self.count("outliers", int(out.n_queued - out.n_views))
         self.publish("pose", PoseEstimate(
             msg.seq, msg.stamp_ns, self.method, out.T_ecm_needle, out.T_world_needle,
             np.asarray(T_world_ecm, dtype=float), out.rms_m, "m", out.n_views, out.covariance,
-            ambiguous=out.ambiguous, sequence=sequence, model_sigma_m=out.common_sigma_m or None))
+            ambiguous=out.ambiguous, sequence=sequence, model_sigma_m=out.common_sigma_m or None,
+            model_sigma_rad=out.common_sigma_rad or None))
 
 
 NODE = FusionNode

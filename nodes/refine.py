@@ -42,6 +42,7 @@ that gives no pose is counted as
 from __future__ import annotations
 
 import dataclasses
+import math
 from dataclasses import dataclass
 
 import numpy as np
@@ -166,7 +167,8 @@ class RefineNode(StereoPoseNode):
         self.publish_pose(self.pose_message(left.seq, left.stamp_ns, "refined", res.T_ecm_needle,
                                             res.rms_px, "px", covariance=res.covariance,
                                             ambiguous=bool(res.ambiguous),
-                                            model_sigma_m=self.config.model_sigma_mm * 1e-3 or None))
+                                            model_sigma_m=self.config.model_sigma_mm * 1e-3 or None,
+                                            model_sigma_rad=math.radians(self.config.model_sigma_deg) or None))
 
     def support_normal_ecm(self, seq: int):
         """The support surface's normal in frame ``seq``'s ECM frame (None: not configured, or

@@ -1,4 +1,6 @@
 """Multi-view fusion (common/geometry/fusion.py)."""
+import math
+
 import numpy as np
 import pytest
 from hypothesis import given, settings
@@ -214,6 +216,24 @@ def test_a_shared_position_error_is_not_averaged_nor_weighs_the_views():
     f = MultiViewFusion()
     out = f.add(Ta, covariance=np.diag([1e-4] * 3 + [1e-10] * 3), common_sigma_m=s)
     assert np.isfinite(out.covariance).all()
+
+
+def test_a_shared_orientation_error_is_added_back_once_not_averaged_down():
+    """Five alike views, each declaring a shared orientation error inside its covariance: the
+    fused covariance keeps that error whole (averaging views does not shrink it); declared as
+    not shared, it is weighed with the views' own part and the fused covariance is smaller."""
+    s = math.radians(0.25)
+    own = np.diag([math.radians(0.1) ** 2] * 3 + [1e-8] * 3)
+    cov = own + np.diag([s * s] * 3 + [0.0] * 3)
+    T = make_T(np.eye(3), [0.0, 0.0, -0.15])
+    rot_min = {}
+    for shared in (True, False):
+        f = MultiViewFusion()
+        for _ in range(5):
+            out = f.add(T, covariance=cov, common_sigma_rad=s if shared else 0.0)
+        assert out.common_sigma_rad == (s if shared else 0.0)
+        rot_min[shared] = np.linalg.eigvalsh(out.covariance[:3, :3]).min()
+    assert rot_min[True] >= s * s and rot_min[False] < rot_min[True]
 
 
 def test_views_unsure_of_the_tip_do_not_decide_the_turn_between_them():

@@ -1,6 +1,7 @@
 """Dense refinement (common/geometry/refine.py) on synthetic observations: no process, no network."""
 from __future__ import annotations
 
+import math
 from dataclasses import replace
 
 import numpy as np
@@ -432,7 +433,7 @@ def test_nan_centreline_points_are_left_out():
 
 def test_config_is_checked():
     for bad in ({"max_curve_points": 1}, {"sigma_kp_px": 0.0}, {"cauchy_scale": -1.0},
-                {"n_samples": 1}, {"max_iter": 0}, {"model_sigma_mm": -0.1}, {"model_sigma_mm": float("nan")}):
+                {"n_samples": 1}, {"max_iter": 0}, {"model_sigma_mm": -0.1}, {"model_sigma_mm": float("nan")}, {"model_sigma_deg": -1.0}):
         with pytest.raises(ValueError):
             RefineConfig(**bad)
 
@@ -493,7 +494,7 @@ def test_correlated_centreline_points_widen_the_covariance_not_the_fit():
     corr = {n: ArcObservation(centreline=o.centreline, centreline_w=o.centreline_w, centreline_corr_points=4.0)
             for n, o in obs.items()}
     starts = joint_candidates(obs)[1]
-    images_only = DenseRefiner(RIG, NEEDLE, RefineConfig(model_sigma_mm=0.0))   # no model error added
+    images_only = DenseRefiner(RIG, NEEDLE, RefineConfig(model_sigma_mm=0.0, model_sigma_deg=0.0))  # images alone
     a, b = images_only.refine(curve_only, starts), images_only.refine(corr, starts)
     assert not a.ambiguous and np.allclose(a.T_ecm_needle, b.T_ecm_needle, atol=1e-12)
     # (up to the far competitor's share, exp(-chi2 / 2) of its offset, not scaled)
@@ -519,16 +520,20 @@ def test_a_stated_keypoint_sigma_weighs_the_keypoints_as_the_config_would():
         REFINER.refine({n: replace(o, keypoint_sigma_px=0.0) for n, o in obs.items()}, starts)
 
 
-def test_the_model_error_floors_the_position_covariance():
-    """Noise-free images claim near-certainty; the model's own position error (model_sigma_mm)
-    stays in the covariance, and with it 0 the images' own covariance is left as it was."""
+def test_the_model_error_floors_the_covariance():
+    """Noise-free images claim near-certainty; the model's own orientation and position error
+    (model_sigma_deg, model_sigma_mm) stays in the covariance, and with both 0 the images' own
+    covariance is left as it was."""
     rng = np.random.default_rng(11)
     T = random_pose(rng)
     obs = observe(T, rng, kp_px=0.2, curve_px=0.1)
     starts = [perturb(T, rng)]
     res = REFINER.refine(obs, starts)
-    bare = DenseRefiner(RIG, NEEDLE, RefineConfig(model_sigma_mm=0.0)).refine(obs, starts)
+    bare = DenseRefiner(RIG, NEEDLE, RefineConfig(model_sigma_mm=0.0, model_sigma_deg=0.0)).refine(obs, starts)
     assert np.allclose(res.T_ecm_needle, bare.T_ecm_needle)
-    floor = (REFINER.config.model_sigma_mm * 1e-3) ** 2
-    assert np.allclose(res.covariance - bare.covariance, np.diag([0, 0, 0, floor, floor, floor]), atol=1e-12)
-    assert np.linalg.eigvalsh(res.covariance[3:, 3:]).min() >= floor
+    cfg = REFINER.config
+    assert cfg.model_sigma_mm > 0 and cfg.model_sigma_deg > 0
+    f_t, f_r = (cfg.model_sigma_mm * 1e-3) ** 2, math.radians(cfg.model_sigma_deg) ** 2
+    assert np.allclose(res.covariance - bare.covariance, np.diag([f_r] * 3 + [f_t] * 3), atol=1e-12)
+    assert np.linalg.eigvalsh(res.covariance[3:, 3:]).min() >= f_t
+    assert np.linalg.eigvalsh(res.covariance[:3, :3]).min() >= f_r

@@ -6,10 +6,11 @@ was made. At every new estimate all queued ones are mapped into the current ECM 
 ``max_dist_m`` or ``max_angle_rad`` from a robust centre, the medoid), and the inliers are
 averaged: chordal rotation mean and mean translation, or, when every inlier carries a 6x6
 covariance, their information-weighted mean (Gauss-Newton on the Mahalanobis distances), whose
-stated covariance allows for the views' errors being alike (``fuse_poses``). A position error
-every view shares (``common_sigma_m``, the needle model's own, declared inside each covariance)
-is taken out before the views are weighed and added back once to the fused covariance:
-averaging views does not shrink it, and it must not hide what each view's images pin down.
+stated covariance allows for the views' errors being alike (``fuse_poses``). A position and
+orientation error every view shares (``common_sigma_m``, ``common_sigma_rad``: the needle
+model's own, declared inside each covariance) is taken out before the views are weighed and
+added back once to the fused covariance: averaging views does not shrink it, and it must not
+hide what each view's images pin down.
 
 Covariances follow ``common.geometry.pnp``: over ``[w, v]`` with ``R = exp([w]x) R0``, ``t = t0 + v``
 (rotation in ECM axes about the needle origin, translation of the origin, rad and m). Moving
@@ -39,6 +40,7 @@ class QueuedEstimate:
     covariance: np.ndarray | None = None
     seq: int | None = None
     common_sigma_m: float = 0.0      # inside covariance, shared by every view (module docstring)
+    common_sigma_rad: float = 0.0
     ambiguous: bool = False          # the view's images could not decide (e.g. which end is the tip)
 
     @property
@@ -53,8 +55,8 @@ class FusedPose:
     ``n_views``: estimates averaged (the inliers); ``n_queued``: estimates in the queue;
     ``inliers``: mask over the queue, oldest first; ``covariance`` (6, 6) in the current ECM
     frame when the inputs carried covariances; ``reset``: this estimate started a new queue;
-    ``rms_m``: RMS distance of the inliers' positions to the fused one; ``common_sigma_m`` the
-    inliers' shared position error, inside ``covariance``; ``ambiguous`` when every inlier was
+    ``rms_m``: RMS distance of the inliers' positions to the fused one; ``common_sigma_m``,
+    ``common_sigma_rad`` the inliers' shared position and orientation error, inside ``covariance``; ``ambiguous`` when every inlier was
     (averaging views that each could not decide does not decide: the covariance is then the
     inliers' mean one, which spans what each left open).
     """
@@ -69,16 +71,18 @@ class FusedPose:
     rms_m: float = 0.0
     common_sigma_m: float = 0.0
     ambiguous: bool = False
+    common_sigma_rad: float = 0.0
 
 
-def without_common(cov: np.ndarray, sigma_m: float) -> np.ndarray:
-    """``cov`` less a shared isotropic position variance ``sigma_m**2`` (the views' own part);
-    ``cov`` unchanged when that would not leave it positive definite (a producer that did not
-    add it)."""
-    if not sigma_m > 0:
+def without_common(cov: np.ndarray, sigma_m: float, sigma_rad: float = 0.0) -> np.ndarray:
+    """``cov`` less a shared isotropic position variance ``sigma_m**2`` and orientation variance
+    ``sigma_rad**2`` (the views' own part); ``cov`` unchanged when that would not leave it
+    positive definite (a producer that did not add it)."""
+    if not (sigma_m > 0 or sigma_rad > 0):
         return cov
     out = np.array(cov, dtype=float)
-    out[3:, 3:] -= sigma_m ** 2 * np.eye(3)
+    out[:3, :3] -= max(sigma_rad, 0.0) ** 2 * np.eye(3)
+    out[3:, 3:] -= max(sigma_m, 0.0) ** 2 * np.eye(3)
     return out if np.linalg.eigvalsh(0.5 * (out + out.T)).min() > 0 else cov
 
 
@@ -213,15 +217,15 @@ class MultiViewFusion:
 
     def add(self, T_ecm_needle, T_world_ecm=None, covariance=None, seq: int | None = None,
             sequence: int | None = None, common_sigma_m: float = 0.0,
-            ambiguous: bool = False) -> FusedPose:
+            ambiguous: bool = False, common_sigma_rad: float = 0.0) -> FusedPose:
         """Queue an estimate made at ``T_world_ecm`` (identity when unknown: a still endoscope)
-        and return the fused pose in the current ECM frame. ``common_sigma_m``: the position
-        error (m, per axis) inside ``covariance`` that every view shares; ``ambiguous``: the
-        estimate was flagged so."""
+        and return the fused pose in the current ECM frame. ``common_sigma_m``,
+        ``common_sigma_rad``: the position and orientation error (m, rad, per axis) inside
+        ``covariance`` that every view shares; ``ambiguous``: the estimate was flagged so."""
         T_world_ecm = np.eye(4) if T_world_ecm is None else np.asarray(T_world_ecm, dtype=float)
         est = QueuedEstimate(np.asarray(T_ecm_needle, dtype=float), T_world_ecm,
                              None if covariance is None else np.asarray(covariance, dtype=float), seq,
-                             float(common_sigma_m or 0.0), bool(ambiguous))
+                             float(common_sigma_m or 0.0), float(common_sigma_rad or 0.0), bool(ambiguous))
         reset = False
         if sequence is not None and self.sequence is not None and sequence != self.sequence:
             self.queue.clear()
@@ -262,12 +266,15 @@ class MultiViewFusion:
             Ts.append(T_now_i @ e.T_ecm_needle)
             Rs.append(T_now_i[:3, :3])
             covs.append(None if e.covariance is None
-                        else covariance_to_frame(without_common(e.covariance, e.common_sigma_m), Rs[-1]))
+                        else covariance_to_frame(without_common(e.covariance, e.common_sigma_m,
+                                                                e.common_sigma_rad), Rs[-1]))
         T, inl, cov = fuse_poses(Ts, covs if self.use_covariance else None,
                                  self.max_dist_m, self.max_angle_rad)
         common = max((e.common_sigma_m for e, ok in zip(self.queue, inl) if ok), default=0.0)
-        if cov is not None and common > 0:
+        common_rad = max((e.common_sigma_rad for e, ok in zip(self.queue, inl) if ok), default=0.0)
+        if cov is not None and (common > 0 or common_rad > 0):
             cov = cov.copy()
+            cov[:3, :3] += common_rad ** 2 * np.eye(3)
             cov[3:, 3:] += common ** 2 * np.eye(3)
         ambiguous = all(e.ambiguous for e, ok in zip(self.queue, inl) if ok)
         if ambiguous and cov is not None:
@@ -276,4 +283,4 @@ class MultiViewFusion:
         d = np.array([Ti[:3, 3] - T[:3, 3] for Ti, ok in zip(Ts, inl) if ok])
         rms = float(np.sqrt(np.mean(np.sum(d * d, axis=1))))
         return FusedPose(T, T_world_ecm_now @ T, int(inl.sum()), len(Ts), inl, cov, reset, rms, common,
-                         ambiguous)
+                         ambiguous, common_rad)

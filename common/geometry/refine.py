@@ -20,8 +20,9 @@ Jacobians) over six parameters: a rotation-vector increment left-multiplied in t
 a translation increment in the ECM frame, ``R <- exp(dr) R``, ``t <- t + dt``. The covariance,
 ``s^2 (J^T W J)^-1`` at the optimum with ``s^2`` the residual variance (and a centreline
 point's weight divided by the number of neighbours its error moves with, when the detector
-states it), plus the model's own position error (``model_sigma_mm`` per axis), is in that same
-order and frame: ``[rotation vector (rad), translation (m)]``, as ``PoseEstimate.covariance``.
+states it), plus the model's own error (``model_sigma_deg``, ``model_sigma_mm`` per axis), is in
+that same order and frame: ``[rotation vector (rad), translation (m)]``, as
+``PoseEstimate.covariance``.
 
 A planar arc has a two-fold ambiguity (seen edge-on, whether it bulges towards or away from the
 camera); every candidate's mirror image about the line of sight is added and refined too. When
@@ -137,12 +138,14 @@ class RefineConfig:
     min_depth_m: float = 1e-3       # every point must be this far in front of both cameras
     max_depth_m: float = 2.0        # and the needle nearer than this (a PnP start may run off)
     min_sigma_ratio: float = 0.25   # the covariance assumes at least this fraction of the sigmas
-    # The position error no image noise explains (the needle's wire and arc against the model, the
-    # rig's calibration), 1 sigma per axis, added to the covariance: a dense fit's covariance from
-    # the images alone is tens of micrometres thin across some directions, and errors the two
-    # nearly alike cameras share go into the pose, not the residuals (NEES median on the second
-    # renderer 15 without it, 6.0-6.4 with 0.05 mm; the standard set 7.2 -> 5.4; 640x480 4.9 -> 3.5)
-    model_sigma_mm: float = 0.05
+    # The error no image noise explains (the needle's wire, arc, taper and swage against the model,
+    # the rig's calibration), 1 sigma per axis, added to the covariance: from the images alone a
+    # dense fit is a few hundredths of a millimetre and a tenth of a degree thin near the
+    # endoscope, and errors the two nearly alike cameras share go into the pose, not the
+    # residuals. Chosen on the end-identity fit folders, not the test sets (NEES medians 4.6-6.4
+    # there; docs/geometry.md#covariances-and-nees).
+    model_sigma_mm: float = 0.03
+    model_sigma_deg: float = 0.25
     # with a support surface's normal given (``refine(support_normal=)``): probability that the
     # needle rests on it, and the spread of its tilt then (common/geometry/rest_prior.py)
     rest_prior: float = 0.5
@@ -162,8 +165,10 @@ class RefineConfig:
                          ("foot_steps", 1), ("warm_steps", 1)):
             if int(getattr(self, name)) < lo:
                 raise ValueError(f"RefineConfig.{name}: must be at least {lo}, got {getattr(self, name)}")
-        if not (np.isfinite(self.model_sigma_mm) and self.model_sigma_mm >= 0):
-            raise ValueError(f"RefineConfig.model_sigma_mm: must be a number >= 0, got {self.model_sigma_mm}")
+        for name in ("model_sigma_mm", "model_sigma_deg"):
+            v = getattr(self, name)
+            if not (np.isfinite(v) and v >= 0):
+                raise ValueError(f"RefineConfig.{name}: must be a number >= 0, got {v}")
         if not 0.0 <= self.rest_prior < 1.0:
             raise ValueError(f"RefineConfig.rest_prior: must be in [0, 1), got {self.rest_prior}")
 
@@ -766,6 +771,7 @@ def _result(prob: _Problem, s, cfg: RefineConfig, log_prior=None) -> RefineResul
     n_res = prob.n_res
     H = J.T @ ((wr * prob.cov_scale)[:, None] * J)
     cov = s2 * _inv_psd(H)
+    cov[:3, :3] += math.radians(cfg.model_sigma_deg) ** 2 * np.eye(3)
     cov[3:, 3:] += (cfg.model_sigma_mm * 1e-3) ** 2 * np.eye(3)
     # RMS per keypoint coordinate and per curve point (its two residuals, normal and
     # overshoot, make one distance)

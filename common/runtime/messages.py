@@ -374,6 +374,8 @@ def pose_error(msg: "PoseEstimate", max_range_m: Optional[float] = None) -> Opti
             return f"PoseEstimate.covariance: beyond {MAX_COORD:g}"
     if msg.model_sigma_m is not None and not 0.0 <= float(msg.model_sigma_m) <= 1.0:
         return f"PoseEstimate.model_sigma_m: must be in [0, 1] m, got {msg.model_sigma_m}"
+    if msg.model_sigma_rad is not None and not 0.0 <= float(msg.model_sigma_rad) <= math.pi:
+        return f"PoseEstimate.model_sigma_rad: must be in [0, pi] rad, got {msg.model_sigma_rad}"
     if not abs(float(msg.residual)) <= MAX_COORD:     # what decode would refuse downstream
         return f"PoseEstimate.residual: not finite, or beyond {MAX_COORD:g}: {msg.residual}"
     if max_range_m is not None:
@@ -632,9 +634,9 @@ class PoseEstimate(Message):
     """A needle pose. ``T_ecm_needle`` maps needle to ECM frame (m). ``residual`` is the
     method's RMS (reprojection px, or registration m, as ``residual_unit`` says).
     ``covariance`` (6, 6) over [rotation vector (rad), translation (m)] in the ECM frame, when known.
-    ``model_sigma_m``: the part of the position error, 1 sigma per axis (m), that every estimate
-    of this needle shares (the needle model's and the rig's own error; already inside
-    ``covariance``): a fusion of views does not average it down.
+    ``model_sigma_m``, ``model_sigma_rad``: the part of the position and orientation error,
+    1 sigma per axis (m, rad), that every estimate of this needle shares (the needle model's and
+    the rig's own error; already inside ``covariance``): a fusion of views does not average it down.
     """
 
     SCHEMA = "needletrack.PoseEstimate"
@@ -645,7 +647,7 @@ class PoseEstimate(Message):
               "n_views": ("int",), "covariance": ("array", (6, 6), "optional"),
               "ambiguous": ("bool", "optional"), "points_ecm": ("array", (None, 3), "optional", "nan"),
               "sequence": ("int", "optional"), "epoch": ("int", "optional"),
-              "model_sigma_m": ("float", "optional")}
+              "model_sigma_m": ("float", "optional"), "model_sigma_rad": ("float", "optional")}
     seq: int
     stamp_ns: int
     method: str
@@ -661,6 +663,7 @@ class PoseEstimate(Message):
     sequence: Optional[int] = None
     epoch: Optional[int] = None
     model_sigma_m: Optional[float] = None
+    model_sigma_rad: Optional[float] = None
 
     def validate(self):
         err = pose_error(self)
