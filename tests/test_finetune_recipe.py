@@ -10,26 +10,34 @@ from pathlib import Path
 import yaml
 
 import common.sim.render  # noqa: F401  (headless GL before mujoco)
+from common.detector.end_identity import FEATURES
+from common.detector.inference import load_end_coefficients
 from common.sim.generate import GenerateConfig, generate
 
 ROOT = Path(__file__).resolve().parent.parent
 
 
-def test_finetune_recipe_trains_then_scores_before_and_after(tmp_path):
-    train_dir, test_dir = tmp_path / "train", tmp_path / "test"
+def test_finetune_recipe_trains_fits_the_end_identity_then_scores_before_and_after(tmp_path):
+    train_dir, test_dir, fit_dir = tmp_path / "train", tmp_path / "test", tmp_path / "fit"
     generate(train_dir, GenerateConfig(3, 1, 11, "wide", thread="none", msaa=0), progress=False)
     generate(test_dir, GenerateConfig(2, 2, 12, "wide", thread="none", msaa=0), progress=False)
+    generate(fit_dir, GenerateConfig(2, 1, 13, "wide", thread="none", msaa=0), progress=False)
     cfg = yaml.safe_load((ROOT / "models/finetune.yaml").read_text())
     cfg["train"].update(epochs=1, steps_per_epoch=3, batch=4, global_batch=2, warmup_steps=1,
                         val_fraction=0.0, hard_negatives=0, threads=1)
     (tmp_path / "short.yaml").write_text(yaml.safe_dump(cfg))
-    env = dict(os.environ, CONFIG=str(tmp_path / "short.yaml"), SUPPORT_NORMAL="0,0,1",
+    env = dict(os.environ, CONFIG=str(tmp_path / "short.yaml"), SUPPORT_NORMAL="0,0,1", FIT=str(fit_dir),
                PATH=f"{Path(sys.executable).parent}{os.pathsep}{os.environ.get('PATH', '')}")
     out = tmp_path / "out"
+    out.mkdir()
+    (out / "end_identity.json").write_text("stale: fitted for other weights")
     run = subprocess.run(["bash", str(ROOT / "models/finetune.sh"), str(out), str(test_dir), str(train_dir)],
                          env=env, capture_output=True, text=True, timeout=900)
     assert run.returncode == 0, run.stdout[-2000:] + run.stderr[-2000:]
     assert (out / "model.pt").is_file()
+    fitted = json.loads((out / "end_identity.json").read_text())      # the stale file replaced
+    assert fitted["fitted_on"] == [str(fit_dir)] and len(fitted["coef"]) == len(FEATURES)
+    assert load_end_coefficients(out / "model.pt") is not None
     assert "== before" in run.stdout and "== after" in run.stdout
     for label in ("before", "after"):
         res = json.loads((out / f"eval_{label}" / "results.json").read_text())

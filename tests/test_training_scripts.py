@@ -13,7 +13,8 @@ from common.cli import main as needletrack
 ROOT = Path(__file__).resolve().parent.parent
 VALUES = {"DATA": "data/train", "OUT": "models/keypoint", "HERE": "models", "L": "data/train/looks",
           "C": "data/train/end_identity", "CONFIG": "models/finetune.yaml", "INIT": "models/keypoint/model.pt",
-          "TEST": "data/test", "data[@]": "--data data/mine", "extra[@]": "--support-normal 0,0,1"}
+          "TEST": "data/test", "data[@]": "--data data/mine", "extra[@]": "--support-normal 0,0,1",
+          "fit[@]": "--data data/mine_fit"}
 
 
 class Parsed(Exception):
