@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import sys
 from pathlib import Path
 
 import cv2
@@ -22,6 +23,7 @@ from tqdm import tqdm
 from common.detector.end_identity import FEATURES
 
 SURE = 0.95
+MIN_FIT_ERRORS = 5      # fewer detections read end for end (or as said) than this: warn at --fit
 
 
 def collect(folder: str, detector, step: int = 1) -> dict:
@@ -90,6 +92,10 @@ def main(argv=None) -> int:
         X = np.vstack([d["features"] for d in data.values()])
         y = np.concatenate([d["labels"] for d in data.values()])
         coef = fit_coefficients(X, y)
+        if min(int(np.sum(y == 0)), int(np.sum(y == 1))) < MIN_FIT_ERRORS:
+            print(f"warning: the network read only {int(np.sum(y == 0))} of {len(y)} detections end for end: "
+                  f"too few to learn how sure it may be; the coefficients may state a sure tip too often "
+                  f"(add frames, or a harder look)", file=sys.stderr)
         Path(args.fit).write_text(json.dumps({
             "features": list(FEATURES), "coef": [float(c) for c in coef],
             "fitted_on": [str(Path(d)) for d in args.data], "images": int(len(y))}, indent=1) + "\n")
