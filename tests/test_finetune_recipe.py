@@ -38,7 +38,7 @@ def test_finetune_recipe_trains_fits_the_end_identity_then_scores_before_and_aft
     fitted = json.loads((out / "end_identity.json").read_text())      # the stale file replaced
     assert fitted["fitted_on"] == [str(fit_dir)] and len(fitted["coef"]) == len(FEATURES)
     assert load_end_coefficients(out / "model.pt") is not None
-    assert "too few to learn how sure" in run.stderr        # a 2-frame fit folder says so
+    assert "too few of one kind to learn how sure" in run.stderr        # a 2-frame fit folder says so
     assert "== before" in run.stdout and "== after" in run.stdout
     for label in ("before", "after"):
         res = json.loads((out / f"eval_{label}" / "results.json").read_text())

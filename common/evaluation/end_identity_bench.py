@@ -92,10 +92,11 @@ def main(argv=None) -> int:
         X = np.vstack([d["features"] for d in data.values()])
         y = np.concatenate([d["labels"] for d in data.values()])
         coef = fit_coefficients(X, y)
-        if min(int(np.sum(y == 0)), int(np.sum(y == 1))) < MIN_FIT_ERRORS:
-            print(f"warning: the network read only {int(np.sum(y == 0))} of {len(y)} detections end for end: "
-                  f"too few to learn how sure it may be; the coefficients may state a sure tip too often "
-                  f"(add frames, or a harder look)", file=sys.stderr)
+        turned, as_said = int(np.sum(y == 0)), int(np.sum(y == 1))
+        if min(turned, as_said) < MIN_FIT_ERRORS:
+            print(f"warning: of {len(y)} detections the network read {turned} end for end and {as_said} "
+                  f"as said: too few of one kind to learn how sure it may be; the coefficients may "
+                  f"state a sure tip too often (add frames, or a harder part of the look)", file=sys.stderr)
         Path(args.fit).write_text(json.dumps({
             "features": list(FEATURES), "coef": [float(c) for c in coef],
             "fitted_on": [str(Path(d)) for d in args.data], "images": int(len(y))}, indent=1) + "\n")

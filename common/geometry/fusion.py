@@ -56,9 +56,10 @@ class FusedPose:
     ``inliers``: mask over the queue, oldest first; ``covariance`` (6, 6) in the current ECM
     frame when the inputs carried covariances; ``reset``: this estimate started a new queue;
     ``rms_m``: RMS distance of the inliers' positions to the fused one; ``common_sigma_m``,
-    ``common_sigma_rad`` the inliers' shared position and orientation error, inside ``covariance``; ``ambiguous`` when every inlier was
-    (averaging views that each could not decide does not decide: the covariance is then the
-    inliers' mean one, which spans what each left open).
+    ``common_sigma_rad`` the inliers' shared position and orientation error, inside
+    ``covariance``; ``ambiguous`` when every inlier was (averaging views that each could not
+    decide does not decide: the covariance is then the inliers' mean one, which spans what each
+    left open).
     """
 
     T_ecm_needle: np.ndarray
