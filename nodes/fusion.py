@@ -8,8 +8,8 @@ is used, to reset the queue when a recording starts a new multi-view group).
 Output: ``pose`` (PoseEstimate, method ``params.method``, default ``multiview``; ``n_views`` =
 estimates averaged; residual = RMS distance of those to the fused position, m; covariance when
 every input carried one; ``model_sigma_m`` and ``model_sigma_rad``, the inputs' shared position
-and orientation error, are taken out before the views are weighed and added back once; ``ambiguous`` when every averaged estimate
-was, its covariance then their mean one).
+and orientation error, are taken out before the views are weighed and added back once;
+``ambiguous`` when every averaged estimate was, its covariance then their mean one).
 
 Params: ``k`` (5), ``max_dist_mm`` (5), ``max_angle_deg`` (15) for outliers; ``reset_dist_mm``
 (10), ``reset_angle_deg`` (45), ``reset_after`` (3) for detecting a moved needle;
