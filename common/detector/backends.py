@@ -57,6 +57,7 @@ class LearnedParams:
     along_arc: bool = False
     proposals: int = 3
     proposal_threshold: float = 0.2
+    ridge_ends: bool = True                       # A, E from the centreline's ends when they collapse
 
 
 @dataclass

@@ -32,6 +32,7 @@ from common.detector.centreline_subpixel import (
     refine_centreline,
 )
 from common.detector.end_identity import FEATURES, EndEvidence, network_evidence, polyline_length, shape_evidence
+from common.detector.ridge_ends import ends_on_ridge
 from common.detector.model import (
     FrozenForInference,
     KeypointModel,
@@ -350,7 +351,8 @@ class KeypointDetector:
                  tracking: bool = True, threads: int | None = None, refine: bool = True,
                  centreline: bool = True, arc_bcd: bool = True, along_arc: bool = False,
                  proposal_threshold: float = 0.2, proposals: int = 3, subpixel: bool = True,
-                 min_extent_px: float = MIN_EXTENT_PX, max_ellipse_px: float = MAX_ELLIPSE_PX):
+                 min_extent_px: float = MIN_EXTENT_PX, max_ellipse_px: float = MAX_ELLIPSE_PX,
+                 ridge_ends: bool = True):
         self.device = pick_device(device)
         if threads:
             torch.set_num_threads(int(threads))
@@ -369,6 +371,7 @@ class KeypointDetector:
         self.subpixel = bool(subpixel)
         self.min_extent_px = float(min_extent_px)
         self.max_ellipse_px = float(max_ellipse_px)
+        self.ridge_ends = bool(ridge_ends)
         self._track: dict[str, tuple] = {}
         self.last_mode = ""
         self.end_coef = load_end_coefficients(self.weights)
@@ -397,7 +400,7 @@ class KeypointDetector:
                                   box_scale=box_scale)
 
     @torch.inference_mode()
-    def _stage2(self, img: np.ndarray, box):
+    def _stage2(self, img: np.ndarray, box, ridge: bool = False):
         cx, cy, bw, bh = box
         M = crop_affine(cx, cy, crop_side(self.cfg, bw, bh), self.cfg.crop)
         crop = cv2.warpAffine(img, M, (self.cfg.crop, self.cfg.crop), flags=cv2.INTER_LINEAR,
@@ -407,9 +410,34 @@ class KeypointDetector:
         uv, score = decode_heatmaps(heat[:, :5], self.cfg.out_stride)
         uv_crop = uv[0].numpy().astype(np.float64)
         sc = np.clip(score[0].numpy() / ideal_peak_mass(self.cfg.kp_sigma), 0.0, 1.0)
+        line = heat[0, 5].numpy()
+        on_arc = self._ends_from_ridge(uv_crop, sc, heat, line) if ridge else None
         Minv = invert_affine(M)
-        return {"M": M, "Minv": Minv, "uv": apply_affine(Minv, uv_crop), "uv_crop": uv_crop, "scores": sc,
-                "presence": float(torch.sigmoid(pres[0])), "line": heat[0, 5].numpy(), "heat": heat}
+        res = {"M": M, "Minv": Minv, "uv": apply_affine(Minv, uv_crop), "uv_crop": uv_crop, "scores": sc,
+               "presence": float(torch.sigmoid(pres[0])), "line": line, "heat": heat}
+        if on_arc is not None:
+            res["on_arc"], res["ends_from_ridge"] = on_arc, True
+        return res
+
+    def _ends_from_ridge(self, uv_crop, sc, heat, line):
+        """A and E moved (in place) to the centreline ridge's ends when the heatmaps put both on
+        one end (``common.detector.ridge_ends``), and B..D onto the arc through them and the
+        ridge, scored as the weaker end; returns the ``on_arc`` flags then (all False when no arc
+        fits), else None."""
+        s = self.cfg.out_stride
+        cells = (uv_crop - (s - 1) / 2.0) / s
+        found = ends_on_ridge(heat[0, :5].numpy(), line, cells[0], cells[4], ideal_peak_mass(self.cfg.kp_sigma),
+                              ARC_MIN_SCORE)
+        if found is None:
+            return None
+        a, e, sc[0], sc[4] = found
+        uv_crop[0], uv_crop[4] = a * s + (s - 1) / 2.0, e * s + (s - 1) / 2.0
+        fit = fit_arc_affine(a, e, line)
+        if fit is None:
+            return np.zeros(5, bool)
+        uv_crop[1:4] = arc_at(fit, ARC_ANGLES_DEG[1:4]) * s + (s - 1) / 2.0
+        sc[1:4] = min(sc[0], sc[4])
+        return np.array([False, True, True, True, False])
 
     def _place_bcd(self, res) -> None:
         """B, C, D of the chosen crop on the arc through A and E (see fit_arc_affine), when A and
@@ -468,6 +496,16 @@ class KeypointDetector:
         shape, r_a, r_e = shape_evidence(img, res["centreline"])
         return EndEvidence(shape, net, r_a, r_e, length)
 
+    def _p_a_is_tip(self, res) -> float | None:
+        """The stated probability that A is the tip: None without coefficients; 0.5 (the image
+        cannot tell) when A and E were taken from the ridge's ends, after the heatmaps had put
+        both on one end (their naming and the weak taper cue are then all there is)."""
+        if self.end_coef is None:
+            return None
+        if res.get("ends_from_ridge"):
+            return 0.5
+        return self.last_evidence.p_a_is_tip(self.end_coef)
+
     def _not_an_ellipse(self, res, undistort=None) -> str | None:
         """Why the sub-pixel centreline is not the image of a circle (None if it is, or when it
         cannot be judged: no sub-pixel centreline, or fewer than MIN_ELLIPSE_POINTS stations).
@@ -522,9 +560,9 @@ class KeypointDetector:
                                            f"no needle: no proposal >= {self.proposal_threshold:.2f}")
             best = None
             for c1, cx, cy, bw, bh in proposals:
-                r = self._stage2(img, (cx, cy, bw, bh))
+                r = self._stage2(img, (cx, cy, bw, bh), self.ridge_ends)
                 if self.refine and r["presence"] >= self.proposal_threshold:
-                    r = self._stage2(img, self._box_of(r))
+                    r = self._stage2(img, self._box_of(r), self.ridge_ends)
                 if best is None or r["presence"] > best[0]["presence"]:
                     best = (r, c1)
                 if r["presence"] >= self.threshold:
@@ -558,7 +596,7 @@ class KeypointDetector:
                          res["centreline"], res["centreline_w"], res["centreline_sigma"], res.get("on_arc"),
                          None if res["centreline_sigma"] is None else CENTRELINE_CORR_POINTS,
                          KEYPOINT_SIGMA_PX,
-                         None if self.end_coef is None else self.last_evidence.p_a_is_tip(self.end_coef))
+                         self._p_a_is_tip(res))
 
     def detect_message(self, msg: CameraImage) -> Keypoints:
         """Keypoints of a ``CameraImage``; corrupt or inconsistent image data -> "no needle"."""
@@ -584,7 +622,8 @@ class LearnedBackend(KeypointBackend):
     ``refine`` (true), ``centreline`` (true), ``subpixel`` (true: the centreline refined in the
     full-resolution image), ``min_extent_px`` (10: keypoints closer together are "no needle"),
     ``max_ellipse_px`` (0.25: a sub-pixel centreline farther from one ellipse is "no needle"; 0: off),
-    ``arc_bcd`` (true), ``along_arc`` (false), ``proposals`` (stage-1 proposals tried, 3), ``proposal_threshold`` (0.2)."""
+    ``arc_bcd`` (true), ``along_arc`` (false), ``proposals`` (stage-1 proposals tried, 3), ``proposal_threshold`` (0.2),
+    ``ridge_ends`` (true: A and E from the centreline's ends when their heatmaps collapse on one)."""
 
     name = "learned"
     needs_image = True
@@ -597,7 +636,7 @@ class LearnedBackend(KeypointBackend):
                 p.weights, device=p.device, threshold=p.threshold, tracking=p.tracking, threads=p.threads,
                 refine=p.refine, centreline=p.centreline, arc_bcd=p.arc_bcd, along_arc=p.along_arc,
                 proposals=p.proposals, proposal_threshold=p.proposal_threshold, subpixel=p.subpixel,
-                min_extent_px=p.min_extent_px, max_ellipse_px=p.max_ellipse_px)
+                min_extent_px=p.min_extent_px, max_ellipse_px=p.max_ellipse_px, ridge_ends=p.ridge_ends)
         except (ModelFileError, ValueError, TypeError) as exc:
             raise BackendError(f"learned backend: {exc}") from exc
 
