@@ -11,10 +11,11 @@ computed before the ECM pose arrived waits for it, at most ``max_wait`` frames (
 30), and then goes out without the world pose (counted ``no_ecm_pose``).
 
 End identity: when the detectors state which end is the tip (``Keypoints.end_identity``), the
-stereo frame's probability (``common.geometry.end_identity``) decides: at most
-``1 - min_end_identity`` the pair is turned end for end before solving (``end_identity.turned``);
-below ``min_end_identity`` (0.95) the pose goes out flagged ``ambiguous`` with a covariance that
-spans the turned answer (``end_identity.unsure``). Without a statement, A is taken as said.
+stereo frame's probability (``common.geometry.end_identity``) decides: below 0.5 the pair is
+turned end for end before solving (``end_identity.turned``), so that the pose is the likelier
+answer; every pose states its probability (``PoseEstimate.end_identity``), and below
+``min_end_identity`` (0.95) it goes out flagged ``ambiguous`` with a covariance that spans the
+turned answer (``end_identity.unsure``). Without a statement, A is taken as said.
 """
 from __future__ import annotations
 
@@ -110,12 +111,12 @@ class StereoPoseNode(Node):
 
     def settle_end_identity(self, left: Keypoints, right: Keypoints) -> tuple[Keypoints, Keypoints]:
         """The pair as the solvers take it: turned end for end when the detectors' evidence says
-        their A is the tail (``end_identity`` below ``1 - min_end_identity``); the frame's
-        probability is kept for ``publish_pose``, which flags an undecided frame."""
+        their A is more likely the tail (``end_identity`` below 0.5); the frame's probability
+        is kept for ``publish_pose``, which states it and flags an undecided frame."""
         p = stereo_end_identity(*(kp.end_identity if kp.found else None for kp in (left, right)))
         if p is None:
             return left, right
-        if p <= 1.0 - self.p.min_end_identity:
+        if p < 0.5:
             self.count("end_identity.turned")
             left, right, p = turn_keypoints(left), turn_keypoints(right), 1.0 - p
         self.identity.put(left.seq, p)
@@ -140,10 +141,12 @@ class StereoPoseNode(Node):
         self.log.debug("seq %d: no pose (%s) %s", seq, reason, detail)
 
     def publish_pose(self, pose: PoseEstimate, output: str = "pose") -> None:
-        """Publish ``pose`` now, or once its frame's ECM pose is in (module docstring). A frame
-        whose tip the images could not tell from its tail goes out flagged ``ambiguous``, its
-        covariance widened to span the end-for-end turn."""
+        """Publish ``pose`` now, or once its frame's ECM pose is in (module docstring), stating its
+        frame's ``end_identity``. A frame whose tip the images could not tell from its tail goes
+        out flagged ``ambiguous``, its covariance widened to span the end-for-end turn."""
         p = self.identity.get(pose.seq)
+        if p is not None:
+            pose.end_identity = float(p)
         if p is not None and p < self.p.min_end_identity:
             self.count("end_identity.unsure")
             pose.ambiguous = True

@@ -9,7 +9,8 @@ Output: ``pose`` (PoseEstimate, method ``params.method``, default ``multiview``;
 estimates averaged; residual = RMS distance of those to the fused position, m; covariance when
 every input carried one; ``model_sigma_m`` and ``model_sigma_rad``, the inputs' shared position
 and orientation error, are taken out before the views are weighed and added back once;
-``ambiguous`` when every averaged estimate was, its covariance then their mean one).
+``ambiguous`` when every averaged estimate was, its covariance then their mean one;
+``end_identity`` the averaged estimates' mean one).
 
 Params: ``k`` (5), ``max_dist_mm`` (5), ``max_angle_deg`` (15) for outliers; ``reset_dist_mm``
 (10), ``reset_angle_deg`` (45), ``reset_after`` (3) for detecting a moved needle;
@@ -128,7 +129,7 @@ class FusionNode(Node):
         out = self.fusion.add(msg.T_ecm_needle, T_world_ecm, msg.covariance, seq=msg.seq,
                               sequence=sequence if self.reset_on_sequence else None,
                               common_sigma_m=msg.model_sigma_m or 0.0, ambiguous=bool(msg.ambiguous),
-                              common_sigma_rad=msg.model_sigma_rad or 0.0)
+                              common_sigma_rad=msg.model_sigma_rad or 0.0, end_identity=msg.end_identity)
         if out.reset:
             self.count("resets")
         self.count("outliers", int(out.n_queued - out.n_views))
@@ -136,7 +137,7 @@ class FusionNode(Node):
             msg.seq, msg.stamp_ns, self.method, out.T_ecm_needle, out.T_world_needle,
             np.asarray(T_world_ecm, dtype=float), out.rms_m, "m", out.n_views, out.covariance,
             ambiguous=out.ambiguous, sequence=sequence, model_sigma_m=out.common_sigma_m or None,
-            model_sigma_rad=out.common_sigma_rad or None))
+            model_sigma_rad=out.common_sigma_rad or None, end_identity=out.end_identity))
 
 
 NODE = FusionNode

@@ -107,6 +107,15 @@ def test_an_undecided_pair_is_published_flagged_with_a_covariance_that_spans_bot
     assert 0.7 < p < 0.95
     assert d @ np.linalg.solve(unsure.covariance, d) < 1.0 / (1.0 - p) + 1e-6
     assert d @ np.linalg.solve(sure.covariance, d) > 1e4        # a confident pose excludes the turn
+    assert unsure.end_identity == pytest.approx(p) and sure.end_identity > 0.95
+
+
+def test_a_pair_more_likely_turned_is_posed_turned_and_flagged_with_its_probability():
+    T = random_needle_pose(np.random.default_rng(8), RIG, MODEL)
+    node, pose = _pose({}, _pair(T, 0.3, turned=True))        # A as read is the tip with 0.3 only
+    dt, dr = pose_error(pose.T_ecm_needle, T)
+    assert dt < 1e-6 and dr < 1e-6 and node.counters["end_identity.turned"] == 1
+    assert pose.ambiguous and pose.end_identity == pytest.approx(1.0 - stereo_end_identity(0.3, 0.3))
 
 
 def test_without_a_statement_a_is_taken_as_said():

@@ -294,3 +294,19 @@ def test_pose_table_scores_the_unflagged_poses_apart():
     assert d["sure"]["n"] == 2
     assert d["sure"]["position_mm"]["mean"] == pytest.approx(1.5)
     assert d["sure"]["orientation_deg"]["mean"] == pytest.approx(2.0)
+
+
+def test_pose_table_sets_the_stated_end_identity_against_the_turned_poses():
+    from types import SimpleNamespace
+
+    from common.evaluation.report import _tip
+    from common.evaluation.scoring import pose_table
+    t = {"seqs": [0, 1, 2, 3, 4], "position_m": np.array([0.001, 0.002, 0.001, 0.001, np.nan]),
+         "orientation_rad": np.radians([1.0, 179.0, 2.0, 1.0, np.nan]), "distance_m": np.full(5, 0.15),
+         "n_views": np.ones(5), "nees": np.array([4.0, 1.0, 5.0, 3.0, np.nan]),
+         "ambiguous": np.array([1.0, 1.0, 0.0, 0.0, np.nan]),
+         "end_identity": np.array([0.6, 0.6, 0.99, np.nan, 0.9])}
+    e = pose_table(SimpleNamespace(pose={"refined": t}))["refined"]["end_identity"]
+    assert e["all"] == {"n": 3, "stated": pytest.approx((0.4 + 0.4 + 0.01) / 3), "measured": pytest.approx(1 / 3)}
+    assert e["flagged"] == {"n": 2, "stated": pytest.approx(0.4), "measured": pytest.approx(0.5)}
+    assert _tip({"end_identity": e}) == "all 27.0% / 33.3%; flagged 40.0% / 50.0%"

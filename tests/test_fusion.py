@@ -272,3 +272,16 @@ def test_views_that_each_could_not_decide_give_an_ambiguous_fused_pose():
     assert out.ambiguous and np.linalg.eigvalsh(out.covariance[:3, :3]).max() > 4.0   # spans the turn
     out = f.add(jitter(T0, rng, 0.3, 0.3), covariance=np.diag([1e-4] * 3 + [1e-6] * 3), ambiguous=False)
     assert not out.ambiguous and out.n_views == 4
+
+
+def test_the_fused_end_identity_is_the_inliers_not_a_turned_outliers():
+    rng = np.random.default_rng(5)
+    T0 = make_T(rotvec_to_R([0.1, 0.2, 0.3]), [0.0, 0.01, -0.2])
+    f = MultiViewFusion()
+    for p in (0.9, 0.7, None):
+        out = f.add(jitter(T0, rng, 0.3, 0.3), end_identity=p)
+    assert out.end_identity == pytest.approx(0.8)           # views that stated none do not count
+    turned = T0 @ make_T(rotvec_to_R([0.0, np.pi, 0.0]), [0.0, 0.0, 0.0])
+    out = f.add(turned, end_identity=0.99)                   # an outlier: says nothing of the fused pose
+    assert out.n_views == 3 and out.end_identity == pytest.approx(0.8)
+    assert MultiViewFusion().add(T0).end_identity is None

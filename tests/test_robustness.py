@@ -222,6 +222,7 @@ def test_bad_ecm_poses_are_refused_at_the_ecm_input():
     (lambda p: setattr(p, "covariance", np.triu(np.ones((6, 6)))), "not symmetric"),
     (lambda p: setattr(p, "model_sigma_m", -1e-4), "model_sigma_m"),
     (lambda p: setattr(p, "model_sigma_rad", float("nan")), "model_sigma_rad"),
+    (lambda p: setattr(p, "end_identity", 1.5), "end_identity"),
 ])
 def test_the_pose_invariant_holds_back_a_bad_pose_at_publish(change, why, caplog):
     from nodes.fusion import FusionNode

@@ -251,6 +251,7 @@ def pose_error_table(poses: dict, T_true: dict, seqs) -> dict:
     views = np.full(len(seqs), np.nan)
     nees = np.full(len(seqs), np.nan)
     amb = np.full(len(seqs), np.nan)
+    tip = np.full(len(seqs), np.nan)
     for i, s in enumerate(seqs):
         p = poses.get(s)
         if p is None:
@@ -263,9 +264,11 @@ def pose_error_table(poses: dict, T_true: dict, seqs) -> dict:
         nees[i] = pose_nees(T, getattr(p, "covariance", None), T_true[s])
         if getattr(p, "ambiguous", None) is not None:
             amb[i] = float(p.ambiguous)
+        if getattr(p, "end_identity", None) is not None:
+            tip[i] = float(p.end_identity)
     dist = np.array([needle_distance_m(T_true[s]) for s in seqs])
     return {"seqs": list(seqs), "position_m": pos, "orientation_rad": rot, "distance_m": dist,
-            "n_views": views, "nees": nees, "ambiguous": amb}
+            "n_views": views, "nees": nees, "ambiguous": amb, "end_identity": tip}
 
 
 NEES_99PCT = 16.81   # chi-square(6) exceeds this in 1% of the draws (its median: 5.35)
@@ -394,8 +397,10 @@ def keypoint_table(ev: Evaluation) -> dict:
 
 def pose_table(ev: Evaluation) -> dict:
     """Table III: per method position (mm) and orientation (deg) summaries, n, failures; for
-    methods that flag poses, the NEES, the ambiguous share, the poses turned end for end and
-    ``sure``: the same summaries over the poses not flagged ambiguous."""
+    methods that flag poses, the NEES, the ambiguous share, the poses turned end for end,
+    ``end_identity`` (over the poses that state one: the share the poses' own probabilities say
+    is turned, ``stated``, against the share that is, ``measured``; also over the flagged ones)
+    and ``sure``: the same summaries over the poses not flagged ambiguous."""
     out = {}
     for m, t in ev.pose.items():
         expected = len(t["seqs"])
@@ -421,6 +426,13 @@ def pose_table(ev: Evaluation) -> dict:
             flagged = np.isfinite(t["ambiguous"]) & (np.nan_to_num(t["ambiguous"]) > 0)
             out[m]["end_for_end"] = {"share": float(turned.sum() / n),
                                      "confident_share": float((turned & ~flagged).sum() / n)}
+            stated = ok & np.isfinite(t.get("end_identity", np.full(len(ok), np.nan)))
+            if stated.any():
+                wrong = 1.0 - t["end_identity"]
+                out[m]["end_identity"] = {
+                    part: {"n": int(sel.sum()), "stated": float(wrong[sel].mean()),
+                           "measured": float(turned[sel].mean())}
+                    for part, sel in (("all", stated), ("flagged", stated & flagged)) if sel.any()}
             if len(amb):   # what a robot that acts only on unflagged poses gets
                 sure = ok & np.isfinite(t["ambiguous"]) & ~flagged
                 out[m]["sure"] = {"n": int(sure.sum()),

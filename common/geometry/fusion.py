@@ -42,6 +42,7 @@ class QueuedEstimate:
     common_sigma_m: float = 0.0      # inside covariance, shared by every view (module docstring)
     common_sigma_rad: float = 0.0
     ambiguous: bool = False          # the view's images could not decide (e.g. which end is the tip)
+    end_identity: float | None = None  # probability that the tip is where the pose puts it
 
     @property
     def T_world_needle(self) -> np.ndarray:
@@ -59,7 +60,9 @@ class FusedPose:
     ``common_sigma_rad`` the inliers' shared position and orientation error, inside
     ``covariance``; ``ambiguous`` when every inlier was (averaging views that each could not
     decide does not decide: the covariance is then the inliers' mean one, which spans what each
-    left open).
+    left open); ``end_identity`` the inliers' mean probability that the tip is where the pose
+    puts it (None when none stated one): views turned end for end from the fused pose are
+    outliers, so every inlier's statement is about the same answer.
     """
 
     T_ecm_needle: np.ndarray
@@ -73,6 +76,7 @@ class FusedPose:
     common_sigma_m: float = 0.0
     ambiguous: bool = False
     common_sigma_rad: float = 0.0
+    end_identity: float | None = None
 
 
 def without_common(cov: np.ndarray, sigma_m: float, sigma_rad: float = 0.0) -> np.ndarray:
@@ -218,15 +222,18 @@ class MultiViewFusion:
 
     def add(self, T_ecm_needle, T_world_ecm=None, covariance=None, seq: int | None = None,
             sequence: int | None = None, common_sigma_m: float = 0.0,
-            ambiguous: bool = False, common_sigma_rad: float = 0.0) -> FusedPose:
+            ambiguous: bool = False, common_sigma_rad: float = 0.0,
+            end_identity: float | None = None) -> FusedPose:
         """Queue an estimate made at ``T_world_ecm`` (identity when unknown: a still endoscope)
         and return the fused pose in the current ECM frame. ``common_sigma_m``,
         ``common_sigma_rad``: the position and orientation error (m, rad, per axis) inside
-        ``covariance`` that every view shares; ``ambiguous``: the estimate was flagged so."""
+        ``covariance`` that every view shares; ``ambiguous``: the estimate was flagged so;
+        ``end_identity``: its probability that the tip is where it puts it."""
         T_world_ecm = np.eye(4) if T_world_ecm is None else np.asarray(T_world_ecm, dtype=float)
         est = QueuedEstimate(np.asarray(T_ecm_needle, dtype=float), T_world_ecm,
                              None if covariance is None else np.asarray(covariance, dtype=float), seq,
-                             float(common_sigma_m or 0.0), float(common_sigma_rad or 0.0), bool(ambiguous))
+                             float(common_sigma_m or 0.0), float(common_sigma_rad or 0.0), bool(ambiguous),
+                             None if end_identity is None else float(end_identity))
         reset = False
         if sequence is not None and self.sequence is not None and sequence != self.sequence:
             self.queue.clear()
@@ -281,7 +288,8 @@ class MultiViewFusion:
         if ambiguous and cov is not None:
             own = [covariance_to_frame(e.covariance, R) for e, R, ok in zip(self.queue, Rs, inl) if ok]
             cov = np.mean(own, axis=0)
+        stated = [e.end_identity for e, ok in zip(self.queue, inl) if ok and e.end_identity is not None]
         d = np.array([Ti[:3, 3] - T[:3, 3] for Ti, ok in zip(Ts, inl) if ok])
         rms = float(np.sqrt(np.mean(np.sum(d * d, axis=1))))
         return FusedPose(T, T_world_ecm_now @ T, int(inl.sum()), len(Ts), inl, cov, reset, rms, common,
-                         ambiguous, common_rad)
+                         ambiguous, common_rad, float(np.mean(stated)) if stated else None)

@@ -376,6 +376,8 @@ def pose_error(msg: "PoseEstimate", max_range_m: Optional[float] = None) -> Opti
         return f"PoseEstimate.model_sigma_m: must be in [0, 1] m, got {msg.model_sigma_m}"
     if msg.model_sigma_rad is not None and not 0.0 <= float(msg.model_sigma_rad) <= math.pi:
         return f"PoseEstimate.model_sigma_rad: must be in [0, pi] rad, got {msg.model_sigma_rad}"
+    if msg.end_identity is not None and not 0.0 <= float(msg.end_identity) <= 1.0:
+        return f"PoseEstimate.end_identity: must be a probability in [0, 1], got {msg.end_identity}"
     if not abs(float(msg.residual)) <= MAX_COORD:     # what decode would refuse downstream
         return f"PoseEstimate.residual: not finite, or beyond {MAX_COORD:g}: {msg.residual}"
     if max_range_m is not None:
@@ -637,6 +639,9 @@ class PoseEstimate(Message):
     ``model_sigma_m``, ``model_sigma_rad``: the part of the position and orientation error,
     1 sigma per axis (m, rad), that every estimate of this needle shares (the needle model's and
     the rig's own error; already inside ``covariance``): a fusion of views does not average it down.
+    ``end_identity``: the probability that the needle's tip is where this pose puts it; the other
+    answer is the pose turned end for end (``common.geometry.refine.tip_for_tail``, the same arc).
+    Absent: the detectors stated nothing (A was taken as the tip).
     """
 
     SCHEMA = "needletrack.PoseEstimate"
@@ -647,7 +652,8 @@ class PoseEstimate(Message):
               "n_views": ("int",), "covariance": ("array", (6, 6), "optional"),
               "ambiguous": ("bool", "optional"), "points_ecm": ("array", (None, 3), "optional", "nan"),
               "sequence": ("int", "optional"), "epoch": ("int", "optional"),
-              "model_sigma_m": ("float", "optional"), "model_sigma_rad": ("float", "optional")}
+              "model_sigma_m": ("float", "optional"), "model_sigma_rad": ("float", "optional"),
+              "end_identity": ("float", "optional")}
     seq: int
     stamp_ns: int
     method: str
@@ -664,6 +670,7 @@ class PoseEstimate(Message):
     epoch: Optional[int] = None
     model_sigma_m: Optional[float] = None
     model_sigma_rad: Optional[float] = None
+    end_identity: Optional[float] = None
 
     def validate(self):
         err = pose_error(self)
