@@ -3,7 +3,8 @@
 A line shows the final method's pose (the first wired of ``FINAL_ORDER``: the dense refinement
 when the graph has it): the position of the needle's origin in the ECM frame (mm), its rotation
 vector (deg) and, when the truth is known, its error (position mm / orientation deg); a pose the
-images could not decide is marked ``ambiguous``. A line fits ``WIDTH`` (120) columns::
+images could not decide is marked ``ambiguous``, or ``tip 0.62`` when what they could not tell is
+which end is the tip (the probability the pose states for it). A line fits ``WIDTH`` (120) columns::
 
     seq   412 5/5 refined  t=[3.1 -7.9 -152.0]mm r=[171.2 12.0 -3.3]deg err 0.18mm 0.5deg
 
@@ -30,6 +31,7 @@ from nodes._pose import PoseMethodInputs
 POSE_INPUTS = METHODS + EXTRA_METHODS
 FINAL_ORDER = ("refined", "multiview_refined", "multiview", "pnp_joint", "pnp_average", "triangulation")
 WIDTH = 120
+TIP_SURE = 0.95       # the pose nodes' min_end_identity
 KEEP_FRAMES = 64
 
 
@@ -48,8 +50,9 @@ def format_method(method: str, pose, T_true) -> str:
     if T_true is not None:
         dp, dr = pose_error(pose.T_ecm_needle, T_true)
         s += f" err {dp * 1e3:.2f}mm {np.degrees(dr):.1f}deg"
-    if pose.ambiguous:
-        s += " ambiguous"
+    if pose.ambiguous:   # "tip 0.62": the tip the images could not tell, with its stated probability
+        p = pose.end_identity
+        s += f" tip {p:.2f}" if p is not None and p < TIP_SURE else " ambiguous"
     if pose.n_views > 1:
         s += f" views {pose.n_views}"
     return s

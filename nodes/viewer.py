@@ -218,7 +218,7 @@ class ViewerNode(PoseMethodInputs, Node):
         now = time.monotonic()
         _put(self.poses[method], msg.seq, msg)
         self.state.add_pose(method, msg.seq, msg.T_ecm_needle, self._true(msg.seq),
-                            (time.time_ns() - msg.stamp_ns) * 1e-6, bool(msg.ambiguous), now)
+                            (time.time_ns() - msg.stamp_ns) * 1e-6, bool(msg.ambiguous), now, msg.end_identity)
         self._render_ready(now)
 
     # ---------------------------------------------------------------- drawing

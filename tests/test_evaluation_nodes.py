@@ -87,14 +87,16 @@ def test_monitor_all_methods_and_the_width_of_the_longest_line():
     worst.T_ecm_needle = np.eye(4)
     worst.T_ecm_needle[:3, 3] = [-0.1999, -0.1999, -0.9999]
     worst.T_ecm_needle[:3, :3] = rotvec_to_R(np.radians([-100.0, -100.0, -101.0]))
-    worst.ambiguous, worst.n_views = True, 10
+    worst.ambiguous, worst.n_views, worst.end_identity = True, 10, 0.5
     T_true = np.eye(4)
     T_true[:3, 3] = [-0.19, -0.19, -0.93]
     methods = ["refined", "multiview_refined"]
     lines = format_lines(99999, {m: worst for m in methods}, T_true, methods, all_methods=True)
     for line in lines:
         assert len(line) <= WIDTH and not line.endswith("..."), (len(line), line)
-    assert "r=[-100.0 -100.0 -101.0]deg" in lines[1] and "ambiguous views 10" in lines[1]
+    assert "r=[-100.0 -100.0 -101.0]deg" in lines[1] and "tip 0.50 views 10" in lines[1]
+    worst.end_identity = 0.99                       # ambiguous for another reason (a mirror image)
+    assert "ambiguous views 10" in format_lines(1, {"refined": worst}, None, ["refined"])[0]
 
 
 def test_monitor_line_without_truth_or_pose():

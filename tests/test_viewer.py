@@ -130,8 +130,9 @@ def test_state_rows_errors_rates_and_series():
     assert set(js) == {"head", "methods", "series", "colours"}
     pts = js["series"]["pos_err_mm"]["refined"]
     assert 8 <= len(pts) <= 11 and pts[-1][0] <= 0                 # thinned to every 0.2 s
-    st.add_pose("pnp_joint", 30, T_off, None, 5.0, True, t=3.0)
+    st.add_pose("pnp_joint", 30, T_off, None, 5.0, True, t=3.0, end_identity=0.6234)
     assert st.methods["pnp_joint"]["pos_err_mm"] is None and st.methods["pnp_joint"]["ambiguous"]
+    assert st.methods["pnp_joint"]["tip_p"] == 0.62 and row["tip_p"] is None
     json.dumps(st.to_json(now=3.0))
     m = RateMeter(1.0)
     for t in np.arange(0, 3, 0.05):

@@ -48,7 +48,7 @@ async function tick() {
     document.getElementById('head').textContent = st.head || '';
     const rows = Object.entries(st.methods || {});
     let h = '<tr><th style="text-align:left">method</th><th>seq</th><th>x,y,z (mm)</th><th>err mm</th><th>err deg</th><th>poses/s</th><th>latency ms</th><th></th></tr>';
-    for (const [m, r] of rows) h += `<tr style="color:${st.colours[m] || '#fff'}"><td style="text-align:left">${m}</td><td>${r.seq}</td><td>${r.t_mm}</td><td>${r.pos_err_mm ?? '—'}</td><td>${r.rot_err_deg ?? '—'}</td><td>${r.rate_hz}</td><td>${r.latency_ms}</td><td>${r.ambiguous ? 'ambiguous' : ''}</td></tr>`;
+    for (const [m, r] of rows) h += `<tr style="color:${st.colours[m] || '#fff'}"><td style="text-align:left">${m}</td><td>${r.seq}</td><td>${r.t_mm}</td><td>${r.pos_err_mm ?? '—'}</td><td>${r.rot_err_deg ?? '—'}</td><td>${r.rate_hz}</td><td>${r.latency_ms}</td><td>${r.ambiguous ? 'ambiguous' + (r.tip_p != null ? ` (tip p ${r.tip_p})` : '') : ''}</td></tr>`;
     document.getElementById('tab').innerHTML = h;
     document.getElementById('plots').innerHTML = PLOTS.filter(([k]) => st.series && st.series[k] && Object.keys(st.series[k]).length)
       .map(([k, title]) => plot(st.series[k], title, st.colours)).join('');

@@ -55,13 +55,14 @@ class ViewerState:
             d.popleft()
 
     def add_pose(self, method: str, seq: int, T_ecm_needle, T_true: Optional[np.ndarray],
-                 latency_ms: float, ambiguous: bool, t: float) -> dict:
+                 latency_ms: float, ambiguous: bool, t: float, end_identity: Optional[float] = None) -> dict:
         """Record a method's pose received at ``t``; returns its row (also kept for the table)."""
         self.rates[method].add(t)
         rate = self.rates[method].rate(t)
         row = {"seq": int(seq), "t_mm": " ".join(f"{x:.1f}" for x in np.asarray(T_ecm_needle)[:3, 3] * 1e3),
                "rate_hz": round(rate, 1), "latency_ms": round(float(latency_ms), 1),
-               "ambiguous": bool(ambiguous), "pos_err_mm": None, "rot_err_deg": None}
+               "ambiguous": bool(ambiguous), "pos_err_mm": None, "rot_err_deg": None,
+               "tip_p": None if end_identity is None else round(float(end_identity), 2)}
         if T_true is not None:
             dp, dr = pose_error(np.asarray(T_ecm_needle, float), T_true)
             row["pos_err_mm"], row["rot_err_deg"] = round(dp * 1e3, 3), round(float(np.degrees(dr)), 3)
