@@ -102,7 +102,7 @@ class RefineNode(StereoPoseNode):
         self.max_rms_px = self.p.max_rms_px
         self.outlier_px = self.p.outlier_px
         self.tracker: TrackingRefiner | None = None
-        self._track_logit: float | None = None      # the tracked needle's end identity, log-odds
+        self._track: tuple[float, float] | None = None   # the tracked needle's end identity (track_identity)
 
     def on_calib(self, msg: Calibration):
         changed = self.calib is None or msg.cameras != self.calib.cameras or msg.needle != self.calib.needle
@@ -115,7 +115,7 @@ class RefineNode(StereoPoseNode):
         super().on_stream_reset()
         if self.tracker is not None:
             self.tracker.reset()          # the last pose is of the old stream
-        self._track_logit = None
+        self._track = None
 
     def settle_end_identity(self, left: Keypoints, right: Keypoints) -> tuple[Keypoints, Keypoints]:
         """The frame's end identity, with the tracked needle's (``track_identity``): the pair
@@ -123,20 +123,20 @@ class RefineNode(StereoPoseNode):
         p = stereo_end_identity(*(kp.end_identity if kp.found else None for kp in (left, right)))
         prev = self.tracker.track(left.stamp_ns) if self.tracker is not None else None
         if p is None:
-            self._track_logit = None
+            self._track = None
             return left, right
         same = None
-        if prev is not None and self._track_logit is not None:
+        if prev is not None and self._track is not None:
             uv, sc = self.stereo_arrays(left, right)
             tuv, tsc = self.stereo_arrays(turn_keypoints(left), turn_keypoints(right))
             as_read, turned = self.tracker.reprojects(uv, sc, prev), self.tracker.reprojects(tuv, tsc, prev)
             if as_read != turned:               # the frame relates to the track one way only
                 same = as_read
-        turn, self._track_logit = track_identity(p, self._track_logit, same)
+        turn, self._track = track_identity(p, self._track, same)
         if turn:
             left, right = turn_keypoints(left), turn_keypoints(right)
             self.count("end_identity.turned")
-        self.identity.put(left.seq, 1.0 / (1.0 + np.exp(-self._track_logit)))
+        self.identity.put(left.seq, 1.0 / (1.0 + np.exp(-self._track[0])))
         return left, right
 
     def on_pair(self, left: Keypoints, right: Keypoints):

@@ -127,21 +127,25 @@ def test_without_a_statement_a_is_taken_as_said():
 
 def test_identity_is_the_tracked_needles_not_one_frames():
     """track_identity: alone a frame decides by itself; against a sure track its weak contrary
-    evidence does not turn the needle (the frame is turned to the track's reading); weak but
-    consistent frames become sure, up to the cap."""
-    turn, z = track_identity(0.3, None, None)                 # no track: the frame's own call
-    assert turn and z == pytest.approx(np.log(0.7 / 0.3))
-    turn, z = track_identity(0.3, 5.0, None)                  # cannot relate it to the track
-    assert turn and z == pytest.approx(np.log(0.7 / 0.3))
+    evidence does not turn the needle (the frame is turned to the track's reading), strong
+    evidence does; weak but consistent frames keep the track steady but not surer than they are
+    (their errors share a cause)."""
+    weak = np.log(0.7 / 0.3)
+    turn, (z, w) = track_identity(0.3, None, None)            # no track: the frame's own call
+    assert turn and z == pytest.approx(weak) and w == 1.0
+    turn, (z, w) = track_identity(0.3, (5.0, 3.0), None)      # cannot relate it to the track
+    assert turn and z == pytest.approx(weak) and w == 1.0
     # the frame reads the needle the other way round than the sure track, with weak evidence
-    turn, z = track_identity(0.7, 5.0, False)
-    assert turn and z == pytest.approx(0.8 * 5.0 - np.log(0.7 / 0.3))
+    turn, (z, w) = track_identity(0.7, (5.0, 3.0), False)
+    assert turn and w == pytest.approx(3.4) and z == pytest.approx((0.8 * 3.0 * 5.0 - weak) / 3.4)
     # strong contrary evidence wins
-    turn, z = track_identity(0.9999, 1.0, False)
-    assert not turn
-    z = None
-    for _ in range(40):                                        # weak, consistent: sure, capped
-        turn, z = track_identity(0.7, z, True if z is not None else None)
+    assert not track_identity(0.9999, (1.0, 1.0), False)[0]
+    track = None
+    for _ in range(40):                                        # weak, consistent: as sure as a frame
+        turn, track = track_identity(0.7, track, True if track is not None else None)
         assert not turn
-    assert np.log(0.95 / 0.05) < z <= TRACK_CAP                # 0.85 / (1 - 0.8) = 4.2
-    assert track_identity(0.9999, TRACK_CAP, True)[1] == TRACK_CAP
+    assert track[0] == pytest.approx(weak) and track[1] == pytest.approx(5.0, abs=1e-3)
+    # one contrary frame as weak as the others does not turn it, and leaves it less sure
+    turn, (z, _) = track_identity(0.7, track, False)
+    assert turn and 0 < z < weak
+    assert track_identity(1.0 - 1e-12, (TRACK_CAP, 5.0), True)[1][0] == TRACK_CAP

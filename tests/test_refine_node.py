@@ -7,6 +7,7 @@ import pytest
 
 from common.geometry.camera import StereoRig
 from common.geometry.ecm_kinematics import EcmArm
+from common.geometry.end_identity import stereo_end_identity
 from common.geometry.needle import NeedleModel
 from common.geometry.oracle import Oracle, random_needle_pose
 from common.geometry.pnp import refine_starts
@@ -244,9 +245,10 @@ def test_refine_node_in_a_launched_graph_matches_the_library(run_graph):
 
 
 def test_end_identity_belongs_to_the_tracked_needle_not_to_a_frame():
-    """A detector unsure of the tip (0.8 per image) in every frame: the first pose is flagged,
-    the next ones are not (the frames agree); a frame it reads the other way round, as unsure,
-    is turned back to the track's reading."""
+    """A detector unsure of the tip (0.8 per image) in every frame: every pose is flagged with
+    that probability (frames that agree share their causes of error: they do not make the tip
+    sure); a frame it reads the other way round, as unsure, is turned back to the track's
+    reading; then one sure frame makes it sure."""
     import dataclasses
 
     from nodes._pose import turn_keypoints
@@ -261,10 +263,15 @@ def test_end_identity_belongs_to_the_tracked_needle_not_to_a_frame():
                            centreline=o.centreline, centreline_w=o.centreline_w, end_identity=0.8)
             if seq == 5:
                 kp = dataclasses.replace(turn_keypoints(kp), end_identity=0.8)
+            if seq == 7:
+                kp = dataclasses.replace(kp, end_identity=0.9999)
             getattr(node, f"on_{cam}")(kp)
     out = poses(node)
     assert len(out) == 8
     for (T, *_), pose in zip(frames, out):
         assert pose_error(pose.T_ecm_needle, T)[1] < np.radians(5.0)
-    assert out[0].ambiguous and not any(p.ambiguous for p in out[1:])
+    p = stereo_end_identity(0.8, 0.8)
+    assert all(q.ambiguous for q in out[:7]) and not out[7].ambiguous
+    assert all(q.end_identity == pytest.approx(p) for q in out[:5])
+    assert out[5].end_identity < p and out[7].end_identity > 0.95
     assert node.counters["end_identity.turned"] == 1

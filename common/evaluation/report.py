@@ -418,13 +418,16 @@ def write_overlays(outdir, col: Collected, ev: Evaluation, rig, needle: NeedleMo
 def write_per_frame_csv(path, col: Collected, ev: Evaluation) -> None:
     """One row per frame: seq, sequence, step, camera distance (mm), the keypoints' mean 2D
     (px) and 3D (mm) errors, and each method's position (mm) and orientation (deg) errors:
-    empty where the method is not scored on that frame, ``nan`` where it gave no pose."""
+    empty where the method is not scored on that frame, ``nan`` where it gave no pose; for the
+    methods that flag poses also the flag (1/0), the NEES and the stated end identity."""
     import csv
     idx = {m: {s: i for i, s in enumerate(t["seqs"])} for m, t in ev.pose.items()}
     with open(path, "w", newline="") as f:
         w = csv.writer(f)
+        flags = [m for m, t in ev.pose.items() if np.isfinite(t["ambiguous"]).any()]
         w.writerow(["seq", "sequence", "step", "distance_mm", "kp2d_px", "kp3d_mm"]
-                   + [f"{m}_{q}" for m in ev.pose for q in ("mm", "deg")])
+                   + [f"{m}_{q}" for m in ev.pose for q in ("mm", "deg")]
+                   + [f"{m}_{q}" for m in flags for q in ("ambiguous", "nees", "end_identity")])
         for s in ev.seqs:
             gt = col.truths[s]
             T = ev.T_true.get(s)
@@ -440,6 +443,11 @@ def write_per_frame_csv(path, col: Collected, ev: Evaluation) -> None:
                     row += ["", ""]
                 else:
                     row += [f"{t['position_m'][i] * 1e3:.4f}", f"{np.degrees(t['orientation_rad'][i]):.4f}"]
+            for m in flags:
+                t, i = ev.pose[m], idx[m].get(s)
+                row += ["", "", ""] if i is None else [
+                    "" if not np.isfinite(t["ambiguous"][i]) else int(t["ambiguous"][i]),
+                    f"{t['nees'][i]:.3f}", f"{t['end_identity'][i]:.4f}"]
             w.writerow(row)
 
 

@@ -28,30 +28,34 @@ def logit(p: float) -> float:
 
 
 TRACK_DECAY = 0.8
-"""A frame's end-identity evidence counts this much less each frame after (``track_identity``)."""
+"""A frame's end-identity evidence weighs this much less each frame after (``track_identity``)."""
 TRACK_CAP = math.log(0.999 / 0.001)
 """The tracked needle's log-odds are capped here: a track is never surer than 0.999."""
 
 
-def track_identity(p_frame: float, track_logodds: float | None, same_as_track: bool | None
-                   ) -> tuple[bool, float]:
+def track_identity(p_frame: float, track: tuple[float, float] | None, same_as_track: bool | None
+                   ) -> tuple[bool, tuple[float, float]]:
     """Identity is the needle's, not a frame's: a frame's probability ``p_frame`` that its A is
-    the tip, combined with the tracked needle's log-odds that its own reading is right
-    (``track_logodds`` >= 0; None: no track). ``same_as_track``: whether the frame reads the needle
-    the way the track does (its keypoints reproject the tracked pose as read, not turned); None
-    when that cannot be told, and then the frame stands alone. The frame's evidence is added to
-    the track's, decayed by ``TRACK_DECAY`` and capped at ``TRACK_CAP``, so one frame's weak
-    evidence does not turn a needle tracked with strong evidence, and weak but consistent frames
-    become sure. Returns (turn: read the frame end for end, the new track log-odds >= 0: how
-    sure the reading that is kept is)."""
+    the tip, combined with the tracked needle's ``track`` = (log-odds >= 0 that its reading is
+    right, weight; None: no track). ``same_as_track``: whether the frame reads the needle the way
+    the track does (its keypoints reproject the tracked pose as read, not turned); None when that
+    cannot be told, and then the frame stands alone.
+
+    The track's log-odds are the mean of its frames', each weighted ``TRACK_DECAY`` less per frame
+    of age, not their sum: the frames of one needle share the causes of their errors (its look,
+    a hidden thread, the light), so agreeing frames keep the track steady (one frame's weak
+    contrary evidence does not turn it, strong evidence does) but do not make it surer than a
+    typical frame. Returns (turn: read the frame end for end, the new track)."""
     z = logit(p_frame)                       # evidence that the frame's A is the tip
-    same = True
-    if track_logodds is not None and same_as_track is not None:
+    same, w = True, 1.0
+    if track is not None and same_as_track is not None:
         same = same_as_track
-        z = TRACK_DECAY * track_logodds + (z if same else -z)     # about the track's reading
+        m, w0 = track
+        w = TRACK_DECAY * w0 + 1.0
+        z = (TRACK_DECAY * w0 * m + (z if same else -z)) / w      # about the track's reading
     z = min(max(z, -TRACK_CAP), TRACK_CAP)
     # z > 0: the reading (the frame's if same, else the track's) is right
-    return (z < 0) == same, abs(z)
+    return (z < 0) == same, (abs(z), w)
 
 
 def stereo_end_identity(p_left: float | None, p_right: float | None) -> float | None:
