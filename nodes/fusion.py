@@ -10,7 +10,9 @@ estimates averaged; residual = RMS distance of those to the fused position, m; c
 every input carried one; ``model_sigma_m`` and ``model_sigma_rad``, the inputs' shared position
 and orientation error, are taken out before the views are weighed and added back once;
 ``ambiguous`` when every averaged estimate was, its covariance then their mean one;
-``end_identity`` the averaged estimates' mean one).
+``end_identity``: which end is the tip is voted by the estimates' stated end identities, those
+turned end for end from the fused pose counting against it (common/geometry/fusion.py); a tip
+they contest below 0.95 is flagged ``ambiguous``, counted ``end_identity.contested``).
 
 Params: ``k`` (5), ``max_dist_mm`` (5), ``max_angle_deg`` (15) for outliers; ``reset_dist_mm``
 (10), ``reset_angle_deg`` (45), ``reset_after`` (3) for detecting a moved needle;
@@ -133,6 +135,8 @@ class FusionNode(Node):
         if out.reset:
             self.count("resets")
         self.count("outliers", int(out.n_queued - out.n_views))
+        if out.turned:
+            self.count("end_identity.contested")
         self.publish("pose", PoseEstimate(
             msg.seq, msg.stamp_ns, self.method, out.T_ecm_needle, out.T_world_needle,
             np.asarray(T_world_ecm, dtype=float), out.rms_m, "m", out.n_views, out.covariance,

@@ -274,14 +274,27 @@ def test_views_that_each_could_not_decide_give_an_ambiguous_fused_pose():
     assert not out.ambiguous and out.n_views == 4
 
 
-def test_the_fused_end_identity_is_the_inliers_not_a_turned_outliers():
+def test_the_tip_is_decided_by_the_views_evidence_not_by_their_count():
     rng = np.random.default_rng(5)
     T0 = make_T(rotvec_to_R([0.1, 0.2, 0.3]), [0.0, 0.01, -0.2])
+    turn = make_T(rotvec_to_R([0.0, np.pi, 0.0]), [0.0, 0.0, 0.0])   # end for end, same origin
+    cov = np.diag([1e-4] * 3 + [1e-6] * 3)
+    logit = lambda p: np.log(p / (1 - p))                             # noqa: E731
     f = MultiViewFusion()
     for p in (0.9, 0.7, None):
-        out = f.add(jitter(T0, rng, 0.3, 0.3), end_identity=p)
-    assert out.end_identity == pytest.approx(0.8)           # views that stated none do not count
-    turned = T0 @ make_T(rotvec_to_R([0.0, np.pi, 0.0]), [0.0, 0.0, 0.0])
-    out = f.add(turned, end_identity=0.99)                   # an outlier: says nothing of the fused pose
-    assert out.n_views == 3 and out.end_identity == pytest.approx(0.8)
+        out = f.add(jitter(T0, rng, 0.3, 0.3), covariance=cov, end_identity=p)
+    # the mean log-odds of the views that stated one
+    assert out.end_identity == pytest.approx(1 / (1 + np.exp(-(logit(0.9) + logit(0.7)) / 2)))
+    assert not out.ambiguous and out.turned == 0
+    # a weaker view turned end for end: not averaged in, but it contests the tip
+    out = f.add(T0 @ turn, covariance=cov, end_identity=0.8)
+    assert out.n_views == 3 and out.turned == 1 and pose_error(out.T_ecm_needle, T0)[1] < 0.05
+    p = 1 / (1 + np.exp(-(logit(0.9) + logit(0.7) - logit(0.8)) / 3))
+    assert out.end_identity == pytest.approx(p) and out.ambiguous
+    d = np.r_[np.pi * (T0[:3, :3] @ [0.0, 1.0, 0.0]), np.zeros(3)]   # the turn, about the arc's axis
+    assert d @ np.linalg.solve(out.covariance, d) < 1.0 / (1.0 - p) + 0.5
+    # turned views with more evidence than the others: the fused pose is theirs
+    out = f.add(T0 @ turn, covariance=cov, end_identity=0.999)
+    assert out.turned == 3 and out.n_views == 2
+    assert pose_error(out.T_ecm_needle, T0 @ turn)[1] < 1e-6 and out.end_identity < 0.95
     assert MultiViewFusion().add(T0).end_identity is None

@@ -16,6 +16,14 @@ Covariances follow ``common.geometry.pnp``: over ``[w, v]`` with ``R = exp([w]x)
 (rotation in ECM axes about the needle origin, translation of the origin, rad and m). Moving
 one to another ECM frame rotates both blocks: ``Sigma' = blkdiag(R, R) Sigma blkdiag(R, R)^T``.
 
+Which end is the tip is decided by evidence, not by a count: views turned end for end from the
+fused pose (the same origin within ``max_dist_m``, more than ``TURNED_RAD`` off) are never
+averaged with it, but when their stated end identities (log-odds summed) outweigh the inliers'
+the fusion is made of them instead. The fused pose then states the mean of every such view's
+log-odds about it (a turned view's counting against it); below ``min_end_identity`` a pose that
+views contest is flagged ``ambiguous`` and its covariance widened over the turn, as the pose
+nodes do for one frame (``common.geometry.end_identity.identity_covariance``).
+
 The queue resets when the needle has moved in the world: when the last ``reset_after``
 estimates agree with one another but are all farther than ``reset_dist_m`` or
 ``reset_angle_rad`` from the fused pose of the older ones (a single wild estimate is only an
@@ -28,7 +36,11 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from common.geometry.transforms import inv_T, make_T, pose_mean, rotvec_to_R
+from common.geometry.end_identity import logit
+from common.geometry.transforms import R_to_rotvec, inv_T, make_T, pose_mean, rotvec_to_R
+
+TURNED_RAD = np.deg2rad(150.0)
+"""A view this far off in orientation, at the fused pose's origin, is the needle turned end for end."""
 
 
 @dataclass
@@ -60,9 +72,9 @@ class FusedPose:
     ``common_sigma_rad`` the inliers' shared position and orientation error, inside
     ``covariance``; ``ambiguous`` when every inlier was (averaging views that each could not
     decide does not decide: the covariance is then the inliers' mean one, which spans what each
-    left open); ``end_identity`` the inliers' mean probability that the tip is where the pose
-    puts it (None when none stated one): views turned end for end from the fused pose are
-    outliers, so every inlier's statement is about the same answer.
+    left open); ``end_identity`` the probability that the tip is where the pose puts it: the
+    mean log-odds of the inliers' and of the views turned end for end from it, which count
+    against it (None when none stated one); ``turned``: how many views were turned end for end.
     """
 
     T_ecm_needle: np.ndarray
@@ -77,6 +89,15 @@ class FusedPose:
     ambiguous: bool = False
     common_sigma_rad: float = 0.0
     end_identity: float | None = None
+    turned: int = 0
+
+
+def _half_turn(T_turned: np.ndarray, T: np.ndarray) -> np.ndarray:
+    """The rotation vector (ECM frame) of a half turn taking ``T`` to the view ``T_turned``, scaled
+    to exactly pi: the end-for-end turn about the arc's axis of symmetry, as that view shows it."""
+    w = R_to_rotvec(T_turned[:3, :3] @ T[:3, :3].T)
+    n = np.linalg.norm(w)
+    return np.pi * w / n if n > 0 else np.zeros(3)
 
 
 def without_common(cov: np.ndarray, sigma_m: float, sigma_rad: float = 0.0) -> np.ndarray:
@@ -201,7 +222,7 @@ class MultiViewFusion:
 
     def __init__(self, k: int = 5, max_dist_m: float = 0.005, max_angle_rad: float = np.deg2rad(15.0),
                  reset_dist_m: float = 0.010, reset_angle_rad: float = np.deg2rad(45.0),
-                 reset_after: int = 3, use_covariance: bool = True):
+                 reset_after: int = 3, use_covariance: bool = True, min_end_identity: float = 0.95):
         if k < 1 or reset_after < 1:
             raise ValueError(f"fusion: k and reset_after must be >= 1, got {k}, {reset_after}")
         self.k = k
@@ -209,6 +230,7 @@ class MultiViewFusion:
         self.reset_dist_m, self.reset_angle_rad = reset_dist_m, reset_angle_rad
         self.reset_after = reset_after
         self.use_covariance = use_covariance
+        self.min_end_identity = min_end_identity
         self.queue: deque[QueuedEstimate] = deque()
         self.sequence: int | None = None
         self.resets = 0
@@ -278,6 +300,15 @@ class MultiViewFusion:
                                                                 e.common_sigma_rad), Rs[-1]))
         T, inl, cov = fuse_poses(Ts, covs if self.use_covariance else None,
                                  self.max_dist_m, self.max_angle_rad)
+        turned = self._turned(Ts, T, inl)
+        z = np.array([0.0 if e.end_identity is None else logit(e.end_identity) for e in self.queue])
+        if turned.any() and z[turned].sum() > z[inl].sum():       # the evidence says turned
+            sel = np.flatnonzero(turned)
+            T, sub_inl, cov = fuse_poses([Ts[i] for i in sel], [covs[i] for i in sel] if self.use_covariance
+                                         else None, self.max_dist_m, self.max_angle_rad)
+            inl = np.zeros(len(Ts), bool)
+            inl[sel[sub_inl]] = True
+            turned = self._turned(Ts, T, inl)
         common = max((e.common_sigma_m for e, ok in zip(self.queue, inl) if ok), default=0.0)
         common_rad = max((e.common_sigma_rad for e, ok in zip(self.queue, inl) if ok), default=0.0)
         if cov is not None and (common > 0 or common_rad > 0):
@@ -288,8 +319,21 @@ class MultiViewFusion:
         if ambiguous and cov is not None:
             own = [covariance_to_frame(e.covariance, R) for e, R, ok in zip(self.queue, Rs, inl) if ok]
             cov = np.mean(own, axis=0)
-        stated = [e.end_identity for e, ok in zip(self.queue, inl) if ok and e.end_identity is not None]
+        said = np.array([e.end_identity is not None for e in self.queue]) & (inl | turned)
+        p = None
+        if said.any():
+            p = float(1.0 / (1.0 + np.exp(-np.mean(np.where(inl, z, -z)[said]))))
+            if turned.any() and p < self.min_end_identity:    # views contest the tip
+                ambiguous = True
+                if cov is not None:
+                    d = np.concatenate([_half_turn(Ts[int(np.flatnonzero(turned)[0])], T), np.zeros(3)])
+                    cov = cov + (1.0 - p) * np.outer(d, d)
         d = np.array([Ti[:3, 3] - T[:3, 3] for Ti, ok in zip(Ts, inl) if ok])
         rms = float(np.sqrt(np.mean(np.sum(d * d, axis=1))))
         return FusedPose(T, T_world_ecm_now @ T, int(inl.sum()), len(Ts), inl, cov, reset, rms, common,
-                         ambiguous, common_rad, float(np.mean(stated)) if stated else None)
+                         ambiguous, common_rad, p, int(turned.sum()))
+
+    def _turned(self, Ts, T, inl) -> np.ndarray:
+        """Views turned end for end from ``T``: at its origin, more than ``TURNED_RAD`` off."""
+        dt, dr = pairwise_errors(Ts, [T])
+        return ~inl & (dt[:, 0] <= self.max_dist_m) & (dr[:, 0] > TURNED_RAD)
