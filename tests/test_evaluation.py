@@ -306,7 +306,12 @@ def test_pose_table_sets_the_stated_end_identity_against_the_turned_poses():
          "n_views": np.ones(5), "nees": np.array([4.0, 1.0, 5.0, 3.0, np.nan]),
          "ambiguous": np.array([1.0, 1.0, 0.0, 0.0, np.nan]),
          "end_identity": np.array([0.6, 0.6, 0.99, np.nan, 0.9])}
-    e = pose_table(SimpleNamespace(pose={"refined": t}))["refined"]["end_identity"]
+    d = pose_table(SimpleNamespace(pose={"refined": t}))["refined"]
+    assert d["end_for_end"] == {"share": pytest.approx(1 / 4), "confident_share": 0.0}
+    t["end_identity"][1] = 0.97          # flagged (a mirror image), but sure of its tip: confident
+    assert pose_table(SimpleNamespace(pose={"refined": t}))["refined"]["end_for_end"]["confident_share"] == 0.25
+    t["end_identity"][1] = 0.6
+    e = d["end_identity"]
     assert e["all"] == {"n": 3, "stated": pytest.approx((0.4 + 0.4 + 0.01) / 3), "measured": pytest.approx(1 / 3)}
     assert e["flagged"] == {"n": 2, "stated": pytest.approx(0.4), "measured": pytest.approx(0.5)}
     assert _tip({"end_identity": e}) == "all 27.0% / 33.3%; flagged 40.0% / 50.0%"

@@ -274,6 +274,8 @@ def pose_error_table(poses: dict, T_true: dict, seqs) -> dict:
 NEES_99PCT = 16.81   # chi-square(6) exceeds this in 1% of the draws (its median: 5.35)
 SWAP_DEG = 150.0
 """A pose this far off in orientation is the needle turned end for end (tip for tail)."""
+TIP_SURE = 0.95
+"""A pose stating its tip at least this probable (the pose nodes' ``min_end_identity``) is sure of it."""
 
 
 def pose_nees(T_est: np.ndarray, covariance, T_true: np.ndarray) -> float:
@@ -398,6 +400,7 @@ def keypoint_table(ev: Evaluation) -> dict:
 def pose_table(ev: Evaluation) -> dict:
     """Table III: per method position (mm) and orientation (deg) summaries, n, failures; for
     methods that flag poses, the NEES, the ambiguous share, the poses turned end for end,
+    (``confident_share``: of those not flagged ``ambiguous`` or stating a sure tip),
     ``end_identity`` (over the poses that state one: the share the poses' own probabilities say
     is turned, ``stated``, against the share that is, ``measured``; also over the flagged ones)
     and ``sure``: the same summaries over the poses not flagged ambiguous."""
@@ -421,12 +424,15 @@ def pose_table(ev: Evaluation) -> dict:
         if len(amb):
             out[m]["ambiguous_share"] = float(amb.mean())
         if n:
-            # turned end for end: about a half turn off; "confident" ones were not flagged ambiguous
+            # turned end for end: about a half turn off; "confident" ones were not flagged
+            # ambiguous, or stated their tip sure (flagged for another reason, a mirror image)
             turned = ok & (np.degrees(np.nan_to_num(t["orientation_rad"])) > SWAP_DEG)
             flagged = np.isfinite(t["ambiguous"]) & (np.nan_to_num(t["ambiguous"]) > 0)
+            tip = t.get("end_identity", np.full(len(ok), np.nan))
+            stated = ok & np.isfinite(tip)
+            tip_sure = stated & (np.nan_to_num(tip) >= TIP_SURE)
             out[m]["end_for_end"] = {"share": float(turned.sum() / n),
-                                     "confident_share": float((turned & ~flagged).sum() / n)}
-            stated = ok & np.isfinite(t.get("end_identity", np.full(len(ok), np.nan)))
+                                     "confident_share": float((turned & (~flagged | tip_sure)).sum() / n)}
             if stated.any():
                 wrong = 1.0 - t["end_identity"]
                 out[m]["end_identity"] = {
