@@ -5,7 +5,9 @@ and its box and gives the confidence; stage 2 on a full-resolution crop around t
 at sub-pixel precision, per-point scores, a presence confidence and the centreline (then moved
 onto the wire's centre in the full-resolution image, ``common.detector.centreline_subpixel``). Cold frames
 run stage 2 twice: the second time on the box of the first pass's keypoints, which puts the crop
-at the scale and centring the network knows best. In tracking mode (per camera) the previous
+at the scale and centring the network knows best; when A's and E's heatmaps there both peak at
+one end of the needle, A and E are taken from the centreline ridge's ends
+(``common.detector.ridge_ends``) and the frame states no end identity. In tracking mode (per camera) the previous
 frame's box is reused and stage 1 is skipped while stage 2's presence confidence stays at or above
 the threshold; otherwise the frame is processed cold. Below the threshold (0.5 by default, as in
 the paper) the result is "no needle" (``Keypoints.not_found``) with a reason; points are never

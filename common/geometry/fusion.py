@@ -300,15 +300,8 @@ class MultiViewFusion:
                                                                 e.common_sigma_rad), Rs[-1]))
         T, inl, cov = fuse_poses(Ts, covs if self.use_covariance else None,
                                  self.max_dist_m, self.max_angle_rad)
-        turned = self._turned(Ts, T, inl)
         z = np.array([0.0 if e.end_identity is None else logit(e.end_identity) for e in self.queue])
-        if turned.any() and z[turned].sum() > z[inl].sum():       # the evidence says turned
-            sel = np.flatnonzero(turned)
-            T, sub_inl, cov = fuse_poses([Ts[i] for i in sel], [covs[i] for i in sel] if self.use_covariance
-                                         else None, self.max_dist_m, self.max_angle_rad)
-            inl = np.zeros(len(Ts), bool)
-            inl[sel[sub_inl]] = True
-            turned = self._turned(Ts, T, inl)
+        T, inl, cov, turned = self._vote(Ts, covs, z, T, inl, cov)
         common = max((e.common_sigma_m for e, ok in zip(self.queue, inl) if ok), default=0.0)
         common_rad = max((e.common_sigma_rad for e, ok in zip(self.queue, inl) if ok), default=0.0)
         if cov is not None and (common > 0 or common_rad > 0):
@@ -332,6 +325,20 @@ class MultiViewFusion:
         rms = float(np.sqrt(np.mean(np.sum(d * d, axis=1))))
         return FusedPose(T, T_world_ecm_now @ T, int(inl.sum()), len(Ts), inl, cov, reset, rms, common,
                          ambiguous, common_rad, p, int(turned.sum()))
+
+    def _vote(self, Ts, covs, z, T, inl, cov):
+        """Which end is the tip, by evidence: the fusion of the views turned end for end from ``T``
+        when their summed log-odds ``z`` outweigh the inliers'. Returns (T, inliers, covariance,
+        the views turned from T)."""
+        turned = self._turned(Ts, T, inl)
+        if turned.any() and z[turned].sum() > z[inl].sum():
+            sel = np.flatnonzero(turned)
+            T, sub_inl, cov = fuse_poses([Ts[i] for i in sel], [covs[i] for i in sel] if self.use_covariance
+                                         else None, self.max_dist_m, self.max_angle_rad)
+            inl = np.zeros(len(Ts), bool)
+            inl[sel[sub_inl]] = True
+            turned = self._turned(Ts, T, inl)
+        return T, inl, cov, turned
 
     def _turned(self, Ts, T, inl) -> np.ndarray:
         """Views turned end for end from ``T``: at its origin, more than ``TURNED_RAD`` off."""
