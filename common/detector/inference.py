@@ -34,7 +34,6 @@ from common.detector.centreline_subpixel import (
     refine_centreline,
 )
 from common.detector.end_identity import FEATURES, EndEvidence, network_evidence, polyline_length, shape_evidence
-from common.detector.ridge_ends import ends_on_ridge
 from common.detector.model import (
     FrozenForInference,
     KeypointModel,
@@ -48,6 +47,7 @@ from common.detector.model import (
     global_size,
     invert_affine,
 )
+from common.detector.ridge_ends import ends_on_ridge
 from common.geometry.observations import curve_normals
 from common.runtime.messages import CameraImage, Keypoints, MessageError
 
@@ -624,8 +624,8 @@ class LearnedBackend(KeypointBackend):
     ``refine`` (true), ``centreline`` (true), ``subpixel`` (true: the centreline refined in the
     full-resolution image), ``min_extent_px`` (10: keypoints closer together are "no needle"),
     ``max_ellipse_px`` (0.25: a sub-pixel centreline farther from one ellipse is "no needle"; 0: off),
-    ``arc_bcd`` (true), ``along_arc`` (false), ``proposals`` (stage-1 proposals tried, 3), ``proposal_threshold`` (0.2),
-    ``ridge_ends`` (true: A and E from the centreline's ends when their heatmaps collapse on one)."""
+    ``arc_bcd`` (true), ``along_arc`` (false), ``proposals`` (stage-1 proposals tried, 3),
+    ``proposal_threshold`` (0.2), ``ridge_ends`` (true: A and E from the centreline's ends when their heatmaps collapse on one)."""
 
     name = "learned"
     needs_image = True

@@ -121,7 +121,8 @@ def report_markdown(res: dict) -> str:
     if honest:
         L += ["", "Stated covariances against the errors (NEES: the squared error in the covariance's "
               "metric; chi-square(6) has median 5.35 and exceeds 16.8 in 1% of the frames):", "",
-              "| method | NEES median | share over 16.8 | ambiguous | turned end for end (not flagged, or sure of the tip) "
+              "| method | NEES median | share over 16.8 | ambiguous "
+              "| turned end for end (not flagged, or sure of the tip) "
               "| turned: stated / measured | not flagged: n, mm / deg mean |",
               "| --- | ---: | ---: | ---: | ---: | ---: | ---: |"]
         L += [f"| {m} | {_fmt(d['nees']['median'], 1)} | {_fmt(100 * d['nees']['over_99pct'], 0)}% "
