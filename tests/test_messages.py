@@ -47,7 +47,7 @@ def examples():
         Keypoints.not_found("left", 2, 3, "learned", "low confidence", 0.2),
         PoseEstimate(seq=4, stamp_ns=12, method="pnp_joint", T_ecm_needle=T, T_world_needle=T, residual=0.4,
                      residual_unit="px", n_views=2, covariance=np.eye(6) * 1e-6, ambiguous=False,
-                     points_ecm=np.zeros((5, 3)), sequence=1),
+                     points_ecm=np.zeros((5, 3)), sequence=1, end_identity=0.8),
         Points3D(seq=1, stamp_ns=2, points_ecm=np.full((5, 3), np.nan), valid=np.zeros(5, dtype=bool)),
         GroundTruth(seq=1, stamp_ns=2, sequence=0, step=1, ecm_joints=np.zeros(4), T_world_ecm=T,
                     T_world_needle=T, keypoints={"left": np.zeros((5, 2)), "right": np.ones((5, 2))},
