@@ -21,7 +21,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from common.evaluation.scoring import EXTRA_METHODS, METHODS, true_T_ecm_needle
+from common.evaluation.scoring import EXTRA_METHODS, METHODS, TIP_SURE, true_T_ecm_needle
 from common.geometry.ecm_kinematics import EcmArm
 from common.geometry.transforms import R_to_rotvec, pose_error
 from common.runtime.messages import Calibration, GroundTruth, PoseEstimate
@@ -31,7 +31,6 @@ from nodes._pose import PoseMethodInputs
 POSE_INPUTS = METHODS + EXTRA_METHODS
 FINAL_ORDER = ("refined", "multiview_refined", "multiview", "pnp_joint", "pnp_average", "triangulation")
 WIDTH = 120
-TIP_SURE = 0.95       # the pose nodes' min_end_identity
 KEEP_FRAMES = 64
 
 

@@ -153,7 +153,8 @@ def shape_evidence(image: np.ndarray, centreline: np.ndarray) -> tuple[float, fl
     return float(np.log((r_a + 0.5) / (r_e + 0.5))), r_a, r_e
 
 
-def _mass_near(prob: np.ndarray, uv_cell: np.ndarray) -> float:
+def mass_near(prob: np.ndarray, uv_cell: np.ndarray) -> float:
+    """The probability mass of ``prob`` (m, m) within ``PEAK_RADIUS_CELLS`` of a cell (x, y)."""
     m = prob.shape[-1]
     ix, iy = int(round(float(uv_cell[0]))), int(round(float(uv_cell[1])))
     r = PEAK_RADIUS_CELLS
@@ -170,8 +171,8 @@ def network_evidence(kp_logits: np.ndarray, uv_cells: np.ndarray) -> float:
     pe /= pe.sum()
     A, E = uv_cells[0], uv_cells[4]
     eps = 1e-6
-    return float(np.log(_mass_near(pa, A) * _mass_near(pe, E) + eps)
-                 - np.log(_mass_near(pa, E) * _mass_near(pe, A) + eps))
+    return float(np.log(mass_near(pa, A) * mass_near(pe, E) + eps)
+                 - np.log(mass_near(pa, E) * mass_near(pe, A) + eps))
 
 
 def fit_coefficients(features: np.ndarray, labels: np.ndarray, l2: float = 1e-2, iters: int = 50) -> np.ndarray:

@@ -308,14 +308,14 @@ def decode_heatmaps(kp_logits: torch.Tensor, out_stride: int):
     win = (np.take_along_axis(flat, idx, -1) - lse[..., None]).reshape(n, k, 5, 5)
     c, l, r, u, d = win[..., 2, 2], win[..., 2, 1], win[..., 2, 3], win[..., 1, 2], win[..., 3, 2]
     s = out_stride
-    xs = (ix + _vertex(l, c, r)) * s + (s - 1) / 2.0
-    ys = (iy + _vertex(u, c, d)) * s + (s - 1) / 2.0
+    xs = (ix + parabola_vertex(l, c, r)) * s + (s - 1) / 2.0
+    ys = (iy + parabola_vertex(u, c, d)) * s + (s - 1) / 2.0
     uv = np.stack([xs, ys], -1).astype(np.float32)
     score = np.clip((np.exp(win) * inside).sum((-1, -2)), 0.0, 1.0).astype(np.float32)
     return torch.from_numpy(uv), torch.from_numpy(score)
 
 
-def _vertex(a: np.ndarray, b: np.ndarray, c: np.ndarray) -> np.ndarray:
+def parabola_vertex(a: np.ndarray, b: np.ndarray, c: np.ndarray) -> np.ndarray:
     """Vertex offset in [-0.5, 0.5] of the parabola through (-1, a), (0, b), (1, c)."""
     den = a - 2 * b + c
     off = np.where(den < -1e-6, 0.5 * (a - c) / np.minimum(den, -1e-6), 0.0)

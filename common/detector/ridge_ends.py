@@ -20,11 +20,13 @@ from __future__ import annotations
 import cv2
 import numpy as np
 
+from common.detector.end_identity import mass_near
+from common.detector.model import parabola_vertex
+
 RIDGE_PROB = 0.25      # centreline probability that makes a cell part of the ridge (as decode_centreline)
 MIN_RIDGE_CELLS = 12   # fewer ridge cells: no ridge to speak of
 COLLAPSE_RATIO = 0.4   # decoded ends closer than this fraction of the ridge's larger extent collapsed
 SNAP_CELLS = 3         # an end moves to the strongest end evidence within this many cells
-PEAK_CELLS = 2         # the score sums the probability within this many cells of the end
 
 
 def _softmax2d(logits: np.ndarray) -> np.ndarray:
@@ -73,12 +75,6 @@ def ridge_ends(mask: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return np.array(p1, float), np.array(p2, float)
 
 
-def _mass(prob: np.ndarray, xy: np.ndarray, r: int = PEAK_CELLS) -> float:
-    m = prob.shape[-1]
-    ix, iy = int(round(float(xy[0]))), int(round(float(xy[1])))
-    return float(prob[max(0, iy - r):min(m, iy + r + 1), max(0, ix - r):min(m, ix + r + 1)].sum())
-
-
 def _snap(q: np.ndarray, xy: np.ndarray, r: int = SNAP_CELLS) -> np.ndarray:
     """The peak of ``q`` within ``r`` cells of ``xy``, at sub-cell precision (a parabola through
     the log-probabilities, as ``decode_heatmaps``)."""
@@ -89,13 +85,8 @@ def _snap(q: np.ndarray, xy: np.ndarray, r: int = SNAP_CELLS) -> np.ndarray:
     iy, ix = np.unravel_index(int(np.argmax(win)), win.shape)
     iy, ix = iy + ya, ix + xa
     lq = np.log(q + 1e-12)
-
-    def vertex(a, b, c):
-        den = a - 2 * b + c
-        return float(np.clip(0.5 * (a - c) / den, -0.5, 0.5)) if den < -1e-6 else 0.0
-
-    dx = vertex(lq[iy, ix - 1], lq[iy, ix], lq[iy, ix + 1]) if 0 < ix < m - 1 else 0.0
-    dy = vertex(lq[iy - 1, ix], lq[iy, ix], lq[iy + 1, ix]) if 0 < iy < m - 1 else 0.0
+    dx = float(parabola_vertex(lq[iy, ix - 1], lq[iy, ix], lq[iy, ix + 1])) if 0 < ix < m - 1 else 0.0
+    dy = float(parabola_vertex(lq[iy - 1, ix], lq[iy, ix], lq[iy + 1, ix])) if 0 < iy < m - 1 else 0.0
     return np.array([ix + dx, iy + dy])
 
 
@@ -106,7 +97,7 @@ def ends_on_ridge(kp_logits: np.ndarray, line_logit: np.ndarray, a: np.ndarray, 
     least ``min_score``; else None.
 
     ``kp_logits`` (5, m, m) the keypoint logits (A is 0, E is 4), ``line_logit`` (m, m) the
-    centreline logit, ``peak_mass`` a perfect peak's mass within ``PEAK_CELLS`` (scores are
+    centreline logit, ``peak_mass`` a perfect peak's mass within ``PEAK_RADIUS_CELLS`` (scores are
     divided by it and clipped to [0, 1]). Returns (a (2,), e (2,), score_a, score_e)."""
     mask = ridge_component(line_logit)
     if mask is None:
@@ -120,9 +111,9 @@ def ends_on_ridge(kp_logits: np.ndarray, line_logit: np.ndarray, a: np.ndarray, 
     p1, p2 = (_snap(q, p) for p in ridge_ends(mask))
     if np.linalg.norm(p1 - p2) < collapse_ratio * extent:
         return None
-    if _mass(pa, p1) * _mass(pe, p2) < _mass(pa, p2) * _mass(pe, p1):
+    if mass_near(pa, p1) * mass_near(pe, p2) < mass_near(pa, p2) * mass_near(pe, p1):
         p1, p2 = p2, p1
-    score = [min(1.0, _mass(q, p) / peak_mass) for p in (p1, p2)]
+    score = [min(1.0, mass_near(q, p) / peak_mass) for p in (p1, p2)]
     if min(score) < min_score:
         return None
     return p1, p2, score[0], score[1]

@@ -434,7 +434,7 @@ def pose_table(ev: Evaluation) -> dict:
             out[m]["end_for_end"] = {"share": float(turned.sum() / n),
                                      "confident_share": float((turned & (~flagged | tip_sure)).sum() / n)}
             if stated.any():
-                wrong = 1.0 - t["end_identity"]
+                wrong = 1.0 - tip
                 out[m]["end_identity"] = {
                     part: {"n": int(sel.sum()), "stated": float(wrong[sel].mean()),
                            "measured": float(turned[sel].mean())}
