@@ -21,7 +21,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from common.evaluation.scoring import EXTRA_METHODS, METHODS, TIP_SURE, true_T_ecm_needle
+from common.evaluation.scoring import EXTRA_METHODS, METHODS, true_T_ecm_needle
+from common.geometry.end_identity import TIP_SURE
 from common.geometry.ecm_kinematics import EcmArm
 from common.geometry.transforms import R_to_rotvec, pose_error
 from common.runtime.messages import Calibration, GroundTruth, PoseEstimate

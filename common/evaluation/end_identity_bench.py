@@ -21,8 +21,8 @@ import numpy as np
 from tqdm import tqdm
 
 from common.detector.end_identity import FEATURES
+from common.geometry.end_identity import TIP_SURE as SURE
 
-SURE = 0.95
 MIN_FIT_ERRORS = 5      # fewer detections read end for end (or as said) than this: warn at --fit
 
 

@@ -21,6 +21,7 @@ from typing import Optional
 import numpy as np
 
 from common.geometry.ecm_kinematics import EcmArm
+from common.geometry.end_identity import TIP_SURE
 from common.geometry.needle import KEYPOINT_NAMES, NeedleModel
 from common.geometry.transforms import R_to_rotvec, inv_T, pose_error
 from common.runtime.messages import (
@@ -274,8 +275,6 @@ def pose_error_table(poses: dict, T_true: dict, seqs) -> dict:
 NEES_99PCT = 16.81   # chi-square(6) exceeds this in 1% of the draws (its median: 5.35)
 SWAP_DEG = 150.0
 """A pose this far off in orientation is the needle turned end for end (tip for tail)."""
-TIP_SURE = 0.95
-"""A pose stating its tip at least this probable (the pose nodes' ``min_end_identity``) is sure of it."""
 
 
 def pose_nees(T_est: np.ndarray, covariance, T_true: np.ndarray) -> float:
