@@ -26,6 +26,7 @@ import numpy as np
 from common.geometry.camera import StereoRig
 from common.geometry.end_identity import TIP_SURE, Settled, settle, state, turn_observation
 from common.geometry.needle import NeedleModel
+from common.methods import POSE_METHODS
 from common.runtime.messages import Calibration, EcmPose, Keypoints, PoseEstimate
 from common.runtime.node import Node
 from common.runtime.pairing import SeqCache, StereoPairer
@@ -194,9 +195,6 @@ def turn_keypoints(kp: Keypoints) -> Keypoints:
                    end_identity=None if kp.end_identity is None else 1.0 - kp.end_identity)
 
 
-POSE_METHODS = ("pnp_average", "pnp_joint", "triangulation", "multiview", "refined",
-                "multiview_refined")
-"""The pose methods a graph can produce: the input names of nodes that consume them all."""
 
 
 class PoseMethodInputs:

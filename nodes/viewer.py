@@ -42,8 +42,8 @@ from common.viewer.draw import PoseToDraw, decode_small
 from common.viewer.frame import log_frame, pictures
 from common.viewer.page import PageServer
 from common.viewer.state import ViewerState
-from nodes._pose import POSE_METHODS, PoseMethodInputs
-from nodes.monitor import FINAL_ORDER
+from common.methods import POSE_METHODS, final_method
+from nodes._pose import PoseMethodInputs
 
 CAMERAS = ("left", "right")
 KEEP = 16           # frames remembered per input (by seq)
@@ -103,7 +103,7 @@ class ViewerNode(PoseMethodInputs, Node):
         wired = [m for m in POSE_METHODS if self.wired(m)]
         if p.final is not None and p.final not in POSE_METHODS:
             raise NodeError(f"viewer.params.final: {p.final!r} is not one of {POSE_METHODS}")
-        self.final = p.final or next((m for m in FINAL_ORDER if m in wired), wired[0] if wired else None)
+        self.final = p.final or final_method(wired)
         self.images = {c: collections.OrderedDict() for c in CAMERAS}   # seq -> (img, scale, stamp, t)
         self.keypoints = {c: collections.OrderedDict() for c in CAMERAS}
         self.poses = {m: collections.OrderedDict() for m in POSE_METHODS}

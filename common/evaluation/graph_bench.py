@@ -177,9 +177,8 @@ def viewer_node(doc: dict, split: bool, params: dict | None = None) -> dict:
 
 def measure(args, dataset: str, log, viewer: bool = False) -> dict:
     from common.data.dataset import Dataset
+    from common.methods import METHOD_NEEDS, MULTIVIEW_METHODS, POSE_OUTPUTS, last_stage
     from common.evaluation.pipeline_graph import (
-        METHOD_NEEDS,
-        POSE_OUTPUTS,
         GraphRun,
         keypoint_sources,
         pipeline_graph,
@@ -207,7 +206,7 @@ def measure(args, dataset: str, log, viewer: bool = False) -> dict:
         doc["nodes"].append(viewer_node(doc, split, vparams))
         viewer_params = doc["nodes"][-1]["params"]
     if final not in poses:
-        final = next(m for m in ("multiview_refined", "multiview") if m in poses)
+        final = last_stage(m for m in poses if m in MULTIVIEW_METHODS)
     frame_node = POSE_OUTPUTS[METHOD_NEEDS[final][0]].split("/")[0]   # pairs stereo keypoints
     rec = Recorder()
     streams = {"published": ("replay/truth", GroundTruth)}

@@ -28,11 +28,8 @@ from common.evaluation.scoring import (
 )
 from common.geometry.needle import KEYPOINT_NAMES, NeedleModel
 from common.geometry.transforms import transform_points
+from common.methods import FINAL_ORDER, METHOD_COLOURS, MULTIVIEW_METHODS
 
-METHOD_COLOURS = {  # matplotlib colours; BGR for OpenCV below
-    "pnp_average": "#1f77b4", "pnp_joint": "#ff7f0e", "triangulation": "#9467bd",
-    "multiview": "#d62728", "refined": "#17becf", "multiview_refined": "#8c564b",
-}
 TRUTH_BGR = (60, 200, 60)
 
 
@@ -276,10 +273,10 @@ def select_overlay_frames(ev: Evaluation, k_worst: int = 3) -> list[tuple[int, s
             chosen.setdefault(t["seqs"][fin[len(fin) // 2]], f"median_{m}")
             chosen.setdefault(t["seqs"][fin[-1]], f"best_{m}")
 
-    single = [m for m in ("refined", "pnp_joint", "pnp_average", "triangulation") if m in ev.pose]
+    single = [m for m in FINAL_ORDER if m not in MULTIVIEW_METHODS and m in ev.pose]
     if single:
         pick(single[0])
-    for m in ("multiview_refined", "multiview"):
+    for m in (m for m in FINAL_ORDER if m in MULTIVIEW_METHODS):
         if m in ev.pose and ev.pose[m]["seqs"]:
             pick(m)
             break

@@ -24,6 +24,7 @@ from common.geometry.ecm_kinematics import EcmArm
 from common.geometry.end_identity import TIP_SURE
 from common.geometry.needle import KEYPOINT_NAMES, NeedleModel
 from common.geometry.transforms import R_to_rotvec, inv_T, pose_error
+from common.methods import EXTRA_METHODS, MULTIVIEW_METHODS, PAPER_POSE, REPORTED_METHODS, last_stage
 from common.runtime.messages import (
     Calibration,
     EndOfStream,
@@ -35,17 +36,14 @@ from common.runtime.messages import (
 )
 
 CAMERAS = ("left", "right")
-METHODS = ("pnp_average", "pnp_joint", "triangulation", "multiview")
-"""The methods every ``results.json`` reports (the paper's Table III plus ``pnp_joint``)."""
-EXTRA_METHODS = ("refined", "multiview_refined")
-"""Reported beside METHODS when the graph produced them."""
-MULTIVIEW_METHODS = frozenset({"multiview", "multiview_refined"})
+METHODS = REPORTED_METHODS
+"""The methods every ``results.json`` reports (``common.methods``)."""
 RESULT_KEYS = ("dataset", "frames", "detector", "detection_rate", "keypoints_2d_px",
                "keypoints_3d_mm", "pose", "timing")
 
 PAPER = {
     "keypoints_2d_px": {"all": 5.58},
-    "pose": {"pnp_average": (2.26, 6.74), "triangulation": (6.13, 35.61), "multiview": (1.76, 8.55)},
+    "pose": PAPER_POSE,
     "rate_hz": 10.0,
 }
 """The paper's figures: mean 2D keypoint error (px), Table III (mean mm, mean deg), speed."""
@@ -477,8 +475,7 @@ def timing_summary(col: Collected, final_method: Optional[str] = None) -> dict:
     method per second, from the first published frame to the last pose.
     """
     if final_method is None:
-        final_method = next((m for m in ("multiview_refined", "multiview", "refined", "pnp_joint",
-                                         "pnp_average", "triangulation") if col.poses.get(m)), None)
+        final_method = last_stage(m for m in col.poses if col.poses.get(m))
     lat, thr = [], None
     if final_method is not None:
         poses, arr = col.poses[final_method], col.arrivals_ns[final_method]

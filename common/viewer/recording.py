@@ -15,10 +15,9 @@ import numpy as np
 from common.evaluation.scoring import true_T_ecm_needle
 from common.geometry.transforms import pose_error
 from common.viewer.draw import PoseToDraw, downscale
+from common.methods import in_final_order
 from common.viewer.frame import CAMERAS, log_frame, pictures
 
-# the method drawn in full: the first present of (as nodes/monitor.py)
-FINAL_ORDER = ("refined", "multiview_refined", "multiview", "pnp_joint", "pnp_average", "triangulation")
 
 
 def write_rrd(path, col, rig, needle, arm=None, load_images: Optional[Callable[[int], dict]] = None,
@@ -31,8 +30,7 @@ def write_rrd(path, col, rig, needle, arm=None, load_images: Optional[Callable[[
     rl.set_sinks(rec, save=str(path))
     scale = min(1.0, width / rig.left.width, height / rig.left.height)
     rl.log_rig(rec, rig, scale)
-    methods = [m for m in FINAL_ORDER if col.poses.get(m)] + \
-              [m for m in col.poses if m not in FINAL_ORDER and col.poses[m]]
+    methods = in_final_order(m for m in col.poses if col.poses[m])    # the first is drawn in full
     final = methods[0] if methods else None
     path_pts = []
     n = 0
