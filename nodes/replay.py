@@ -66,19 +66,6 @@ def parse_rate(value) -> float | None:
     return hz
 
 
-def truth_message(fr, seq: int, stamp_ns: int):
-    """The frame's ground truth as a GroundTruth message, or None if it has none."""
-    if all(getattr(fr, k) is None for k in ("T_world_needle", "keypoints", "visible", "bbox", "T_world_ecm")):
-        return None
-    return GroundTruth(
-        seq=seq, stamp_ns=stamp_ns, sequence=fr.sequence, step=fr.step, ecm_joints=fr.ecm_joints,
-        T_world_ecm=fr.T_world_ecm, T_world_needle=fr.T_world_needle,
-        keypoints=None if fr.keypoints is None else {c: np.asarray(fr.keypoints[c], float) for c in CAMS},
-        visible=None if fr.visible is None else {c: np.asarray(fr.visible[c], bool) for c in CAMS},
-        bbox=None if fr.bbox is None else {c: None if fr.bbox[c] is None else np.asarray(fr.bbox[c], float)
-                                           for c in CAMS})
-
-
 class ReplayNode(CameraSourceNode):
     """Dataset folder source."""
 
@@ -246,7 +233,7 @@ class ReplayNode(CameraSourceNode):
             self.publish("joints", EcmJoints(seq, stamp, np.asarray(fr.ecm_joints, float)))
         elif fr.T_world_ecm is not None:
             self.publish("measured", EcmPose(seq, stamp, np.asarray(fr.T_world_ecm, float)))
-        truth = truth_message(fr, seq, stamp)
+        truth = GroundTruth.from_frame(fr, seq, stamp)
         if truth is not None:
             self.publish("truth", truth)
         self.published_frames += 1

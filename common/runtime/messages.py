@@ -724,6 +724,24 @@ class GroundTruth(Message):
         for name in ("T_world_ecm", "T_world_needle"):
             _rigid(getattr(self, name), f"GroundTruth.{name}")
 
+    @classmethod
+    def from_frame(cls, frame, seq: int, stamp_ns: int) -> "GroundTruth | None":
+        """The ground truth of a frame: a dataset's (``common.data.dataset.Frame``) or the
+        simulator's (``common.sim.live.SimFrame``), anything with ``sequence``, ``step``,
+        ``ecm_joints``, ``T_world_ecm``, ``T_world_needle`` and ``keypoints`` / ``visible`` /
+        ``bbox`` by camera (each may be None). None when the frame has no truth at all."""
+        kp, vis, bbox = frame.keypoints, frame.visible, frame.bbox
+        if all(v is None for v in (frame.T_world_needle, kp, vis, bbox, frame.T_world_ecm)):
+            return None
+        q = frame.ecm_joints
+        return cls(seq=seq, stamp_ns=stamp_ns, sequence=frame.sequence, step=frame.step,
+                   ecm_joints=None if q is None else np.asarray(q, float),
+                   T_world_ecm=frame.T_world_ecm, T_world_needle=frame.T_world_needle,
+                   keypoints=None if kp is None else {c: np.asarray(kp[c], float) for c in CAMERAS},
+                   visible=None if vis is None else {c: np.asarray(vis[c], bool) for c in CAMERAS},
+                   bbox=None if bbox is None else {c: None if bbox[c] is None else np.asarray(bbox[c], float)
+                                                   for c in CAMERAS})
+
 
 @register
 @dataclass
