@@ -29,7 +29,7 @@ from common.geometry.needle import NeedleModel
 from common.methods import POSE_METHODS
 from common.runtime.messages import Calibration, EcmPose, Keypoints, PoseEstimate
 from common.runtime.node import Node
-from common.runtime.pairing import SeqCache, StereoPairer
+from common.runtime.pairing import SeqCache, SeqJoin, StereoPairer
 
 
 class StereoPoseNode(Node):
@@ -49,9 +49,7 @@ class StereoPoseNode(Node):
 
     def setup(self):
         self.min_score = self.p.min_score
-        self.max_wait = self.p.max_wait
-        self.waiting: list[tuple[str, PoseEstimate]] = []     # poses waiting for their ECM pose
-        self.newest_seq = -1
+        self.waiting = SeqJoin(self.p.max_wait)     # (output, pose) waiting for the frame's ECM pose
         self.calib: Calibration | None = None
         self.rig = None
         self.model_points = None
@@ -64,11 +62,10 @@ class StereoPoseNode(Node):
         """A new source stream: pending halves, ECM poses and waiting poses are of the old one."""
         self.pairer.reset()
         self.ecm_poses.clear()
-        if self.waiting:
-            self.count("no_pose.source_restart", len(self.waiting))
-        self.waiting = []
+        gone = self.waiting.reset()
+        if gone:
+            self.count("no_pose.source_restart", len(gone))
         self.identity.clear()
-        self.newest_seq = -1
 
     # ---------------------------------------------------------------- inputs
     def on_calib(self, msg: Calibration):
@@ -96,7 +93,7 @@ class StereoPoseNode(Node):
         pair = self.pairer.push(msg.camera, msg.seq, msg)
         if self.pairer.dropped > dropped:
             self.count("unpaired", self.pairer.dropped - dropped)
-        self.newest_seq = max(self.newest_seq, msg.seq)
+        self.waiting.see(msg.seq)
         self._release()
         if pair is None:
             return
@@ -151,25 +148,19 @@ class StereoPoseNode(Node):
             self.count("end_identity.unsure")
             pose.ambiguous = True
         if pose.T_world_ecm is None and self.wired("ecm"):
-            self.waiting.append((output, pose))
+            self.waiting.hold(pose.seq, (output, pose))
             self._release()
         else:
             self.publish(output, pose)
 
     def _release(self) -> None:
-        keep = []
-        for output, pose in self.waiting:
-            T_world_ecm = self.ecm_poses.get(pose.seq)
-            if T_world_ecm is not None:
-                pose.T_world_ecm = T_world_ecm
-                pose.T_world_needle = T_world_ecm @ pose.T_ecm_needle
-                self.publish(output, pose)
-            elif self.newest_seq - pose.seq >= self.max_wait:
-                self.count("no_ecm_pose")
-                self.publish(output, pose)
+        for (output, pose), complete in self.waiting.due(lambda seq, _: seq in self.ecm_poses):
+            if complete:
+                pose.T_world_ecm = self.ecm_poses[pose.seq]
+                pose.T_world_needle = pose.T_world_ecm @ pose.T_ecm_needle
             else:
-                keep.append((output, pose))
-        self.waiting = keep
+                self.count("no_ecm_pose")
+            self.publish(output, pose)
 
     def pose_message(self, seq: int, stamp_ns: int, method: str, T_ecm_needle, residual: float,
                      residual_unit: str, **extra) -> PoseEstimate:

@@ -29,7 +29,7 @@ import numpy as np
 from common.geometry.fusion import MultiViewFusion
 from common.runtime.messages import EcmPose, GroundTruth, PoseEstimate
 from common.runtime.node import Node, run
-from common.runtime.pairing import SeqCache
+from common.runtime.pairing import SeqCache, SeqJoin
 
 
 class FusionNode(Node):
@@ -60,20 +60,17 @@ class FusionNode(Node):
             reset_after=p.reset_after, use_covariance=p.use_covariance)
         self.method = p.method
         self.reset_on_sequence = p.reset_on_sequence
-        self.max_wait = p.max_wait
         self.ecm_poses = SeqCache()
         self.sequences = SeqCache()
-        self.pending: list[PoseEstimate] = []
-        self.newest_seq = -1
+        self.pending = SeqJoin(p.max_wait, in_order=True)    # views waiting for their ECM pose / truth
 
     def on_stream_reset(self):
         """A new source stream: the window of views and every per-frame cache start again."""
         self.ecm_poses.clear()
         self.sequences.clear()
-        if self.pending:
-            self.count("no_pose.source_restart", len(self.pending))
-        self.pending = []
-        self.newest_seq = -1
+        gone = self.pending.reset()
+        if gone:
+            self.count("no_pose.source_restart", len(gone))
         self.fusion.reset()
 
     # ---------------------------------------------------------------- inputs
@@ -86,9 +83,7 @@ class FusionNode(Node):
         self._drain()
 
     def on_pose(self, msg: PoseEstimate):
-        self.newest_seq = max(self.newest_seq, msg.seq)
-        self.pending.append(msg)
-        self.pending.sort(key=lambda m: m.seq)
+        self.pending.hold(msg.seq, msg)
         self._drain()
 
     def on_command(self, msg):
@@ -107,13 +102,8 @@ class FusionNode(Node):
         return ecm, truth
 
     def _drain(self):
-        while self.pending:
-            msg = self.pending[0]
+        for msg, _ in self.pending.due(lambda seq, m: not any(self._needs(m))):
             wait_ecm, wait_truth = self._needs(msg)
-            stale = self.newest_seq - msg.seq >= self.max_wait
-            if (wait_ecm or wait_truth) and not stale:
-                return
-            self.pending.pop(0)
             if wait_ecm:
                 self.count("no_pose.no_ecm_pose")
                 continue

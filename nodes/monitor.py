@@ -16,7 +16,6 @@ from __future__ import annotations
 
 import sys
 import time
-from collections import OrderedDict
 from dataclasses import dataclass
 
 import numpy as np
@@ -28,6 +27,7 @@ from common.geometry.transforms import R_to_rotvec, pose_error
 from common.methods import POSE_METHODS, final_method
 from common.runtime.messages import Calibration, GroundTruth, PoseEstimate
 from common.runtime.node import Node, run
+from common.runtime.pairing import SeqCache
 from nodes._pose import PoseMethodInputs
 
 WIDTH = 120
@@ -84,8 +84,8 @@ class MonitorNode(PoseMethodInputs, Node):
         self.every_s = self.p.every_s
         wanted = self.p.methods or POSE_METHODS
         self.methods = [m for m in wanted if m in POSE_METHODS and self.wired(m)]
-        self.frames: OrderedDict = OrderedDict()     # seq -> {method: PoseEstimate}
-        self.truths: OrderedDict = OrderedDict()     # seq -> GroundTruth
+        self.frames = SeqCache(KEEP_FRAMES)     # seq -> {method: PoseEstimate}
+        self.truths = SeqCache(KEEP_FRAMES)     # seq -> GroundTruth
         self.arm = None
         self._last_print = 0.0
         self._printed = -1
@@ -100,14 +100,10 @@ class MonitorNode(PoseMethodInputs, Node):
         self.arm = EcmArm.from_calibration(msg.ecm)
 
     def on_truth(self, msg):
-        self.truths[msg.seq] = msg
-        while len(self.truths) > KEEP_FRAMES:
-            self.truths.popitem(last=False)
+        self.truths.put(msg.seq, msg)
 
     def on_pose(self, method, msg):
-        self.frames.setdefault(msg.seq, {})[method] = msg
-        while len(self.frames) > KEEP_FRAMES:
-            self.frames.popitem(last=False)
+        self.frames.put(msg.seq, {**self.frames.get(msg.seq, {}), method: msg})
         self._maybe_print()
 
     def _maybe_print(self):

@@ -38,6 +38,7 @@ from common.runtime.messages import (
     PoseEstimate,
 )
 from common.runtime.node import Node, NodeError, run
+from common.runtime.pairing import SeqCache
 from common.viewer.draw import PoseToDraw, decode_small
 from common.viewer.frame import log_frame, pictures
 from common.viewer.page import PageServer
@@ -61,12 +62,6 @@ def port_or_free(port: int, host: str = "127.0.0.1") -> int:
                 continue
             return s.getsockname()[1]
     raise OSError(f"no free port on {host}")
-
-
-def _put(d: collections.OrderedDict, key, value, keep: int = KEEP) -> None:
-    d[key] = value
-    while len(d) > keep:
-        d.popitem(last=False)
 
 
 class ViewerNode(PoseMethodInputs, Node):
@@ -104,11 +99,11 @@ class ViewerNode(PoseMethodInputs, Node):
         if p.final is not None and p.final not in POSE_METHODS:
             raise NodeError(f"viewer.params.final: {p.final!r} is not one of {POSE_METHODS}")
         self.final = p.final or final_method(wired)
-        self.images = {c: collections.OrderedDict() for c in CAMERAS}   # seq -> (img, scale, stamp, t)
-        self.keypoints = {c: collections.OrderedDict() for c in CAMERAS}
-        self.poses = {m: collections.OrderedDict() for m in POSE_METHODS}
-        self.truths = collections.OrderedDict()
-        self.ecm = collections.OrderedDict()
+        self.images = {c: SeqCache(KEEP) for c in CAMERAS}   # seq -> (img, scale, stamp, t)
+        self.keypoints = {c: SeqCache(KEEP) for c in CAMERAS}
+        self.poses = {m: SeqCache(KEEP) for m in POSE_METHODS}
+        self.truths = SeqCache(KEEP)
+        self.ecm = SeqCache(KEEP)
         self.path = collections.deque(maxlen=PATH_POINTS)
         self.last_sample = {c: -1e9 for c in CAMERAS}
         self.rendered = -1
@@ -193,7 +188,7 @@ class ViewerNode(PoseMethodInputs, Node):
             self.log.warning("seq %d %s: %s", msg.seq, msg.camera, exc)
             return
         self.last_sample[msg.camera] = now
-        _put(self.images[msg.camera], msg.seq, (small, scale, msg.stamp_ns, now))
+        self.images[msg.camera].put(msg.seq, (small, scale, msg.stamp_ns, now))
         self._render_ready(now)
 
     def on_keypoints_left(self, msg: Keypoints):
@@ -203,20 +198,20 @@ class ViewerNode(PoseMethodInputs, Node):
         self._keypoints(msg)
 
     def _keypoints(self, msg: Keypoints):
-        _put(self.keypoints[msg.camera], msg.seq, msg)
+        self.keypoints[msg.camera].put(msg.seq, msg)
         self.state.add_point("confidence", msg.camera, time.monotonic(), msg.confidence)
 
     def on_truth(self, msg: GroundTruth):
-        _put(self.truths, msg.seq, msg)
+        self.truths.put(msg.seq, msg)
 
     def on_ecm(self, msg: EcmPose):
         T = np.asarray(msg.T_world_ecm, float)
-        _put(self.ecm, msg.seq, T)
+        self.ecm.put(msg.seq, T)
         self.path.append(T[:3, 3].copy())
 
     def on_pose(self, method: str, msg: PoseEstimate):
         now = time.monotonic()
-        _put(self.poses[method], msg.seq, msg)
+        self.poses[method].put(msg.seq, msg)
         self.state.add_pose(method, msg.seq, msg.T_ecm_needle, self._true(msg.seq),
                             (time.time_ns() - msg.stamp_ns) * 1e-6, bool(msg.ambiguous), now, msg.end_identity)
         self._render_ready(now)
