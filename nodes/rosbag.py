@@ -26,7 +26,7 @@ from typing import Literal
 from common.runtime.camera_source import CameraSourceNode
 from common.runtime.messages import EndOfStream
 from common.runtime.node import NodeError, run
-from common.runtime.pacing import Pacer
+from common.runtime.pacing import SourceClock, parse_rate, sleep_in_slices
 
 CAMS = ("left", "right")
 
@@ -48,14 +48,13 @@ class RosbagNode(CameraSourceNode):
 
     def setup(self):
         from common.ros.bag import BagError
-        from nodes.replay import parse_rate
         p = self.p
         if not p.path:
             raise NodeError("param 'path' (a ROS 1 .bag or ROS 2 .db3/.mcap bag) is required")
         if p.preset not in (None, "ambf", "dvrk"):
             raise NodeError(f"param 'preset' must be ambf or dvrk, got {p.preset!r}")
         try:
-            self.rate = parse_rate(p.rate)
+            self.rate = parse_rate(p.rate, "rosbag")
             self._open()
             self.first = next(self.it, None)
         except (BagError, ValueError) as exc:
@@ -71,8 +70,7 @@ class RosbagNode(CameraSourceNode):
         self.loops = 0
         self.n_frames = None           # pairs in one pass, known after the first
         self.published = 0
-        self.pacer = Pacer(self.rate if self.rate else 0.0)
-        self.t0 = None
+        self.clock = SourceClock(self.rate)
 
     def _open(self):
         from common.ros.bag import BagStereo
@@ -89,24 +87,12 @@ class RosbagNode(CameraSourceNode):
             self.bag.close()
             self._open()
             self.loops += 1
-            self.t0 = None
+            self.clock.restart()
             s = next(self.it, None)
         return s
 
     def _pace(self, s) -> None:
-        now = time.monotonic()
-        if self.rate is None:
-            if self.t0 is None:
-                self.t0 = (now, s.stamp_ns)
-            delay = self.t0[0] + (s.stamp_ns - self.t0[1]) * 1e-9 - now
-        elif self.rate > 0:
-            delay = self.pacer.delay()
-        else:
-            delay = 0.0
-        while delay > 0 and self.running:
-            time.sleep(min(delay, 0.1))
-            self._publish_calib()
-            delay -= 0.1
+        sleep_in_slices(self.clock.delay(s.stamp_ns), lambda: self.running, self._publish_calib)
 
     def step(self):
         from common.ros.bag import BagError
