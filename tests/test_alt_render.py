@@ -129,6 +129,7 @@ def _looking_down(distance, roll=0.0):
     return make_T(rotvec_to_R([0, 0, roll]), [0, 0, distance])     # the cameras look along -z_ecm
 
 
+@pytest.mark.slow
 def test_ground_truth_keypoints_lie_on_the_rendered_needle():
     """Data as written (the spec's rig, 640x360): every visible keypoint on the needle's pixels,
     and the needle's pixels around the projected arc, in both cameras."""
@@ -257,6 +258,7 @@ def _lines(folder):
     return (folder / "frames.jsonl").read_text().splitlines()
 
 
+@pytest.mark.slow
 def test_generate_alt_folder_passes_check_and_reads(tmp_path):
     out = tmp_path / "alt"
     args = ["generate-alt", "--out", str(out), "--steps", "3", "--seed", "4", "--width", "320", "--height", "180",

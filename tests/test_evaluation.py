@@ -190,6 +190,7 @@ def test_no_pose_at_all_still_gives_typed_results():
     assert res["timing"]["throughput_hz"] is None
 
 
+@pytest.mark.slow
 def test_results_keys_and_types(tmp_path):
     col = synthetic(px_noise=0.3)
     col.add_pose("refined", PoseEstimate(0, 1000, "refined", col.truths[0].T_world_needle), 1)
@@ -265,6 +266,7 @@ def test_nees_of_a_stated_covariance():
     assert check_results(res) == [] and "| pnp_joint | 1.0 | 0% | 0% |" in report_markdown(res)
 
 
+@pytest.mark.slow
 def test_the_nees_picture_is_drawn_when_covariances_are_stated(tmp_path):
     from common.evaluation.report import chi2_6_cdf
     assert chi2_6_cdf(5.348) == pytest.approx(0.5, abs=1e-3) and chi2_6_cdf(16.81) == pytest.approx(0.99, abs=1e-3)

@@ -10,6 +10,8 @@ from common.evaluation.graph_bench import main as bench_main
 from common.evaluation.scoring import check_results
 from common.sim.cli import main as dataset_main
 
+pytestmark = pytest.mark.graph
+
 
 @pytest.fixture(scope="module")
 def small_dataset(tmp_path_factory):

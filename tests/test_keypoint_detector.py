@@ -61,6 +61,7 @@ def test_shipped_model_finds_the_needle_in_rendered_frames(detector, rendered_fr
     assert np.median(errors) <= 2.0, f"keypoint errors {np.round(errors, 2)} px"
 
 
+@pytest.mark.slow
 def test_centreline_is_sub_pixel_in_the_full_resolution_image(rendered_frames):
     from common.geometry.camera import StereoRig
     from common.geometry.needle import NeedleModel

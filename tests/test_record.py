@@ -47,6 +47,7 @@ def read_poses(path, topic):
         r.close()
 
 
+@pytest.mark.graph
 def test_record_then_replay_gives_the_same_poses(run_graph, ambf_bag, tmp_path):
     g = run_graph(pipeline({"path": str(ambf_bag), "preset": "ambf", "rate": 6, "loop": True}), timeout=90)
     out = str(tmp_path / "run.mcap")

@@ -30,6 +30,8 @@ from common.ros.live import (
 from common.ros.types import typestore
 from common.sim.cli import main as dataset_main
 
+pytestmark = pytest.mark.graph
+
 RIG = "jhu_daVinci"
 
 

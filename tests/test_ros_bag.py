@@ -80,6 +80,7 @@ def test_ambf_needle_frame_puts_the_tip_where_the_challenge_does():
     assert np.linalg.norm(E - [-0.102, 0.0, 0]) < 0.001
 
 
+@pytest.mark.slow
 def test_ambf_ros1_bag_in_decimetres_converts_exactly(ds640, tmp_path):
     bag = tmp_path / "ambf.bag"
     dataset_to_bag(str(ds640), str(bag), "ambf")           # ROS 1, rgb8, ambf_msgs, unit dm
@@ -117,6 +118,7 @@ def test_ambf_si_bag_infers_metres_and_a_wrong_unit_is_a_tenfold_error(ds640, tm
     np.testing.assert_allclose(b.T_world_needle[:3, 3], a.T_world_needle[:3, 3] / 10)
 
 
+@pytest.mark.slow
 def test_dvrk_mcap_1080p_with_distortion_converts_exactly(ds1080_distorted, tmp_path):
     bag = tmp_path / "dvrk"
     r = dataset_to_bag(str(ds1080_distorted), str(bag), "dvrk")     # ROS 2 MCAP + camera_info

@@ -21,6 +21,7 @@ def ambf_bag(tmp_path_factory):
     return root
 
 
+@pytest.mark.graph
 def test_rosbag_source_drives_the_pipeline_exactly(run_graph, ambf_bag):
     ds = Dataset(ambf_bag / "ds")
     stereo = {"left": "detector/left", "right": "detector/right", "calib": "camera/calib", "ecm": "ecm/pose"}
