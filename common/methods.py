@@ -20,7 +20,8 @@ class PoseMethod:
     lower leads (the final output is the first present); ``fuses``: the single-frame method a
     multi-view method fuses (None: a single-frame method); ``always_reported``: in every
     ``results.json`` (the paper's Table III and ``pnp_joint``), else only when produced;
-    ``paper``: the paper's (mean mm, mean deg), Table III, where it has one."""
+    ``paper``: the paper's (mean mm, mean deg), Table III, where it has one; ``label``: what it
+    is, in a few words, for tables."""
     name: str
     output: str
     colour: str
@@ -28,6 +29,7 @@ class PoseMethod:
     fuses: str | None = None
     always_reported: bool = False
     paper: tuple[float, float] | None = None
+    label: str = ""
 
     @property
     def multiview(self) -> bool:
@@ -35,13 +37,17 @@ class PoseMethod:
 
 
 REGISTRY = (
-    PoseMethod("pnp_average", "epnp_average/pose", "#1f77b4", 4, always_reported=True, paper=(2.26, 6.74)),
-    PoseMethod("pnp_joint", "epnp_joint/pose", "#ff7f0e", 3, always_reported=True),
-    PoseMethod("triangulation", "triangulate/pose", "#9467bd", 5, always_reported=True, paper=(6.13, 35.61)),
+    PoseMethod("pnp_average", "epnp_average/pose", "#1f77b4", 4, always_reported=True, paper=(2.26, 6.74),
+               label="Pipeline I: EPnP per camera, averaged"),
+    PoseMethod("pnp_joint", "epnp_joint/pose", "#ff7f0e", 3, always_reported=True,
+               label="one pose fitted in both cameras"),
+    PoseMethod("triangulation", "triangulate/pose", "#9467bd", 5, always_reported=True, paper=(6.13, 35.61),
+               label="Pipeline II: DLT triangulation and Arun's registration"),
     PoseMethod("multiview", "fusion/pose", "#d62728", 2, fuses="pnp_joint", always_reported=True,
-               paper=(1.76, 8.55)),
-    PoseMethod("refined", "refine/pose", "#17becf", 0),
-    PoseMethod("multiview_refined", "fusion_refined/pose", "#8c564b", 1, fuses="refined"),
+               paper=(1.76, 8.55), label="fusion of pnp_joint over the endoscope's poses"),
+    PoseMethod("refined", "refine/pose", "#17becf", 0, label="dense arc fit, with a covariance"),
+    PoseMethod("multiview_refined", "fusion_refined/pose", "#8c564b", 1, fuses="refined",
+               label="fusion of refined poses"),
 )
 BY_NAME = {m.name: m for m in REGISTRY}
 
