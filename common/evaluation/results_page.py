@@ -3,7 +3,8 @@
 
 ``docs/results/sets.yaml`` lists the sets: a name, a title, its family (``in-look``: looks the
 detector was trained on; ``held-out``: a look family kept out of training and of every fit), the
-command that makes it (``needletrack dataset ...`` with ``{dir}`` for its folder) and the
+command that makes it (``needletrack dataset ...`` with ``{dir}`` for its folder and ``{data}``
+for the folder of all sets, so a set may be made from one listed before it) and the
 ``eval`` options. ``needletrack results run --data DIR`` makes each missing set under DIR,
 evaluates it and keeps its summary as ``docs/results/NAME.json`` (the results without per-node
 counters and overlay names: a few kB). ``needletrack results page`` writes ``docs/results.md``
@@ -146,7 +147,7 @@ def page(sets: list[dict], results: dict) -> str:
     lines += looks_table(sets, results) + ["", "## The sets", "",
                                           "| set | made by | evaluated with |", "| --- | --- | --- |"]
     for s in sets:
-        lines.append(f"| {s['title']} | `needletrack {s['make'].format(dir='DIR')}` | "
+        lines.append(f"| {s['title']} | `needletrack {s['make'].format(dir='DIR', data='DATA')}` | "
                      f"`needletrack eval --dataset DIR {s['eval']}` |")
     return "\n".join(lines) + "\n"
 
@@ -171,8 +172,8 @@ def run_set(s: dict, data: Path, out: Path, keep: Path, log=print) -> None:
     from common.cli import main as needletrack
     folder = Path(data) / s["name"]
     if not (folder / "frames.jsonl").exists():
-        log(f"results: making {s['name']}: needletrack {s['make'].format(dir=folder)}")
-        if needletrack(shlex.split(s["make"].format(dir=shlex.quote(str(folder))))) != 0:
+        log(f"results: making {s['name']}: needletrack {s['make'].format(dir=folder, data=data)}")
+        if needletrack(shlex.split(s["make"].format(dir=shlex.quote(str(folder)), data=shlex.quote(str(data))))) != 0:
             raise ResultsError(f"results: making {s['name']} failed")
     log(f"results: evaluating {s['name']}")
     ev = Path(out) / s["name"]
