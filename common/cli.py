@@ -19,6 +19,7 @@ COMMANDS = {
     "swap": ("common.runtime.tools:swap_main", "replace a running node (make-before-break)"),
     "cmd": ("common.runtime.tools:cmd_main", "send a Command to a node"),
     "validate": ("common.runtime.tools:validate_main", "check a graph YAML and list every error"),
+    "describe": ("common.runtime.describe:describe_main", "a node's inputs, outputs and params (docs/nodes.md)"),
     "certs": ("common.runtime.certs:certs_main", "make a test CA and a TLS graph's certificates"),
     "bench": ("common.cli:bench_main", "benchmarks: transport, sim, detector, graph, refine, geometry"),
     "dataset": ("common.sim.cli:main", "make and check datasets"),

@@ -119,7 +119,7 @@ def parse_params(schema: type, raw: Mapping | None, where: str = "params"):
 def merge_schemas(name: str, *schemas: type, drop: tuple = ()) -> type:
     """One dataclass with the fields of all ``schemas`` but ``drop`` (later ones win on a shared
     name)."""
-    fields = {}
+    fields, sources = {}, {}
     for s in schemas:
         hints = _hints(s)
         for f in dataclasses.fields(s):
@@ -128,4 +128,7 @@ def merge_schemas(name: str, *schemas: type, drop: tuple = ()) -> type:
             default = (dataclasses.field(default_factory=f.default_factory)
                        if f.default_factory is not dataclasses.MISSING else f.default)
             fields[f.name] = (f.name, hints[f.name], default)
-    return dataclasses.make_dataclass(name, list(fields.values()))
+            sources[f.name] = getattr(s, "__param_sources__", {}).get(f.name, s)
+    merged = dataclasses.make_dataclass(name, list(fields.values()))
+    merged.__param_sources__ = sources     # which dataclass declared each field (its docs)
+    return merged
