@@ -21,7 +21,7 @@ import time
 from dataclasses import dataclass
 from pathlib import Path
 
-from common.evaluation.scoring import Collected
+from common.evaluation.collect import Collected
 from common.methods import EXTRA_METHODS, POSE_METHODS, REPORTED_METHODS
 from common.runtime.messages import (
     Calibration,
@@ -104,7 +104,7 @@ class EvaluatorNode(PoseMethodInputs, Node):
 
     def _cpu_snapshot(self) -> dict:
         """CPU seconds used so far by every node process known from its stats."""
-        from common.evaluation.scoring import process_cpu_seconds
+        from common.evaluation.timing import process_cpu_seconds
         with self._stats_lock:
             pids = {n: st.pid for n, st in self._stats.items() if n != self.node_id}
         return {n: process_cpu_seconds(pid) for n, pid in pids.items()}

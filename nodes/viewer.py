@@ -25,7 +25,7 @@ from typing import Optional
 
 import numpy as np
 
-from common.evaluation.scoring import true_T_ecm_needle
+from common.evaluation.metrics import true_T_ecm_needle
 from common.geometry.camera import StereoRig
 from common.geometry.ecm_kinematics import EcmArm
 from common.geometry.needle import NeedleModel

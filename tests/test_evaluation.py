@@ -9,20 +9,10 @@ from common.evaluation.report import (
     select_overlay_frames,
     write_outputs,
 )
-from common.evaluation.scoring import (
-    METHODS,
-    RESULT_KEYS,
-    Collected,
-    build_results,
-    check_results,
-    evaluate,
-    keypoint_errors_2d,
-    last_steps,
-    pearson,
-    pose_nees,
-    summary,
-    to_jsonable,
-)
+from common.evaluation.collect import Collected, evaluate
+from common.evaluation.metrics import keypoint_errors_2d, last_steps, pearson, pose_nees, summary
+from common.evaluation.results import RESULT_KEYS, build_results, check_results, to_jsonable
+from common.methods import REPORTED_METHODS as METHODS
 from common.geometry.camera import StereoRig
 from common.geometry.needle import NeedleModel
 from common.geometry.transforms import inv_T, make_T, rotvec_to_R, transform_points
@@ -286,7 +276,7 @@ def test_the_nees_picture_is_drawn_when_covariances_are_stated(tmp_path):
 
 def test_pose_table_scores_the_unflagged_poses_apart():
     from types import SimpleNamespace
-    from common.evaluation.scoring import pose_table
+    from common.evaluation.collect import pose_table
     t = {"seqs": [0, 1, 2, 3], "position_m": np.array([0.001, 0.002, 0.010, np.nan]),
          "orientation_rad": np.radians([1.0, 3.0, 179.0, np.nan]), "distance_m": np.full(4, 0.15),
          "n_views": np.ones(4), "nees": np.array([4.0, 6.0, 1.0, np.nan]),
@@ -302,7 +292,7 @@ def test_pose_table_sets_the_stated_end_identity_against_the_turned_poses():
     from types import SimpleNamespace
 
     from common.evaluation.report import _tip
-    from common.evaluation.scoring import pose_table
+    from common.evaluation.collect import pose_table
     t = {"seqs": [0, 1, 2, 3, 4], "position_m": np.array([0.001, 0.002, 0.001, 0.001, np.nan]),
          "orientation_rad": np.radians([1.0, 179.0, 2.0, 1.0, np.nan]), "distance_m": np.full(5, 0.15),
          "n_views": np.ones(5), "nees": np.array([4.0, 1.0, 5.0, 3.0, np.nan]),

@@ -230,7 +230,7 @@ def _bench(args, dataset: str, out: Path, res: dict) -> int:
     """Measure the live graph (``common.evaluation.graph_bench``) and add it to results.json/report.md."""
     from common.evaluation.graph_bench import measure, report
     from common.evaluation.pipeline_graph import GraphRunError
-    from common.evaluation.scoring import to_jsonable
+    from common.evaluation.results import to_jsonable
     bargs = argparse.Namespace(detector=args.detector, model=args.model, rate="30",
                                duration=args.bench, warmup=4.0, one_detector=False,
                                no_refine=args.no_refine)

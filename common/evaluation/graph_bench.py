@@ -184,7 +184,7 @@ def measure(args, dataset: str, log, viewer: bool = False) -> dict:
         pipeline_graph,
         pose_inputs,
     )
-    from common.evaluation.scoring import cpu_steal_seconds, process_cpu_seconds
+    from common.evaluation.timing import cpu_steal_seconds, process_cpu_seconds
     from common.runtime.graph import output_key, stats_key
     from common.runtime.messages import GroundTruth, Keypoints, NodeStats, PoseEstimate
 

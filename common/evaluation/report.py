@@ -1,6 +1,6 @@
 """What people look at after an evaluation: ``report.md``, ``error_vs_distance.png``,
 ``nees.png``, ``overlays/``, ``per_frame.csv`` and ``results.json``, written from a
-``common.evaluation.scoring.Collected``.
+``common.evaluation.collect.Collected``.
 
 No process, no network. Overlays draw, per chosen frame, a crop of the left and right images
 around the needle: the true arc and keypoints in green, each method's estimated arc in its
@@ -15,17 +15,10 @@ from typing import Callable, Optional
 
 import numpy as np
 
-from common.evaluation.scoring import (
-    CAMERAS,
-    NEES_99PCT,
-    PAPER,
-    Collected,
-    Evaluation,
-    build_results,
-    check_results,
-    evaluate,
-    to_jsonable,
-)
+from common.evaluation.collect import Collected, Evaluation, evaluate
+from common.evaluation.metrics import NEES_99PCT
+from common.evaluation.results import PAPER, build_results, check_results, to_jsonable
+from common.runtime.messages import CAMERAS
 from common.geometry.needle import KEYPOINT_NAMES, NeedleModel
 from common.geometry.transforms import transform_points
 from common.methods import FINAL_ORDER, METHOD_COLOURS, MULTIVIEW_METHODS

@@ -12,7 +12,7 @@ from typing import Callable, Optional
 
 import numpy as np
 
-from common.evaluation.scoring import true_T_ecm_needle
+from common.evaluation.metrics import true_T_ecm_needle
 from common.geometry.transforms import pose_error
 from common.viewer.draw import PoseToDraw, downscale
 from common.methods import in_final_order
@@ -23,7 +23,7 @@ from common.viewer.frame import CAMERAS, log_frame, pictures
 def write_rrd(path, col, rig, needle, arm=None, load_images: Optional[Callable[[int], dict]] = None,
               width: int = 960, height: int = 540, quality: int = 80) -> int:
     """Write the recording; returns the number of frames written. ``col``: a
-    ``common.evaluation.scoring.Collected``; ``load_images(seq)`` -> {camera: BGR or None}
+    ``common.evaluation.collect.Collected``; ``load_images(seq)`` -> {camera: BGR or None}
     (None: black pictures)."""
     from common.viewer import rerun_log as rl
     rec = rl.new_recording("needletrack-eval")
