@@ -9,7 +9,7 @@ import numpy as np
 
 from common.data.dataset import Dataset, check_dataset
 from common.detector.centreline_subpixel import ellipse_residual
-from common.detector.inference import _undistorter
+from common.detector.learned import _undistorter
 from common.evaluation.cli import main as eval_main
 from common.geometry.camera import StereoRig, undistort_pixels
 from common.geometry.needle import NeedleModel

@@ -12,7 +12,7 @@ import yaml
 
 import common.sim.render  # noqa: F401  (headless GL before mujoco)
 from common.detector.end_identity import FEATURES
-from common.detector.inference import load_end_coefficients
+from common.detector.weights import load_end_coefficients
 from common.sim.generate import GenerateConfig, generate
 
 pytestmark = pytest.mark.training

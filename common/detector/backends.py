@@ -78,7 +78,7 @@ BACKEND_PARAMS: dict[str, type] = {"oracle": OracleParams, "learned": LearnedPar
 
 BACKENDS: dict[str, str] = {
     "oracle": "common.detector.backends:OracleBackend",
-    "learned": "common.detector.inference:LearnedBackend",
+    "learned": "common.detector.learned:LearnedBackend",
     "classical": "common.detector.classical:ClassicalBackend",
 }
 
