@@ -42,7 +42,7 @@ from common.runtime.messages import (
     PoseEstimate,
     decode,
     encode,
-    pose_error,
+    pose_invariant_error,
 )
 
 FRAME_HZ = 30.0
@@ -297,7 +297,7 @@ def _check_published(node, start: int) -> int:
         if isinstance(m, PoseEstimate):
             try:
                 decode(encode(m))
-                bad += pose_error(m, node.pose_volume_m) is not None
+                bad += pose_invariant_error(m, node.pose_volume_m) is not None
             except MessageError:
                 bad += 1
     return bad

@@ -69,7 +69,7 @@ from common.runtime.messages import (
     decode,
     encode,
     encode_parts,
-    pose_error,
+    pose_invariant_error,
 )
 from common.runtime.pairing import SeqClock
 from common.runtime.params import ParamError, param_errors, parse_params
@@ -200,14 +200,14 @@ class Node:
     def publish(self, output: str, msg) -> None:
         """Encode ``msg`` (a Message, already encoded bytes, or ``Prepared``) and publish it on
         ``output``. Frame messages get the stream's ``epoch``; a ``PoseEstimate`` that breaks the
-        pose invariant (``messages.pose_error`` within ``pose_volume_m``) is counted
+        pose invariant (``checks.pose_invariant_error`` within ``pose_volume_m``) is counted
         (``invalid_pose``), logged and not published."""
         if output not in self.OUTPUTS:
             raise NodeError(f"{type(self).__name__}.publish: {output!r} is not in OUTPUTS {self.OUTPUTS}")
         inner = msg.msg if isinstance(msg, Prepared) else msg
         self._stamp(inner)
         if isinstance(inner, PoseEstimate):
-            err = pose_error(inner, self.pose_volume_m)
+            err = pose_invariant_error(inner, self.pose_volume_m)
             if err:
                 self.count("invalid_pose")
                 self._badlog.error("invalid_pose", f"{output}: seq {inner.seq} {inner.method}: pose not "
