@@ -19,18 +19,10 @@ from common.sim.alt_generate import (
     plan_alt_sequence,
     view_direction,
 )
-from common.sim.alt_render import (
-    LABELS,
-    AltRenderer,
-    AltScene,
-    Material,
-    NeedleShape,
-    Tissue,
-    box_mesh,
-    make_tissue_textures,
-    needle_mesh,
-    rasterise,
-)
+from common.sim.alt_meshes import LABELS, Material, NeedleShape, box_mesh, needle_mesh
+from common.sim.alt_raster import rasterise
+from common.sim.alt_render import AltRenderer, AltScene
+from common.sim.alt_tissue import Tissue, make_tissue_textures
 from common.sim.cli import main as dataset_main
 
 METAL = Material((0.6, 0.6, 0.62), 0.4, 0.8, 60.0, env=0.5)
