@@ -73,3 +73,4 @@ def test_method_names_are_listed_only_in_the_registry():
                 if len(keys & names) >= 3:
                     found.append(f"{path.relative_to(REPO)}:{node.lineno}")
     assert not found, f"method lists outside common/methods.py: {found}"
+

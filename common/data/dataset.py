@@ -18,6 +18,7 @@ import cv2
 import numpy as np
 import yaml
 
+from common.errors import NeedletrackError
 from common.geometry.camera import StereoRig
 from common.geometry.ecm_kinematics import EcmArm
 from common.geometry.needle import NeedleModel
@@ -41,7 +42,7 @@ IMAGE_EXTS = (".png", ".jpg", ".jpeg")
 _DIST_LENGTHS = (0, 4, 5, 8, 12, 14)
 
 
-class DatasetError(ValueError):
+class DatasetError(NeedletrackError, ValueError):
     """A folder that breaks the dataset spec; the message names file, line and field."""
 
 

@@ -22,6 +22,7 @@ from typing import Optional
 
 import numpy as np
 
+from common.errors import NeedletrackError
 from common.geometry.camera import StereoRig
 from common.geometry.needle import NeedleModel
 from common.runtime.messages import Calibration, GroundTruth, Keypoints
@@ -83,7 +84,7 @@ BACKENDS: dict[str, str] = {
 }
 
 
-class BackendError(RuntimeError):
+class BackendError(NeedletrackError, RuntimeError):
     """A backend that cannot be loaded or cannot run; the text says why."""
 
 

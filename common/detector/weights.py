@@ -16,6 +16,7 @@ from common.detector.model import (
     ModelConfig,
     fuse_conv_bn,
 )
+from common.errors import NeedletrackError
 
 MODEL_FORMAT = "needletrack-keypoint-detector"
 MODEL_VERSION = 1
@@ -39,7 +40,7 @@ def load_end_coefficients(weights) -> np.ndarray | None:
     return coef
 
 
-class ModelFileError(RuntimeError):
+class ModelFileError(NeedletrackError, RuntimeError):
     """A weights file that is missing, unreadable or made for another model."""
 
 

@@ -23,6 +23,7 @@ from pathlib import Path
 from typing import Optional
 
 from common.detector.backends import backend_class
+from common.errors import NeedletrackError
 from common.methods import METHOD_NEEDS, POSE_OUTPUTS
 from common.runtime.graph import graph_from_dict, live_key, module_info
 from common.runtime.messages import Calibration
@@ -175,7 +176,7 @@ def pose_inputs(doc: dict) -> dict:
     return {m: src for m, src in POSE_OUTPUTS.items() if src.split("/")[0] in ids}
 
 
-class GraphRunError(RuntimeError):
+class GraphRunError(NeedletrackError, RuntimeError):
     """A graph run that failed: a node died, never came up, or the run timed out."""
 
 

@@ -20,6 +20,7 @@ from pathlib import Path
 
 import yaml
 
+from common.errors import NeedletrackError
 from common.methods import BY_NAME, FINAL_ORDER
 
 REPO = Path(__file__).resolve().parents[2]
@@ -30,7 +31,7 @@ DROPPED = ("node_counters", "overlays", "dataset")
 (the machine's own; the set's name and command say what it was)."""
 
 
-class ResultsError(ValueError):
+class ResultsError(NeedletrackError, ValueError):
     """A sets file or a summary that cannot be used; the message names the file and the field."""
 
 

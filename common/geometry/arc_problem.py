@@ -11,6 +11,7 @@ from typing import TYPE_CHECKING, Mapping
 
 import numpy as np
 
+from common.errors import NeedletrackError
 from common.geometry.camera import StereoRig
 from common.geometry.needle import NeedleModel
 from common.geometry.transforms import rotvecs_to_Rs
@@ -19,7 +20,7 @@ if TYPE_CHECKING:
     from common.geometry.refine import ArcObservation, RefineConfig
 
 
-class RefineError(ValueError):
+class RefineError(NeedletrackError, ValueError):
     """The observations or candidates cannot give a pose; the text says why (a short reason
     first, e.g. ``no_candidates: ...``, usable as a counter name)."""
 

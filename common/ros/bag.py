@@ -19,6 +19,7 @@ from typing import Optional
 
 import numpy as np
 
+from common.errors import NeedletrackError
 from common.geometry.camera import intrinsics_from_fovy
 from common.geometry.needle import NeedleModel
 from common.ros.conventions import (
@@ -37,7 +38,7 @@ TIMED_ROLES = ("ecm_joints", "ecm_pose", "needle_pose", "camera_frame")
 CAMS = ("left", "right")
 
 
-class BagError(ValueError):
+class BagError(NeedletrackError, ValueError):
     """A bag that cannot give stereo frames; the text names the bag, topic and what is wrong."""
 
 

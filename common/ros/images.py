@@ -11,6 +11,8 @@ from __future__ import annotations
 import cv2
 import numpy as np
 
+from common.errors import NeedletrackError
+
 ENCODINGS = ("bgr8", "rgb8", "bgra8", "rgba8", "mono8", "mono16", "bayer_rggb8", "bayer_bggr8",
              "bayer_gbrg8", "bayer_grbg8")
 _CHANNELS = {"bgr8": 3, "rgb8": 3, "bgra8": 4, "rgba8": 4, "mono8": 1, "mono16": 1,
@@ -21,7 +23,7 @@ _BAYER = {"bayer_rggb8": cv2.COLOR_BayerBG2BGR, "bayer_bggr8": cv2.COLOR_BayerRG
           "bayer_gbrg8": cv2.COLOR_BayerGR2BGR, "bayer_grbg8": cv2.COLOR_BayerGB2BGR}
 
 
-class ImageError(ValueError):
+class ImageError(NeedletrackError, ValueError):
     """An image message that cannot be turned into pixels; the text says which and why."""
 
 

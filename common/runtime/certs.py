@@ -26,6 +26,7 @@ import tempfile
 from pathlib import Path
 from typing import Iterable, Optional
 
+from common.errors import NeedletrackError
 from common.runtime.graph import (
     LAUNCHER_IDENTITY,
     GraphError,
@@ -36,7 +37,7 @@ from common.runtime.graph import (
 DEFAULT_DAYS = 30
 
 
-class CertError(RuntimeError):
+class CertError(NeedletrackError, RuntimeError):
     """openssl is missing or failed."""
 
 

@@ -8,6 +8,8 @@ from typing import TYPE_CHECKING, Optional
 
 import numpy as np
 
+from common.errors import NeedletrackError
+
 if TYPE_CHECKING:
     from common.runtime.messages import PoseEstimate
 
@@ -25,7 +27,7 @@ RIGID_TOL = 1e-6
 """Tolerance of the rigid-transform check: |R^T R - I|, |det R - 1| and the bottom row."""
 
 
-class MessageError(ValueError):
+class MessageError(NeedletrackError, ValueError):
     """A payload that is not a valid message; the text names the message type and field."""
 
 

@@ -36,6 +36,8 @@ from typing import Any, Optional
 
 import yaml
 
+from common.errors import NeedletrackError
+
 DEFAULT_ENDPOINT = "tcp/127.0.0.1:7447"
 RESTART_POLICIES = ("never", "on-failure", "always")
 ZENOH_MODES = ("peer", "client", "router")
@@ -52,7 +54,7 @@ LAUNCHER_IDENTITY = "launcher"     # the TLS identity of launchers and CLI tools
 _NODE_KEYS = {"id", "module", "command", "params", "inputs", "outputs", "restart", "env", "feedback"}
 
 
-class GraphError(ValueError):
+class GraphError(NeedletrackError, ValueError):
     """An invalid graph; ``errors`` lists every problem with its place."""
 
     def __init__(self, errors: list[str], source: str = "graph"):

@@ -17,6 +17,8 @@ from typing import Any, Optional
 
 import yaml
 
+from common.errors import NeedletrackError
+
 MAX_YAML_NODES = 100_000
 """Most YAML nodes (scalars, lists, maps; aliases counted as the nodes they expand to)."""
 
@@ -24,7 +26,7 @@ MAX_IMAGE_BYTES = int(os.environ.get("NEEDLETRACK_MAX_IMAGE_BYTES", 64 << 20))
 """Largest image file read (bytes; env ``NEEDLETRACK_MAX_IMAGE_BYTES``, default 64 MiB)."""
 
 
-class InputLimitError(ValueError):
+class InputLimitError(NeedletrackError, ValueError):
     """Input from disk that breaks a limit; the text names the file and what is wrong."""
 
 

@@ -60,6 +60,7 @@ import threading
 import time
 from typing import Any, Iterable, Optional
 
+from common.errors import NeedletrackError
 from common.runtime.messages import (
     Command,
     Message,
@@ -80,7 +81,7 @@ STANDBY_BUFFER = 64            # outputs a standby process holds for the takeove
 POSE_VOLUME_M = 1.0            # default working volume: a published needle pose is this close to the ECM (m)
 
 
-class NodeError(ValueError):
+class NodeError(NeedletrackError, ValueError):
     """A node that cannot run as configured (bad wiring, missing handler, bad params, an
     unreadable model file): the process exits with status 2 and is not restarted."""
 

@@ -24,8 +24,10 @@ import types
 import typing
 from typing import Any, Literal, Mapping, Union
 
+from common.errors import NeedletrackError
 
-class ParamError(ValueError):
+
+class ParamError(NeedletrackError, ValueError):
     """Params that do not match a node's schema; ``errors`` lists each with its place."""
 
     def __init__(self, errors: list[str]):
