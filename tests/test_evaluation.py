@@ -307,3 +307,38 @@ def test_pose_table_sets_the_stated_end_identity_against_the_turned_poses():
     assert e["all"] == {"n": 3, "stated": pytest.approx((0.4 + 0.4 + 0.01) / 3), "measured": pytest.approx(1 / 3)}
     assert e["flagged"] == {"n": 2, "stated": pytest.approx(0.4), "measured": pytest.approx(0.5)}
     assert _tip({"end_identity": e}) == "all 27.0% / 33.3%; flagged 40.0% / 50.0%"
+
+
+def test_pose_table_counts_confident_swaps_undecided_tips_the_nearer_reading_and_sure_and_right():
+    from types import SimpleNamespace
+
+    from common.evaluation.collect import pose_table
+    # 0: undecided and turned (its other reading 1 deg off); 1: undecided, right; 2: sure, right;
+    # 3: sure but 3 mm off; 4: turned and unflagged: a confident swap; 5: no pose
+    t = {"seqs": list(range(6)), "position_m": np.array([0.001, 0.001, 0.001, 0.003, 0.001, np.nan]),
+         "orientation_rad": np.radians([178.0, 2.0, 1.0, 1.0, 177.0, np.nan]),
+         "orientation_turned_rad": np.radians([1.0, 178.0, 179.0, 179.0, 3.0, np.nan]),
+         "distance_m": np.full(6, 0.15), "n_views": np.ones(6), "nees": np.full(6, 4.0),
+         "ambiguous": np.array([1.0, 1.0, 0.0, 0.0, 0.0, np.nan]),
+         "end_identity": np.array([0.6, 0.7, 0.99, 0.98, 0.97, np.nan])}
+    d = pose_table(SimpleNamespace(pose={"refined": t}))["refined"]
+    assert d["confident_swaps"] == 1
+    assert d["undecided"] == {"n": 2, "share": pytest.approx(2 / 5), "turned": 1}
+    # modulo the turn the undecided turned pose counts 1 deg, the confident swap keeps its 177
+    assert d["modulo_turn"]["orientation_deg"]["max"] == pytest.approx(177.0)
+    assert d["modulo_turn"]["orientation_deg"]["median"] == pytest.approx(1.0)
+    assert d["sure_and_right"] == pytest.approx(1 / 6)          # frame 2 only, over all 6 frames
+    rel = {(r["p_from"], r["p_to"]): r for r in d["reliability"]}
+    assert rel[(0.6, 0.7)]["n"] == 1 and rel[(0.6, 0.7)]["measured"] == 1.0
+    assert rel[(0.6, 0.7)]["within_bound"] is False                 # stated 40% turned, found 100%
+    assert rel[(0.7, 0.8)]["within_bound"] is True
+    top = rel[(0.95, 0.99)]
+    assert top["n"] == 2 and top["measured"] == 0.5 and top["within_bound"] is False
+
+
+def test_the_calibration_bound_and_bins():
+    from common.evaluation.metrics import reliability_table, within_calibration_bound
+    assert within_calibration_bound(0.1, 0.17) and not within_calibration_bound(0.1, 0.18)
+    assert within_calibration_bound(0.0, 0.02)
+    rows = reliability_table(np.array([1.0, 0.995, 0.5]), np.array([False, False, True]))
+    assert [(r["p_from"], r["n"]) for r in rows] == [(0.5, 1), (0.99, 2)]

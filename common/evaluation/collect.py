@@ -11,6 +11,8 @@ import numpy as np
 
 from common.evaluation.metrics import (
     NEES_99PCT,
+    RIGHT_DEG,
+    RIGHT_MM,
     SWAP_DEG,
     _needle_visible,
     counted_seqs,
@@ -19,6 +21,7 @@ from common.evaluation.metrics import (
     pearson,
     point_errors_3d,
     pose_error_table,
+    reliability_table,
     summary,
     true_T_ecm_needle,
 )
@@ -157,7 +160,7 @@ def evaluate(col: Collected, methods=None) -> Evaluation:
             T_true[s] = T
     posed = set(T_true)
 
-    pose = {m: pose_error_table(col.poses.get(m, {}), T_true, counted_seqs(m, col.truths, posed))
+    pose = {m: pose_error_table(col.poses.get(m, {}), T_true, counted_seqs(m, col.truths, posed), needle)
             for m in methods}
 
     err2d, err3d = {}, {}
@@ -214,7 +217,16 @@ def pose_table(ev: Evaluation) -> dict:
     (``confident_share``: of those not flagged ``ambiguous`` or stating a sure tip),
     ``end_identity`` (over the poses that state one: the share the poses' own probabilities say
     is turned, ``stated``, against the share that is, ``measured``; also over the flagged ones)
-    and ``sure``: the same summaries over the poses not flagged ambiguous."""
+    and ``sure``: the same summaries over the poses not flagged ambiguous.
+
+    The end identity's figures (docs/evaluation.md#end-identity-of-the-poses): ``confident_swaps``,
+    poses turned end for end that state a sure tip or are not flagged; ``undecided``, the poses
+    flagged with an unsure tip (below ``TIP_SURE``): their share and how many are turned;
+    ``modulo_turn``, the errors with each undecided pose scored against the nearer of its two
+    readings; ``reliability``, the stated turned share against the measured one per bin of the
+    stated tip probability, each within the bound or not (``within_calibration_bound``);
+    ``sure_and_right``, the share of all counted frames posed sure (not flagged) and within
+    ``RIGHT_MM`` / ``RIGHT_DEG``."""
     out = {}
     for m, t in ev.pose.items():
         expected = len(t["seqs"])
@@ -242,8 +254,23 @@ def pose_table(ev: Evaluation) -> dict:
             tip = t.get("end_identity", np.full(len(ok), np.nan))
             stated = ok & np.isfinite(tip)
             tip_sure = stated & (np.nan_to_num(tip) >= TIP_SURE)
+            confident = turned & (~flagged | tip_sure)
             out[m]["end_for_end"] = {"share": float(turned.sum() / n),
-                                     "confident_share": float((turned & (~flagged | tip_sure)).sum() / n)}
+                                     "confident_share": float(confident.sum() / n)}
+            out[m]["confident_swaps"] = int(confident.sum())
+            undecided = stated & flagged & (np.nan_to_num(tip, nan=1.0) < TIP_SURE)
+            out[m]["undecided"] = {"n": int(undecided.sum()), "share": float(undecided.sum() / n),
+                                   "turned": int((undecided & turned).sum())}
+            rot = t["orientation_rad"]
+            rot_mod = np.where(undecided, np.fmin(rot, t.get("orientation_turned_rad", rot)), rot)
+            out[m]["modulo_turn"] = {"position_mm": summary(t["position_m"] * 1e3),
+                                     "orientation_deg": summary(np.degrees(rot_mod))}
+            if stated.any():
+                out[m]["reliability"] = reliability_table(tip[stated], turned[stated])
+            sure_pose = ok & ~flagged
+            right = (np.nan_to_num(t["position_m"], nan=np.inf) * 1e3 <= RIGHT_MM) & \
+                    (np.degrees(np.nan_to_num(rot, nan=np.inf)) <= RIGHT_DEG)
+            out[m]["sure_and_right"] = float((sure_pose & right).sum() / expected) if expected else None
             if stated.any():
                 wrong = 1.0 - tip
                 out[m]["end_identity"] = {

@@ -19,6 +19,7 @@ from typing import Optional
 import numpy as np
 
 from common.geometry.needle import NeedleModel
+from common.geometry.refine import tip_for_tail
 from common.geometry.transforms import R_to_rotvec, inv_T, pose_error
 from common.methods import MULTIVIEW_METHODS
 from common.runtime.messages import (
@@ -121,10 +122,13 @@ def needle_distance_m(T_ecm_needle: np.ndarray) -> float:
     return float(np.linalg.norm(T_ecm_needle[:3, 3]))
 
 
-def pose_error_table(poses: dict, T_true: dict, seqs) -> dict:
-    """Errors of one method on the counted ``seqs``: NaN where no pose was given."""
+def pose_error_table(poses: dict, T_true: dict, seqs, needle: Optional[NeedleModel] = None) -> dict:
+    """Errors of one method on the counted ``seqs``: NaN where no pose was given. With the
+    ``needle``, also ``orientation_turned_rad``: the error of the pose's other reading, turned
+    end for end (``tip_for_tail``: the same origin, so the same position error)."""
     pos = np.full(len(seqs), np.nan)
     rot = np.full(len(seqs), np.nan)
+    rot_turned = np.full(len(seqs), np.nan)
     views = np.full(len(seqs), np.nan)
     nees = np.full(len(seqs), np.nan)
     amb = np.full(len(seqs), np.nan)
@@ -137,6 +141,8 @@ def pose_error_table(poses: dict, T_true: dict, seqs) -> dict:
         if T.shape != (4, 4) or not np.all(np.isfinite(T)):
             continue
         pos[i], rot[i] = pose_error(T, T_true[s])
+        if needle is not None:
+            rot_turned[i] = pose_error(tip_for_tail(T, needle), T_true[s])[1]
         views[i] = getattr(p, "n_views", 1)
         nees[i] = pose_nees(T, getattr(p, "covariance", None), T_true[s])
         if getattr(p, "ambiguous", None) is not None:
@@ -145,12 +151,38 @@ def pose_error_table(poses: dict, T_true: dict, seqs) -> dict:
             tip[i] = float(p.end_identity)
     dist = np.array([needle_distance_m(T_true[s]) for s in seqs])
     return {"seqs": list(seqs), "position_m": pos, "orientation_rad": rot, "distance_m": dist,
-            "n_views": views, "nees": nees, "ambiguous": amb, "end_identity": tip}
+            "n_views": views, "nees": nees, "ambiguous": amb, "end_identity": tip,
+            "orientation_turned_rad": rot_turned}
 
 
 NEES_99PCT = 16.81   # chi-square(6) exceeds this in 1% of the draws (its median: 5.35)
 SWAP_DEG = 150.0
 """A pose this far off in orientation is the needle turned end for end (tip for tail)."""
+RIGHT_MM, RIGHT_DEG = 2.0, 5.0
+"""A pose within this of the truth is right ("sure and right": stated sure, and right)."""
+RELIABILITY_BINS = (0.5, 0.6, 0.7, 0.8, 0.9, 0.95, 0.99, 1.0)
+"""Bins of a pose's stated tip probability for the reliability table (the last bin closed)."""
+
+
+def within_calibration_bound(stated: float, measured: float) -> bool:
+    """The tip probability's honesty bound: the measured turned share at most 1.5 times the
+    stated one plus 2 points."""
+    return measured <= 1.5 * stated + 0.02
+
+
+def reliability_table(p_tip: np.ndarray, turned: np.ndarray) -> list[dict]:
+    """Per bin of the stated tip probability ``p_tip`` (>= 0.5): n, the turned share the poses
+    state (mean 1 - p), the share found ``turned``, and whether it is within the bound."""
+    rows = []
+    edges = RELIABILITY_BINS
+    for k, (lo, hi) in enumerate(zip(edges[:-1], edges[1:])):
+        sel = (p_tip >= lo) & ((p_tip < hi) if k < len(edges) - 2 else (p_tip <= hi))
+        if not sel.any():
+            continue
+        stated, measured = float(np.mean(1.0 - p_tip[sel])), float(np.mean(turned[sel]))
+        rows.append({"p_from": lo, "p_to": hi, "n": int(sel.sum()), "stated": stated, "measured": measured,
+                     "within_bound": within_calibration_bound(stated, measured)})
+    return rows
 
 
 def pose_nees(T_est: np.ndarray, covariance, T_true: np.ndarray) -> float:
