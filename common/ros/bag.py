@@ -390,5 +390,18 @@ class BagStereo:
                 msg = self.reader.deserialize(raw, conn.msgtype)
             except Exception as exc:
                 raise BagError(f"{self.path}: {conn.topic}: cannot deserialise a {conn.msgtype}: {exc}") from None
-            yield from self.asm.feed(conn.topic, msg)
-        yield from self.asm.finish()
+            try:
+                out = self.asm.feed(conn.topic, msg)
+            except BagError:
+                raise
+            except (AttributeError, TypeError, ValueError, KeyError, IndexError) as exc:   # fields not as its type's
+                raise BagError(f"{self.path}: {conn.topic}: a {conn.msgtype} not as the type defines it (the bag's "
+                               f"own definition of it?): {type(exc).__name__}: {exc}") from None
+            yield from out
+        try:
+            out = self.asm.finish()
+        except BagError:
+            raise
+        except (AttributeError, TypeError, ValueError, KeyError, IndexError) as exc:
+            raise BagError(f"{self.path}: the last frames: {type(exc).__name__}: {exc}") from None
+        yield from out

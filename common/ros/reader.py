@@ -176,7 +176,7 @@ class UnfinishedMcap(_Positioned):
         if total == 0:
             raise BagError(f"{self.path}: {why} with no complete chunk: nothing to recover ({self.stop})")
         self.recovered = (f"recovered {total} messages from the {chunks} complete chunks of {why} "
-                          f"(it has no summary; the rest: {self.stop})")
+                          f"(no summary or footer; after them: {self.stop})")
         self.connections = []
         defs = []
         for cid, ch in self.channels.items():
@@ -199,16 +199,18 @@ class UnfinishedMcap(_Positioned):
             reader = StreamReader(f, emit_chunks=True, record_size_limit=self.size)
             it = reader.records
             while True:
+                at = f.tell()
                 try:
                     rec = next(it)
                 except StopIteration:
                     self.stop = "the end of the file"
                     return
                 except EndOfFile:
-                    self.stop = f"the file ends inside a record (at byte {f.tell()} of {self.size})"
+                    self.stop = ("the file ends there" if at >= self.size else
+                                 f"a record cut short at byte {at} of {self.size}")
                     return
                 except Exception as exc:   # a bad length, bad bytes
-                    self.stop = f"{type(exc).__name__} {exc}".strip() + f" at byte {f.tell()} of {self.size}"
+                    self.stop = f"{type(exc).__name__} {exc}".strip() + f" at byte {at} of {self.size}"
                     return
                 inner = [rec]
                 if isinstance(rec, Chunk):
