@@ -401,7 +401,7 @@ class Launcher:
                         slot.done = True
                         self.say(f"{nid} exited with {describe_status(code)}"
                                  + ("" if code in (0, None) else f" (restart policy {policy}"
-                                    + (", status 2 = cannot run as configured" if code == 2 else "") + ")") + why)
+                                    + (", status 2 = bad configuration" if code == 2 else "") + ")") + why)
                         if code == 2 and self.stop_on_config_error:
                             self.say(f"{nid} cannot run as configured: stopping the graph" + ("" if why else " (see its log above)"))
                             self._stop.set()
