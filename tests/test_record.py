@@ -198,7 +198,8 @@ def test_a_full_disk_stops_the_recorder_in_one_line(run_graph, small_bag, tmp_pa
     stdout, stderr = rec.communicate(timeout=120)
     assert rec.returncode == 1, (stdout, stderr)
     lines = stderr.strip().splitlines()
-    assert len(lines) == 1 and lines[0].startswith(f"error: {out}: cannot write") and "File too large" in lines[0], stderr
+    assert len(lines) == 1 and lines[0].startswith(f"error: {out}: cannot write"), stderr
+    assert "File too large" in lines[0], stderr
     assert out.stat().st_size <= limit
     frames, recovered = _frames(out, str(tmp_path / "full.mcap.topics.yaml"))
     assert frames and recovered

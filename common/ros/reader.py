@@ -191,7 +191,7 @@ class UnfinishedMcap(_Positioned):
     def _records(self, count: bool = False):
         """Messages (as (channel id, log time, data)) of the readable part, in file order; sets
         ``self.stop`` to why reading ended (``count``: the first pass, counting per channel)."""
-        from mcap.exceptions import EndOfFile
+        from mcap.exceptions import EndOfFile, RecordLengthLimitExceeded
         from mcap.records import Channel, Chunk, DataEnd, Footer, Message, Schema
         from mcap.stream_reader import StreamReader, breakup_chunk
         self._chunks = 0
@@ -209,7 +209,10 @@ class UnfinishedMcap(_Positioned):
                     self.stop = ("the file ends there" if at >= self.size else
                                  f"a record cut short at byte {at} of {self.size}")
                     return
-                except Exception as exc:   # a bad length, bad bytes
+                except RecordLengthLimitExceeded as exc:
+                    self.stop = f"a record at byte {at} runs past the end of the file ({self.size} bytes): {exc}"
+                    return
+                except Exception as exc:   # bad bytes
                     self.stop = f"{type(exc).__name__} {exc}".strip() + f" at byte {at} of {self.size}"
                     return
                 inner = [rec]

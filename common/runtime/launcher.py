@@ -7,7 +7,9 @@
   (0.5 s doubling to 10 s; reset after 10 s of uptime); exit status 2 (bad configuration: bad
   params, an unreadable model; a source whose input failed part way, e.g. a corrupt bag) is never
   restarted, and stops the whole graph (``launch`` then exits non-zero). A node's exit is
-  reported with the last ERROR line it printed: which node stopped, and why. Params are checked against each node's ``Params`` before anything starts. Restarts are counted, printed, and reported in the node's stats.
+  reported with the last ERROR line it printed: which node stopped, and why. Params are checked
+  against each node's ``Params`` before anything starts. Restarts are counted, printed, and
+  reported in the node's stats.
 - The launcher's own Zenoh session is the graph's hub: it listens on the graph's ``listen``
   endpoints and the nodes connect to it (then to each other, by gossip). With ``--only`` and the
   endpoint already taken (another launcher runs the rest of the graph), it connects instead.
@@ -403,14 +405,16 @@ class Launcher:
                                  + ("" if code in (0, None) else f" (restart policy {policy}"
                                     + (", status 2 = bad configuration" if code == 2 else "") + ")") + why)
                         if code == 2 and self.stop_on_config_error:
-                            self.say(f"{nid} cannot run as configured: stopping the graph" + ("" if why else " (see its log above)"))
+                            self.say(f"{nid} cannot run as configured: stopping the graph"
+                                     + ("" if why else " (see its log above)"))
                             self._stop.set()
                         continue
                     ran = now - p.started
                     slot.failures = 1 if ran > BACKOFF_RESET_S else slot.failures + 1
                     delay = min(BACKOFF_MAX_S, BACKOFF_MIN_S * 2 ** (slot.failures - 1))
                     slot.restart_at = now + delay
-                    self.say(f"{nid} exited with {describe_status(code)}{why}; restart #{slot.restarts + 1} in {delay:.1f} s")
+                    self.say(f"{nid} exited with {describe_status(code)}{why}; "
+                             f"restart #{slot.restarts + 1} in {delay:.1f} s")
                 elif p is None and slot.restart_at is not None and now >= slot.restart_at:
                     slot.restarts += 1
                     slot.restart_at = None
