@@ -16,6 +16,10 @@ looping.
 params: ``path`` (required), ``preset`` (ambf | dvrk | none), ``topics`` (a topic map file or
 mapping), ``rate`` (``recorded``: the header stamps' timing; ``max``; or Hz), ``loop``,
 ``count`` (pairs to play; 0 all), ``encoding`` (bgr8).
+
+A bag that fails part way (a reader error, a frame that cannot be assembled, a value not
+finite) stops the source: ``NodeError``, exit status 2, and the launcher says why and stops the
+graph. An unfinished MCAP recording plays up to its last complete chunk, with a warning.
 """
 from __future__ import annotations
 

@@ -14,6 +14,9 @@ exception other than MessageError, from the codec or a handler), poses published
 the pose invariant, and the clean frames each node needed to publish again after the poison
 (at 30 Hz, 60 frames = 2 s).
 
+``--bags N``: damaged bag files (cut short, corrupt chunks, bad CRCs and lengths, unfinished)
+read through the bag reader (``common/ros/bagfuzz.py``).
+
 The clean stream is the oracle's: a still needle seen by the default rig while the ECM yaws,
 through the ecm, detector (oracle keypoints; an image backend gets a 1080p JPEG) and pose nodes.
 """

@@ -16,6 +16,12 @@ What each message becomes (topics under ``/<node>/<output>``):
 | GroundTruth | ``.../needle`` PoseStamped (T_world_needle), ``.../ecm`` PoseStamped (T_world_ecm) |
 
 Header stamps are the messages' ``stamp_ns``; log times the moment of receipt.
+
+A recording survives its end: Ctrl-C, SIGTERM and SIGHUP finish the file; the chunk in progress
+is written out every ``CHUNK_S`` (1 s), so a killed recorder's file (no summary) keeps all but
+the last second, which ``from-bag`` and the ``rosbag`` source recover (common/ros/reader.py); a
+failed write (a full disk) stops it with one line, the file cut back to its complete chunks; the
+topic map is written as soon as it is known.
 """
 from __future__ import annotations
 
