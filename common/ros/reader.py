@@ -24,6 +24,7 @@ from pathlib import Path
 from common.ros.bag import BagError
 
 MCAP_MAGIC = b"\x89MCAP0\r\n"
+MAX_CHUNK_BYTES = 2 << 30      # an unfinished file's chunk claiming more is corrupt (chunks are ~1 MB)
 
 
 def _types(defs, default):
@@ -217,6 +218,10 @@ class UnfinishedMcap(_Positioned):
                     return
                 inner = [rec]
                 if isinstance(rec, Chunk):
+                    if rec.uncompressed_size > MAX_CHUNK_BYTES:
+                        self.stop = (f"chunk {self._chunks + 1} claims {rec.uncompressed_size} bytes uncompressed "
+                                     f"(at most {MAX_CHUNK_BYTES} read)")
+                        return
                     try:
                         inner = breakup_chunk(rec, validate_crc=True)
                     except Exception as exc:
