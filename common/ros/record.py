@@ -350,8 +350,11 @@ def record_main(argv: list) -> int:
     signal.signal(signal.SIGXFSZ, signal.SIG_IGN)     # past a file-size limit: a write error, said in one line
     try:
         r = record(graph, args.out, args.keys, args.duration, not args.no_eos_stop, stop=stop)
-    except OSError as exc:
-        print(f"error: cannot write {args.out}: {exc.strerror or exc}", file=sys.stderr)
+    except (OSError, RecordError) as exc:      # the file cannot even be started
+        print(f"error: {exc}" if isinstance(exc, RecordError) else
+              f"error: cannot write {args.out}: {exc.strerror or exc}", file=sys.stderr)
+        if os.path.isfile(args.out) and os.path.getsize(args.out) == 0:
+            os.unlink(args.out)
         return 1
     except KeyboardInterrupt:
         return 130
