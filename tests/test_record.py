@@ -177,6 +177,7 @@ def test_a_killed_recorder_plays_back_up_to_its_last_complete_chunk(run_graph, s
     from common.ros.bag import open_reader
     r = open_reader(out)
     last = max(t for _, t, _ in r.messages(r.connections))
+    r.close()
     assert (t_kill - last) / 1e9 < 5.0, "the chunk in progress held more than a few seconds"
     rc = dataset_main(["from-bag", str(out), "--topics", str(tm), "--out", str(tmp_path / "ds"), "--quiet"])
     err = capsys.readouterr().err
