@@ -16,6 +16,10 @@ looping.
 params: ``path`` (required), ``preset`` (ambf | dvrk | none), ``topics`` (a topic map file or
 mapping), ``rate`` (``recorded``: the header stamps' timing; ``max``; or Hz), ``loop``,
 ``count`` (pairs to play; 0 all), ``encoding`` (bgr8).
+
+A bag that fails part way (a reader error, a frame that cannot be assembled, a value not
+finite) stops the source: ``NodeError``, exit status 2, and the launcher says why and stops the
+graph. An unfinished MCAP recording plays up to its last complete chunk, with a warning.
 """
 from __future__ import annotations
 
@@ -62,6 +66,8 @@ class RosbagNode(CameraSourceNode):
         if self.first is None:
             raise NodeError(f"rosbag: {p.path}: no stereo pair in the bag (unpaired: {self.bag.counts})")
         self.log.info("rosbag: %s: topics %s, unit %s", p.path, self.bag.info["topics"], self.bag.info.get("unit"))
+        if self.bag.info.get("recovered"):
+            self.log.warning("rosbag: %s: %s", p.path, self.bag.info["recovered"])
         from common.ros.source import SamplePublisher
         self.out = SamplePublisher(self, self.bag.needle_model(), f"rosbag {p.path}", self.bag.map.get("ecm"),
                                    p.encoding)
@@ -79,33 +85,40 @@ class RosbagNode(CameraSourceNode):
         self.it = iter(self.bag)
 
     def _next(self):
+        """The next stereo sample (None at the end); NodeError when the bag fails part way (a
+        truncated or corrupt record, a frame that cannot be assembled, a value not finite)."""
+        from common.ros.bag import BagError
+        from common.ros.convert import sample_fault
         s, self.pending = self.pending, None
-        if s is None:
-            s = next(self.it, None)
-        if s is None and self.p.loop:
-            self.n_frames = self.n_frames or self.published
-            self.bag.close()
-            self._open()
-            self.loops += 1
-            self.clock.restart()
-            s = next(self.it, None)
+        try:
+            if s is None:
+                s = next(self.it, None)
+            if s is None and self.p.loop:
+                self.n_frames = self.n_frames or self.published
+                self.bag.close()
+                self._open()
+                self.loops += 1
+                self.clock.restart()
+                s = next(self.it, None)
+        except (BagError, ValueError) as exc:
+            self.count("bag_errors")
+            raise NodeError(f"rosbag: {exc} ({self.published} frames published)") from None
+        fault = None if s is None else sample_fault(s, self.bag.info["topics"])
+        if fault:
+            self.count("bag_errors")
+            raise NodeError(f"rosbag: {self.p.path}: frame {s.index} (stamp {s.stamp_ns}): {fault} "
+                            f"({self.published} frames published)")
         return s
 
     def _pace(self, s) -> None:
         sleep_in_slices(self.clock.delay(s.stamp_ns), lambda: self.running, self._publish_calib)
 
     def step(self):
-        from common.ros.bag import BagError
         from common.ros.convert import RestGroups
         if self.p.count and self.published >= self.p.count:
             s = None
         else:
-            try:
-                s = self._next()
-            except BagError as exc:
-                self.count("bag_errors")
-                self.log.error("rosbag: %s", exc)
-                s = None
+            s = self._next()     # NodeError: the source stops with exit status 2
         if s is None:
             self.publish("eos", EndOfStream(frames=self.published, stamp_ns=time.time_ns()))
             return False

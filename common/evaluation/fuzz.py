@@ -14,6 +14,9 @@ exception other than MessageError, from the codec or a handler), poses published
 the pose invariant, and the clean frames each node needed to publish again after the poison
 (at 30 Hz, 60 frames = 2 s).
 
+``--bags N``: damaged bag files (cut short, corrupt chunks, bad CRCs and lengths, unfinished)
+read through the bag reader (``common/ros/bagfuzz.py``).
+
 The clean stream is the oracle's: a still needle seen by the default rig while the ECM yaws,
 through the ecm, detector (oracle keypoints; an image backend gets a 1080p JPEG) and pose nodes.
 """
@@ -480,6 +483,8 @@ def main(argv=None) -> int:
     ap.add_argument("--per-input", type=int, default=10_000, help="poison payloads per input (10000)")
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--node", action="append", help="only these node ids (repeatable)")
+    ap.add_argument("--bags", type=int, default=200,
+                    help="damaged bag files per base bag (MCAP, ROS 1) read through the bag reader (200; 0: none)")
     ap.add_argument("--live", action="store_true",
                     help="instead: poison the default graph in processes (see live_check)")
     ap.add_argument("--dataset", help="--live: the replay's folder (default data/test, else data/bench)")
@@ -506,6 +511,13 @@ def main(argv=None) -> int:
           f"{s['max_recovery_frames']} clean frames ({s['max_recovery_frames'] / FRAME_HZ:.2f} s at {FRAME_HZ:g} Hz)")
     ok = s["crashes"] == 0 and s["invalid_poses_published"] == 0 and s["never_recovered"] == 0 \
         and s["max_recovery_frames"] <= RECOVERY_LIMIT
+    if args.bags and not args.node:
+        from common.ros.bagfuzz import fuzz_bags
+        b = fuzz_bags(args.bags, args.seed)
+        print(f"fuzz: {b.files} damaged bag files ({', '.join(sorted(b.kinds))}) in {b.seconds:.0f} s: "
+              f"{b.read} read to the end ({b.recovered} recovered from unfinished files), {b.refused} refused "
+              f"with a BagError; {b.crashes} crashes" + (f" (first: {b.first_crash})" if b.crashes else ""))
+        ok = ok and b.crashes == 0
     return 0 if ok else 1
 
 

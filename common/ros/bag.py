@@ -79,19 +79,27 @@ def pose_of(msg, scale: float = 1.0) -> np.ndarray:
 
 
 def open_reader(path):
-    """An opened rosbags AnyReader over ``path`` (ROS 1 .bag, ROS 2 .db3/.mcap file or directory)."""
-    from rosbags.highlevel import AnyReader
-
-    from common.ros.types import typestore
+    """An opened reader over ``path`` (ROS 1 .bag, ROS 2 .db3/.mcap file or directory;
+    ``common/ros/reader.py``): an unfinished MCAP file is read up to its last complete chunk
+    (``reader.recovered`` says so), a topic of an unresolvable type is listed in
+    ``reader.unresolved``."""
+    from common.ros.reader import BagReader, UnfinishedMcap, is_mcap, is_unfinished_mcap
     p = Path(path)
     if not p.exists():
         raise BagError(f"{p}: no such bag file or folder")
+    mcaps = sorted(p.glob("*.mcap")) if p.is_dir() else [p]
+    if len(mcaps) == 1 and is_unfinished_mcap(mcaps[0]):   # a recording, or a bag folder's one file, cut short
+        return UnfinishedMcap(mcaps[0])
     try:
-        reader = AnyReader([p], default_typestore=typestore(2))
-        reader.open()
+        return BagReader(p)
     except Exception as exc:   # rosbags raises its own reader errors for unreadable bags
-        raise BagError(f"{p}: not a readable ROS 1 .bag or ROS 2 .db3/.mcap bag: {exc}") from None
-    return reader
+        first = exc
+    if is_mcap(p):                  # an MCAP file whose summary is unreadable
+        try:
+            return UnfinishedMcap(p, f"a recording whose summary cannot be read ({first})")
+        except BagError:
+            pass
+    raise BagError(f"{p}: not a readable ROS 1 .bag or ROS 2 .db3/.mcap bag: {first}") from None
 
 
 class StereoAssembler:
@@ -341,6 +349,10 @@ class BagStereo:
             m = load_topic_map(preset, topics)
             m = resolve_rig(m, set(self.types))
             roles = resolve_roles(m, self.types, self.path)
+            for t, (role, cam) in roles.items():
+                if t in self.reader.unresolved:
+                    raise BagError(f"{self.path}: topic {t} ({role}{'.' + cam if cam else ''}): "
+                                   f"{self.reader.unresolved[t]}")
         except (TopicMapError, BagError) as exc:
             self.close()
             msg = str(exc)
@@ -349,6 +361,8 @@ class BagStereo:
         self.asm = StereoAssembler(m, self.path, roles)
         self.info = self.asm.info
         self.counts = self.asm.counts
+        if self.reader.recovered:
+            self.info["recovered"] = self.reader.recovered
 
     def needle_model(self) -> NeedleModel:
         return self.asm.needle_model()
@@ -377,5 +391,18 @@ class BagStereo:
                 msg = self.reader.deserialize(raw, conn.msgtype)
             except Exception as exc:
                 raise BagError(f"{self.path}: {conn.topic}: cannot deserialise a {conn.msgtype}: {exc}") from None
-            yield from self.asm.feed(conn.topic, msg)
-        yield from self.asm.finish()
+            try:
+                out = self.asm.feed(conn.topic, msg)
+            except BagError:
+                raise
+            except (AttributeError, TypeError, ValueError, KeyError, IndexError) as exc:   # fields not as its type's
+                raise BagError(f"{self.path}: {conn.topic}: a {conn.msgtype} not as the type defines it (the bag's "
+                               f"own definition of it?): {type(exc).__name__}: {exc}") from None
+            yield from out
+        try:
+            out = self.asm.finish()
+        except BagError:
+            raise
+        except (AttributeError, TypeError, ValueError, KeyError, IndexError) as exc:
+            raise BagError(f"{self.path}: the last frames: {type(exc).__name__}: {exc}") from None
+        yield from out

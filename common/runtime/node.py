@@ -151,7 +151,9 @@ class Node:
         """Called once when the node stops."""
 
     def step(self):
-        """Sources override this: called in a loop; pace yourself; return False when done."""
+        """Sources override this: called in a loop; pace yourself; return False when done; raise
+        ``NodeError`` when the input cannot go on (a corrupt file): the process exits with
+        status 2, is not restarted, and the launcher stops the graph."""
         raise NotImplementedError
 
     def on_stream_reset(self) -> None:
@@ -709,6 +711,10 @@ class Runtime:
                 try:
                     more = node.step()
                     step_failures = 0
+                except NodeError as exc:     # a source whose input cannot go on: stop, not restarted
+                    self.log.error("source stopped: %s", exc)
+                    self.exit_status = 2
+                    break
                 except Exception as exc:
                     self.stats.add("step_errors")
                     step_failures += 1

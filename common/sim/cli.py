@@ -130,6 +130,8 @@ def _ros(args) -> int:
               f"{r['with_truth']}; unit {r['unit']}; unpaired images {r['unpaired']}")
         for role, topic in r["topics"].items():
             print(f"  {role}: {topic}")
+        if r["recovered"]:
+            print(f"warning: {args.bag}: {r['recovered']}", file=sys.stderr)
         return 0
     if args.cmd == "to-bag":
         from common.ros.synth import dataset_to_bag
