@@ -19,6 +19,7 @@ from __future__ import annotations
 import argparse
 import os
 import random
+import re
 import socket
 import struct
 import subprocess
@@ -81,8 +82,8 @@ def _complete(buf: bytes, data: bytes) -> bool:
 
 
 def statuses(buf: bytes) -> list:
-    return [int(line.split(b" ")[1]) for line in buf.split(b"\r\n")
-            if line.startswith(b"HTTP/1.") and len(line.split(b" ")) > 1 and line.split(b" ")[1].isdigit()]
+    """The status codes of the answers in ``buf`` (the page's bodies never hold a status line)."""
+    return [int(m) for m in re.findall(rb"HTTP/1\.[01] ([0-9]{3}) ", buf)]
 
 
 def poison(kind: str, rng: random.Random) -> tuple:

@@ -322,6 +322,8 @@ class PageServer:
 
     def _loop_error(self, loop, context: dict) -> None:
         exc = context.get("exception")
+        if isinstance(exc, ConnectionError):      # a client's reset, surfacing in a stream future
+            return self._note("resets", f"{type(exc).__name__}: {exc}")
         self._note("errors", f"{context.get('message', 'error')}: {type(exc).__name__ if exc else ''} {exc or ''}")
 
     async def _client(self, reader: asyncio.StreamReader, writer: asyncio.StreamWriter) -> None:
@@ -363,6 +365,11 @@ class PageServer:
             self._tasks.discard(asyncio.current_task())
             if not writer.transport.is_closing():
                 writer.transport.abort()
+            try:                                  # and retrieve a reset's exception
+                async with asyncio.timeout(1.0):
+                    await writer.wait_closed()
+            except (Exception, asyncio.CancelledError):   # noqa: BLE001  (closing anyway)
+                pass
 
     async def _read_head(self, reader: asyncio.StreamReader, got: list) -> Optional[Request]:
         """The next request; None at the end of the stream; ``got`` gets True at its first byte."""
