@@ -200,10 +200,14 @@ def fuzz_page(server, n: int, seed: int = 0, clean_every: int = 50) -> dict:
 SERVER = r"""
 import logging, os, sys
 logging.basicConfig(level=logging.INFO, format="%(asctime)s %(name)s %(levelname)s %(message)s")
-from common.viewer.page import PageServer
-s = PageServer("127.0.0.1", 0)
+if sys.argv[1] == "node":
+    from nodes.viewer import ViewerNode
+    s = ViewerNode.offline({"port": 0, "rerun": False}, wired=["left", "right", "calib"]).page
+else:
+    from common.viewer.page import PageServer
+    s = PageServer("127.0.0.1", 0)
 s.set_frame("left", os.urandom(100_000))
-print(s.port, flush=True)
+print(s.port, file=sys.__stdout__, flush=True)
 sys.stdin.read()
 """
 
@@ -224,15 +228,22 @@ def threads(pid: int) -> int:
 
 
 class ServerProcess:
-    """A page server in a child process (``tree``: the checkout it imports); stderr to a file."""
+    """A page server in a child process (``tree``: the checkout it imports; ``node``: inside an
+    offline viewer node, with the node's imports, rather than alone); stderr to a file."""
 
-    def __init__(self, tree: Path, log_path: Path):
+    def __init__(self, tree: Path, log_path: Path, node: bool = False):
         env = dict(os.environ, PYTHONPATH=str(tree))
         self.log_path = log_path
         self.err = open(log_path, "w")
-        self.p = subprocess.Popen([sys.executable, "-c", SERVER], stdin=subprocess.PIPE,
-                                  stdout=subprocess.PIPE, stderr=self.err, env=env, cwd=str(tree))
-        self.port = int(self.p.stdout.readline())
+        self.p = subprocess.Popen([sys.executable, "-c", SERVER, "node" if node else "page"],
+                                  stdin=subprocess.PIPE, stdout=subprocess.PIPE, stderr=self.err, env=env,
+                                  cwd=str(tree))
+        line = b""
+        while line.strip().isdigit() is False:       # the node prints its URL first
+            line = self.p.stdout.readline()
+            if not line:
+                raise RuntimeError(f"the page server did not start; see {log_path}")
+        self.port = int(line)
         time.sleep(0.5)
 
     def log_lines(self) -> int:
@@ -323,9 +334,9 @@ def idle(server: ServerProcess, n: int = 100, hold_s: float = 15.0) -> dict:
     return {"threads_while_idle": during, "closed_by_server": closed}
 
 
-def probe(tree: Path, log_dir: Path) -> dict:
+def probe(tree: Path, log_dir: Path, node: bool = False) -> dict:
     out = {}
-    srv = ServerProcess(tree, log_dir / "flood.log")
+    srv = ServerProcess(tree, log_dir / "server.log", node)
     try:
         base = rss_mb(srv.p.pid)
         f = flood(srv.port)
@@ -349,13 +360,15 @@ def main(argv=None) -> int:
     ap.add_argument("--tree", default=str(Path(__file__).resolve().parents[2]),
                     help="the checkout whose common/viewer/page.py serves (default: this one)")
     ap.add_argument("--log-dir", default=None, help="where the server's log goes (default: a temporary folder)")
+    ap.add_argument("--node", action="store_true",
+                    help="serve from an offline viewer node (the node's imports: its baseline RSS)")
     args = ap.parse_args(argv)
     import tempfile
     log_dir = Path(args.log_dir or tempfile.mkdtemp(prefix="viewer-http-"))
     log_dir.mkdir(parents=True, exist_ok=True)
-    r = probe(Path(args.tree), log_dir)
+    r = probe(Path(args.tree), log_dir, args.node)
     fl = r["flood"]
-    print(f"viewer-http ({args.tree}): header flood (30 clients x 99 fields of 60 KB): RSS {fl['baseline_mb']} MB "
+    print(f"viewer-http ({args.tree}{', in a viewer node' if args.node else ''}): header flood (30 clients x 99 fields of 60 KB): RSS {fl['baseline_mb']} MB "
           f"-> {fl['after_mb']} MB after they closed ({fl['after_mb'] / fl['baseline_mb']:.2f}x), answers "
           f"{fl['answers']}, {fl['threads_after']} threads")
     b = r["burst"]
