@@ -27,7 +27,6 @@ import sys
 import threading
 import time
 from pathlib import Path
-from typing import Optional
 
 ANSWER_S = 5.0          # a poison request is answered or closed within this (s)
 CLEAN = b"GET /state.json HTTP/1.1\r\nHost: 127.0.0.1\r\n\r\n"
