@@ -303,6 +303,7 @@ class PageServer:
                 self._client, sock=self._sock, limit=self.limits.max_head, backlog=self.limits.backlog))
         except Exception as exc:        # noqa: BLE001  (reported to the constructor)
             self._start_error = exc
+            self._loop.close()
             started.set()
             return
         started.set()
