@@ -41,7 +41,7 @@ from common.runtime.node import Node, NodeError, run
 from common.runtime.pairing import SeqCache
 from common.viewer.draw import PoseToDraw, decode_small
 from common.viewer.frame import log_frame, pictures
-from common.viewer.page import PageServer
+from common.viewer.page import HttpLimits, PageServer
 from common.viewer.state import ViewerState
 from common.methods import POSE_METHODS, final_method
 from nodes._pose import PoseMethodInputs
@@ -76,8 +76,11 @@ class ViewerNode(PoseMethodInputs, Node):
 
     @dataclass
     class Params:
-        host: str = "127.0.0.1"       # the page's address (loopback)
+        host: str = "127.0.0.1"       # the page's address (loopback; another logs a warning)
         port: int = 9090              # the page's port (0, or taken: any free port)
+        allowed_hosts: tuple[str, ...] = ()   # more Host names the page answers (beside localhost,
+                                      # the bound host and addresses; "*": any): DNS rebinding
+        max_connections: int = 64     # page connections served at once (then 503)
         rerun: bool = True            # also log to Rerun when rerun-sdk is installed
         web_port: int = 9091          # Rerun's web viewer on 127.0.0.1 (0: none; taken: any free port)
         grpc_port: int = 9876         # Rerun's data server on 127.0.0.1 (0: none; taken: any free port)
@@ -93,8 +96,8 @@ class ViewerNode(PoseMethodInputs, Node):
 
     def setup(self):
         p = self.p
-        if p.rate_hz <= 0 or p.width < 16 or p.height < 16:
-            raise NodeError("viewer: rate_hz must be > 0 and width, height at least 16")
+        if p.rate_hz <= 0 or p.width < 16 or p.height < 16 or p.max_connections < 1:
+            raise NodeError("viewer: rate_hz must be > 0, width, height at least 16, max_connections at least 1")
         wired = [m for m in POSE_METHODS if self.wired(m)]
         if p.final is not None and p.final not in POSE_METHODS:
             raise NodeError(f"viewer.params.final: {p.final!r} is not one of {POSE_METHODS}")
@@ -114,10 +117,12 @@ class ViewerNode(PoseMethodInputs, Node):
         rerun_url = None
         if p.rerun:
             rerun_url = self._start_rerun()
+        page = dict(poll_ms=int(1000 / p.rate_hz), rerun_url=rerun_url, allowed_hosts=p.allowed_hosts,
+                    limits=HttpLimits(max_connections=p.max_connections), log=self.log, count=self.count)
         try:
-            self.page = PageServer(p.host, p.port, poll_ms=int(1000 / p.rate_hz), rerun_url=rerun_url)
+            self.page = PageServer(p.host, p.port, **page)
         except OSError as exc:      # taken (another viewer?): any free port rather than no viewer
-            self.page = PageServer(p.host, 0, poll_ms=int(1000 / p.rate_hz), rerun_url=rerun_url)
+            self.page = PageServer(p.host, 0, **page)
             self.log.warning("port %d: %s; serving on %d instead", p.port, exc, self.page.port)
         print(f"viewer: {self.page.url}", flush=True)
         if rerun_url:

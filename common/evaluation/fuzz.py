@@ -3,7 +3,8 @@ process, the way the runtime hands them over (``decode`` with the input's type, 
 ``Node.deliver``), between frames of a clean stream.
 
 For each node of the graph (default: dataflow.yaml; the ``sim`` camera is a source whose only
-input is its command key) and each of its inputs (and its ``cmd`` key), a fresh offline node gets
+input is its command key) and each of its inputs (and its ``cmd`` key; a viewer's page too,
+``@http``: poison HTTP requests over sockets to 127.0.0.1, ``common.evaluation.http_fuzz``), a fresh offline node gets
 a clean warm-up stream, then ``--per-input`` poison payloads, one clean frame after every
 ``--clean-every`` of them, then clean frames until it publishes again. Payload kinds: random
 bytes, truncated and bit-flipped valid payloads, type-confused fields, missing/extra fields,
@@ -306,9 +307,24 @@ def _check_published(node, start: int) -> int:
     return bad
 
 
+def fuzz_http(spec, cls, n: int, seed: int) -> InputResult:
+    """The viewer's page (``@http``): ``n`` poison requests over sockets to 127.0.0.1
+    (``common.evaluation.http_fuzz``), the node's own server with its params."""
+    from common.evaluation.http_fuzz import fuzz_page
+    node = cls.offline({**spec.params, "port": 0, "rerun": False}, wired=spec.inputs.keys(), node_id=spec.id)
+    try:
+        r = fuzz_page(node.page, n, seed)
+    finally:
+        node.teardown()
+    return InputResult(spec.id, "@http", r["payloads"], r["refused"], r["delivered"], r["crashes"], 0,
+                       r["recovery"], r["first_crash"])
+
+
 def fuzz_input(spec, cls, input_name: str, stream: CleanStream, n: int, seed: int,
                clean_every: int = 50, warmup: int = 12) -> InputResult:
-    """Fuzz one input (or ``@cmd``) of one node; see the module docstring."""
+    """Fuzz one input (or ``@cmd``, or the viewer's ``@http``) of one node; see the module docstring."""
+    if input_name == "@http":
+        return fuzz_http(spec, cls, n, seed)
     rng, np_rng = random.Random(seed), np.random.default_rng(seed)
     res = InputResult(spec.id, input_name)
     node = _make(cls, spec)
@@ -383,7 +399,7 @@ def run_fuzz(graph, per_input: int, seed: int = 0, nodes: Optional[list] = None,
     for j, (spec, cls) in enumerate(_node_specs(graph)):
         if nodes and spec.id not in nodes:
             continue
-        inputs = list(spec.inputs) + ["@cmd"]
+        inputs = list(spec.inputs) + ["@cmd"] + (["@http"] if spec.module == "viewer" else [])
         for i, name in enumerate(inputs):
             t0 = time.perf_counter()
             r = fuzz_input(spec, cls, name, stream, per_input, seed * 7919 + j * 101 + i)

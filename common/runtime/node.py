@@ -360,8 +360,8 @@ class Stats:
 class _RateLimitedLog:
     """Logs the first error of a kind at once, then at most one summary per ``period`` seconds."""
 
-    def __init__(self, log: logging.Logger, period: float = 2.0):
-        self.log, self.period = log, period
+    def __init__(self, log: logging.Logger, period: float = 2.0, level: int = logging.ERROR):
+        self.log, self.period, self.level = log, period, level
         self._last: dict = {}
         self._suppressed: collections.Counter = collections.Counter()
 
@@ -370,10 +370,13 @@ class _RateLimitedLog:
         if now - self._last.get(kind, -1e9) >= self.period:
             n = self._suppressed.pop(kind, 0)
             more = f" (+{n} more like it)" if n else ""
-            self.log.error("%s%s", text, more, exc_info=exc_info)
+            self.log.log(self.level, "%s%s", text, more, exc_info=exc_info)
             self._last[kind] = now
         else:
             self._suppressed[kind] += 1
+
+
+RateLimitedLog = _RateLimitedLog    # public: for library threads outside the handlers (the viewer's page)
 
 
 class ShmWriter:

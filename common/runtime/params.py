@@ -78,6 +78,14 @@ def _hints(schema: type) -> dict:
     return typing.get_type_hints(schema, include_extras=False)
 
 
+def did_you_mean(name, names: list) -> str:
+    """A hint for an unknown ``name``: "did you mean 'a' or 'b'?" (the close ones of ``names``),
+    else the known names (up to 12), else how many there are."""
+    close = difflib.get_close_matches(str(name), names, n=3)
+    return (f"did you mean {' or '.join(map(repr, close))}?" if close
+            else f"known: {', '.join(names) or 'none'}" if len(names) <= 12 else f"{len(names)} known")
+
+
 def param_errors(schema: type, raw: Mapping | None, where: str = "params") -> list[str]:
     """Every problem of ``raw`` against the dataclass ``schema``, each prefixed with its place."""
     if raw is None:
@@ -89,10 +97,7 @@ def param_errors(schema: type, raw: Mapping | None, where: str = "params") -> li
     errors = []
     for key, value in raw.items():
         if key not in hints:
-            close = difflib.get_close_matches(str(key), names, n=3)
-            hint = (f"did you mean {' or '.join(map(repr, close))}?" if close
-                    else f"known: {', '.join(names) or 'none'}" if len(names) <= 12 else f"{len(names)} known")
-            errors.append(f"{where}.{key}: unknown param ({hint})")
+            errors.append(f"{where}.{key}: unknown param ({did_you_mean(key, names)})")
         elif not _matches(value, hints[key]):
             errors.append(f"{where}.{key}: expected {_describe(hints[key])}, got {value!r}")
     return errors

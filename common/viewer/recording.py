@@ -14,9 +14,43 @@ import numpy as np
 
 from common.evaluation.metrics import true_T_ecm_needle
 from common.geometry.transforms import pose_error
-from common.viewer.draw import PoseToDraw, downscale
 from common.methods import in_final_order
+from common.viewer.draw import PoseToDraw, downscale
 from common.viewer.frame import CAMERAS, log_frame, pictures
+
+RRD_MAGIC = (b"RRF0", b"RRF1", b"RRF2")
+"""The first bytes of a Rerun recording (.rrd), by format version."""
+
+
+def rrd_target_problem(path) -> Optional[str]:
+    """Why ``path`` may not be written as a new recording, or None when it may: it does not exist
+    (in an existing folder), or it is a regular file that holds a Rerun recording (its first
+    bytes one of ``RRD_MAGIC``), which the new one replaces. Anything else is the user's."""
+    import os
+    import stat
+    from pathlib import Path
+    p = Path(path)
+    try:
+        st = os.lstat(p)
+    except FileNotFoundError:
+        parent = p.parent if str(p.parent) else Path(".")
+        if not parent.is_dir():
+            return f"{path}: its folder {parent} does not exist"
+        return None
+    except OSError as exc:
+        return f"{path}: cannot be checked ({exc.strerror})"
+    if stat.S_ISLNK(st.st_mode):
+        return f"{path} is a symbolic link; give the recording's own path"
+    if not stat.S_ISREG(st.st_mode):
+        return f"{path} exists and is not a regular file"
+    try:
+        with open(p, "rb") as f:
+            head = f.read(4)
+    except OSError as exc:
+        return f"{path}: cannot be read ({exc.strerror})"
+    if head not in RRD_MAGIC:
+        return f"{path} exists and is not a Rerun recording (.rrd): not replaced"
+    return None
 
 
 
