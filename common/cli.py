@@ -22,7 +22,7 @@ COMMANDS = {
     "describe": ("common.runtime.describe:describe_main", "a node's inputs, outputs and params (docs/nodes.md)"),
     "certs": ("common.runtime.certs:certs_main", "make a test CA and a TLS graph's certificates"),
     "bench": ("common.cli:bench_main", "benchmarks: transport, sim, detector, graph, refine, geometry"),
-    "dataset": ("common.sim.cli:main", "make and check datasets"),
+    "dataset": ("common.cli:dataset_main", "make, check, convert and look at dataset folders"),
     "train": ("common.detector.train:main", "train the keypoint detector"),
     "eval": ("common.evaluation.cli:main", "evaluate pose pipelines"),
     "results": ("common.evaluation.results_page:main", "evaluate the documented sets and write docs/results.md"),
@@ -44,6 +44,32 @@ BENCHES = {
     "ros-bag": ("common.ros.bench:bag_main", "ROS bag read speed (stereo frames/s)"),
     "ros-live": ("common.ros.bench:live_main", "latency the live ROS 2 path adds (p50/p99) against the native graph"),
 }
+
+
+DATASET_COMMANDS = ("common.sim.cli", "common.data.cli", "common.ros.cli")
+"""The packages whose ``add_parsers(sub) -> {subcommand: handler}`` make ``needletrack dataset``:
+the scene generators, the folder checks, the ROS conversions (each imports its heavy parts only
+when its subcommand runs)."""
+
+
+def dataset_main(argv: Optional[list] = None) -> int:
+    """``needletrack dataset SUBCOMMAND``: 0 on success, 1 with one ``error:`` line on a bad folder,
+    bag or argument value (``DatasetError``, ``ValueError``, ``OSError``), 2 on bad usage."""
+    import argparse
+    p = argparse.ArgumentParser(prog="needletrack dataset",
+                                description="Make, check, convert and look at dataset folders (docs/dataset.md; "
+                                            "the ROS bag commands: docs/ros.md).")
+    sub = p.add_subparsers(dest="cmd", required=True)
+    handlers = {}
+    for mod in DATASET_COMMANDS:
+        handlers.update(importlib.import_module(mod).add_parsers(sub))
+    args = p.parse_args(sys.argv[1:] if argv is None else list(argv))
+    from common.data.dataset import DatasetError
+    try:
+        return handlers[args.cmd](args)
+    except (DatasetError, ValueError, OSError) as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        return 1
 
 
 def _call(target: str, argv: list) -> int:

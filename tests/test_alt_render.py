@@ -7,6 +7,7 @@ import sys
 import numpy as np
 import pytest
 
+from common.cli import dataset_main
 from common.data.dataset import Dataset, check_dataset
 from common.geometry.camera import StereoRig
 from common.geometry.needle import NeedleModel
@@ -23,7 +24,6 @@ from common.sim.alt_meshes import LABELS, Material, NeedleShape, box_mesh, needl
 from common.sim.alt_raster import rasterise
 from common.sim.alt_render import AltRenderer, AltScene
 from common.sim.alt_tissue import Tissue, make_tissue_textures
-from common.sim.cli import main as dataset_main
 
 METAL = Material((0.6, 0.6, 0.62), 0.4, 0.8, 60.0, env=0.5)
 

@@ -9,10 +9,10 @@ import struct
 import pytest
 import yaml
 
+from common.cli import dataset_main
 from common.data.dataset import Dataset, check_dataset, staged_folder
 from common.ros.bag import BagError, BagStereo
 from common.ros.bagfuzz import damage_mcap, fuzz_bags, mcap_records, synthetic_bag, topic_map
-from common.sim.cli import main as dataset_main
 
 
 @pytest.fixture()

@@ -23,7 +23,7 @@ def _no_traceback(p: subprocess.CompletedProcess) -> None:
 
 @pytest.fixture(scope="module")
 def tiny_dataset(tmp_path_factory):
-    from common.sim.cli import main as dataset_main
+    from common.cli import dataset_main
     ds = tmp_path_factory.mktemp("cli") / "ds"
     assert dataset_main(["generate", "--out", str(ds), "--sequences", "1", "--steps", "2", "--width", "320",
                          "--height", "180", "--seed", "3", "--randomise", "none", "--jobs", "1", "--quiet"]) == 0

@@ -7,6 +7,7 @@ import json
 import cv2
 import numpy as np
 
+from common.cli import dataset_main
 from common.data.dataset import Dataset, check_dataset
 from common.detector.centreline_subpixel import ellipse_residual
 from common.detector.learned import _undistorter
@@ -17,7 +18,6 @@ from common.geometry.refine import project_centreline
 from common.geometry.transforms import make_T, rotvec_to_R
 from common.ros.synth import distort_dataset
 from common.runtime.messages import Calibration
-from common.sim.cli import main as dataset_main
 
 STRONG = np.array([-0.35, 0.15, 0.001, 0.001, 0.0])
 

@@ -5,12 +5,12 @@ import threading
 import numpy as np
 import pytest
 
+from common.cli import dataset_main
 from common.ros.bag import open_reader
 from common.ros.conventions import pose_to_T, stamp_ns
 from common.ros.record import record
 from common.ros.synth import dataset_to_bag
 from common.runtime.graph import load_graph
-from common.sim.cli import main as dataset_main
 
 
 @pytest.fixture(scope="module")

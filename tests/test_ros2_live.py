@@ -12,6 +12,7 @@ import zenoh
 import zenoh.ext
 from graphtools import free_port
 
+from common.cli import dataset_main
 from common.data.dataset import Dataset
 from common.geometry.transforms import inv_T, pose_error
 from common.ros import build
@@ -28,7 +29,6 @@ from common.ros.live import (
     type_hash,
 )
 from common.ros.types import typestore
-from common.sim.cli import main as dataset_main
 
 pytestmark = pytest.mark.graph
 

@@ -8,13 +8,13 @@ from collections import deque
 import numpy as np
 import pytest
 
+from common.cli import dataset_main
 from common.data.dataset import Dataset, check_dataset
 from common.evaluation.cli import main as eval_main
 from common.ros.bag import BagError, BagStereo
 from common.ros.conventions import AMBF_NEEDLE_RADIUS, T_AMBF_NEEDLE
 from common.ros.convert import from_bag
 from common.ros.synth import dataset_to_bag, distort_dataset
-from common.sim.cli import main as dataset_main
 
 DIST = [-0.12, 0.05, 0.0005, -0.0004, 0.0]
 

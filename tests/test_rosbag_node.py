@@ -5,10 +5,10 @@ import pytest
 import yaml
 from graphtools import cli
 
+from common.cli import dataset_main
 from common.data.dataset import Dataset
 from common.geometry.transforms import pose_error
 from common.ros.synth import dataset_to_bag
-from common.sim.cli import main as dataset_main
 
 
 @pytest.fixture(scope="module")

@@ -5,11 +5,11 @@ import numpy as np
 import pytest
 
 import common.sim.render  # noqa: F401  (headless GL before mujoco)
+from common.cli import dataset_main
 from common.data.dataset import Dataset, check_dataset
 from common.geometry.camera import StereoRig
 from common.geometry.needle import NeedleModel
 from common.geometry.transforms import transform_points
-from common.sim.cli import main as dataset_main
 from common.sim.generate import GenerateConfig, generate
 from common.sim.randomise import (
     DISTANCE_RANGE_M,

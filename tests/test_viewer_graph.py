@@ -97,7 +97,7 @@ def test_viewer_page_shows_the_image_and_the_needle_in_a_browser(run_graph, free
 
 @pytest.fixture(scope="module")
 def tiny_dataset(tmp_path_factory):
-    from common.sim.cli import main as dataset_main
+    from common.cli import dataset_main
     ds = tmp_path_factory.mktemp("viewer") / "ds"
     assert dataset_main(["generate", "--out", str(ds), "--sequences", "2", "--steps", "3", "--width", "480",
                          "--height", "270", "--seed", "3", "--randomise", "none", "--jobs", "1", "--quiet"]) == 0

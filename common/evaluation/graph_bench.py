@@ -144,7 +144,7 @@ def ensure_dataset(path) -> str:
     if Path("data/test/frames.jsonl").is_file():
         return "data/test"
     if not Path(BENCH_DATA, "frames.jsonl").is_file():
-        from common.sim.cli import main as dataset_main
+        from common.cli import dataset_main
         print(f"bench: generating {BENCH_DATA} (30 stereo frames at 1920x1080, once)", file=sys.stderr)
         if dataset_main(BENCH_GENERATE) != 0:
             raise RuntimeError(f"could not generate {BENCH_DATA}")

@@ -151,7 +151,7 @@ def live_main(argv: list) -> int:
     tmp = tempfile.TemporaryDirectory(prefix="needletrack-ros-live-")
     path = args.dataset
     if path is None:
-        from common.sim.cli import main as dataset_main
+        from common.cli import dataset_main
         path = str(Path(tmp.name) / "ds")
         dataset_main(["generate", "--out", path, "--sequences", "4", "--steps", "1", "--width", str(args.width),
                       "--height", str(args.height), "--seed", "3", "--randomise", "none", "--jobs", "1", "--quiet"])
