@@ -42,6 +42,7 @@ def _inside(P, x, y):
     return np.array(out)
 
 
+@pytest.mark.slow
 def test_rasterise_covers_exactly_the_pixel_centres_inside_with_exact_depth():
     K = np.array([[300.0, 0, 79.5], [0, 300.0, 59.5], [0, 0, 1]])
     # a slanted triangle: depth varies over it, so affine depth interpolation would be wrong

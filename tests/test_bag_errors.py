@@ -41,6 +41,7 @@ def assert_refused(bag, tmp_path, tm, capsys, *patterns):
     return err
 
 
+@pytest.mark.slow
 def test_a_clean_synthetic_bag_converts(tmp_path, tm, capsys):
     bag = synthetic_bag(str(tmp_path / "ok.mcap"), 6)
     rc, out, err = from_bag(bag, tmp_path / "ds", tm, capsys)
@@ -49,6 +50,7 @@ def test_a_clean_synthetic_bag_converts(tmp_path, tm, capsys):
     assert len(ds) == 6 and not check_dataset(ds).errors
 
 
+@pytest.mark.slow
 def test_a_corrupt_zstd_chunk_a_crc_mismatch_and_a_4gb_length_are_errors_naming_the_file(tmp_path, tm, capsys):
     data = open(synthetic_bag(str(tmp_path / "ok.mcap"), 6), "rb").read()
     chunks = [r for r in mcap_records(data) if r[0] == 0x06]
@@ -150,6 +152,7 @@ def test_staged_folder_renames_on_success_and_removes_on_failure(tmp_path):
     assert (tmp_path / "empty" / "y").exists()
 
 
+@pytest.mark.slow
 def test_damaged_bags_never_crash_the_reader():
     """The fuzz target's bag files in small: every damage kind, MCAP and ROS 1."""
     r = fuzz_bags(14, seed=3, log=lambda *a: None)

@@ -30,6 +30,7 @@ def tiny_dataset(tmp_path_factory):
     return ds
 
 
+@pytest.mark.graph
 def test_eval_rrd_never_removes_a_file_that_is_not_a_recording(tiny_dataset, tmp_path):
     notes = tmp_path / "notes.txt"
     notes.write_text("the surgeon's notes\n")
@@ -124,6 +125,7 @@ def test_cmd_to_a_node_the_graph_does_not_have_suggests_one(tmp_path):
     assert "sent" not in p.stdout
 
 
+@pytest.mark.slow
 def test_cmd_to_a_graph_that_is_not_running_says_no_node_answered(tmp_path):
     p = cli("cmd", "-g", _graph_file(tmp_path), "count", "reset")
     assert p.returncode == 1 and "no node answered" in p.stderr and "nothing sent" in p.stderr, p.stderr

@@ -68,6 +68,7 @@ def _source_graph(bag, **params):
                        "params": {"path": str(bag), "topics": topic_map(), "rate": "max", **params}}]}
 
 
+@pytest.mark.graph
 def test_a_bag_that_fails_part_way_stops_the_source_non_zero_and_launch_says_why(tmp_path):
     """A corrupt chunk after the first frames, then a last right image of another size: the
     source stops with status 2 (not `source finished`, not restarted), launch names it, says

@@ -112,6 +112,7 @@ def test_the_host_header_must_name_this_viewer(server):
     assert _get(anyhost.port, b"whatever.example") == [200]
 
 
+@pytest.mark.slow
 def test_beyond_the_connection_cap_a_client_gets_503_then_a_slot_frees(server):
     s = server(limits=HttpLimits(max_connections=2, timeout_s=DEADLINE))
     holders = [socket.create_connection(("127.0.0.1", s.port)) for _ in range(2)]
@@ -196,6 +197,7 @@ def test_a_non_loopback_host_logs_a_warning():
     assert len(warnings) == 1 and "0.0.0.0" in warnings[0] and "allowed_hosts" in warnings[0], p.stdout
 
 
+@pytest.mark.slow
 def test_memory_returns_after_a_header_flood(tmp_path):
     srv = ServerProcess(REPO, tmp_path / "server.log")
     try:
