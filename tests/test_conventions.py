@@ -24,3 +24,17 @@ def test_every_error_class_derives_from_the_projects_base():
             if inspect.isclass(cls) and issubclass(cls, Exception) and not issubclass(cls, NeedletrackError):
                 missing.append(f"{path.relative_to(REPO)}:{name}")
     assert not missing, missing
+
+
+def test_the_readme_is_a_front_door_and_every_link_in_the_docs_resolves():
+    import re
+    readme = REPO / "README.md"
+    assert len(readme.read_text().splitlines()) <= 180
+    broken = []
+    for page in [readme, *REPO.glob("docs/*.md"), REPO / "models" / "README.md"]:
+        for target in re.findall(r"\]\(([^)#\s]+)(?:#[^)]*)?\)", page.read_text()):
+            if "://" in target or target.startswith("mailto:"):
+                continue
+            if not (page.parent / target).exists():
+                broken.append(f"{page.relative_to(REPO)}: {target}")
+    assert not broken, broken
