@@ -212,13 +212,12 @@ class StereoAssembler:
                         self.path, topic, reason)
 
     def needle_model(self) -> NeedleModel:
-        """The needle: the map's ``needle``, else the preset's radius in metres, else the default."""
+        """The needle: the map's ``needle`` (radius in metres; the ambf preset's is the challenge's
+        10.18 mm whatever the scene's unit), else the default."""
         nd = self.map.get("needle")
         if nd:
             return NeedleModel(radius_m=float(nd["radius_m"]),
                                keypoint_angles_deg=tuple(nd.get("keypoint_angles_deg", (30, 60, 90, 120, 150))))
-        if self.map.get("needle_radius_units") and self.scale is not None:
-            return NeedleModel(radius_m=float(self.map["needle_radius_units"]) * self.scale)
         return NeedleModel()
 
     # ------------------------------------------------------------------ iteration
