@@ -8,7 +8,9 @@ and publishes as ``rosbag`` does (``common/ros/source.py``): ``left``/``right``,
 ``truth``, ``calib``. ``seq`` counts the stereo pairs; ``stamp_ns`` is the images' header stamp.
 
 params: ``preset``, ``topics`` (file or mapping), ``rig`` (the dVRK preset's ``{rig}``, e.g.
-``jhu_daVinci``), ``keys`` (bridge | rmw_zenoh), ``domain_id`` (0), ``namespace`` (the bridge's
+``jhu_daVinci``), ``keys`` (bridge | rmw_zenoh), ``distro`` (humble | jazzy | kilted | rolling:
+the publishers' distribution; rmw_zenoh keys of any type hash are taken, a sample whose hash is of
+another distribution is logged once), ``domain_id`` (0), ``namespace`` (the bridge's
 key prefix), ``connect`` (endpoints), ``mode`` (peer | client), ``types`` ({topic: msgtype}
 where bridge keys do not carry it and the role's default does not fit), ``encoding`` (bgr8),
 ``max_queue`` (samples waiting to be decoded; older ones are dropped and counted ``dropped``).
@@ -66,6 +68,7 @@ class Ros2Node(CameraSourceNode):
         topics: str | dict | None = None
         rig: str = ""
         keys: Literal["bridge", "rmw_zenoh"] = "bridge"
+        distro: Literal["humble", "jazzy", "kilted", "rolling"] = "jazzy"
         domain_id: int = 0
         namespace: str = ""
         connect: list[str] = field(default_factory=lambda: ["tcp/127.0.0.1:7447"])
@@ -111,6 +114,7 @@ class Ros2Node(CameraSourceNode):
         self.map = m
         self.asm = StereoAssembler(m, f"ros2 ({p.keys})", roles, report=self._refused)
         self.last_bad_log: dict = {}
+        self.distro_noted: set = set()
         self.queue: queue.Queue = queue.Queue(maxsize=max(1, p.max_queue))
         self.qlock = threading.Lock()
         try:
@@ -145,7 +149,14 @@ class Ros2Node(CameraSourceNode):
         return cb
 
     def _msgtype(self, topic: str, key: str) -> str:
-        from common.ros.live import topic_of_key
+        from common.ros.live import distro_of_key, topic_of_key
+        if self.p.keys == "rmw_zenoh" and topic not in self.distro_noted:
+            seen = distro_of_key(key)
+            if seen is not None and (seen == "humble") != (self.p.distro == "humble"):
+                self.distro_noted.add(topic)
+                self.log.warning("ros2: %s: key %s has a %s type hash but distro is %s: the samples are read, "
+                                 "but set distro to the ROS 2 system's so that ros2_out's keys match it", topic, key,
+                                 "Humble" if seen == "humble" else "REP 2011", self.p.distro)
         if topic in self.p.types:
             return self.p.types[topic]
         if self.p.keys == "rmw_zenoh":
