@@ -16,6 +16,10 @@ looping.
 params: ``path`` (required), ``preset`` (ambf | dvrk | none), ``topics`` (a topic map file or
 mapping), ``rate`` (``recorded``: the header stamps' timing; ``max``; or Hz), ``loop``,
 ``count`` (pairs to play; 0 all), ``encoding`` (bgr8).
+
+A message that does not decode (common/ros/cdr.py) or cannot serve its topic's role (non-finite
+calibration or pose, oversized arrays, an image that cannot be decoded) is skipped: counted
+``refused_messages``, logged once per topic with its reason; the playback goes on.
 """
 from __future__ import annotations
 
@@ -70,22 +74,30 @@ class RosbagNode(CameraSourceNode):
         self.pending = self.first
         self.loops = 0
         self.n_frames = None           # pairs in one pass, known after the first
-        self.published = 0
+        self.played = 0
         self.pacer = Pacer(self.rate if self.rate else 0.0)
         self.t0 = None
 
     def _open(self):
         from common.ros.bag import BagStereo
         from common.ros.source import topics_param
-        self.bag = BagStereo(self.p.path, self.p.preset, topics_param(self.p.topics))
+        self.bag = BagStereo(self.p.path, self.p.preset, topics_param(self.p.topics), report=self._refused)
         self.it = iter(self.bag)
+
+    def _refused(self, topic: str, reason: str) -> None:
+        self.count("refused_messages")
+        logged = self.__dict__.setdefault("refused_logged", set())
+        if topic not in logged:                 # once per topic, whatever the passes of a loop
+            logged.add(topic)
+            self.log.warning("rosbag: %s: %s: message skipped (further ones on this topic counted, not logged): %s",
+                             self.p.path, topic, reason)
 
     def _next(self):
         s, self.pending = self.pending, None
         if s is None:
             s = next(self.it, None)
         if s is None and self.p.loop:
-            self.n_frames = self.n_frames or self.published
+            self.n_frames = self.n_frames or self.played
             self.bag.close()
             self._open()
             self.loops += 1
@@ -111,7 +123,7 @@ class RosbagNode(CameraSourceNode):
     def step(self):
         from common.ros.bag import BagError
         from common.ros.convert import RestGroups
-        if self.p.count and self.published >= self.p.count:
+        if self.p.count and self.played >= self.p.count:
             s = None
         else:
             try:
@@ -121,7 +133,7 @@ class RosbagNode(CameraSourceNode):
                 self.log.error("rosbag: %s", exc)
                 s = None
         if s is None:
-            self.publish("eos", EndOfStream(frames=self.published, stamp_ns=time.time_ns()))
+            self.publish("eos", EndOfStream(frames=self.played, stamp_ns=time.time_ns()))
             return False
         if s.index == 0:
             self.out.groups = RestGroups()      # a new pass over the bag
@@ -129,7 +141,7 @@ class RosbagNode(CameraSourceNode):
         self._pace(s)
         seq = s.index + self.loops * (self.n_frames or 0)
         self.out.publish(s, seq, s.stamp_ns, 1_000_000 * self.loops)
-        self.published += 1
+        self.played += 1
         return True
 
     def teardown(self):

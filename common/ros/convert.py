@@ -74,7 +74,9 @@ def _same_rig(a: dict, b: dict) -> str | None:
 def from_bag(bag: str, out: str, preset: str | None = None, topics=None, image_format: str = "png",
              jpeg_quality: int = 95, max_frames: int = 0, stride: int = 1, progress: bool = False) -> dict:
     """Convert ``bag`` into the dataset folder ``out``; returns a summary dict (frames, with_truth,
-    unit, topics, unpaired images, seconds). Raises BagError (bad bag/topics) or ValueError."""
+    unit, topics, unpaired images, messages refused per topic, seconds). Raises BagError (bad
+    bag/topics) or ValueError. A message that does not decode or cannot serve its role is
+    skipped, counted in ``refused`` and logged once per topic."""
     if os.path.exists(os.path.join(out, "frames.jsonl")):
         raise ValueError(f"{out} already holds a dataset; use another --out")
     t0 = time.perf_counter()
@@ -134,5 +136,5 @@ def from_bag(bag: str, out: str, preset: str | None = None, topics=None, image_f
                            f"{src.info['topics'].get('image.right')} (left/right header stamps within "
                            f"{src.map['stereo_tolerance_ms']} ms; images left out: {src.counts})")
         return {"frames": n, "with_truth": truth, "unit": src.info.get("unit"), "topics": src.info["topics"],
-                "unpaired": dict(src.counts), "image_size": list(meta.image_size),
+                "unpaired": dict(src.counts), "refused": dict(src.refused), "image_size": list(meta.image_size),
                 "seconds": time.perf_counter() - t0}
