@@ -161,3 +161,25 @@ def test_every_ros_poison_kind_on_both_key_forms(keys):
         assert r.refused == (0 if kind == "padded" else r.refused)
         if kind not in ("padded", "bit_flips"):
             assert r.refused == r.payloads, (kind, r)
+
+
+def test_a_camera_info_or_pose_the_graphs_codec_would_refuse_is_refused_at_the_source(src):
+    """Found by the fuzz (bit flips): a K that is not a pinhole matrix, or a position of 1e300,
+    passed the source and made a Calibration / EcmPose every consumer refused."""
+    st, b = src.s.st, src.s.build
+    src.frame()
+    K = src.s.rig.left.K.copy()
+    K[2, 0] = 5.0
+    t = src.s.topics["info_left"]
+    src.put(t, src.s.key(t, "sensor_msgs/msg/CameraInfo"), encode(b.camera_info(st, src.stamp, K, [0] * 5, src.s.size)))
+    T = np.eye(4)
+    T[0, 3] = 1e300
+    t = src.s.topics["pose"]
+    src.put(t, src.s.key(t, "geometry_msgs/msg/PoseStamped"),
+            encode(b.make(st, "geometry_msgs/msg/PoseStamped", header=b.header(st, src.stamp), pose=b.pose(st, T))))
+    assert src.node.asm.refused == {src.s.topics["info_left"]: 1, t: 1}
+    src.frame()
+    from common.runtime.messages import decode as decode_msg
+    from common.runtime.messages import encode as encode_msg
+    for _, m in src.node.published:
+        decode_msg(encode_msg(m))

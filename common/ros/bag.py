@@ -123,7 +123,10 @@ def message_problem(role: str, msg) -> str | None:
         model = str(getattr(msg, "distortion_model", "plumb_bob") or "plumb_bob")
         if model not in ("plumb_bob", "rational_polynomial") and np.any(D):
             return f"distortion_model {model!r} is not supported (plumb_bob, rational_polynomial)"
-        return None
+        from common.runtime.messages import Calibration
+        cam = {"K": K.reshape(3, 3), "dist": D if len(D) else np.zeros(5), "T_ecm_cam": np.eye(4)}
+        size = np.array([max(1, int(msg.width)), max(1, int(msg.height))])
+        return _codec_problem(Calibration(0, size, {"left": cam, "right": cam}, {"radius_m": 0.01}))
     if role == "ecm_joints":
         if not hasattr(msg, "position"):
             return f"a {msgtype} is not a sensor_msgs/msg/JointState"
@@ -133,6 +136,9 @@ def message_problem(role: str, msg) -> str | None:
         pos = np.asarray(msg.position, float).reshape(-1)
         if not np.all(np.isfinite(pos[:4])):
             return f"non-finite joint positions {pos[:4].tolist()}"
+        if len(pos) >= 4:
+            from common.runtime.messages import EcmPose
+            return _codec_problem(EcmPose(0, 0, np.eye(4), pos[:4].copy()))
         return None
     try:
         p = pose_part(msg)
@@ -142,6 +148,22 @@ def message_problem(role: str, msg) -> str | None:
         return f"a {msgtype} carries no pose"
     if not np.all(np.isfinite(np.asarray(v, float))):
         return f"non-finite pose (position, quaternion x y z w): {v}"
+    from common.runtime.messages import EcmPose
+    try:
+        T = pose_to_T(p)
+    except ValueError as exc:
+        return str(exc)
+    return _codec_problem(EcmPose(0, 0, T))
+
+
+def _codec_problem(msg) -> str | None:
+    """What the graph's codec refuses in ``msg`` (the one check of a calibration, pose or joint
+    state: finite, in range, a pinhole K, rigid), or None."""
+    from common.runtime.messages import MessageError, decode, encode
+    try:
+        decode(encode(msg), type(msg))
+    except MessageError as exc:
+        return str(exc)
     return None
 
 
