@@ -16,6 +16,14 @@ the pose invariant, and the clean frames each node needed to publish again after
 
 The clean stream is the oracle's: a still needle seen by the default rig while the ECM yaws,
 through the ecm, detector (oracle keypoints; an image backend gets a 1080p JPEG) and pose nodes.
+
+The ROS 2 way in (``--node ros2``, included by default): CDR samples into an offline ``ros2``
+source on bridge and rmw_zenoh keys, through its own queue and ``step``, between clean frames
+of a dVRK-like system: random bytes, truncated and bit-flipped CDR, garbage after the message,
+CDR padded as rmw_fastrtps writes it (accepted), another type's CDR on a topic (rmw_zenoh: a key
+naming that type), a 389 KB PNG of 20000x20000, a JointState of 10^6 names, NaN/inf in
+camera_info K/D and in a pose. Crashes, published messages the graph's codec refuses, and the
+clean frames until a stereo pair comes out again.
 """
 from __future__ import annotations
 
@@ -385,11 +393,16 @@ def run_fuzz(graph, per_input: int, seed: int = 0, nodes: Optional[list] = None,
             t0 = time.perf_counter()
             r = fuzz_input(spec, cls, name, stream, per_input, seed * 7919 + j * 101 + i)
             results.append(r)
-            log(f"  {spec.id:15s} {name:14s} {r.payloads:6d} payloads  {r.refused:6d} refused  "
-                f"{r.delivered:6d} delivered  {r.crashes} crashes  {r.invalid_published} invalid poses  "
-                f"recovery {r.recovery_frames if r.recovery_frames is not None else 'NEVER'} frames  "
-                f"({time.perf_counter() - t0:.1f} s)" + (f"\n    first crash: {r.first_crash}" if r.first_crash else ""))
+            log(result_line(r, time.perf_counter() - t0))
     return results
+
+
+def result_line(r: InputResult, seconds: float) -> str:
+    """One fuzzed input's line of the report."""
+    return (f"  {r.node:15s} {r.input:14s} {r.payloads:6d} payloads  {r.refused:6d} refused  "
+            f"{r.delivered:6d} delivered  {r.crashes} crashes  {r.invalid_published} invalid published  "
+            f"recovery {r.recovery_frames if r.recovery_frames is not None else 'NEVER'} frames  "
+            f"({seconds:.1f} s)" + (f"\n    first crash: {r.first_crash}" if r.first_crash else ""))
 
 
 def summary(results: list) -> dict:
@@ -595,10 +608,7 @@ def run_fuzz_ros2(per_input: int, seed: int = 0, log=print) -> list:
             t0 = time.perf_counter()
             r = fuzz_ros2(keys, kind, per_input, seed * 7919 + j * 101 + i)
             results.append(r)
-            log(f"  {r.node:15s} {r.input:32s} {r.payloads:6d} samples  {r.refused:6d} refused  "
-                f"{r.crashes} crashes  {r.invalid_published} invalid published  recovery "
-                f"{r.recovery_frames if r.recovery_frames is not None else 'NEVER'} frames "
-                f"({time.perf_counter() - t0:.1f} s)" + (f"\n    first crash: {r.first_crash}" if r.first_crash else ""))
+            log(result_line(r, time.perf_counter() - t0))
     return results
 
 
