@@ -32,6 +32,8 @@ from common.ros.types import typestore
 from common.runtime.messages import EcmPose
 from common.sim.cli import main as dataset_main
 
+pytestmark = pytest.mark.graph
+
 RIG = "jhu_daVinci"
 
 

@@ -5,6 +5,7 @@ second per topic, and the good frames around it go through: the node's own path 
 ``step``) on an offline node, samples made by ``common/evaluation/fuzz.py``."""
 import logging
 import random
+import time
 
 import numpy as np
 import pytest
@@ -56,6 +57,7 @@ def zsrc():
 def test_a_flood_of_malformed_cdr_starves_no_good_frame(src, caplog):
     rng, np_rng = random.Random(1), np.random.default_rng(1)
     caplog.set_level(logging.ERROR)
+    t0 = time.monotonic()
     for _ in range(20):
         for kind in ("random_bytes", "truncated", "trailing_garbage") * 10:   # 30 poison per good frame
             src.put(*ros_poison(src.s, kind, src.stamp, rng, np_rng))
@@ -64,9 +66,10 @@ def test_a_flood_of_malformed_cdr_starves_no_good_frame(src, caplog):
     bad = src.node.counters["bad_samples"]
     assert bad >= 550
     assert src.node.counters.get("step_errors", 0) == 0
-    refused = [r for r in caplog.records if "sample refused" in r.getMessage()]
-    topics = {r.getMessage().split(":")[1].strip() for r in refused}
-    assert len(refused) <= len(topics) * 2 and len(refused) < bad / 20   # once a second per topic
+    seconds = time.monotonic() - t0
+    refused = [r.getMessage().split(":")[1].strip() for r in caplog.records if "sample refused" in r.getMessage()]
+    per_topic = {t: refused.count(t) for t in set(refused)}
+    assert max(per_topic.values()) <= seconds + 1, (per_topic, seconds)   # at most once a second per topic
     assert sum(src.node.asm.refused.values()) == bad
 
 

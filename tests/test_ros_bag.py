@@ -80,6 +80,7 @@ def test_ambf_needle_frame_puts_the_tip_where_the_challenge_does():
     assert np.linalg.norm(E - [-0.102, 0.0, 0]) < 0.001
 
 
+@pytest.mark.slow
 def test_ambf_ros1_bag_in_decimetres_converts_exactly(ds640, tmp_path):
     bag = tmp_path / "ambf.bag"
     dataset_to_bag(str(ds640), str(bag), "ambf")           # ROS 1, rgb8, ambf_msgs, unit dm
@@ -139,6 +140,7 @@ def test_ambf_scene_in_dm_and_in_si_converts_to_the_same_dataset(ds640, tmp_path
         run_oracle_eval(out[unit], tmp_path / f"eval_{unit}")
 
 
+@pytest.mark.slow
 def test_dvrk_mcap_1080p_with_distortion_converts_exactly(ds1080_distorted, tmp_path):
     bag = tmp_path / "dvrk"
     r = dataset_to_bag(str(ds1080_distorted), str(bag), "dvrk")     # ROS 2 MCAP + camera_info
@@ -194,16 +196,16 @@ def test_a_bag_rclpy_serialised_converts_exactly_and_bad_messages_are_skipped(ds
     st = typestore(2)
     dataset_to_bag(str(ds640), str(tmp_path / "dvrk"), "dvrk")
     rig = Dataset(ds640).rig
-    nan_info = build.camera_info(st, 10**18, np.full((3, 3), np.nan), rig.left.dist, (640, 480))
+    info = encode(build.camera_info(st, 10**18, rig.left.K, rig.left.dist, (640, 480)))
     poison = [("/ECM/measured_js", b"\x00\x01\x00\x00" + b"\xff" * 40),          # not a JointState
-              ("/jhu_daVinci/left/camera_info", encode(nan_info))]                # NaN K
+              ("/jhu_daVinci/left/camera_info", info[:-30])]                      # cut short
     padded = _as_rclpy_wrote_it(tmp_path / "dvrk", tmp_path / "rclpy", poison)
     assert padded >= 4                                   # every JointState at least
     topics = tmp_path / "dvrk.topics.yaml"
     s = from_bag(str(tmp_path / "rclpy"), str(tmp_path / "ds"), topics=str(topics))
     assert s["frames"] == 4 and s["with_truth"] == 4
     assert s["refused"] == {"/ECM/measured_js": 1, "/jhu_daVinci/left/camera_info": 1}
-    assert "cannot deserialise" in caplog.text and "K and D must be finite" in caplog.text
+    assert caplog.text.count("cannot deserialise") == 2
     ds = Dataset(tmp_path / "ds")
     assert check_dataset(ds).ok
     assert_same_truth(Dataset(ds640), ds)

@@ -3,7 +3,8 @@ process, the way the runtime hands them over (``decode`` with the input's type, 
 ``Node.deliver``), between frames of a clean stream.
 
 For each node of the graph (default: dataflow.yaml; the ``sim`` camera is a source whose only
-input is its command key) and each of its inputs (and its ``cmd`` key), a fresh offline node gets
+input is its command key) and each of its inputs (and its ``cmd`` key; a viewer's page too,
+``@http``: poison HTTP requests over sockets to 127.0.0.1, ``common.evaluation.http_fuzz``), a fresh offline node gets
 a clean warm-up stream, then ``--per-input`` poison payloads, one clean frame after every
 ``--clean-every`` of them, then clean frames until it publishes again. Payload kinds: random
 bytes, truncated and bit-flipped valid payloads, type-confused fields, missing/extra fields,
@@ -13,6 +14,9 @@ ndarray headers claiming 2^40 elements), far-future and negative ``seq``, and ne
 exception other than MessageError, from the codec or a handler), poses published that break
 the pose invariant, and the clean frames each node needed to publish again after the poison
 (at 30 Hz, 60 frames = 2 s).
+
+``--bags N``: damaged bag files (cut short, corrupt chunks, bad CRCs and lengths, unfinished)
+read through the bag reader (``common/ros/bagfuzz.py``).
 
 The clean stream is the oracle's: a still needle seen by the default rig while the ECM yaws,
 through the ecm, detector (oracle keypoints; an image backend gets a 1080p JPEG) and pose nodes.
@@ -50,7 +54,7 @@ from common.runtime.messages import (
     PoseEstimate,
     decode,
     encode,
-    pose_error,
+    pose_invariant_error,
 )
 
 FRAME_HZ = 30.0
@@ -305,15 +309,30 @@ def _check_published(node, start: int) -> int:
         if isinstance(m, PoseEstimate):
             try:
                 decode(encode(m))
-                bad += pose_error(m, node.pose_volume_m) is not None
+                bad += pose_invariant_error(m, node.pose_volume_m) is not None
             except MessageError:
                 bad += 1
     return bad
 
 
+def fuzz_http(spec, cls, n: int, seed: int) -> InputResult:
+    """The viewer's page (``@http``): ``n`` poison requests over sockets to 127.0.0.1
+    (``common.evaluation.http_fuzz``), the node's own server with its params."""
+    from common.evaluation.http_fuzz import fuzz_page
+    node = cls.offline({**spec.params, "port": 0, "rerun": False}, wired=spec.inputs.keys(), node_id=spec.id)
+    try:
+        r = fuzz_page(node.page, n, seed)
+    finally:
+        node.teardown()
+    return InputResult(spec.id, "@http", r["payloads"], r["refused"], r["delivered"], r["crashes"], 0,
+                       r["recovery"], r["first_crash"])
+
+
 def fuzz_input(spec, cls, input_name: str, stream: CleanStream, n: int, seed: int,
                clean_every: int = 50, warmup: int = 12) -> InputResult:
-    """Fuzz one input (or ``@cmd``) of one node; see the module docstring."""
+    """Fuzz one input (or ``@cmd``, or the viewer's ``@http``) of one node; see the module docstring."""
+    if input_name == "@http":
+        return fuzz_http(spec, cls, n, seed)
     rng, np_rng = random.Random(seed), np.random.default_rng(seed)
     res = InputResult(spec.id, input_name)
     node = _make(cls, spec)
@@ -388,7 +407,7 @@ def run_fuzz(graph, per_input: int, seed: int = 0, nodes: Optional[list] = None,
     for j, (spec, cls) in enumerate(_node_specs(graph)):
         if nodes and spec.id not in nodes:
             continue
-        inputs = list(spec.inputs) + ["@cmd"]
+        inputs = list(spec.inputs) + ["@cmd"] + (["@http"] if spec.module == "viewer" else [])
         for i, name in enumerate(inputs):
             t0 = time.perf_counter()
             r = fuzz_input(spec, cls, name, stream, per_input, seed * 7919 + j * 101 + i)
@@ -690,6 +709,8 @@ def main(argv=None) -> int:
     ap.add_argument("--per-input", type=int, default=10_000, help="poison payloads per input (10000)")
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--node", action="append", help="only these node ids (repeatable)")
+    ap.add_argument("--bags", type=int, default=200,
+                    help="damaged bag files per base bag (MCAP, ROS 1) read through the bag reader (200; 0: none)")
     ap.add_argument("--live", action="store_true",
                     help="instead: poison the default graph in processes (see live_check)")
     ap.add_argument("--dataset", help="--live: the replay's folder (default data/test, else data/bench)")
@@ -718,6 +739,13 @@ def main(argv=None) -> int:
           f"{s['max_recovery_frames']} clean frames ({s['max_recovery_frames'] / FRAME_HZ:.2f} s at {FRAME_HZ:g} Hz)")
     ok = s["crashes"] == 0 and s["invalid_poses_published"] == 0 and s["never_recovered"] == 0 \
         and s["max_recovery_frames"] <= RECOVERY_LIMIT
+    if args.bags and not args.node:
+        from common.ros.bagfuzz import fuzz_bags
+        b = fuzz_bags(args.bags, args.seed)
+        print(f"fuzz: {b.files} damaged bag files ({', '.join(sorted(b.kinds))}) in {b.seconds:.0f} s: "
+              f"{b.read} read to the end ({b.recovered} recovered from unfinished files), {b.refused} refused "
+              f"with a BagError; {b.crashes} crashes" + (f" (first: {b.first_crash})" if b.crashes else ""))
+        ok = ok and b.crashes == 0
     return 0 if ok else 1
 
 
