@@ -68,7 +68,7 @@ class Ros2Node(CameraSourceNode):
         topics: str | dict | None = None
         rig: str = ""
         keys: Literal["bridge", "rmw_zenoh"] = "bridge"
-        distro: Literal["humble", "jazzy", "kilted", "rolling"] = "jazzy"
+        distro: Literal["humble", "jazzy", "kilted", "rolling"] = "jazzy"   # the ROS 2 system's (rmw_zenoh keys)
         domain_id: int = 0
         namespace: str = ""
         connect: list[str] = field(default_factory=lambda: ["tcp/127.0.0.1:7447"])

@@ -53,8 +53,8 @@ class Ros2OutNode(Node):
                                                          "world": "world"})
         unit: Literal["m", "dm", "cm", "mm"] = "m"
         keys: Literal["bridge", "rmw_zenoh"] = "bridge"
-        distro: Literal["humble", "jazzy", "kilted", "rolling"] = "jazzy"
-        attachment: Literal["positional", "keyed"] = "positional"
+        distro: Literal["humble", "jazzy", "kilted", "rolling"] = "jazzy"   # the ROS 2 system's (rmw_zenoh keys)
+        attachment: Literal["positional", "keyed"] = "positional"   # keyed: rmw_zenoh 0.1.0-0.1.1, 0.2.0-0.2.3
         domain_id: int = 0
         namespace: str = ""
         connect: list[str] = field(default_factory=lambda: ["tcp/127.0.0.1:7447"])
