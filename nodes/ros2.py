@@ -133,8 +133,14 @@ class Ros2Node(CameraSourceNode):
         self.log.info("ros2: subscribed %s", sorted(self.keys.values()))
 
     def _callback(self, topic: str):
+        from common.ros.bag import MAX_STATE_BYTES
+        small = self.asm.topic_role[topic][0] != "image"
+
         def cb(sample):
-            item = (topic, str(sample.key_expr), bytes(sample.payload.to_bytes()), time.time_ns())
+            n = len(sample.payload)
+            # an oversized state is not copied: its size goes to step, which refuses it
+            payload = n if small and n > MAX_STATE_BYTES else bytes(sample.payload.to_bytes())
+            item = (topic, str(sample.key_expr), payload, time.time_ns())
             with self.qlock:
                 while True:
                     try:
@@ -183,6 +189,9 @@ class Ros2Node(CameraSourceNode):
                 self._publish_calib()
             return True
         msgtype = self._msgtype(topic, key)
+        if isinstance(payload, int):
+            self.asm.refuse_oversized(topic, payload, msgtype)
+            return True
         try:
             samples = self.asm.feed_bytes(topic, payload, msgtype)
         except BagError as exc:               # the rig cannot make a sample (e.g. sizes differ)

@@ -112,10 +112,20 @@ def test_joint_arrays_and_history_are_bounded(src, caplog):
     assert f"more than {rosbag_mod.MAX_STATE_BYTES}" in caplog.text
     st, b = src.s.st, src.s.build
     js = b.make(st, "sensor_msgs/msg/JointState", header=b.header(st, 5), name=["j"] * 100, position=np.zeros(100))
+    import zenoh
+
+    class Sample:                                                    # as the Zenoh session hands it over
+        key_expr, payload = key, zenoh.ZBytes(_huge("huge_joint_state", src.s))
+    src.node._callback(topic)(Sample)
+    item = src.node.queue.get_nowait()
+    assert item[2] == len(_huge("huge_joint_state", src.s))          # its size, not a copy of it
+    src.node.queue.put(item)
+    src.node.step()
+    assert src.node.asm.refused[topic] == 2
     src.node.last_bad_log.clear()                                    # (the log is once a second per topic)
     src.put(topic, key, encode(js))                                  # small, but 100 joints
     assert f"joint arrays longer than {rosbag_mod.MAX_JOINTS}" in caplog.text
-    assert src.node.asm.refused[topic] == 2
+    assert src.node.asm.refused[topic] == 3
     for _ in range(rosbag_mod.HISTORY + 20):
         src.frame()
     hist = src.node.asm.hist["ecm_joints"]

@@ -251,6 +251,10 @@ class StereoAssembler:
         self.refused[topic] = self.refused.get(topic, 0) + 1
         self.report(topic, reason)
 
+    def refuse_oversized(self, topic: str, nbytes: int, msgtype: str) -> None:
+        """Refuse a non-image message of ``nbytes`` over ``MAX_STATE_BYTES``, undecoded."""
+        self.refuse(topic, f"{nbytes} bytes for a {msgtype}: more than {MAX_STATE_BYTES} (MAX_STATE_BYTES)")
+
     def _log_once(self, topic: str, reason: str) -> None:
         if self.refused[topic] == 1:
             log.warning("%s: %s: message refused (further ones on this topic counted, not logged): %s",
@@ -358,7 +362,7 @@ class StereoAssembler:
         message over ``MAX_STATE_BYTES``, are refused (counted, reported)."""
         from common.ros import cdr
         if self.topic_role[topic][0] != "image" and len(raw) > MAX_STATE_BYTES:
-            self.refuse(topic, f"{len(raw)} bytes for a {msgtype}: more than {MAX_STATE_BYTES} (MAX_STATE_BYTES)")
+            self.refuse_oversized(topic, len(raw), msgtype)
             return []
         try:
             msg = (decode or cdr.decode)(raw, msgtype)
