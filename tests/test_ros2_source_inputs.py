@@ -196,3 +196,15 @@ def test_a_camera_info_or_pose_the_graphs_codec_would_refuse_is_refused_at_the_s
     from common.runtime.messages import encode as encode_msg
     for _, m in src.node.published:
         decode_msg(encode_msg(m))
+
+
+def test_samples_on_another_distributions_keys_are_read_and_the_mismatch_said_once(zsrc, caplog):
+    from common.ros.live import topic_key
+    caplog.set_level(logging.WARNING)
+    for _ in range(3):
+        zsrc.stamp += 33_000_000
+        for topic, msg in zsrc.s.messages(zsrc.stamp):        # a Humble publisher: no type hash
+            zsrc.put(topic, topic_key(topic, msg.__msgtype__, "rmw_zenoh", distro="humble"), encode(msg))
+    assert zsrc.pairs() >= 2 and zsrc.node.counters.get("bad_samples", 0) == 0
+    warned = [r for r in caplog.records if "Humble type hash but distro is jazzy" in r.getMessage()]
+    assert len(warned) == len(zsrc.s.messages(0))            # once per topic
