@@ -36,6 +36,7 @@ import time
 import numpy as np
 import yaml
 
+from common.errors import NeedletrackError
 from common.ros import build
 from common.ros.types import KEYPOINTS_MSG, typestore
 
@@ -119,7 +120,7 @@ class McapRos2Writer:
             pass
 
 
-class RecordError(RuntimeError):
+class RecordError(NeedletrackError, RuntimeError):
     """A recording that cannot go on (the file cannot be written); the text names the file."""
 
 
