@@ -17,9 +17,12 @@ params: ``path`` (required), ``preset`` (ambf | dvrk | none), ``topics`` (a topi
 mapping), ``rate`` (``recorded``: the header stamps' timing; ``max``; or Hz), ``loop``,
 ``count`` (pairs to play; 0 all), ``encoding`` (bgr8).
 
-A bag that fails part way (a reader error, a frame that cannot be assembled, a value not
-finite) stops the source: ``NodeError``, exit status 2, and the launcher says why and stops the
-graph. An unfinished MCAP recording plays up to its last complete chunk, with a warning.
+A message that does not decode (common/ros/cdr.py) or cannot serve its topic's role (non-finite
+calibration or pose, oversized arrays, an image that cannot be decoded) is skipped: counted
+``refused_messages``, logged once per topic with its reason; the playback goes on. A bag that
+fails part way (a reader error, a frame that cannot be assembled, a value not finite) stops the
+source: ``NodeError``, exit status 2, and the launcher says why and stops the graph. An
+unfinished MCAP recording plays up to its last complete chunk, with a warning.
 """
 from __future__ import annotations
 
@@ -75,14 +78,22 @@ class RosbagNode(CameraSourceNode):
         self.pending = self.first
         self.loops = 0
         self.n_frames = None           # pairs in one pass, known after the first
-        self.published = 0
+        self.played = 0
         self.clock = SourceClock(self.rate)
 
     def _open(self):
         from common.ros.bag import BagStereo
         from common.ros.source import topics_param
-        self.bag = BagStereo(self.p.path, self.p.preset, topics_param(self.p.topics))
+        self.bag = BagStereo(self.p.path, self.p.preset, topics_param(self.p.topics), report=self._refused)
         self.it = iter(self.bag)
+
+    def _refused(self, topic: str, reason: str) -> None:
+        self.count("refused_messages")
+        logged = self.__dict__.setdefault("refused_logged", set())
+        if topic not in logged:                 # once per topic, whatever the passes of a loop
+            logged.add(topic)
+            self.log.warning("rosbag: %s: %s: message skipped (further ones on this topic counted, not logged): %s",
+                             self.p.path, topic, reason)
 
     def _next(self):
         """The next stereo sample (None at the end); NodeError when the bag fails part way (a
@@ -94,7 +105,7 @@ class RosbagNode(CameraSourceNode):
             if s is None:
                 s = next(self.it, None)
             if s is None and self.p.loop:
-                self.n_frames = self.n_frames or self.published
+                self.n_frames = self.n_frames or self.played
                 self.bag.close()
                 self._open()
                 self.loops += 1
@@ -102,12 +113,12 @@ class RosbagNode(CameraSourceNode):
                 s = next(self.it, None)
         except (BagError, ValueError) as exc:
             self.count("bag_errors")
-            raise NodeError(f"rosbag: {exc} ({self.published} frames published)") from None
+            raise NodeError(f"rosbag: {exc} ({self.played} frames published)") from None
         fault = None if s is None else sample_fault(s, self.bag.info["topics"])
         if fault:
             self.count("bag_errors")
             raise NodeError(f"rosbag: {self.p.path}: frame {s.index} (stamp {s.stamp_ns}): {fault} "
-                            f"({self.published} frames published)")
+                            f"({self.played} frames published)")
         return s
 
     def _pace(self, s) -> None:
@@ -115,12 +126,12 @@ class RosbagNode(CameraSourceNode):
 
     def step(self):
         from common.ros.convert import RestGroups
-        if self.p.count and self.published >= self.p.count:
+        if self.p.count and self.played >= self.p.count:
             s = None
         else:
             s = self._next()     # NodeError: the source stops with exit status 2
         if s is None:
-            self.publish("eos", EndOfStream(frames=self.published, stamp_ns=time.time_ns()))
+            self.publish("eos", EndOfStream(frames=self.played, stamp_ns=time.time_ns()))
             return False
         if s.index == 0:
             self.out.groups = RestGroups()      # a new pass over the bag
@@ -128,7 +139,7 @@ class RosbagNode(CameraSourceNode):
         self._pace(s)
         seq = s.index + self.loops * (self.n_frames or 0)
         self.out.publish(s, seq, s.stamp_ns, 1_000_000 * self.loops)
-        self.published += 1
+        self.played += 1
         return True
 
     def teardown(self):

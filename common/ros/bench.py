@@ -76,7 +76,8 @@ class _RosSystem:
         self.pubs = {}
 
     def _put(self, topic, msg):
-        from common.ros.live import attachment, encode, topic_key
+        from common.ros.cdr import encode
+        from common.ros.live import attachment, topic_key
         if topic not in self.pubs:
             self.pubs[topic] = self.session.declare_publisher(topic_key(topic, msg.__msgtype__, self.keys))
         self.seq += 1
@@ -145,7 +146,8 @@ def live_main(argv: list) -> int:
     args = ap.parse_args(argv)
     from common.data.dataset import Dataset
     from common.evaluation.pipeline_graph import GraphRun, free_port
-    from common.ros.live import decode, topic_key
+    from common.ros.cdr import decode
+    from common.ros.live import topic_key
     from common.runtime.graph import output_key
     from common.runtime.messages import decode as decode_msg
     tmp = tempfile.TemporaryDirectory(prefix="needletrack-ros-live-")

@@ -94,8 +94,9 @@ def from_bag(bag: str, out: str, preset: str | None = None, topics=None, image_f
              jpeg_quality: int = 95, max_frames: int = 0, stride: int = 1, progress: bool = False) -> dict:
     """Convert ``bag`` into the dataset folder ``out`` (written beside it under a temporary name,
     renamed at the end: a failed conversion leaves no folder); returns a summary dict (frames,
-    with_truth, unit, topics, unpaired images, recovered, seconds). Raises BagError (bad
-    bag/topics) or ValueError."""
+    with_truth, unit, topics, unpaired images, messages refused per topic, recovered, seconds).
+    Raises BagError (bad bag/topics) or ValueError. A message that does not decode or cannot
+    serve its role is skipped, counted in ``refused`` and logged once per topic."""
     if os.path.exists(os.path.join(out, "frames.jsonl")):
         raise ValueError(f"{out} already holds a dataset; use another --out")
     t0 = time.perf_counter()
@@ -158,6 +159,6 @@ def from_bag(bag: str, out: str, preset: str | None = None, topics=None, image_f
                            f"{src.info['topics'].get('image.right')} (left/right header stamps within "
                            f"{src.map['stereo_tolerance_ms']} ms; images left out: {src.counts})")
         return {"frames": n, "with_truth": truth, "unit": src.info.get("unit"), "topics": src.info["topics"],
-                "unpaired": dict(src.counts), "image_size": list(meta.image_size),
+                "unpaired": dict(src.counts), "refused": dict(src.refused), "image_size": list(meta.image_size),
                 "recovered": src.info.get("recovered"),
                 "seconds": time.perf_counter() - t0}

@@ -119,9 +119,10 @@ class BagReader(_Positioned):
         return self._iterate(self.reader.messages(connections=list(connections)))
 
     def deserialize(self, raw, msgtype: str):
-        if self.is2:
-            return self.store.deserialize_cdr(raw, msgtype)
-        return self.store.deserialize_ros1(raw, msgtype)
+        """The message in ``raw`` with the bag's types (``common.ros.cdr.decode``: CDR with the
+        padding real ROS 2 writes, or ROS 1); ``CdrError`` when it is not one."""
+        from common.ros.cdr import decode
+        return decode(raw, msgtype, self.store, 2 if self.is2 else 1)
 
     def close(self) -> None:
         self.reader.close()
@@ -254,7 +255,8 @@ class UnfinishedMcap(_Positioned):
         return self._iterate(gen())
 
     def deserialize(self, raw, msgtype: str):
-        return self.store.deserialize_cdr(raw, msgtype)
+        from common.ros.cdr import decode
+        return decode(raw, msgtype, self.store)
 
     def close(self) -> None:
         pass
