@@ -1,4 +1,4 @@
-"""``ros2``: a live ROS 2 system carried on Zenoh as a stereo camera source (no ROS installed).
+"""``ros2``: a live ROS 2 system, on Zenoh or on DDS, as a stereo camera source (no ROS installed).
 
 Subscribes, on its own Zenoh session (``connect``: the rmw_zenoh router or the
 zenoh-bridge-ros2dds, ``tcp/127.0.0.1:7447`` by default), to the topics of a topic map
@@ -13,6 +13,11 @@ key prefix), ``connect`` (endpoints), ``mode`` (peer | client), ``types`` ({topi
 where bridge keys do not carry it and the role's default does not fit), ``encoding`` (bgr8),
 ``max_queue`` (samples waiting to be decoded; older ones are dropped and counted ``dropped``).
 A sample that does not decode is counted ``bad_samples`` and logged once a second.
+
+``transport: dds`` speaks ROS 2's own DDS topics instead (``rt/<topic>``, Cyclone DDS;
+``common/ros/dds.py``) in DDS domain ``domain_id``, with ``dds_config`` (Cyclone XML or a file
+URI; default ``CYCLONEDDS_URI``); the message types are those of bridge keys (role, ``types``).
+The samples are decoded by the same code on both transports.
 """
 from __future__ import annotations
 
@@ -63,6 +68,8 @@ class Ros2Node(CameraSourceNode):
         topics: str | dict | None = None
         rig: str = ""
         keys: Literal["bridge", "rmw_zenoh"] = "bridge"
+        transport: Literal["zenoh", "dds"] = "zenoh"
+        dds_config: str = ""
         domain_id: int = 0
         namespace: str = ""
         connect: list[str] = field(default_factory=lambda: ["tcp/127.0.0.1:7447"])
@@ -106,46 +113,67 @@ class Ros2Node(CameraSourceNode):
             for t in candidates(m.get(role)):
                 roles[t] = (role, None)
         self.map = m
-        self.asm = StereoAssembler(m, f"ros2 ({p.keys})", roles)
+        via = f"dds domain {p.domain_id}" if p.transport == "dds" else p.keys
+        self.asm = StereoAssembler(m, f"ros2 ({via})", roles)
         self.queue: queue.Queue = queue.Queue(maxsize=max(1, p.max_queue))
         self.qlock = threading.Lock()
-        try:
-            self.session = open_session(p.connect, p.mode)
-        except Exception as exc:
-            raise NodeError(f"cannot open a Zenoh session to {p.connect}: {exc}") from None
         self.subs = []
         self.keys = {}
-        for t in roles:
-            key = topic_key(t, None, p.keys, p.domain_id, p.namespace, wildcard_type=True)
-            self.keys[t] = key
-            self.subs.append(self.session.declare_subscriber(key, self._callback(t)))
-        self.out = SamplePublisher(self, self.asm.needle_model(), f"ros2 {p.keys} {','.join(p.connect)}",
-                                   m.get("ecm"), p.encoding)
+        if p.transport == "dds":
+            self._subscribe_dds(roles)
+        else:
+            try:
+                self.session = open_session(p.connect, p.mode)
+            except Exception as exc:
+                raise NodeError(f"cannot open a Zenoh session to {p.connect}: {exc}") from None
+            for t in roles:
+                key = topic_key(t, None, p.keys, p.domain_id, p.namespace, wildcard_type=True)
+                self.keys[t] = key
+                self.subs.append(self.session.declare_subscriber(key, self._callback(t)))
+        where = via if p.transport == "dds" else f"{p.keys} {','.join(p.connect)}"
+        self.out = SamplePublisher(self, self.asm.needle_model(), f"ros2 {where}", m.get("ecm"), p.encoding)
         self.seq = 0
         self.last_bad_log = 0.0
         self.log.info("ros2: subscribed %s", sorted(self.keys.values()))
 
+    def _subscribe_dds(self, roles: dict) -> None:
+        from common.ros.dds import DdsError, DdsLink, dds_topic_name
+        p = self.p
+        try:
+            self.dds = DdsLink(p.domain_id, p.dds_config or None)
+            for t in roles:
+                self.keys[t] = dds_topic_name(t)
+                self.dds.subscribe(t, self._msgtype(t, ""), self._dds_callback(t), depth=max(1, p.max_queue))
+        except (DdsError, ValueError) as exc:
+            raise NodeError(f"ros2 (dds): {exc}") from None
+
+    def _enqueue(self, item) -> None:
+        with self.qlock:
+            while True:
+                try:
+                    self.queue.put_nowait(item)
+                    return
+                except queue.Full:
+                    try:
+                        self.queue.get_nowait()
+                        self.count("dropped")
+                    except queue.Empty:
+                        pass
+
     def _callback(self, topic: str):
         def cb(sample):
-            item = (topic, str(sample.key_expr), bytes(sample.payload.to_bytes()), time.time_ns())
-            with self.qlock:
-                while True:
-                    try:
-                        self.queue.put_nowait(item)
-                        return
-                    except queue.Full:
-                        try:
-                            self.queue.get_nowait()
-                            self.count("dropped")
-                        except queue.Empty:
-                            pass
+            self._enqueue((topic, str(sample.key_expr), bytes(sample.payload.to_bytes()), time.time_ns()))
         return cb
+
+    def _dds_callback(self, topic: str):
+        key = self.keys[topic]
+        return lambda cdr, _stamp: self._enqueue((topic, key, cdr, time.time_ns()))
 
     def _msgtype(self, topic: str, key: str) -> str:
         from common.ros.live import topic_of_key
         if topic in self.p.types:
             return self.p.types[topic]
-        if self.p.keys == "rmw_zenoh":
+        if self.p.keys == "rmw_zenoh" and self.p.transport == "zenoh":
             _, t = topic_of_key(key, "rmw_zenoh")
             if t:
                 return t
@@ -184,6 +212,8 @@ class Ros2Node(CameraSourceNode):
                 pass
         if getattr(self, "session", None) is not None:
             self.session.close()
+        if getattr(self, "dds", None) is not None:
+            self.dds.close()
 
 
 NODE = Ros2Node

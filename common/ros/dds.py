@@ -165,13 +165,14 @@ class DdsLink:
         return DdsPublisher(writer, idl_type(msgtype, raw=True))
 
     def close(self) -> None:
-        """Delete the participant and everything in it (the peers see them go)."""
-        from cyclonedds.core import DDSException
+        """Delete the readers, writers and the participant (the peers see them go). cyclonedds
+        deletes an entity when its Python object goes; ``__del__`` does it now, and once."""
+        for e in reversed(self._entities):
+            e.__del__()
         self._entities.clear()
-        try:
-            self.participant._delete()
-        except (DDSException, AttributeError):
-            pass
+        if self.participant is not None:
+            self.participant.__del__()
+            self.participant = None
 
 
 class DdsPublisher:

@@ -1,0 +1,125 @@
+"""ROS 2 without a bridge, end to end against real ROS 2 nodes: an rclpy node (rmw_fastrtps_cpp,
+tests/ros_peer.py) publishes a dataset's stereo images (left with ROS's default QoS, right with
+the sensor-data QoS), camera_info, positions-only ECM joints and the needle's pose on the dVRK
+topics; the graph ``ros2`` (transport dds) -> oracle detector -> ecm (joints through the arm
+model) -> EPnP -> ``ros2_out`` (transport dds) sends the poses back, which the rclpy node
+receives as ``geometry_msgs/PoseStamped`` in frame ``ECM``. Their values equal the native
+graph's (``replay`` of the same folder, same nodes) on the same frames.
+
+Every DDS process runs in a network namespace of the test's own with only loopback up (DDS
+discovery multicasts); the native graph runs on 127.0.0.1 outside it."""
+from __future__ import annotations
+
+import json
+import sys
+import time
+
+import numpy as np
+import pytest
+from rospeer import ENV, PEER, LoopbackNamespace, need_rclpy
+
+from common.data.dataset import Dataset
+from common.geometry.transforms import inv_T, pose_error
+from common.ros.conventions import pose_to_T
+from common.ros.synth import STAMP_BASE_NS
+from common.sim.cli import main as dataset_main
+
+RIG = "jhu_daVinci"
+
+
+@pytest.fixture(scope="module")
+def ds(tmp_path_factory):
+    path = tmp_path_factory.mktemp("dds") / "ds"
+    rc = dataset_main(["generate", "--out", str(path), "--sequences", "2", "--steps", "2", "--width", "320",
+                       "--height", "240", "--seed", "8", "--randomise", "none", "--jobs", "1", "--quiet"])
+    assert rc == 0
+    return Dataset(path)
+
+
+def pipeline(source: dict, out: dict | None = None) -> list:
+    """source -> oracle detector -> ecm -> EPnP (joint) [-> out]."""
+    stereo = {"left": "detector/left", "right": "detector/right", "calib": "camera/calib", "ecm": "ecm/pose"}
+    ecm_in = {"calib": "camera/calib", **({"joints": "camera/joints"} if "joints" in source["outputs"] else {}),
+              **({"measured": "camera/measured"} if "measured" in source["outputs"] else {})}
+    nodes = [source,
+             {"id": "detector", "module": "detector", "params": {"backend": "oracle"},
+              "inputs": {"left": "camera/left", "right": "camera/right", "truth": "camera/truth",
+                         "calib": "camera/calib"}, "outputs": ["left", "right"]},
+             {"id": "ecm", "module": "ecm", "inputs": ecm_in, "outputs": ["pose"]},
+             {"id": "epnp_joint", "module": "epnp", "params": {"method": "joint"}, "inputs": stereo,
+              "outputs": ["pose"]}]
+    return nodes + ([out] if out else [])
+
+
+def dds_graph(ds) -> dict:
+    tmap = {"preset": "dvrk", "needle_pose": "/needle/measured_cp", "ecm": ds.arm.to_dict(),
+            "registration": {c: ds.rig[c].T_ecm_cam.tolist() for c in ("left", "right")}}
+    return {"nodes": pipeline(
+        {"id": "camera", "module": "ros2", "outputs": ["left", "right", "measured", "truth", "calib"],
+         "params": {"preset": "dvrk", "rig": RIG, "topics": tmap, "transport": "dds"}},
+        {"id": "out", "module": "ros2_out", "inputs": {"pose": "epnp_joint/pose"},
+         "params": {"transport": "dds", "frame": "ecm"}})}
+
+
+def native_poses(ds, tmp_path) -> dict:
+    """frame index -> T_ecm_needle of the native graph (replay of the folder, same nodes)."""
+    from graphtools import free_port
+
+    from common.evaluation.pipeline_graph import GraphRun
+    from common.runtime.graph import output_key
+    from common.runtime.messages import PoseEstimate, decode
+    doc = {"graph": f"native{free_port()}", "zenoh": {"mode": "peer", "listen": [f"tcp/127.0.0.1:{free_port()}"]},
+           "nodes": pipeline({"id": "camera", "module": "replay",
+                              "outputs": ["left", "right", "joints", "measured", "truth", "calib", "eos"],
+                              "params": {"path": str(ds.path), "rate": 4.0}})}
+    got: dict = {}
+    with open(tmp_path / "native.log", "w") as log, GraphRun(doc, log, source="camera") as run:
+        run.start_consumers()
+        sub = run.client_session().declare_subscriber(
+            output_key(doc["graph"], "epnp_joint", "pose"),
+            lambda s: got.setdefault(decode(s.payload.to_bytes(), PoseEstimate).seq,
+                                     decode(s.payload.to_bytes(), PoseEstimate)))
+        run.start_source()
+        deadline = time.monotonic() + 120
+        while len(got) < len(ds) and time.monotonic() < deadline:
+            time.sleep(0.1)
+        sub.undeclare()
+    assert len(got) == len(ds), f"native graph: poses for frames {sorted(got)} of {len(ds)}"
+    return {seq: np.asarray(p.T_ecm_needle, float) for seq, p in got.items()}
+
+
+def test_rclpy_nodes_in_poses_out_over_dds(ds, tmp_path):
+    need_rclpy()
+    from graphtools import prepare_graph
+    native = native_poses(ds, tmp_path)
+    graph = prepare_graph(dds_graph(ds), tmp_path / "graph")
+    out = tmp_path / "peer.json"
+    with LoopbackNamespace("rospeerE") as ns:
+        launcher = ns.popen([sys.executable, "-m", "common.cli", "launch", graph], tmp_path / "launch.log")
+        peer = ns.popen([sys.executable, PEER, "live", ds.path, out, "--rig", RIG, "--frames", len(ds),
+                         "--timeout", 150], tmp_path / "peer.log", env=ENV)
+        try:
+            peer.wait(200)
+        finally:
+            logs = (tmp_path / "peer.log").read_text()[-3000:] + (tmp_path / "launch.log").read_text()[-6000:]
+        assert peer.returncode == 0, logs
+        assert launcher.poll() is None, "the graph died:\n" + logs
+    res = json.loads(out.read_text())
+    assert res["subscriptions"]["left"] >= 1 and res["subscriptions"]["right"] >= 1, res["subscriptions"]
+    by_stamp = {STAMP_BASE_NS + int(fr.stamp_ns): fr.index for fr in ds}
+    seen = set()
+    for p in res["poses"]:
+        assert p["frame_id"] == "ECM"
+        k = by_stamp[p["stamp_ns"]]                      # the image's stamp comes back in the header
+        seen.add(k)
+
+        class _Pose:
+            position = type("P", (), dict(zip("xyz", p["position"])))
+            orientation = type("Q", (), dict(zip("xyzw", p["orientation"])))
+        T = pose_to_T(_Pose)
+        err = pose_error(T, native[k])
+        assert err[0] < 1e-9 and err[1] < 1e-8, (k, err)
+        fr = ds[k]
+        truth = pose_error(T, inv_T(fr.T_world_ecm) @ fr.T_world_needle)
+        assert truth[0] < 1e-6 and truth[1] < 1e-5, (k, truth)
+    assert seen == set(range(len(ds))), f"poses came back for frames {sorted(seen)} of {len(ds)}: {logs}"
