@@ -16,7 +16,9 @@ A sample that does not decode is counted ``bad_samples`` and logged once a secon
 
 ``transport: dds`` speaks ROS 2's own DDS topics instead (``rt/<topic>``, Cyclone DDS;
 ``common/ros/dds.py``) in DDS domain ``domain_id``, with ``dds_config`` (Cyclone XML or a file
-URI; default ``CYCLONEDDS_URI``); the message types are those of bridge keys (role, ``types``).
+URI; default ``CYCLONEDDS_URI``), reading best effort (matches every publisher) or, with
+``dds_reliability: reliable``, reliable (reliable publishers only; lost fragments are resent);
+the message types are those of bridge keys (role, ``types``).
 The samples are decoded by the same code on both transports.
 """
 from __future__ import annotations
@@ -70,6 +72,7 @@ class Ros2Node(CameraSourceNode):
         keys: Literal["bridge", "rmw_zenoh"] = "bridge"
         transport: Literal["zenoh", "dds"] = "zenoh"
         dds_config: str = ""
+        dds_reliability: Literal["best_effort", "reliable"] = "best_effort"
         domain_id: int = 0
         namespace: str = ""
         connect: list[str] = field(default_factory=lambda: ["tcp/127.0.0.1:7447"])
@@ -143,7 +146,8 @@ class Ros2Node(CameraSourceNode):
             self.dds = DdsLink(p.domain_id, p.dds_config or None)
             for t in roles:
                 self.keys[t] = dds_topic_name(t)
-                self.dds.subscribe(t, self._msgtype(t, ""), self._dds_callback(t), depth=max(1, p.max_queue))
+                self.dds.subscribe(t, self._msgtype(t, ""), self._dds_callback(t), depth=max(1, p.max_queue),
+                                   reliable=p.dds_reliability == "reliable")
         except (DdsError, ValueError) as exc:
             raise NodeError(f"ros2 (dds): {exc}") from None
 

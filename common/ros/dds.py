@@ -31,6 +31,13 @@ from common.ros.live import dds_type_name, type_hash
 from common.ros.types import normalise_type, typestore
 
 DEFAULT_DEPTH = 10          # rclpy's default history depth
+# Cyclone's defaults send 1344-byte fragments and ask the OS for a 1 MB receive buffer: a 1080p
+# image (6.2 MB) is then ~4600 fragments and best effort loses nearly every one. These fit
+# Fast DDS's defaults (64 KB datagrams) and ask for 8 MB (the OS caps it: net.core.rmem_max).
+# The user's config (``config``, or CYCLONEDDS_URI) comes after and overrides.
+TUNING = ("<CycloneDDS><Domain><General><MaxMessageSize>65500B</MaxMessageSize>"
+          "<FragmentSize>62000B</FragmentSize></General>"
+          "<Internal><SocketReceiveBufferSize max=\"8MB\"/></Internal></Domain></CycloneDDS>")
 
 
 def dds_topic_name(topic: str) -> str:
@@ -103,10 +110,15 @@ def idl_type(msgtype: str, raw: bool = False):
     return cls
 
 
-def reader_qos(depth: int = DEFAULT_DEPTH):
-    """Best effort, volatile, keep last ``depth``: matches every ROS 2 publisher."""
+def reader_qos(depth: int = DEFAULT_DEPTH, reliable: bool = False):
+    """Best effort, volatile, keep last ``depth``: matches every ROS 2 publisher. ``reliable``:
+    matches reliable publishers only (ROS's default profile), and their lost fragments are sent
+    again (a large image over best effort is lost with any one of its fragments)."""
     from cyclonedds.qos import Policy, Qos
-    return Qos(Policy.Reliability.BestEffort, Policy.Durability.Volatile, Policy.History.KeepLast(max(1, depth)),
+    from cyclonedds.util import duration
+    rel = Policy.Reliability.Reliable(max_blocking_time=duration(milliseconds=100)) if reliable else \
+        Policy.Reliability.BestEffort
+    return Qos(rel, Policy.Durability.Volatile, Policy.History.KeepLast(max(1, depth)),
                Policy.DataRepresentation(use_cdrv0_representation=True))
 
 
@@ -123,13 +135,17 @@ def writer_qos(msgtype: str, depth: int = DEFAULT_DEPTH):
 
 class DdsLink:
     """One DDS domain participant for a node: ``subscribe`` and ``publisher`` on ROS 2 topics,
-    CDR bytes in and out. ``config``: Cyclone XML text or a file URI (else ``CYCLONEDDS_URI``)."""
+    CDR bytes in and out. ``config``: Cyclone XML text or a file URI (else ``CYCLONEDDS_URI``),
+    applied over ``TUNING``."""
 
     def __init__(self, domain_id: int = 0, config: str | None = None):
+        import os
+
         from cyclonedds.domain import Domain, DomainParticipant
         self.domain_id = int(domain_id)
+        user = config or os.environ.get("CYCLONEDDS_URI", "")
         try:
-            self.domain = Domain(self.domain_id, config) if config else None
+            self.domain = Domain(self.domain_id, TUNING + ("," + user if user else ""))
             self.participant = DomainParticipant(self.domain_id)
         except Exception as exc:           # cyclonedds raises DDSException for a bad config
             raise DdsError(f"cannot join DDS domain {self.domain_id}: {exc}") from None
@@ -140,9 +156,9 @@ class DdsLink:
         from cyclonedds.topic import Topic
         return Topic(self.participant, dds_topic_name(topic), idl_type(normalise_type(msgtype), raw=True))
 
-    def subscribe(self, topic: str, msgtype: str, callback, depth: int = DEFAULT_DEPTH):
+    def subscribe(self, topic: str, msgtype: str, callback, depth: int = DEFAULT_DEPTH, reliable: bool = False):
         """Call ``callback(cdr_bytes, source_timestamp_ns)`` for each sample of ``topic``, on
-        Cyclone's listener thread."""
+        Cyclone's listener thread (``reliable``: see ``reader_qos``)."""
         from cyclonedds.core import Listener
         from cyclonedds.sub import DataReader
 
@@ -152,7 +168,7 @@ class DdsLink:
                 if info is not None and not info.valid_data:
                     continue
                 callback(s.cdr, int(info.source_timestamp) if info is not None else 0)
-        reader = DataReader(self.participant, self._topic(topic, msgtype), qos=reader_qos(depth),
+        reader = DataReader(self.participant, self._topic(topic, msgtype), qos=reader_qos(depth, reliable),
                             listener=Listener(on_data_available=on_data))
         self._entities.append(reader)
         return reader
