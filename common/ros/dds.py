@@ -150,28 +150,71 @@ class DdsLink:
         except Exception as exc:           # cyclonedds raises DDSException for a bad config
             raise DdsError(f"cannot join DDS domain {self.domain_id}: {exc}") from None
         self._entities: list = []
+        self._readers: list = []
         self._lock = threading.Lock()
+        self._waitset = None
+        self._closing = threading.Event()
+        self.callback_errors = 0            # exceptions raised by subscribe callbacks (last_error: the newest)
+        self.last_error = ""
 
     def _topic(self, topic: str, msgtype: str):
         from cyclonedds.topic import Topic
         return Topic(self.participant, dds_topic_name(topic), idl_type(normalise_type(msgtype), raw=True))
 
     def subscribe(self, topic: str, msgtype: str, callback, depth: int = DEFAULT_DEPTH, reliable: bool = False):
-        """Call ``callback(cdr_bytes, source_timestamp_ns)`` for each sample of ``topic``, on
-        Cyclone's listener thread (``reliable``: see ``reader_qos``)."""
-        from cyclonedds.core import Listener
+        """Call ``callback(cdr_bytes, source_timestamp_ns)`` for each sample of ``topic``
+        (``reliable``: see ``reader_qos``), on this link's reading thread: Cyclone's receive
+        thread only queues the samples (``depth`` per topic), it never waits for Python."""
+        from cyclonedds.core import InstanceState, ReadCondition, SampleState, ViewState
         from cyclonedds.sub import DataReader
-
-        def on_data(reader):
-            for s in reader.take(N=64):
-                info = getattr(s, "sample_info", None)
-                if info is not None and not info.valid_data:
-                    continue
-                callback(s.cdr, int(info.source_timestamp) if info is not None else 0)
-        reader = DataReader(self.participant, self._topic(topic, msgtype), qos=reader_qos(depth, reliable),
-                            listener=Listener(on_data_available=on_data))
-        self._entities.append(reader)
+        reader = DataReader(self.participant, self._topic(topic, msgtype), qos=reader_qos(depth, reliable))
+        cond = ReadCondition(reader, SampleState.Any | ViewState.Any | InstanceState.Any)
+        with self._lock:
+            if self._waitset is None:
+                self._start_reading()
+            self._waitset.attach(cond)
+            self._readers.append((reader, cond, callback))
+        self._entities += [reader, cond]
         return reader
+
+    def _start_reading(self) -> None:
+        from cyclonedds.core import GuardCondition, WaitSet
+        self._waitset = WaitSet(self.participant)
+        self._wake = GuardCondition(self.participant)
+        self._waitset.attach(self._wake)
+        self._thread = threading.Thread(target=self._read_loop, name="dds-read", daemon=True)
+        self._thread.start()
+
+    def _read_loop(self) -> None:
+        from cyclonedds.core import DDSException
+        try:
+            self._read_until_closed()
+        except DDSException as exc:          # the entities went (process exit) or a take failed
+            if not self._closing.is_set():
+                self.last_error = f"reading stopped: {exc}"
+
+    def _read_until_closed(self) -> None:
+        from cyclonedds.util import duration
+        while not self._closing.is_set():
+            self._waitset.wait(duration(milliseconds=200))     # releases the GIL (ctypes)
+            if self._closing.is_set():
+                return
+            with self._lock:
+                readers = list(self._readers)
+            for reader, _cond, callback in readers:
+                while not self._closing.is_set():
+                    samples = reader.take(N=16)
+                    if not samples:
+                        break
+                    for s in samples:
+                        info = getattr(s, "sample_info", None)
+                        if info is None or not info.valid_data:
+                            continue
+                        try:
+                            callback(s.cdr, int(info.source_timestamp))
+                        except Exception as exc:      # a callback's bug must not stop the reading
+                            self.callback_errors += 1
+                            self.last_error = f"{type(exc).__name__}: {exc}"
 
     def publisher(self, topic: str, msgtype: str, depth: int = DEFAULT_DEPTH) -> "DdsPublisher":
         from cyclonedds.pub import DataWriter
@@ -183,6 +226,12 @@ class DdsLink:
     def close(self) -> None:
         """Delete the readers, writers and the participant (the peers see them go). cyclonedds
         deletes an entity when its Python object goes; ``__del__`` does it now, and once."""
+        self._closing.set()
+        if self._waitset is not None:
+            self._wake.set(True)
+            self._thread.join(5)
+            self._entities += [self._wake, self._waitset]
+        self._readers.clear()
         for e in reversed(self._entities):
             e.__del__()
         self._entities.clear()
