@@ -15,6 +15,9 @@ the poses received to OUT.json. Frame i is stamped ``STAMP_BASE_NS + stamp_ns`` 
 the left camera is published with rclpy's default QoS (reliable), the right one with the sensor
 data QoS (best effort), as camera drivers do.
 
+``python tests/ros_peer.py talk TOPIC SECONDS`` publishes a JointState on TOPIC ten times a
+second for SECONDS (discovery as the environment says: ``ROS_AUTOMATIC_DISCOVERY_RANGE``).
+
 Plain data: a message is a dict of its fields; uint8 arrays are ``{"b64": ...}``; other arrays
 lists; floats exact (JSON keeps a float64).
 """
@@ -172,7 +175,27 @@ def live_main(argv: list) -> int:
     return 0
 
 
+def talk_main(topic: str, seconds: float) -> int:
+    import rclpy
+    from rclpy.node import Node
+    from sensor_msgs.msg import JointState
+    rclpy.init()
+    node = Node("needletrack_test_talker")
+    pub = node.create_publisher(JointState, topic, 10)
+    js = JointState()
+    js.name, js.position = ["outer_yaw"], [0.25]
+    t_end = time.monotonic() + seconds
+    while time.monotonic() < t_end:
+        pub.publish(js)
+        rclpy.spin_once(node, timeout_sec=0.1)
+    node.destroy_node()
+    rclpy.shutdown()
+    return 0
+
+
 if __name__ == "__main__":
+    if sys.argv[1] == "talk":
+        sys.exit(talk_main(sys.argv[2], float(sys.argv[3])))
     if sys.argv[1] == "bytes":
         sys.exit(bytes_main())
     if sys.argv[1] == "live":

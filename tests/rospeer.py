@@ -67,18 +67,21 @@ def _ip(*args: str) -> subprocess.CompletedProcess:
 
 
 class LoopbackNamespace:
-    """A network namespace with only loopback up, multicast on it and a route for 224.0.0.0/4:
-    DDS discovery stays inside. ``popen``/``run`` run a command in it; ``close`` deletes it."""
+    """A network namespace with only loopback up, multicast on it and a route for 224.0.0.0/4
+    (``multicast=False``: loopback as Linux sets it up, without the MULTICAST flag): DDS
+    discovery stays inside. ``popen`` runs a command in it; ``close`` deletes it."""
 
-    def __init__(self, tag: str = "rospeer"):
+    def __init__(self, tag: str = "rospeer", multicast: bool = True):
         self.name = f"{tag}{os.getpid()}x{secrets.token_hex(2)}"
         self.procs: list = []
         res = _ip("netns", "add", self.name)
         if res.returncode != 0:
             skip_or_fail(f"the kernel refuses a network namespace here (ip netns add: {res.stderr.strip()})")
         try:
-            for args in (("link", "set", "lo", "up"), ("link", "set", "lo", "multicast", "on"),
-                         ("route", "add", "224.0.0.0/4", "dev", "lo")):
+            steps = [("link", "set", "lo", "up")]
+            if multicast:
+                steps += [("link", "set", "lo", "multicast", "on"), ("route", "add", "224.0.0.0/4", "dev", "lo")]
+            for args in steps:
                 res = _ip("-n", self.name, *args)
                 assert res.returncode == 0, f"ip -n {self.name} {' '.join(args)}: {res.stderr.strip()}"
         except BaseException:

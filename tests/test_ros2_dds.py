@@ -123,3 +123,36 @@ def test_rclpy_nodes_in_poses_out_over_dds(ds, tmp_path):
         truth = pose_error(T, inv_T(fr.T_world_ecm) @ fr.T_world_needle)
         assert truth[0] < 1e-6 and truth[1] < 1e-5, (k, truth)
     assert seen == set(range(len(ds))), f"poses came back for frames {sorted(seen)} of {len(ds)}: {logs}"
+
+
+LOCALHOST_CONFIG = ('<CycloneDDS><Domain><General><Interfaces><NetworkInterface name="lo"/></Interfaces>'
+                    '<AllowMulticast>false</AllowMulticast></General><Discovery><ParticipantIndex>auto'
+                    '</ParticipantIndex><Peers><Peer address="127.0.0.1"/></Peers></Discovery></Domain></CycloneDDS>')
+PROBE = """
+import sys, time
+from common.ros.dds import DdsLink
+got = []
+link = DdsLink(0, sys.argv[1])
+link.subscribe("/needletrack/probe", "sensor_msgs/msg/JointState", lambda cdr, ts: got.append(cdr))
+t_end = time.monotonic() + 30
+while not got and time.monotonic() < t_end:
+    time.sleep(0.05)
+link.close()
+print(len(got))
+"""
+
+
+def test_localhost_only_discovery_as_docs_say(tmp_path):
+    """docs/ros.md: an rclpy node with ROS_AUTOMATIC_DISCOVERY_RANGE=LOCALHOST, on a loopback
+    without the MULTICAST flag (as a host has it), is found by a DDS link with the documented
+    localhost-only Cyclone config (unicast peers)."""
+    need_rclpy()
+    with LoopbackNamespace("rospeerL", multicast=False) as ns:
+        talker = ns.popen([sys.executable, PEER, "talk", "/needletrack/probe", 40], tmp_path / "talker.log",
+                          env=dict(ENV, ROS_AUTOMATIC_DISCOVERY_RANGE="LOCALHOST"))
+        import subprocess
+        res = subprocess.run(ns.argv([sys.executable, "-c", PROBE, LOCALHOST_CONFIG]), capture_output=True,
+                             text=True, env=ENV, timeout=120)
+        talker.kill()
+    assert res.returncode == 0, res.stderr[-2000:]
+    assert int(res.stdout.split()[-1]) >= 1, (res.stdout, (tmp_path / "talker.log").read_text()[-2000:])
