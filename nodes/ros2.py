@@ -12,7 +12,10 @@ params: ``preset``, ``topics`` (file or mapping), ``rig`` (the dVRK preset's ``{
 key prefix), ``connect`` (endpoints), ``mode`` (peer | client), ``types`` ({topic: msgtype}
 where bridge keys do not carry it and the role's default does not fit), ``encoding`` (bgr8),
 ``max_queue`` (samples waiting to be decoded; older ones are dropped and counted ``dropped``).
-A sample that does not decode is counted ``bad_samples`` and logged once a second.
+A sample that does not decode (CDR with at most the padding a ROS 2 writer leaves, common/ros/cdr.py)
+or cannot serve its topic's role (wrong type, non-finite calibration or pose, oversized arrays, an
+image header over 16384 px) is refused: counted ``bad_samples``, logged at most once a second per
+topic; the source goes on without back-off.
 
 ``transport: dds`` speaks ROS 2's own DDS topics instead (``rt/<topic>``, Cyclone DDS;
 ``common/ros/dds.py``) in DDS domain ``domain_id``, with ``dds_config`` (Cyclone XML or a file
@@ -117,7 +120,8 @@ class Ros2Node(CameraSourceNode):
                 roles[t] = (role, None)
         self.map = m
         via = f"dds domain {p.domain_id}" if p.transport == "dds" else p.keys
-        self.asm = StereoAssembler(m, f"ros2 ({via})", roles)
+        self.asm = StereoAssembler(m, f"ros2 ({via})", roles, report=self._refused)
+        self.last_bad_log: dict = {}
         self.queue: queue.Queue = queue.Queue(maxsize=max(1, p.max_queue))
         self.qlock = threading.Lock()
         self.subs = []
@@ -136,7 +140,6 @@ class Ros2Node(CameraSourceNode):
         where = via if p.transport == "dds" else f"{p.keys} {','.join(p.connect)}"
         self.out = SamplePublisher(self, self.asm.needle_model(), f"ros2 {where}", m.get("ecm"), p.encoding)
         self.seq = 0
-        self.last_bad_log = 0.0
         self.log.info("ros2: subscribed %s", sorted(self.keys.values()))
 
     def _subscribe_dds(self, roles: dict) -> None:
@@ -183,9 +186,17 @@ class Ros2Node(CameraSourceNode):
                 return t
         return role_type(self.asm.topic_role[topic][0], topic, self.map)
 
+    def _refused(self, topic: str, reason: str) -> None:
+        """A sample the assembler refused: counted, logged at most once a second per topic."""
+        self.count("bad_samples")
+        now = time.monotonic()
+        if now - self.last_bad_log.get(topic, -1e9) >= 1.0:
+            self.last_bad_log[topic] = now
+            self.log.error("ros2: %s: sample refused (%d on this topic so far): %s", topic,
+                           self.asm.refused.get(topic, 0), reason)
+
     def step(self):
         from common.ros.bag import BagError
-        from common.ros.live import decode
         try:
             topic, key, payload, _t_rx = self.queue.get(timeout=0.1)
         except queue.Empty:
@@ -194,14 +205,12 @@ class Ros2Node(CameraSourceNode):
             return True
         msgtype = self._msgtype(topic, key)
         try:
-            msg = decode(payload, msgtype)
-            samples = self.asm.feed(topic, msg)
-        except (BagError, ValueError, KeyError, AssertionError, IndexError, TypeError) as exc:
-            self.count("bad_samples")
-            now = time.monotonic()
-            if now - self.last_bad_log > 1.0:
-                self.last_bad_log = now
-                self.log.error("ros2: %s (%s on %s): %s", topic, msgtype, key, exc)
+            samples = self.asm.feed_bytes(topic, payload, msgtype)
+        except BagError as exc:               # the rig cannot make a sample (e.g. sizes differ)
+            self.asm.refuse(topic, str(exc))
+            return True
+        except Exception as exc:              # nothing a peer sends may stop the source
+            self.asm.refuse(topic, f"{msgtype} on {key}: {type(exc).__name__}: {exc}")
             return True
         for s in samples:
             self.out.publish(s, self.seq, s.stamp_ns)

@@ -108,7 +108,8 @@ class Ros2OutNode(Node):
         self.T_ecm_left = np.asarray(msg.cameras["left"]["T_ecm_cam"], float)
 
     def _put(self, name: str, msg) -> None:
-        from common.ros.live import attachment, encode
+        from common.ros.cdr import encode
+        from common.ros.live import attachment
         data = encode(msg)
         self.sent[name] += 1
         if self.p.transport == "dds":

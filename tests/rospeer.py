@@ -124,7 +124,11 @@ _SIZES = {"bool": 1, "byte": 1, "char": 1, "int8": 1, "uint8": 1, "int16": 2, "u
           "uint32": 4, "float32": 4, "int64": 8, "uint64": 8, "float64": 8}
 
 
-def _walk(msg, fast: bool) -> tuple[set, int]:
+def cdr_padding(msg) -> tuple[set, int]:
+    """(padding, length) of ``msg`` (a rosbags message) in plain little-endian CDR, worked out
+    independently of the encoder (a walk over the type definitions): the offsets in the CDR
+    bytes (4-byte encapsulation header included) of the alignment padding, bytes that carry no
+    value, and the length."""
     from common.ros.types import typestore
     st = typestore(2)
     pad: set = set()
@@ -154,9 +158,6 @@ def _walk(msg, fast: bool) -> tuple[set, int]:
             if k == 4:
                 align(4)
                 pos += 4
-                sub = desc[0]
-                if fast and len(v) == 0 and int(sub[0]) == 1 and _SIZES.get(sub[1][0]) == 8:
-                    align(8)
             for x in v:
                 node(desc[0], x)
 
@@ -165,13 +166,3 @@ def _walk(msg, fast: bool) -> tuple[set, int]:
             node(nd, getattr(v, name))
     message(msg.__msgtype__, msg)
     return pad, 4 + pos
-
-
-def cdr_layout(msg) -> tuple[set, int, int]:
-    """(padding, length, fastcdr_length) of ``msg`` (a rosbags message) in plain little-endian
-    CDR, worked out independently of the encoder (a walk over the type definitions): the offsets
-    in the CDR bytes (4-byte encapsulation header included) of the alignment padding, bytes that
-    carry no value; the length; and the length Fast CDR (rmw_fastrtps) gives it: its size
-    estimate aligns the (absent) elements of an empty sequence of 8-byte values to 8."""
-    pad, n = _walk(msg, False)
-    return pad, n, _walk(msg, True)[1]

@@ -16,11 +16,10 @@ from common.data.dataset import Dataset
 from common.geometry.transforms import inv_T, pose_error
 from common.ros import build
 from common.ros.conventions import pose_to_T, ros_covariance
+from common.ros.cdr import decode, encode
 from common.ros.live import (
     attachment,
     dds_type_name,
-    decode,
-    encode,
     liveliness_token,
     parse_attachment,
     topic_key,

@@ -11,7 +11,7 @@ import pytest
 from common.data.dataset import Dataset, check_dataset
 from common.evaluation.cli import main as eval_main
 from common.ros.bag import BagError, BagStereo
-from common.ros.conventions import AMBF_NEEDLE_RADIUS, T_AMBF_NEEDLE
+from common.ros.conventions import AMBF_NEEDLE_RADIUS_M, T_AMBF_NEEDLE
 from common.ros.convert import from_bag
 from common.ros.synth import dataset_to_bag, distort_dataset
 from common.sim.cli import main as dataset_main
@@ -71,7 +71,7 @@ def test_ambf_needle_frame_puts_the_tip_where_the_challenge_does():
     (0.056, 0.085, 0) (56.6 deg) and the base (thread end) at (-0.102, 0, 0) in the needle body
     frame (decimetres): A (30 deg) and E (150 deg) of the dataset frame land on the 60 and 180 deg
     ends, A within 3.5 deg of the evaluation's tip (docs/ros.md)."""
-    r = AMBF_NEEDLE_RADIUS
+    r = AMBF_NEEDLE_RADIUS_M * 10          # the challenge's scripts are in decimetres
     A = T_AMBF_NEEDLE[:3, :3] @ (r * np.array([np.cos(np.radians(30)), np.sin(np.radians(30)), 0]))
     E = T_AMBF_NEEDLE[:3, :3] @ (r * np.array([np.cos(np.radians(150)), np.sin(np.radians(150)), 0]))
     assert abs(np.degrees(np.arctan2(A[1], A[0])) - 60.0) < 1e-9
@@ -115,6 +115,28 @@ def test_ambf_si_bag_infers_metres_and_a_wrong_unit_is_a_tenfold_error(ds640, tm
     assert s["unit"] == "dm"
     a, b = Dataset(tmp_path / "a")[0], Dataset(tmp_path / "b")[0]
     np.testing.assert_allclose(b.T_world_needle[:3, 3], a.T_world_needle[:3, 3] / 10)
+
+
+def test_ambf_scene_in_dm_and_in_si_converts_to_the_same_dataset(ds640, tmp_path):
+    """The 2021-22 challenge's scene is in decimetres, AMBF 2.0's in metres: the same scene in
+    both units converts to the same dataset (the needle radius 10.18 mm in both), and the oracle
+    is exact on both."""
+    out = {}
+    for unit in ("dm", "m"):
+        bag = tmp_path / f"{unit}.bag"
+        dataset_to_bag(str(ds640), str(bag), "ambf", unit=unit)
+        out[unit] = tmp_path / f"ds_{unit}"
+        s = from_bag(str(bag), str(out[unit]), preset="ambf")
+        assert s["unit"].startswith(f"{unit} (inferred"), s["unit"]
+        ds = Dataset(out[unit])
+        assert check_dataset(ds).ok
+        assert ds.needle.radius_m == pytest.approx(0.01018, abs=1e-15)
+        assert_same_truth(Dataset(ds640), ds)
+    a, b = Dataset(out["dm"]), Dataset(out["m"])
+    assert a.needle.to_dict() == b.needle.to_dict()
+    assert_same_truth(a, b, px=1e-9)
+    for unit in ("dm", "m"):
+        run_oracle_eval(out[unit], tmp_path / f"eval_{unit}")
 
 
 def test_dvrk_mcap_1080p_with_distortion_converts_exactly(ds1080_distorted, tmp_path):

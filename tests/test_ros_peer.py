@@ -12,10 +12,10 @@ import json
 
 import numpy as np
 import pytest
-from rospeer import cdr_layout, need_rclpy, plain, rclpy_bytes
+from rospeer import cdr_padding, need_rclpy, plain, rclpy_bytes
 
 from common.ros import build
-from common.ros.live import decode, encode
+from common.ros.cdr import decode, encode, fastcdr_estimate
 from common.ros.types import typestore
 
 ST = typestore(2)
@@ -90,8 +90,10 @@ def compare_bytes(msg, ours: bytes, theirs: bytes) -> tuple[int, int]:
     inside (the project writes zeros; Fast CDR skips it, leaving what was in its buffer) and
     slack after the last field (Fast CDR sizes the message as if the elements of each empty
     float64 sequence were aligned to 8, and leaves the bytes its estimate added unwritten: 8 in
-    the issue's positions-only JointState). Returns (padding bytes that differ, slack length)."""
-    pad, n, n_fast = cdr_layout(msg)
+    the issue's positions-only JointState; ``common.ros.cdr.fastcdr_estimate`` predicts the
+    length). Returns (padding bytes that differ, slack length)."""
+    pad, n = cdr_padding(msg)
+    n_fast = 4 + fastcdr_estimate(msg, msg.__msgtype__)      # after the encapsulation header
     assert len(ours) == n, "the project's length is plain CDR's"
     assert len(theirs) == n_fast, f"rclpy wrote {len(theirs)} bytes, Fast CDR's size is {n_fast}"
     assert all(ours[i] == 0 for i in pad), "the project writes zero padding"

@@ -83,7 +83,8 @@ class _RosSystem:
         self.pubs = {}
 
     def _put(self, topic, msg):
-        from common.ros.live import attachment, encode, topic_key
+        from common.ros.cdr import encode
+        from common.ros.live import attachment, topic_key
         if self.dds is not None:
             if topic not in self.pubs:
                 self.pubs[topic] = self.dds.publisher(topic, msg.__msgtype__)
@@ -175,7 +176,7 @@ def live_main(argv: list) -> int:
     args = ap.parse_args(argv)
     from common.data.dataset import Dataset
     from common.evaluation.pipeline_graph import GraphRun, free_port
-    from common.ros.live import decode
+    from common.ros.cdr import decode
     from common.runtime.graph import output_key
     from common.runtime.messages import decode as decode_msg
     tmp = tempfile.TemporaryDirectory(prefix="needletrack-ros-live-")

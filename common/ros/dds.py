@@ -12,7 +12,7 @@ What ROS 2 puts on DDS (its rmw layer, rmw_fastrtps_cpp or rmw_cyclonedds_cpp):
   publish images with the sensor-data profile: best effort, keep last 5).
 
 One codec path: the samples travel as raw CDR bytes, encoded and decoded by the project's CDR
-code (``common.ros.live.encode``/``decode``, rosbags), so a DDS sample gets the same decoding and
+code (``common.ros.cdr.encode``/``decode``, rosbags), so a DDS sample gets the same decoding and
 checks as a Zenoh one. ``cyclonedds`` only carries them; the Cyclone IDL type of each message
 (built here from the same rosbags type definitions) gives the DDS topic its type name and
 XTypes type information.
@@ -241,7 +241,7 @@ class DdsLink:
 
 
 class DdsPublisher:
-    """Writes CDR bytes (``common.ros.live.encode`` of a message) on one ROS 2 topic."""
+    """Writes CDR bytes (``common.ros.cdr.encode`` of a message) on one ROS 2 topic."""
 
     def __init__(self, writer, sample_type):
         self.writer, self.sample_type = writer, sample_type

@@ -150,14 +150,3 @@ def parse_attachment(data: bytes) -> dict:
             out[key] = bytes(data[p:p + n])
             p += n
     return out
-
-
-# ---------------------------------------------------------------- CDR
-
-def encode(msg) -> bytes:
-    """CDR bytes (with the encapsulation header) of a rosbags ROS 2 message."""
-    return bytes(typestore(2).serialize_cdr(msg, msg.__msgtype__))
-
-
-def decode(data: bytes, msgtype: str):
-    return typestore(2).deserialize_cdr(bytes(data), normalise_type(msgtype))
