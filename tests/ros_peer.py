@@ -11,7 +11,8 @@ node (run it in a network namespace: DDS discovery multicasts) that publishes th
 on the dVRK topics (``/<rig>/{left,right}/image_raw`` bgr8, ``camera_info``, ``/ECM/measured_js``
 positions only, ``/needle/measured_cp``) and subscribes ``/needletrack/needle_pose``
 (PoseStamped) until a pose came back for each of the first N frames or S seconds passed; writes
-the poses received to OUT.json. Frame i is stamped ``STAMP_BASE_NS + stamp_ns`` of the dataset;
+the poses received to OUT.json. Frame i is stamped ``STAMP_BASE_NS + k * CYCLE_NS + stamp_ns``
+of the dataset on the k-th pass over the frames (stamps only grow, as a live system's do);
 the left camera is published with rclpy's default QoS (reliable), the right one with the sensor
 data QoS (best effort), as camera drivers do.
 
@@ -71,6 +72,16 @@ def plain(msg) -> dict:
     return out
 
 
+CYCLE_NS = 10**12           # the stamp step between passes over the frames (longer than any dataset)
+
+
+def frame_of(stamp_ns: int, ds) -> int:
+    """The frame index a ``live`` stamp stands for."""
+    from common.ros.synth import STAMP_BASE_NS
+    rel = (int(stamp_ns) - STAMP_BASE_NS) % CYCLE_NS
+    return next((fr.index for fr in ds.frames if int(fr.stamp_ns) == rel), -1)
+
+
 def bytes_main() -> int:
     from rclpy.serialization import deserialize_message, serialize_message
     out = []
@@ -105,7 +116,7 @@ def live_main(argv: list) -> int:
     args = ap.parse_args(argv)
     ds = Dataset(args.dataset)
     frames = ds.frames[:args.frames]
-    want = {STAMP_BASE_NS + int(fr.stamp_ns) for fr in frames}
+    want = set(range(len(frames)))
     rclpy.init()
     node = Node("needletrack_test_peer")
     got: list = []
@@ -130,7 +141,7 @@ def live_main(argv: list) -> int:
         return msg
 
     def frame_msgs(fr):
-        t = STAMP_BASE_NS + int(fr.stamp_ns)
+        t = STAMP_BASE_NS + int(fr.stamp_ns)      # restamped on each pass
         out = []
         for c in ("left", "right"):
             info = stamp(CameraInfo(), t, f"{args.rig}_{c}")
@@ -161,9 +172,11 @@ def live_main(argv: list) -> int:
     msgs = [frame_msgs(fr) for fr in frames]
     deadline = time.monotonic() + args.timeout
     i, next_t = 0, time.monotonic()
-    while time.monotonic() < deadline and not want <= {g["stamp_ns"] for g in got}:
+    while time.monotonic() < deadline and not want <= {frame_of(g["stamp_ns"], ds) for g in got}:
         if time.monotonic() >= next_t:
+            t = STAMP_BASE_NS + (i // len(msgs)) * CYCLE_NS + int(frames[i % len(msgs)].stamp_ns)
             for role, m in msgs[i % len(msgs)]:
+                m.header.stamp.sec, m.header.stamp.nanosec = divmod(t, 1_000_000_000)
                 pubs[role].publish(m)
             i += 1
             next_t += 1.0 / args.hz

@@ -39,6 +39,13 @@ def need_rclpy() -> None:
                      + (res.stderr.strip().splitlines() or ["?"])[-1])
 
 
+def need_cyclonedds() -> None:
+    try:
+        import cyclonedds  # noqa: F401
+    except ImportError as exc:
+        skip_or_fail(f"cyclonedds is not installed (pip install -e '.[test]'): {exc}")
+
+
 def plain(msg):
     """A rosbags message as plain data (tests/ros_peer.py's form: uint8 arrays as base64)."""
     if dataclasses.is_dataclass(msg):

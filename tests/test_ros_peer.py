@@ -12,7 +12,7 @@ import json
 
 import numpy as np
 import pytest
-from rospeer import cdr_padding, need_rclpy, plain, rclpy_bytes
+from rospeer import cdr_padding, need_cyclonedds, need_rclpy, plain, rclpy_bytes
 
 from common.ros import build
 from common.ros.cdr import decode, encode, fastcdr_estimate
@@ -145,6 +145,7 @@ def _cyclone_value(cls, v):
 def test_cyclone_idl_types_write_our_bytes(name):
     """Cyclone DDS's own serialiser, through the IDL types the dds transport declares on the wire,
     writes the project's bytes (so the DDS type information describes these messages)."""
+    need_cyclonedds()
     from common.ros.dds import idl_type
     msg = MESSAGES[name]
     cls = idl_type(msg.__msgtype__)
