@@ -20,6 +20,7 @@ from rospeer import ENV, PEER, LoopbackNamespace, need_rclpy
 
 from common.data.dataset import Dataset
 from common.geometry.transforms import inv_T, pose_error
+from common.ros.bench import pose_pipeline
 from common.ros.conventions import pose_to_T
 from common.sim.cli import main as dataset_main
 
@@ -35,25 +36,10 @@ def ds(tmp_path_factory):
     return Dataset(path)
 
 
-def pipeline(source: dict, out: dict | None = None) -> list:
-    """source -> oracle detector -> ecm -> EPnP (joint) [-> out]."""
-    stereo = {"left": "detector/left", "right": "detector/right", "calib": "camera/calib", "ecm": "ecm/pose"}
-    ecm_in = {"calib": "camera/calib", **({"joints": "camera/joints"} if "joints" in source["outputs"] else {}),
-              **({"measured": "camera/measured"} if "measured" in source["outputs"] else {})}
-    nodes = [source,
-             {"id": "detector", "module": "detector", "params": {"backend": "oracle"},
-              "inputs": {"left": "camera/left", "right": "camera/right", "truth": "camera/truth",
-                         "calib": "camera/calib"}, "outputs": ["left", "right"]},
-             {"id": "ecm", "module": "ecm", "inputs": ecm_in, "outputs": ["pose"]},
-             {"id": "epnp_joint", "module": "epnp", "params": {"method": "joint"}, "inputs": stereo,
-              "outputs": ["pose"]}]
-    return nodes + ([out] if out else [])
-
-
 def dds_graph(ds) -> dict:
     tmap = {"preset": "dvrk", "needle_pose": "/needle/measured_cp", "ecm": ds.arm.to_dict(),
             "registration": {c: ds.rig[c].T_ecm_cam.tolist() for c in ("left", "right")}}
-    return {"nodes": pipeline(
+    return {"nodes": pose_pipeline(
         {"id": "camera", "module": "ros2", "outputs": ["left", "right", "measured", "truth", "calib"],
          "params": {"preset": "dvrk", "rig": RIG, "topics": tmap, "transport": "dds"}},
         {"id": "out", "module": "ros2_out", "inputs": {"pose": "epnp_joint/pose"},
@@ -69,7 +55,7 @@ def native_poses(ds, tmp_path) -> dict:
     from common.runtime.graph import output_key
     from common.runtime.messages import PoseEstimate, decode
     doc = {"graph": f"native{free_port()}", "zenoh": {"mode": "peer", "listen": [f"tcp/127.0.0.1:{free_port()}"]},
-           "nodes": pipeline({"id": "camera", "module": "replay",
+           "nodes": pose_pipeline({"id": "camera", "module": "replay",
                               "outputs": ["left", "right", "joints", "measured", "truth", "calib", "eos"],
                               "params": {"path": str(ds.path), "rate": 4.0, "loop": True}})}
     got: dict = {}

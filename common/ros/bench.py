@@ -137,7 +137,9 @@ class _RosSystem:
             self.session.close()
 
 
-def _pipeline(source: dict, out: dict | None) -> dict:
+def pose_pipeline(source: dict, out: dict | None = None) -> list:
+    """The graph's nodes: ``source`` (node id ``camera``) -> oracle detector -> ecm (joints when
+    the source has them, else its measured pose) -> EPnP (joint) [-> ``out``]."""
     stereo = {"left": "detector/left", "right": "detector/right", "calib": "camera/calib", "ecm": "ecm/pose"}
     nodes = [source,
              {"id": "detector", "module": "detector", "params": {"backend": "oracle"},
@@ -209,7 +211,7 @@ def live_main(argv: list) -> int:
     link = ({"transport": "dds"} if args.transport == "dds" else
             {"connect": [f"tcp/127.0.0.1:{port}"], "keys": args.keys})
     doc = {"graph": "rosA", "zenoh": {"mode": "peer", "listen": [f"tcp/127.0.0.1:{free_port()}"]},
-           "nodes": _pipeline({"id": "camera", "module": "ros2", "outputs": ["left", "right", "measured", "truth",
+           "nodes": pose_pipeline({"id": "camera", "module": "ros2", "outputs": ["left", "right", "measured", "truth",
                                                                             "calib"],
                                "params": {"preset": "dvrk", "rig": "jhu_daVinci", "topics": tmap, **link,
                                           **({"dds_reliability": args.dds_reliability}
@@ -237,7 +239,7 @@ def live_main(argv: list) -> int:
     # ---- B: the native graph (replay of decoded frames)
     lat_b: list = []
     doc = {"graph": "rosB", "zenoh": {"mode": "peer", "listen": [f"tcp/127.0.0.1:{free_port()}"]},
-           "nodes": _pipeline({"id": "camera", "module": "replay",
+           "nodes": pose_pipeline({"id": "camera", "module": "replay",
                                "outputs": ["left", "right", "joints", "measured", "truth", "calib", "eos"],
                                "params": {"path": str(Path(path).resolve()), "rate": args.rate, "loop": True,
                                           "decode": True}}, None)}
