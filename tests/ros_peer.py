@@ -10,7 +10,7 @@ deserialisation of cdr, as plain data}``.
 node (run it in a network namespace: DDS discovery multicasts) that publishes the dataset's frames
 on the dVRK topics (``/<rig>/{left,right}/image_raw`` bgr8, ``camera_info``, ``/ECM/measured_js``
 positions only, ``/needle/measured_cp``) and subscribes ``/needletrack/needle_pose``
-(PoseStamped) until a pose came back for each of the first N frames or S seconds passed; writes
+(PoseStamped; and ``.../needle_pose_with_covariance``) until a pose came back for each of the first N frames or S seconds passed; writes
 the poses received to OUT.json. Frame i is stamped ``STAMP_BASE_NS + k * CYCLE_NS + stamp_ns``
 of the dataset on the k-th pass over the frames (stamps only grow, as a live system's do);
 the left camera is published with rclpy's default QoS (reliable), the right one with the sensor
@@ -98,7 +98,7 @@ def live_main(argv: list) -> int:
 
     import numpy as np
     import rclpy
-    from geometry_msgs.msg import PoseStamped
+    from geometry_msgs.msg import PoseStamped, PoseWithCovarianceStamped
     from rclpy.node import Node
     from rclpy.qos import qos_profile_sensor_data
     from sensor_msgs.msg import CameraInfo, Image, JointState
@@ -128,6 +128,14 @@ def live_main(argv: list) -> int:
                     "orientation": [m.pose.orientation.x, m.pose.orientation.y, m.pose.orientation.z,
                                     m.pose.orientation.w], "t_rx": time.time()})
     node.create_subscription(PoseStamped, "/needletrack/needle_pose", on_pose, 10)
+    cov: list = []
+
+    def on_cov(m):
+        cov.append({"stamp_ns": m.header.stamp.sec * 1_000_000_000 + m.header.stamp.nanosec,
+                    "frame_id": m.header.frame_id, "position": [m.pose.pose.position.x, m.pose.pose.position.y,
+                                                                  m.pose.pose.position.z],
+                    "covariance": [float(x) for x in m.pose.covariance]})
+    node.create_subscription(PoseWithCovarianceStamped, "/needletrack/needle_pose_with_covariance", on_cov, 10)
     pubs = {"left": node.create_publisher(Image, f"/{args.rig}/left/image_raw", 10),
             "right": node.create_publisher(Image, f"/{args.rig}/right/image_raw", qos_profile_sensor_data),
             "info_left": node.create_publisher(CameraInfo, f"/{args.rig}/left/camera_info", 10),
@@ -182,7 +190,7 @@ def live_main(argv: list) -> int:
             next_t += 1.0 / args.hz
         rclpy.spin_once(node, timeout_sec=0.02)
     matched = {k: p.get_subscription_count() for k, p in pubs.items()}
-    Path(args.out).write_text(json.dumps({"poses": got, "published_frames": i, "subscriptions": matched}))
+    Path(args.out).write_text(json.dumps({"poses": got, "with_covariance": cov, "published_frames": i, "subscriptions": matched}))
     node.destroy_node()
     rclpy.shutdown()
     return 0

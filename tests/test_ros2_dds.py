@@ -3,8 +3,8 @@ tests/ros_peer.py) publishes a dataset's stereo images (left with ROS's default 
 the sensor-data QoS), camera_info, positions-only ECM joints and the needle's pose on the dVRK
 topics; the graph ``ros2`` (transport dds) -> oracle detector -> ecm (joints through the arm
 model) -> EPnP -> ``ros2_out`` (transport dds) sends the poses back, which the rclpy node
-receives as ``geometry_msgs/PoseStamped`` in frame ``ECM``. Their values equal the native
-graph's (``replay`` of the same folder, same nodes) on the same frames.
+receives as ``geometry_msgs/PoseStamped`` in frame ``ECM`` (and PoseWithCovarianceStamped). Their
+values equal the native graph's (``replay`` of the same folder, same nodes) on the same frames.
 
 Every DDS process runs in a network namespace of the test's own with only loopback up (DDS
 discovery multicasts); the native graph runs on 127.0.0.1 outside it."""
@@ -21,7 +21,7 @@ from rospeer import ENV, PEER, LoopbackNamespace, need_rclpy
 from common.data.dataset import Dataset
 from common.geometry.transforms import inv_T, pose_error
 from common.ros.bench import pose_pipeline
-from common.ros.conventions import pose_to_T
+from common.ros.conventions import pose_to_T, ros_covariance
 from common.sim.cli import main as dataset_main
 
 RIG = "jhu_daVinci"
@@ -47,7 +47,7 @@ def dds_graph(ds) -> dict:
 
 
 def native_poses(ds, tmp_path) -> dict:
-    """frame index -> T_ecm_needle of the native graph (replay of the folder, looping, same nodes;
+    """frame index -> PoseEstimate of the native graph (replay of the folder, looping, same nodes;
     a frame a node skips at start-up comes again)."""
     from graphtools import free_port
 
@@ -71,7 +71,7 @@ def native_poses(ds, tmp_path) -> dict:
             time.sleep(0.1)
         sub.undeclare()
     assert len(got) == len(ds), f"native graph: poses for frames {sorted(got)} of {len(ds)}"
-    return {seq: np.asarray(p.T_ecm_needle, float) for seq, p in got.items()}
+    return got
 
 
 def test_rclpy_nodes_in_poses_out_over_dds(ds, tmp_path):
@@ -104,12 +104,20 @@ def test_rclpy_nodes_in_poses_out_over_dds(ds, tmp_path):
             position = type("P", (), dict(zip("xyz", p["position"])))
             orientation = type("Q", (), dict(zip("xyzw", p["orientation"])))
         T = pose_to_T(_Pose)
-        err = pose_error(T, native[k])
+        err = pose_error(T, np.asarray(native[k].T_ecm_needle, float))
         assert err[0] < 1e-9 and err[1] < 1e-8, (k, err)
         fr = ds[k]
         truth = pose_error(T, inv_T(fr.T_world_ecm) @ fr.T_world_needle)
         assert truth[0] < 1e-6 and truth[1] < 1e-5, (k, truth)
     assert seen == set(range(len(ds))), f"poses came back for frames {sorted(seen)} of {len(ds)}: {logs}"
+    # PoseWithCovarianceStamped: ROS's covariance of the native estimate's (ros_covariance, frame ECM)
+    assert res["with_covariance"], "no PoseWithCovarianceStamped came back"
+    for p in res["with_covariance"]:
+        k = frame_of(p["stamp_ns"], ds)
+        assert p["frame_id"] == "ECM" and native[k].covariance is not None
+        np.testing.assert_allclose(p["position"], np.asarray(native[k].T_ecm_needle)[:3, 3], rtol=0, atol=1e-9)
+        ref = ros_covariance(np.asarray(native[k].covariance, float), np.eye(3), 1.0).reshape(-1)
+        np.testing.assert_allclose(p["covariance"], ref, rtol=1e-6, atol=1e-15)
 
 
 LOCALHOST_CONFIG = ('<CycloneDDS><Domain><General><Interfaces><NetworkInterface name="lo"/></Interfaces>'
