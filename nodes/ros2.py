@@ -8,7 +8,9 @@ and publishes as ``rosbag`` does (``common/ros/source.py``): ``left``/``right``,
 ``truth``, ``calib``. ``seq`` counts the stereo pairs; ``stamp_ns`` is the images' header stamp.
 
 params: ``preset``, ``topics`` (file or mapping), ``rig`` (the dVRK preset's ``{rig}``, e.g.
-``jhu_daVinci``), ``keys`` (bridge | rmw_zenoh), ``domain_id`` (0), ``namespace`` (the bridge's
+``jhu_daVinci``), ``keys`` (bridge | rmw_zenoh), ``distro`` (humble | jazzy | kilted | rolling:
+the publishers' distribution; rmw_zenoh keys of any type hash are taken, a sample whose hash is of
+another distribution is logged once), ``domain_id`` (0), ``namespace`` (the bridge's
 key prefix), ``connect`` (endpoints), ``mode`` (peer | client), ``types`` ({topic: msgtype}
 where bridge keys do not carry it and the role's default does not fit), ``encoding`` (bgr8),
 ``max_queue`` (samples waiting to be decoded; older ones are dropped and counted ``dropped``).
@@ -73,9 +75,10 @@ class Ros2Node(CameraSourceNode):
         topics: str | dict | None = None
         rig: str = ""
         keys: Literal["bridge", "rmw_zenoh"] = "bridge"
-        transport: Literal["zenoh", "dds"] = "zenoh"
-        dds_config: str = ""
-        dds_reliability: Literal["best_effort", "reliable"] = "best_effort"
+        distro: Literal["humble", "jazzy", "kilted", "rolling"] = "jazzy"   # the ROS 2 system's (rmw_zenoh keys)
+        transport: Literal["zenoh", "dds"] = "zenoh"   # dds: ROS 2's DDS topics (Cyclone DDS), no bridge
+        dds_config: str = ""     # transport dds: Cyclone XML or a file URI (default: CYCLONEDDS_URI)
+        dds_reliability: Literal["best_effort", "reliable"] = "best_effort"   # reliable: reliable publishers only
         domain_id: int = 0
         namespace: str = ""
         connect: list[str] = field(default_factory=lambda: ["tcp/127.0.0.1:7447"])
@@ -122,6 +125,7 @@ class Ros2Node(CameraSourceNode):
         via = f"dds domain {p.domain_id}" if p.transport == "dds" else p.keys
         self.asm = StereoAssembler(m, f"ros2 ({via})", roles, report=self._refused)
         self.last_bad_log: dict = {}
+        self.distro_noted: set = set()
         self.queue: queue.Queue = queue.Queue(maxsize=max(1, p.max_queue))
         self.qlock = threading.Lock()
         self.subs = []
@@ -168,16 +172,34 @@ class Ros2Node(CameraSourceNode):
                         pass
 
     def _callback(self, topic: str):
+        from common.ros.bag import MAX_STATE_BYTES
+        small = self.asm.topic_role[topic][0] != "image"
+
         def cb(sample):
-            self._enqueue((topic, str(sample.key_expr), bytes(sample.payload.to_bytes()), time.time_ns()))
+            n = len(sample.payload)
+            # an oversized state is not copied: its size goes to step, which refuses it
+            payload = n if small and n > MAX_STATE_BYTES else bytes(sample.payload.to_bytes())
+            self._enqueue((topic, str(sample.key_expr), payload, time.time_ns()))
         return cb
 
     def _dds_callback(self, topic: str):
-        key = self.keys[topic]
-        return lambda cdr, _stamp: self._enqueue((topic, key, cdr, time.time_ns()))
+        from common.ros.bag import MAX_STATE_BYTES
+        key, small = self.keys[topic], self.asm.topic_role[topic][0] != "image"
+
+        def cb(cdr, _stamp):
+            # as on Zenoh: an oversized state goes to step as its size, which refuses it
+            self._enqueue((topic, key, len(cdr) if small and len(cdr) > MAX_STATE_BYTES else cdr, time.time_ns()))
+        return cb
 
     def _msgtype(self, topic: str, key: str) -> str:
-        from common.ros.live import topic_of_key
+        from common.ros.live import distro_of_key, topic_of_key
+        if self.p.transport == "zenoh" and self.p.keys == "rmw_zenoh" and topic not in self.distro_noted:
+            seen = distro_of_key(key)
+            if seen is not None and (seen == "humble") != (self.p.distro == "humble"):
+                self.distro_noted.add(topic)
+                self.log.warning("ros2: %s: key %s has a %s type hash but distro is %s: the samples are read, "
+                                 "but set distro to the ROS 2 system's so that ros2_out's keys match it", topic, key,
+                                 "Humble" if seen == "humble" else "REP 2011", self.p.distro)
         if topic in self.p.types:
             return self.p.types[topic]
         if self.p.keys == "rmw_zenoh" and self.p.transport == "zenoh":
@@ -204,6 +226,9 @@ class Ros2Node(CameraSourceNode):
                 self._publish_calib()
             return True
         msgtype = self._msgtype(topic, key)
+        if isinstance(payload, int):
+            self.asm.refuse_oversized(topic, payload, msgtype)
+            return True
         try:
             samples = self.asm.feed_bytes(topic, payload, msgtype)
         except BagError as exc:               # the rig cannot make a sample (e.g. sizes differ)

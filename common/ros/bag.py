@@ -20,6 +20,7 @@ from typing import Optional
 
 import numpy as np
 
+from common.errors import NeedletrackError
 from common.geometry.camera import intrinsics_from_fovy
 from common.geometry.needle import NeedleModel
 from common.ros.conventions import (
@@ -45,7 +46,7 @@ DISTORTION_COUNTS = (0, 4, 5, 8, 12, 14)
 log = logging.getLogger("needletrack.ros")
 
 
-class BagError(ValueError):
+class BagError(NeedletrackError, ValueError):
     """A bag that cannot give stereo frames; the text names the bag, topic and what is wrong."""
 
 
@@ -100,10 +101,12 @@ def pose_of(msg, scale: float = 1.0) -> np.ndarray:
     return pose_to_T(pose_part(msg), scale)
 
 
-def message_problem(role: str, msg) -> str | None:
+def message_problem(role: str, msg, values: bool = True) -> str | None:
     """Why a message cannot serve ``role`` (image, camera_info, camera_state, ecm_joints, ecm_pose,
     needle_pose, camera_frame), read from its fields without decoding pixels; None when it can.
-    Non-finite numbers, an uncalibrated K, oversized joint arrays and the wrong type are refused."""
+    The wrong type, an image header over the size limit, an uncalibrated K, oversized joint
+    arrays; with ``values``, also what the graph's codec would refuse: non-finite or
+    out-of-range numbers, a K that is not a pinhole matrix."""
     msgtype = getattr(msg, "__msgtype__", type(msg).__name__)
     if role == "image":
         if msgtype not in IMAGE_TYPES:
@@ -114,25 +117,37 @@ def message_problem(role: str, msg) -> str | None:
             return f"a {msgtype} is not a sensor_msgs/msg/CameraInfo"
         K = np.asarray(getattr(msg, "k", getattr(msg, "K", None)), float).reshape(-1)
         D = np.asarray(getattr(msg, "d", getattr(msg, "D", [])), float).reshape(-1)
-        if K.size != 9 or not np.all(np.isfinite(K)) or not np.all(np.isfinite(D)):
-            return f"K and D must be finite numbers, got K={K.tolist()} D={D.tolist()[:16]}"
-        if not (K[0] > 0 and K[4] > 0):
-            return f"K is not a camera matrix (uncalibrated camera?): {K.reshape(3, 3).tolist()}"
+        if K.size != 9:
+            return f"K has {K.size} elements, not 9"
         if len(D) not in DISTORTION_COUNTS:
             return f"{len(D)} distortion coefficients (expected one of {', '.join(map(str, DISTORTION_COUNTS))})"
         model = str(getattr(msg, "distortion_model", "plumb_bob") or "plumb_bob")
         if model not in ("plumb_bob", "rational_polynomial") and np.any(D):
             return f"distortion_model {model!r} is not supported (plumb_bob, rational_polynomial)"
-        return None
+        if K[0] <= 0 or K[4] <= 0:           # (a NaN compares false: a value, below)
+            return f"K is not a camera matrix (uncalibrated camera?): {K.reshape(3, 3).tolist()}"
+        if not values:
+            return None
+        if not np.all(np.isfinite(K)) or not np.all(np.isfinite(D)):
+            return f"K and D must be finite numbers, got K={K.tolist()} D={D.tolist()[:16]}"
+        from common.runtime.messages import Calibration
+        cam = {"K": K.reshape(3, 3), "dist": D if len(D) else np.zeros(5), "T_ecm_cam": np.eye(4)}
+        size = np.array([max(1, int(msg.width)), max(1, int(msg.height))])
+        return _codec_problem(Calibration(0, size, {"left": cam, "right": cam}, {"radius_m": 0.01}))
     if role == "ecm_joints":
         if not hasattr(msg, "position"):
             return f"a {msgtype} is not a sensor_msgs/msg/JointState"
         sizes = {f: len(getattr(msg, f, ())) for f in ("name", "position", "velocity", "effort")}
         if max(sizes.values()) > MAX_JOINTS:
             return f"joint arrays longer than {MAX_JOINTS}: {sizes}"
+        if not values:
+            return None
         pos = np.asarray(msg.position, float).reshape(-1)
         if not np.all(np.isfinite(pos[:4])):
             return f"non-finite joint positions {pos[:4].tolist()}"
+        if len(pos) >= 4:
+            from common.runtime.messages import EcmPose
+            return _codec_problem(EcmPose(0, 0, np.eye(4), pos[:4].copy()))
         return None
     try:
         p = pose_part(msg)
@@ -140,8 +155,26 @@ def message_problem(role: str, msg) -> str | None:
              p.orientation.w]
     except (ValueError, AttributeError):
         return f"a {msgtype} carries no pose"
+    if not values:
+        return None
     if not np.all(np.isfinite(np.asarray(v, float))):
         return f"non-finite pose (position, quaternion x y z w): {v}"
+    from common.runtime.messages import EcmPose
+    try:
+        T = pose_to_T(p)
+    except ValueError as exc:
+        return str(exc)
+    return _codec_problem(EcmPose(0, 0, T))
+
+
+def _codec_problem(msg) -> str | None:
+    """What the graph's codec refuses in ``msg`` (the one check of a calibration, pose or joint
+    state: finite, in range, a pinhole K, rigid), or None."""
+    from common.runtime.messages import MessageError, decode, encode
+    try:
+        decode(encode(msg), type(msg))
+    except MessageError as exc:
+        return str(exc)
     return None
 
 
@@ -153,19 +186,27 @@ def _kept(role: str, msg):
 
 
 def open_reader(path):
-    """An opened rosbags AnyReader over ``path`` (ROS 1 .bag, ROS 2 .db3/.mcap file or directory)."""
-    from rosbags.highlevel import AnyReader
-
-    from common.ros.types import typestore
+    """An opened reader over ``path`` (ROS 1 .bag, ROS 2 .db3/.mcap file or directory;
+    ``common/ros/reader.py``): an unfinished MCAP file is read up to its last complete chunk
+    (``reader.recovered`` says so), a topic of an unresolvable type is listed in
+    ``reader.unresolved``."""
+    from common.ros.reader import BagReader, UnfinishedMcap, is_mcap, is_unfinished_mcap
     p = Path(path)
     if not p.exists():
         raise BagError(f"{p}: no such bag file or folder")
+    mcaps = sorted(p.glob("*.mcap")) if p.is_dir() else [p]
+    if len(mcaps) == 1 and is_unfinished_mcap(mcaps[0]):   # a recording, or a bag folder's one file, cut short
+        return UnfinishedMcap(mcaps[0])
     try:
-        reader = AnyReader([p], default_typestore=typestore(2))
-        reader.open()
+        return BagReader(p)
     except Exception as exc:   # rosbags raises its own reader errors for unreadable bags
-        raise BagError(f"{p}: not a readable ROS 1 .bag or ROS 2 .db3/.mcap bag: {exc}") from None
-    return reader
+        first = exc
+    if is_mcap(p):                  # an MCAP file whose summary is unreadable
+        try:
+            return UnfinishedMcap(p, f"a recording whose summary cannot be read ({first})")
+        except BagError:
+            pass
+    raise BagError(f"{p}: not a readable ROS 1 .bag or ROS 2 .db3/.mcap bag: {first}") from None
 
 
 class StereoAssembler:
@@ -176,10 +217,14 @@ class StereoAssembler:
 
     A message that cannot serve its role (``message_problem``), or that the owner could not
     decode (``refuse``), is counted in ``refused`` ({topic: count}) and reported through
-    ``report(topic, reason)`` (default: logged once per topic); the stream goes on."""
+    ``report(topic, reason)`` (default: logged once per topic); the stream goes on.
+    ``check_values`` (live sources): a non-finite or out-of-range calibration, pose or joint state
+    is refused too; without it (bags) such values reach the samples, for the caller to name the
+    frame (``convert.sample_fault``)."""
 
-    def __init__(self, m: dict, where: str, roles: dict, report=None):
+    def __init__(self, m: dict, where: str, roles: dict, report=None, check_values: bool = True):
         self.map, self.path, self.topic_role = m, where, roles
+        self.check_values = check_values
         self.refused: dict = {}
         self.report = report or self._log_once
         self.info = {"source": where, "preset": m.get("preset"),
@@ -205,6 +250,10 @@ class StereoAssembler:
         """Count one refused message of ``topic`` and report it."""
         self.refused[topic] = self.refused.get(topic, 0) + 1
         self.report(topic, reason)
+
+    def refuse_oversized(self, topic: str, nbytes: int, msgtype: str) -> None:
+        """Refuse a non-image message of ``nbytes`` over ``MAX_STATE_BYTES``, undecoded."""
+        self.refuse(topic, f"{nbytes} bytes for a {msgtype}: more than {MAX_STATE_BYTES} (MAX_STATE_BYTES)")
 
     def _log_once(self, topic: str, reason: str) -> None:
         if self.refused[topic] == 1:
@@ -306,17 +355,18 @@ class StereoAssembler:
             T_world_needle = pose_of(state["needle_pose"], self.scale) @ self.T_given_needle
         return StereoSample(index, left[0], imgs, cams, (w, h), q, T_world_ecm, T_world_needle)
 
-    def feed_bytes(self, topic: str, raw, msgtype: str, store=None, ros: int = 2) -> list:
-        """``feed`` the message serialised in ``raw`` (CDR, or ROS 1 with ``ros=1``; decoded by
-        ``common.ros.cdr.decode`` with ``store``); bytes that do not decode as ``msgtype``, or a
-        non-image message over ``MAX_STATE_BYTES``, are refused (counted, reported)."""
-        from common.ros.cdr import CdrError, decode
+    def feed_bytes(self, topic: str, raw, msgtype: str, decode=None) -> list:
+        """``feed`` the message serialised in ``raw``, decoded by ``decode(raw, msgtype)`` (default
+        ``common.ros.cdr.decode``: CDR with the project's ROS 2 types; a bag reader's binds its
+        own types); bytes that do not decode as ``msgtype`` (``CdrError``), or a non-image
+        message over ``MAX_STATE_BYTES``, are refused (counted, reported)."""
+        from common.ros import cdr
         if self.topic_role[topic][0] != "image" and len(raw) > MAX_STATE_BYTES:
-            self.refuse(topic, f"{len(raw)} bytes for a {msgtype}: more than {MAX_STATE_BYTES} (MAX_STATE_BYTES)")
+            self.refuse_oversized(topic, len(raw), msgtype)
             return []
         try:
-            msg = decode(raw, msgtype, store, ros)
-        except CdrError as exc:
+            msg = (decode or cdr.decode)(raw, msgtype)
+        except cdr.CdrError as exc:
             self.refuse(topic, f"cannot deserialise: {exc}")
             return []
         return self.feed(topic, msg)
@@ -329,7 +379,7 @@ class StereoAssembler:
         for each the message stamped last at or before the pair (the one stamped nearest to it
         when none is): states recorded just after their images still belong to them."""
         role, cam = self.topic_role[topic]
-        why = message_problem(role, msg)
+        why = message_problem(role, msg, self.check_values)
         if why is not None:
             self.refuse(topic, why)
             return []
@@ -444,15 +494,21 @@ class BagStereo:
             m = load_topic_map(preset, topics)
             m = resolve_rig(m, set(self.types))
             roles = resolve_roles(m, self.types, self.path)
+            for t, (role, cam) in roles.items():
+                if t in self.reader.unresolved:
+                    raise BagError(f"{self.path}: topic {t} ({role}{'.' + cam if cam else ''}): "
+                                   f"{self.reader.unresolved[t]}")
         except (TopicMapError, BagError) as exc:
             self.close()
             msg = str(exc)
             raise BagError(msg if msg.startswith(self.path) else f"{self.path}: {msg}") from None
         self.map = m
-        self.asm = StereoAssembler(m, self.path, roles, report)
+        self.asm = StereoAssembler(m, self.path, roles, report, check_values=False)
         self.info = self.asm.info
         self.counts = self.asm.counts
         self.refused = self.asm.refused      # {topic: messages refused}
+        if self.reader.recovered:
+            self.info["recovered"] = self.reader.recovered
 
     def needle_model(self) -> NeedleModel:
         return self.asm.needle_model()
@@ -476,7 +532,19 @@ class BagStereo:
 
     def __iter__(self):
         conns = [c for c in self.reader.connections if c.topic in self.asm.topic_role]
-        ros = 2 if self.reader.is2 else 1
         for conn, _t, raw in self.reader.messages(connections=conns):
-            yield from self.asm.feed_bytes(conn.topic, raw, conn.msgtype, self.reader.typestore, ros)
-        yield from self.asm.finish()
+            try:
+                out = self.asm.feed_bytes(conn.topic, raw, conn.msgtype, self.reader.deserialize)
+            except BagError:
+                raise
+            except (AttributeError, TypeError, ValueError, KeyError, IndexError) as exc:   # fields not as its type's
+                raise BagError(f"{self.path}: {conn.topic}: a {conn.msgtype} not as the type defines it (the bag's "
+                               f"own definition of it?): {type(exc).__name__}: {exc}") from None
+            yield from out
+        try:
+            out = self.asm.finish()
+        except BagError:
+            raise
+        except (AttributeError, TypeError, ValueError, KeyError, IndexError) as exc:
+            raise BagError(f"{self.path}: the last frames: {type(exc).__name__}: {exc}") from None
+        yield from out

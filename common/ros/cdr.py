@@ -18,6 +18,7 @@ import struct
 
 from rosbags.serde import SerdeError
 
+from common.errors import NeedletrackError
 from common.ros.types import normalise_type, typestore
 
 # what rosbags' generated (de)serialisers raise on bytes that are not the type
@@ -27,7 +28,7 @@ _SIZES = {"bool": 1, "int8": 1, "uint8": 1, "byte": 1, "char": 1, "int16": 2, "u
           "uint32": 4, "float32": 4, "int64": 8, "uint64": 8, "float64": 8}
 
 
-class CdrError(ValueError):
+class CdrError(NeedletrackError, ValueError):
     """Bytes that are not a message of the type; the text says what is wrong."""
 
 

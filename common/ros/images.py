@@ -14,6 +14,7 @@ from __future__ import annotations
 import cv2
 import numpy as np
 
+from common.errors import NeedletrackError
 from common.runtime.messages import MAX_IMAGE_SIDE, image_header_size
 
 ENCODINGS = ("bgr8", "rgb8", "bgra8", "rgba8", "mono8", "mono16", "bayer_rggb8", "bayer_bggr8",
@@ -26,7 +27,7 @@ _BAYER = {"bayer_rggb8": cv2.COLOR_BayerBG2BGR, "bayer_bggr8": cv2.COLOR_BayerRG
           "bayer_gbrg8": cv2.COLOR_BayerGR2BGR, "bayer_grbg8": cv2.COLOR_BayerGB2BGR}
 
 
-class ImageError(ValueError):
+class ImageError(NeedletrackError, ValueError):
     """An image message that cannot be turned into pixels; the text says which and why."""
 
 

@@ -34,6 +34,7 @@ import os
 import numpy as np
 import yaml
 
+from common.errors import NeedletrackError
 from common.ros.conventions import AMBF_FOVY_RAD, AMBF_NEEDLE_RADIUS_M, UNITS
 
 PRESETS = {
@@ -71,7 +72,7 @@ KEYS = {"preset", "images", "camera_info", "fovy_rad", "registration", "camera_a
         "camera_frame", "camera_states"}
 
 
-class TopicMapError(ValueError):
+class TopicMapError(NeedletrackError, ValueError):
     """A topic map that cannot be used; the text names the key (and the file)."""
 
 

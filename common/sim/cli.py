@@ -130,6 +130,10 @@ def _ros(args) -> int:
               f"{r['with_truth']}; unit {r['unit']}; unpaired images {r['unpaired']}")
         for role, topic in r["topics"].items():
             print(f"  {role}: {topic}")
+        for topic, n in r["refused"].items():
+            print(f"  skipped {n} message(s) on {topic} (the reason is logged above)")
+        if r["recovered"]:
+            print(f"warning: {args.bag}: {r['recovered']}", file=sys.stderr)
         return 0
     if args.cmd == "to-bag":
         from common.ros.synth import dataset_to_bag
