@@ -157,3 +157,19 @@ def test_localhost_only_discovery_as_docs_say(tmp_path):
     msg = decode(bytes.fromhex(cdr), "sensor_msgs/msg/JointState")
     assert list(msg.name) == ["outer_yaw"] and list(msg.position) == [0.25] and len(msg.velocity) == 0
     assert len(bytes.fromhex(cdr)) == len(encode(msg)) < 4 + fastcdr_estimate(msg, msg.__msgtype__)
+
+
+def test_a_bad_dds_config_is_a_clear_error():
+    """A Cyclone config that cannot be applied fails the link with DdsError naming the domain and
+    Cyclone's reason (the nodes turn it into their configuration error)."""
+    from rospeer import need_cyclonedds
+    need_cyclonedds()
+    import subprocess
+    code = ("from common.ros.dds import DdsError, DdsLink\n"
+            "try:\n    DdsLink(3, '<CycloneDDS><Domain><General><Interfaces><NetworkInterface name=\"nosuch0\"/>"
+            "</Interfaces></General></Domain></CycloneDDS>')\nexcept DdsError as e:\n    print('DdsError:', e)\n")
+    with LoopbackNamespace("rospeerC") as ns:
+        res = subprocess.run(ns.argv([sys.executable, "-c", code]), capture_output=True, text=True, env=ENV,
+                             timeout=120)
+    assert "DdsError: cannot join DDS domain 3" in res.stdout, res.stdout + res.stderr
+    assert "nosuch0" in res.stdout and "nosuch0" in res.stderr      # the config, and Cyclone's reason

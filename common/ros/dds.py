@@ -148,7 +148,9 @@ class DdsLink:
             self.domain = Domain(self.domain_id, TUNING + ("," + user if user else ""))
             self.participant = DomainParticipant(self.domain_id)
         except Exception as exc:           # cyclonedds raises DDSException for a bad config
-            raise DdsError(f"cannot join DDS domain {self.domain_id}: {exc}") from None
+            where = f" with config {user[:200]!r}" if user else ""
+            raise DdsError(f"cannot join DDS domain {self.domain_id}{where}: {exc} (Cyclone's reason is in "
+                           "its log line before this)") from None
         self._entities: list = []
         self._readers: list = []
         self._lock = threading.Lock()
