@@ -1,4 +1,4 @@
-"""``ros2``: a live ROS 2 system carried on Zenoh as a stereo camera source (no ROS installed).
+"""``ros2``: a live ROS 2 system, on Zenoh or on DDS, as a stereo camera source (no ROS installed).
 
 Subscribes, on its own Zenoh session (``connect``: the rmw_zenoh router or the
 zenoh-bridge-ros2dds, ``tcp/127.0.0.1:7447`` by default), to the topics of a topic map
@@ -18,6 +18,13 @@ A sample that does not decode (CDR with at most the padding a ROS 2 writer leave
 or cannot serve its topic's role (wrong type, non-finite calibration or pose, oversized arrays, an
 image header over 16384 px) is refused: counted ``bad_samples``, logged at most once a second per
 topic; the source goes on without back-off.
+
+``transport: dds`` speaks ROS 2's own DDS topics instead (``rt/<topic>``, Cyclone DDS;
+``common/ros/dds.py``) in DDS domain ``domain_id``, with ``dds_config`` (Cyclone XML or a file
+URI; default ``CYCLONEDDS_URI``), reading best effort (matches every publisher) or, with
+``dds_reliability: reliable``, reliable (reliable publishers only; lost fragments are resent);
+the message types are those of bridge keys (role, ``types``).
+The samples are decoded by the same code on both transports.
 """
 from __future__ import annotations
 
@@ -69,6 +76,9 @@ class Ros2Node(CameraSourceNode):
         rig: str = ""
         keys: Literal["bridge", "rmw_zenoh"] = "bridge"
         distro: Literal["humble", "jazzy", "kilted", "rolling"] = "jazzy"   # the ROS 2 system's (rmw_zenoh keys)
+        transport: Literal["zenoh", "dds"] = "zenoh"   # dds: ROS 2's DDS topics (Cyclone DDS), no bridge
+        dds_config: str = ""     # transport dds: Cyclone XML or a file URI (default: CYCLONEDDS_URI)
+        dds_reliability: Literal["best_effort", "reliable"] = "best_effort"   # reliable: reliable publishers only
         domain_id: int = 0
         namespace: str = ""
         connect: list[str] = field(default_factory=lambda: ["tcp/127.0.0.1:7447"])
@@ -112,25 +122,54 @@ class Ros2Node(CameraSourceNode):
             for t in candidates(m.get(role)):
                 roles[t] = (role, None)
         self.map = m
-        self.asm = StereoAssembler(m, f"ros2 ({p.keys})", roles, report=self._refused)
+        via = f"dds domain {p.domain_id}" if p.transport == "dds" else p.keys
+        self.asm = StereoAssembler(m, f"ros2 ({via})", roles, report=self._refused)
         self.last_bad_log: dict = {}
         self.distro_noted: set = set()
         self.queue: queue.Queue = queue.Queue(maxsize=max(1, p.max_queue))
         self.qlock = threading.Lock()
-        try:
-            self.session = open_session(p.connect, p.mode)
-        except Exception as exc:
-            raise NodeError(f"cannot open a Zenoh session to {p.connect}: {exc}") from None
         self.subs = []
         self.keys = {}
-        for t in roles:
-            key = topic_key(t, None, p.keys, p.domain_id, p.namespace, wildcard_type=True)
-            self.keys[t] = key
-            self.subs.append(self.session.declare_subscriber(key, self._callback(t)))
-        self.out = SamplePublisher(self, self.asm.needle_model(), f"ros2 {p.keys} {','.join(p.connect)}",
-                                   m.get("ecm"), p.encoding)
+        if p.transport == "dds":
+            self._subscribe_dds(roles)
+        else:
+            try:
+                self.session = open_session(p.connect, p.mode)
+            except Exception as exc:
+                raise NodeError(f"cannot open a Zenoh session to {p.connect}: {exc}") from None
+            for t in roles:
+                key = topic_key(t, None, p.keys, p.domain_id, p.namespace, wildcard_type=True)
+                self.keys[t] = key
+                self.subs.append(self.session.declare_subscriber(key, self._callback(t)))
+        where = via if p.transport == "dds" else f"{p.keys} {','.join(p.connect)}"
+        self.out = SamplePublisher(self, self.asm.needle_model(), f"ros2 {where}", m.get("ecm"), p.encoding)
         self.seq = 0
         self.log.info("ros2: subscribed %s", sorted(self.keys.values()))
+
+    def _subscribe_dds(self, roles: dict) -> None:
+        from common.ros.dds import DdsError, DdsLink, dds_topic_name
+        p = self.p
+        try:
+            self.dds = DdsLink(p.domain_id, p.dds_config or None)
+            for t in roles:
+                self.keys[t] = dds_topic_name(t)
+                self.dds.subscribe(t, self._msgtype(t, ""), self._dds_callback(t), depth=max(1, p.max_queue),
+                                   reliable=p.dds_reliability == "reliable")
+        except (DdsError, ValueError) as exc:
+            raise NodeError(f"ros2 (dds): {exc}") from None
+
+    def _enqueue(self, item) -> None:
+        with self.qlock:
+            while True:
+                try:
+                    self.queue.put_nowait(item)
+                    return
+                except queue.Full:
+                    try:
+                        self.queue.get_nowait()
+                        self.count("dropped")
+                    except queue.Empty:
+                        pass
 
     def _callback(self, topic: str):
         from common.ros.bag import MAX_STATE_BYTES
@@ -140,23 +179,21 @@ class Ros2Node(CameraSourceNode):
             n = len(sample.payload)
             # an oversized state is not copied: its size goes to step, which refuses it
             payload = n if small and n > MAX_STATE_BYTES else bytes(sample.payload.to_bytes())
-            item = (topic, str(sample.key_expr), payload, time.time_ns())
-            with self.qlock:
-                while True:
-                    try:
-                        self.queue.put_nowait(item)
-                        return
-                    except queue.Full:
-                        try:
-                            self.queue.get_nowait()
-                            self.count("dropped")
-                        except queue.Empty:
-                            pass
+            self._enqueue((topic, str(sample.key_expr), payload, time.time_ns()))
+        return cb
+
+    def _dds_callback(self, topic: str):
+        from common.ros.bag import MAX_STATE_BYTES
+        key, small = self.keys[topic], self.asm.topic_role[topic][0] != "image"
+
+        def cb(cdr, _stamp):
+            # as on Zenoh: an oversized state goes to step as its size, which refuses it
+            self._enqueue((topic, key, len(cdr) if small and len(cdr) > MAX_STATE_BYTES else cdr, time.time_ns()))
         return cb
 
     def _msgtype(self, topic: str, key: str) -> str:
         from common.ros.live import distro_of_key, topic_of_key
-        if self.p.keys == "rmw_zenoh" and topic not in self.distro_noted:
+        if self.p.transport == "zenoh" and self.p.keys == "rmw_zenoh" and topic not in self.distro_noted:
             seen = distro_of_key(key)
             if seen is not None and (seen == "humble") != (self.p.distro == "humble"):
                 self.distro_noted.add(topic)
@@ -165,7 +202,7 @@ class Ros2Node(CameraSourceNode):
                                  "Humble" if seen == "humble" else "REP 2011", self.p.distro)
         if topic in self.p.types:
             return self.p.types[topic]
-        if self.p.keys == "rmw_zenoh":
+        if self.p.keys == "rmw_zenoh" and self.p.transport == "zenoh":
             _, t = topic_of_key(key, "rmw_zenoh")
             if t:
                 return t
@@ -213,6 +250,8 @@ class Ros2Node(CameraSourceNode):
                 pass
         if getattr(self, "session", None) is not None:
             self.session.close()
+        if getattr(self, "dds", None) is not None:
+            self.dds.close()
 
 
 NODE = Ros2Node

@@ -1,4 +1,4 @@
-"""``ros2_out``: publishes the tracked needle pose to ROS 2 over Zenoh (no ROS installed).
+"""``ros2_out``: publishes the tracked needle pose to ROS 2 over Zenoh or DDS (no ROS installed).
 
 Input ``pose`` (PoseEstimate; ``calib``, optional, is needed for ``frame: left``). Each pose goes
 out as ``geometry_msgs/PoseStamped`` on ``topic`` and, when it has a covariance,
@@ -9,6 +9,9 @@ or ``keyed`` (older releases), with the publisher's GID derived as rmw_zenoh der
 node declares the liveliness tokens of a node ``node_name`` and its two publishers, so that
 ``ros2 topic list`` / ``ros2 node list`` see them). ``distro`` (humble | jazzy | kilted |
 rolling) selects the type hash in rmw_zenoh keys and tokens (Humble: ``TypeHashNotSupported``).
+``transport: dds`` publishes on ROS 2's own DDS topics instead (``rt/<topic>``, Cyclone DDS,
+ROS 2's default QoS: reliable, volatile, keep last 10; ``common/ros/dds.py``) in DDS domain
+``domain_id``, with ``dds_config`` (Cyclone XML or a file URI; default ``CYCLONEDDS_URI``).
 
 Frames (``frame``): ``ecm`` (default): ``T_ecm_needle``, header ``frame_id`` = ``frame_ids.ecm``
 (the ECM tip: dVRK's ECM end effector, AMBF's CameraFrame); ``left``: the left camera's OpenCV
@@ -55,6 +58,8 @@ class Ros2OutNode(Node):
         keys: Literal["bridge", "rmw_zenoh"] = "bridge"
         distro: Literal["humble", "jazzy", "kilted", "rolling"] = "jazzy"   # the ROS 2 system's (rmw_zenoh keys)
         attachment: Literal["positional", "keyed"] = "positional"   # keyed: rmw_zenoh 0.1.0-0.1.1, 0.2.0-0.2.3
+        transport: Literal["zenoh", "dds"] = "zenoh"   # dds: ROS 2's DDS topics (Cyclone DDS), no bridge
+        dds_config: str = ""     # transport dds: Cyclone XML or a file URI (default: CYCLONEDDS_URI)
         domain_id: int = 0
         namespace: str = ""
         connect: list[str] = field(default_factory=lambda: ["tcp/127.0.0.1:7447"])
@@ -71,15 +76,25 @@ class Ros2OutNode(Node):
             raise NodeError(f"topic must be an absolute ROS name, got {p.topic!r}")
         self.scale = UNITS[p.unit]
         self.T_ecm_left = None
-        try:
-            self.session = open_session(p.connect, p.mode)
-        except Exception as exc:
-            raise NodeError(f"cannot open a Zenoh session to {p.connect}: {exc}") from None
         self.pubs = {}
         self.tokens = []
         targets = [("pose", p.topic, "geometry_msgs/msg/PoseStamped")]
         if p.cov_topic:
             targets.append(("cov", p.cov_topic, "geometry_msgs/msg/PoseWithCovarianceStamped"))
+        self.sent = {name: 0 for name, _, _ in targets}
+        if p.transport == "dds":
+            from common.ros.dds import DdsError, DdsLink
+            try:
+                self.dds = DdsLink(p.domain_id, p.dds_config or None)
+                self.pubs = {name: self.dds.publisher(topic, msgtype) for name, topic, msgtype in targets}
+            except (DdsError, ValueError) as exc:
+                raise NodeError(f"ros2_out (dds): {exc}") from None
+            self.log.info("ros2_out: DDS domain %d: %s", p.domain_id, [t for _, t, _ in targets])
+            return
+        try:
+            self.session = open_session(p.connect, p.mode)
+        except Exception as exc:
+            raise NodeError(f"cannot open a Zenoh session to {p.connect}: {exc}") from None
         zid = str(self.session.zid())
         if p.keys == "rmw_zenoh":
             self.tokens.append(self.session.liveliness().declare_token(
@@ -94,7 +109,6 @@ class Ros2OutNode(Node):
                                          msgtype=msgtype, distro=p.distro)
                 self.gid[name] = entity_gid(token)           # as rmw_zenoh derives a publisher's GID
                 self.tokens.append(self.session.liveliness().declare_token(token))
-        self.sent = {name: 0 for name in self.pubs}
         self.log.info("ros2_out: %s", {n: str(pb.key_expr) for n, pb in self.pubs.items()})
 
     def on_calib(self, msg: Calibration):
@@ -105,7 +119,9 @@ class Ros2OutNode(Node):
         from common.ros.live import attachment
         data = encode(msg)
         self.sent[name] += 1
-        if self.p.keys == "rmw_zenoh":
+        if self.p.transport == "dds":
+            self.pubs[name].put(data)
+        elif self.p.keys == "rmw_zenoh":
             self.pubs[name].put(data, attachment=attachment(self.sent[name], time.time_ns(), self.gid[name],
                                                             self.p.attachment))
         else:
@@ -150,6 +166,8 @@ class Ros2OutNode(Node):
                 pass
         if getattr(self, "session", None) is not None:
             self.session.close()
+        if getattr(self, "dds", None) is not None:
+            self.dds.close()
 
 
 NODE = Ros2OutNode

@@ -4,9 +4,10 @@
 frames (``common.ros.bag.BagStereo``: deserialise, pair, decode the images, conventions), in
 stereo frames/s, without writing anything.
 
-``needletrack bench ros-live [--dataset DIR] [--rate HZ] [--duration S] [--keys bridge|rmw_zenoh]``:
-the latency the live ROS 2 path adds. A stand-in ROS 2 system (a Zenoh session here) publishes a
-dataset's frames as CDR (camera_info, ECM and needle poses, bgr8 images, header stamp = wall
+``needletrack bench ros-live [--dataset DIR] [--rate HZ] [--duration S] [--keys bridge|rmw_zenoh]
+[--transport zenoh|dds]``: the latency the live ROS 2 path adds. A stand-in ROS 2 system (a Zenoh
+session here, or a Cyclone DDS participant with ``--transport dds``: run that inside a network
+namespace, docs/ros.md) publishes a dataset's frames as CDR (camera_info, ECM and needle poses, bgr8 images, header stamp = wall
 clock at publishing) at ``--rate``; graph A = ``ros2`` -> oracle detector -> ecm -> EPnP (joint)
 -> ``ros2_out``, latency = receipt of the PoseStamped here - its header stamp. Graph B, the
 native path: ``replay`` (decoded bgr8 frames in memory, stamp = wall clock at publishing) ->
@@ -58,26 +59,37 @@ def bag_main(argv: list) -> int:
 
 
 class _RosSystem:
-    """A stand-in ROS 2 system: publishes a dataset's frames as CDR on its own Zenoh session."""
+    """A stand-in ROS 2 system: publishes a dataset's frames as CDR on its own Zenoh session
+    (``keys``) or, with ``transport`` dds, as a DDS participant on ROS 2's DDS topics."""
 
-    def __init__(self, port: int, keys: str, ds, rig: str = "jhu_daVinci"):
-        import zenoh
-
+    def __init__(self, port: int, keys: str, ds, rig: str = "jhu_daVinci", transport: str = "zenoh"):
         from common.ros.types import typestore
-        c = zenoh.Config()
-        c.insert_json5("mode", '"peer"')
-        c.insert_json5("scouting/multicast/enabled", "false")
-        c.insert_json5("listen/endpoints", json.dumps([f"tcp/127.0.0.1:{port}"]))
-        self.session = zenoh.open(c)
+        self.transport, self.session, self.dds = transport, None, None
+        if transport == "dds":
+            from common.ros.dds import DdsLink
+            self.dds = DdsLink(0)
+        else:
+            import zenoh
+            c = zenoh.Config()
+            c.insert_json5("mode", '"peer"')
+            c.insert_json5("scouting/multicast/enabled", "false")
+            c.insert_json5("listen/endpoints", json.dumps([f"tcp/127.0.0.1:{port}"]))
+            self.session = zenoh.open(c)
         self.keys, self.ds, self.rig, self.st = keys, ds, rig, typestore(2)
         self.images = [{c: ds.image(fr, c) for c in ("left", "right")} for fr in ds.frames]
         self.stop = threading.Event()
         self.seq = 0
+        self.stamps: list = []  # header stamps of the frames published
         self.pubs = {}
 
     def _put(self, topic, msg):
         from common.ros.cdr import encode
         from common.ros.live import attachment, topic_key
+        if self.dds is not None:
+            if topic not in self.pubs:
+                self.pubs[topic] = self.dds.publisher(topic, msg.__msgtype__)
+            self.pubs[topic].put(encode(msg))
+            return
         if topic not in self.pubs:
             self.pubs[topic] = self.session.declare_publisher(topic_key(topic, msg.__msgtype__, self.keys))
         self.seq += 1
@@ -105,13 +117,29 @@ class _RosSystem:
             for c in ("left", "right"):
                 self._put(f"/{self.rig}/{c}/image_raw", build.image(st, t, self.images[k][c], "bgr8"))
             i += 1
+            self.stamps.append(t)
+
+    def subscribe_pose(self, callback):
+        """``callback(cdr bytes)`` for each PoseStamped ``ros2_out`` sends back."""
+        from common.ros.live import topic_key
+        topic, t = "/needletrack/needle_pose", "geometry_msgs/msg/PoseStamped"
+        if self.dds is not None:
+            self.dds.subscribe(topic, t, lambda cdr, _ts: callback(cdr))
+            return None
+        return self.session.declare_subscriber(topic_key(topic, t, self.keys),
+                                               lambda sample: callback(sample.payload.to_bytes()))
 
     def close(self):
         self.stop.set()
-        self.session.close()
+        if self.dds is not None:
+            self.dds.close()
+        else:
+            self.session.close()
 
 
-def _pipeline(source: dict, out: dict | None) -> dict:
+def pose_pipeline(source: dict, out: dict | None = None) -> list:
+    """The graph's nodes: ``source`` (node id ``camera``) -> oracle detector -> ecm (joints when
+    the source has them, else its measured pose) -> EPnP (joint) [-> ``out``]."""
     stereo = {"left": "detector/left", "right": "detector/right", "calib": "camera/calib", "ecm": "ecm/pose"}
     nodes = [source,
              {"id": "detector", "module": "detector", "params": {"backend": "oracle"},
@@ -143,11 +171,14 @@ def live_main(argv: list) -> int:
     ap.add_argument("--duration", type=float, default=20.0, help="measured seconds per graph (default 20)")
     ap.add_argument("--warmup", type=float, default=3.0)
     ap.add_argument("--keys", default="bridge", choices=["bridge", "rmw_zenoh"])
+    ap.add_argument("--transport", default="zenoh", choices=["zenoh", "dds"],
+                    help="dds: ROS 2's DDS topics (Cyclone DDS); run it in a network namespace (docs/ros.md)")
+    ap.add_argument("--dds-reliability", default="best_effort", choices=["best_effort", "reliable"],
+                    help="the ros2 node's DDS reader (default best_effort)")
     args = ap.parse_args(argv)
     from common.data.dataset import Dataset
     from common.evaluation.pipeline_graph import GraphRun, free_port
     from common.ros.cdr import decode
-    from common.ros.live import topic_key
     from common.runtime.graph import output_key
     from common.runtime.messages import decode as decode_msg
     tmp = tempfile.TemporaryDirectory(prefix="needletrack-ros-live-")
@@ -163,24 +194,28 @@ def live_main(argv: list) -> int:
 
     # ---- A: live ROS 2 in and out
     port = free_port()
-    ros = _RosSystem(port, args.keys, ds)
+    ros = _RosSystem(port, args.keys, ds, transport=args.transport)
     lat_a: list = []
     t_measure = [None]
+    received: set = set()
 
-    def on_pose(sample):
+    def on_pose(cdr):
         t = time.time_ns()
-        m = decode(sample.payload.to_bytes(), "geometry_msgs/msg/PoseStamped")
+        m = decode(cdr, "geometry_msgs/msg/PoseStamped")
+        received.add(m.header.stamp.sec * 1_000_000_000 + m.header.stamp.nanosec)
         if t_measure[0] is not None and time.monotonic() >= t_measure[0]:
             lat_a.append((t - (m.header.stamp.sec * 1_000_000_000 + m.header.stamp.nanosec)) / 1e6)
-    sub = ros.session.declare_subscriber(topic_key("/needletrack/needle_pose", "geometry_msgs/msg/PoseStamped",
-                                                   args.keys), on_pose)
+    sub = ros.subscribe_pose(on_pose)
     tmap = {"preset": "dvrk", "needle_pose": "/needle/measured_cp",
             "registration": {c: ds.rig[c].T_ecm_cam.tolist() for c in ("left", "right")}}
-    link = {"connect": [f"tcp/127.0.0.1:{port}"], "keys": args.keys}
+    link = ({"transport": "dds"} if args.transport == "dds" else
+            {"connect": [f"tcp/127.0.0.1:{port}"], "keys": args.keys})
     doc = {"graph": "rosA", "zenoh": {"mode": "peer", "listen": [f"tcp/127.0.0.1:{free_port()}"]},
-           "nodes": _pipeline({"id": "camera", "module": "ros2", "outputs": ["left", "right", "measured", "truth",
+           "nodes": pose_pipeline({"id": "camera", "module": "ros2", "outputs": ["left", "right", "measured", "truth",
                                                                             "calib"],
-                               "params": {"preset": "dvrk", "rig": "jhu_daVinci", "topics": tmap, **link}},
+                               "params": {"preset": "dvrk", "rig": "jhu_daVinci", "topics": tmap, **link,
+                                          **({"dds_reliability": args.dds_reliability}
+                                             if args.transport == "dds" else {})}},
                               {"id": "out", "module": "ros2_out", "inputs": {"pose": "epnp_joint/pose"},
                                "params": {**link, "cov_topic": ""}})}
     log = open(Path(tmp.name) / "graphA.log", "w")
@@ -190,18 +225,21 @@ def live_main(argv: list) -> int:
             run.start()
             thread.start()
             t_measure[0] = time.monotonic() + args.warmup
+            window = [time.time_ns() + int(args.warmup * 1e9)]
             time.sleep(args.warmup + args.duration)
+            window.append(time.time_ns() - 1_000_000_000)    # the last second's may be under way
     finally:
         ros.stop.set()
         thread.join(5)
-        sub.undeclare()
+        if sub is not None:
+            sub.undeclare()
         ros.close()
     results["ros2"] = lat_a
 
     # ---- B: the native graph (replay of decoded frames)
     lat_b: list = []
     doc = {"graph": "rosB", "zenoh": {"mode": "peer", "listen": [f"tcp/127.0.0.1:{free_port()}"]},
-           "nodes": _pipeline({"id": "camera", "module": "replay",
+           "nodes": pose_pipeline({"id": "camera", "module": "replay",
                                "outputs": ["left", "right", "joints", "measured", "truth", "calib", "eos"],
                                "params": {"path": str(Path(path).resolve()), "rate": args.rate, "loop": True,
                                           "decode": True}}, None)}
@@ -226,8 +264,12 @@ def live_main(argv: list) -> int:
               file=sys.stderr)
         tmp.cleanup = lambda: None      # keep the logs
         return 1
-    print(f"live ROS 2 path ({args.keys} keys), {w}x{h} stereo at {args.rate:g} Hz, oracle detector + EPnP:")
+    via = (f"DDS (Cyclone DDS, rt/ topics, {args.dds_reliability} reader)" if args.transport == "dds"
+           else f"{args.keys} keys")
+    print(f"live ROS 2 path ({via}), {w}x{h} stereo at {args.rate:g} Hz, oracle detector + EPnP:")
     print(f"  ROS 2 image published -> PoseStamped received: {_pct(lat_a)}")
+    sent = [t for t in ros.stamps if window[0] <= t <= window[1]]
+    print(f"  poses back for {len(received.intersection(sent))} of the {len(sent)} frames published while measuring")
     print(f"  native replay frame published -> pose received:  {_pct(lat_b)}")
     d50 = np.percentile(lat_a, 50) - np.percentile(lat_b, 50)
     d99 = np.percentile(lat_a, 99) - np.percentile(lat_b, 99)
