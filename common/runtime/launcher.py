@@ -15,6 +15,12 @@
   ``zenoh.tls`` every link is mutual TLS and access control lets only the launcher identity
   (launchers, CLI tools) send swaps, handovers and commands (``graph.access_control``); a
   listen endpoint beyond loopback without TLS is warned about.
+- A graph without ``zenoh.tls`` runs on per-run credentials (``common.runtime.credentials``):
+  a CA and a certificate per member made at start in a 0700 directory of this user's, removed
+  at the end; ``zenoh.open: true`` runs without them (a warning). Each process it starts gets a
+  control token of its own (``NEEDLETRACK_CTL_TOKEN``) that only this launcher knows: a node
+  hands over or takes over only when the query carries it, i.e. in a swap this launcher runs.
+  A node that reports itself ``retired`` outside a swap is said so and restarted.
 - SIGINT/SIGTERM stop every node (SIGTERM, then SIGKILL after ``STOP_GRACE_S``); nodes also
   get SIGTERM from the kernel if the launcher itself dies (``PR_SET_PDEATHSIG``).
 """
@@ -24,6 +30,7 @@ import ctypes
 import json
 import os
 import queue
+import secrets
 import shutil
 import signal
 import subprocess
@@ -46,6 +53,7 @@ from common.runtime.graph import (
     graph_from_dict,
     graph_warnings,
     launcher_key,
+    stats_key,
     tls_file_errors,
     zenoh_config,
 )
@@ -84,6 +92,7 @@ class Proc:
     restarts: int = 0
     role: str = "active"            # active | standby | retired
     reader: Optional[threading.Thread] = None
+    token: str = ""                 # the process's control token (handover, takeover)
 
     @property
     def pid(self) -> int:
@@ -100,6 +109,7 @@ class Slot:
     restart_at: Optional[float] = None
     last_status: Optional[int] = None
     done: bool = False              # exited and will not be restarted
+    force_restart: bool = False     # stopped by the launcher to be restarted (retired outside a swap)
 
 
 class Launcher:
@@ -126,6 +136,9 @@ class Launcher:
         self._retired: list = []
         self.session = None
         self._decl: list = []
+        self._own_credentials = False
+        self._swapping: set = set()          # node ids in a swap now
+        self._reported: dict = {}            # pid -> the state its newest NodeStats reports
 
     # ---------------------------------------------------------------- output
     def say(self, text: str, who: str = "launcher") -> None:
@@ -150,8 +163,10 @@ class Launcher:
     def _spawn(self, spec: NodeSpec, restarts: int = 0, standby: bool = False) -> Proc:
         env = dict(os.environ)
         env["PYTHONPATH"] = os.pathsep.join([str(REPO_ROOT)] + [p for p in env.get("PYTHONPATH", "").split(os.pathsep) if p])
+        token = secrets.token_hex(16)
         env.update(PYTHONUNBUFFERED="1", NEEDLETRACK_GRAPH=str(self.graph_file), NEEDLETRACK_NODE=spec.id,
-                   NEEDLETRACK_RESTARTS=str(restarts), NEEDLETRACK_STANDBY="1" if standby else "0")
+                   NEEDLETRACK_RESTARTS=str(restarts), NEEDLETRACK_STANDBY="1" if standby else "0",
+                   NEEDLETRACK_CTL_TOKEN=token)
         # glibc would map and unmap every image-sized buffer (page faults on each frame: ~2x the
         # CPU of a receiver); keep freed memory in the heap for reuse instead
         env.setdefault("MALLOC_MMAP_THRESHOLD_", str(1 << 30))
@@ -163,7 +178,7 @@ class Launcher:
             argv = list(spec.command)
         popen = subprocess.Popen(argv, stdin=subprocess.DEVNULL, stdout=subprocess.PIPE, stderr=subprocess.STDOUT,
                                  env=env, cwd=str(REPO_ROOT), start_new_session=True, preexec_fn=_pdeathsig)
-        proc = Proc(spec, popen, time.monotonic(), restarts, "standby" if standby else "active")
+        proc = Proc(spec, popen, time.monotonic(), restarts, "standby" if standby else "active", token=token)
         proc.reader = threading.Thread(target=self._pump, args=(proc,), daemon=True)
         proc.reader.start()
         return proc
@@ -203,8 +218,13 @@ class Launcher:
         """Open the hub session (or join the graph's hub with ``--only``), as the launcher identity
         under TLS; raises RuntimeError saying why not."""
         import zenoh
+
+        from common.runtime import credentials
         for w in graph_warnings(self.graph):
             self.say(f"WARNING {w}")
+        if credentials.applies(self.graph):
+            self.graph, self._own_credentials = credentials.make(self.graph)
+            self.graph_file = self._write_graph()
         errors = tls_file_errors(self.graph, [LAUNCHER_IDENTITY] + self.only)
         if errors:
             raise RuntimeError("TLS files missing:\n  " + "\n  ".join(errors))
@@ -217,11 +237,23 @@ class Launcher:
                                    f"is another graph running there?") from None
             self.session = zenoh.open(zenoh_config(self.graph, role="node", identity=LAUNCHER_IDENTITY))
             where = "joining the graph at " + ", ".join(self.graph.zenoh.listen)
-        if self.graph.zenoh.tls is not None:
+        if self.graph.zenoh.run_credentials:
+            where += f" (mutual TLS on per-run credentials in {self.graph.zenoh.run_credentials}, access control by identity)"
+        elif self.graph.zenoh.tls is not None:
             where += " (mutual TLS, access control by certificate)"
         self.say(f"graph {self.graph.name!r}: {len(self.only)} node(s), {where}")
         self._decl.append(self.session.declare_queryable(launcher_key(self.graph.name, "status"), self._q_status))
         self._decl.append(self.session.declare_queryable(launcher_key(self.graph.name, "swap"), self._q_swap))
+        self._decl.append(self.session.declare_subscriber(stats_key(self.graph.name), self._on_stats))
+
+    def _on_stats(self, sample) -> None:
+        """Keep the state each process reports (to notice one that retired outside a swap)."""
+        from common.runtime.messages import MessageError, NodeStats, decode
+        try:
+            st = decode(sample.payload.to_bytes(), NodeStats)
+        except MessageError:
+            return
+        self._reported[st.pid] = st.counters.get("state")
 
     def _q_status(self, query) -> None:
         with self._lock:
@@ -241,11 +273,14 @@ class Launcher:
         self._swaps.put(query)   # answered from the swap thread: never block a Zenoh callback
 
     # ---------------------------------------------------------------- swap
-    def _ctl(self, node_id: str, pid: int, op: str, payload: Optional[dict] = None, timeout: float = 2.0):
+    def _ctl(self, node_id: str, proc: Proc, op: str, payload: Optional[dict] = None, timeout: float = 2.0):
+        """A control query to one process; handover and takeover carry its token."""
         kw = {"timeout": timeout}
+        if op in ("handover", "takeover"):
+            payload = {**(payload or {}), "token": proc.token}
         if payload is not None:
             kw["payload"] = json.dumps(payload).encode()
-        for reply in self.session.get(ctl_key(self.graph.name, node_id, pid, op), **kw):
+        for reply in self.session.get(ctl_key(self.graph.name, node_id, proc.pid, op), **kw):
             if reply.ok is not None:
                 return json.loads(reply.ok.payload.to_bytes().decode())
         return None
@@ -257,7 +292,7 @@ class Launcher:
         first = status.get("held_first") or {}
         if old is None or old.popen.poll() is not None or not first:
             return True
-        ans = self._ctl(node_id, old.pid, "status", timeout=0.5) or {}
+        ans = self._ctl(node_id, old, "status", timeout=0.5) or {}
         last = ans.get("last_seq") or {}
         return all(out not in last or last[out] + 1 >= seq for out, seq in first.items())
 
@@ -300,6 +335,8 @@ class Launcher:
             new_spec = new_graph.node(node_id)
             t0 = time.monotonic()
             new = self._spawn(new_spec, restarts=slot.restarts, standby=True)
+            self._swapping.add(node_id)
+        handed = None
         self.say(f"swap {node_id}: standby pid {new.pid} ({new_spec.module}, params {new_spec.params})")
         try:
             status = None
@@ -310,7 +347,7 @@ class Launcher:
                     raise RuntimeError(f"new {node_id} process exited with {describe_status(new.popen.returncode)} "
                                        f"before taking over")
                 if new_spec.module:
-                    status = self._ctl(node_id, new.pid, "status", timeout=0.5)
+                    status = self._ctl(node_id, new, "status", timeout=0.5)
                     if status and status.get("ready"):
                         if not new_spec.outputs or (status.get("produced") and self._covers(node_id, old, status)):
                             break
@@ -325,13 +362,20 @@ class Launcher:
             ready_s = time.monotonic() - t0
             cuts = {}
             if old is not None and old.popen.poll() is None:
-                ans = self._ctl(node_id, old.pid, "handover")
-                cuts = (ans or {}).get("cuts", {})
-            taken = self._ctl(node_id, new.pid, "takeover", {"cuts": cuts}) if new_spec.module else {}
+                handed = self._ctl(node_id, old, "handover")
+                if handed is not None and handed.get("ok") is False:
+                    raise RuntimeError(f"{node_id} (pid {old.pid}) refused the handover: {handed.get('error')}")
+                cuts = (handed or {}).get("cuts", {})
+            taken = self._ctl(node_id, new, "takeover", {"cuts": cuts}) if new_spec.module else {}
+            if new_spec.module and not (taken or {}).get("ok"):
+                raise RuntimeError(f"new {node_id} process did not take over: {taken}")
         except Exception:
             self._terminate([new], grace=2.0)
+            if handed is not None and old is not None and old.popen.poll() is None:
+                self._ctl(node_id, old, "takeover", {"cuts": {}})     # the old one goes on publishing
             with self._lock:
                 self.graph, self.graph_file = old_graph, old_graph_file
+                self._swapping.discard(node_id)
             raise
         with self._lock:
             new.role = "active"
@@ -340,6 +384,7 @@ class Launcher:
             if old is not None:
                 old.role = "retired"
                 self._retired.append(old)
+            self._swapping.discard(node_id)
         if old is not None:
             threading.Thread(target=self._terminate, args=([old],), daemon=True).start()
         summary = {"ok": True, "node": node_id, "module": new_spec.module, "params": new_spec.params,
@@ -391,6 +436,9 @@ class Launcher:
                         p.reader.join(0.5)
                     policy = slot.spec.restart
                     again = (policy == "always" or (policy == "on-failure" and code != 0)) and code != 2
+                    self._reported.pop(p.pid, None)
+                    forced, slot.force_restart = slot.force_restart, False
+                    again = again or forced
                     if not again:
                         slot.done = True
                         self.say(f"{nid} exited with {describe_status(code)}"
@@ -401,10 +449,21 @@ class Launcher:
                             self._stop.set()
                         continue
                     ran = now - p.started
-                    slot.failures = 1 if ran > BACKOFF_RESET_S else slot.failures + 1
-                    delay = min(BACKOFF_MAX_S, BACKOFF_MIN_S * 2 ** (slot.failures - 1))
+                    if forced:
+                        delay = 0.0
+                    else:
+                        slot.failures = 1 if ran > BACKOFF_RESET_S else slot.failures + 1
+                        delay = min(BACKOFF_MAX_S, BACKOFF_MIN_S * 2 ** (slot.failures - 1))
                     slot.restart_at = now + delay
                     self.say(f"{nid} exited with {describe_status(code)}; restart #{slot.restarts + 1} in {delay:.1f} s")
+                elif (p is not None and not slot.force_restart and nid not in self._swapping
+                      and self._reported.get(p.pid) == "retired"):
+                    # only a swap this launcher runs may retire a process (its token): one that
+                    # stopped publishing otherwise would be silent for good
+                    slot.force_restart = True
+                    self.say(f"{nid} (pid {p.pid}) stopped publishing outside a swap (it reports "
+                             f"'retired'): restarting it")
+                    self._signal(p, signal.SIGTERM)
                 elif p is None and slot.restart_at is not None and now >= slot.restart_at:
                     slot.restarts += 1
                     slot.restart_at = None
@@ -446,6 +505,10 @@ class Launcher:
                 slot.last_status = p.popen.returncode
         close_session(self.session, self._decl)
         self.session = None
+        if self._own_credentials:
+            from common.runtime import credentials
+            credentials.remove(self.graph)
+            self._own_credentials = False
         if self._own_run_dir:
             shutil.rmtree(self.run_dir, ignore_errors=True)
         bad = {nid: s.last_status for nid, s in self.slots.items()
