@@ -140,6 +140,7 @@ def make(graph: Graph) -> tuple:
     d = run_dir(graph)
     if (d / "ca.pem").is_file() and owner_alive(d) is not None:
         return find(graph), False
+    prune(d.parent)
     tmp = Path(tempfile.mkdtemp(prefix=f".{graph.name}-", dir=d.parent))     # mode 0700
     try:
         ca = new_ca(f"needletrack run CA {graph.name} {os.getpid()}", days=30)
@@ -154,6 +155,16 @@ def make(graph: Graph) -> tuple:
         shutil.rmtree(tmp, ignore_errors=True)
         raise
     return secured(graph, d), True
+
+
+def prune(base: Path) -> list:
+    """Remove the credentials of runs whose launcher is gone (killed: it could not remove them)."""
+    gone = []
+    for d in base.iterdir():
+        if d.is_dir() and not d.name.startswith(".") and (d / OWNER_FILE).is_file() and owner_alive(d) is None:
+            shutil.rmtree(d, ignore_errors=True)
+            gone.append(d)
+    return gone
 
 
 def remove(graph: Graph) -> None:
