@@ -3,8 +3,8 @@
 - Module nodes run as ``python -m common.runtime.node --graph RESOLVED.yaml --node ID``; ``command``
   nodes run as given, with ``NEEDLETRACK_GRAPH``/``NEEDLETRACK_NODE`` in their environment.
 - Every output line of a node is printed prefixed with ``[node id]``.
-- A node that exits is restarted per its ``restart`` policy with exponential backoff
-  (0.5 s doubling to 10 s; reset after 10 s of uptime); exit status 2 (bad configuration: bad
+- A node that exits is restarted per its ``restart`` policy: at once, then, if it fails again
+  within 10 s of starting, with exponential backoff (0.5 s doubling to 10 s); exit status 2 (bad configuration: bad
   params, an unreadable model) is never restarted, and stops the whole graph (``launch`` then
   exits non-zero). Params are checked against each node's ``Params`` before anything starts. Restarts are counted, printed, and reported in the node's stats.
 - The launcher's own Zenoh session is the graph's hub: it listens on the graph's ``listen``
@@ -71,6 +71,13 @@ def _pdeathsig():
         ctypes.CDLL("libc.so.6", use_errno=True).prctl(1, signal.SIGTERM)  # PR_SET_PDEATHSIG
     except OSError:
         pass
+
+
+def restart_delay(failures: int) -> float:
+    """Seconds before restarting a node after ``failures`` quick failures in a row: at once after
+    one that ran longer than ``BACKOFF_RESET_S`` (a camera killed mid-run is back without a
+    pause), then ``BACKOFF_MIN_S`` doubling up to ``BACKOFF_MAX_S``."""
+    return 0.0 if failures <= 1 else min(BACKOFF_MAX_S, BACKOFF_MIN_S * 2 ** (failures - 2))
 
 
 def describe_status(code: int) -> str:
@@ -453,7 +460,7 @@ class Launcher:
                         delay = 0.0
                     else:
                         slot.failures = 1 if ran > BACKOFF_RESET_S else slot.failures + 1
-                        delay = min(BACKOFF_MAX_S, BACKOFF_MIN_S * 2 ** (slot.failures - 1))
+                        delay = restart_delay(slot.failures)
                     slot.restart_at = now + delay
                     self.say(f"{nid} exited with {describe_status(code)}; restart #{slot.restarts + 1} in {delay:.1f} s")
                 elif (p is not None and not slot.force_restart and nid not in self._swapping

@@ -485,7 +485,9 @@ class Runtime:
 
         from common.runtime.graph import cmd_key, ctl_key, zenoh_config
         g, nid = self.graph.name, self.node_id
+        t0 = time.monotonic()
         self.session = zenoh.open(zenoh_config(self.graph, role="node", identity=self.node_id))
+        self._open_s = time.monotonic() - t0
         for out in self.node.OUTPUTS:
             self._pubs[out] = self.session.declare_publisher(
                 self.graph.output_key(nid, out), congestion_control=zenoh.CongestionControl.BLOCK,
@@ -712,6 +714,7 @@ class Runtime:
     def serve(self) -> int:
         """Run setup, the handler/step loop and teardown; returns the exit status."""
         node = self.node
+        t_setup = time.monotonic()
         try:
             node.setup()
         except NodeError as exc:
@@ -726,7 +729,9 @@ class Runtime:
         stats_thread = threading.Thread(target=self._stats_loop, name="stats", daemon=True)
         stats_thread.start()
         source = node.is_source()
-        self.log.info("up (pid %d%s)", os.getpid(), ", standby" if self.state == "standby" else "")
+        self.log.info("up (pid %d%s; started %.2f s ago: session %.2f s, setup %.2f s)", os.getpid(),
+                      ", standby" if self.state == "standby" else "", time.monotonic() - self._t0,
+                      getattr(self, "_open_s", 0.0), time.monotonic() - t_setup)
         q = self.queue
         step_failures = 0
         while not self._stop.is_set() and node.running:
