@@ -141,6 +141,98 @@ def probe(graph, victim_dir=None, duration: float = 5.0, keys=DEFAULT_KEYS, offs
     return out
 
 
+def intruder_check(graph_path: str = "dataflow.yaml", clean_s: float = 20.0, duration: float = 10.0,
+                   uid=None, open_graph: bool = False, offset_mm: float = OFFSET_MM) -> int:
+    """``needletrack bench fuzz --intruder``: the default graph (its viewer left out, on a free
+    loopback port) through the real launcher; after ``clean_s`` s of fused poses, this module
+    runs as a process without the run's credentials (as ``uid`` if given) for ``duration`` s.
+    Prints how many fused poses lay more than 20 mm off the truth toward the fake (along the
+    fake's offset, ECM x), in the clean period and during the intrusion, what the intruder
+    reached and got answered, and the nodes that retired. ``open_graph``: the same with
+    ``zenoh.open: true`` (the graph as it was before per-run credentials)."""
+    import io
+    import subprocess
+    import tempfile
+
+    import numpy as np
+    import zenoh
+
+    from common.evaluation.restart_bench import bench_graph
+    from common.runtime.graph import REPO_ROOT, zenoh_config
+    from common.runtime.launcher import Launcher
+    from common.runtime.messages import GroundTruth, MessageError, PoseEstimate, decode
+    graph = bench_graph(graph_path)
+    graph.zenoh.open = open_graph
+    launcher = Launcher(graph, out=io.StringIO())
+    launcher.start()
+    runner = threading.Thread(target=launcher.run, daemon=True)
+    runner.start()
+    truth: dict = {}
+    fused: list = []
+
+    def on_truth(sample):
+        try:
+            t = decode(sample.payload.to_bytes(), GroundTruth)
+        except MessageError:
+            return
+        if t.T_world_ecm is not None and t.T_world_needle is not None:
+            truth[(t.epoch, t.seq)] = np.linalg.inv(t.T_world_ecm) @ t.T_world_needle
+
+    def on_fused(sample):
+        try:
+            m = decode(sample.payload.to_bytes(), PoseEstimate)
+        except MessageError:
+            return
+        fused.append((time.monotonic(), m.epoch, m.seq, m.T_ecm_needle))
+    session = zenoh.open(zenoh_config(launcher.graph, role="node"))
+    subs = [session.declare_subscriber(graph.resolve_key("camera/truth"), on_truth),
+            session.declare_subscriber(graph.resolve_key("fusion/pose"), on_fused)]
+    try:
+        deadline = time.monotonic() + 300
+        while time.monotonic() < deadline and not fused:
+            time.sleep(0.2)
+        if not fused:
+            raise RuntimeError("no fused pose within 300 s")
+        t_clean = time.monotonic()
+        time.sleep(clean_s)
+        with tempfile.TemporaryDirectory() as tmp:
+            path = graph.dump(Path(tmp) / "graph.yaml")          # the graph as its user wrote it
+            os.chmod(tmp, 0o755)
+            argv = [sys.executable, "-m", "common.evaluation.intruder", str(path), "--duration", str(duration),
+                    "--offset-mm", str(offset_mm)] + ([] if uid is None else ["--uid", str(uid)])
+            t0 = time.monotonic()
+            res = subprocess.run(argv, cwd=REPO_ROOT, capture_output=True, text=True, timeout=duration + 120,
+                                 env=dict(os.environ, PYTHONPATH=str(REPO_ROOT)))
+            t1 = time.monotonic()
+        got = json.loads(res.stdout.strip().splitlines()[-1]) if res.returncode == 0 else {"error": res.stderr[-2000:]}
+        time.sleep(1.0)
+        retired = sorted(nid for nid, sl in launcher.slots.items()
+                         if sl.proc is not None and launcher._reported.get(sl.proc.pid) == "retired")
+        restarts = {nid: sl.restarts for nid, sl in launcher.slots.items() if sl.restarts}
+    finally:
+        for x in subs:
+            x.undeclare()
+        session.close()
+        launcher.stop()
+        runner.join(30)
+
+    def moved(a, b):
+        rows = [(T[:3, 3] - truth[(e, q)][:3, 3])[0] * 1e3 for t, e, q, T in fused if a <= t < b and (e, q) in truth]
+        return sum(r > 20.0 for r in rows), len(rows), max(rows, default=float("nan"))
+    clean, during = moved(t_clean, t0), moved(t0, t1 + 1.0)
+    who = f"uid {got.get('uid')}" if "uid" in got else "?"
+    print(f"intruder: {graph.name} ({'zenoh.open: true' if open_graph else 'per-run credentials'}), an intruder "
+          f"without the credentials ({who}) for {duration:g} s: {got.get('credentials', '')}")
+    print(f"  peers reached {got.get('peers')}; real poses seen {got.get('poses_seen')}; fake poses sent "
+          f"{got.get('poses_sent')}; handover answers {got.get('handover_answers')}; swap answers "
+          f"{len(got.get('swap_answers') or [])}")
+    print(f"  fused poses > 20 mm toward the fake: clean {clean[0]} of {clean[1]}; during the intrusion "
+          f"{during[0]} of {during[1]} (largest {during[2]:.1f} mm)")
+    print(f"  nodes retired: {retired or 'none'}; restarts: {restarts or 'none'}")
+    ok = during[0] == 0 and not retired and not any((got.get("peers") or {"x": 1}).values())
+    return 0 if ok or open_graph else 1
+
+
 def drop_to(uid: int) -> None:
     """Become ``uid`` (and its group; no supplementary groups): needs root."""
     import pwd

@@ -26,7 +26,9 @@ import time
 from pathlib import Path
 
 
-def _graph(path: str, node: str):
+def bench_graph(path: str = "dataflow.yaml", node: str = "camera"):
+    """The graph at ``path`` (``dataflow.yaml``: the repository's) without its viewer nodes,
+    with a unique name on a free loopback port."""
     from common.evaluation.pipeline_graph import free_port
     from common.runtime.graph import REPO_ROOT, load_graph
     p = Path(path)
@@ -154,7 +156,7 @@ def main(argv=None) -> int:
     ap.add_argument("--json", help="also write the figures to this JSON file")
     ap.add_argument("-v", "--verbose", action="store_true", help="show the graph's output")
     args = ap.parse_args(argv)
-    graph = _graph(args.graph, args.node)
+    graph = bench_graph(args.graph, args.node)
     pose_keys = args.pose or [k for k in ("refine/pose", "fusion/pose")
                               if k.split("/")[0] in graph.ids()] or ["fusion/pose"]
     print(f"restart: kill -9 of {args.node!r} in {args.graph} ({len(graph.nodes)} nodes), {args.kills} times; "
