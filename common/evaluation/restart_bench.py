@@ -6,7 +6,8 @@ camera) ``--kills`` times and prints, per kill, when (seconds after the kill) ea
 recovery happened:
 
 - ``exit``: the launcher saw the process gone; ``spawn``: the new process started (from its
-  first stats: stamp minus uptime); ``live``: its liveliness token (its ``setup()`` is done);
+  first stats: stamp minus uptime; before the kill for a warm spare, ``spare: true``, counted
+  from its takeover); ``live``: its liveliness token (its ``setup()`` is done);
 - ``frame``: its first frame (``joints``, a new epoch); ``keypoints``: the first keypoints of the
   new stream; ``pose``: the first pose of the new stream on each ``--pose`` key.
 
@@ -152,7 +153,8 @@ def main(argv=None) -> int:
     ap.add_argument("--node", default="camera", help="the node to kill -9 (default camera)")
     ap.add_argument("--pose", action="append", help="pose keys to wait for (default refine/pose, fusion/pose)")
     ap.add_argument("--kills", type=int, default=3)
-    ap.add_argument("--settle-s", type=float, default=5.0, help="seconds of poses before each kill")
+    ap.add_argument("--settle-s", type=float, default=12.0,
+                    help="seconds of poses before each kill (a spare starts 5 s after its node)")
     ap.add_argument("--json", help="also write the figures to this JSON file")
     ap.add_argument("-v", "--verbose", action="store_true", help="show the graph's output")
     args = ap.parse_args(argv)

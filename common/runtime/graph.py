@@ -16,6 +16,7 @@ A graph is a YAML map::
         inputs: {cmd_in: other/out}   # input name -> "<node id>/<output>"
         outputs: [left, right]
         restart: on-failure       # never | on-failure | always
+        spare: true               # keep a warm spare process (set up, idle) to take over at once
         env: {OMP_NUM_THREADS: "1"}
 
 ``validate_graph`` returns every error at once, each with its place
@@ -51,7 +52,7 @@ _TOP_KEYS = {"graph", "zenoh", "nodes", "pose_volume_m"}
 _ZENOH_KEYS = {"mode", "listen", "connect", "shm_pool_mb", "tls", "open"}
 _TLS_KEYS = {"ca", "cert", "key", "verify_name"}
 LAUNCHER_IDENTITY = "launcher"     # the TLS identity of launchers and CLI tools (the operator)
-_NODE_KEYS = {"id", "module", "command", "params", "inputs", "outputs", "restart", "env", "feedback"}
+_NODE_KEYS = {"id", "module", "command", "params", "inputs", "outputs", "restart", "env", "feedback", "spare"}
 
 
 class GraphError(ValueError):
@@ -104,6 +105,7 @@ class NodeSpec:
     inputs: dict = field(default_factory=dict)      # input name -> "node/output"
     outputs: list = field(default_factory=list)
     restart: str = "on-failure"
+    spare: bool = False            # a warm spare process takes over when the node's process exits
     env: dict = field(default_factory=dict)
     feedback: list = field(default_factory=list)    # inputs that close a declared cycle (acks)
 
@@ -119,6 +121,8 @@ class NodeSpec:
             d["env"] = dict(self.env)
         if self.feedback:
             d["feedback"] = list(self.feedback)
+        if self.spare:
+            d["spare"] = True
         return d
 
 
@@ -380,6 +384,10 @@ def validate_graph(data: Any) -> list:
             errs.append(f"{at}.params: expected a map, got {_tname(n['params'])}")
         if "restart" in n and n["restart"] not in RESTART_POLICIES:
             errs.append(f"{at}.restart: must be one of {', '.join(RESTART_POLICIES)}; got {n['restart']!r}")
+        if "spare" in n and not isinstance(n["spare"], bool):
+            errs.append(f"{at}.spare: expected true or false, got {n['spare']!r}")
+        elif n.get("spare") is True and ("module" not in n or n.get("restart") == "never"):
+            errs.append(f"{at}.spare: a spare needs a module node that is restarted (restart: on-failure or always)")
         if "env" in n and n["env"] is not None:
             env = n["env"]
             if not isinstance(env, dict):
@@ -542,6 +550,7 @@ def graph_from_dict(data: dict, path: Optional[Path] = None, source: str = "grap
                               command=[str(a) for a in n["command"]] if n.get("command") else None,
                               params=dict(n.get("params") or {}), inputs=dict(n.get("inputs") or {}),
                               outputs=list(outs or []), restart=n.get("restart", "on-failure"),
+                              spare=n.get("spare") is True,
                               env={k: str(v) for k, v in (n.get("env") or {}).items()},
                               feedback=list(n.get("feedback") or [])))
     return Graph(name=data["graph"], zenoh=zs, nodes=nodes, path=path,

@@ -63,6 +63,7 @@ STOP_GRACE_S = 5.0
 BACKOFF_MIN_S, BACKOFF_MAX_S, BACKOFF_RESET_S = 0.5, 10.0, 10.0
 SWAP_READY_TIMEOUT_S = 120.0
 SWAP_WARM_TIMEOUT_S = 5.0
+SPARE_AFTER_S = 5.0             # a node's spare is started once its process has run this long
 
 
 def _pdeathsig():
@@ -117,6 +118,7 @@ class Slot:
     last_status: Optional[int] = None
     done: bool = False              # exited and will not be restarted
     force_restart: bool = False     # stopped by the launcher to be restarted (retired outside a swap)
+    spare: Optional[Proc] = None    # a warm spare process (``spare: true``): set up, idle
 
 
 class Launcher:
@@ -167,12 +169,13 @@ class Launcher:
         self._gen += 1
         return self.graph.dump(self.run_dir / f"graph.{self._gen}.yaml")
 
-    def _spawn(self, spec: NodeSpec, restarts: int = 0, standby: bool = False) -> Proc:
+    def _spawn(self, spec: NodeSpec, restarts: int = 0, standby: bool = False, spare: bool = False) -> Proc:
         env = dict(os.environ)
         env["PYTHONPATH"] = os.pathsep.join([str(REPO_ROOT)] + [p for p in env.get("PYTHONPATH", "").split(os.pathsep) if p])
         token = secrets.token_hex(16)
         env.update(PYTHONUNBUFFERED="1", NEEDLETRACK_GRAPH=str(self.graph_file), NEEDLETRACK_NODE=spec.id,
                    NEEDLETRACK_RESTARTS=str(restarts), NEEDLETRACK_STANDBY="1" if standby else "0",
+                   NEEDLETRACK_SPARE="1" if spare else "0",
                    NEEDLETRACK_CTL_TOKEN=token)
         # glibc would map and unmap every image-sized buffer (page faults on each frame: ~2x the
         # CPU of a receiver); keep freed memory in the heap for reuse instead
@@ -185,7 +188,8 @@ class Launcher:
             argv = list(spec.command)
         popen = subprocess.Popen(argv, stdin=subprocess.DEVNULL, stdout=subprocess.PIPE, stderr=subprocess.STDOUT,
                                  env=env, cwd=str(REPO_ROOT), start_new_session=True, preexec_fn=_pdeathsig)
-        proc = Proc(spec, popen, time.monotonic(), restarts, "standby" if standby else "active", token=token)
+        proc = Proc(spec, popen, time.monotonic(), restarts,
+                    "spare" if spare else "standby" if standby else "active", token=token)
         proc.reader = threading.Thread(target=self._pump, args=(proc,), daemon=True)
         proc.reader.start()
         return proc
@@ -391,6 +395,10 @@ class Launcher:
             if old is not None:
                 old.role = "retired"
                 self._retired.append(old)
+            if slot.spare is not None:             # set up with the old spec: a new one follows
+                old_spare, slot.spare = slot.spare, None
+                self._retired.append(old_spare)
+                threading.Thread(target=self._terminate, args=([old_spare], 2.0), daemon=True).start()
             self._swapping.discard(node_id)
         if old is not None:
             threading.Thread(target=self._terminate, args=([old],), daemon=True).start()
@@ -456,6 +464,8 @@ class Launcher:
                             self._stop.set()
                         continue
                     ran = now - p.started
+                    if self._promote_spare(nid, slot, code):
+                        continue
                     if forced:
                         delay = 0.0
                     else:
@@ -471,12 +481,45 @@ class Launcher:
                     self.say(f"{nid} (pid {p.pid}) stopped publishing outside a swap (it reports "
                              f"'retired'): restarting it")
                     self._signal(p, signal.SIGTERM)
+                elif p is not None and slot.spec.spare and slot.spare is None and now - p.started > SPARE_AFTER_S \
+                        and nid not in self._swapping:
+                    slot.spare = self._spawn(slot.spec, restarts=slot.restarts + 1, spare=True)
+                    self.say(f"{nid}: spare pid {slot.spare.pid} started (it takes over if pid {p.pid} exits)")
                 elif p is None and slot.restart_at is not None and now >= slot.restart_at:
                     slot.restarts += 1
                     slot.restart_at = None
                     slot.proc = self._spawn(slot.spec, restarts=slot.restarts)
                     self.say(f"{nid} restarted (pid {slot.proc.pid}, restart #{slot.restarts})")
+                if slot.spare is not None and slot.spare.popen.poll() is not None:
+                    self.say(f"{nid}: spare pid {slot.spare.pid} exited with "
+                             f"{describe_status(slot.spare.popen.returncode)}; another in {SPARE_AFTER_S:g} s")
+                    if slot.spare.reader:
+                        slot.spare.reader.join(0.5)
+                    slot.spare = None
             self._retired = [p for p in self._retired if p.popen.poll() is None]
+
+    def _promote_spare(self, nid: str, slot: Slot, code: int) -> bool:
+        """The node's warm spare takes over from its exited process (call with the lock held);
+        False when there is none that is ready."""
+        spare, slot.spare = slot.spare, None
+        if spare is None:
+            return False
+        ans = None
+        if spare.popen.poll() is None:
+            try:
+                ans = self._ctl(nid, spare, "takeover", {"cuts": {}, "restarts": slot.restarts + 1}, timeout=1.0)
+            except Exception:
+                ans = None
+        if not (ans or {}).get("ok"):
+            self.say(f"{nid}: spare pid {spare.pid} did not take over ({ans}); restarting instead")
+            threading.Thread(target=self._terminate, args=([spare], 1.0), daemon=True).start()
+            return False
+        slot.restarts += 1
+        spare.role, spare.started = "active", time.monotonic()
+        slot.proc = spare
+        self.say(f"{nid} exited with {describe_status(code)}; spare pid {spare.pid} took over "
+                 f"(restart #{slot.restarts})")
+        return True
 
     def run(self, duration: Optional[float] = None, until: Optional[list] = None) -> int:
         """Supervise until every node is done, ``until`` nodes are done, ``duration`` passed or stop()."""
@@ -502,7 +545,8 @@ class Launcher:
     def shutdown(self) -> int:
         self._stop.set()
         with self._lock:
-            procs = [s.proc for s in self.slots.values() if s.proc is not None] + self._retired
+            procs = [s.proc for s in self.slots.values() if s.proc is not None] + self._retired + \
+                [s.spare for s in self.slots.values() if s.spare is not None]
             for s in self.slots.values():
                 s.restart_at = None
         self._terminate(procs)

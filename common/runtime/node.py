@@ -423,7 +423,7 @@ class Runtime:
     """Hosts one node instance on a Zenoh session (one per process)."""
 
     def __init__(self, graph, node_id: str, standby: bool = False, restarts: int = 0,
-                 ctl_token: Optional[str] = None):
+                 ctl_token: Optional[str] = None, spare: bool = False):
         from common.runtime.graph import cmd_key, ctl_key, live_key, stats_key  # noqa: F401 (used below)
         self.graph = graph
         self.spec = graph.node(node_id)
@@ -433,7 +433,8 @@ class Runtime:
         self.errlog = _RateLimitedLog(self.log)
         self._stop = threading.Event()
         self._pub_lock = threading.Lock()
-        self.state = "standby" if standby else "active"       # active | standby | retired
+        self.state = "spare" if spare else "standby" if standby else "active"   # active | standby | retired | spare
+        self._activated = threading.Event()                   # a spare's takeover
         self._held: collections.deque = collections.deque(maxlen=STANDBY_BUFFER)   # (output, seq, payload)
         self._produced = False
         self._publishes = 0
@@ -629,6 +630,13 @@ class Runtime:
         req = self._ctl_request(query, "takeover")
         if req is None:
             return
+        if self.state == "spare":            # the node's process exited: this one goes on at once
+            if isinstance(req.get("restarts"), int):
+                self._restarts = req["restarts"]
+            self.state = "active"
+            self._activated.set()
+            self._reply(query, {"ok": True, "flushed": 0})
+            return
         cuts = req.get("cuts") if isinstance(req.get("cuts"), dict) else {}
         flushed = 0
         if self.node is not None and self.node.is_source():
@@ -724,6 +732,20 @@ class Runtime:
             self.log.error("setup failed: %s: %s", type(exc).__name__, exc, exc_info=True)
             return 1
         from common.runtime.graph import live_key
+        setup_s = time.monotonic() - t_setup
+        if self.state == "spare":
+            # set up and idle, unseen (no liveliness token, no stats) until the launcher's takeover
+            self._ready.set()
+            self.log.info("spare ready (pid %d; setup %.2f s)", os.getpid(), setup_s)
+            while not self._stop.is_set() and not self._activated.wait(0.2):
+                pass
+            if not self._activated.is_set():
+                self._teardown()
+                return self.exit_status
+            while self.queue.get(0) is not None:         # what came while idle is stale (commands too)
+                pass
+            self.log.info("spare took over (pid %d)", os.getpid())
+            self._t0 = time.monotonic() - setup_s
         self._decl.append(self.session.liveliness().declare_token(live_key(self.graph.name, self.node_id)))
         self._ready.set()
         stats_thread = threading.Thread(target=self._stats_loop, name="stats", daemon=True)
@@ -731,7 +753,7 @@ class Runtime:
         source = node.is_source()
         self.log.info("up (pid %d%s; started %.2f s ago: session %.2f s, setup %.2f s)", os.getpid(),
                       ", standby" if self.state == "standby" else "", time.monotonic() - self._t0,
-                      getattr(self, "_open_s", 0.0), time.monotonic() - t_setup)
+                      getattr(self, "_open_s", 0.0), setup_s)
         q = self.queue
         step_failures = 0
         while not self._stop.is_set() and node.running:
@@ -758,12 +780,15 @@ class Runtime:
                 if item is not None:
                     self._dispatch(*item)
         self._stop.set()
-        try:
-            node.teardown()
-        except Exception as exc:
-            self.log.error("teardown failed: %s: %s", type(exc).__name__, exc, exc_info=True)
+        self._teardown()
         self._publish_stats()
         return self.exit_status
+
+    def _teardown(self) -> None:
+        try:
+            self.node.teardown()
+        except Exception as exc:
+            self.log.error("teardown failed: %s: %s", type(exc).__name__, exc, exc_info=True)
 
     def close(self) -> None:
         from common.runtime.graph import close_session
@@ -832,7 +857,8 @@ def _run(node_cls: Optional[type], argv: Optional[list]) -> int:
             return 1
     rt = Runtime(graph, args.node, standby=os.environ.get("NEEDLETRACK_STANDBY") == "1",
                  restarts=int(os.environ.get("NEEDLETRACK_RESTARTS", "0") or 0),
-                 ctl_token=os.environ.pop("NEEDLETRACK_CTL_TOKEN", None))
+                 ctl_token=os.environ.pop("NEEDLETRACK_CTL_TOKEN", None),
+                 spare=os.environ.get("NEEDLETRACK_SPARE") == "1")
     try:
         rt.build(node_cls)
     except NodeError as exc:
