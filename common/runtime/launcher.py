@@ -21,6 +21,9 @@
   control token of its own (``NEEDLETRACK_CTL_TOKEN``) that only this launcher knows: a node
   hands over or takes over only when the query carries it, i.e. in a swap this launcher runs.
   A node that reports itself ``retired`` outside a swap is said so and restarted.
+- A node with ``spare: true`` gets a warm spare process (``NEEDLETRACK_SPARE=1``: set up, then
+  idle and unseen) ``SPARE_AFTER_S`` after its process starts; when that process exits, the
+  spare takes over at once (a takeover query with its token) instead of a new process starting.
 - SIGINT/SIGTERM stop every node (SIGTERM, then SIGKILL after ``STOP_GRACE_S``); nodes also
   get SIGTERM from the kernel if the launcher itself dies (``PR_SET_PDEATHSIG``).
 """
