@@ -19,11 +19,13 @@ COMMANDS = {
     "swap": ("common.runtime.tools:swap_main", "replace a running node (make-before-break)"),
     "cmd": ("common.runtime.tools:cmd_main", "send a Command to a node"),
     "validate": ("common.runtime.tools:validate_main", "check a graph YAML and list every error"),
+    "describe": ("common.runtime.describe:describe_main", "a node's inputs, outputs and params (docs/nodes.md)"),
     "certs": ("common.runtime.certs:certs_main", "make a test CA and a TLS graph's certificates"),
     "bench": ("common.cli:bench_main", "benchmarks: transport, sim, detector, graph, refine, geometry"),
-    "dataset": ("common.sim.cli:main", "make and check datasets"),
+    "dataset": ("common.cli:dataset_main", "make, check, convert and look at dataset folders"),
     "train": ("common.detector.train:main", "train the keypoint detector"),
     "eval": ("common.evaluation.cli:main", "evaluate pose pipelines"),
+    "results": ("common.evaluation.results_page:main", "evaluate the documented sets and write docs/results.md"),
     "record": ("common.ros.record:record_main", "record a running graph to MCAP with ROS 2 schemas"),
     "view": ("common.viewer.cli:main", "open a recording (.rrd) in Rerun's web viewer on 127.0.0.1"),
 }
@@ -37,11 +39,38 @@ BENCHES = {
     "refine": ("common.evaluation.refine_bench:main", "dense pose refinement speed and accuracy (synthetic)"),
     "end-identity": ("common.evaluation.end_identity_bench:main", "tip vs tail: the detector's end identity on dataset folders"),
     "fuzz": ("common.evaluation.fuzz:main", "poison payloads into every input of every node (in process)"),
+    "viewer-http": ("common.evaluation.http_fuzz:main", "the viewer page's server against floods, bursts, resets, idle clients"),
     "soak": ("common.evaluation.soak:main", "the default graph from a replay for a long run: accounting, RSS, restarts"),
     "geometry": ("common.evaluation.geometry_bench:main", "pose methods (PnP, triangulation, fusion) vs keypoint noise, on the oracle"),
     "ros-bag": ("common.ros.bench:bag_main", "ROS bag read speed (stereo frames/s)"),
     "ros-live": ("common.ros.bench:live_main", "latency the live ROS 2 path adds (p50/p99) against the native graph"),
 }
+
+
+DATASET_COMMANDS = ("common.sim.cli", "common.data.cli", "common.ros.cli")
+"""The packages whose ``add_parsers(sub) -> {subcommand: handler}`` make ``needletrack dataset``:
+the scene generators, the folder checks, the ROS conversions (each imports its heavy parts only
+when its subcommand runs)."""
+
+
+def dataset_main(argv: Optional[list] = None) -> int:
+    """``needletrack dataset SUBCOMMAND``: 0 on success, 1 with one ``error:`` line on a bad folder,
+    bag or argument value (``DatasetError``, ``ValueError``, ``OSError``), 2 on bad usage."""
+    import argparse
+    p = argparse.ArgumentParser(prog="needletrack dataset",
+                                description="Make, check, convert and look at dataset folders (docs/dataset.md; "
+                                            "the ROS bag commands: docs/ros.md).")
+    sub = p.add_subparsers(dest="cmd", required=True)
+    handlers = {}
+    for mod in DATASET_COMMANDS:
+        handlers.update(importlib.import_module(mod).add_parsers(sub))
+    args = p.parse_args(sys.argv[1:] if argv is None else list(argv))
+    from common.data.dataset import DatasetError
+    try:
+        return handlers[args.cmd](args)
+    except (DatasetError, ValueError, OSError) as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        return 1
 
 
 def _call(target: str, argv: list) -> int:

@@ -24,15 +24,12 @@ from dataclasses import dataclass, replace
 import numpy as np
 
 from common.geometry.camera import StereoRig
-from common.geometry.end_identity import (
-    identity_covariance,
-    stereo_end_identity,
-    turn_observation,
-)
+from common.geometry.end_identity import TIP_SURE, Settled, settle, state, turn_observation
 from common.geometry.needle import NeedleModel
+from common.methods import POSE_METHODS
 from common.runtime.messages import Calibration, EcmPose, Keypoints, PoseEstimate
 from common.runtime.node import Node
-from common.runtime.pairing import SeqCache, StereoPairer
+from common.runtime.pairing import SeqCache, SeqJoin, StereoPairer
 
 
 class StereoPoseNode(Node):
@@ -48,13 +45,11 @@ class StereoPoseNode(Node):
     class Params:
         min_score: float = 0.5     # keypoints scoring lower are not used
         max_wait: int = 30         # frames a pose waits for its ECM pose
-        min_end_identity: float = 0.95   # a frame whose tip is surer than this is posed as is
+        min_end_identity: float = TIP_SURE   # a frame whose tip is surer than this is posed as is
 
     def setup(self):
         self.min_score = self.p.min_score
-        self.max_wait = self.p.max_wait
-        self.waiting: list[tuple[str, PoseEstimate]] = []     # poses waiting for their ECM pose
-        self.newest_seq = -1
+        self.waiting = SeqJoin(self.p.max_wait)     # (output, pose) waiting for the frame's ECM pose
         self.calib: Calibration | None = None
         self.rig = None
         self.model_points = None
@@ -67,11 +62,10 @@ class StereoPoseNode(Node):
         """A new source stream: pending halves, ECM poses and waiting poses are of the old one."""
         self.pairer.reset()
         self.ecm_poses.clear()
-        if self.waiting:
-            self.count("no_pose.source_restart", len(self.waiting))
-        self.waiting = []
+        gone = self.waiting.reset()
+        if gone:
+            self.count("no_pose.source_restart", len(gone))
         self.identity.clear()
-        self.newest_seq = -1
 
     # ---------------------------------------------------------------- inputs
     def on_calib(self, msg: Calibration):
@@ -99,7 +93,7 @@ class StereoPoseNode(Node):
         pair = self.pairer.push(msg.camera, msg.seq, msg)
         if self.pairer.dropped > dropped:
             self.count("unpaired", self.pairer.dropped - dropped)
-        self.newest_seq = max(self.newest_seq, msg.seq)
+        self.waiting.see(msg.seq)
         self._release()
         if pair is None:
             return
@@ -110,16 +104,17 @@ class StereoPoseNode(Node):
         self.on_pair(*self.settle_end_identity(*pair))
 
     def settle_end_identity(self, left: Keypoints, right: Keypoints) -> tuple[Keypoints, Keypoints]:
-        """The pair as the solvers take it: turned end for end when the detectors' evidence says
-        their A is more likely the tail (``end_identity`` below 0.5); the frame's probability
-        is kept for ``publish_pose``, which states it and flags an undecided frame."""
-        p = stereo_end_identity(*(kp.end_identity if kp.found else None for kp in (left, right)))
-        if p is None:
-            return left, right
-        if p < 0.5:
+        """The pair as the solvers take it, by ``end_identity.settle``; the frame's probability
+        is kept for ``publish_pose``, which states it."""
+        return self.read_as(settle(*stated_end_identity(left, right)), left, right)
+
+    def read_as(self, settled: Settled, left: Keypoints, right: Keypoints) -> tuple[Keypoints, Keypoints]:
+        """The pair read as ``settled`` says (turned end for end or not), its probability kept."""
+        if settled.turn:
             self.count("end_identity.turned")
-            left, right, p = turn_keypoints(left), turn_keypoints(right), 1.0 - p
-        self.identity.put(left.seq, p)
+            left, right = turn_keypoints(left), turn_keypoints(right)
+        if settled.p is not None:
+            self.identity.put(left.seq, settled.p)
         return left, right
 
     def on_pair(self, left: Keypoints, right: Keypoints) -> None:
@@ -147,31 +142,25 @@ class StereoPoseNode(Node):
         p = self.identity.get(pose.seq)
         if p is not None:
             pose.end_identity = float(p)
-        if p is not None and p < self.p.min_end_identity:
+        unsure, pose.covariance = state(pose.T_ecm_needle, pose.covariance, self.needle, p,
+                                        self.p.min_end_identity)
+        if unsure:
             self.count("end_identity.unsure")
             pose.ambiguous = True
-            if pose.covariance is not None:
-                pose.covariance = identity_covariance(pose.T_ecm_needle, pose.covariance, self.needle, p)
         if pose.T_world_ecm is None and self.wired("ecm"):
-            self.waiting.append((output, pose))
+            self.waiting.hold(pose.seq, (output, pose))
             self._release()
         else:
             self.publish(output, pose)
 
     def _release(self) -> None:
-        keep = []
-        for output, pose in self.waiting:
-            T_world_ecm = self.ecm_poses.get(pose.seq)
-            if T_world_ecm is not None:
-                pose.T_world_ecm = T_world_ecm
-                pose.T_world_needle = T_world_ecm @ pose.T_ecm_needle
-                self.publish(output, pose)
-            elif self.newest_seq - pose.seq >= self.max_wait:
-                self.count("no_ecm_pose")
-                self.publish(output, pose)
+        for (output, pose), complete in self.waiting.due(lambda seq, _: seq in self.ecm_poses):
+            if complete:
+                pose.T_world_ecm = self.ecm_poses[pose.seq]
+                pose.T_world_needle = pose.T_world_ecm @ pose.T_ecm_needle
             else:
-                keep.append((output, pose))
-        self.waiting = keep
+                self.count("no_ecm_pose")
+            self.publish(output, pose)
 
     def pose_message(self, seq: int, stamp_ns: int, method: str, T_ecm_needle, residual: float,
                      residual_unit: str, **extra) -> PoseEstimate:
@@ -180,6 +169,11 @@ class StereoPoseNode(Node):
         T_world_needle = None if T_world_ecm is None else T_world_ecm @ T_ecm_needle
         return PoseEstimate(seq, stamp_ns, method, np.asarray(T_ecm_needle, dtype=float),
                             T_world_needle, T_world_ecm, float(residual), residual_unit, **extra)
+
+
+def stated_end_identity(left: Keypoints, right: Keypoints) -> tuple[float | None, float | None]:
+    """Each camera's stated probability that its A is the tip (None: found nothing, or not stated)."""
+    return tuple(kp.end_identity if kp.found else None for kp in (left, right))
 
 
 def turn_keypoints(kp: Keypoints) -> Keypoints:
@@ -192,9 +186,6 @@ def turn_keypoints(kp: Keypoints) -> Keypoints:
                    end_identity=None if kp.end_identity is None else 1.0 - kp.end_identity)
 
 
-POSE_METHODS = ("pnp_average", "pnp_joint", "triangulation", "multiview", "refined",
-                "multiview_refined")
-"""The pose methods a graph can produce: the input names of nodes that consume them all."""
 
 
 class PoseMethodInputs:

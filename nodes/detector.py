@@ -44,7 +44,7 @@ from common.runtime.messages import (
     MessageError,
 )
 from common.runtime.node import Node, NodeError, run
-from common.runtime.pairing import SeqCache
+from common.runtime.pairing import SeqCache, SeqJoin
 from common.runtime.params import merge_schemas
 
 
@@ -89,16 +89,15 @@ class DetectorNode(Node):
             raise NodeError(str(exc)) from None
         self.calib: Calibration | None = None
         self.truths = SeqCache()
-        self.waiting: list[CameraImage] = []         # images waiting for calibration or truth
-        self.waiting_truths: list[int] = []          # truth-only: frames waiting for calibration
-        self.newest_seq = -1
+        self.waiting = SeqJoin(self.max_wait)           # images waiting for calibration or truth
+        self.waiting_truths = SeqJoin(self.max_wait)    # truth-only: frames waiting for calibration
         self.log.info("detector backend %s", self.backend_name)
 
     def on_stream_reset(self):
         """A new source stream: truths and waiting frames are of the old one."""
         self.truths.clear()
-        self.waiting, self.waiting_truths = [], []
-        self.newest_seq = -1
+        self.waiting.reset()
+        self.waiting_truths.reset()
         self.frames.reset()
         reset = getattr(self.backend, "reset", None)
         if callable(reset):
@@ -111,8 +110,7 @@ class DetectorNode(Node):
     def on_truth(self, msg: GroundTruth):
         self.truths.put(msg.seq, msg)
         if not (self.wired("left") or self.wired("right")):
-            self.newest_seq = max(self.newest_seq, msg.seq)
-            self.waiting_truths.append(msg.seq)
+            self.waiting_truths.hold(msg.seq, msg.seq)
         self._release()
 
     def on_left(self, msg: CameraImage):
@@ -123,17 +121,15 @@ class DetectorNode(Node):
 
     # ---------------------------------------------------------------- internals
     def _image(self, msg: CameraImage):
-        self.newest_seq = max(self.newest_seq, msg.seq)
+        self.waiting.see(msg.seq)
         self.frames.frame(msg.seq, msg.stamp_ns)
         if not self.frames.takes(msg.seq):
             self.count("stride_skipped")
             return
         if self.calib is None and msg.camera not in self.KEEP_ALL:
             # waiting for the calibration, a newest-only input keeps only its newest image
-            n = len(self.waiting)
-            self.waiting = [w for w in self.waiting if w.camera != msg.camera]
-            self.count("superseded", n - len(self.waiting))
-        self.waiting.append(msg)
+            self.count("superseded", len(self.waiting.drop(lambda _, w: w.camera == msg.camera)))
+        self.waiting.hold(msg.seq, msg)
         self._release()
 
     def _ready(self, seq: int) -> bool:
@@ -143,13 +139,11 @@ class DetectorNode(Node):
     def _release(self):
         # the lists are cut before anything runs: a frame whose detection raises is gone, not
         # retried (and raising again) on every later message
-        due = [img for img in self.waiting if self._ready(img.seq) or self.newest_seq - img.seq >= self.max_wait]
-        self.waiting = [img for img in self.waiting if not any(img is d for d in due)]
-        due_truths = [s for s in self.waiting_truths if self.calib is not None or self.newest_seq - s >= self.max_wait]
-        self.waiting_truths = [s for s in self.waiting_truths if s not in due_truths]
-        for img in due:
+        due = self.waiting.due(lambda seq, _: self._ready(seq))
+        due_truths = self.waiting_truths.due(lambda seq, _: self.calib is not None)
+        for img, _ in due:
             self._run(img)
-        for seq in due_truths:
+        for seq, _ in due_truths:
             truth = self.truths.get(seq)
             for cam in ("left", "right"):
                 self._detect(cam, seq, truth.stamp_ns if truth else 0, None)

@@ -1,18 +1,7 @@
-"""Pipeline I node: needle pose from the stereo keypoints by PnP (common/geometry/pnp.py).
-
-Inputs: ``left``, ``right`` (Keypoints, paired by ``seq``), ``calib`` (Calibration), ``ecm``
-(EcmPose, optional: adds ``T_world_ecm``/``T_world_needle``; when wired, a pose waits for its
-frame's ECM pose, at most ``max_wait`` frames, default 30). Output: ``pose`` (PoseEstimate, method
-``pnp_average`` or ``pnp_joint``, residual = reprojection RMS in px).
-
-Params: ``method`` (``joint`` | ``average``, default joint); ``min_score`` (0.5);
-``max_rms_px`` (a fit worse than this is not published; default 20 for joint, none for
-average, whose mean of two disagreeing camera poses reprojects badly by construction); ``outlier_px`` (joint only,
-default 10: the worst keypoint is dropped and the fit redone while its residual exceeds this);
-``refine`` (average only, default true: false gives raw EPnP as published, see common/geometry/pnp.py);
-``min_sigma_px`` (joint only, default 0.25: the covariance's keypoint noise is at least this,
-or the detectors' stated ``keypoint_sigma_px`` where larger; the fit's residuals alone miss the
-errors both cameras' detections share). A frame that gives no pose is counted as ``no_pose.<reason>``.
+"""Pipeline I node: the needle pose from the stereo keypoints by PnP (common/geometry/pnp.py),
+``method`` joint (``pnp_joint``) or average (``pnp_average``, the paper's); residual the
+reprojection RMS in px. A frame that gives no pose counts ``no_pose.<reason>``. Inputs, outputs
+and params: ``needletrack describe epnp`` ([docs/nodes.md](../docs/nodes.md)).
 """
 from __future__ import annotations
 
@@ -37,10 +26,14 @@ class EpnpNode(StereoPoseNode):
 
     @dataclass
     class Params(StereoPoseNode.Params):
-        method: Literal["joint", "average"] = "joint"
-        max_rms_px: float | None = 20.0       # joint only; null: no gate
-        outlier_px: float | None = 10.0
-        refine: bool = True
+        method: Literal["joint", "average"] = "joint"   # one pose fitted in both cameras, or EPnP per camera averaged
+        # a fit worse than this is not published (joint; null: no gate; average's mean of two
+        # disagreeing camera poses reprojects badly by construction, so it has none)
+        max_rms_px: float | None = 20.0
+        outlier_px: float | None = 10.0   # joint: the worst keypoint is dropped and the fit redone while its residual exceeds this
+        refine: bool = True               # average: each camera's EPnP refined by LM (false: raw EPnP, as published)
+        # joint: the covariance's keypoint noise is at least this, or the detectors' stated
+        # keypoint_sigma_px where larger (the residuals alone miss the errors both cameras share)
         min_sigma_px: float = 0.25
 
     def setup(self):

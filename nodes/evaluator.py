@@ -21,7 +21,8 @@ import time
 from dataclasses import dataclass
 from pathlib import Path
 
-from common.evaluation.scoring import EXTRA_METHODS, METHODS, Collected
+from common.evaluation.collect import Collected
+from common.methods import EXTRA_METHODS, POSE_METHODS, REPORTED_METHODS
 from common.runtime.messages import (
     Calibration,
     EndOfStream,
@@ -36,7 +37,6 @@ from common.runtime.messages import (
 from common.runtime.node import Node, NodeError, run
 from nodes._pose import PoseMethodInputs
 
-POSE_INPUTS = METHODS + EXTRA_METHODS
 
 
 class EvaluatorNode(PoseMethodInputs, Node):
@@ -44,9 +44,7 @@ class EvaluatorNode(PoseMethodInputs, Node):
 
     INPUTS = {"truth": GroundTruth, "left": Keypoints, "right": Keypoints, "points3d": Points3D,
               "calib": Calibration, "eos": EndOfStream,
-              "pnp_average": PoseEstimate, "pnp_joint": PoseEstimate,
-              "triangulation": PoseEstimate, "multiview": PoseEstimate,
-              "refined": PoseEstimate, "multiview_refined": PoseEstimate}
+              **{m: PoseEstimate for m in POSE_METHODS}}
     OUTPUTS = ()
     KEEP_ALL = tuple(INPUTS)
 
@@ -68,7 +66,7 @@ class EvaluatorNode(PoseMethodInputs, Node):
         self.detector = self.p.detector
         self.drain_s = self.p.drain_s
         self.col = Collected()
-        self.methods = [m for m in POSE_INPUTS if self.wired(m)]
+        self.methods = [m for m in POSE_METHODS if self.wired(m)]
         self._eos_at = None
         self._last_msg = time.monotonic()
         self._stats_lock = threading.Lock()
@@ -106,7 +104,7 @@ class EvaluatorNode(PoseMethodInputs, Node):
 
     def _cpu_snapshot(self) -> dict:
         """CPU seconds used so far by every node process known from its stats."""
-        from common.evaluation.scoring import process_cpu_seconds
+        from common.evaluation.timing import process_cpu_seconds
         with self._stats_lock:
             pids = {n: st.pid for n, st in self._stats.items() if n != self.node_id}
         return {n: process_cpu_seconds(pid) for n, pid in pids.items()}
@@ -167,7 +165,7 @@ class EvaluatorNode(PoseMethodInputs, Node):
                  "graph_methods": self.methods}
         res = write_outputs(self.out, self.col, dataset=str(self.dataset_path or ""),
                             detector=self.detector, load_images=loader, extra=extra,
-                            methods=list(METHODS) + [m for m in EXTRA_METHODS
+                            methods=list(REPORTED_METHODS) + [m for m in EXTRA_METHODS
                                                      if m in self.methods or self.col.poses.get(m)])
         self.log.info("wrote %s (frames %d)", self.out, res["frames"])
         if self.p.rrd:

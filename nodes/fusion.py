@@ -1,24 +1,14 @@
-"""Multi-view fusion node (common/geometry/fusion.py): a queue of the last k pose estimates, each mapped
-into the current ECM frame through the ECM poses at which they were made, outliers removed,
-averaged.
+"""Multi-view fusion node (common/geometry/fusion.py): the last k pose estimates, each mapped into
+the current ECM frame through the ECM poses at which they were made, outliers removed, averaged.
 
-Inputs: ``pose`` (PoseEstimate from a single-frame method), ``ecm`` (EcmPose; when not wired the
-endoscope is taken to be still), ``truth`` (GroundTruth, optional: only its ``sequence`` label
-is used, to reset the queue when a recording starts a new multi-view group).
-Output: ``pose`` (PoseEstimate, method ``params.method``, default ``multiview``; ``n_views`` =
-estimates averaged; residual = RMS distance of those to the fused position, m; covariance when
-every input carried one; ``model_sigma_m`` and ``model_sigma_rad``, the inputs' shared position
-and orientation error, are taken out before the views are weighed and added back once;
-``ambiguous`` when every averaged estimate was, its covariance then their mean one;
-``end_identity``: which end is the tip is voted by the estimates' stated end identities, those
-turned end for end from the fused pose counting against it (common/geometry/fusion.py); a tip
-they contest below 0.95 is flagged ``ambiguous``, counted ``end_identity.contested``).
-
-Params: ``k`` (5), ``max_dist_mm`` (5), ``max_angle_deg`` (15) for outliers; ``reset_dist_mm``
-(10), ``reset_angle_deg`` (45), ``reset_after`` (3) for detecting a moved needle;
-``use_covariance`` (true); ``reset_on_sequence`` (true); ``method``; ``max_wait`` (30: frames
-an estimate waits for its ECM pose or truth before it is dropped, ``no_pose.no_ecm_pose``).
-Command ``reset`` empties the queue.
+Output ``pose``: method ``params.method``; ``n_views`` the estimates averaged; residual the RMS
+distance of those to the fused position (m); the covariance when every input carried one, the
+inputs' shared model error (``model_sigma_m``, ``model_sigma_rad``) taken out before weighing and
+added back once; ``ambiguous`` when every averaged estimate was; ``end_identity`` voted by the
+estimates, those turned end for end counting against it, a contested tip below 0.95 flagged
+(``end_identity.contested``). ``truth`` is used only for its ``sequence`` label (a new multi-view
+group resets the queue). Command ``reset`` empties the queue. Params: ``needletrack describe
+fusion`` ([docs/nodes.md](../docs/nodes.md)).
 """
 from __future__ import annotations
 
@@ -29,7 +19,7 @@ import numpy as np
 from common.geometry.fusion import MultiViewFusion
 from common.runtime.messages import EcmPose, GroundTruth, PoseEstimate
 from common.runtime.node import Node, run
-from common.runtime.pairing import SeqCache
+from common.runtime.pairing import SeqCache, SeqJoin
 
 
 class FusionNode(Node):
@@ -41,16 +31,16 @@ class FusionNode(Node):
 
     @dataclass
     class Params:
-        k: int = 5
-        max_dist_mm: float = 5.0
-        max_angle_deg: float = 15.0
-        reset_dist_mm: float = 10.0
-        reset_angle_deg: float = 45.0
+        k: int = 5                      # estimates fused: the newest k
+        max_dist_mm: float = 5.0        # an estimate farther than this from the fused pose is an outlier ...
+        max_angle_deg: float = 15.0     # ... or turned more than this
+        reset_dist_mm: float = 10.0     # reset_after estimates in a row this far from the fused pose ...
+        reset_angle_deg: float = 45.0   # ... or turned this much mean the needle moved: the queue starts again
         reset_after: int = 3
-        use_covariance: bool = True
+        use_covariance: bool = True     # weigh the estimates by their covariances (else equally)
         method: str = "multiview"       # the method name of the fused poses
-        reset_on_sequence: bool = True
-        max_wait: int = 30
+        reset_on_sequence: bool = True  # a new truth sequence label starts the queue again
+        max_wait: int = 30              # frames an estimate waits for its ECM pose or truth (then no_pose.no_ecm_pose)
 
     def setup(self):
         p = self.p
@@ -60,20 +50,17 @@ class FusionNode(Node):
             reset_after=p.reset_after, use_covariance=p.use_covariance)
         self.method = p.method
         self.reset_on_sequence = p.reset_on_sequence
-        self.max_wait = p.max_wait
         self.ecm_poses = SeqCache()
         self.sequences = SeqCache()
-        self.pending: list[PoseEstimate] = []
-        self.newest_seq = -1
+        self.pending = SeqJoin(p.max_wait, in_order=True)    # views waiting for their ECM pose / truth
 
     def on_stream_reset(self):
         """A new source stream: the window of views and every per-frame cache start again."""
         self.ecm_poses.clear()
         self.sequences.clear()
-        if self.pending:
-            self.count("no_pose.source_restart", len(self.pending))
-        self.pending = []
-        self.newest_seq = -1
+        gone = self.pending.reset()
+        if gone:
+            self.count("no_pose.source_restart", len(gone))
         self.fusion.reset()
 
     # ---------------------------------------------------------------- inputs
@@ -86,9 +73,7 @@ class FusionNode(Node):
         self._drain()
 
     def on_pose(self, msg: PoseEstimate):
-        self.newest_seq = max(self.newest_seq, msg.seq)
-        self.pending.append(msg)
-        self.pending.sort(key=lambda m: m.seq)
+        self.pending.hold(msg.seq, msg)
         self._drain()
 
     def on_command(self, msg):
@@ -107,13 +92,8 @@ class FusionNode(Node):
         return ecm, truth
 
     def _drain(self):
-        while self.pending:
-            msg = self.pending[0]
+        for msg, _ in self.pending.due(lambda seq, m: not any(self._needs(m))):
             wait_ecm, wait_truth = self._needs(msg)
-            stale = self.newest_seq - msg.seq >= self.max_wait
-            if (wait_ecm or wait_truth) and not stale:
-                return
-            self.pending.pop(0)
             if wait_ecm:
                 self.count("no_pose.no_ecm_pose")
                 continue

@@ -16,20 +16,20 @@ from __future__ import annotations
 
 import sys
 import time
-from collections import OrderedDict
 from dataclasses import dataclass
 
 import numpy as np
 
-from common.evaluation.scoring import EXTRA_METHODS, METHODS, TIP_SURE, true_T_ecm_needle
+from common.evaluation.metrics import true_T_ecm_needle
+from common.geometry.end_identity import TIP_SURE
 from common.geometry.ecm_kinematics import EcmArm
 from common.geometry.transforms import R_to_rotvec, pose_error
+from common.methods import POSE_METHODS, final_method
 from common.runtime.messages import Calibration, GroundTruth, PoseEstimate
 from common.runtime.node import Node, run
+from common.runtime.pairing import SeqCache
 from nodes._pose import PoseMethodInputs
 
-POSE_INPUTS = METHODS + EXTRA_METHODS
-FINAL_ORDER = ("refined", "multiview_refined", "multiview", "pnp_joint", "pnp_average", "triangulation")
 WIDTH = 120
 KEEP_FRAMES = 64
 
@@ -57,11 +57,6 @@ def format_method(method: str, pose, T_true) -> str:
     return s
 
 
-def final_method(methods) -> str:
-    """The method a line leads with: the first of ``FINAL_ORDER`` in ``methods``."""
-    return next((m for m in FINAL_ORDER if m in methods), methods[0])
-
-
 def format_lines(seq: int, poses: dict, T_true, methods, all_methods: bool = False) -> list[str]:
     """The monitor's lines for frame ``seq``: ``poses`` method -> PoseEstimate (missing: no pose)."""
     final = final_method(methods)
@@ -75,10 +70,7 @@ def format_lines(seq: int, poses: dict, T_true, methods, all_methods: bool = Fal
 class MonitorNode(PoseMethodInputs, Node):
     """Prints each method's pose (and its error when the truth is known) for the newest frame."""
 
-    INPUTS = {"truth": GroundTruth, "calib": Calibration,
-              "pnp_average": PoseEstimate, "pnp_joint": PoseEstimate,
-              "triangulation": PoseEstimate, "multiview": PoseEstimate,
-              "refined": PoseEstimate, "multiview_refined": PoseEstimate}
+    INPUTS = {"truth": GroundTruth, "calib": Calibration, **{m: PoseEstimate for m in POSE_METHODS}}
     OUTPUTS = ()
     KEEP_ALL = tuple(INPUTS)
 
@@ -90,10 +82,10 @@ class MonitorNode(PoseMethodInputs, Node):
 
     def setup(self):
         self.every_s = self.p.every_s
-        wanted = self.p.methods or POSE_INPUTS
-        self.methods = [m for m in wanted if m in POSE_INPUTS and self.wired(m)]
-        self.frames: OrderedDict = OrderedDict()     # seq -> {method: PoseEstimate}
-        self.truths: OrderedDict = OrderedDict()     # seq -> GroundTruth
+        wanted = self.p.methods or POSE_METHODS
+        self.methods = [m for m in wanted if m in POSE_METHODS and self.wired(m)]
+        self.frames = SeqCache(KEEP_FRAMES)     # seq -> {method: PoseEstimate}
+        self.truths = SeqCache(KEEP_FRAMES)     # seq -> GroundTruth
         self.arm = None
         self._last_print = 0.0
         self._printed = -1
@@ -108,14 +100,10 @@ class MonitorNode(PoseMethodInputs, Node):
         self.arm = EcmArm.from_calibration(msg.ecm)
 
     def on_truth(self, msg):
-        self.truths[msg.seq] = msg
-        while len(self.truths) > KEEP_FRAMES:
-            self.truths.popitem(last=False)
+        self.truths.put(msg.seq, msg)
 
     def on_pose(self, method, msg):
-        self.frames.setdefault(msg.seq, {})[method] = msg
-        while len(self.frames) > KEEP_FRAMES:
-            self.frames.popitem(last=False)
+        self.frames.put(msg.seq, {**self.frames.get(msg.seq, {}), method: msg})
         self._maybe_print()
 
     def _maybe_print(self):

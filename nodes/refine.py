@@ -47,7 +47,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from common.geometry.end_identity import stereo_end_identity, track_identity
+from common.geometry.end_identity import settle
 from common.geometry.needle import NeedleModel
 from common.geometry.observations import NoPose
 from common.geometry.refine import (
@@ -60,7 +60,7 @@ from common.geometry.refine_tracking import TrackingConfig, TrackingRefiner
 from common.runtime.messages import Calibration, EcmPose, Keypoints
 from common.runtime.node import NodeError, run
 from common.runtime.params import merge_schemas
-from nodes._pose import StereoPoseNode, turn_keypoints
+from nodes._pose import StereoPoseNode, stated_end_identity, turn_keypoints
 
 
 @dataclass
@@ -118,26 +118,24 @@ class RefineNode(StereoPoseNode):
         self._track = None
 
     def settle_end_identity(self, left: Keypoints, right: Keypoints) -> tuple[Keypoints, Keypoints]:
-        """The frame's end identity, with the tracked needle's (``track_identity``): the pair
-        turned end for end when the track says so, its probability kept for ``publish_pose``."""
-        p = stereo_end_identity(*(kp.end_identity if kp.found else None for kp in (left, right)))
+        """The frame's end identity read against the tracked needle's (``end_identity.settle``
+        with tracking), its probability kept for ``publish_pose``."""
+        stated = stated_end_identity(left, right)
+        same = self.same_as_track(left, right) if any(p is not None for p in stated) else None
+        settled = settle(*stated, tracking=True, track=self._track, same_as_track=same)
+        self._track = settled.track
+        return self.read_as(settled, left, right)
+
+    def same_as_track(self, left: Keypoints, right: Keypoints) -> bool | None:
+        """Whether the frame reads the tracked needle as the track does (its keypoints reproject
+        the tracked pose as read, not turned); None when there is no track or it cannot be told."""
         prev = self.tracker.track(left.stamp_ns) if self.tracker is not None else None
-        if p is None:
-            self._track = None
-            return left, right
-        same = None
-        if prev is not None and self._track is not None:
-            uv, sc = self.stereo_arrays(left, right)
-            tuv, tsc = self.stereo_arrays(turn_keypoints(left), turn_keypoints(right))
-            as_read, turned = self.tracker.reprojects(uv, sc, prev), self.tracker.reprojects(tuv, tsc, prev)
-            if as_read != turned:               # the frame relates to the track one way only
-                same = as_read
-        turn, self._track = track_identity(p, self._track, same)
-        if turn:
-            left, right = turn_keypoints(left), turn_keypoints(right)
-            self.count("end_identity.turned")
-        self.identity.put(left.seq, 1.0 / (1.0 + np.exp(-self._track[0])))
-        return left, right
+        if prev is None or self._track is None:
+            return None
+        uv, sc = self.stereo_arrays(left, right)
+        tuv, tsc = self.stereo_arrays(turn_keypoints(left), turn_keypoints(right))
+        as_read, turned = self.tracker.reprojects(uv, sc, prev), self.tracker.reprojects(tuv, tsc, prev)
+        return as_read if as_read != turned else None     # the frame relates to the track one way only
 
     def on_pair(self, left: Keypoints, right: Keypoints):
         uv, sc = self.stereo_arrays(left, right)

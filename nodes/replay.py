@@ -24,7 +24,6 @@ A frame whose image file cannot be read (or decoded) is logged, counted (``image
 and skipped.
 """
 import time
-from collections import deque
 from dataclasses import dataclass
 from typing import Literal
 
@@ -41,42 +40,11 @@ from common.runtime.messages import (
     GroundTruth,
 )
 from common.runtime.node import NodeError, Prepared, run
-from common.runtime.pacing import Pacer
+from common.runtime.pacing import PACED, AckWindow, SourceClock, parse_rate, sleep_in_slices
 
 CAMS = ("left", "right")
-PACED = -1.0                  # parse_rate's value for ``paced``
 ACKS = ("ack", "ack2")
 MAX_DECODED_BYTES = 8 << 30   # decode=true holds every image in memory: refuse more than 8 GiB
-
-
-def parse_rate(value) -> float | None:
-    """``recorded`` -> None, ``max`` -> 0.0, ``paced`` -> PACED, else a positive rate in Hz."""
-    if value is None or str(value).strip().lower() == "recorded":
-        return None
-    if str(value).strip().lower() == "paced":
-        return PACED
-    if str(value).strip().lower() == "max":
-        return 0.0
-    try:
-        hz = float(value)
-    except (TypeError, ValueError):
-        raise ValueError(f"replay: rate must be 'recorded', 'max' or a number in Hz, got {value!r}") from None
-    if not hz > 0:
-        raise ValueError(f"replay: rate must be positive, got {hz}")
-    return hz
-
-
-def truth_message(fr, seq: int, stamp_ns: int):
-    """The frame's ground truth as a GroundTruth message, or None if it has none."""
-    if all(getattr(fr, k) is None for k in ("T_world_needle", "keypoints", "visible", "bbox", "T_world_ecm")):
-        return None
-    return GroundTruth(
-        seq=seq, stamp_ns=stamp_ns, sequence=fr.sequence, step=fr.step, ecm_joints=fr.ecm_joints,
-        T_world_ecm=fr.T_world_ecm, T_world_needle=fr.T_world_needle,
-        keypoints=None if fr.keypoints is None else {c: np.asarray(fr.keypoints[c], float) for c in CAMS},
-        visible=None if fr.visible is None else {c: np.asarray(fr.visible[c], bool) for c in CAMS},
-        bbox=None if fr.bbox is None else {c: None if fr.bbox[c] is None else np.asarray(fr.bbox[c], float)
-                                           for c in CAMS})
 
 
 class ReplayNode(CameraSourceNode):
@@ -124,36 +92,26 @@ class ReplayNode(CameraSourceNode):
         self.next_images = None          # (seq, [Prepared left, right]): the next frame, copied
         self.published_frames = 0
         self.last_calib = None
-        self.t0_wall = None
-        self.t0_rec = None
-        self.pacer = Pacer(self.rate if self.rate not in (None, PACED) else 0.0)
-        self.ack_timeout = p.ack_timeout
-        self.acked = {name: -1 for name in ACKS if self.wired(name)}
-        self.in_flight = max(1, p.in_flight)
-        self.awaiting = deque()          # (seq, monotonic time) of the frames not yet acknowledged
-        if self.rate == PACED and not self.acked:
+        self.clock = SourceClock(self.rate)
+        self.acks = AckWindow([name for name in ACKS if self.wired(name)], p.in_flight, p.ack_timeout)
+        if self.rate == PACED and not self.acks.acked:
             raise NodeError("replay: rate 'paced' needs an 'ack' input wired (e.g. a detector's keypoints)")
 
-    def _ack(self, name: str, msg) -> None:
-        self.acked[name] = max(self.acked.get(name, -1), int(getattr(msg, "seq", -1)))
-
     def on_ack(self, msg):
-        self._ack("ack", msg)
+        self.acks.ack("ack", int(getattr(msg, "seq", -1)))
 
     def on_ack2(self, msg):
-        self._ack("ack2", msg)
+        self.acks.ack("ack2", int(getattr(msg, "seq", -1)))
 
     def _waiting_for_ack(self) -> bool:
         """``rate: paced``: ``in_flight`` frames are out and not yet acknowledged."""
         if self.rate != PACED:
             return False
-        done = min(self.acked.values())
-        now = time.monotonic()
-        while self.awaiting and (self.awaiting[0][0] <= done or now - self.awaiting[0][1] > self.ack_timeout):
-            if self.awaiting[0][0] > done:
-                self.count("ack_timeouts")
-            self.awaiting.popleft()
-        return len(self.awaiting) >= self.in_flight
+        timeouts = self.acks.timeouts
+        full = self.acks.full()
+        if self.acks.timeouts > timeouts:
+            self.count("ack_timeouts", self.acks.timeouts - timeouts)
+        return full
 
     def _decode_all(self) -> list:
         """Per frame: {camera: raw bgr8 bytes}, or None for a frame whose images fail."""
@@ -202,19 +160,9 @@ class ReplayNode(CameraSourceNode):
         return msgs
 
     def _pace(self, fr) -> None:
-        now = time.monotonic()
-        if self.rate is None:  # the recorded timing
-            if self.t0_wall is None or self.pos == 0:
-                self.t0_wall, self.t0_rec = now, fr.stamp_ns
-            delay = self.t0_wall + (fr.stamp_ns - self.t0_rec) * 1e-9 - now
-        elif self.rate > 0:
-            delay = self.pacer.delay()
-        else:
-            delay = 0.0
-        while delay > 0 and self.running:  # sleep in slices so a stop request is honoured
-            time.sleep(min(delay, 0.1))
-            self._publish_calib()
-            delay -= 0.1
+        if self.pos == 0:
+            self.clock.restart()          # the recorded timing starts again with each pass
+        sleep_in_slices(self.clock.delay(fr.stamp_ns), lambda: self.running, self._publish_calib)
 
     def step(self):
         if self.pos >= len(self.frames):
@@ -246,12 +194,12 @@ class ReplayNode(CameraSourceNode):
             self.publish("joints", EcmJoints(seq, stamp, np.asarray(fr.ecm_joints, float)))
         elif fr.T_world_ecm is not None:
             self.publish("measured", EcmPose(seq, stamp, np.asarray(fr.T_world_ecm, float)))
-        truth = truth_message(fr, seq, stamp)
+        truth = GroundTruth.from_frame(fr, seq, stamp)
         if truth is not None:
             self.publish("truth", truth)
         self.published_frames += 1
         if self.rate == PACED:
-            self.awaiting.append((seq, time.monotonic()))
+            self.acks.sent(seq)
         self.pos += 1
         self._publish_calib()
         self._prepare_next()

@@ -8,11 +8,16 @@ and publishes as ``rosbag`` does (``common/ros/source.py``): ``left``/``right``,
 ``truth``, ``calib``. ``seq`` counts the stereo pairs; ``stamp_ns`` is the images' header stamp.
 
 params: ``preset``, ``topics`` (file or mapping), ``rig`` (the dVRK preset's ``{rig}``, e.g.
-``jhu_daVinci``), ``keys`` (bridge | rmw_zenoh), ``domain_id`` (0), ``namespace`` (the bridge's
+``jhu_daVinci``), ``keys`` (bridge | rmw_zenoh), ``distro`` (humble | jazzy | kilted | rolling:
+the publishers' distribution; rmw_zenoh keys of any type hash are taken, a sample whose hash is of
+another distribution is logged once), ``domain_id`` (0), ``namespace`` (the bridge's
 key prefix), ``connect`` (endpoints), ``mode`` (peer | client), ``types`` ({topic: msgtype}
 where bridge keys do not carry it and the role's default does not fit), ``encoding`` (bgr8),
 ``max_queue`` (samples waiting to be decoded; older ones are dropped and counted ``dropped``).
-A sample that does not decode is counted ``bad_samples`` and logged once a second.
+A sample that does not decode (CDR with at most the padding a ROS 2 writer leaves, common/ros/cdr.py)
+or cannot serve its topic's role (wrong type, non-finite calibration or pose, oversized arrays, an
+image header over 16384 px) is refused: counted ``bad_samples``, logged at most once a second per
+topic; the source goes on without back-off.
 """
 from __future__ import annotations
 
@@ -63,6 +68,7 @@ class Ros2Node(CameraSourceNode):
         topics: str | dict | None = None
         rig: str = ""
         keys: Literal["bridge", "rmw_zenoh"] = "bridge"
+        distro: Literal["humble", "jazzy", "kilted", "rolling"] = "jazzy"   # the ROS 2 system's (rmw_zenoh keys)
         domain_id: int = 0
         namespace: str = ""
         connect: list[str] = field(default_factory=lambda: ["tcp/127.0.0.1:7447"])
@@ -106,7 +112,9 @@ class Ros2Node(CameraSourceNode):
             for t in candidates(m.get(role)):
                 roles[t] = (role, None)
         self.map = m
-        self.asm = StereoAssembler(m, f"ros2 ({p.keys})", roles)
+        self.asm = StereoAssembler(m, f"ros2 ({p.keys})", roles, report=self._refused)
+        self.last_bad_log: dict = {}
+        self.distro_noted: set = set()
         self.queue: queue.Queue = queue.Queue(maxsize=max(1, p.max_queue))
         self.qlock = threading.Lock()
         try:
@@ -122,12 +130,17 @@ class Ros2Node(CameraSourceNode):
         self.out = SamplePublisher(self, self.asm.needle_model(), f"ros2 {p.keys} {','.join(p.connect)}",
                                    m.get("ecm"), p.encoding)
         self.seq = 0
-        self.last_bad_log = 0.0
         self.log.info("ros2: subscribed %s", sorted(self.keys.values()))
 
     def _callback(self, topic: str):
+        from common.ros.bag import MAX_STATE_BYTES
+        small = self.asm.topic_role[topic][0] != "image"
+
         def cb(sample):
-            item = (topic, str(sample.key_expr), bytes(sample.payload.to_bytes()), time.time_ns())
+            n = len(sample.payload)
+            # an oversized state is not copied: its size goes to step, which refuses it
+            payload = n if small and n > MAX_STATE_BYTES else bytes(sample.payload.to_bytes())
+            item = (topic, str(sample.key_expr), payload, time.time_ns())
             with self.qlock:
                 while True:
                     try:
@@ -142,7 +155,14 @@ class Ros2Node(CameraSourceNode):
         return cb
 
     def _msgtype(self, topic: str, key: str) -> str:
-        from common.ros.live import topic_of_key
+        from common.ros.live import distro_of_key, topic_of_key
+        if self.p.keys == "rmw_zenoh" and topic not in self.distro_noted:
+            seen = distro_of_key(key)
+            if seen is not None and (seen == "humble") != (self.p.distro == "humble"):
+                self.distro_noted.add(topic)
+                self.log.warning("ros2: %s: key %s has a %s type hash but distro is %s: the samples are read, "
+                                 "but set distro to the ROS 2 system's so that ros2_out's keys match it", topic, key,
+                                 "Humble" if seen == "humble" else "REP 2011", self.p.distro)
         if topic in self.p.types:
             return self.p.types[topic]
         if self.p.keys == "rmw_zenoh":
@@ -151,9 +171,17 @@ class Ros2Node(CameraSourceNode):
                 return t
         return role_type(self.asm.topic_role[topic][0], topic, self.map)
 
+    def _refused(self, topic: str, reason: str) -> None:
+        """A sample the assembler refused: counted, logged at most once a second per topic."""
+        self.count("bad_samples")
+        now = time.monotonic()
+        if now - self.last_bad_log.get(topic, -1e9) >= 1.0:
+            self.last_bad_log[topic] = now
+            self.log.error("ros2: %s: sample refused (%d on this topic so far): %s", topic,
+                           self.asm.refused.get(topic, 0), reason)
+
     def step(self):
         from common.ros.bag import BagError
-        from common.ros.live import decode
         try:
             topic, key, payload, _t_rx = self.queue.get(timeout=0.1)
         except queue.Empty:
@@ -161,15 +189,16 @@ class Ros2Node(CameraSourceNode):
                 self._publish_calib()
             return True
         msgtype = self._msgtype(topic, key)
+        if isinstance(payload, int):
+            self.asm.refuse_oversized(topic, payload, msgtype)
+            return True
         try:
-            msg = decode(payload, msgtype)
-            samples = self.asm.feed(topic, msg)
-        except (BagError, ValueError, KeyError, AssertionError, IndexError, TypeError) as exc:
-            self.count("bad_samples")
-            now = time.monotonic()
-            if now - self.last_bad_log > 1.0:
-                self.last_bad_log = now
-                self.log.error("ros2: %s (%s on %s): %s", topic, msgtype, key, exc)
+            samples = self.asm.feed_bytes(topic, payload, msgtype)
+        except BagError as exc:               # the rig cannot make a sample (e.g. sizes differ)
+            self.asm.refuse(topic, str(exc))
+            return True
+        except Exception as exc:              # nothing a peer sends may stop the source
+            self.asm.refuse(topic, f"{msgtype} on {key}: {type(exc).__name__}: {exc}")
             return True
         for s in samples:
             self.out.publish(s, self.seq, s.stamp_ns)

@@ -4,8 +4,11 @@ Input ``pose`` (PoseEstimate; ``calib``, optional, is needed for ``frame: left``
 out as ``geometry_msgs/PoseStamped`` on ``topic`` and, when it has a covariance,
 ``geometry_msgs/PoseWithCovarianceStamped`` on ``cov_topic`` (empty: not published), CDR-encoded,
 on bridge keys or rmw_zenoh keys (``keys``; with rmw_zenoh, every sample carries rmw_zenoh's
-attachment and the node declares the liveliness tokens of a node ``node_name`` and its two
-publishers, so that ``ros2 topic list`` / ``ros2 node list`` see them).
+attachment, ``attachment``: ``positional`` (rmw_zenoh 0.1.2+ Humble, 0.2.4+ Jazzy, 0.6+ Kilted)
+or ``keyed`` (older releases), with the publisher's GID derived as rmw_zenoh derives it, and the
+node declares the liveliness tokens of a node ``node_name`` and its two publishers, so that
+``ros2 topic list`` / ``ros2 node list`` see them). ``distro`` (humble | jazzy | kilted |
+rolling) selects the type hash in rmw_zenoh keys and tokens (Humble: ``TypeHashNotSupported``).
 
 Frames (``frame``): ``ecm`` (default): ``T_ecm_needle``, header ``frame_id`` = ``frame_ids.ecm``
 (the ECM tip: dVRK's ECM end effector, AMBF's CameraFrame); ``left``: the left camera's OpenCV
@@ -50,6 +53,8 @@ class Ros2OutNode(Node):
                                                          "world": "world"})
         unit: Literal["m", "dm", "cm", "mm"] = "m"
         keys: Literal["bridge", "rmw_zenoh"] = "bridge"
+        distro: Literal["humble", "jazzy", "kilted", "rolling"] = "jazzy"   # the ROS 2 system's (rmw_zenoh keys)
+        attachment: Literal["positional", "keyed"] = "positional"   # keyed: rmw_zenoh 0.1.0-0.1.1, 0.2.0-0.2.3
         domain_id: int = 0
         namespace: str = ""
         connect: list[str] = field(default_factory=lambda: ["tcp/127.0.0.1:7447"])
@@ -57,7 +62,7 @@ class Ros2OutNode(Node):
         node_name: str = "needletrack"
 
     def setup(self):
-        from common.ros.live import liveliness_token, topic_key
+        from common.ros.live import entity_gid, liveliness_token, topic_key
         from nodes.ros2 import open_session
         p = self.p
         if p.frame == "left" and not self.wired("calib"):
@@ -79,14 +84,16 @@ class Ros2OutNode(Node):
         if p.keys == "rmw_zenoh":
             self.tokens.append(self.session.liveliness().declare_token(
                 liveliness_token("NN", zid, p.node_name, domain_id=p.domain_id)))
+        self.gid = {}
         for i, (name, topic, msgtype) in enumerate(targets, start=1):
-            key = topic_key(topic, msgtype, p.keys, p.domain_id, p.namespace)
+            key = topic_key(topic, msgtype, p.keys, p.domain_id, p.namespace, distro=p.distro)
             self.pubs[name] = self.session.declare_publisher(key)
+            self.gid[name] = os.urandom(16)
             if p.keys == "rmw_zenoh":
-                self.tokens.append(self.session.liveliness().declare_token(
-                    liveliness_token("MP", zid, p.node_name, domain_id=p.domain_id, entity_id=i, topic=topic,
-                                     msgtype=msgtype)))
-        self.gid = {name: os.urandom(16) for name in self.pubs}
+                token = liveliness_token("MP", zid, p.node_name, domain_id=p.domain_id, entity_id=i, topic=topic,
+                                         msgtype=msgtype, distro=p.distro)
+                self.gid[name] = entity_gid(token)           # as rmw_zenoh derives a publisher's GID
+                self.tokens.append(self.session.liveliness().declare_token(token))
         self.sent = {name: 0 for name in self.pubs}
         self.log.info("ros2_out: %s", {n: str(pb.key_expr) for n, pb in self.pubs.items()})
 
@@ -94,11 +101,13 @@ class Ros2OutNode(Node):
         self.T_ecm_left = np.asarray(msg.cameras["left"]["T_ecm_cam"], float)
 
     def _put(self, name: str, msg) -> None:
-        from common.ros.live import attachment, encode
+        from common.ros.cdr import encode
+        from common.ros.live import attachment
         data = encode(msg)
         self.sent[name] += 1
         if self.p.keys == "rmw_zenoh":
-            self.pubs[name].put(data, attachment=attachment(self.sent[name], time.time_ns(), self.gid[name]))
+            self.pubs[name].put(data, attachment=attachment(self.sent[name], time.time_ns(), self.gid[name],
+                                                            self.p.attachment))
         else:
             self.pubs[name].put(data)
         self.count(f"sent.{name}")

@@ -16,6 +16,13 @@ looping.
 params: ``path`` (required), ``preset`` (ambf | dvrk | none), ``topics`` (a topic map file or
 mapping), ``rate`` (``recorded``: the header stamps' timing; ``max``; or Hz), ``loop``,
 ``count`` (pairs to play; 0 all), ``encoding`` (bgr8).
+
+A message that does not decode (common/ros/cdr.py) or cannot serve its topic's role (non-finite
+calibration or pose, oversized arrays, an image that cannot be decoded) is skipped: counted
+``refused_messages``, logged once per topic with its reason; the playback goes on. A bag that
+fails part way (a reader error, a frame that cannot be assembled, a value not finite) stops the
+source: ``NodeError``, exit status 2, and the launcher says why and stops the graph. An
+unfinished MCAP recording plays up to its last complete chunk, with a warning.
 """
 from __future__ import annotations
 
@@ -26,7 +33,7 @@ from typing import Literal
 from common.runtime.camera_source import CameraSourceNode
 from common.runtime.messages import EndOfStream
 from common.runtime.node import NodeError, run
-from common.runtime.pacing import Pacer
+from common.runtime.pacing import SourceClock, parse_rate, sleep_in_slices
 
 CAMS = ("left", "right")
 
@@ -48,14 +55,13 @@ class RosbagNode(CameraSourceNode):
 
     def setup(self):
         from common.ros.bag import BagError
-        from nodes.replay import parse_rate
         p = self.p
         if not p.path:
             raise NodeError("param 'path' (a ROS 1 .bag or ROS 2 .db3/.mcap bag) is required")
         if p.preset not in (None, "ambf", "dvrk"):
             raise NodeError(f"param 'preset' must be ambf or dvrk, got {p.preset!r}")
         try:
-            self.rate = parse_rate(p.rate)
+            self.rate = parse_rate(p.rate, "rosbag")
             self._open()
             self.first = next(self.it, None)
         except (BagError, ValueError) as exc:
@@ -63,6 +69,8 @@ class RosbagNode(CameraSourceNode):
         if self.first is None:
             raise NodeError(f"rosbag: {p.path}: no stereo pair in the bag (unpaired: {self.bag.counts})")
         self.log.info("rosbag: %s: topics %s, unit %s", p.path, self.bag.info["topics"], self.bag.info.get("unit"))
+        if self.bag.info.get("recovered"):
+            self.log.warning("rosbag: %s: %s", p.path, self.bag.info["recovered"])
         from common.ros.source import SamplePublisher
         self.out = SamplePublisher(self, self.bag.needle_model(), f"rosbag {p.path}", self.bag.map.get("ecm"),
                                    p.encoding)
@@ -70,58 +78,60 @@ class RosbagNode(CameraSourceNode):
         self.pending = self.first
         self.loops = 0
         self.n_frames = None           # pairs in one pass, known after the first
-        self.published = 0
-        self.pacer = Pacer(self.rate if self.rate else 0.0)
-        self.t0 = None
+        self.played = 0
+        self.clock = SourceClock(self.rate)
 
     def _open(self):
         from common.ros.bag import BagStereo
         from common.ros.source import topics_param
-        self.bag = BagStereo(self.p.path, self.p.preset, topics_param(self.p.topics))
+        self.bag = BagStereo(self.p.path, self.p.preset, topics_param(self.p.topics), report=self._refused)
         self.it = iter(self.bag)
 
+    def _refused(self, topic: str, reason: str) -> None:
+        self.count("refused_messages")
+        logged = self.__dict__.setdefault("refused_logged", set())
+        if topic not in logged:                 # once per topic, whatever the passes of a loop
+            logged.add(topic)
+            self.log.warning("rosbag: %s: %s: message skipped (further ones on this topic counted, not logged): %s",
+                             self.p.path, topic, reason)
+
     def _next(self):
+        """The next stereo sample (None at the end); NodeError when the bag fails part way (a
+        truncated or corrupt record, a frame that cannot be assembled, a value not finite)."""
+        from common.ros.bag import BagError
+        from common.ros.convert import sample_fault
         s, self.pending = self.pending, None
-        if s is None:
-            s = next(self.it, None)
-        if s is None and self.p.loop:
-            self.n_frames = self.n_frames or self.published
-            self.bag.close()
-            self._open()
-            self.loops += 1
-            self.t0 = None
-            s = next(self.it, None)
+        try:
+            if s is None:
+                s = next(self.it, None)
+            if s is None and self.p.loop:
+                self.n_frames = self.n_frames or self.played
+                self.bag.close()
+                self._open()
+                self.loops += 1
+                self.clock.restart()
+                s = next(self.it, None)
+        except (BagError, ValueError) as exc:
+            self.count("bag_errors")
+            raise NodeError(f"rosbag: {exc} ({self.played} frames published)") from None
+        fault = None if s is None else sample_fault(s, self.bag.info["topics"])
+        if fault:
+            self.count("bag_errors")
+            raise NodeError(f"rosbag: {self.p.path}: frame {s.index} (stamp {s.stamp_ns}): {fault} "
+                            f"({self.played} frames published)")
         return s
 
     def _pace(self, s) -> None:
-        now = time.monotonic()
-        if self.rate is None:
-            if self.t0 is None:
-                self.t0 = (now, s.stamp_ns)
-            delay = self.t0[0] + (s.stamp_ns - self.t0[1]) * 1e-9 - now
-        elif self.rate > 0:
-            delay = self.pacer.delay()
-        else:
-            delay = 0.0
-        while delay > 0 and self.running:
-            time.sleep(min(delay, 0.1))
-            self._publish_calib()
-            delay -= 0.1
+        sleep_in_slices(self.clock.delay(s.stamp_ns), lambda: self.running, self._publish_calib)
 
     def step(self):
-        from common.ros.bag import BagError
         from common.ros.convert import RestGroups
-        if self.p.count and self.published >= self.p.count:
+        if self.p.count and self.played >= self.p.count:
             s = None
         else:
-            try:
-                s = self._next()
-            except BagError as exc:
-                self.count("bag_errors")
-                self.log.error("rosbag: %s", exc)
-                s = None
+            s = self._next()     # NodeError: the source stops with exit status 2
         if s is None:
-            self.publish("eos", EndOfStream(frames=self.published, stamp_ns=time.time_ns()))
+            self.publish("eos", EndOfStream(frames=self.played, stamp_ns=time.time_ns()))
             return False
         if s.index == 0:
             self.out.groups = RestGroups()      # a new pass over the bag
@@ -129,7 +139,7 @@ class RosbagNode(CameraSourceNode):
         self._pace(s)
         seq = s.index + self.loops * (self.n_frames or 0)
         self.out.publish(s, seq, s.stamp_ns, 1_000_000 * self.loops)
-        self.published += 1
+        self.played += 1
         return True
 
     def teardown(self):

@@ -92,13 +92,7 @@ class SimNode(CameraSourceNode):
             self.publish(cam, CameraImage.from_bgr(cam, self.seq, stamp, fr.images[cam], self.encoding,
                                                    self.jpeg_quality))
         self.publish("joints", EcmJoints(self.seq, stamp, np.asarray(fr.q, float)))
-        t = fr.truth
-        self.publish("truth", GroundTruth(
-            seq=self.seq, stamp_ns=stamp, sequence=fr.sequence, step=fr.step, ecm_joints=np.asarray(fr.q, float),
-            T_world_ecm=fr.T_world_ecm, T_world_needle=fr.T_world_needle,
-            keypoints={c: np.asarray(t["keypoints"][c], float) for c in ("left", "right")},
-            visible={c: np.asarray(t["visible"][c], bool) for c in ("left", "right")},
-            bbox={c: None if t["bbox"][c] is None else np.asarray(t["bbox"][c], float) for c in ("left", "right")}))
+        self.publish("truth", GroundTruth.from_frame(fr, self.seq, stamp))
         self.seq += 1
         self._publish_calib()
         return True

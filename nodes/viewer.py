@@ -25,7 +25,7 @@ from typing import Optional
 
 import numpy as np
 
-from common.evaluation.scoring import true_T_ecm_needle
+from common.evaluation.metrics import true_T_ecm_needle
 from common.geometry.camera import StereoRig
 from common.geometry.ecm_kinematics import EcmArm
 from common.geometry.needle import NeedleModel
@@ -38,12 +38,13 @@ from common.runtime.messages import (
     PoseEstimate,
 )
 from common.runtime.node import Node, NodeError, run
+from common.runtime.pairing import SeqCache
 from common.viewer.draw import PoseToDraw, decode_small
 from common.viewer.frame import log_frame, pictures
-from common.viewer.page import PageServer
+from common.viewer.page import HttpLimits, PageServer
 from common.viewer.state import ViewerState
-from nodes._pose import POSE_METHODS, PoseMethodInputs
-from nodes.monitor import FINAL_ORDER
+from common.methods import POSE_METHODS, final_method
+from nodes._pose import PoseMethodInputs
 
 CAMERAS = ("left", "right")
 KEEP = 16           # frames remembered per input (by seq)
@@ -63,12 +64,6 @@ def port_or_free(port: int, host: str = "127.0.0.1") -> int:
     raise OSError(f"no free port on {host}")
 
 
-def _put(d: collections.OrderedDict, key, value, keep: int = KEEP) -> None:
-    d[key] = value
-    while len(d) > keep:
-        d.popitem(last=False)
-
-
 class ViewerNode(PoseMethodInputs, Node):
     """See the module docstring."""
 
@@ -81,8 +76,11 @@ class ViewerNode(PoseMethodInputs, Node):
 
     @dataclass
     class Params:
-        host: str = "127.0.0.1"       # the page's address (loopback)
+        host: str = "127.0.0.1"       # the page's address (loopback; another logs a warning)
         port: int = 9090              # the page's port (0, or taken: any free port)
+        allowed_hosts: tuple[str, ...] = ()   # more Host names the page answers (beside localhost,
+                                      # the bound host and addresses; "*": any): DNS rebinding
+        max_connections: int = 64     # page connections served at once (then 503)
         rerun: bool = True            # also log to Rerun when rerun-sdk is installed
         web_port: int = 9091          # Rerun's web viewer on 127.0.0.1 (0: none; taken: any free port)
         grpc_port: int = 9876         # Rerun's data server on 127.0.0.1 (0: none; taken: any free port)
@@ -98,17 +96,17 @@ class ViewerNode(PoseMethodInputs, Node):
 
     def setup(self):
         p = self.p
-        if p.rate_hz <= 0 or p.width < 16 or p.height < 16:
-            raise NodeError("viewer: rate_hz must be > 0 and width, height at least 16")
+        if p.rate_hz <= 0 or p.width < 16 or p.height < 16 or p.max_connections < 1:
+            raise NodeError("viewer: rate_hz must be > 0, width, height at least 16, max_connections at least 1")
         wired = [m for m in POSE_METHODS if self.wired(m)]
         if p.final is not None and p.final not in POSE_METHODS:
             raise NodeError(f"viewer.params.final: {p.final!r} is not one of {POSE_METHODS}")
-        self.final = p.final or next((m for m in FINAL_ORDER if m in wired), wired[0] if wired else None)
-        self.images = {c: collections.OrderedDict() for c in CAMERAS}   # seq -> (img, scale, stamp, t)
-        self.keypoints = {c: collections.OrderedDict() for c in CAMERAS}
-        self.poses = {m: collections.OrderedDict() for m in POSE_METHODS}
-        self.truths = collections.OrderedDict()
-        self.ecm = collections.OrderedDict()
+        self.final = p.final or final_method(wired)
+        self.images = {c: SeqCache(KEEP) for c in CAMERAS}   # seq -> (img, scale, stamp, t)
+        self.keypoints = {c: SeqCache(KEEP) for c in CAMERAS}
+        self.poses = {m: SeqCache(KEEP) for m in POSE_METHODS}
+        self.truths = SeqCache(KEEP)
+        self.ecm = SeqCache(KEEP)
         self.path = collections.deque(maxlen=PATH_POINTS)
         self.last_sample = {c: -1e9 for c in CAMERAS}
         self.rendered = -1
@@ -119,10 +117,12 @@ class ViewerNode(PoseMethodInputs, Node):
         rerun_url = None
         if p.rerun:
             rerun_url = self._start_rerun()
+        page = dict(poll_ms=int(1000 / p.rate_hz), rerun_url=rerun_url, allowed_hosts=p.allowed_hosts,
+                    limits=HttpLimits(max_connections=p.max_connections), log=self.log, count=self.count)
         try:
-            self.page = PageServer(p.host, p.port, poll_ms=int(1000 / p.rate_hz), rerun_url=rerun_url)
+            self.page = PageServer(p.host, p.port, **page)
         except OSError as exc:      # taken (another viewer?): any free port rather than no viewer
-            self.page = PageServer(p.host, 0, poll_ms=int(1000 / p.rate_hz), rerun_url=rerun_url)
+            self.page = PageServer(p.host, 0, **page)
             self.log.warning("port %d: %s; serving on %d instead", p.port, exc, self.page.port)
         print(f"viewer: {self.page.url}", flush=True)
         if rerun_url:
@@ -193,7 +193,7 @@ class ViewerNode(PoseMethodInputs, Node):
             self.log.warning("seq %d %s: %s", msg.seq, msg.camera, exc)
             return
         self.last_sample[msg.camera] = now
-        _put(self.images[msg.camera], msg.seq, (small, scale, msg.stamp_ns, now))
+        self.images[msg.camera].put(msg.seq, (small, scale, msg.stamp_ns, now))
         self._render_ready(now)
 
     def on_keypoints_left(self, msg: Keypoints):
@@ -203,20 +203,20 @@ class ViewerNode(PoseMethodInputs, Node):
         self._keypoints(msg)
 
     def _keypoints(self, msg: Keypoints):
-        _put(self.keypoints[msg.camera], msg.seq, msg)
+        self.keypoints[msg.camera].put(msg.seq, msg)
         self.state.add_point("confidence", msg.camera, time.monotonic(), msg.confidence)
 
     def on_truth(self, msg: GroundTruth):
-        _put(self.truths, msg.seq, msg)
+        self.truths.put(msg.seq, msg)
 
     def on_ecm(self, msg: EcmPose):
         T = np.asarray(msg.T_world_ecm, float)
-        _put(self.ecm, msg.seq, T)
+        self.ecm.put(msg.seq, T)
         self.path.append(T[:3, 3].copy())
 
     def on_pose(self, method: str, msg: PoseEstimate):
         now = time.monotonic()
-        _put(self.poses[method], msg.seq, msg)
+        self.poses[method].put(msg.seq, msg)
         self.state.add_pose(method, msg.seq, msg.T_ecm_needle, self._true(msg.seq),
                             (time.time_ns() - msg.stamp_ns) * 1e-6, bool(msg.ambiguous), now, msg.end_identity)
         self._render_ready(now)

@@ -13,6 +13,20 @@ from graphtools import free_port as _free_port  # noqa: E402
 from graphtools import launch_graph
 
 
+LAYERS_SLOW = ("graph", "browser", "netns", "training")
+
+
+def pytest_collection_modifyitems(config, items):
+    """A test that launches a graph (the ``run_graph`` fixture) is ``graph``; ``graph``,
+    ``browser``, ``netns`` and ``training`` tests are ``slow`` too (``-m "not slow"`` is the
+    fast loop)."""
+    for item in items:
+        if "run_graph" in getattr(item, "fixturenames", ()):
+            item.add_marker(pytest.mark.graph)
+        if any(item.get_closest_marker(m) for m in LAYERS_SLOW):
+            item.add_marker(pytest.mark.slow)
+
+
 @pytest.fixture
 def free_port():
     """A free TCP port on 127.0.0.1."""

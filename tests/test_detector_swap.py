@@ -2,6 +2,7 @@
 learned -> oracle) through the runtime's make-before-break swap, in a launched graph (real
 processes, Zenoh on loopback), while frames flow: every backend publishes after its swap, no
 frame seq is published twice, and at most one frame is missing across each handover."""
+import pytest
 import os
 import signal
 
@@ -13,6 +14,8 @@ from common.geometry.needle import NeedleModel
 from common.geometry.transforms import make_T, rotvec_to_R
 from common.runtime.messages import Keypoints
 from common.sim.randomise import default_arm
+
+pytestmark = pytest.mark.graph
 
 W, H = 160, 90           # tiny images: the swap is under test, not the detectors' accuracy
 RATE_HZ = 10             # low enough for every backend to keep up on two busy cores

@@ -1,14 +1,16 @@
 """Lens distortion wherever a pixel meets geometry: the solvers' undistortion converges, the
 detector's ellipse test runs on ideal pixels, and a strongly distorted dataset evaluates as
 exactly as its pinhole twin with the oracle."""
+import pytest
 import json
 
 import cv2
 import numpy as np
 
+from common.cli import dataset_main
 from common.data.dataset import Dataset, check_dataset
 from common.detector.centreline_subpixel import ellipse_residual
-from common.detector.inference import _undistorter
+from common.detector.learned import _undistorter
 from common.evaluation.cli import main as eval_main
 from common.geometry.camera import StereoRig, undistort_pixels
 from common.geometry.needle import NeedleModel
@@ -16,7 +18,6 @@ from common.geometry.refine import project_centreline
 from common.geometry.transforms import make_T, rotvec_to_R
 from common.ros.synth import distort_dataset
 from common.runtime.messages import Calibration
-from common.sim.cli import main as dataset_main
 
 STRONG = np.array([-0.35, 0.15, 0.001, 0.001, 0.0])
 
@@ -52,6 +53,7 @@ def test_the_ellipse_test_sees_the_needle_through_the_lens():
     assert _undistorter(calib, "left") is None
 
 
+@pytest.mark.graph
 def test_a_strongly_distorted_dataset_evaluates_exactly_with_the_oracle(tmp_path):
     rc = dataset_main(["generate", "--out", str(tmp_path / "pinhole"), "--sequences", "2", "--steps", "2",
                        "--width", "640", "--height", "480", "--seed", "11", "--randomise", "none", "--jobs", "1",

@@ -13,7 +13,7 @@ from common.detector.end_identity import (
     network_evidence,
     shape_evidence,
 )
-from common.detector.inference import ModelFileError, load_end_coefficients
+from common.detector.weights import ModelFileError, load_end_coefficients
 
 
 def drawn_needle(taper_px=12.0, wire_px=5.0, radius_px=90.0, size=320):

@@ -7,9 +7,14 @@ import pytest
 
 from common.geometry.camera import StereoRig
 from common.geometry.end_identity import (
+    TIP_SURE,
+    TRACK_CAP,
     end_for_end_delta,
     identity_covariance,
-    TRACK_CAP,
+    logit,
+    settle,
+    sigmoid,
+    state,
     stereo_end_identity,
     track_identity,
     turn_observation,
@@ -149,3 +154,43 @@ def test_identity_is_the_tracked_needles_not_one_frames():
     turn, (z, _) = track_identity(0.7, track, False)
     assert turn and 0 < z < weak
     assert track_identity(1.0 - 1e-12, (TRACK_CAP, 5.0), True)[1][0] == TRACK_CAP
+
+
+def test_settle_alone_turns_below_one_half_and_states_the_likelier_reading():
+    assert settle(None, None) == settle(None, None, tracking=True)
+    assert settle(None, None).turn is False and settle(None, None).p is None
+    s = settle(0.2, 0.3)
+    assert s.turn and s.p == pytest.approx(1.0 - stereo_end_identity(0.2, 0.3)) and s.track is None
+    s = settle(0.8, None)
+    assert not s.turn and s.p == pytest.approx(0.8)
+    assert settle(0.5, 0.5).p == pytest.approx(0.5) and not settle(0.5, 0.5).turn
+
+
+def test_settle_with_tracking_is_the_tracks_call_and_states_the_tracks_probability():
+    s = settle(0.3, None, tracking=True)                     # no track yet: the frame's own call
+    assert s.turn and s.track is not None and s.p == pytest.approx(0.7)
+    strong = (logit(0.99), 5.0)
+    s = settle(0.7, None, tracking=True, track=strong, same_as_track=False)
+    turn, track = track_identity(0.7, strong, False)
+    assert (s.turn, s.track) == (turn, track) and s.turn     # weak contrary evidence: read as the track reads it
+    assert s.p == pytest.approx(sigmoid(track[0])) and s.p > 0.5
+    assert settle(None, None, tracking=True, track=strong, same_as_track=True).track is None
+
+
+def test_state_flags_below_the_floor_and_spans_the_turn():
+    rng = np.random.default_rng(3)
+    T = random_needle_pose(rng, RIG, MODEL)
+    C = np.diag([1e-4] * 3 + [1e-8] * 3)
+    assert state(T, C, MODEL, None) == (False, C)
+    unsure, C_sure = state(T, C, MODEL, TIP_SURE)
+    assert not unsure and C_sure is C
+    unsure, C_unsure = state(T, C, MODEL, 0.8)
+    assert unsure and np.allclose(C_unsure, identity_covariance(T, C, MODEL, 0.8))
+    assert state(T, None, MODEL, 0.8) == (True, None)
+    assert state(T, C, MODEL, 0.8, min_p=0.75)[0] is False
+
+
+def test_sigmoid_inverts_logit_and_does_not_overflow():
+    for p in (1e-6, 0.1, 0.5, 0.93, 1 - 1e-6):
+        assert sigmoid(logit(p)) == pytest.approx(p, rel=1e-6)
+    assert 0.0 < sigmoid(-1e6) < 1e-12 and 1.0 - 1e-12 < sigmoid(1e6) <= 1.0

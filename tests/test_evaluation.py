@@ -9,20 +9,10 @@ from common.evaluation.report import (
     select_overlay_frames,
     write_outputs,
 )
-from common.evaluation.scoring import (
-    METHODS,
-    RESULT_KEYS,
-    Collected,
-    build_results,
-    check_results,
-    evaluate,
-    keypoint_errors_2d,
-    last_steps,
-    pearson,
-    pose_nees,
-    summary,
-    to_jsonable,
-)
+from common.evaluation.collect import Collected, evaluate
+from common.evaluation.metrics import keypoint_errors_2d, last_steps, pearson, pose_nees, summary
+from common.evaluation.results import RESULT_KEYS, build_results, check_results, to_jsonable
+from common.methods import REPORTED_METHODS as METHODS
 from common.geometry.camera import StereoRig
 from common.geometry.needle import NeedleModel
 from common.geometry.transforms import inv_T, make_T, rotvec_to_R, transform_points
@@ -190,6 +180,7 @@ def test_no_pose_at_all_still_gives_typed_results():
     assert res["timing"]["throughput_hz"] is None
 
 
+@pytest.mark.slow
 def test_results_keys_and_types(tmp_path):
     col = synthetic(px_noise=0.3)
     col.add_pose("refined", PoseEstimate(0, 1000, "refined", col.truths[0].T_world_needle), 1)
@@ -265,6 +256,7 @@ def test_nees_of_a_stated_covariance():
     assert check_results(res) == [] and "| pnp_joint | 1.0 | 0% | 0% |" in report_markdown(res)
 
 
+@pytest.mark.slow
 def test_the_nees_picture_is_drawn_when_covariances_are_stated(tmp_path):
     from common.evaluation.report import chi2_6_cdf
     assert chi2_6_cdf(5.348) == pytest.approx(0.5, abs=1e-3) and chi2_6_cdf(16.81) == pytest.approx(0.99, abs=1e-3)
@@ -284,7 +276,7 @@ def test_the_nees_picture_is_drawn_when_covariances_are_stated(tmp_path):
 
 def test_pose_table_scores_the_unflagged_poses_apart():
     from types import SimpleNamespace
-    from common.evaluation.scoring import pose_table
+    from common.evaluation.collect import pose_table
     t = {"seqs": [0, 1, 2, 3], "position_m": np.array([0.001, 0.002, 0.010, np.nan]),
          "orientation_rad": np.radians([1.0, 3.0, 179.0, np.nan]), "distance_m": np.full(4, 0.15),
          "n_views": np.ones(4), "nees": np.array([4.0, 6.0, 1.0, np.nan]),
@@ -300,7 +292,7 @@ def test_pose_table_sets_the_stated_end_identity_against_the_turned_poses():
     from types import SimpleNamespace
 
     from common.evaluation.report import _tip
-    from common.evaluation.scoring import pose_table
+    from common.evaluation.collect import pose_table
     t = {"seqs": [0, 1, 2, 3, 4], "position_m": np.array([0.001, 0.002, 0.001, 0.001, np.nan]),
          "orientation_rad": np.radians([1.0, 179.0, 2.0, 1.0, np.nan]), "distance_m": np.full(5, 0.15),
          "n_views": np.ones(5), "nees": np.array([4.0, 1.0, 5.0, 3.0, np.nan]),
@@ -315,3 +307,38 @@ def test_pose_table_sets_the_stated_end_identity_against_the_turned_poses():
     assert e["all"] == {"n": 3, "stated": pytest.approx((0.4 + 0.4 + 0.01) / 3), "measured": pytest.approx(1 / 3)}
     assert e["flagged"] == {"n": 2, "stated": pytest.approx(0.4), "measured": pytest.approx(0.5)}
     assert _tip({"end_identity": e}) == "all 27.0% / 33.3%; flagged 40.0% / 50.0%"
+
+
+def test_pose_table_counts_confident_swaps_undecided_tips_the_nearer_reading_and_sure_and_right():
+    from types import SimpleNamespace
+
+    from common.evaluation.collect import pose_table
+    # 0: undecided and turned (its other reading 1 deg off); 1: undecided, right; 2: sure, right;
+    # 3: sure but 3 mm off; 4: turned and unflagged: a confident swap; 5: no pose
+    t = {"seqs": list(range(6)), "position_m": np.array([0.001, 0.001, 0.001, 0.003, 0.001, np.nan]),
+         "orientation_rad": np.radians([178.0, 2.0, 1.0, 1.0, 177.0, np.nan]),
+         "orientation_turned_rad": np.radians([1.0, 178.0, 179.0, 179.0, 3.0, np.nan]),
+         "distance_m": np.full(6, 0.15), "n_views": np.ones(6), "nees": np.full(6, 4.0),
+         "ambiguous": np.array([1.0, 1.0, 0.0, 0.0, 0.0, np.nan]),
+         "end_identity": np.array([0.6, 0.7, 0.99, 0.98, 0.97, np.nan])}
+    d = pose_table(SimpleNamespace(pose={"refined": t}))["refined"]
+    assert d["confident_swaps"] == 1
+    assert d["undecided"] == {"n": 2, "share": pytest.approx(2 / 5), "turned": 1}
+    # modulo the turn the undecided turned pose counts 1 deg, the confident swap keeps its 177
+    assert d["modulo_turn"]["orientation_deg"]["max"] == pytest.approx(177.0)
+    assert d["modulo_turn"]["orientation_deg"]["median"] == pytest.approx(1.0)
+    assert d["sure_and_right"] == pytest.approx(1 / 6)          # frame 2 only, over all 6 frames
+    rel = {(r["p_from"], r["p_to"]): r for r in d["reliability"]}
+    assert rel[(0.6, 0.7)]["n"] == 1 and rel[(0.6, 0.7)]["measured"] == 1.0
+    assert rel[(0.6, 0.7)]["within_bound"] is False                 # stated 40% turned, found 100%
+    assert rel[(0.7, 0.8)]["within_bound"] is True
+    top = rel[(0.95, 0.99)]
+    assert top["n"] == 2 and top["measured"] == 0.5 and top["within_bound"] is False
+
+
+def test_the_calibration_bound_and_bins():
+    from common.evaluation.metrics import reliability_table, within_calibration_bound
+    assert within_calibration_bound(0.1, 0.17) and not within_calibration_bound(0.1, 0.18)
+    assert within_calibration_bound(0.0, 0.02)
+    rows = reliability_table(np.array([1.0, 0.995, 0.5]), np.array([False, False, True]))
+    assert [(r["p_from"], r["n"]) for r in rows] == [(0.5, 1), (0.99, 2)]

@@ -5,10 +5,12 @@ import shutil
 import pytest
 import yaml
 
+from common.cli import dataset_main
 from common.evaluation.cli import main as eval_main
 from common.evaluation.graph_bench import main as bench_main
-from common.evaluation.scoring import check_results
-from common.sim.cli import main as dataset_main
+from common.evaluation.results import check_results
+
+pytestmark = pytest.mark.graph
 
 
 @pytest.fixture(scope="module")

@@ -1,6 +1,7 @@
 """models/finetune.sh, the documented adaptation recipe: fine-tunes the shipped weights on a
 folder and scores the shipped and the fine-tuned weights on a test folder (a short schedule here;
 the recipe's own is models/finetune.yaml)."""
+import pytest
 import json
 import os
 import subprocess
@@ -11,8 +12,10 @@ import yaml
 
 import common.sim.render  # noqa: F401  (headless GL before mujoco)
 from common.detector.end_identity import FEATURES
-from common.detector.inference import load_end_coefficients
+from common.detector.weights import load_end_coefficients
 from common.sim.generate import GenerateConfig, generate
+
+pytestmark = pytest.mark.training
 
 ROOT = Path(__file__).resolve().parent.parent
 

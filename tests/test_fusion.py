@@ -114,6 +114,7 @@ def test_multiview_exact_at_zero_noise(seed, joint):
     assert dt < 1e-6 and dr < np.deg2rad(1e-4)
 
 
+@pytest.mark.slow
 def test_fusion_over_five_views_beats_one_view_at_1px():
     """The ECM yaw joint moves 0.05 rad between views; one joint PnP estimate per view."""
     rng = np.random.default_rng(4)

@@ -2,12 +2,14 @@
 input of every node of the default graph, in process; none may crash a handler or the codec,
 publish a pose that breaks the invariant, or keep a node from publishing once clean frames
 come again (the full count, 10,000 per input, is the bench command; docs/robustness.md)."""
+import pytest
 import logging
 
 from common.evaluation.fuzz import KINDS, RECOVERY_LIMIT, run_fuzz, summary
 from common.runtime.graph import REPO_ROOT, load_graph
 
 
+@pytest.mark.slow
 def test_every_default_graph_node_survives_poison_on_every_input():
     logging.disable(logging.CRITICAL)
     try:

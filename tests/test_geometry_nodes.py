@@ -345,6 +345,7 @@ def _multiview_dataset(folder, n_frames=10):
     return T_wn
 
 
+@pytest.mark.graph
 def test_nodes_in_a_launched_graph_match_the_library(run_graph, tmp_path):
     T_wn = _multiview_dataset(tmp_path / "ds")
     stereo = {"left": "detector/left", "right": "detector/right", "calib": "camera/calib", "ecm": "ecm/pose"}

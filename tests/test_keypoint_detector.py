@@ -7,14 +7,9 @@ import pytest
 import torch
 
 from common.detector.backends import BackendError, load_backend
-from common.detector.inference import (
-    DEFAULT_WEIGHTS,
-    KEYPOINT_SIGMA_PX,
-    KeypointDetector,
-    ModelFileError,
-    decode_centreline,
-    load_model,
-)
+from common.detector.arc_fit import decode_centreline
+from common.detector.inference import KEYPOINT_SIGMA_PX, KeypointDetector
+from common.detector.weights import DEFAULT_WEIGHTS, ModelFileError, load_model
 from common.detector.model import KeypointModel, ModelConfig
 from common.detector.train import save_model
 from common.runtime.messages import CameraImage, Keypoints
@@ -61,6 +56,7 @@ def test_shipped_model_finds_the_needle_in_rendered_frames(detector, rendered_fr
     assert np.median(errors) <= 2.0, f"keypoint errors {np.round(errors, 2)} px"
 
 
+@pytest.mark.slow
 def test_centreline_is_sub_pixel_in_the_full_resolution_image(rendered_frames):
     from common.geometry.camera import StereoRig
     from common.geometry.needle import NeedleModel
@@ -186,12 +182,7 @@ def test_centreline_decoding_finds_a_ridge_at_subcell_precision():
 
 
 def test_arc_fit_recovers_b_c_d_of_an_affine_arc():
-    from common.detector.inference import (
-        ARC_ANGLES_DEG,
-        arc_at,
-        fit_arc_affine,
-        refine_along_arc,
-    )
+    from common.detector.arc_fit import ARC_ANGLES_DEG, arc_at, fit_arc_affine, refine_along_arc
     from common.detector.model import centreline_target
     c = np.array([60.3, 70.6])
     U = np.array([[30.0, 8.0], [-5.0, -18.0]])      # a tilted, foreshortened circle

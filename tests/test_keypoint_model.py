@@ -128,7 +128,7 @@ def test_model_config_rejects_unknown_fields():
 
 
 def test_a_perfect_heatmap_scores_one_after_normalisation():
-    from common.detector.inference import ideal_peak_mass
+    from common.detector.arc_fit import ideal_peak_mass
     from common.detector.model import decode_heatmaps, gaussian_targets
     sigma = 1.5
     t = gaussian_targets(torch.tensor([[[30.0, 41.0]]]), torch.ones(1, 1), 64, sigma)

@@ -33,6 +33,8 @@ from common.detector.train import (
     train,
 )
 
+pytestmark = pytest.mark.training
+
 TINY_MODEL = {"crop": 64, "crop_widths": [8, 16, 16, 24], "global_widths": [8, 8, 16], "crop_min": 40.0}
 
 

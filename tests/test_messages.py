@@ -209,3 +209,27 @@ def test_keypoints_with_bad_noise_statements_are_refused():
             why_ = "not finite" if not np.isfinite(bad) else why      # non-finite: refused by the codec
             with pytest.raises(MessageError, match=f"Keypoints.{field}: {why_}"):
                 decode(payload, Keypoints)
+
+
+def test_ground_truth_from_a_dataset_frame_and_a_simulated_one():
+    import numpy as np
+    from common.data.dataset import Frame
+    from common.runtime.messages import GroundTruth, decode, encode
+    from common.sim.live import SimFrame
+    assert GroundTruth.from_frame(Frame(0, 0, "l.png", "r.png"), 3, 7) is None
+    kp = {c: np.arange(10.0).reshape(5, 2) + i for i, c in enumerate(("left", "right"))}
+    vis = {"left": np.ones(5, bool), "right": np.array([1, 1, 0, 1, 1], bool)}
+    bbox = {"left": [0.0, 1.0, 20.0, 30.0], "right": None}
+    T = np.eye(4)
+    T[:3, 3] = [0.01, 0.02, 0.1]
+    fr = Frame(4, 5, "l.png", "r.png", sequence=2, step=1, ecm_joints=[0.1, 0.0, 0.05, 0.0],
+               T_world_ecm=np.eye(4), T_world_needle=T, keypoints=kp, visible=vis, bbox=bbox)
+    sim = SimFrame({}, np.array([0.1, 0.0, 0.05, 0.0]), np.eye(4), T,
+                   {"keypoints": kp, "visible": vis, "bbox": bbox}, 2, 1)
+    for frame in (fr, sim):
+        gt = GroundTruth.from_frame(frame, 9, 11)
+        back = decode(encode(gt))
+        assert (back.seq, back.stamp_ns, back.sequence, back.step) == (9, 11, 2, 1)
+        assert np.allclose(back.ecm_joints, [0.1, 0.0, 0.05, 0.0]) and np.allclose(back.T_world_needle, T)
+        assert np.allclose(back.keypoints["right"], kp["right"]) and back.visible["right"].tolist() == vis["right"].tolist()
+        assert back.bbox["right"] is None and np.allclose(back.bbox["left"], bbox["left"])

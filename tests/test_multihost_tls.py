@@ -21,6 +21,8 @@ from pathlib import Path
 import pytest
 import yaml
 
+pytestmark = pytest.mark.netns
+
 REPO = Path(__file__).resolve().parent.parent
 PROBE = REPO / "tests" / "netns_probe.py"
 ENV = dict(os.environ, PYTHONPATH=str(REPO), PYTHONUNBUFFERED="1")

@@ -52,3 +52,41 @@ def test_no_rate_means_no_waiting_but_a_start_delay():
     clock = FakeClock()
     t = sent_times(Pacer(0, clock, start_delay_s=0.5), clock, [0.0] * 3)
     assert t == [100.5, 100.5, 100.5]
+
+
+def test_source_clock_recorded_timing_restarts_with_each_pass():
+    from common.runtime.pacing import SourceClock
+    t = [100.0]
+    clock = SourceClock(None, clock=lambda: t[0])
+    assert clock.delay(5_000_000_000) == 0.0            # the first frame: at once
+    assert abs(clock.delay(5_500_000_000) - 0.5) < 1e-9   # 0.5 s of recording later
+    t[0] = 100.7
+    assert abs(clock.delay(6_000_000_000) - 0.3) < 1e-9
+    clock.restart()
+    assert clock.delay(5_000_000_000) == 0.0
+    assert SourceClock(0.0).delay(0) == 0.0 and SourceClock(-1.0).delay(0) == 0.0
+
+
+def test_ack_window_waits_for_every_input_and_times_out():
+    from common.runtime.pacing import AckWindow
+    t = [0.0]
+    w = AckWindow(["ack", "ack2"], in_flight=2, timeout_s=1.0, clock=lambda: t[0])
+    w.sent(0)
+    assert not w.full()
+    w.sent(1)
+    assert w.full()
+    w.ack("ack", 0)
+    assert w.full()                      # ack2 has not seen frame 0
+    w.ack("ack2", 0)
+    assert not w.full()
+    w.sent(2)
+    t[0] = 1.5                           # frames 1 and 2 were never acknowledged
+    assert not w.full() and w.timeouts == 2
+
+
+def test_parse_rate_names_the_node():
+    import pytest
+    from common.runtime.pacing import PACED, parse_rate
+    assert parse_rate("paced") == PACED and parse_rate(" MAX ") == 0.0 and parse_rate(None) is None
+    with pytest.raises(ValueError, match="rosbag: rate must be positive"):
+        parse_rate(-2, "rosbag")

@@ -14,16 +14,8 @@ from common.geometry.oracle import (
     true_keypoints,
     view_tilt_rad,
 )
-from common.geometry.pnp import (
-    ReprojectionProblem,
-    initial_poses,
-    pnp_average,
-    pnp_joint,
-    pose_covariance,
-    refine_pose_lm,
-    refine_starts,
-    unsure_starts,
-)
+from common.geometry.pnp import initial_poses, pnp_average, pnp_joint, refine_starts, unsure_starts
+from common.geometry.reprojection import ReprojectionProblem, pose_covariance, refine_pose_lm
 from common.geometry.transforms import inv_T, make_T, pose_error, rotvec_to_R
 
 RIG = StereoRig.default()

@@ -203,6 +203,7 @@ def test_a_fit_far_worse_than_the_stated_noise_is_not_published():
         assert node.counters.get("no_pose.poor_fit", 0) == (0 if posed else 1)
 
 
+@pytest.mark.graph
 def test_refine_node_in_a_launched_graph_matches_the_library(run_graph):
     """sim (truth and calibration) -> detector (oracle, with centreline) -> refine."""
     g = run_graph({"nodes": [

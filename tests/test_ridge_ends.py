@@ -2,7 +2,7 @@
 import numpy as np
 import pytest
 
-from common.detector.inference import ARC_ANGLES_DEG, ideal_peak_mass
+from common.detector.arc_fit import ARC_ANGLES_DEG, ideal_peak_mass
 from common.detector.model import centreline_target
 from common.detector.ridge_ends import ends_on_ridge, ridge_component, ridge_ends
 

@@ -375,6 +375,7 @@ def _pose_graph(run_graph, tmp_path):
     ]}, timeout=90)
 
 
+@pytest.mark.graph
 def test_kill_9_of_the_camera_poses_resume_from_its_first_frames(run_graph, tmp_path):
     """Defect 1: the restarted camera counts from seq 0 again; every node must follow it at
     once (before: every pose waited until the new seq passed the old one)."""
@@ -392,6 +393,7 @@ def test_kill_9_of_the_camera_poses_resume_from_its_first_frames(run_graph, tmp_
     assert st.counters["stream_resets"] >= 1 and st.counters["handler_errors"] == 0
 
 
+@pytest.mark.graph
 def test_poison_messages_neither_crash_nor_stall_a_graph(run_graph, tmp_path):
     """Defects 2, 4, 5 in real processes: far-future seq, inf image size, ragged truth, NaN ECM
     pose, empty JPEG, a foreign epoch; no node restarts, poses go on, none is non-finite."""

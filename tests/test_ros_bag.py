@@ -8,13 +8,13 @@ from collections import deque
 import numpy as np
 import pytest
 
+from common.cli import dataset_main
 from common.data.dataset import Dataset, check_dataset
 from common.evaluation.cli import main as eval_main
 from common.ros.bag import BagError, BagStereo
-from common.ros.conventions import AMBF_NEEDLE_RADIUS, T_AMBF_NEEDLE
+from common.ros.conventions import AMBF_NEEDLE_RADIUS_M, T_AMBF_NEEDLE
 from common.ros.convert import from_bag
 from common.ros.synth import dataset_to_bag, distort_dataset
-from common.sim.cli import main as dataset_main
 
 DIST = [-0.12, 0.05, 0.0005, -0.0004, 0.0]
 
@@ -71,7 +71,7 @@ def test_ambf_needle_frame_puts_the_tip_where_the_challenge_does():
     (0.056, 0.085, 0) (56.6 deg) and the base (thread end) at (-0.102, 0, 0) in the needle body
     frame (decimetres): A (30 deg) and E (150 deg) of the dataset frame land on the 60 and 180 deg
     ends, A within 3.5 deg of the evaluation's tip (docs/ros.md)."""
-    r = AMBF_NEEDLE_RADIUS
+    r = AMBF_NEEDLE_RADIUS_M * 10          # the challenge's scripts are in decimetres
     A = T_AMBF_NEEDLE[:3, :3] @ (r * np.array([np.cos(np.radians(30)), np.sin(np.radians(30)), 0]))
     E = T_AMBF_NEEDLE[:3, :3] @ (r * np.array([np.cos(np.radians(150)), np.sin(np.radians(150)), 0]))
     assert abs(np.degrees(np.arctan2(A[1], A[0])) - 60.0) < 1e-9
@@ -80,6 +80,7 @@ def test_ambf_needle_frame_puts_the_tip_where_the_challenge_does():
     assert np.linalg.norm(E - [-0.102, 0.0, 0]) < 0.001
 
 
+@pytest.mark.slow
 def test_ambf_ros1_bag_in_decimetres_converts_exactly(ds640, tmp_path):
     bag = tmp_path / "ambf.bag"
     dataset_to_bag(str(ds640), str(bag), "ambf")           # ROS 1, rgb8, ambf_msgs, unit dm
@@ -117,6 +118,29 @@ def test_ambf_si_bag_infers_metres_and_a_wrong_unit_is_a_tenfold_error(ds640, tm
     np.testing.assert_allclose(b.T_world_needle[:3, 3], a.T_world_needle[:3, 3] / 10)
 
 
+def test_ambf_scene_in_dm_and_in_si_converts_to_the_same_dataset(ds640, tmp_path):
+    """The 2021-22 challenge's scene is in decimetres, AMBF 2.0's in metres: the same scene in
+    both units converts to the same dataset (the needle radius 10.18 mm in both), and the oracle
+    is exact on both."""
+    out = {}
+    for unit in ("dm", "m"):
+        bag = tmp_path / f"{unit}.bag"
+        dataset_to_bag(str(ds640), str(bag), "ambf", unit=unit)
+        out[unit] = tmp_path / f"ds_{unit}"
+        s = from_bag(str(bag), str(out[unit]), preset="ambf")
+        assert s["unit"].startswith(f"{unit} (inferred"), s["unit"]
+        ds = Dataset(out[unit])
+        assert check_dataset(ds).ok
+        assert ds.needle.radius_m == pytest.approx(0.01018, abs=1e-15)
+        assert_same_truth(Dataset(ds640), ds)
+    a, b = Dataset(out["dm"]), Dataset(out["m"])
+    assert a.needle.to_dict() == b.needle.to_dict()
+    assert_same_truth(a, b, px=1e-9)
+    for unit in ("dm", "m"):
+        run_oracle_eval(out[unit], tmp_path / f"eval_{unit}")
+
+
+@pytest.mark.slow
 def test_dvrk_mcap_1080p_with_distortion_converts_exactly(ds1080_distorted, tmp_path):
     bag = tmp_path / "dvrk"
     r = dataset_to_bag(str(ds1080_distorted), str(bag), "dvrk")     # ROS 2 MCAP + camera_info
@@ -132,6 +156,72 @@ def test_dvrk_mcap_1080p_with_distortion_converts_exactly(ds1080_distorted, tmp_
     assert_same_truth(Dataset(ds1080_distorted), ds)
     np.testing.assert_allclose(ds[1].ecm_joints, Dataset(ds1080_distorted)[1].ecm_joints)
     run_oracle_eval(out, tmp_path / "eval")
+
+
+def _as_rclpy_wrote_it(bag_in, bag_out, poison=()):
+    """Rewrite a ROS 2 bag as rclpy (rmw_fastrtps) serialises: every message padded to its type
+    support's size estimate, JointStates with positions only (116 -> 124 bytes); then the
+    ``poison`` (topic, raw bytes) after the first message of that topic."""
+    from common.ros import build
+    from common.ros.bag import open_reader
+    from common.ros.cdr import encode, fastcdr_estimate
+    from common.ros.synth import _Out
+    r, out = open_reader(bag_in), _Out(str(bag_out), 2, "mcap")
+    conns, padded, poisoned = {}, 0, set()
+    try:
+        for c, t, raw in r.messages():
+            msg = r.deserialize(raw, c.msgtype)
+            if c.msgtype == "sensor_msgs/msg/JointState":
+                msg = build.make(out.store, c.msgtype, header=msg.header, name=msg.name, position=msg.position)
+            data = encode(msg)
+            data += bytes(4 + fastcdr_estimate(msg, c.msgtype) - len(data))
+            padded += len(data) > len(encode(msg))
+            if c.topic not in conns:
+                conns[c.topic] = out.w.add_connection(c.topic, c.msgtype, typestore=out.store)
+            out.w.write(conns[c.topic], t, data)
+            for topic, bad in poison:
+                if topic == c.topic and topic not in poisoned:
+                    poisoned.add(topic)
+                    out.w.write(conns[topic], t + 1, bad)
+    finally:
+        r.close()
+        out.close()
+    return padded
+
+
+def test_a_bag_rclpy_serialised_converts_exactly_and_bad_messages_are_skipped(ds640, tmp_path, caplog):
+    from common.ros import build
+    from common.ros.cdr import encode
+    from common.ros.types import typestore
+    st = typestore(2)
+    dataset_to_bag(str(ds640), str(tmp_path / "dvrk"), "dvrk")
+    rig = Dataset(ds640).rig
+    info = encode(build.camera_info(st, 10**18, rig.left.K, rig.left.dist, (640, 480)))
+    poison = [("/ECM/measured_js", b"\x00\x01\x00\x00" + b"\xff" * 40),          # not a JointState
+              ("/jhu_daVinci/left/camera_info", info[:-30])]                      # cut short
+    padded = _as_rclpy_wrote_it(tmp_path / "dvrk", tmp_path / "rclpy", poison)
+    assert padded >= 4                                   # every JointState at least
+    topics = tmp_path / "dvrk.topics.yaml"
+    s = from_bag(str(tmp_path / "rclpy"), str(tmp_path / "ds"), topics=str(topics))
+    assert s["frames"] == 4 and s["with_truth"] == 4
+    assert s["refused"] == {"/ECM/measured_js": 1, "/jhu_daVinci/left/camera_info": 1}
+    assert caplog.text.count("cannot deserialise") == 2
+    ds = Dataset(tmp_path / "ds")
+    assert check_dataset(ds).ok
+    assert_same_truth(Dataset(ds640), ds)
+    np.testing.assert_allclose(ds[1].ecm_joints, Dataset(ds640)[1].ecm_joints)   # from the padded JointStates
+    run_oracle_eval(tmp_path / "ds", tmp_path / "eval")
+    # the rosbag source reads the same bag: every pair, the bad messages counted
+    from nodes.rosbag import RosbagNode
+    node = RosbagNode.offline({"path": str(tmp_path / "rclpy"), "topics": str(topics), "rate": "max"})
+    try:
+        while node.step():
+            pass
+    finally:
+        node.teardown()
+    assert sum(o == "left" for o, _ in node.published) == 4
+    assert node.counters["refused_messages"] == 2
+    assert all(np.asarray(m.q).shape == (4,) for o, m in node.published if o == "measured")
 
 
 def test_compressed_image_bag(ds640, tmp_path):

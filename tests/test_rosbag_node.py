@@ -5,10 +5,10 @@ import pytest
 import yaml
 from graphtools import cli
 
+from common.cli import dataset_main
 from common.data.dataset import Dataset
 from common.geometry.transforms import pose_error
 from common.ros.synth import dataset_to_bag
-from common.sim.cli import main as dataset_main
 
 
 @pytest.fixture(scope="module")
@@ -21,6 +21,7 @@ def ambf_bag(tmp_path_factory):
     return root
 
 
+@pytest.mark.graph
 def test_rosbag_source_drives_the_pipeline_exactly(run_graph, ambf_bag):
     ds = Dataset(ambf_bag / "ds")
     stereo = {"left": "detector/left", "right": "detector/right", "calib": "camera/calib", "ecm": "ecm/pose"}
@@ -59,3 +60,34 @@ def test_rosbag_source_refuses_a_bag_without_its_topics(run_graph, ambf_bag, tmp
     r = cli("launch", str(path), "--duration", "30", timeout=90)
     assert r.returncode != 0
     assert "rig found" in r.stdout + r.stderr
+
+
+def _source_graph(bag, **params):
+    from common.ros.bagfuzz import topic_map
+    return {"nodes": [{"id": "camera", "module": "rosbag", "outputs": ["left", "right", "measured", "calib", "eos"],
+                       "params": {"path": str(bag), "topics": topic_map(), "rate": "max", **params}}]}
+
+
+@pytest.mark.graph
+def test_a_bag_that_fails_part_way_stops_the_source_non_zero_and_launch_says_why(tmp_path):
+    """A corrupt chunk after the first frames, then a last right image of another size: the
+    source stops with status 2 (not `source finished`, not restarted), launch names it, says
+    why, and exits non-zero."""
+    from graphtools import prepare_graph
+
+    from common.ros.bagfuzz import mcap_records, synthetic_bag
+    data = open(synthetic_bag(str(tmp_path / "ok.mcap"), 8), "rb").read()
+    op, off, ln = [r for r in mcap_records(data) if r[0] == 0x06][5]
+    b = bytearray(data)
+    b[off + 9 + 60:off + 9 + 90] = b"\x00" * 30
+    (tmp_path / "zstd.mcap").write_bytes(bytes(b))
+    synthetic_bag(str(tmp_path / "size.mcap"), 6, last_right_size=(32, 24))
+    for name, why in (("zstd.mcap", "unreadable after"), ("size.mcap", "right image 32x24 differ in size")):
+        path = prepare_graph(_source_graph(tmp_path / name), tmp_path / name.replace(".", "_"))
+        r = cli("launch", str(path), "--duration", "60", timeout=120)
+        out = r.stdout + r.stderr
+        assert r.returncode != 0, out
+        assert "Traceback" not in out and "source finished" not in out and "restart #" not in out, out
+        assert "[camera] ERROR source stopped: rosbag: " in out and why in out, out
+        line = next(x for x in out.splitlines() if "camera exited with status 2" in x)
+        assert name in line and why in line, line            # which node, and why, in the launcher's line

@@ -5,11 +5,11 @@ import numpy as np
 import pytest
 
 import common.sim.render  # noqa: F401  (headless GL before mujoco)
+from common.cli import dataset_main
 from common.data.dataset import Dataset, check_dataset
 from common.geometry.camera import StereoRig
 from common.geometry.needle import NeedleModel
 from common.geometry.transforms import transform_points
-from common.sim.cli import main as dataset_main
 from common.sim.generate import GenerateConfig, generate
 from common.sim.randomise import (
     DISTANCE_RANGE_M,
@@ -81,6 +81,7 @@ def _lines(folder):
     return (folder / "frames.jsonl").read_text().splitlines()
 
 
+@pytest.mark.slow
 def test_generate_is_deterministic_resumable_and_parallel(tmp_path):
     cfg = GenerateConfig(sequences=2, steps=2, seed=5, randomise="train", width=320, height=180)
     a, b = tmp_path / "a", tmp_path / "b"
@@ -130,6 +131,7 @@ def test_dataset_cli_generate_check_show(tmp_path, capsys):
     assert dataset_main(["check", str(tmp_path / "nope")]) == 1
 
 
+@pytest.mark.slow
 def test_needle_free_frames_see_no_needle(tmp_path):
     from common.sim.generate import generate_needle_free
     folder = generate_needle_free(tmp_path / "neg", 1, seed=3, preset="train", progress=False)
@@ -140,6 +142,7 @@ def test_needle_free_frames_see_no_needle(tmp_path):
     assert all(not frame.visible[c].any() and frame.bbox[c] is None for c in ("left", "right"))
 
 
+@pytest.mark.slow
 def test_needle_free_frames_can_lay_the_pale_thread_on_purpose(tmp_path, monkeypatch):
     from common.sim import render as sim_render
     from common.sim.generate import generate_needle_free

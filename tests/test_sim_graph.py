@@ -1,4 +1,5 @@
 """sim and replay publishing through a launched graph (real processes, Zenoh on loopback)."""
+import pytest
 import numpy as np
 
 from common.data.dataset import DatasetMeta, DatasetWriter, Frame, project_keypoints
@@ -7,6 +8,8 @@ from common.geometry.needle import NeedleModel
 from common.geometry.transforms import inv_T, make_T, rotvec_to_R, transform_points
 from common.runtime.messages import Calibration, CameraImage, EndOfStream, GroundTruth
 from common.sim.randomise import default_arm
+
+pytestmark = pytest.mark.graph
 
 
 def test_sim_node_in_a_graph(run_graph):

@@ -25,7 +25,8 @@ from common.runtime.messages import (
     encode,
 )
 from common.sim.randomise import default_arm
-from nodes.replay import ReplayNode, parse_rate
+from common.runtime.pacing import parse_rate
+from nodes.replay import ReplayNode
 from nodes.sim import SimNode
 
 W, H = 160, 90

@@ -24,6 +24,8 @@ from common.runtime.graph import (
 )
 from common.runtime.messages import Command, encode
 
+pytestmark = pytest.mark.graph
+
 NODES = [{"id": "count", "module": "counter", "params": {"rate_hz": 25}},
          {"id": "det", "module": "tagger", "params": {"tag": "A"}, "inputs": {"in": "count/out"}}]
 TLS = {"ca": "certs/ca.pem", "cert": "certs/{id}.pem", "key": "certs/{id}.key"}

@@ -10,6 +10,8 @@ import pytest
 
 from common.cli import main as needletrack
 
+pytestmark = pytest.mark.training
+
 ROOT = Path(__file__).resolve().parent.parent
 VALUES = {"DATA": "data/train", "OUT": "models/keypoint", "HERE": "models", "L": "data/train/looks",
           "C": "data/train/end_identity", "CONFIG": "models/finetune.yaml", "INIT": "models/keypoint/model.pt",

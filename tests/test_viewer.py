@@ -231,6 +231,7 @@ def test_a_frame_without_its_pose_is_drawn_after_pose_wait():
         node.teardown()
 
 
+@pytest.mark.graph
 def test_launch_save_records_and_no_viewer_leaves_the_viewer_out(tmp_path):
     port = free_port()
     graph = tmp_path / "g.yaml"
@@ -246,6 +247,7 @@ def test_launch_save_records_and_no_viewer_leaves_the_viewer_out(tmp_path):
     assert without.returncode == 0 and "viewer" not in without.stdout, without.stdout
 
 
+@pytest.mark.slow
 def test_view_serves_a_recording_on_loopback(tmp_path):
     import rerun  # noqa: F401  (the viewer extra: pip install -e '.[viewer]')
 

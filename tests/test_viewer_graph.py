@@ -47,6 +47,7 @@ def _near(rgb, colour_bgr, tol=40):
     return int((np.abs(rgb.astype(int) - target).max(axis=2) <= tol).sum())
 
 
+@pytest.mark.browser
 def test_viewer_page_shows_the_image_and_the_needle_in_a_browser(run_graph, free_port, tmp_path):
     # not optional: .ci/run installs both
     assert find_chromium() is not None, "needs Debian's chromium: apt-get install -y chromium"
@@ -96,13 +97,14 @@ def test_viewer_page_shows_the_image_and_the_needle_in_a_browser(run_graph, free
 
 @pytest.fixture(scope="module")
 def tiny_dataset(tmp_path_factory):
-    from common.sim.cli import main as dataset_main
+    from common.cli import dataset_main
     ds = tmp_path_factory.mktemp("viewer") / "ds"
     assert dataset_main(["generate", "--out", str(ds), "--sequences", "2", "--steps", "3", "--width", "480",
                          "--height", "270", "--seed", "3", "--randomise", "none", "--jobs", "1", "--quiet"]) == 0
     return ds
 
 
+@pytest.mark.graph
 def test_eval_rrd_records_every_frame_with_poses_and_errors(tiny_dataset, tmp_path):
     """``needletrack eval --rrd``: a frame-by-frame recording of an evaluation."""
     from common.evaluation.cli import main as eval_main
@@ -120,6 +122,7 @@ def test_eval_rrd_records_every_frame_with_poses_and_errors(tiny_dataset, tmp_pa
     assert rows.get("/plots/pos_err_mm/pnp_joint") == 6 and rows.get("/world/ecm") == 6
 
 
+@pytest.mark.graph
 def test_bench_viewer_prints_what_the_viewer_costs(tiny_dataset, tmp_path, capsys):
     """``needletrack bench --viewer`` runs (its figures are printed, not asserted)."""
     from common.evaluation.graph_bench import main as bench_main

@@ -11,6 +11,8 @@ from __future__ import annotations
 import json
 import math
 import os
+import shutil
+from contextlib import contextmanager
 from dataclasses import dataclass, field
 from typing import Optional
 
@@ -18,6 +20,7 @@ import cv2
 import numpy as np
 import yaml
 
+from common.errors import NeedletrackError
 from common.geometry.camera import StereoRig
 from common.geometry.ecm_kinematics import EcmArm
 from common.geometry.needle import NeedleModel
@@ -41,7 +44,7 @@ IMAGE_EXTS = (".png", ".jpg", ".jpeg")
 _DIST_LENGTHS = (0, 4, 5, 8, 12, 14)
 
 
-class DatasetError(ValueError):
+class DatasetError(NeedletrackError, ValueError):
     """A folder that breaks the dataset spec; the message names file, line and field."""
 
 
@@ -551,6 +554,31 @@ class DatasetWriter:
 
     def __exit__(self, *exc):
         self.close()
+
+
+@contextmanager
+def staged_folder(out: str):
+    """Write a folder whole or not at all: yields a temporary folder beside ``out``
+    (``.NAME.partial-PID``), renamed to ``out`` when the block ends normally and removed when it
+    raises, so a failed conversion leaves nothing that looks like a dataset. ``out`` must not
+    exist or be an empty folder (ValueError)."""
+    out = os.path.normpath(os.fspath(out))
+    if os.path.lexists(out) and not (os.path.isdir(out) and not os.path.islink(out) and not os.listdir(out)):
+        raise ValueError(f"{out} exists" + (" and is not empty" if os.path.isdir(out) else "")
+                         + "; use another --out")
+    parent = os.path.dirname(out) or "."
+    os.makedirs(parent, exist_ok=True)
+    tmp = os.path.join(parent, f".{os.path.basename(out)}.partial-{os.getpid()}")
+    shutil.rmtree(tmp, ignore_errors=True)
+    os.makedirs(tmp)
+    try:
+        yield tmp
+        if os.path.isdir(out):
+            os.rmdir(out)
+        os.rename(tmp, out)
+    except BaseException:
+        shutil.rmtree(tmp, ignore_errors=True)
+        raise
 
 
 def write_frame_images(folder: str, index: int, images: dict, image_format: str = "jpg",

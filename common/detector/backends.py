@@ -22,6 +22,7 @@ from typing import Optional
 
 import numpy as np
 
+from common.errors import NeedletrackError
 from common.geometry.camera import StereoRig
 from common.geometry.needle import NeedleModel
 from common.runtime.messages import Calibration, GroundTruth, Keypoints
@@ -78,12 +79,12 @@ BACKEND_PARAMS: dict[str, type] = {"oracle": OracleParams, "learned": LearnedPar
 
 BACKENDS: dict[str, str] = {
     "oracle": "common.detector.backends:OracleBackend",
-    "learned": "common.detector.inference:LearnedBackend",
+    "learned": "common.detector.learned:LearnedBackend",
     "classical": "common.detector.classical:ClassicalBackend",
 }
 
 
-class BackendError(RuntimeError):
+class BackendError(NeedletrackError, RuntimeError):
     """A backend that cannot be loaded or cannot run; the text says why."""
 
 

@@ -18,9 +18,7 @@ file raises ``ModelFileError`` saying how to retrain.
 """
 from __future__ import annotations
 
-import json
 import logging
-import pickle
 from pathlib import Path
 
 import cv2
@@ -33,31 +31,30 @@ from common.detector.centreline_subpixel import (
     ellipse_residual,
     refine_centreline,
 )
-from common.detector.end_identity import FEATURES, EndEvidence, network_evidence, polyline_length, shape_evidence
+from common.detector.arc_fit import (
+    ARC_ANGLES_DEG,
+    ARC_MIN_SCORE,
+    arc_at,
+    decode_centreline,
+    fit_arc_affine,
+    ideal_peak_mass,
+    refine_along_arc,
+)
+from common.detector.end_identity import EndEvidence, network_evidence, polyline_length, shape_evidence
 from common.detector.model import (
     FrozenForInference,
-    KeypointModel,
-    ModelConfig,
     apply_affine,
     crop_affine,
     crop_side,
     decode_global_topk,
     decode_heatmaps,
-    fuse_conv_bn,
     global_size,
     invert_affine,
 )
 from common.detector.ridge_ends import ends_on_ridge
-from common.geometry.observations import curve_normals
+from common.detector.weights import DEFAULT_WEIGHTS, load_end_coefficients, load_model, pick_device
 from common.runtime.messages import CameraImage, Keypoints, MessageError
 
-MODEL_FORMAT = "needletrack-keypoint-detector"
-MODEL_VERSION = 1
-REPO = Path(__file__).resolve().parents[2]
-DEFAULT_WEIGHTS = REPO / "models" / "keypoint" / "model.pt"
-RETRAIN = ("retrain with `needletrack train --data DATASET --config models/train.yaml "
-           "--out models/keypoint` (models/README.md gives the full recipe)")
-CENTRELINE_POINTS = 48
 # The needle's smallest image extent in any view, its 5.1 mm sagitta seen from the side, is
 # 10 px at 40 cm with this endoscope (f ~ 790 px): keypoints closer together are a collapse.
 MIN_EXTENT_PX = 10.0
@@ -73,70 +70,6 @@ MIN_ELLIPSE_POINTS = 8       # fewer (a needle mostly hidden) are not judged
 # its residuals alone, 4.7 with this (chi-square(6): 5.35); the dense fit's assumed 1 px as well.
 KEYPOINT_SIGMA_PX = 1.0
 log = logging.getLogger("needletrack.keypoint_detector")
-
-
-def load_end_coefficients(weights) -> np.ndarray | None:
-    """The end-identity coefficients fitted for these weights (``end_identity.json`` beside
-    them; ``needletrack bench end-identity --fit``), or None: then no end identity is stated."""
-    path = Path(weights or DEFAULT_WEIGHTS).with_name("end_identity.json")
-    if not path.is_file():
-        return None
-    try:
-        coef = np.asarray(json.loads(path.read_text())["coef"], float)
-    except (OSError, ValueError, KeyError, TypeError) as exc:
-        raise ModelFileError(f"{path}: not an end-identity coefficient file ({exc})") from None
-    if coef.shape not in ((3,), (len(FEATURES),)) or not np.isfinite(coef).all():
-        raise ModelFileError(f"{path}: coef must be 3 or {len(FEATURES)} finite numbers "
-                             f"({', '.join(FEATURES)}), got {coef.tolist()}")
-    return coef
-
-
-class ModelFileError(RuntimeError):
-    """A weights file that is missing, unreadable or made for another model."""
-
-
-def load_model(path=None, device="cpu") -> tuple[KeypointModel, dict]:
-    """(model in eval mode with BN folded, the file's meta) from a weights file."""
-    path = Path(path or DEFAULT_WEIGHTS)
-    if not path.is_file():
-        raise ModelFileError(f"{path}: no such weights file; {RETRAIN}")
-    try:
-        blob = torch.load(path, map_location="cpu", weights_only=True)    # never unpickles code
-    except pickle.UnpicklingError as exc:  # a pickle of objects other than tensors and plain data
-        first = " ".join(str(exc).split())[:200]
-        raise ModelFileError(f"{path}: refused: the file holds pickled Python objects that a weights "
-                             f"file does not (torch.load weights_only: {first}); not loaded; {RETRAIN}") from None
-    except Exception as exc:  # zip errors of a truncated or foreign file
-        first = str(exc).split(". ")[0][:160]
-        raise ModelFileError(f"{path}: not a readable weights file, truncated or corrupt "
-                             f"({type(exc).__name__}: {first}); {RETRAIN}") from None
-    if not isinstance(blob, dict) or blob.get("format") != MODEL_FORMAT:
-        raise ModelFileError(f"{path}: not a needletrack keypoint-detector weights file "
-                             f"(format {blob.get('format') if isinstance(blob, dict) else type(blob).__name__!r}); {RETRAIN}")
-    if blob.get("version") != MODEL_VERSION:
-        raise ModelFileError(f"{path}: weights format version {blob.get('version')!r}, this code reads "
-                             f"version {MODEL_VERSION}; {RETRAIN}")
-    try:
-        cfg = ModelConfig.from_dict(dict(blob["config"]))
-        model = KeypointModel(cfg)
-        model.load_state_dict(blob["state_dict"], strict=True)
-        model.eval()
-        fuse_conv_bn(model)
-        meta = dict(blob.get("meta") or {})
-    except Exception as exc:      # any field of the wrong kind: the file, not the code, is wrong
-        why = " ".join(str(exc).split())[:300]
-        raise ModelFileError(f"{path}: weights do not match the network ({type(exc).__name__}: {why}); "
-                             f"{RETRAIN}") from None
-    model = model.to(device=device, memory_format=torch.channels_last)
-    return model, meta
-
-
-def pick_device(device: str = "auto") -> torch.device:
-    if device == "auto":
-        return torch.device("cuda" if torch.cuda.is_available() else "cpu")
-    if device.startswith("cuda") and not torch.cuda.is_available():
-        raise ValueError(f"device {device!r} asked for, but CUDA is not available")
-    return torch.device(device)
 
 
 def image_problem(img) -> str | None:
@@ -164,176 +97,6 @@ def _as_bgr(img: np.ndarray) -> np.ndarray:
     if img.shape[2] == 4:
         return cv2.cvtColor(img, cv2.COLOR_BGRA2BGR)
     return img
-
-
-def _curve_through(pts: np.ndarray, n: int) -> np.ndarray:
-    """n points on a Catmull-Rom curve through the 5 points (from the first to the last)."""
-    P = np.vstack([2 * pts[0] - pts[1], pts, 2 * pts[-1] - pts[-2]])
-    t = np.linspace(0, len(pts) - 1, n)
-    i = np.minimum(t.astype(int), len(pts) - 2)
-    u = (t - i)[:, None]
-    p0, p1, p2, p3 = P[i], P[i + 1], P[i + 2], P[i + 3]
-    return 0.5 * (2 * p1 + (-p0 + p2) * u + (2 * p0 - 5 * p1 + 4 * p2 - p3) * u * u
-                  + (-p0 + 3 * p1 - 3 * p2 + p3) * u ** 3)
-
-
-def decode_centreline(line_logit: np.ndarray, kp_cells: np.ndarray, n: int = CENTRELINE_POINTS,
-                      search: float = 4.0, min_prob: float = 0.25):
-    """The needle's centreline from the centreline heatmap (m, m logits), ordered A..E.
-
-    A curve through the decoded keypoints (cell coordinates) seeds ``n`` stations; at each, the
-    ridge is searched along the curve's normal within +-``search`` cells and located at sub-cell
-    precision by a parabola fit to the log-probability. Returns (points (n, 2) in cells,
-    weights (n,) = ridge probability, 0 where no ridge was found)."""
-    prob = 1.0 / (1.0 + np.exp(-line_logit.astype(np.float32)))
-    logp = np.log(prob + 1e-6)
-    seed = _curve_through(kp_cells, n)
-    normal = curve_normals(seed)
-    steps = np.arange(-search, search + 1e-9, 0.5)
-    pts = seed[:, None, :] + steps[None, :, None] * normal[:, None, :]
-    mx = pts[..., 0].astype(np.float32)
-    my = pts[..., 1].astype(np.float32)
-    prof_p = cv2.remap(prob, mx, my, cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT, borderValue=0)
-    prof_l = cv2.remap(logp, mx, my, cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT, borderValue=-14)
-    j = np.clip(prof_p.argmax(1), 1, len(steps) - 2)
-    r = np.arange(n)
-    a, b, c = prof_l[r, j - 1], prof_l[r, j], prof_l[r, j + 1]
-    den = a - 2 * b + c
-    off = np.where(den < -1e-6, 0.5 * (a - c) / np.minimum(den, -1e-6), 0.0).clip(-0.5, 0.5)
-    t = steps[j] + 0.5 * off
-    out = seed + t[:, None] * normal
-    w = prof_p[r, j]
-    w = np.where(w >= min_prob, w, 0.0)
-    return out, w.astype(np.float64)
-
-
-ARC_ANGLES_DEG = (30.0, 60.0, 90.0, 120.0, 150.0)
-ARC_MIN_SCORE = 0.35   # A's and E's heatmap scores needed to place B..D on the fitted arc
-
-
-def ideal_peak_mass(sigma: float) -> float:
-    """Softmax mass within 2 cells of the peak (``decode_heatmaps``' score) of the Gaussian soft
-    target the loss trains towards: a perfect heatmap scores this, so scores are divided by it."""
-    x = np.arange(-12, 13, dtype=float)
-    g = np.exp(-x ** 2 / (2 * sigma ** 2))
-    return float((g[10:15].sum() / g.sum()) ** 2)
-
-
-def fit_arc_affine(a: np.ndarray, e: np.ndarray, line_logit: np.ndarray,
-                   angles_deg=ARC_ANGLES_DEG, min_prob: float = 0.3, iters: int = 8):
-    """Fit the needle's arc in a heatmap under an affine (weak-perspective) camera.
-
-    The arc is ``p(t) = c + U [cos t, sin t]`` (cell coordinates), t the needle-frame angle. It
-    passes through the tip ``a`` at ``angles_deg[0]`` and the tail ``e`` at ``angles_deg[-1]``
-    (both from their heatmaps) and along the centreline ridge (pixels of probability >=
-    ``min_prob``, weighted by it). Start: the ridge point farthest from the chord a-e is the
-    arc's midpoint (an affine map keeps ratios of distances to a line); then Gauss-Newton on the
-    orthogonal distances of the ridge pixels (each pixel's own angle eliminated, so the fit does
-    not crawl along the arc as plain alternation does) with a and e as heavily weighted
-    constraints. Returns (c (2,), U (2, 2)) for ``arc_at``, or None when the ridge is too weak or
-    the fit degenerate. Used for B, C, D, whose own heatmaps know "on the needle" far better than
-    "where along it"."""
-    prob = 1.0 / (1.0 + np.exp(-line_logit.astype(np.float32)))
-    ys, xs = np.nonzero(prob >= min_prob)
-    if len(xs) < 8:
-        return None
-    if len(xs) > 300:   # keep the strongest pixels: the cost grows with their number
-        keep = np.argsort(-prob[ys, xs])[:300]
-        ys, xs = ys[keep], xs[keep]
-    w = prob[ys, xs].astype(np.float64)
-    pts = np.stack([xs, ys], 1).astype(np.float64)
-    ang = np.deg2rad(np.asarray(angles_deg, float))
-    t0, t1 = ang[0], ang[-1]
-    chord = e - a
-    L = np.linalg.norm(chord)
-    if L < 2.0:
-        return None
-    d = (chord[0] * (pts[:, 1] - a[1]) - chord[1] * (pts[:, 0] - a[0])) / L
-    along = (pts - a) @ chord / (L * L)
-    inside = (along > 0.2) & (along < 0.8)
-    if inside.sum() < 3:
-        return None
-    k = np.argsort(-np.abs(d) * inside)[:5]
-    mid = (pts[k] * w[k, None]).sum(0) / w[k].sum()
-    T = np.array([t0, 0.5 * (t0 + t1), t1])
-    D = np.stack([np.ones(3), np.cos(T), np.sin(T)], 1)
-    sol = np.linalg.solve(D, np.stack([a, mid, e]))
-    c, U = sol[0], sol[1:].T
-    # initial angles: closest point on the initial curve (|p - q|^2 without the |p|^2 term)
-    ts = np.linspace(t0 - 0.3, t1 + 0.3, 100)
-    curve = c + np.stack([np.cos(ts), np.sin(ts)], 1) @ U.T
-    tt = ts[((curve * curve).sum(1) - 2.0 * pts @ curve.T).argmin(1)]
-    # a and e as heavily weighted constraints: rows of d(c + U [cos t, sin t]) / d(c, U) at t0, t1
-    w_end = 10.0 * max(1.0, w.sum())
-    ends = np.array([[1, 0, np.cos(t0), np.sin(t0), 0, 0], [0, 1, 0, 0, np.cos(t0), np.sin(t0)],
-                     [1, 0, np.cos(t1), np.sin(t1), 0, 0], [0, 1, 0, 0, np.cos(t1), np.sin(t1)]])
-    H_ends = w_end * ends.T @ ends
-    target = np.concatenate([a, e])
-    P = pts.T                                  # (2, N): row-wise arrays keep the loop cheap
-    quarter = np.array([[0.0, -1.0], [1.0, 0.0]])   # tangent = U [-sin t, cos t] = U quarter [cos t, sin t]
-    for it in range(iters):
-        CS = np.stack([np.cos(tt), np.sin(tt)])
-        tang = (U @ quarter) @ CS
-        nrm = np.stack([-tang[1], tang[0]]) / np.maximum(np.hypot(tang[0], tang[1]), 1e-9)
-        res = ((P - c[:, None] - U @ CS) * nrm).sum(0)
-        inl = (np.abs(res) < 2.5) & (tt > t0 - 0.15) & (tt < t1 + 0.15)
-        if inl.sum() < 5:
-            return None
-        J = np.concatenate([nrm, nrm[0] * CS, nrm[1] * CS])[:, inl]   # d res / d(c, U), (6, n)
-        JtW = J * w[inl]
-        r_ends = target - ends @ np.concatenate([c, U.ravel()])
-        try:   # normal equations of the weighted least squares (6 unknowns)
-            dx = np.linalg.solve(JtW @ J.T + H_ends, JtW @ res[inl] + w_end * ends.T @ r_ends)
-        except np.linalg.LinAlgError:
-            return None
-        c = c + dx[:2]
-        U = U + dx[2:].reshape(2, 2)
-        # each pixel's angle follows: one Newton step along the tangent of the new curve
-        tang = (U @ quarter) @ CS
-        tt = tt + ((P - c[:, None] - U @ CS) * tang).sum(0) / np.maximum((tang * tang).sum(0), 1e-9)
-        if np.abs(dx).max() < 1e-2:   # cells: B..D then move < 0.002 cell (measured); 1e-4 cost 2 more steps
-            break
-    if not (np.all(np.isfinite(U)) and np.all(np.isfinite(c))) or abs(np.linalg.det(U)) < 1e-6:
-        return None
-    # sanity: the fitted arc stays near the chord's scale and on the ridge
-    m = prob.shape[0]
-    pred = c + np.stack([np.cos(ang), np.sin(ang)], 1) @ U.T
-    if (np.abs(pred - np.clip(pred, -0.25 * m, 1.25 * m)).max() > 0 or np.linalg.norm(U, 2) > 4 * m
-            or np.linalg.norm(pred[0] - a) > 1.0 or np.linalg.norm(pred[-1] - e) > 1.0):
-        return None
-    cs, sn = np.cos(tt), np.sin(tt)
-    res = np.linalg.norm(pts - (c + np.stack([cs, sn], 1) @ U.T), axis=1)
-    inl = (res < 2.5) & (tt > t0 - 0.15) & (tt < t1 + 0.15)
-    if inl.sum() < 5 or np.sqrt((w[inl] * res[inl] ** 2).sum() / w[inl].sum()) > 1.5:
-        return None
-    return c, U
-
-
-def arc_at(fit, t_deg) -> np.ndarray:
-    """Points (N, 2) of a ``fit_arc_affine`` fit at needle angles ``t_deg`` (degrees)."""
-    c, U = fit
-    t = np.deg2rad(np.asarray(t_deg, float)).reshape(-1)
-    return c + np.stack([np.cos(t), np.sin(t)], 1) @ U.T
-
-
-def refine_along_arc(prob: np.ndarray, fit, t_pred_deg: float, half_deg: float = 15.0,
-                     band: float = 2.0) -> float:
-    """Angle (deg) of a keypoint on the fitted arc: the mean of its heatmap probability ``prob``
-    (m, m, cells) along the arc within +-``half_deg`` of the affine prediction (mass summed across
-    the arc within +-``band`` cells). A flat heatmap leaves ``t_pred_deg``; a peaked one moves the
-    point along the arc (perspective makes the true point differ from the affine one)."""
-    ts = np.linspace(t_pred_deg - half_deg, t_pred_deg + half_deg, 61)
-    curve = arc_at(fit, ts)
-    tang = np.gradient(curve, axis=0)
-    nrm = curve_normals(curve)
-    offs = np.arange(-band, band + 1e-9, 0.5)
-    pts = curve[:, None, :] + offs[None, :, None] * nrm[:, None, :]
-    samp = cv2.remap(prob.astype(np.float32), pts[..., 0].astype(np.float32), pts[..., 1].astype(np.float32),
-                     cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT, borderValue=0)
-    mass = samp.sum(1) * np.linalg.norm(tang, axis=1)   # mass per unit angle
-    if not np.isfinite(mass).all() or mass.sum() <= 1e-9:
-        return float(t_pred_deg)
-    return float((mass * ts).sum() / mass.sum())
 
 
 def _moved(box, new_box, tol: float = 0.1) -> bool:
@@ -609,51 +372,3 @@ class KeypointDetector:
             log.warning("camera %s seq %d: %s", msg.camera, msg.seq, exc)
             return Keypoints.not_found(msg.camera, msg.seq, msg.stamp_ns, self.name, f"bad image: {exc}")
         return self.detect(img, msg.camera, msg.seq, msg.stamp_ns)
-
-
-# ---------------------------------------------------------------- detector-node backend
-
-from common.detector.backends import BackendError, KeypointBackend  # noqa: E402
-
-
-class LearnedBackend(KeypointBackend):
-    """Backend ``learned`` of the detector node. Params: ``weights`` (default
-    models/keypoint/model.pt), ``device`` (auto | cpu | cuda), ``threshold`` (0.5), ``tracking``
-    (true), ``threads`` (torch threads, default 1: in a graph the other nodes share the cores, and
-    torch's threads then wait on each other; run one detector per camera for parallelism),
-    ``refine`` (true), ``centreline`` (true), ``subpixel`` (true: the centreline refined in the
-    full-resolution image), ``min_extent_px`` (10: keypoints closer together are "no needle"),
-    ``max_ellipse_px`` (0.25: a sub-pixel centreline farther from one ellipse is "no needle"; 0: off),
-    ``arc_bcd`` (true), ``along_arc`` (false), ``proposals`` (stage-1 proposals tried, 3),
-    ``proposal_threshold`` (0.2), ``ridge_ends`` (true: A and E from the centreline's ends when their heatmaps collapse on one)."""
-
-    name = "learned"
-    needs_image = True
-
-    def __init__(self, params=None):
-        super().__init__(params)
-        p = self.p
-        try:
-            self.detector = KeypointDetector(
-                p.weights, device=p.device, threshold=p.threshold, tracking=p.tracking, threads=p.threads,
-                refine=p.refine, centreline=p.centreline, arc_bcd=p.arc_bcd, along_arc=p.along_arc,
-                proposals=p.proposals, proposal_threshold=p.proposal_threshold, subpixel=p.subpixel,
-                min_extent_px=p.min_extent_px, max_ellipse_px=p.max_ellipse_px, ridge_ends=p.ridge_ends)
-        except (ModelFileError, ValueError, TypeError) as exc:
-            raise BackendError(f"learned backend: {exc}") from exc
-
-    def detect(self, image, camera, truth, calib, *, seq=0, stamp_ns=0) -> Keypoints:
-        return self.detector.detect(image, camera, seq, stamp_ns, undistort=_undistorter(calib, camera))
-
-    def reset(self) -> None:
-        self.detector.reset()
-
-
-def _undistorter(calib, camera: str):
-    """pixels -> ideal pixels of ``camera`` from a Calibration, or None without distortion."""
-    cam = None if calib is None else calib.cameras.get(camera)
-    if not cam or cam.get("dist") is None or not np.any(np.asarray(cam["dist"], float)):
-        return None
-    from common.geometry.camera import undistort_pixels
-    K, dist = np.asarray(cam["K"], float), np.asarray(cam["dist"], float)
-    return lambda uv: undistort_pixels(K, dist, uv)

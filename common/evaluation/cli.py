@@ -134,6 +134,21 @@ def main(argv=None) -> int:
         pose_inputs,
     )
 
+    if args.rrd:
+        try:
+            import rerun  # noqa: F401
+        except ImportError:
+            print("needletrack eval: --rrd needs rerun-sdk: pip install -e '.[viewer]'", file=sys.stderr)
+            return 2
+        from common.viewer.recording import rrd_target_problem
+        problem = rrd_target_problem(args.rrd)
+        if problem:
+            print(f"needletrack eval: --rrd {problem}", file=sys.stderr)
+            return 2
+    out = Path(args.out)
+    if out.exists() and not out.is_dir():
+        print(f"needletrack eval: --out {out} exists and is not a folder", file=sys.stderr)
+        return 2
     dataset = str(Path(args.dataset))
     try:
         ds = check_folder(dataset, progress=not args.quiet)
@@ -144,19 +159,11 @@ def main(argv=None) -> int:
         print("needletrack eval: --noise-px applies to the oracle detector only", file=sys.stderr)
         return 2
 
-    if args.rrd:
-        try:
-            import rerun  # noqa: F401
-        except ImportError:
-            print("needletrack eval: --rrd needs rerun-sdk: pip install -e '.[viewer]'", file=sys.stderr)
-            return 2
-        Path(args.rrd).unlink(missing_ok=True)
-    out = Path(args.out)
-    out.mkdir(parents=True, exist_ok=True)
-    for stale in ("results.json", "report.md", "error_vs_distance.png"):
-        (out / stale).unlink(missing_ok=True)
-    for png in (out / "overlays").glob("*.png") if (out / "overlays").is_dir() else []:
-        png.unlink()
+    try:
+        _clear_outputs(out)
+    except OSError as exc:
+        print(f"needletrack eval: --out {out}: cannot write {exc.filename or out}: {exc.strerror}", file=sys.stderr)
+        return 2
 
     det_params = {}
     if args.detector == "oracle":
@@ -186,13 +193,20 @@ def main(argv=None) -> int:
                             "points3d": "triangulate/points", **pose_inputs(doc)},
                  "restart": "never"}
     doc["nodes"].append(evaluator)
-    (out / "graph.yaml").write_text(yaml.safe_dump(doc, sort_keys=False))
+    log_path = out / "graph.log"
+    try:
+        (out / "graph.yaml").write_text(yaml.safe_dump(doc, sort_keys=False))
+        log = open(log_path, "w")
+        if args.rrd:
+            Path(args.rrd).unlink(missing_ok=True)     # a recording (rrd_target_problem): replaced
+    except OSError as exc:
+        print(f"needletrack eval: cannot write {exc.filename}: {exc.strerror}", file=sys.stderr)
+        return 2
 
     n = len(ds)
     timeout = args.timeout or (180 + n / (rate if rate != "max" else 5) * 3)
-    log_path = out / "graph.log"
     t0 = time.monotonic()
-    with open(log_path, "w") as log:
+    with log:
         try:
             with GraphRun(doc, log) as run:
                 run.start()
@@ -226,11 +240,20 @@ def main(argv=None) -> int:
     return 0
 
 
+def _clear_outputs(out: Path) -> None:
+    """Make the folder ``out`` and remove the outputs an earlier run of this command left there."""
+    out.mkdir(parents=True, exist_ok=True)
+    for stale in ("results.json", "report.md", "error_vs_distance.png"):
+        (out / stale).unlink(missing_ok=True)
+    for png in (out / "overlays").glob("*.png") if (out / "overlays").is_dir() else []:
+        png.unlink()
+
+
 def _bench(args, dataset: str, out: Path, res: dict) -> int:
     """Measure the live graph (``common.evaluation.graph_bench``) and add it to results.json/report.md."""
     from common.evaluation.graph_bench import measure, report
     from common.evaluation.pipeline_graph import GraphRunError
-    from common.evaluation.scoring import to_jsonable
+    from common.evaluation.results import to_jsonable
     bargs = argparse.Namespace(detector=args.detector, model=args.model, rate="30",
                                duration=args.bench, warmup=4.0, one_detector=False,
                                no_refine=args.no_refine)

@@ -21,8 +21,8 @@ import numpy as np
 from tqdm import tqdm
 
 from common.detector.end_identity import FEATURES
+from common.geometry.end_identity import TIP_SURE as SURE
 
-SURE = 0.95
 MIN_FIT_ERRORS = 5      # fewer detections read end for end (or as said) than this: warn at --fit
 
 
@@ -71,11 +71,8 @@ def summary(name: str, data: dict, coef: np.ndarray) -> dict:
 
 def main(argv=None) -> int:
     from common.detector.end_identity import COEF, fit_coefficients
-    from common.detector.inference import (
-        DEFAULT_WEIGHTS,
-        KeypointDetector,
-        load_end_coefficients,
-    )
+    from common.detector.inference import KeypointDetector
+    from common.detector.weights import DEFAULT_WEIGHTS, load_end_coefficients
     ap = argparse.ArgumentParser(prog="needletrack bench end-identity", description=__doc__,
                                  formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--data", action="append", required=True, help="dataset folder with ground truth (repeatable)")

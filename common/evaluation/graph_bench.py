@@ -144,7 +144,7 @@ def ensure_dataset(path) -> str:
     if Path("data/test/frames.jsonl").is_file():
         return "data/test"
     if not Path(BENCH_DATA, "frames.jsonl").is_file():
-        from common.sim.cli import main as dataset_main
+        from common.cli import dataset_main
         print(f"bench: generating {BENCH_DATA} (30 stereo frames at 1920x1080, once)", file=sys.stderr)
         if dataset_main(BENCH_GENERATE) != 0:
             raise RuntimeError(f"could not generate {BENCH_DATA}")
@@ -177,15 +177,14 @@ def viewer_node(doc: dict, split: bool, params: dict | None = None) -> dict:
 
 def measure(args, dataset: str, log, viewer: bool = False) -> dict:
     from common.data.dataset import Dataset
+    from common.methods import METHOD_NEEDS, MULTIVIEW_METHODS, POSE_OUTPUTS, last_stage
     from common.evaluation.pipeline_graph import (
-        METHOD_NEEDS,
-        POSE_OUTPUTS,
         GraphRun,
         keypoint_sources,
         pipeline_graph,
         pose_inputs,
     )
-    from common.evaluation.scoring import cpu_steal_seconds, process_cpu_seconds
+    from common.evaluation.timing import cpu_steal_seconds, process_cpu_seconds
     from common.runtime.graph import output_key, stats_key
     from common.runtime.messages import GroundTruth, Keypoints, NodeStats, PoseEstimate
 
@@ -207,7 +206,7 @@ def measure(args, dataset: str, log, viewer: bool = False) -> dict:
         doc["nodes"].append(viewer_node(doc, split, vparams))
         viewer_params = doc["nodes"][-1]["params"]
     if final not in poses:
-        final = next(m for m in ("multiview_refined", "multiview") if m in poses)
+        final = last_stage(m for m in poses if m in MULTIVIEW_METHODS)
     frame_node = POSE_OUTPUTS[METHOD_NEEDS[final][0]].split("/")[0]   # pairs stereo keypoints
     rec = Recorder()
     streams = {"published": ("replay/truth", GroundTruth)}

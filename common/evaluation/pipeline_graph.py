@@ -23,6 +23,8 @@ from pathlib import Path
 from typing import Optional
 
 from common.detector.backends import backend_class
+from common.errors import NeedletrackError
+from common.methods import METHOD_NEEDS, POSE_OUTPUTS
 from common.runtime.graph import graph_from_dict, live_key, module_info
 from common.runtime.messages import Calibration
 from common.runtime.node import KEEP_ALL_LIMIT
@@ -166,13 +168,6 @@ def keypoint_sources(split_detector: bool) -> dict:
     return {"left": "detector/left", "right": "detector/right"}
 
 
-POSE_OUTPUTS = {"pnp_average": "epnp_average/pose", "pnp_joint": "epnp_joint/pose",
-                "triangulation": "triangulate/pose", "multiview": "fusion/pose",
-                "refined": "refine/pose", "multiview_refined": "fusion_refined/pose"}
-"""Where each pose method comes out of ``pipeline_graph``."""
-
-METHOD_NEEDS = {"multiview": ("pnp_joint",), "multiview_refined": ("refined",)}
-"""The single-frame method a multi-view method fuses."""
 
 
 def pose_inputs(doc: dict) -> dict:
@@ -181,7 +176,7 @@ def pose_inputs(doc: dict) -> dict:
     return {m: src for m, src in POSE_OUTPUTS.items() if src.split("/")[0] in ids}
 
 
-class GraphRunError(RuntimeError):
+class GraphRunError(NeedletrackError, RuntimeError):
     """A graph run that failed: a node died, never came up, or the run timed out."""
 
 

@@ -33,7 +33,7 @@ def run(noise_levels, frames: int = 100, curve_ratio: float = 0.5, seed: int = 0
     import numpy as np
     from tqdm import tqdm
 
-    from common.evaluation.scoring import NEES_99PCT
+    from common.evaluation.metrics import NEES_99PCT
     from common.geometry.camera import StereoRig
     from common.geometry.needle import NeedleModel
     from common.geometry.refine import DenseRefiner
@@ -83,7 +83,7 @@ def _pass(noise, frames, curve_ratio, seed, max_tilt_deg, motion_mm, motion_deg,
     """One pass over the frames of a noise level: per-frame errors and times (s)."""
     import numpy as np
 
-    from common.evaluation.scoring import pose_nees
+    from common.evaluation.metrics import pose_nees
     from common.geometry.observations import NoPose
     from common.geometry.oracle import Oracle, perturb_pose, random_needle_pose
     from common.geometry.pnp import pnp_joint, refine_starts

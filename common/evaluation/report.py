@@ -1,6 +1,6 @@
 """What people look at after an evaluation: ``report.md``, ``error_vs_distance.png``,
 ``nees.png``, ``overlays/``, ``per_frame.csv`` and ``results.json``, written from a
-``common.evaluation.scoring.Collected``.
+``common.evaluation.collect.Collected``.
 
 No process, no network. Overlays draw, per chosen frame, a crop of the left and right images
 around the needle: the true arc and keypoints in green, each method's estimated arc in its
@@ -15,24 +15,14 @@ from typing import Callable, Optional
 
 import numpy as np
 
-from common.evaluation.scoring import (
-    CAMERAS,
-    NEES_99PCT,
-    PAPER,
-    Collected,
-    Evaluation,
-    build_results,
-    check_results,
-    evaluate,
-    to_jsonable,
-)
+from common.evaluation.collect import Collected, Evaluation, evaluate
+from common.evaluation.metrics import NEES_99PCT
+from common.evaluation.results import PAPER, build_results, check_results, to_jsonable
+from common.runtime.messages import CAMERAS
 from common.geometry.needle import KEYPOINT_NAMES, NeedleModel
 from common.geometry.transforms import transform_points
+from common.methods import FINAL_ORDER, METHOD_COLOURS, MULTIVIEW_METHODS
 
-METHOD_COLOURS = {  # matplotlib colours; BGR for OpenCV below
-    "pnp_average": "#1f77b4", "pnp_joint": "#ff7f0e", "triangulation": "#9467bd",
-    "multiview": "#d62728", "refined": "#17becf", "multiview_refined": "#8c564b",
-}
 TRUTH_BGR = (60, 200, 60)
 
 
@@ -68,6 +58,35 @@ def _tip(d: dict) -> str:
     if not e:
         return "—"
     return "; ".join(f"{part} {100 * v['stated']:.1f}% / {100 * v['measured']:.1f}%" for part, v in e.items())
+
+
+def end_identity_section(res: dict) -> list[str]:
+    """Which end is the tip, per method that states it: confident swaps, undecided tips, the
+    errors modulo the turn, sure and right, and the reliability table of the stated probability."""
+    rows = [(m, d) for m, d in res["pose"].items() if d.get("reliability")]
+    if not rows:
+        return []
+    L = ["", "Which end is the tip (docs/evaluation.md#end-identity-of-the-poses): confident swaps "
+         "(turned, stated sure or not flagged), undecided tips (flagged below a 0.95 tip "
+         "probability; of them turned), orientation modulo the turn (an undecided pose against "
+         "the nearer of its two readings), sure and right (frames posed unflagged within 2 mm / "
+         "5 deg, of all frames):", "",
+         "| method | confident swaps | undecided (turned) | modulo the turn: mm / deg mean (median) "
+         "| sure and right |", "| --- | ---: | ---: | ---: | ---: |"]
+    for m, d in rows:
+        u, mt = d["undecided"], d["modulo_turn"]
+        L.append(f"| {m} | {d['confident_swaps']} | {_fmt(100 * u['share'], 1)}% ({u['turned']}) "
+                 f"| {_fmt(mt['position_mm']['mean'])} / {_fmt(mt['orientation_deg']['mean'])} "
+                 f"({_fmt(mt['position_mm']['median'])} / {_fmt(mt['orientation_deg']['median'])}) "
+                 f"| {_fmt(100 * d['sure_and_right'], 1) if d.get('sure_and_right') is not None else '—'}% |")
+    L += ["", "Reliability of the stated tip probability p (turned: stated 1 - p against measured; "
+          "within the bound: measured at most 1.5 x stated + 2 points):", "",
+          "| method | p | n | turned: stated | measured | within |", "| --- | --- | ---: | ---: | ---: | --- |"]
+    for m, d in rows:
+        for r in d["reliability"]:
+            L.append(f"| {m} | {r['p_from']:.2f}-{r['p_to']:.2f} | {r['n']} | {_fmt(100 * r['stated'], 1)}% "
+                     f"| {_fmt(100 * r['measured'], 1)}% | {'yes' if r['within_bound'] else '**no**'} |")
+    return L
 
 
 def report_markdown(res: dict) -> str:
@@ -129,6 +148,7 @@ def report_markdown(res: dict) -> str:
               f"| {_fmt(100 * d['ambiguous_share'], 0) + '%' if d.get('ambiguous_share') is not None else '—'} "
               f"| {_swaps(d)} | {_tip(d)} | {_sure(d)} |"
               for m, d in honest]
+        L += end_identity_section(res)
         L += ["", "![NEES against chi-square(6)](nees.png)"]
     L += ["", "![error vs distance](error_vs_distance.png)", ""]
 
@@ -276,10 +296,10 @@ def select_overlay_frames(ev: Evaluation, k_worst: int = 3) -> list[tuple[int, s
             chosen.setdefault(t["seqs"][fin[len(fin) // 2]], f"median_{m}")
             chosen.setdefault(t["seqs"][fin[-1]], f"best_{m}")
 
-    single = [m for m in ("refined", "pnp_joint", "pnp_average", "triangulation") if m in ev.pose]
+    single = [m for m in FINAL_ORDER if m not in MULTIVIEW_METHODS and m in ev.pose]
     if single:
         pick(single[0])
-    for m in ("multiview_refined", "multiview"):
+    for m in (m for m in FINAL_ORDER if m in MULTIVIEW_METHODS):
         if m in ev.pose and ev.pose[m]["seqs"]:
             pick(m)
             break

@@ -11,6 +11,7 @@ symmetry, the same origin. Probabilities are in [0, 1]; covariances are 6x6 over
 from __future__ import annotations
 
 import math
+from dataclasses import dataclass
 
 import numpy as np
 
@@ -22,9 +23,21 @@ errors share a cause (the same thread hidden, the same light); their log-odds ar
 scaled up by 1 + this, not summed."""
 
 
+TIP_SURE = 0.95
+"""A pose whose tip is at least this probable is posed as is and is sure of it; below it, it is
+flagged ``ambiguous`` with a covariance spanning the turn (``state``). The pose nodes' and the
+fusion's ``min_end_identity`` default, and what the evaluation counts as a sure tip."""
+
+
 def logit(p: float) -> float:
+    """Log-odds of a probability, clipped to [1e-9, 1 - 1e-9] first."""
     p = min(max(float(p), 1e-9), 1.0 - 1e-9)
     return math.log(p / (1.0 - p))
+
+
+def sigmoid(z: float) -> float:
+    """The probability of log-odds ``z`` (the inverse of ``logit``), overflow-safe."""
+    return 1.0 / (1.0 + math.exp(-max(min(float(z), 40.0), -40.0)))
 
 
 TRACK_DECAY = 0.8
@@ -64,8 +77,48 @@ def stereo_end_identity(p_left: float | None, p_right: float | None) -> float | 
     if not ps:
         return None
     scale = 1.0 + CAMERA_CORRELATION * (len(ps) - 1)
-    z = scale * sum(logit(p) for p in ps) / len(ps)
-    return 1.0 / (1.0 + math.exp(-max(min(z, 40.0), -40.0)))
+    return sigmoid(scale * sum(logit(p) for p in ps) / len(ps))
+
+
+@dataclass(frozen=True)
+class Settled:
+    """How to read a stereo frame: ``turn`` it end for end (its E..A as A..E) before solving;
+    ``p``, the probability that the reading's A is the tip (>= 0.5; None: nobody stated it, A is
+    taken as said); ``track``, the tracked needle's new state for ``track_identity`` (None: no
+    track kept)."""
+    turn: bool
+    p: float | None
+    track: tuple[float, float] | None = None
+
+
+def settle(p_left: float | None, p_right: float | None, *, tracking: bool = False,
+           track: tuple[float, float] | None = None, same_as_track: bool | None = None) -> Settled:
+    """The end-identity policy of a stereo frame, from each camera's statement (None: not stated).
+
+    Alone (``tracking`` false) the frame is turned when its stereo probability is below 0.5, so
+    the pose is always the likelier answer. With ``tracking`` the frame is read against the
+    tracked needle (``track_identity``): ``same_as_track`` says whether the frame reads the
+    needle the way the track does (None: cannot be told); a frame that states nothing ends the
+    track. The returned ``p`` is what the pose states (``state``)."""
+    p = stereo_end_identity(p_left, p_right)
+    if p is None:
+        return Settled(False, None, None)
+    if not tracking:
+        return Settled(p < 0.5, max(p, 1.0 - p), None)
+    turn, new_track = track_identity(p, track, same_as_track)
+    return Settled(turn, sigmoid(new_track[0]), new_track)
+
+
+def state(T_ecm_needle: np.ndarray, covariance: np.ndarray | None, needle: NeedleModel,
+          p: float | None, min_p: float = TIP_SURE) -> tuple[bool, np.ndarray | None]:
+    """What a pose whose tip has probability ``p`` states: (unsure, covariance). Below ``min_p``
+    the tip is unsure: the pose is to be flagged ``ambiguous`` and its covariance (6x6, [w, v],
+    ECM frame; None stays None) spans the end-for-end turn (``identity_covariance``)."""
+    if p is None or p >= min_p:
+        return False, covariance
+    if covariance is not None:
+        covariance = identity_covariance(T_ecm_needle, covariance, needle, p)
+    return True, covariance
 
 
 def turn_observation(uv: np.ndarray, scores: np.ndarray, centreline: np.ndarray | None = None,

@@ -36,7 +36,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from common.geometry.end_identity import logit
+from common.geometry.end_identity import TIP_SURE, logit, sigmoid
 from common.geometry.transforms import R_to_rotvec, inv_T, make_T, pose_mean, rotvec_to_R
 
 TURNED_RAD = np.deg2rad(150.0)
@@ -222,7 +222,7 @@ class MultiViewFusion:
 
     def __init__(self, k: int = 5, max_dist_m: float = 0.005, max_angle_rad: float = np.deg2rad(15.0),
                  reset_dist_m: float = 0.010, reset_angle_rad: float = np.deg2rad(45.0),
-                 reset_after: int = 3, use_covariance: bool = True, min_end_identity: float = 0.95):
+                 reset_after: int = 3, use_covariance: bool = True, min_end_identity: float = TIP_SURE):
         if k < 1 or reset_after < 1:
             raise ValueError(f"fusion: k and reset_after must be >= 1, got {k}, {reset_after}")
         self.k = k
@@ -315,7 +315,7 @@ class MultiViewFusion:
         said = np.array([e.end_identity is not None for e in self.queue]) & (inl | turned)
         p = None
         if said.any():
-            p = float(1.0 / (1.0 + np.exp(-np.mean(np.where(inl, z, -z)[said]))))
+            p = sigmoid(np.mean(np.where(inl, z, -z)[said]))
             if turned.any() and p < self.min_end_identity:    # views contest the tip
                 ambiguous = True
                 if cov is not None:

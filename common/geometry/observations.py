@@ -14,6 +14,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from common.errors import NeedletrackError
 from common.geometry.camera import Camera, StereoRig
 from common.geometry.camera import undistort_pixels as _undistort
 
@@ -21,7 +22,7 @@ REASONS = ("too_few_points", "non_finite", "coincident", "collinear", "behind_ca
            "solver_failed", "high_residual", "unsure_keypoints")
 
 
-class NoPose(ValueError):
+class NoPose(NeedletrackError, ValueError):
     """No pose can be computed from this input. ``reason`` is one of ``REASONS``."""
 
     def __init__(self, reason: str, detail: str = ""):

@@ -12,6 +12,7 @@ docs/ros.md.
 """
 from __future__ import annotations
 
+import logging
 from collections import deque
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -19,6 +20,7 @@ from typing import Optional
 
 import numpy as np
 
+from common.errors import NeedletrackError
 from common.geometry.camera import intrinsics_from_fovy
 from common.geometry.needle import NeedleModel
 from common.ros.conventions import (
@@ -29,16 +31,28 @@ from common.ros.conventions import (
     stamp_ns,
     unit_scale,
 )
-from common.ros.images import ImageError, image_to_bgr
+from common.ros.images import ImageError, image_problem, image_to_bgr
 from common.ros.topicmap import TopicMapError, candidates, load_topic_map, resolve_rig
 
 IMAGE_TYPES = ("sensor_msgs/msg/Image", "sensor_msgs/msg/CompressedImage")
 TIMED_ROLES = ("ecm_joints", "ecm_pose", "needle_pose", "camera_frame")
 CAMS = ("left", "right")
+MAX_JOINTS = 64              # a JointState with more names or values is refused (the ECM has 4)
+MAX_STATE_BYTES = 1 << 20    # a non-image message's serialised size (a JointState of 4 joints: ~120 B)
+HISTORY = 256                # time-varying states kept per role (each a pose or <= MAX_JOINTS floats)
+IMAGE_QUEUE = 16             # images waiting for their partner, per camera
+DISTORTION_COUNTS = (0, 4, 5, 8, 12, 14)
+
+log = logging.getLogger("needletrack.ros")
 
 
-class BagError(ValueError):
+class BagError(NeedletrackError, ValueError):
     """A bag that cannot give stereo frames; the text names the bag, topic and what is wrong."""
+
+
+class BadMessage(BagError):
+    """One message refused at the source (wrong type for its role, non-finite calibration or pose,
+    oversized arrays, an image that cannot be decoded): counted per topic; the stream goes on."""
 
 
 class _NotReady(Exception):
@@ -60,47 +74,159 @@ class StereoSample:
     info: dict = field(default_factory=dict)
 
 
-def pose_of(msg, scale: float = 1.0) -> np.ndarray:
-    """T from a PoseStamped, Pose, PoseWithCovariance(Stamped), TransformStamped, Transform
-    or ambf RigidBodyState/CameraState message; positions times ``scale``."""
+class _TransformAsPose:
+    """A geometry_msgs/Transform read as a Pose."""
+
+    def __init__(self, t):
+        self.position, self.orientation = t.translation, t.rotation
+
+
+def pose_part(msg):
+    """The Pose (or Transform, as a Pose) inside a PoseStamped, Pose, PoseWithCovariance(Stamped),
+    TransformStamped, Transform or ambf RigidBodyState/CameraState message; ValueError if none."""
     m = msg
     for _ in range(3):
         if hasattr(m, "position") and hasattr(m, "orientation"):
-            return pose_to_T(m, scale)
+            return m
         if hasattr(m, "translation") and hasattr(m, "rotation"):
-            class _P:  # a Transform read as a Pose
-                position, orientation = m.translation, m.rotation
-            return pose_to_T(_P, scale)
+            return _TransformAsPose(m)
         m = getattr(m, "pose", None) or getattr(m, "transform", None)
         if m is None:
             break
     raise ValueError(f"{getattr(msg, '__msgtype__', type(msg).__name__)} carries no pose")
 
 
-def open_reader(path):
-    """An opened rosbags AnyReader over ``path`` (ROS 1 .bag, ROS 2 .db3/.mcap file or directory)."""
-    from rosbags.highlevel import AnyReader
+def pose_of(msg, scale: float = 1.0) -> np.ndarray:
+    """T of ``pose_part(msg)``; positions times ``scale``."""
+    return pose_to_T(pose_part(msg), scale)
 
-    from common.ros.types import typestore
+
+def message_problem(role: str, msg, values: bool = True) -> str | None:
+    """Why a message cannot serve ``role`` (image, camera_info, camera_state, ecm_joints, ecm_pose,
+    needle_pose, camera_frame), read from its fields without decoding pixels; None when it can.
+    The wrong type, an image header over the size limit, an uncalibrated K, oversized joint
+    arrays; with ``values``, also what the graph's codec would refuse: non-finite or
+    out-of-range numbers, a K that is not a pinhole matrix."""
+    msgtype = getattr(msg, "__msgtype__", type(msg).__name__)
+    if role == "image":
+        if msgtype not in IMAGE_TYPES:
+            return f"a {msgtype} is not an image ({' or '.join(IMAGE_TYPES)})"
+        return image_problem(msg)
+    if role == "camera_info":
+        if not hasattr(msg, "k") and not hasattr(msg, "K"):
+            return f"a {msgtype} is not a sensor_msgs/msg/CameraInfo"
+        K = np.asarray(getattr(msg, "k", getattr(msg, "K", None)), float).reshape(-1)
+        D = np.asarray(getattr(msg, "d", getattr(msg, "D", [])), float).reshape(-1)
+        if K.size != 9:
+            return f"K has {K.size} elements, not 9"
+        if len(D) not in DISTORTION_COUNTS:
+            return f"{len(D)} distortion coefficients (expected one of {', '.join(map(str, DISTORTION_COUNTS))})"
+        model = str(getattr(msg, "distortion_model", "plumb_bob") or "plumb_bob")
+        if model not in ("plumb_bob", "rational_polynomial") and np.any(D):
+            return f"distortion_model {model!r} is not supported (plumb_bob, rational_polynomial)"
+        if K[0] <= 0 or K[4] <= 0:           # (a NaN compares false: a value, below)
+            return f"K is not a camera matrix (uncalibrated camera?): {K.reshape(3, 3).tolist()}"
+        if not values:
+            return None
+        if not np.all(np.isfinite(K)) or not np.all(np.isfinite(D)):
+            return f"K and D must be finite numbers, got K={K.tolist()} D={D.tolist()[:16]}"
+        from common.runtime.messages import Calibration
+        cam = {"K": K.reshape(3, 3), "dist": D if len(D) else np.zeros(5), "T_ecm_cam": np.eye(4)}
+        size = np.array([max(1, int(msg.width)), max(1, int(msg.height))])
+        return _codec_problem(Calibration(0, size, {"left": cam, "right": cam}, {"radius_m": 0.01}))
+    if role == "ecm_joints":
+        if not hasattr(msg, "position"):
+            return f"a {msgtype} is not a sensor_msgs/msg/JointState"
+        sizes = {f: len(getattr(msg, f, ())) for f in ("name", "position", "velocity", "effort")}
+        if max(sizes.values()) > MAX_JOINTS:
+            return f"joint arrays longer than {MAX_JOINTS}: {sizes}"
+        if not values:
+            return None
+        pos = np.asarray(msg.position, float).reshape(-1)
+        if not np.all(np.isfinite(pos[:4])):
+            return f"non-finite joint positions {pos[:4].tolist()}"
+        if len(pos) >= 4:
+            from common.runtime.messages import EcmPose
+            return _codec_problem(EcmPose(0, 0, np.eye(4), pos[:4].copy()))
+        return None
+    try:
+        p = pose_part(msg)
+        v = [p.position.x, p.position.y, p.position.z, p.orientation.x, p.orientation.y, p.orientation.z,
+             p.orientation.w]
+    except (ValueError, AttributeError):
+        return f"a {msgtype} carries no pose"
+    if not values:
+        return None
+    if not np.all(np.isfinite(np.asarray(v, float))):
+        return f"non-finite pose (position, quaternion x y z w): {v}"
+    from common.runtime.messages import EcmPose
+    try:
+        T = pose_to_T(p)
+    except ValueError as exc:
+        return str(exc)
+    return _codec_problem(EcmPose(0, 0, T))
+
+
+def _codec_problem(msg) -> str | None:
+    """What the graph's codec refuses in ``msg`` (the one check of a calibration, pose or joint
+    state: finite, in range, a pinhole K, rigid), or None."""
+    from common.runtime.messages import MessageError, decode, encode
+    try:
+        decode(encode(msg), type(msg))
+    except MessageError as exc:
+        return str(exc)
+    return None
+
+
+def _kept(role: str, msg):
+    """What the assembler keeps of a time-varying state: the pose or the first 4 joint positions."""
+    if role == "ecm_joints":
+        return np.asarray(msg.position, float).reshape(-1)[:4].copy()
+    return pose_part(msg)
+
+
+def open_reader(path):
+    """An opened reader over ``path`` (ROS 1 .bag, ROS 2 .db3/.mcap file or directory;
+    ``common/ros/reader.py``): an unfinished MCAP file is read up to its last complete chunk
+    (``reader.recovered`` says so), a topic of an unresolvable type is listed in
+    ``reader.unresolved``."""
+    from common.ros.reader import BagReader, UnfinishedMcap, is_mcap, is_unfinished_mcap
     p = Path(path)
     if not p.exists():
         raise BagError(f"{p}: no such bag file or folder")
+    mcaps = sorted(p.glob("*.mcap")) if p.is_dir() else [p]
+    if len(mcaps) == 1 and is_unfinished_mcap(mcaps[0]):   # a recording, or a bag folder's one file, cut short
+        return UnfinishedMcap(mcaps[0])
     try:
-        reader = AnyReader([p], default_typestore=typestore(2))
-        reader.open()
+        return BagReader(p)
     except Exception as exc:   # rosbags raises its own reader errors for unreadable bags
-        raise BagError(f"{p}: not a readable ROS 1 .bag or ROS 2 .db3/.mcap bag: {exc}") from None
-    return reader
+        first = exc
+    if is_mcap(p):                  # an MCAP file whose summary is unreadable
+        try:
+            return UnfinishedMcap(p, f"a recording whose summary cannot be read ({first})")
+        except BagError:
+            pass
+    raise BagError(f"{p}: not a readable ROS 1 .bag or ROS 2 .db3/.mcap bag: {first}") from None
 
 
 class StereoAssembler:
     """Turns a stream of deserialised ROS messages into ``StereoSample``s, whatever carries them
     (a bag, or live ROS 2 on Zenoh): ``feed(topic, msg)`` returns the samples completed by that
     message (a list, usually empty or one). ``m`` is a resolved topic map; ``where`` names the
-    source in errors. ``roles`` maps each used topic to (role, camera or None)."""
+    source in errors. ``roles`` maps each used topic to (role, camera or None).
 
-    def __init__(self, m: dict, where: str, roles: dict):
+    A message that cannot serve its role (``message_problem``), or that the owner could not
+    decode (``refuse``), is counted in ``refused`` ({topic: count}) and reported through
+    ``report(topic, reason)`` (default: logged once per topic); the stream goes on.
+    ``check_values`` (live sources): a non-finite or out-of-range calibration, pose or joint state
+    is refused too; without it (bags) such values reach the samples, for the caller to name the
+    frame (``convert.sample_fault``)."""
+
+    def __init__(self, m: dict, where: str, roles: dict, report=None, check_values: bool = True):
         self.map, self.path, self.topic_role = m, where, roles
+        self.check_values = check_values
+        self.refused: dict = {}
+        self.report = report or self._log_once
         self.info = {"source": where, "preset": m.get("preset"),
                      "topics": {r + (f".{c}" if c else ""): t for t, (r, c) in roles.items()}}
         self.tol_ns = int(m["stereo_tolerance_ms"] * 1e6)
@@ -120,14 +246,27 @@ class StereoAssembler:
 
     # ------------------------------------------------------------------ helpers
 
+    def refuse(self, topic: str, reason: str) -> None:
+        """Count one refused message of ``topic`` and report it."""
+        self.refused[topic] = self.refused.get(topic, 0) + 1
+        self.report(topic, reason)
+
+    def refuse_oversized(self, topic: str, nbytes: int, msgtype: str) -> None:
+        """Refuse a non-image message of ``nbytes`` over ``MAX_STATE_BYTES``, undecoded."""
+        self.refuse(topic, f"{nbytes} bytes for a {msgtype}: more than {MAX_STATE_BYTES} (MAX_STATE_BYTES)")
+
+    def _log_once(self, topic: str, reason: str) -> None:
+        if self.refused[topic] == 1:
+            log.warning("%s: %s: message refused (further ones on this topic counted, not logged): %s",
+                        self.path, topic, reason)
+
     def needle_model(self) -> NeedleModel:
-        """The needle: the map's ``needle``, else the preset's radius in metres, else the default."""
+        """The needle: the map's ``needle`` (radius in metres; the ambf preset's is the challenge's
+        10.18 mm whatever the scene's unit), else the default."""
         nd = self.map.get("needle")
         if nd:
             return NeedleModel(radius_m=float(nd["radius_m"]),
                                keypoint_angles_deg=tuple(nd.get("keypoint_angles_deg", (30, 60, 90, 120, 150))))
-        if self.map.get("needle_radius_units") and self.scale is not None:
-            return NeedleModel(radius_m=float(self.map["needle_radius_units"]) * self.scale)
         return NeedleModel()
 
     # ------------------------------------------------------------------ iteration
@@ -139,15 +278,7 @@ class StereoAssembler:
             if (int(info_msg.width), int(info_msg.height)) not in ((w, h), (0, 0)):
                 raise BagError(f"{self.path}: {self.info['topics'].get('camera_info.' + cam)}: camera_info says "
                                f"{info_msg.width}x{info_msg.height}, the images are {w}x{h}")
-            if K[0, 0] <= 0:
-                raise BagError(f"{self.path}: {self.info['topics'].get('camera_info.' + cam)}: K is not a "
-                               f"camera matrix (uncalibrated camera?): {K.tolist()}")
-            model = str(getattr(info_msg, "distortion_model", "plumb_bob") or "plumb_bob")
-            if model not in ("plumb_bob", "rational_polynomial") and np.any(D):
-                raise BagError(f"{self.path}: camera_info.{cam}: distortion_model {model!r} is not supported "
-                               f"(plumb_bob, rational_polynomial)")
-            if len(D) not in (0, 4, 5, 8, 12, 14):
-                raise BagError(f"{self.path}: camera_info.{cam}: {len(D)} distortion coefficients")
+            # K and D were checked (finite, a camera matrix, a supported model) when fed
             return K, (D if len(D) else np.zeros(5))
         if "camera_info" in self.has_role:
             raise _NotReady("camera_info")
@@ -192,9 +323,9 @@ class StereoAssembler:
         imgs = {}
         for c, (t, msg) in zip(CAMS, (left, right)):
             try:
-                imgs[c] = image_to_bgr(msg, f"{self.path}: {self.info['topics']['image.' + c]}")
+                imgs[c] = image_to_bgr(msg)
             except ImageError as exc:
-                raise BagError(str(exc)) from None
+                raise BadMessage(self.info["topics"]["image." + c], str(exc)) from None
         h, w = imgs["left"].shape[:2]
         if imgs["right"].shape[:2] != (h, w):
             raise BagError(f"{self.path}: left image {w}x{h} and right image "
@@ -212,7 +343,7 @@ class StereoAssembler:
             T_world_ecm = pose_of(state["ecm_pose"], self.scale)
         q = None
         if "ecm_joints" in state:
-            pos = np.asarray(state["ecm_joints"].position, float).reshape(-1)
+            pos = state["ecm_joints"]          # the first 4 positions (_kept)
             if len(pos) >= 4:
                 q = pos[:4].copy()
                 q[2] *= self.scale
@@ -224,6 +355,22 @@ class StereoAssembler:
             T_world_needle = pose_of(state["needle_pose"], self.scale) @ self.T_given_needle
         return StereoSample(index, left[0], imgs, cams, (w, h), q, T_world_ecm, T_world_needle)
 
+    def feed_bytes(self, topic: str, raw, msgtype: str, decode=None) -> list:
+        """``feed`` the message serialised in ``raw``, decoded by ``decode(raw, msgtype)`` (default
+        ``common.ros.cdr.decode``: CDR with the project's ROS 2 types; a bag reader's binds its
+        own types); bytes that do not decode as ``msgtype`` (``CdrError``), or a non-image
+        message over ``MAX_STATE_BYTES``, are refused (counted, reported)."""
+        from common.ros import cdr
+        if self.topic_role[topic][0] != "image" and len(raw) > MAX_STATE_BYTES:
+            self.refuse_oversized(topic, len(raw), msgtype)
+            return []
+        try:
+            msg = (decode or cdr.decode)(raw, msgtype)
+        except cdr.CdrError as exc:
+            self.refuse(topic, f"cannot deserialise: {exc}")
+            return []
+        return self.feed(topic, msg)
+
     def feed(self, topic: str, msg) -> list:
         """Take one message of a used topic; returns the stereo samples it completes.
 
@@ -232,6 +379,10 @@ class StereoAssembler:
         for each the message stamped last at or before the pair (the one stamped nearest to it
         when none is): states recorded just after their images still belong to them."""
         role, cam = self.topic_role[topic]
+        why = message_problem(role, msg, self.check_values)
+        if why is not None:
+            self.refuse(topic, why)
+            return []
         if role == "image":
             self.queues[cam].append((stamp_ns(msg.header), msg))
             L, R = self.queues["left"], self.queues["right"]
@@ -246,12 +397,13 @@ class StereoAssembler:
                     R.popleft()
                     self.counts["unpaired_right"] += 1
             for q in (L, R):            # a live stream with one camera gone: do not grow
-                while len(q) > 64:
+                while len(q) > IMAGE_QUEUE:
                     q.popleft()
                     self.counts["unpaired_left" if q is L else "unpaired_right"] += 1
         elif role in TIMED_ROLES:
             hdr = getattr(msg, "header", None)
-            self.hist.setdefault(role, deque(maxlen=256)).append((None if hdr is None else stamp_ns(hdr), msg))
+            self.hist.setdefault(role, deque(maxlen=HISTORY)).append(
+                (None if hdr is None else stamp_ns(hdr), _kept(role, msg)))
         elif cam is not None:
             self.state.setdefault(role, {})[cam] = msg
         else:
@@ -287,6 +439,8 @@ class StereoAssembler:
             except _NotReady as why:
                 key = f"waiting_for_{why}"
                 self.counts[key] = self.counts.get(key, 0) + 1
+            except BadMessage as exc:            # an image that did not decode: the pair is lost
+                self.refuse(*exc.args)
         return out
 
     def finish(self) -> list:
@@ -332,7 +486,7 @@ class BagStereo:
     ``topics`` a topic map (YAML path or dict). ``info`` says which topics and unit were used;
     ``counts`` how many images went unpaired."""
 
-    def __init__(self, path, preset: str | None = None, topics=None):
+    def __init__(self, path, preset: str | None = None, topics=None, report=None):
         self.path = str(path)
         self.reader = open_reader(path)
         self.types = {c.topic: c.msgtype for c in self.reader.connections}
@@ -340,14 +494,21 @@ class BagStereo:
             m = load_topic_map(preset, topics)
             m = resolve_rig(m, set(self.types))
             roles = resolve_roles(m, self.types, self.path)
+            for t, (role, cam) in roles.items():
+                if t in self.reader.unresolved:
+                    raise BagError(f"{self.path}: topic {t} ({role}{'.' + cam if cam else ''}): "
+                                   f"{self.reader.unresolved[t]}")
         except (TopicMapError, BagError) as exc:
             self.close()
             msg = str(exc)
             raise BagError(msg if msg.startswith(self.path) else f"{self.path}: {msg}") from None
         self.map = m
-        self.asm = StereoAssembler(m, self.path, roles)
+        self.asm = StereoAssembler(m, self.path, roles, report, check_values=False)
         self.info = self.asm.info
         self.counts = self.asm.counts
+        self.refused = self.asm.refused      # {topic: messages refused}
+        if self.reader.recovered:
+            self.info["recovered"] = self.reader.recovered
 
     def needle_model(self) -> NeedleModel:
         return self.asm.needle_model()
@@ -373,8 +534,17 @@ class BagStereo:
         conns = [c for c in self.reader.connections if c.topic in self.asm.topic_role]
         for conn, _t, raw in self.reader.messages(connections=conns):
             try:
-                msg = self.reader.deserialize(raw, conn.msgtype)
-            except Exception as exc:
-                raise BagError(f"{self.path}: {conn.topic}: cannot deserialise a {conn.msgtype}: {exc}") from None
-            yield from self.asm.feed(conn.topic, msg)
-        yield from self.asm.finish()
+                out = self.asm.feed_bytes(conn.topic, raw, conn.msgtype, self.reader.deserialize)
+            except BagError:
+                raise
+            except (AttributeError, TypeError, ValueError, KeyError, IndexError) as exc:   # fields not as its type's
+                raise BagError(f"{self.path}: {conn.topic}: a {conn.msgtype} not as the type defines it (the bag's "
+                               f"own definition of it?): {type(exc).__name__}: {exc}") from None
+            yield from out
+        try:
+            out = self.asm.finish()
+        except BagError:
+            raise
+        except (AttributeError, TypeError, ValueError, KeyError, IndexError) as exc:
+            raise BagError(f"{self.path}: the last frames: {type(exc).__name__}: {exc}") from None
+        yield from out

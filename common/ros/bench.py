@@ -76,7 +76,8 @@ class _RosSystem:
         self.pubs = {}
 
     def _put(self, topic, msg):
-        from common.ros.live import attachment, encode, topic_key
+        from common.ros.cdr import encode
+        from common.ros.live import attachment, topic_key
         if topic not in self.pubs:
             self.pubs[topic] = self.session.declare_publisher(topic_key(topic, msg.__msgtype__, self.keys))
         self.seq += 1
@@ -145,13 +146,14 @@ def live_main(argv: list) -> int:
     args = ap.parse_args(argv)
     from common.data.dataset import Dataset
     from common.evaluation.pipeline_graph import GraphRun, free_port
-    from common.ros.live import decode, topic_key
+    from common.ros.cdr import decode
+    from common.ros.live import topic_key
     from common.runtime.graph import output_key
     from common.runtime.messages import decode as decode_msg
     tmp = tempfile.TemporaryDirectory(prefix="needletrack-ros-live-")
     path = args.dataset
     if path is None:
-        from common.sim.cli import main as dataset_main
+        from common.cli import dataset_main
         path = str(Path(tmp.name) / "ds")
         dataset_main(["generate", "--out", path, "--sequences", "4", "--steps", "1", "--width", str(args.width),
                       "--height", str(args.height), "--seed", "3", "--randomise", "none", "--jobs", "1", "--quiet"])

@@ -8,7 +8,7 @@ AMBF (the AccelNet Surgical Robotics Challenge simulator):
 - camera axes: an AMBF camera looks along its -x with y right and z up. The challenge's
   ``docs/camera_conventions.md`` converts with ``F = [[0,1,0],[0,0,-1],[-1,0,0]]``,
   ``p_cv = F p_ambf``, so ``T_x_cv = T_x_ambfcam @ F^-1`` (``F_AMBF_CAM`` below, 4x4).
-- needle body: the challenge's scripts put the needle's points at radius 0.1018 (decimetres) on
+- needle body: the challenge's scripts put the needle's points at radius 0.1018 (decimetres; 10.18 mm) on
   its arc at angles 60 .. 180 deg from +x towards +y in the needle body frame; its evaluation code
   puts the tip at (0.056, 0.085, 0) (56.6 deg, i.e. the 60-deg end) and the base, where the
   thread is, at (-0.102, 0, 0) (180 deg). The dataset needle frame (docs/dataset.md) has the tip
@@ -16,7 +16,9 @@ AMBF (the AccelNet Surgical Robotics Challenge simulator):
   about z, same origin and normal. So ``T_ambfneedle_needle = RotZ(+30 deg)``
   (``T_AMBF_NEEDLE``) and ``T_world_needle = T_world_ambfneedle @ T_AMBF_NEEDLE``.
 - units: the 2021-22 challenge worked in decimetres (scene scaled by 10: stereo baseline 0.04,
-  needle radius 0.1018); later versions are SI. ``infer_ambf_unit`` decides from the baseline.
+  needle radius 0.1018); AMBF 2.0 (July 2024) and later are SI (baseline 0.004, radius 0.01018).
+  ``infer_ambf_unit`` decides from the baseline. The constants below are in metres (or unitless),
+  whatever the scene's unit: only positions read from its topics are scaled.
 """
 from __future__ import annotations
 
@@ -34,7 +36,7 @@ T_AMBFCAM_CV = inv_T(F_AMBF_CAM)
 # T_ambfneedle_needle: the dataset needle frame in AMBF's needle body frame (RotZ(+30 deg)).
 _c, _s = math.cos(math.radians(30.0)), math.sin(math.radians(30.0))
 T_AMBF_NEEDLE = np.array([[_c, -_s, 0.0, 0.0], [_s, _c, 0.0, 0.0], [0.0, 0.0, 1.0, 0.0], [0.0, 0.0, 0.0, 1.0]])
-AMBF_NEEDLE_RADIUS = 0.1018          # in AMBF units of the 2021-22 challenge (decimetres)
+AMBF_NEEDLE_RADIUS_M = 0.01018       # the challenge's needle: 10.18 mm (0.1018 in the 2021-22 scene's dm)
 AMBF_FOVY_RAD = 1.2                  # the challenge's cameras' vertical field of view
 AMBF_BASELINE_M = 0.004              # its stereo baseline (0.04 in decimetres)
 

@@ -16,7 +16,7 @@ import time
 
 import numpy as np
 
-from common.data.dataset import DatasetMeta, DatasetWriter, Frame
+from common.data.dataset import DatasetMeta, DatasetWriter, Frame, staged_folder
 from common.geometry.camera import StereoRig
 from common.geometry.transforms import inv_T
 from common.ros.bag import BagError, BagStereo
@@ -71,17 +71,39 @@ def _same_rig(a: dict, b: dict) -> str | None:
     return None
 
 
+def sample_fault(s, topics: dict) -> str | None:
+    """What is not finite in a StereoSample (intrinsics, camera poses, ECM joints and pose, the
+    needle's pose), naming the topic it came from; None when all is."""
+    def topic(*roles):
+        return next((topics[r] for r in roles if r in topics), roles[0])
+    for c in CAMS:
+        for k in ("K", "dist"):
+            if not np.all(np.isfinite(s.cameras[c][k])):
+                return f"{topic('camera_info.' + c)}: the {c} camera's {k} is not finite"
+        if not np.all(np.isfinite(s.cameras[c]["T_ecm_cam"])):
+            return f"{topic('camera_state.' + c, 'registration')}: the {c} camera's pose is not finite"
+    for what, value, roles in (("ECM joints", s.ecm_joints, ("ecm_joints",)),
+                               ("T_world_ecm", s.T_world_ecm, ("camera_frame", "ecm_pose", "ecm_joints")),
+                               ("T_world_needle", s.T_world_needle, ("needle_pose",))):
+        if value is not None and not np.all(np.isfinite(value)):
+            return f"{topic(*roles)}: {what} is not finite"
+    return None
+
+
 def from_bag(bag: str, out: str, preset: str | None = None, topics=None, image_format: str = "png",
              jpeg_quality: int = 95, max_frames: int = 0, stride: int = 1, progress: bool = False) -> dict:
-    """Convert ``bag`` into the dataset folder ``out``; returns a summary dict (frames, with_truth,
-    unit, topics, unpaired images, seconds). Raises BagError (bad bag/topics) or ValueError."""
+    """Convert ``bag`` into the dataset folder ``out`` (written beside it under a temporary name,
+    renamed at the end: a failed conversion leaves no folder); returns a summary dict (frames,
+    with_truth, unit, topics, unpaired images, messages refused per topic, recovered, seconds).
+    Raises BagError (bad bag/topics) or ValueError. A message that does not decode or cannot
+    serve its role is skipped, counted in ``refused`` and logged once per topic."""
     if os.path.exists(os.path.join(out, "frames.jsonl")):
         raise ValueError(f"{out} already holds a dataset; use another --out")
     t0 = time.perf_counter()
     writer = None
     n = truth = 0
     groups = RestGroups()
-    with BagStereo(bag, preset, topics) as src:
+    with BagStereo(bag, preset, topics) as src, staged_folder(out) as tmp:
         hint = src.frame_count_hint()
         bar = None
         if progress:
@@ -93,6 +115,9 @@ def from_bag(bag: str, out: str, preset: str | None = None, topics=None, image_f
                     bar.update(1)
                 if s.index % stride:
                     continue
+                fault = sample_fault(s, src.info["topics"])
+                if fault:
+                    raise BagError(f"{bag}: frame {s.index} (stamp {s.stamp_ns}): {fault}")
                 if writer is None:
                     rig = StereoRig.from_dict(s.cameras, s.image_size)
                     first = s.cameras
@@ -104,7 +129,7 @@ def from_bag(bag: str, out: str, preset: str | None = None, topics=None, image_f
                     meta = DatasetMeta(s.image_size, rig, needle, arm,
                                        source=f"needletrack dataset from-bag {os.path.basename(bag)} "
                                               f"(preset {src.map.get('preset')}, unit {src.info.get('unit')})")
-                    writer = DatasetWriter(out, meta, image_format=image_format, jpeg_quality=jpeg_quality)
+                    writer = DatasetWriter(tmp, meta, image_format=image_format, jpeg_quality=jpeg_quality)
                 else:
                     bad = _same_rig(first, s.cameras)
                     if bad:
@@ -134,5 +159,6 @@ def from_bag(bag: str, out: str, preset: str | None = None, topics=None, image_f
                            f"{src.info['topics'].get('image.right')} (left/right header stamps within "
                            f"{src.map['stereo_tolerance_ms']} ms; images left out: {src.counts})")
         return {"frames": n, "with_truth": truth, "unit": src.info.get("unit"), "topics": src.info["topics"],
-                "unpaired": dict(src.counts), "image_size": list(meta.image_size),
+                "unpaired": dict(src.counts), "refused": dict(src.refused), "image_size": list(meta.image_size),
+                "recovered": src.info.get("recovered"),
                 "seconds": time.perf_counter() - t0}

@@ -16,12 +16,19 @@ What each message becomes (topics under ``/<node>/<output>``):
 | GroundTruth | ``.../needle`` PoseStamped (T_world_needle), ``.../ecm`` PoseStamped (T_world_ecm) |
 
 Header stamps are the messages' ``stamp_ns``; log times the moment of receipt.
+
+A recording survives its end: Ctrl-C, SIGTERM and SIGHUP finish the file; the chunk in progress
+is written out every ``CHUNK_S`` (1 s), so a killed recorder's file (no summary) keeps all but
+the last second, which ``from-bag`` and the ``rosbag`` source recover (common/ros/reader.py); a
+failed write (a full disk) stops it with one line, the file cut back to its complete chunks; the
+topic map is written as soon as it is known.
 """
 from __future__ import annotations
 
 import argparse
 import os
 import queue
+import signal
 import sys
 import threading
 import time
@@ -29,6 +36,7 @@ import time
 import numpy as np
 import yaml
 
+from common.errors import NeedletrackError
 from common.ros import build
 from common.ros.types import KEYPOINTS_MSG, typestore
 
@@ -36,11 +44,19 @@ FRAME_IDS = {"ecm": "ECM", "world": "world", "left": "left_camera_optical", "rig
 JOINT_NAMES = ["outer_yaw", "outer_pitch", "insertion", "outer_roll"]
 
 
+CHUNK_S = 1.0          # a chunk is closed at least this often: a killed recorder loses at most this
+
+
 class McapRos2Writer:
-    """A bare ``.mcap`` file of ROS 2 CDR messages (schemas registered on first use)."""
+    """A bare ``.mcap`` file of ROS 2 CDR messages (schemas registered on first use). The chunk in
+    progress is written out once it is ``CHUNK_S`` old (``write`` and ``tick``), so the file on
+    disk always holds complete chunks up to about a second ago; ``good_bytes`` is where the last
+    one ends. A write that fails (a full disk) raises ``RecordError``; ``abandon()`` then cuts the
+    file back to its complete chunks."""
 
     def __init__(self, path: str):
         from mcap.writer import Writer
+        self.path = path
         self.f = open(path, "wb")
         self.w = Writer(self.f)
         self.w.start(profile="ros2", library="needletrack")
@@ -48,24 +64,64 @@ class McapRos2Writer:
         self.schemas: dict = {}
         self.channels: dict = {}
         self.counts: dict = {}
+        self.pending = 0                  # messages in the chunk in progress
+        self.chunk_t0 = time.monotonic()
+        self.good_bytes = 0
+        self._flush()
+
+    def _io(self, what: str, fn, *args, **kw):
+        try:
+            return fn(*args, **kw)
+        except OSError as exc:
+            raise RecordError(f"{self.path}: cannot write ({what}): {exc.strerror or exc}") from None
+
+    def _flush(self) -> None:
+        self._io("a chunk", self.w.flush)
+        self.good_bytes = self.f.tell()
+        self.pending = 0
+        self.chunk_t0 = time.monotonic()
 
     def write(self, topic: str, msg, log_time_ns: int, publish_time_ns: int | None = None) -> None:
         t = msg.__msgtype__
         if t not in self.schemas:
             text, _ = self.store.generate_msgdef(t, ros_version=2)
-            self.schemas[t] = self.w.register_schema(name=t, encoding="ros2msg", data=text.encode())
+            self.schemas[t] = self._io("a schema", self.w.register_schema, name=t, encoding="ros2msg",
+                                       data=text.encode())
         if topic not in self.channels:
-            self.channels[topic] = self.w.register_channel(topic=topic, message_encoding="cdr",
-                                                           schema_id=self.schemas[t])
+            self.channels[topic] = self._io("a channel", self.w.register_channel, topic=topic,
+                                            message_encoding="cdr", schema_id=self.schemas[t])
         data = bytes(self.store.serialize_cdr(msg, t))
+        self._io("a message", self.w.add_message, self.channels[topic], log_time=int(log_time_ns), data=data,
+                 publish_time=int(publish_time_ns if publish_time_ns is not None else log_time_ns),
+                 sequence=self.counts.get(topic, 0) + 1)
         self.counts[topic] = self.counts.get(topic, 0) + 1
-        self.w.add_message(self.channels[topic], log_time=int(log_time_ns), data=data,
-                           publish_time=int(publish_time_ns if publish_time_ns is not None else log_time_ns),
-                           sequence=self.counts[topic])
+        self.pending += 1
+        self.tick()
+
+    def tick(self) -> None:
+        """Write the chunk in progress out if it is ``CHUNK_S`` old."""
+        if self.pending and time.monotonic() - self.chunk_t0 >= CHUNK_S:
+            self._flush()
 
     def close(self) -> None:
-        self.w.finish()
-        self.f.close()
+        self._io("the summary", self.w.finish)
+        self._io("the summary", self.f.close)
+
+    def abandon(self) -> None:
+        """After a failed write: close the file and cut it back to its complete chunks (it has no
+        summary then; the readers recover it)."""
+        try:
+            self.f.close()
+        except OSError:
+            pass
+        try:
+            os.truncate(self.path, self.good_bytes)
+        except OSError:
+            pass
+
+
+class RecordError(NeedletrackError, RuntimeError):
+    """A recording that cannot go on (the file cannot be written); the text names the file."""
 
 
 def _pose_stamped(st, T, stamp, frame):
@@ -166,22 +222,35 @@ def replay_topic_map(recorded: dict) -> dict | None:
     return m
 
 
+def _write_topic_map(path: str, tm: dict) -> None:
+    tmp = f"{path}.partial-{os.getpid()}"
+    with open(tmp, "w") as f:
+        f.write("# written by `needletrack record`: plays the recording back through the rosbag source\n")
+        yaml.safe_dump(tm, f, sort_keys=False, default_flow_style=None, width=160)
+    os.replace(tmp, path)
+
+
 def record(graph, out: str, keys=(), duration: float = 0.0, stop_on_eos: bool = True, grace_s: float = 2.0,
            ready: threading.Event | None = None, stop: threading.Event | None = None) -> dict:
     """Record ``keys`` (default: every node output of the graph) until ``duration`` s pass, an
-    EndOfStream arrives (+``grace_s``), or ``stop`` is set. Returns a summary."""
+    EndOfStream arrives (+``grace_s``), or ``stop`` is set. The topic map
+    (``out + ".topics.yaml"``) is written as soon as a calibration and both cameras' images have
+    come, and again when it changes. Returns a summary; ``error`` says why a recording stopped
+    early (a full disk: the file keeps its complete chunks)."""
     from common.runtime.messages import Calibration, EndOfStream, MessageError, decode
     from common.runtime.tools import open_session
     keys = [graph.resolve_key(k) for k in keys] or [f"{graph.name}/*/*"]
     q: queue.Queue = queue.Queue(maxsize=4096)
+    writer = McapRos2Writer(out)        # before the session: a path that cannot be written fails first
 
     def cb(sample):
         q.put((str(sample.key_expr), bytes(sample.payload.to_bytes()), time.time_ns()))
     session = open_session(graph)
     subs = [session.declare_subscriber(k, cb) for k in keys]
-    writer = McapRos2Writer(out)
     recorded = {"types": {}, "calibration": None, "calibration_topic": None}
     skipped = bad = n = 0
+    error = None
+    tm_path, tm_written = out + ".topics.yaml", None
     t0 = time.monotonic()
     end = t0 + duration if duration > 0 else None
     stop = stop or threading.Event()
@@ -195,6 +264,7 @@ def record(graph, out: str, keys=(), duration: float = 0.0, stop_on_eos: bool = 
             try:
                 key, data, t_rx = q.get(timeout=0.1)
             except queue.Empty:
+                writer.tick()
                 continue
             try:
                 msg = decode(data)
@@ -210,39 +280,50 @@ def record(graph, out: str, keys=(), duration: float = 0.0, stop_on_eos: bool = 
             if not rows:
                 skipped += 1
                 continue
+            new_topic = base not in recorded["types"]
             recorded["types"].setdefault(base, type(msg).__name__)
-            if isinstance(msg, Calibration):
-                recorded["calibration"], recorded["calibration_topic"] = msg, base
             for topic, rmsg in rows:
                 writer.write(topic, rmsg, t_rx, getattr(msg, "stamp_ns", t_rx) or t_rx)
                 n += 1
+            if isinstance(msg, Calibration):
+                recorded["calibration"], recorded["calibration_topic"] = msg, base
+            if new_topic or isinstance(msg, Calibration):
+                tm = replay_topic_map(recorded)
+                if tm is not None and tm != tm_written:
+                    try:
+                        _write_topic_map(tm_path, tm)
+                    except OSError as exc:
+                        raise RecordError(f"{tm_path}: cannot write: {exc.strerror or exc}") from None
+                    tm_written = tm
     except KeyboardInterrupt:        # Ctrl-C ends a recording normally
         pass
+    except RecordError as exc:
+        error = str(exc)
     finally:
         for s in subs:
             s.undeclare()
         session.close()
-        writer.close()
-    tm = replay_topic_map(recorded)
-    tm_path = None
-    if tm is not None:
-        tm_path = out + ".topics.yaml"
-        with open(tm_path, "w") as f:
-            f.write("# written by `needletrack record`: plays the recording back through the rosbag source\n")
-            yaml.safe_dump(tm, f, sort_keys=False, default_flow_style=None, width=160)
+        if error is None:
+            try:
+                writer.close()
+            except RecordError as exc:
+                error = str(exc)
+        if error is not None:
+            writer.abandon()
     return {"out": out, "messages": n, "topics": dict(writer.counts), "skipped": skipped, "undecodable": bad,
-            "topic_map": tm_path, "seconds": time.monotonic() - t0}
+            "topic_map": tm_path if tm_written is not None else None, "error": error,
+            "seconds": time.monotonic() - t0}
 
 
 def record_main(argv: list) -> int:
     ap = argparse.ArgumentParser(prog="needletrack record", description=__doc__,
                                  formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("-g", "--graph", default="dataflow.yaml", help="graph YAML (default: dataflow.yaml)")
-    ap.add_argument("--out", required=True, help="the MCAP file to write (FILE.mcap)")
+    ap.add_argument("--out", required=True, help="the MCAP file to write (FILE.mcap; its folder must exist)")
     ap.add_argument("keys", nargs="*", help="keys to record (default: every node output), e.g. camera/left "
                                             "'epnp_joint/*'")
-    ap.add_argument("--duration", type=float, default=0.0, help="stop after this many seconds (0: until Ctrl-C "
-                                                                 "or the source's end of stream)")
+    ap.add_argument("--duration", type=float, default=0.0, help="stop after this many seconds (0: until Ctrl-C, "
+                                                                 "SIGTERM, SIGHUP or the source's end of stream)")
     ap.add_argument("--no-eos-stop", action="store_true", help="keep recording after an EndOfStream")
     args = ap.parse_args(argv)
     from common.runtime.tools import _load_or_report
@@ -252,13 +333,42 @@ def record_main(argv: list) -> int:
     if os.path.exists(args.out):
         print(f"error: {args.out} exists", file=sys.stderr)
         return 2
+    folder = os.path.dirname(args.out) or "."
+    if not os.path.isdir(folder):
+        print(f"error: --out {args.out}: no folder {folder} (create it first)", file=sys.stderr)
+        return 2
     graph = _load_or_report(args.graph)
     if graph is None:
         return 2
+    stop = threading.Event()
+
+    def on_signal(signum, _frame):    # SIGINT, SIGTERM (timeout, systemd), SIGHUP (a closed terminal)
+        if stop.is_set():
+            raise KeyboardInterrupt
+        stop.set()
+    for sig in (signal.SIGINT, signal.SIGTERM, signal.SIGHUP):
+        signal.signal(sig, on_signal)
+    signal.signal(signal.SIGXFSZ, signal.SIG_IGN)     # past a file-size limit: a write error, said in one line
     try:
-        r = record(graph, args.out, args.keys, args.duration, not args.no_eos_stop)
+        r = record(graph, args.out, args.keys, args.duration, not args.no_eos_stop, stop=stop)
+    except (OSError, RecordError) as exc:      # the file cannot even be started
+        print(f"error: {exc}" if isinstance(exc, RecordError) else
+              f"error: cannot write {args.out}: {exc.strerror or exc}", file=sys.stderr)
+        if os.path.isfile(args.out) and os.path.getsize(args.out) == 0:
+            os.unlink(args.out)
+        return 1
     except KeyboardInterrupt:
         return 130
+    if r["error"]:
+        print(f"error: {r['error']}: stopped after {r['messages']} messages; the file keeps its complete chunks "
+              f"(from-bag and the rosbag source read them)", file=sys.stderr)
+        return 1
+    if r["messages"] == 0:
+        os.unlink(args.out)
+        print(f"error: nothing recorded in {r['seconds']:.1f} s: no message on "
+              f"{', '.join(args.keys) or 'any node output'} of graph {graph.name!r} (is it running?); "
+              f"{args.out} not kept", file=sys.stderr)
+        return 1
     print(f"{r['out']}: {r['messages']} messages on {len(r['topics'])} topics in {r['seconds']:.1f} s"
           + (f"; replay with the rosbag source and topics {r['topic_map']}" if r["topic_map"] else ""))
     for t, c in sorted(r["topics"].items()):

@@ -34,7 +34,8 @@ import os
 import numpy as np
 import yaml
 
-from common.ros.conventions import AMBF_FOVY_RAD, AMBF_NEEDLE_RADIUS, UNITS
+from common.errors import NeedletrackError
+from common.ros.conventions import AMBF_FOVY_RAD, AMBF_NEEDLE_RADIUS_M, UNITS
 
 PRESETS = {
     "ambf": {
@@ -47,7 +48,7 @@ PRESETS = {
         "camera_axes": "ambf",
         "fovy_rad": AMBF_FOVY_RAD,
         "unit": "auto",
-        "needle_radius_units": AMBF_NEEDLE_RADIUS,   # needle radius in the scene's units
+        "needle": {"radius_m": AMBF_NEEDLE_RADIUS_M},   # metres, whatever unit the scene is in
         "stereo_tolerance_ms": 5.0,
     },
     "dvrk": {
@@ -68,10 +69,10 @@ PRESETS = {
 }
 KEYS = {"preset", "images", "camera_info", "fovy_rad", "registration", "camera_axes", "ecm_joints", "ecm_pose",
         "needle_pose", "needle_frame", "T_given_needle", "needle", "unit", "stereo_tolerance_ms", "ecm",
-        "camera_frame", "camera_states", "needle_radius_units"}
+        "camera_frame", "camera_states"}
 
 
-class TopicMapError(ValueError):
+class TopicMapError(NeedletrackError, ValueError):
     """A topic map that cannot be used; the text names the key (and the file)."""
 
 

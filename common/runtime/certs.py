@@ -26,6 +26,7 @@ import sys
 from pathlib import Path
 from typing import Iterable, Optional
 
+from common.errors import NeedletrackError
 from common.runtime.graph import (
     LAUNCHER_IDENTITY,
     GraphError,
@@ -36,8 +37,8 @@ from common.runtime.graph import (
 DEFAULT_DAYS = 30
 
 
-class CertError(RuntimeError):
-    """A CA file that cannot be read, or a folder that cannot be written."""
+class CertError(NeedletrackError, RuntimeError):
+    """A CA file that cannot be read."""
 
 
 def _private(path: Path) -> None:
@@ -198,6 +199,9 @@ def certs_main(argv: list) -> int:
     ap.add_argument("--host", action="append", default=[], help="subject alternative name (IP or DNS); repeatable")
     ap.add_argument("--days", type=int, default=DEFAULT_DAYS, help=f"validity (default {DEFAULT_DAYS})")
     args = ap.parse_args(argv)
+    if args.out and Path(args.out).exists() and not Path(args.out).is_dir():
+        print(f"needletrack certs: --out {args.out} exists and is not a folder", file=sys.stderr)
+        return 2
     try:
         graph = load_graph(args.graph)
         if args.identity:
@@ -211,6 +215,9 @@ def certs_main(argv: list) -> int:
         return 2
     except CertError as exc:
         print(f"needletrack certs: {exc}", file=sys.stderr)
+        return 1
+    except OSError as exc:            # the folder cannot be made or written
+        print(f"needletrack certs: cannot write {exc.filename or args.out}: {exc.strerror}", file=sys.stderr)
         return 1
     where = Path(args.out) if args.out else Path(graph.zenoh.tls.cert).parent
     print(f"{where}: CA and {len(idents)} certificate(s) for graph {graph.name!r}: {', '.join(idents)}")

@@ -39,6 +39,8 @@ from typing import Any, Optional
 
 import yaml
 
+from common.errors import NeedletrackError
+
 DEFAULT_ENDPOINT = "tcp/127.0.0.1:7447"
 RESTART_POLICIES = ("never", "on-failure", "always")
 ZENOH_MODES = ("peer", "client", "router")
@@ -55,7 +57,7 @@ LAUNCHER_IDENTITY = "launcher"     # the TLS identity of launchers and CLI tools
 _NODE_KEYS = {"id", "module", "command", "params", "inputs", "outputs", "restart", "env", "feedback", "spare"}
 
 
-class GraphError(ValueError):
+class GraphError(NeedletrackError, ValueError):
     """An invalid graph; ``errors`` lists every problem with its place."""
 
     def __init__(self, errors: list[str], source: str = "graph"):
@@ -579,18 +581,29 @@ def load_graph(src) -> Graph:
     path = Path(src)
     if not path.is_file():
         raise GraphError([f"no such file: {path}"], str(path))
-    return graph_from_dict(parse_yaml(path.read_text(), str(path)), path=path.resolve(), source=str(path))
+    try:
+        text = path.read_bytes().decode("utf-8")
+    except UnicodeDecodeError as exc:
+        raise GraphError([f"not a YAML text file: byte {exc.start} is not UTF-8"], str(path)) from None
+    except OSError as exc:
+        raise GraphError([f"cannot be read: {exc.strerror}"], str(path)) from None
+    if "\0" in text:
+        raise GraphError([f"not a YAML text file: byte {text.index(chr(0))} is NUL"], str(path))
+    return graph_from_dict(parse_yaml(text, str(path)), path=path.resolve(), source=str(path))
 
 
 def parse_param(text: str) -> tuple:
-    """``k=v`` -> (k, v) with v parsed as a YAML scalar (``noise_px=1.5`` -> ("noise_px", 1.5))."""
+    """``k=v`` -> (k, v) with v parsed as YAML (``noise_px=1.5`` -> ("noise_px", 1.5); text that is
+    not YAML stays a string); ValueError (``InputLimitError``) for a value over the YAML limits
+    (nested too deep, too many nodes: ``common.runtime.limits``)."""
+    from common.runtime.limits import load_yaml
     if "=" not in text:
-        raise ValueError(f"--param expects key=value, got {text!r}")
+        raise ValueError(f"--param expects key=value, got {text[:80]!r}")
     k, v = text.split("=", 1)
     if not k:
-        raise ValueError(f"--param expects key=value, got {text!r}")
+        raise ValueError(f"--param expects key=value, got {text[:80]!r}")
     try:
-        val = yaml.safe_load(v) if v else ""
+        val = load_yaml(v, f"the value of {k[:80]!r}") if v else ""
     except yaml.YAMLError:
         val = v
     return k, val

@@ -4,9 +4,12 @@
   nodes run as given, with ``NEEDLETRACK_GRAPH``/``NEEDLETRACK_NODE`` in their environment.
 - Every output line of a node is printed prefixed with ``[node id]``.
 - A node that exits is restarted per its ``restart`` policy: at once, then, if it fails again
-  within 10 s of starting, with exponential backoff (0.5 s doubling to 10 s); exit status 2 (bad configuration: bad
-  params, an unreadable model) is never restarted, and stops the whole graph (``launch`` then
-  exits non-zero). Params are checked against each node's ``Params`` before anything starts. Restarts are counted, printed, and reported in the node's stats.
+  within 10 s of starting, with exponential backoff (0.5 s doubling to 10 s); exit status 2 (bad
+  configuration: bad params, an unreadable model; a source whose input failed part way, e.g. a
+  corrupt bag) is never restarted, and stops the whole graph (``launch`` then exits non-zero). A
+  node's exit is reported with the last ERROR line it printed: which node stopped, and why.
+  Params are checked against each node's ``Params`` before anything starts. Restarts are
+  counted, printed, and reported in the node's stats.
 - The launcher's own Zenoh session is the graph's hub: it listens on the graph's ``listen``
   endpoints and the nodes connect to it (then to each other, by gossip). With ``--only`` and the
   endpoint already taken (another launcher runs the rest of the graph), it connects instead.
@@ -104,6 +107,7 @@ class Proc:
     role: str = "active"            # active | standby | retired
     reader: Optional[threading.Thread] = None
     token: str = ""                 # the process's control token (handover, takeover)
+    last_error: str = ""            # the last ERROR line it printed: why it stopped
 
     @property
     def pid(self) -> int:
@@ -164,7 +168,10 @@ class Launcher:
     def _pump(self, proc: Proc) -> None:
         for raw in iter(proc.popen.stdout.readline, b""):
             tag = proc.spec.id if proc.role == "active" else f"{proc.spec.id}:{proc.pid}"
-            self.say(raw.decode(errors="replace").rstrip("\n"), tag)
+            line = raw.decode(errors="replace").rstrip("\n")
+            if line.startswith(("ERROR ", "CRITICAL ")):
+                proc.last_error = line.split(" ", 1)[1][:500]
+            self.say(line, tag)
         proc.popen.stdout.close()
 
     # ---------------------------------------------------------------- processes
@@ -457,13 +464,15 @@ class Launcher:
                     self._reported.pop(p.pid, None)
                     forced, slot.force_restart = slot.force_restart, False
                     again = again or forced
+                    why = f": {p.last_error}" if code not in (0, None) and p.last_error else ""
                     if not again:
                         slot.done = True
                         self.say(f"{nid} exited with {describe_status(code)}"
                                  + ("" if code in (0, None) else f" (restart policy {policy}"
-                                    + (", status 2 = bad configuration" if code == 2 else "") + ")"))
+                                    + (", status 2 = bad configuration" if code == 2 else "") + ")") + why)
                         if code == 2 and self.stop_on_config_error:
-                            self.say(f"{nid} cannot run as configured: stopping the graph (see its log above)")
+                            self.say(f"{nid} cannot run as configured: stopping the graph"
+                                     + ("" if why else " (see its log above)"))
                             self._stop.set()
                         continue
                     ran = now - p.started
@@ -475,7 +484,8 @@ class Launcher:
                         slot.failures = 1 if ran > BACKOFF_RESET_S else slot.failures + 1
                         delay = restart_delay(slot.failures)
                     slot.restart_at = now + delay
-                    self.say(f"{nid} exited with {describe_status(code)}; restart #{slot.restarts + 1} in {delay:.1f} s")
+                    self.say(f"{nid} exited with {describe_status(code)}{why}; "
+                             f"restart #{slot.restarts + 1} in {delay:.1f} s")
                 elif (p is not None and not slot.force_restart and nid not in self._swapping
                       and self._reported.get(p.pid) == "retired"):
                     # only a swap this launcher runs may retire a process (its token): one that

@@ -1,9 +1,9 @@
 """Limits on input read from disk: a YAML loader with a node budget, and an image-file reader
 that checks size and header before it reads or decodes (see docs/robustness.md).
 
-- YAML: ``load_yaml`` composes the document, counts its nodes with every alias expanded
-  (a "billion laughs" document of 1.5 KB expands to 10^9) and refuses one over
-  ``MAX_YAML_NODES`` before anything walks or builds it.
+- YAML: ``load_yaml`` refuses a document nested deeper than ``MAX_YAML_DEPTH``, composes it,
+  counts its nodes with every alias expanded (a "billion laughs" document of 1.5 KB expands to
+  10^9) and refuses one over ``MAX_YAML_NODES`` before anything walks or builds it.
 - Images: ``read_image_file`` refuses a path that is not a regular file, a symlink that leaves
   its folder, an empty file or one over ``MAX_IMAGE_BYTES`` (checked with ``stat`` before
   reading), and a file whose PNG/JPEG header states another size than expected (checked before
@@ -17,14 +17,20 @@ from typing import Any, Optional
 
 import yaml
 
+from common.errors import NeedletrackError
+
 MAX_YAML_NODES = 100_000
 """Most YAML nodes (scalars, lists, maps; aliases counted as the nodes they expand to)."""
+
+MAX_YAML_DEPTH = 100
+"""Deepest nesting of lists and maps (PyYAML composes recursively: a deeper document would
+exhaust Python's stack with a ``RecursionError``)."""
 
 MAX_IMAGE_BYTES = int(os.environ.get("NEEDLETRACK_MAX_IMAGE_BYTES", 64 << 20))
 """Largest image file read (bytes; env ``NEEDLETRACK_MAX_IMAGE_BYTES``, default 64 MiB)."""
 
 
-class InputLimitError(ValueError):
+class InputLimitError(NeedletrackError, ValueError):
     """Input from disk that breaks a limit; the text names the file and what is wrong."""
 
 
@@ -44,9 +50,26 @@ def yaml_node_count(root, budget: int) -> int:
     return n
 
 
+def check_yaml_depth(text: str, where: str = "YAML", max_depth: int = MAX_YAML_DEPTH) -> None:
+    """``InputLimitError`` when lists and maps in ``text`` nest deeper than ``max_depth`` (checked
+    on the parser's events, which need no recursion); YAML errors propagate."""
+    depth = 0
+    for ev in yaml.parse(text, Loader=yaml.SafeLoader):
+        if isinstance(ev, (yaml.SequenceStartEvent, yaml.MappingStartEvent)):
+            depth += 1
+            if depth > max_depth:
+                m = ev.start_mark
+                raise InputLimitError(f"{where}: line {m.line + 1}, column {m.column + 1}: lists and maps "
+                                      f"nested deeper than {max_depth}: refused")
+        elif isinstance(ev, (yaml.SequenceEndEvent, yaml.MappingEndEvent)):
+            depth -= 1
+
+
 def compose_yaml(text: str, where: str = "YAML", max_nodes: int = MAX_YAML_NODES):
     """The composed node tree of ``text`` (``yaml.compose``, safe), refused with
-    ``InputLimitError`` when it expands to more than ``max_nodes`` nodes."""
+    ``InputLimitError`` when it nests deeper than ``MAX_YAML_DEPTH`` or expands to more than
+    ``max_nodes`` nodes."""
+    check_yaml_depth(text, where)
     root = yaml.compose(text, Loader=yaml.SafeLoader)
     if root is not None and yaml_node_count(root, max_nodes) > max_nodes:
         raise InputLimitError(f"{where}: expands to more than {max_nodes} YAML nodes (aliases "

@@ -10,429 +10,26 @@ consumers pair them by ``seq`` (see ``common.runtime.pairing``).
 """
 from __future__ import annotations
 
-import dataclasses
-import math
 from dataclasses import dataclass
 from typing import Optional
 
-import msgpack
 import numpy as np
 
-_EXT_NDARRAY = 1
-_DTYPES = {"bool", "uint8", "uint16", "int32", "int64", "float32", "float64"}
-
-
-MAX_IMAGE_SIDE = 16384
-"""Largest image width or height (px) a message may state or carry."""
-
-MAX_INT = (1 << 63) - 1
-"""Largest ``seq``/``stamp_ns``/``epoch`` (int64): a msgpack uint64 beyond it is refused."""
-
-MAX_COORD = 1e7
-"""Largest magnitude of any array element or float a message may carry (px, m, rad all fit):
-values beyond are refused at decode, so no handler sees an overflow-prone 1e300."""
-
-RIGID_TOL = 1e-6
-"""Tolerance of the rigid-transform check: |R^T R - I|, |det R - 1| and the bottom row."""
-
-
-class MessageError(ValueError):
-    """A payload that is not a valid message; the text names the message type and field."""
-
-
-# ---------------------------------------------------------------- ndarray extension
-
-_DTYPE = {name: np.dtype(name) for name in _DTYPES}
-_DTYPE_NAME = {dt: name for name, dt in _DTYPE.items()}     # (``dtype.name`` is slow to get)
-_UINT_BYTES = {0xcc: 1, 0xcd: 2, 0xce: 4, 0xcf: 8}          # msgpack uint 8/16/32/64 markers
-
-
-def _default(obj):
-    if isinstance(obj, np.ndarray):
-        name = _DTYPE_NAME.get(obj.dtype)
-        if name is None:                       # not native byte order, or not sendable
-            name = obj.dtype.name
-            if name not in _DTYPES:
-                raise TypeError(f"ndarray dtype {obj.dtype} cannot be sent")
-            obj = obj.astype(name)
-        head = msgpack.packb([name, list(obj.shape)])
-        return msgpack.ExtType(_EXT_NDARRAY, head + obj.tobytes())    # tobytes: C order
-    if isinstance(obj, np.generic):
-        return obj.item()
-    raise TypeError(f"cannot encode {type(obj).__name__}")
-
-
-def _ndarray_header(data: bytes):
-    """``(dtype, shape, offset of the raw bytes)`` of an ndarray extension, whose header is
-    the msgpack ``[dtype name, [dims]]`` that ``_default`` writes, read directly (a msgpack
-    Unpacker per array costs more than the rest of a small message); None for another form."""
-    if data[0] != 0x92 or not 0xa0 <= data[1] <= 0xbf:          # fixarray(2), fixstr
-        return None
-    p = 2 + (data[1] & 0x1f)
-    if not 0x90 <= data[p] <= 0x9f:                              # fixarray(ndim)
-        return None
-    dtype, ndim, p = data[2:p].decode("ascii", "replace"), data[p] & 0x0f, p + 1
-    shape = []
-    for _ in range(ndim):
-        b = data[p]
-        if b < 0x80:                                             # positive fixint
-            shape.append(b)
-            p += 1
-        elif b in _UINT_BYTES:
-            k = _UINT_BYTES[b]
-            shape.append(int.from_bytes(data[p + 1:p + 1 + k], "big"))
-            p += 1 + k
-        else:
-            return None
-    return dtype, shape, p
-
-
-def _ext_hook(code, data):
-    if code != _EXT_NDARRAY:
-        raise MessageError(f"unknown msgpack extension type {code}")
-    try:
-        head = _ndarray_header(data)
-    except IndexError:
-        head = None
-    if head is None:
-        unpacker = msgpack.Unpacker(raw=False)
-        unpacker.feed(data)
-        try:
-            dtype, shape = next(unpacker)
-        except Exception as exc:  # malformed header
-            raise MessageError(f"malformed ndarray header: {exc}") from None
-        offset = unpacker.tell()
-    else:
-        dtype, shape, offset = head
-    dt = _DTYPE.get(dtype) if isinstance(dtype, str) else None
-    if dt is None or not isinstance(shape, list) or not all(type(d) is int and d >= 0 for d in shape):
-        raise MessageError(f"bad ndarray header dtype={dtype!r} shape={shape!r}")
-    n = math.prod(shape) * dt.itemsize
-    if len(data) - offset != n:
-        raise MessageError(f"ndarray of {dtype}{tuple(shape)} needs {n} bytes, got {len(data) - offset}")
-    return np.frombuffer(data, dtype=dt, offset=offset).reshape(shape).copy()
-
-
-# ---------------------------------------------------------------- field validation
-
-def _check(msg_name: str, fname: str, value, spec):
-    """Validate and normalise one field value against its spec; returns the value to store."""
-    kind = spec[0]
-    where = f"{msg_name}.{fname}"
-    if value is None:
-        if "optional" in spec[1:]:
-            return None
-        raise MessageError(f"{where}: required, got null")
-    if kind == "int":
-        if isinstance(value, bool) or not isinstance(value, int):
-            raise MessageError(f"{where}: expected int, got {type(value).__name__}")
-        if not -MAX_INT <= value <= MAX_INT:
-            raise MessageError(f"{where}: out of the int64 range, got {value}")
-        return value
-    if kind == "float":
-        if isinstance(value, bool) or not isinstance(value, (int, float)):
-            raise MessageError(f"{where}: expected number, got {type(value).__name__}")
-        value = float(value)
-        if not abs(value) <= MAX_COORD:          # NaN and inf fail this too
-            raise MessageError(f"{where}: not finite, or beyond {MAX_COORD:g}: got {value}")
-        return value
-    if kind == "bool":
-        if not isinstance(value, bool):
-            raise MessageError(f"{where}: expected bool, got {type(value).__name__}")
-        return value
-    if kind == "str":
-        if not isinstance(value, str):
-            raise MessageError(f"{where}: expected string, got {type(value).__name__}")
-        if len(spec) > 1 and isinstance(spec[1], tuple) and value not in spec[1]:
-            raise MessageError(f"{where}: must be one of {spec[1]}, got {value!r}")
-        return value
-    if kind == "bytes":
-        if not isinstance(value, (bytes, bytearray, memoryview)):
-            raise MessageError(f"{where}: expected bytes, got {type(value).__name__}")
-        return value if isinstance(value, (bytes, memoryview)) else bytes(value)
-    if kind == "dict":
-        if not isinstance(value, dict):
-            raise MessageError(f"{where}: expected map, got {type(value).__name__}")
-        return value
-    if kind == "array":
-        shape = spec[1]
-        if isinstance(value, list):  # tolerate plain lists from other writers
-            try:
-                value = np.asarray(value, dtype=float)
-            except (TypeError, ValueError):
-                raise MessageError(f"{where}: expected numeric array") from None
-        if not isinstance(value, np.ndarray):
-            raise MessageError(f"{where}: expected array, got {type(value).__name__}")
-        if len(value.shape) != len(shape) or any(s is not None and s != v for s, v in zip(shape, value.shape)):
-            want = tuple("N" if s is None else s for s in shape)
-            raise MessageError(f"{where}: expected shape {want}, got {value.shape}")
-        if value.size > MAX_ARRAY_ELEMENTS:
-            raise MessageError(f"{where}: {value.size} elements, at most {MAX_ARRAY_ELEMENTS}")
-        _check_values(where, value, "nan" in spec)
-        return value
-    if kind == "camera_map":  # {"left": array, "right": array}, each of shape spec[1]
-        if not isinstance(value, dict) or set(value) - {"left", "right"}:
-            raise MessageError(f"{where}: expected a map with keys left/right")
-        out = {}
-        for k, v in value.items():
-            if v is None:
-                out[k] = None
-                continue
-            try:
-                a = v if isinstance(v, np.ndarray) else np.asarray(v, dtype=float)
-            except (TypeError, ValueError):
-                raise MessageError(f"{where}.{k}: expected a numeric array") from None
-            if a.shape != spec[1]:
-                raise MessageError(f"{where}.{k}: expected shape {spec[1]}, got {a.shape}")
-            _check_values(f"{where}.{k}", a, True)
-            out[k] = a
-        return out
-    raise AssertionError(kind)
-
-
-MAX_ARRAY_ELEMENTS = 1 << 20
-"""Largest number of elements of an array field (a centreline has a few hundred points)."""
-
-
-def _check_values(where: str, a: np.ndarray, nan_ok: bool) -> None:
-    """Numeric arrays: every element finite (NaN allowed when ``nan_ok``: "missing") and at most
-    ``MAX_COORD`` in size; inf is never allowed."""
-    if a.dtype.kind not in "fiub":
-        raise MessageError(f"{where}: expected a numeric array, got dtype {a.dtype}")
-    if a.dtype.kind == "f":
-        bad = ~(np.abs(a) <= MAX_COORD)
-        if nan_ok:
-            bad &= ~np.isnan(a)
-        if bad.any():
-            raise MessageError(f"{where}: not finite, or beyond {MAX_COORD:g} ({int(bad.sum())} element(s))")
-    elif a.dtype.kind in "iu" and a.size and np.abs(a.astype(np.float64)).max() > MAX_COORD:
-        raise MessageError(f"{where}: element(s) beyond {MAX_COORD:g}")
-
-
-def rigid_error(T, where: str) -> Optional[str]:
-    """None if ``T`` is a 4x4 rigid transform (finite, R orthonormal with det +1 and bottom row
-    [0 0 0 1] within ``RIGID_TOL``), else why not, prefixed by ``where``."""
-    T = np.asarray(T, dtype=float)
-    if T.shape != (4, 4):
-        return f"{where}: expected shape (4, 4), got {T.shape}"
-    if not np.isfinite(T).all():
-        return f"{where}: not finite"
-    R = T[:3, :3]
-    if (np.abs(T[3] - (0.0, 0.0, 0.0, 1.0)).max() > RIGID_TOL
-            or np.abs(R.T @ R - np.eye(3)).max() > RIGID_TOL or abs(np.linalg.det(R) - 1.0) > RIGID_TOL):
-        return f"{where}: not a rigid transform (rotation not orthonormal with det 1, or bottom row not 0 0 0 1)"
-    return None
-
-
-def _rigid(T, where: str) -> None:
-    if T is not None:
-        err = rigid_error(T, where)
-        if err:
-            raise MessageError(err)
-
-
-def covariance_error(C, where: str) -> Optional[str]:
-    """None if ``C`` is a finite symmetric positive semi-definite matrix, else why not."""
-    C = np.asarray(C, dtype=float)
-    if not np.isfinite(C).all():
-        return f"{where}: not finite"
-    scale = max(1.0, float(np.abs(C).max()))
-    if np.abs(C - C.T).max() > 1e-9 * scale:
-        return f"{where}: not symmetric"
-    if np.linalg.eigvalsh(0.5 * (C + C.T)).min() < -1e-9 * scale:
-        return f"{where}: not positive semi-definite"
-    return None
-
-
-class Message:
-    """Base of all messages: a dataclass with a schema name, a version and field specs."""
-
-    SCHEMA: str = ""
-    VERSION: int = 1
-    FIELDS: dict = {}
-
-    def to_body(self) -> dict:
-        return {f.name: getattr(self, f.name) for f in dataclasses.fields(self)}
-
-
-_REGISTRY: dict[str, type] = {}
-
-
-def register(cls):
-    _REGISTRY[cls.SCHEMA] = cls
-    return cls
-
-
-_TAIL_MIN = 1 << 16     # a bytes field at least this large travels as the payload's tail
-
-
-def encode(msg: Message) -> bytes:
-    """Message -> msgpack bytes.
-
-    The largest bytes field of at least 64 KiB (an image) is packed last, as a bin32 after the
-    rest, and joined in one copy: the result is plain msgpack, and ``decode`` can hand that
-    field out as a view of the payload instead of copying it.
-    """
-    head, tail = encode_parts(msg)
-    return head if tail is None else b"".join((head, tail))
-
-
-def encode_parts(msg: Message) -> tuple:
-    """``(head, tail)`` with ``encode(msg) == head + tail``; ``tail`` is None or the large bytes
-    field (not copied), so a transport can write both into one buffer of its own."""
-    body = msg.to_body()
-    tail_key, tail = None, None
-    for k, v in body.items():
-        if isinstance(v, (bytes, bytearray, memoryview)) and len(v) >= _TAIL_MIN and (tail is None or len(v) > len(tail)):
-            tail_key, tail = k, v
-    if tail_key is None:
-        return msgpack.packb({"schema": msg.SCHEMA, "version": msg.VERSION, "body": body},
-                             default=_default, use_bin_type=True), None
-    tail = memoryview(tail).cast("B") if not isinstance(tail, bytes) else tail
-    del body[tail_key]
-    packer = msgpack.Packer(default=_default, use_bin_type=True, autoreset=False)
-    packer.pack_map_header(3)
-    packer.pack("schema"), packer.pack(msg.SCHEMA), packer.pack("version"), packer.pack(msg.VERSION)
-    packer.pack("body")
-    packer.pack_map_header(len(body) + 1)
-    for k, v in body.items():
-        packer.pack(k), packer.pack(v)
-    packer.pack(tail_key)
-    head = packer.bytes() + b"\xc6" + len(tail).to_bytes(4, "big")
-    return head, tail
-
-
-def _unpack_with_tail(buf: bytes):
-    """Fast path for payloads made by ``encode`` with a tail field: unpack the small head and
-    return the tail as a memoryview of ``buf``; None if ``buf`` does not have that layout."""
-    n = len(buf)
-    limit = min(n - 5, _TAIL_MIN)
-    p = buf.find(b"\xc6", 0, limit)
-    while p != -1:
-        if int.from_bytes(buf[p + 1:p + 5], "big") == n - p - 5:
-            try:
-                data = msgpack.unpackb(buf[:p] + b"\xc0", ext_hook=_ext_hook, raw=False, strict_map_key=False)
-            except Exception:
-                return None
-            body = data.get("body") if isinstance(data, dict) else None
-            if not isinstance(body, dict) or not body or list(body.values())[-1] is not None:
-                return None
-            body[list(body)[-1]] = memoryview(buf)[p + 5:]
-            return data
-        p = buf.find(b"\xc6", p + 1, limit)
-    return None
-
-
-_NONNEGATIVE = ("seq", "stamp_ns", "epoch", "frames")
-
-
-def image_header_size(data) -> Optional[tuple]:
-    """``(width, height)`` read from a PNG's IHDR or a JPEG's SOF header without decoding the
-    pixels, or None for data that is neither (empty, truncated, another format)."""
-    b = bytes(data[:65536]) if len(data) > 65536 else bytes(data)
-    if b[:8] == b"\x89PNG\r\n\x1a\n" and len(b) >= 24 and b[12:16] == b"IHDR":
-        return int.from_bytes(b[16:20], "big"), int.from_bytes(b[20:24], "big")
-    if b[:2] != b"\xff\xd8":
-        return None
-    p = 2
-    while p + 4 <= len(b):
-        if b[p] != 0xFF:
-            return None
-        marker = b[p + 1]
-        if marker == 0xFF:                  # fill byte
-            p += 1
-            continue
-        if marker in (0xD8, 0x01) or 0xD0 <= marker <= 0xD7:
-            p += 2
-            continue
-        length = int.from_bytes(b[p + 2:p + 4], "big")
-        if 0xC0 <= marker <= 0xCF and marker not in (0xC4, 0xC8, 0xCC):
-            if p + 9 > len(b):
-                return None
-            return int.from_bytes(b[p + 7:p + 9], "big"), int.from_bytes(b[p + 5:p + 7], "big")
-        if length < 2:
-            return None
-        p += 2 + length
-    return None
-
-
-def pose_error(msg: "PoseEstimate", max_range_m: Optional[float] = None) -> Optional[str]:
-    """The pose invariant: None if ``msg`` holds, else the first violation. Every transform
-    rigid (finite, rotation orthonormal with det +1), ``covariance`` symmetric positive
-    semi-definite, and, with ``max_range_m``, the needle within that distance of the ECM (m)."""
-    for name in ("T_ecm_needle", "T_world_needle", "T_world_ecm"):
-        T = getattr(msg, name)
-        if T is not None:
-            err = rigid_error(T, f"PoseEstimate.{name}")
-            if err:
-                return err
-    if msg.covariance is not None:
-        err = covariance_error(msg.covariance, "PoseEstimate.covariance")
-        if err:
-            return err
-        if not np.abs(np.asarray(msg.covariance, dtype=float)).max() <= MAX_COORD:
-            return f"PoseEstimate.covariance: beyond {MAX_COORD:g}"
-    if msg.model_sigma_m is not None and not 0.0 <= float(msg.model_sigma_m) <= 1.0:
-        return f"PoseEstimate.model_sigma_m: must be in [0, 1] m, got {msg.model_sigma_m}"
-    if msg.model_sigma_rad is not None and not 0.0 <= float(msg.model_sigma_rad) <= math.pi:
-        return f"PoseEstimate.model_sigma_rad: must be in [0, pi] rad, got {msg.model_sigma_rad}"
-    if msg.end_identity is not None and not 0.0 <= float(msg.end_identity) <= 1.0:
-        return f"PoseEstimate.end_identity: must be a probability in [0, 1], got {msg.end_identity}"
-    if not abs(float(msg.residual)) <= MAX_COORD:     # what decode would refuse downstream
-        return f"PoseEstimate.residual: not finite, or beyond {MAX_COORD:g}: {msg.residual}"
-    if max_range_m is not None:
-        d = float(np.linalg.norm(np.asarray(msg.T_ecm_needle, dtype=float)[:3, 3]))
-        if not d <= max_range_m:
-            return f"PoseEstimate.T_ecm_needle: needle {d:.3g} m from the ECM, beyond the working volume ({max_range_m} m)"
-    return None
-
-
-def decode(payload, expect: type | None = None) -> Message:
-    """msgpack bytes -> validated Message. ``expect`` restricts the accepted message type."""
-    try:
-        buf = payload if isinstance(payload, bytes) else bytes(payload)
-        data = _unpack_with_tail(buf) if len(buf) > _TAIL_MIN else None
-        if data is None:
-            data = msgpack.unpackb(buf, ext_hook=_ext_hook, raw=False, strict_map_key=False)
-    except MessageError:
-        raise
-    except Exception as exc:
-        what = expect.__name__ if expect else "message"
-        raise MessageError(f"{what}: not valid msgpack ({type(exc).__name__}: {exc})") from None
-    if not isinstance(data, dict) or "schema" not in data or "body" not in data:
-        raise MessageError(f"{expect.__name__ if expect else 'message'}: missing schema envelope")
-    cls = _REGISTRY.get(data["schema"])
-    if cls is None:
-        raise MessageError(f"message: unknown schema {data['schema']!r}")
-    if expect is not None and cls is not expect:
-        raise MessageError(f"{expect.__name__}: got a {cls.__name__} instead")
-    if data.get("version") != cls.VERSION:
-        raise MessageError(f"{cls.__name__}.version: expected {cls.VERSION}, got {data.get('version')!r}")
-    body = data["body"]
-    if not isinstance(body, dict):
-        raise MessageError(f"{cls.__name__}: body is not a map")
-    unknown = set(body) - set(cls.FIELDS)
-    if unknown:
-        raise MessageError(f"{cls.__name__}.{min(unknown, key=str)}: unknown field")
-    kwargs = {}
-    for fname, spec in cls.FIELDS.items():
-        if fname not in body:
-            if "optional" in spec[1:]:
-                continue
-            raise MessageError(f"{cls.__name__}.{fname}: missing")
-        kwargs[fname] = _check(cls.__name__, fname, body[fname], spec)
-    for fname in _NONNEGATIVE:
-        if kwargs.get(fname) is not None and kwargs[fname] < 0:
-            raise MessageError(f"{cls.__name__}.{fname}: must not be negative, got {kwargs[fname]}")
-    msg = cls(**kwargs)
-    try:
-        msg.validate()
-    except MessageError:
-        raise
-    except Exception as exc:   # a validate() that trips on a value it did not foresee
-        raise MessageError(f"{cls.__name__}: invalid ({type(exc).__name__}: {exc})") from None
-    return msg
-
+from common.runtime.checks import (  # noqa: F401  (re-exported: the messages' API)
+    MAX_ARRAY_ELEMENTS,
+    MAX_COORD,
+    MAX_IMAGE_SIDE,
+    MAX_INT,
+    RIGID_TOL,
+    MessageError,
+    _finite_array,
+    _rigid,
+    covariance_error,
+    image_header_size,
+    pose_invariant_error,
+    rigid_error,
+)
+from common.runtime.codec import _REGISTRY, Message, decode, encode, encode_parts, register  # noqa: F401
 
 # ---------------------------------------------------------------- the messages
 
@@ -673,7 +270,7 @@ class PoseEstimate(Message):
     end_identity: Optional[float] = None
 
     def validate(self):
-        err = pose_error(self)
+        err = pose_invariant_error(self)
         if err:
             raise MessageError(err)
 
@@ -723,6 +320,24 @@ class GroundTruth(Message):
     def validate(self):
         for name in ("T_world_ecm", "T_world_needle"):
             _rigid(getattr(self, name), f"GroundTruth.{name}")
+
+    @classmethod
+    def from_frame(cls, frame, seq: int, stamp_ns: int) -> "GroundTruth | None":
+        """The ground truth of a frame: a dataset's (``common.data.dataset.Frame``) or the
+        simulator's (``common.sim.live.SimFrame``), anything with ``sequence``, ``step``,
+        ``ecm_joints``, ``T_world_ecm``, ``T_world_needle`` and ``keypoints`` / ``visible`` /
+        ``bbox`` by camera (each may be None). None when the frame has no truth at all."""
+        kp, vis, bbox = frame.keypoints, frame.visible, frame.bbox
+        if all(v is None for v in (frame.T_world_needle, kp, vis, bbox, frame.T_world_ecm)):
+            return None
+        q = frame.ecm_joints
+        return cls(seq=seq, stamp_ns=stamp_ns, sequence=frame.sequence, step=frame.step,
+                   ecm_joints=None if q is None else np.asarray(q, float),
+                   T_world_ecm=frame.T_world_ecm, T_world_needle=frame.T_world_needle,
+                   keypoints=None if kp is None else {c: np.asarray(kp[c], float) for c in CAMERAS},
+                   visible=None if vis is None else {c: np.asarray(vis[c], bool) for c in CAMERAS},
+                   bbox=None if bbox is None else {c: None if bbox[c] is None else np.asarray(bbox[c], float)
+                                                   for c in CAMERAS})
 
 
 @register
@@ -838,19 +453,6 @@ class Calibration(Message):
             w = _finite_array("Calibration.needle.wire_diameter_m", self.needle["wire_diameter_m"], ())
             if not 0 < float(w) < 0.01:
                 raise MessageError(f"Calibration.needle.wire_diameter_m: must be in (0, 0.01) m, got {float(w):g}")
-
-
-def _finite_array(where: str, value, shape) -> np.ndarray:
-    """``value`` as a finite float array of ``shape`` (None: any 1-D length), or MessageError."""
-    try:
-        a = np.asarray(value, dtype=float)
-    except (TypeError, ValueError):
-        raise MessageError(f"{where}: expected numbers, got {type(value).__name__}") from None
-    if (a.ndim != 1 if shape is None else a.shape != shape):
-        raise MessageError(f"{where}: expected shape {shape or '(N,)'}, got {a.shape}")
-    if not np.isfinite(a).all():
-        raise MessageError(f"{where}: not finite")
-    return a
 
 
 MESSAGE_TYPES = dict(_REGISTRY)

@@ -64,6 +64,7 @@ import threading
 import time
 from typing import Any, Iterable, Optional
 
+from common.errors import NeedletrackError
 from common.runtime.messages import (
     Command,
     Message,
@@ -73,7 +74,7 @@ from common.runtime.messages import (
     decode,
     encode,
     encode_parts,
-    pose_error,
+    pose_invariant_error,
 )
 from common.runtime.pairing import SeqClock
 from common.runtime.params import ParamError, param_errors, parse_params
@@ -84,7 +85,7 @@ STANDBY_BUFFER = 64            # outputs a standby process holds for the takeove
 POSE_VOLUME_M = 1.0            # default working volume: a published needle pose is this close to the ECM (m)
 
 
-class NodeError(ValueError):
+class NodeError(NeedletrackError, ValueError):
     """A node that cannot run as configured (bad wiring, missing handler, bad params, an
     unreadable model file): the process exits with status 2 and is not restarted."""
 
@@ -154,7 +155,9 @@ class Node:
         """Called once when the node stops."""
 
     def step(self):
-        """Sources override this: called in a loop; pace yourself; return False when done."""
+        """Sources override this: called in a loop; pace yourself; return False when done; raise
+        ``NodeError`` when the input cannot go on (a corrupt file): the process exits with
+        status 2, is not restarted, and the launcher stops the graph."""
         raise NotImplementedError
 
     def on_stream_reset(self) -> None:
@@ -204,14 +207,14 @@ class Node:
     def publish(self, output: str, msg) -> None:
         """Encode ``msg`` (a Message, already encoded bytes, or ``Prepared``) and publish it on
         ``output``. Frame messages get the stream's ``epoch``; a ``PoseEstimate`` that breaks the
-        pose invariant (``messages.pose_error`` within ``pose_volume_m``) is counted
+        pose invariant (``checks.pose_invariant_error`` within ``pose_volume_m``) is counted
         (``invalid_pose``), logged and not published."""
         if output not in self.OUTPUTS:
             raise NodeError(f"{type(self).__name__}.publish: {output!r} is not in OUTPUTS {self.OUTPUTS}")
         inner = msg.msg if isinstance(msg, Prepared) else msg
         self._stamp(inner)
         if isinstance(inner, PoseEstimate):
-            err = pose_error(inner, self.pose_volume_m)
+            err = pose_invariant_error(inner, self.pose_volume_m)
             if err:
                 self.count("invalid_pose")
                 self._badlog.error("invalid_pose", f"{output}: seq {inner.seq} {inner.method}: pose not "
@@ -361,8 +364,8 @@ class Stats:
 class _RateLimitedLog:
     """Logs the first error of a kind at once, then at most one summary per ``period`` seconds."""
 
-    def __init__(self, log: logging.Logger, period: float = 2.0):
-        self.log, self.period = log, period
+    def __init__(self, log: logging.Logger, period: float = 2.0, level: int = logging.ERROR):
+        self.log, self.period, self.level = log, period, level
         self._last: dict = {}
         self._suppressed: collections.Counter = collections.Counter()
 
@@ -371,10 +374,13 @@ class _RateLimitedLog:
         if now - self._last.get(kind, -1e9) >= self.period:
             n = self._suppressed.pop(kind, 0)
             more = f" (+{n} more like it)" if n else ""
-            self.log.error("%s%s", text, more, exc_info=exc_info)
+            self.log.log(self.level, "%s%s", text, more, exc_info=exc_info)
             self._last[kind] = now
         else:
             self._suppressed[kind] += 1
+
+
+RateLimitedLog = _RateLimitedLog    # public: for library threads outside the handlers (the viewer's page)
 
 
 class ShmWriter:
@@ -761,6 +767,10 @@ class Runtime:
                 try:
                     more = node.step()
                     step_failures = 0
+                except NodeError as exc:     # a source whose input cannot go on: stop, not restarted
+                    self.log.error("source stopped: %s", exc)
+                    self.exit_status = 2
+                    break
                 except Exception as exc:
                     self.stats.add("step_errors")
                     step_failures += 1

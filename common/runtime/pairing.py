@@ -1,5 +1,7 @@
-"""Stereo pairing of per-camera messages by frame ``seq``, a bounded cache keyed by ``seq``, and
-the frame clock (``SeqClock``) that tells a node when its source restarted or a seq is poison."""
+"""Joining a node's inputs by frame ``seq``: stereo pairing of per-camera messages
+(``StereoPairer``), messages held until the rest of their frame is in (``SeqJoin``), a bounded
+cache keyed by ``seq`` (``SeqCache``), and the frame clock (``SeqClock``) that tells a node when
+its source restarted or a seq is poison."""
 from __future__ import annotations
 
 from collections import OrderedDict
@@ -61,6 +63,64 @@ class StereoPairer:
     def __len__(self) -> int:
         """Frames waiting for their other half."""
         return len(self._pending)
+
+
+class SeqJoin:
+    """Messages held until the rest of their frame is in, at most ``max_wait`` frames.
+
+    ``hold(seq, item)`` holds an item of frame ``seq`` (the newest seq held or ``see``n is the
+    stream's position); ``due(ready)`` takes out and returns, in ``seq`` order, the items now
+    due as ``(item, complete)``: complete when ``ready(seq, item)`` says the frame's other
+    inputs are in, else after ``max_wait`` frames behind the newest (go on without them).
+    ``in_order``: items leave strictly in ``seq`` order, one not yet due holding back the later
+    ones (a fusion over consecutive frames). The caller counts incomplete items as it sees fit.
+    """
+
+    def __init__(self, max_wait: int, in_order: bool = False):
+        self.max_wait, self.in_order = int(max_wait), in_order
+        self._held: list[tuple[int, object]] = []
+        self.newest = -1
+
+    def see(self, seq: int) -> None:
+        """A frame ``seq`` was seen on another input: the stream has come this far."""
+        self.newest = max(self.newest, seq)
+
+    def hold(self, seq: int, item) -> None:
+        self.see(seq)
+        self._held.append((seq, item))
+        self._held.sort(key=lambda e: e[0])
+
+    def due(self, ready) -> list[tuple[object, bool]]:
+        out, keep = [], []
+        for i, (seq, item) in enumerate(self._held):
+            complete = bool(ready(seq, item))
+            if complete or self.newest - seq >= self.max_wait:
+                out.append((item, complete))
+            elif self.in_order:
+                keep.extend(self._held[i:])
+                break
+            else:
+                keep.append((seq, item))
+        self._held = keep
+        return out
+
+    def drop(self, which=lambda seq, item: True) -> list:
+        """Take out, unhandled, the items ``which(seq, item)`` selects; returns them."""
+        gone = [item for seq, item in self._held if which(seq, item)]
+        self._held = [(seq, item) for seq, item in self._held if not which(seq, item)]
+        return gone
+
+    def reset(self) -> list:
+        """A new stream: every held item is dropped (returned) and the position forgotten."""
+        gone = self.drop()
+        self.newest = -1
+        return gone
+
+    def __len__(self) -> int:
+        return len(self._held)
+
+    def __iter__(self):
+        return iter(item for _, item in self._held)
 
 
 class SeqCache(OrderedDict):

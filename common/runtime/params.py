@@ -24,8 +24,10 @@ import types
 import typing
 from typing import Any, Literal, Mapping, Union
 
+from common.errors import NeedletrackError
 
-class ParamError(ValueError):
+
+class ParamError(NeedletrackError, ValueError):
     """Params that do not match a node's schema; ``errors`` lists each with its place."""
 
     def __init__(self, errors: list[str]):
@@ -76,6 +78,14 @@ def _hints(schema: type) -> dict:
     return typing.get_type_hints(schema, include_extras=False)
 
 
+def did_you_mean(name, names: list) -> str:
+    """A hint for an unknown ``name``: "did you mean 'a' or 'b'?" (the close ones of ``names``),
+    else the known names (up to 12), else how many there are."""
+    close = difflib.get_close_matches(str(name), names, n=3)
+    return (f"did you mean {' or '.join(map(repr, close))}?" if close
+            else f"known: {', '.join(names) or 'none'}" if len(names) <= 12 else f"{len(names)} known")
+
+
 def param_errors(schema: type, raw: Mapping | None, where: str = "params") -> list[str]:
     """Every problem of ``raw`` against the dataclass ``schema``, each prefixed with its place."""
     if raw is None:
@@ -87,10 +97,7 @@ def param_errors(schema: type, raw: Mapping | None, where: str = "params") -> li
     errors = []
     for key, value in raw.items():
         if key not in hints:
-            close = difflib.get_close_matches(str(key), names, n=3)
-            hint = (f"did you mean {' or '.join(map(repr, close))}?" if close
-                    else f"known: {', '.join(names) or 'none'}" if len(names) <= 12 else f"{len(names)} known")
-            errors.append(f"{where}.{key}: unknown param ({hint})")
+            errors.append(f"{where}.{key}: unknown param ({did_you_mean(key, names)})")
         elif not _matches(value, hints[key]):
             errors.append(f"{where}.{key}: expected {_describe(hints[key])}, got {value!r}")
     return errors
@@ -119,7 +126,7 @@ def parse_params(schema: type, raw: Mapping | None, where: str = "params"):
 def merge_schemas(name: str, *schemas: type, drop: tuple = ()) -> type:
     """One dataclass with the fields of all ``schemas`` but ``drop`` (later ones win on a shared
     name)."""
-    fields = {}
+    fields, sources = {}, {}
     for s in schemas:
         hints = _hints(s)
         for f in dataclasses.fields(s):
@@ -128,4 +135,7 @@ def merge_schemas(name: str, *schemas: type, drop: tuple = ()) -> type:
             default = (dataclasses.field(default_factory=f.default_factory)
                        if f.default_factory is not dataclasses.MISSING else f.default)
             fields[f.name] = (f.name, hints[f.name], default)
-    return dataclasses.make_dataclass(name, list(fields.values()))
+            sources[f.name] = getattr(s, "__param_sources__", {}).get(f.name, s)
+    merged = dataclasses.make_dataclass(name, list(fields.values()))
+    merged.__param_sources__ = sources     # which dataclass declared each field (its docs)
+    return merged

@@ -131,11 +131,17 @@ def collect_stats(session, graph_name: str, wait_s: float = 1.3) -> dict:
         return dict(seen)
 
 
-def ps_rows(session, graph) -> list:
+def live_nodes(session, graph_name: str, timeout: float = 1.0) -> set:
+    """The ids of the graph's nodes whose liveliness token is up."""
     live = set()
-    for reply in session.liveliness().get(live_key(graph.name), timeout=1.0):
+    for reply in session.liveliness().get(live_key(graph_name), timeout=timeout):
         if reply.ok is not None:
             live.add(str(reply.ok.key_expr).rsplit("/", 1)[-1])
+    return live
+
+
+def ps_rows(session, graph) -> list:
+    live = live_nodes(session, graph.name)
     stats = collect_stats(session, graph.name)
     launcher = query_json(session, launcher_key(graph.name, "status"), timeout=1.0)
     lstat = {r["node"]: r for L in launcher for r in L["nodes"]}
@@ -370,17 +376,30 @@ def cmd_main(argv: list) -> int:
     args = ap.parse_args(argv)
     from common.runtime.graph import cmd_key
     from common.runtime.messages import Command, encode
+    from common.runtime.params import did_you_mean
     try:
         graph = _load(args.graph)
         cargs = dict(parse_param(a) for a in args.args)
-    except (GraphError, ValueError) as exc:
+        payload = encode(Command(args.name, cargs))
+    except (GraphError, ValueError, TypeError) as exc:
         print(f"needletrack cmd: {exc}", file=sys.stderr)
+        return 2
+    if args.node not in graph.ids():
+        print(f"needletrack cmd: graph {graph.name!r} has no node {args.node!r} "
+              f"({did_you_mean(args.node, graph.ids())})", file=sys.stderr)
         return 2
     session = open_session(graph)
     try:
-        session.put(cmd_key(graph.name, args.node), encode(Command(args.name, cargs)))
-        time.sleep(0.1)
+        live = live_nodes(session, graph.name)
+        if args.node in live:
+            session.put(cmd_key(graph.name, args.node), payload)
+            time.sleep(0.1)
     finally:
         session.close()
+    if args.node not in live:
+        print(f"needletrack cmd: no node answered: {args.node!r} of graph {graph.name!r} is not running at "
+              f"{', '.join(graph.zenoh.listen)} ({'running: ' + ', '.join(sorted(live)) if live else 'is the graph launched?'}); "
+              f"nothing sent", file=sys.stderr)
+        return 1
     print(f"sent {args.name} {cargs} to {graph.name}/{args.node}")
     return 0

@@ -24,20 +24,17 @@ from common.geometry.transforms import (
     rotvec_to_R,
     transform_points,
 )
-from common.sim.alt_render import (
+from common.sim.alt_meshes import (
     LABELS,
-    AltRenderer,
-    AltScene,
     InstrumentShape,
-    Light,
     Material,
     NeedleShape,
-    Tissue,
     instrument_meshes,
-    make_tissue_textures,
     needle_mesh,
     tube_mesh,
 )
+from common.sim.alt_render import AltRenderer, AltScene, Light
+from common.sim.alt_tissue import Tissue, make_tissue_textures
 
 FPS = 30.0
 GENERATE_FILE = "generate_alt.json"

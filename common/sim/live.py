@@ -43,6 +43,22 @@ class SimFrame:
     sequence: int
     step: int
 
+    @property
+    def ecm_joints(self) -> np.ndarray:
+        return self.q
+
+    @property
+    def keypoints(self) -> dict:
+        return self.truth["keypoints"]
+
+    @property
+    def visible(self) -> dict:
+        return self.truth["visible"]
+
+    @property
+    def bbox(self) -> dict:
+        return self.truth["bbox"]
+
 
 class LiveSim:
     """Renders an endless stream of frames of the built-in scene under a motion script."""

@@ -22,7 +22,8 @@ from typing import Optional
 import cv2
 import numpy as np
 
-from common.evaluation.report import METHOD_COLOURS, TRUTH_BGR, _bgr
+from common.evaluation.report import TRUTH_BGR, _bgr
+from common.methods import METHOD_COLOURS
 from common.geometry.needle import KEYPOINT_NAMES, NeedleModel
 from common.geometry.transforms import transform_points
 

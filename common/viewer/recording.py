@@ -12,27 +12,59 @@ from typing import Callable, Optional
 
 import numpy as np
 
-from common.evaluation.scoring import true_T_ecm_needle
+from common.evaluation.metrics import true_T_ecm_needle
 from common.geometry.transforms import pose_error
+from common.methods import in_final_order
 from common.viewer.draw import PoseToDraw, downscale
 from common.viewer.frame import CAMERAS, log_frame, pictures
 
-# the method drawn in full: the first present of (as nodes/monitor.py)
-FINAL_ORDER = ("refined", "multiview_refined", "multiview", "pnp_joint", "pnp_average", "triangulation")
+RRD_MAGIC = (b"RRF0", b"RRF1", b"RRF2")
+"""The first bytes of a Rerun recording (.rrd), by format version."""
+
+
+def rrd_target_problem(path) -> Optional[str]:
+    """Why ``path`` may not be written as a new recording, or None when it may: it does not exist
+    (in an existing folder), or it is a regular file that holds a Rerun recording (its first
+    bytes one of ``RRD_MAGIC``), which the new one replaces. Anything else is the user's."""
+    import os
+    import stat
+    from pathlib import Path
+    p = Path(path)
+    try:
+        st = os.lstat(p)
+    except FileNotFoundError:
+        parent = p.parent if str(p.parent) else Path(".")
+        if not parent.is_dir():
+            return f"{path}: its folder {parent} does not exist"
+        return None
+    except OSError as exc:
+        return f"{path}: cannot be checked ({exc.strerror})"
+    if stat.S_ISLNK(st.st_mode):
+        return f"{path} is a symbolic link; give the recording's own path"
+    if not stat.S_ISREG(st.st_mode):
+        return f"{path} exists and is not a regular file"
+    try:
+        with open(p, "rb") as f:
+            head = f.read(4)
+    except OSError as exc:
+        return f"{path}: cannot be read ({exc.strerror})"
+    if head not in RRD_MAGIC:
+        return f"{path} exists and is not a Rerun recording (.rrd): not replaced"
+    return None
+
 
 
 def write_rrd(path, col, rig, needle, arm=None, load_images: Optional[Callable[[int], dict]] = None,
               width: int = 960, height: int = 540, quality: int = 80) -> int:
     """Write the recording; returns the number of frames written. ``col``: a
-    ``common.evaluation.scoring.Collected``; ``load_images(seq)`` -> {camera: BGR or None}
+    ``common.evaluation.collect.Collected``; ``load_images(seq)`` -> {camera: BGR or None}
     (None: black pictures)."""
     from common.viewer import rerun_log as rl
     rec = rl.new_recording("needletrack-eval")
     rl.set_sinks(rec, save=str(path))
     scale = min(1.0, width / rig.left.width, height / rig.left.height)
     rl.log_rig(rec, rig, scale)
-    methods = [m for m in FINAL_ORDER if col.poses.get(m)] + \
-              [m for m in col.poses if m not in FINAL_ORDER and col.poses[m]]
+    methods = in_final_order(m for m in col.poses if col.poses[m])    # the first is drawn in full
     final = methods[0] if methods else None
     path_pts = []
     n = 0

@@ -10,7 +10,7 @@ from typing import Optional
 
 import numpy as np
 
-from common.evaluation.report import METHOD_COLOURS
+from common.methods import METHOD_COLOURS
 from common.geometry.transforms import pose_error
 
 SERIES = ("pos_err_mm", "rot_err_deg", "rate_hz", "latency_ms", "confidence")
