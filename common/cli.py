@@ -32,6 +32,7 @@ COMMANDS = {
 
 BENCHES = {
     "transport": ("common.evaluation.transport_bench:main", "1080p stereo frames between two node processes"),
+    "restart": ("common.evaluation.restart_bench:main", "seconds without poses after kill -9 of the camera"),
     "sim": ("common.evaluation.sim_bench:main", "simulator rendering"),
     "detector": ("common.evaluation.detector_bench:main", "keypoint detector speed and accuracy"),
     "graph": ("common.evaluation.graph_bench:main", "the full graph end to end"),

@@ -72,6 +72,7 @@ class SimNode(CameraSourceNode):
                                rate_hz=rate, msaa=p.msaa)
         except (KeyError, ValueError) as exc:
             raise NodeError(f"bad simulator params: {exc}") from None
+        self.sim.warm_up()        # a (re)started camera's first frame then comes at its usual pace
         self.seq = 0
         self.pacer = Pacer(rate)
         self.last_calib = None

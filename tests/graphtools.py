@@ -26,6 +26,9 @@ or, without the fixture, ``with launch_graph(graph, tmp_path) as g: ...``.
 - ``g.put(key, msg_or_bytes)``, ``g.command(node, name, **args)``, ``g.stats(node)`` (a fresh
   ``NodeStats``), ``g.wait_stats(node, pred)``, ``g.pids()``, ``g.live()``, ``g.swap(node, ...)``
   and ``g.cli(...)`` (run a ``needletrack`` command against this graph).
+- The test's session is the operator's (the launcher identity): on the default per-run
+  credentials it uses the launched run's (``common.runtime.credentials``), so ``g.graph`` is the
+  graph as it runs (``zenoh.tls`` set, ``tls/`` endpoints); ``g.path`` is the file as written.
 - ``g.stop()`` sends SIGTERM to the launcher, waits, returns its exit status, and fails if any
   node process it ever saw is still alive (it kills them first).
 """
@@ -49,6 +52,7 @@ REPO = Path(__file__).resolve().parent.parent
 if str(REPO) not in sys.path:
     sys.path.insert(0, str(REPO))
 
+from common.runtime import credentials  # noqa: E402
 from common.runtime.graph import (  # noqa: E402
     Graph,
     launcher_key,
@@ -158,6 +162,8 @@ class RunningGraph:
         self.graph: Graph = load_graph(path)
         self.name = self.graph.name
         import zenoh
+        if credentials.applies(self.graph):      # the launcher's per-run credentials, once it made them
+            self.graph = credentials.wait_for(self.graph, 60.0, alive=lambda: proc.poll() is None)
         self.session = zenoh.open(zenoh_config(self.graph, role="node"))
         self._subs: list = []
         self._seen_pids: set = set()

@@ -118,6 +118,14 @@ class _FakePub:
         self.sent.append((self.out, payload))
 
 
+TOKEN = "0123456789abcdef0123456789abcdef"
+
+
+def _ctl(**body) -> bytes:
+    """A handover/takeover payload with the runtime's control token."""
+    return json.dumps({"token": TOKEN, **body}).encode()
+
+
 class _FakeQuery:
     def __init__(self, payload=None):
         self.key_expr = "k"
@@ -128,9 +136,9 @@ class _FakeQuery:
         self.answer = json.loads(data)
 
 
-def _runtime(standby, sent):
+def _runtime(standby, sent, token=TOKEN):
     g = _graph([{"id": "c", "module": "counter"}, {"id": "d", "command": ["true"], "inputs": {"in": "c/out"}}])
-    rt = Runtime(g, "d", standby=standby)
+    rt = Runtime(g, "d", standby=standby, ctl_token=token)
     rt.build(_DoublerAny)
     rt._pubs = {"y": _FakePub(sent, "y")}
     return rt
@@ -153,11 +161,11 @@ def test_handover_never_publishes_a_seq_twice_and_leaves_no_gap():
     for s in range(7, 12):           # the standby is a little ahead: holds 7..11
         new.publish("y", frame(s))
     assert new_sent == [] and new._produced
-    q = _FakeQuery()
+    q = _FakeQuery(_ctl())
     old._q_handover(q)
-    assert q.answer == {"cuts": {"y": 10}}
+    assert q.answer == {"ok": True, "cuts": {"y": 10}}
     old.publish("y", frame(10))      # too late: the old process no longer publishes
-    q2 = _FakeQuery(json.dumps(q.answer).encode())
+    q2 = _FakeQuery(_ctl(cuts=q.answer["cuts"]))
     new._q_takeover(q2)
     new.publish("y", frame(9))       # a stale frame after takeover is not published either
     new.publish("y", frame(12))
@@ -168,6 +176,28 @@ def test_handover_never_publishes_a_seq_twice_and_leaves_no_gap():
     assert q2.answer["flushed"] == 2
 
 
+def test_a_handover_or_takeover_without_the_control_token_is_refused():
+    """Issue 32: one query on @ctl/<node>/<pid>/handover silenced a node for good. Only the
+    launcher that started the process knows its token, and sends it only in a swap."""
+    sent = []
+    rt = _runtime(False, sent)
+    standby = _runtime(True, [])
+    for payload in (None, b"", b"\xff\xfe", b"[1]", json.dumps({"token": "x" * 32}).encode(),
+                    json.dumps({"token": 5}).encode(), json.dumps({"cuts": {"y": 0}}).encode()):
+        for target, op in ((rt, rt._q_handover), (standby, standby._q_takeover)):
+            q = _FakeQuery(payload)
+            op(q)
+            assert q.answer["ok"] is False and "refused" in q.answer["error"]
+    assert rt.state == "active" and standby.state == "standby"
+    assert rt.stats.counters["ctl_refused"] == 7 and standby.stats.counters["ctl_refused"] == 7
+    rt.publish("y", EcmJoints(3, 0, np.zeros(4)))
+    assert len(sent) == 1                                   # still publishing
+    untokened = _runtime(False, [], token=None)             # not started by a launcher: never
+    q = _FakeQuery(_ctl())
+    untokened._q_handover(q)
+    assert q.answer["ok"] is False and untokened.state == "active"
+
+
 class _Source(_DoublerAny):
     def step(self):
         return True
@@ -176,12 +206,12 @@ class _Source(_DoublerAny):
 def test_a_swapped_source_starts_its_own_sequence():
     sent = []
     g = _graph([{"id": "c", "module": "counter"}, {"id": "d", "command": ["true"], "inputs": {"in": "c/out"}}])
-    rt = Runtime(g, "d", standby=True)
+    rt = Runtime(g, "d", standby=True, ctl_token=TOKEN)
     rt.build(_Source)
     rt._pubs = {"y": _FakePub(sent, "y")}
     for s in (0, 1):
         rt.publish("y", EcmJoints(s, 0, np.zeros(4)))
-    rt._q_takeover(_FakeQuery(json.dumps({"cuts": {"y": 500}}).encode()))
+    rt._q_takeover(_FakeQuery(_ctl(cuts={"y": 500})))
     rt.publish("y", EcmJoints(2, 0, np.zeros(4)))
     from common.runtime.messages import decode
     assert [decode(p).seq for _, p in sent] == [1, 2]

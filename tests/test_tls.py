@@ -52,15 +52,17 @@ def test_a_tls_endpoint_without_certificates_is_an_error_at_its_place():
 
 
 def test_listening_beyond_loopback_without_tls_is_warned_about(tmp_path):
-    def warns(listen, tls=None):
-        z = {"listen": listen, **({"tls": tls} if tls else {})}
-        return graph_warnings(load_graph({"graph": "g", "zenoh": z, "nodes": NODES}))
+    def warns(listen, tls=None, open_=True):
+        z = {"listen": listen, **({"tls": tls} if tls else {"open": open_})}
+        return graph_warnings(load_graph({"graph": "g", "zenoh": z, "nodes": NODES}))[int(open_ and not tls):]
     assert warns(["tcp/127.0.0.1:7447", "tcp/[::1]:7447", "tcp/localhost:7447"]) == []
     assert warns(["tls/0.0.0.0:7447"], TLS) == []
+    assert warns(["tcp/0.0.0.0:7447"], open_=False) == []      # per-run credentials: TLS on every link
     w = warns(["tcp/127.0.0.1:7447", "tcp/0.0.0.0:7447"])
     assert len(w) == 1 and w[0].startswith("zenoh.listen[1]: 'tcp/0.0.0.0:7447' listens beyond this host without TLS")
     path = tmp_path / "open.yaml"
-    path.write_text(yaml.safe_dump({"graph": "g", "zenoh": {"listen": ["tcp/192.168.1.5:7447"]}, "nodes": NODES}))
+    path.write_text(yaml.safe_dump({"graph": "g", "zenoh": {"listen": ["tcp/192.168.1.5:7447"], "open": True},
+                                    "nodes": NODES}))
     res = cli("validate", path)
     assert res.returncode == 0 and "WARNING zenoh.listen[0]: 'tcp/192.168.1.5:7447' listens beyond" in res.stderr
 

@@ -718,7 +718,15 @@ def main(argv=None) -> int:
     ap.add_argument("--poison-s", type=float, default=10.0, help="--live: seconds of poison")
     ap.add_argument("--poison-hz", type=float, default=200.0, help="--live: poison payloads per second")
     ap.add_argument("--after-s", type=float, default=8.0, help="--live: seconds watched after the poison")
+    ap.add_argument("--intruder", action="store_true",
+                    help="instead: a process without the run's credentials sends fake poses, handovers and "
+                         "a swap to the default graph (common/evaluation/intruder.py)")
+    ap.add_argument("--uid", type=int, help="--intruder: the intruder runs as this user (needs root)")
+    ap.add_argument("--open", action="store_true", help="--intruder: the graph with zenoh.open: true")
     args = ap.parse_args(argv)
+    if args.intruder:
+        from common.evaluation.intruder import intruder_check
+        return intruder_check(args.graph, args.clean_s, args.poison_s, args.uid, args.open)
     if args.live:
         return live_check(args)
     import logging

@@ -204,13 +204,12 @@ class GraphRun:
         """A client session on the hub: it sees the graph's liveliness and data, and, unlike a
         peer, is no link the nodes wait for."""
         if self.session is None:
-            import json
-
             import zenoh
-            c = zenoh.Config()
+
+            from common.runtime.graph import zenoh_config
+            c = zenoh_config(self.main.graph, role="node")    # the operator's identity on the run's credentials
             c.insert_json5("mode", '"client"')
-            c.insert_json5("scouting/multicast/enabled", "false")
-            c.insert_json5("connect/endpoints", json.dumps(list(self.graph.zenoh.listen)))
+            c.insert_json5("listen/endpoints", "[]")
             self.session = zenoh.open(c)
         return self.session
 

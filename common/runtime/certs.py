@@ -1,4 +1,4 @@
-"""``needletrack certs``: a test CA and one certificate per member of a graph (openssl).
+"""``needletrack certs``: a test CA and one certificate per member of a graph.
 
 For a graph with ``zenoh.tls: {ca: certs/ca.pem, cert: "certs/{id}.pem", key: "certs/{id}.key"}``::
 
@@ -12,7 +12,9 @@ a client certificate (every member listens and connects). ``--host`` adds subjec
 names (addresses or DNS names), needed only with ``zenoh.tls.verify_name: true``.
 
 These are test certificates: for a real deployment, have your own CA sign certificates with the
-same common names, and keep ``ca.key`` off the graph's hosts (docs/multi-host.md).
+same common names, and keep ``ca.key`` off the graph's hosts (docs/multi-host.md). The
+certificates are made in process with ``cryptography`` (about 1 ms each); ``launch`` makes a
+graph's per-run certificates with the same functions (``common.runtime.credentials``).
 """
 from __future__ import annotations
 
@@ -20,9 +22,7 @@ import argparse
 import ipaddress
 import os
 import shutil
-import subprocess
 import sys
-import tempfile
 from pathlib import Path
 from typing import Iterable, Optional
 
@@ -38,20 +38,90 @@ DEFAULT_DAYS = 30
 
 
 class CertError(NeedletrackError, RuntimeError):
-    """openssl is missing or failed."""
-
-
-def _openssl(*args: str) -> None:
-    exe = shutil.which("openssl")
-    if exe is None:
-        raise CertError("openssl not found: install it (Debian: apt-get install openssl)")
-    res = subprocess.run([exe, *args], capture_output=True, text=True)
-    if res.returncode != 0:
-        raise CertError(f"openssl {args[0]} failed ({res.returncode}): {res.stderr.strip()}")
+    """A CA file that cannot be read."""
 
 
 def _private(path: Path) -> None:
     os.chmod(path, 0o600)
+
+
+def _write_key(path: Path, key) -> None:
+    """An EC private key as PEM, created with mode 0600 (never readable by others, not even briefly)."""
+    from cryptography.hazmat.primitives import serialization
+    data = key.private_bytes(serialization.Encoding.PEM, serialization.PrivateFormat.PKCS8,
+                             serialization.NoEncryption())
+    path.parent.mkdir(parents=True, exist_ok=True)
+    try:
+        path.unlink()
+    except FileNotFoundError:
+        pass
+    fd = os.open(path, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o600)
+    with os.fdopen(fd, "wb") as f:
+        f.write(data)
+    _private(path)
+
+
+def _write_cert(path: Path, cert) -> None:
+    from cryptography.hazmat.primitives import serialization
+    path.parent.mkdir(parents=True, exist_ok=True)
+    path.write_bytes(cert.public_bytes(serialization.Encoding.PEM))
+
+
+def new_ca(name: str = "needletrack test CA", days: int = DEFAULT_DAYS) -> tuple:
+    """A self-signed CA in memory: (certificate, EC P-256 private key)."""
+    import datetime
+
+    from cryptography import x509
+    from cryptography.hazmat.primitives import hashes
+    from cryptography.hazmat.primitives.asymmetric import ec
+    from cryptography.x509.oid import NameOID
+    key = ec.generate_private_key(ec.SECP256R1())
+    subject = x509.Name([x509.NameAttribute(NameOID.COMMON_NAME, name)])
+    now = datetime.datetime.now(datetime.timezone.utc)
+    cert = (x509.CertificateBuilder().subject_name(subject).issuer_name(subject).public_key(key.public_key())
+            .serial_number(x509.random_serial_number()).not_valid_before(now - datetime.timedelta(minutes=5))
+            .not_valid_after(now + datetime.timedelta(days=days))
+            .add_extension(x509.BasicConstraints(ca=True, path_length=None), critical=True)
+            .add_extension(x509.KeyUsage(digital_signature=False, content_commitment=False, key_encipherment=False,
+                                         data_encipherment=False, key_agreement=False, key_cert_sign=True,
+                                         crl_sign=True, encipher_only=False, decipher_only=False), critical=True)
+            .add_extension(x509.SubjectKeyIdentifier.from_public_key(key.public_key()), critical=False)
+            .sign(key, hashes.SHA256()))
+    return cert, key
+
+
+def new_cert(ca: tuple, common_name: str, hosts: Iterable[str] = (), days: int = DEFAULT_DAYS) -> tuple:
+    """(certificate, key) for ``common_name`` signed by ``ca`` (``new_ca``'s pair), usable as
+    server and client, naming localhost, 127.0.0.1 and ``hosts`` (addresses or DNS names)."""
+    import datetime
+
+    from cryptography import x509
+    from cryptography.hazmat.primitives import hashes
+    from cryptography.hazmat.primitives.asymmetric import ec
+    from cryptography.x509.oid import ExtendedKeyUsageOID, NameOID
+    ca_cert, ca_key = ca
+    names: list = [x509.DNSName("localhost"), x509.IPAddress(ipaddress.ip_address("127.0.0.1"))]
+    for h in hosts:
+        try:
+            names.append(x509.IPAddress(ipaddress.ip_address(h)))
+        except ValueError:
+            names.append(x509.DNSName(h))
+    key = ec.generate_private_key(ec.SECP256R1())
+    now = datetime.datetime.now(datetime.timezone.utc)
+    cert = (x509.CertificateBuilder()
+            .subject_name(x509.Name([x509.NameAttribute(NameOID.COMMON_NAME, common_name)]))
+            .issuer_name(ca_cert.subject).public_key(key.public_key()).serial_number(x509.random_serial_number())
+            .not_valid_before(now - datetime.timedelta(minutes=5)).not_valid_after(now + datetime.timedelta(days=days))
+            .add_extension(x509.BasicConstraints(ca=False, path_length=None), critical=True)
+            .add_extension(x509.KeyUsage(digital_signature=True, content_commitment=False, key_encipherment=True,
+                                         data_encipherment=False, key_agreement=False, key_cert_sign=False,
+                                         crl_sign=False, encipher_only=False, decipher_only=False), critical=True)
+            .add_extension(x509.ExtendedKeyUsage([ExtendedKeyUsageOID.SERVER_AUTH, ExtendedKeyUsageOID.CLIENT_AUTH]),
+                           critical=False)
+            .add_extension(x509.SubjectAlternativeName(list(dict.fromkeys(names))), critical=False)
+            .add_extension(x509.AuthorityKeyIdentifier.from_issuer_public_key(ca_key.public_key()), critical=False)
+            .sign(ca_key, hashes.SHA256()))
+    return cert, key
 
 
 def make_ca(out: Path, name: str = "needletrack test CA", days: int = DEFAULT_DAYS) -> tuple:
@@ -59,35 +129,39 @@ def make_ca(out: Path, name: str = "needletrack test CA", days: int = DEFAULT_DA
     out.mkdir(parents=True, exist_ok=True)
     ca, key = out / "ca.pem", out / "ca.key"
     if not (ca.is_file() and key.is_file()):
-        _openssl("req", "-x509", "-newkey", "ec", "-pkeyopt", "ec_paramgen_curve:prime256v1", "-nodes",
-                 "-keyout", str(key), "-out", str(ca), "-days", str(days), "-subj", f"/CN={name}",
-                 "-addext", "basicConstraints=critical,CA:TRUE",
-                 "-addext", "keyUsage=critical,keyCertSign,cRLSign")
-        _private(key)
+        cert, k = new_ca(name, days)
+        _write_key(key, k)
+        _write_cert(ca, cert)
     return ca, key
+
+
+def load_ca(ca: Path, ca_key: Path) -> tuple:
+    """A CA pair from its PEM files; raises ``CertError`` naming the file that cannot be used."""
+    from cryptography import x509
+    from cryptography.hazmat.primitives import serialization
+    try:
+        cert = x509.load_pem_x509_certificate(Path(ca).read_bytes())
+    except (OSError, ValueError) as exc:
+        raise CertError(f"{ca}: not a PEM certificate ({exc})") from None
+    try:
+        key = serialization.load_pem_private_key(Path(ca_key).read_bytes(), password=None)
+    except (OSError, ValueError, TypeError) as exc:
+        raise CertError(f"{ca_key}: not an unencrypted PEM private key ({exc})") from None
+    return cert, key
 
 
 def make_cert(ca: Path, ca_key: Path, cert: Path, key: Path, common_name: str,
               hosts: Iterable[str] = (), days: int = DEFAULT_DAYS) -> None:
     """A key and a certificate signed by ``ca`` for ``common_name``, usable as server and client."""
-    sans = ["DNS:localhost", "IP:127.0.0.1"]
-    for h in hosts:
-        try:
-            ipaddress.ip_address(h)
-            sans.append(f"IP:{h}")
-        except ValueError:
-            sans.append(f"DNS:{h}")
-    cert.parent.mkdir(parents=True, exist_ok=True)
-    with tempfile.TemporaryDirectory() as tmp:
-        csr, ext = Path(tmp) / "req.csr", Path(tmp) / "ext.cnf"
-        ext.write_text("basicConstraints=critical,CA:FALSE\nkeyUsage=critical,digitalSignature,keyEncipherment\n"
-                       "extendedKeyUsage=serverAuth,clientAuth\nsubjectAltName=" + ",".join(dict.fromkeys(sans)) + "\n")
-        _openssl("req", "-new", "-newkey", "ec", "-pkeyopt", "ec_paramgen_curve:prime256v1", "-nodes",
-                 "-keyout", str(key), "-out", str(csr), "-subj", f"/CN={common_name}")
-        _private(key)
-        _openssl("x509", "-req", "-in", str(csr), "-CA", str(ca), "-CAkey", str(ca_key), "-set_serial",
-                 str(int.from_bytes(os.urandom(8), "big")), "-out", str(cert), "-days", str(days),
-                 "-extfile", str(ext))
+    c, k = new_cert(load_ca(ca, ca_key), common_name, hosts, days)
+    _write_key(Path(key), k)
+    _write_cert(Path(cert), c)
+
+
+def write_identity(out: Path, identity: str, pair: tuple) -> None:
+    """``out/<identity>.pem`` and ``out/<identity>.key`` (0600) of a ``new_cert`` pair."""
+    _write_key(out / f"{identity}.key", pair[1])
+    _write_cert(out / f"{identity}.pem", pair[0])
 
 
 def make_graph_certs(graph, out: Optional[Path] = None, identities: Optional[Iterable[str]] = None,

@@ -4,6 +4,8 @@ A graph is a YAML map::
 
     graph: needletrack            # key prefix of everything the graph publishes
     zenoh: {mode: peer, listen: ["tcp/127.0.0.1:7447"], connect: []}
+    # by default a run is mutual TLS on per-run credentials (common/runtime/credentials.py);
+    # `open: true` turns that off (interop set-ups: any local process can then steer the graph)
     # across hosts: mutual TLS and access control (docs/multi-host.md)
     #   zenoh: {listen: ["tls/10.0.0.1:7447"],
     #           tls: {ca: certs/ca.pem, cert: "certs/{id}.pem", key: "certs/{id}.key"}}
@@ -14,6 +16,7 @@ A graph is a YAML map::
         inputs: {cmd_in: other/out}   # input name -> "<node id>/<output>"
         outputs: [left, right]
         restart: on-failure       # never | on-failure | always
+        spare: true               # keep a warm spare process (set up, idle) to take over at once
         env: {OMP_NUM_THREADS: "1"}
 
 ``validate_graph`` returns every error at once, each with its place
@@ -48,10 +51,10 @@ _NAME_RE = re.compile(r"^[A-Za-z0-9_][A-Za-z0-9_.-]*$")
 _MODULE_RE = re.compile(r"^[A-Za-z_][A-Za-z0-9_]*(\.[A-Za-z_][A-Za-z0-9_]*)*$")
 _ENDPOINT_RE = re.compile(r"^(tcp|udp|tls|quic|ws|unixsock-stream)/\S+$")
 _TOP_KEYS = {"graph", "zenoh", "nodes", "pose_volume_m"}
-_ZENOH_KEYS = {"mode", "listen", "connect", "shm_pool_mb", "tls"}
+_ZENOH_KEYS = {"mode", "listen", "connect", "shm_pool_mb", "tls", "open"}
 _TLS_KEYS = {"ca", "cert", "key", "verify_name"}
 LAUNCHER_IDENTITY = "launcher"     # the TLS identity of launchers and CLI tools (the operator)
-_NODE_KEYS = {"id", "module", "command", "params", "inputs", "outputs", "restart", "env", "feedback"}
+_NODE_KEYS = {"id", "module", "command", "params", "inputs", "outputs", "restart", "env", "feedback", "spare"}
 
 
 class GraphError(NeedletrackError, ValueError):
@@ -91,6 +94,8 @@ class ZenohSettings:
     connect: list = field(default_factory=list)
     shm_pool_mb: int = 64
     tls: Optional[TlsSettings] = None
+    open: bool = False             # no per-run credentials: any local process may join (a warning)
+    run_credentials: Optional[str] = None   # the run directory whose certificates ``tls`` names (not in the YAML)
 
 
 @dataclass
@@ -102,6 +107,7 @@ class NodeSpec:
     inputs: dict = field(default_factory=dict)      # input name -> "node/output"
     outputs: list = field(default_factory=list)
     restart: str = "on-failure"
+    spare: bool = False            # a warm spare process takes over when the node's process exits
     env: dict = field(default_factory=dict)
     feedback: list = field(default_factory=list)    # inputs that close a declared cycle (acks)
 
@@ -117,6 +123,8 @@ class NodeSpec:
             d["env"] = dict(self.env)
         if self.feedback:
             d["feedback"] = list(self.feedback)
+        if self.spare:
+            d["spare"] = True
         return d
 
 
@@ -155,6 +163,8 @@ class Graph:
         zd = {"mode": z.mode, "listen": list(z.listen), "connect": list(z.connect), "shm_pool_mb": z.shm_pool_mb}
         if z.tls is not None:
             zd["tls"] = z.tls.to_dict()
+        if z.open:
+            zd["open"] = True
         return {"graph": self.name, "zenoh": zd, "nodes": [n.to_dict() for n in self.nodes],
                 **({"pose_volume_m": self.pose_volume_m} if self.pose_volume_m is not None else {})}
 
@@ -290,6 +300,14 @@ def validate_graph(data: Any) -> list:
                     elif "tls" in z and not e.startswith("tls/"):
                         errs.append(f"zenoh.{k}[{i}]: {e!r}: with zenoh.tls every endpoint must be tls/ "
                                     f"(another protocol would bypass TLS and access control)")
+                    elif "tls" not in z and z.get("open") is not True and not e.startswith(("tcp/", "tls/")):
+                        errs.append(f"zenoh.{k}[{i}]: {e!r}: the per-run credentials (the default) need tcp/ "
+                                    f"endpoints (they run as tls/); use tcp/, zenoh.tls, or zenoh.open: true")
+        if "open" in z and not isinstance(z["open"], bool):
+            errs.append(f"zenoh.open: expected true or false, got {z['open']!r}")
+        elif z.get("open") is True and "tls" in z:
+            errs.append("zenoh.open: true contradicts zenoh.tls (a TLS graph admits only its certificates): "
+                        "remove one")
         if "tls" in z:
             errs += _tls_errors(z["tls"])
         if "shm_pool_mb" in z and (isinstance(z["shm_pool_mb"], bool) or not isinstance(z["shm_pool_mb"], int)
@@ -368,6 +386,10 @@ def validate_graph(data: Any) -> list:
             errs.append(f"{at}.params: expected a map, got {_tname(n['params'])}")
         if "restart" in n and n["restart"] not in RESTART_POLICIES:
             errs.append(f"{at}.restart: must be one of {', '.join(RESTART_POLICIES)}; got {n['restart']!r}")
+        if "spare" in n and not isinstance(n["spare"], bool):
+            errs.append(f"{at}.spare: expected true or false, got {n['spare']!r}")
+        elif n.get("spare") is True and ("module" not in n or n.get("restart") == "never"):
+            errs.append(f"{at}.spare: a spare needs a module node that is restarted (restart: on-failure or always)")
         if "env" in n and n["env"] is not None:
             env = n["env"]
             if not isinstance(env, dict):
@@ -476,8 +498,12 @@ def _tls_errors(t: Any) -> list:
 
 
 def graph_warnings(graph: "Graph") -> list:
-    """What is allowed but unsafe: a listen endpoint on a non-loopback address without TLS."""
-    warns = []
+    """What is allowed but unsafe: ``zenoh.open: true`` (no credentials), and then a listen
+    endpoint on a non-loopback address."""
+    if not graph.zenoh.open:
+        return []
+    warns = ["zenoh.open: true: the graph runs without credentials: any local process can publish poses, "
+             "send commands, swap and hand over nodes (for interop set-ups only; docs/runtime.md)"]
     for i, e in enumerate(graph.zenoh.listen):
         host = _endpoint_host(e)
         if not e.startswith("tls/") and host is not None and not _is_loopback(host):
@@ -510,7 +536,8 @@ def graph_from_dict(data: dict, path: Optional[Path] = None, source: str = "grap
     z = data.get("zenoh") or {}
     default_listen = DEFAULT_ENDPOINT.replace("tcp/", "tls/") if z.get("tls") else DEFAULT_ENDPOINT
     zs = ZenohSettings(mode=z.get("mode", "peer"), listen=list(z.get("listen", [default_listen])),
-                       connect=list(z.get("connect", [])), shm_pool_mb=int(z.get("shm_pool_mb", 64)))
+                       connect=list(z.get("connect", [])), shm_pool_mb=int(z.get("shm_pool_mb", 64)),
+                       open=z.get("open") is True)
     if z.get("tls"):
         base = path.parent if path is not None else Path.cwd()
         t = z["tls"]
@@ -525,6 +552,7 @@ def graph_from_dict(data: dict, path: Optional[Path] = None, source: str = "grap
                               command=[str(a) for a in n["command"]] if n.get("command") else None,
                               params=dict(n.get("params") or {}), inputs=dict(n.get("inputs") or {}),
                               outputs=list(outs or []), restart=n.get("restart", "on-failure"),
+                              spare=n.get("spare") is True,
                               env={k: str(v) for k, v in (n.get("env") or {}).items()},
                               feedback=list(n.get("feedback") or [])))
     return Graph(name=data["graph"], zenoh=zs, nodes=nodes, path=path,
@@ -613,8 +641,14 @@ def zenoh_config(graph, role: str = "node", listen: Optional[list] = None, ident
     ``identity`` (its node id, or ``launcher`` for launchers and CLI tools) and accepts only
     peers whose certificates the graph's CA signed; access control (``access_control``) lets
     each peer publish only what its identity may. Raises ``GraphError`` naming a missing file.
+    A ``Graph`` with neither ``zenoh.tls`` nor ``zenoh.open`` runs on its launcher's per-run
+    credentials (``common.runtime.credentials``: the CLI tools of the same user find them);
+    ``CredentialsError`` (a ``GraphError``) says when there are none (the graph is not running).
     """
     import zenoh
+    if isinstance(graph, Graph) and graph.zenoh.tls is None and not graph.zenoh.open:
+        from common.runtime import credentials
+        graph = credentials.find(graph)
     z, g = (graph.zenoh, graph) if isinstance(graph, Graph) else (graph, None)
     c = zenoh.Config()
     c.insert_json5("mode", json.dumps(z.mode))

@@ -3,13 +3,13 @@
 - Module nodes run as ``python -m common.runtime.node --graph RESOLVED.yaml --node ID``; ``command``
   nodes run as given, with ``NEEDLETRACK_GRAPH``/``NEEDLETRACK_NODE`` in their environment.
 - Every output line of a node is printed prefixed with ``[node id]``.
-- A node that exits is restarted per its ``restart`` policy with exponential backoff
-  (0.5 s doubling to 10 s; reset after 10 s of uptime); exit status 2 (bad configuration: bad
-  params, an unreadable model; a source whose input failed part way, e.g. a corrupt bag) is never
-  restarted, and stops the whole graph (``launch`` then exits non-zero). A node's exit is
-  reported with the last ERROR line it printed: which node stopped, and why. Params are checked
-  against each node's ``Params`` before anything starts. Restarts are counted, printed, and
-  reported in the node's stats.
+- A node that exits is restarted per its ``restart`` policy: at once, then, if it fails again
+  within 10 s of starting, with exponential backoff (0.5 s doubling to 10 s); exit status 2 (bad
+  configuration: bad params, an unreadable model; a source whose input failed part way, e.g. a
+  corrupt bag) is never restarted, and stops the whole graph (``launch`` then exits non-zero). A
+  node's exit is reported with the last ERROR line it printed: which node stopped, and why.
+  Params are checked against each node's ``Params`` before anything starts. Restarts are
+  counted, printed, and reported in the node's stats.
 - The launcher's own Zenoh session is the graph's hub: it listens on the graph's ``listen``
   endpoints and the nodes connect to it (then to each other, by gossip). With ``--only`` and the
   endpoint already taken (another launcher runs the rest of the graph), it connects instead.
@@ -18,6 +18,15 @@
   ``zenoh.tls`` every link is mutual TLS and access control lets only the launcher identity
   (launchers, CLI tools) send swaps, handovers and commands (``graph.access_control``); a
   listen endpoint beyond loopback without TLS is warned about.
+- A graph without ``zenoh.tls`` runs on per-run credentials (``common.runtime.credentials``):
+  a CA and a certificate per member made at start in a 0700 directory of this user's, removed
+  at the end; ``zenoh.open: true`` runs without them (a warning). Each process it starts gets a
+  control token of its own (``NEEDLETRACK_CTL_TOKEN``) that only this launcher knows: a node
+  hands over or takes over only when the query carries it, i.e. in a swap this launcher runs.
+  A node that reports itself ``retired`` outside a swap is said so and restarted.
+- A node with ``spare: true`` gets a warm spare process (``NEEDLETRACK_SPARE=1``: set up, then
+  idle and unseen) ``SPARE_AFTER_S`` after its process starts; when that process exits, the
+  spare takes over at once (a takeover query with its token) instead of a new process starting.
 - SIGINT/SIGTERM stop every node (SIGTERM, then SIGKILL after ``STOP_GRACE_S``); nodes also
   get SIGTERM from the kernel if the launcher itself dies (``PR_SET_PDEATHSIG``).
 """
@@ -27,6 +36,7 @@ import ctypes
 import json
 import os
 import queue
+import secrets
 import shutil
 import signal
 import subprocess
@@ -49,6 +59,7 @@ from common.runtime.graph import (
     graph_from_dict,
     graph_warnings,
     launcher_key,
+    stats_key,
     tls_file_errors,
     zenoh_config,
 )
@@ -58,6 +69,7 @@ STOP_GRACE_S = 5.0
 BACKOFF_MIN_S, BACKOFF_MAX_S, BACKOFF_RESET_S = 0.5, 10.0, 10.0
 SWAP_READY_TIMEOUT_S = 120.0
 SWAP_WARM_TIMEOUT_S = 5.0
+SPARE_AFTER_S = 5.0             # a node's spare is started once its process has run this long
 
 
 def _pdeathsig():
@@ -66,6 +78,13 @@ def _pdeathsig():
         ctypes.CDLL("libc.so.6", use_errno=True).prctl(1, signal.SIGTERM)  # PR_SET_PDEATHSIG
     except OSError:
         pass
+
+
+def restart_delay(failures: int) -> float:
+    """Seconds before restarting a node after ``failures`` quick failures in a row: at once after
+    one that ran longer than ``BACKOFF_RESET_S`` (a camera killed mid-run is back without a
+    pause), then ``BACKOFF_MIN_S`` doubling up to ``BACKOFF_MAX_S``."""
+    return 0.0 if failures <= 1 else min(BACKOFF_MAX_S, BACKOFF_MIN_S * 2 ** (failures - 2))
 
 
 def describe_status(code: int) -> str:
@@ -87,6 +106,7 @@ class Proc:
     restarts: int = 0
     role: str = "active"            # active | standby | retired
     reader: Optional[threading.Thread] = None
+    token: str = ""                 # the process's control token (handover, takeover)
     last_error: str = ""            # the last ERROR line it printed: why it stopped
 
     @property
@@ -104,6 +124,8 @@ class Slot:
     restart_at: Optional[float] = None
     last_status: Optional[int] = None
     done: bool = False              # exited and will not be restarted
+    force_restart: bool = False     # stopped by the launcher to be restarted (retired outside a swap)
+    spare: Optional[Proc] = None    # a warm spare process (``spare: true``): set up, idle
 
 
 class Launcher:
@@ -130,6 +152,9 @@ class Launcher:
         self._retired: list = []
         self.session = None
         self._decl: list = []
+        self._own_credentials = False
+        self._swapping: set = set()          # node ids in a swap now
+        self._reported: dict = {}            # pid -> the state its newest NodeStats reports
 
     # ---------------------------------------------------------------- output
     def say(self, text: str, who: str = "launcher") -> None:
@@ -154,11 +179,14 @@ class Launcher:
         self._gen += 1
         return self.graph.dump(self.run_dir / f"graph.{self._gen}.yaml")
 
-    def _spawn(self, spec: NodeSpec, restarts: int = 0, standby: bool = False) -> Proc:
+    def _spawn(self, spec: NodeSpec, restarts: int = 0, standby: bool = False, spare: bool = False) -> Proc:
         env = dict(os.environ)
         env["PYTHONPATH"] = os.pathsep.join([str(REPO_ROOT)] + [p for p in env.get("PYTHONPATH", "").split(os.pathsep) if p])
+        token = secrets.token_hex(16)
         env.update(PYTHONUNBUFFERED="1", NEEDLETRACK_GRAPH=str(self.graph_file), NEEDLETRACK_NODE=spec.id,
-                   NEEDLETRACK_RESTARTS=str(restarts), NEEDLETRACK_STANDBY="1" if standby else "0")
+                   NEEDLETRACK_RESTARTS=str(restarts), NEEDLETRACK_STANDBY="1" if standby else "0",
+                   NEEDLETRACK_SPARE="1" if spare else "0",
+                   NEEDLETRACK_CTL_TOKEN=token)
         # glibc would map and unmap every image-sized buffer (page faults on each frame: ~2x the
         # CPU of a receiver); keep freed memory in the heap for reuse instead
         env.setdefault("MALLOC_MMAP_THRESHOLD_", str(1 << 30))
@@ -170,7 +198,8 @@ class Launcher:
             argv = list(spec.command)
         popen = subprocess.Popen(argv, stdin=subprocess.DEVNULL, stdout=subprocess.PIPE, stderr=subprocess.STDOUT,
                                  env=env, cwd=str(REPO_ROOT), start_new_session=True, preexec_fn=_pdeathsig)
-        proc = Proc(spec, popen, time.monotonic(), restarts, "standby" if standby else "active")
+        proc = Proc(spec, popen, time.monotonic(), restarts,
+                    "spare" if spare else "standby" if standby else "active", token=token)
         proc.reader = threading.Thread(target=self._pump, args=(proc,), daemon=True)
         proc.reader.start()
         return proc
@@ -210,8 +239,13 @@ class Launcher:
         """Open the hub session (or join the graph's hub with ``--only``), as the launcher identity
         under TLS; raises RuntimeError saying why not."""
         import zenoh
+
+        from common.runtime import credentials
         for w in graph_warnings(self.graph):
             self.say(f"WARNING {w}")
+        if credentials.applies(self.graph):
+            self.graph, self._own_credentials = credentials.make(self.graph)
+            self.graph_file = self._write_graph()
         errors = tls_file_errors(self.graph, [LAUNCHER_IDENTITY] + self.only)
         if errors:
             raise RuntimeError("TLS files missing:\n  " + "\n  ".join(errors))
@@ -224,11 +258,23 @@ class Launcher:
                                    f"is another graph running there?") from None
             self.session = zenoh.open(zenoh_config(self.graph, role="node", identity=LAUNCHER_IDENTITY))
             where = "joining the graph at " + ", ".join(self.graph.zenoh.listen)
-        if self.graph.zenoh.tls is not None:
+        if self.graph.zenoh.run_credentials:
+            where += f" (mutual TLS on per-run credentials in {self.graph.zenoh.run_credentials}, access control by identity)"
+        elif self.graph.zenoh.tls is not None:
             where += " (mutual TLS, access control by certificate)"
         self.say(f"graph {self.graph.name!r}: {len(self.only)} node(s), {where}")
         self._decl.append(self.session.declare_queryable(launcher_key(self.graph.name, "status"), self._q_status))
         self._decl.append(self.session.declare_queryable(launcher_key(self.graph.name, "swap"), self._q_swap))
+        self._decl.append(self.session.declare_subscriber(stats_key(self.graph.name), self._on_stats))
+
+    def _on_stats(self, sample) -> None:
+        """Keep the state each process reports (to notice one that retired outside a swap)."""
+        from common.runtime.messages import MessageError, NodeStats, decode
+        try:
+            st = decode(sample.payload.to_bytes(), NodeStats)
+        except MessageError:
+            return
+        self._reported[st.pid] = st.counters.get("state")
 
     def _q_status(self, query) -> None:
         with self._lock:
@@ -248,11 +294,14 @@ class Launcher:
         self._swaps.put(query)   # answered from the swap thread: never block a Zenoh callback
 
     # ---------------------------------------------------------------- swap
-    def _ctl(self, node_id: str, pid: int, op: str, payload: Optional[dict] = None, timeout: float = 2.0):
+    def _ctl(self, node_id: str, proc: Proc, op: str, payload: Optional[dict] = None, timeout: float = 2.0):
+        """A control query to one process; handover and takeover carry its token."""
         kw = {"timeout": timeout}
+        if op in ("handover", "takeover"):
+            payload = {**(payload or {}), "token": proc.token}
         if payload is not None:
             kw["payload"] = json.dumps(payload).encode()
-        for reply in self.session.get(ctl_key(self.graph.name, node_id, pid, op), **kw):
+        for reply in self.session.get(ctl_key(self.graph.name, node_id, proc.pid, op), **kw):
             if reply.ok is not None:
                 return json.loads(reply.ok.payload.to_bytes().decode())
         return None
@@ -264,7 +313,7 @@ class Launcher:
         first = status.get("held_first") or {}
         if old is None or old.popen.poll() is not None or not first:
             return True
-        ans = self._ctl(node_id, old.pid, "status", timeout=0.5) or {}
+        ans = self._ctl(node_id, old, "status", timeout=0.5) or {}
         last = ans.get("last_seq") or {}
         return all(out not in last or last[out] + 1 >= seq for out, seq in first.items())
 
@@ -307,6 +356,8 @@ class Launcher:
             new_spec = new_graph.node(node_id)
             t0 = time.monotonic()
             new = self._spawn(new_spec, restarts=slot.restarts, standby=True)
+            self._swapping.add(node_id)
+        handed = None
         self.say(f"swap {node_id}: standby pid {new.pid} ({new_spec.module}, params {new_spec.params})")
         try:
             status = None
@@ -317,7 +368,7 @@ class Launcher:
                     raise RuntimeError(f"new {node_id} process exited with {describe_status(new.popen.returncode)} "
                                        f"before taking over")
                 if new_spec.module:
-                    status = self._ctl(node_id, new.pid, "status", timeout=0.5)
+                    status = self._ctl(node_id, new, "status", timeout=0.5)
                     if status and status.get("ready"):
                         if not new_spec.outputs or (status.get("produced") and self._covers(node_id, old, status)):
                             break
@@ -332,13 +383,20 @@ class Launcher:
             ready_s = time.monotonic() - t0
             cuts = {}
             if old is not None and old.popen.poll() is None:
-                ans = self._ctl(node_id, old.pid, "handover")
-                cuts = (ans or {}).get("cuts", {})
-            taken = self._ctl(node_id, new.pid, "takeover", {"cuts": cuts}) if new_spec.module else {}
+                handed = self._ctl(node_id, old, "handover")
+                if handed is not None and handed.get("ok") is False:
+                    raise RuntimeError(f"{node_id} (pid {old.pid}) refused the handover: {handed.get('error')}")
+                cuts = (handed or {}).get("cuts", {})
+            taken = self._ctl(node_id, new, "takeover", {"cuts": cuts}) if new_spec.module else {}
+            if new_spec.module and not (taken or {}).get("ok"):
+                raise RuntimeError(f"new {node_id} process did not take over: {taken}")
         except Exception:
             self._terminate([new], grace=2.0)
+            if handed is not None and old is not None and old.popen.poll() is None:
+                self._ctl(node_id, old, "takeover", {"cuts": {}})     # the old one goes on publishing
             with self._lock:
                 self.graph, self.graph_file = old_graph, old_graph_file
+                self._swapping.discard(node_id)
             raise
         with self._lock:
             new.role = "active"
@@ -347,6 +405,11 @@ class Launcher:
             if old is not None:
                 old.role = "retired"
                 self._retired.append(old)
+            if slot.spare is not None:             # set up with the old spec: a new one follows
+                old_spare, slot.spare = slot.spare, None
+                self._retired.append(old_spare)
+                threading.Thread(target=self._terminate, args=([old_spare], 2.0), daemon=True).start()
+            self._swapping.discard(node_id)
         if old is not None:
             threading.Thread(target=self._terminate, args=([old],), daemon=True).start()
         summary = {"ok": True, "node": node_id, "module": new_spec.module, "params": new_spec.params,
@@ -398,6 +461,9 @@ class Launcher:
                         p.reader.join(0.5)
                     policy = slot.spec.restart
                     again = (policy == "always" or (policy == "on-failure" and code != 0)) and code != 2
+                    self._reported.pop(p.pid, None)
+                    forced, slot.force_restart = slot.force_restart, False
+                    again = again or forced
                     why = f": {p.last_error}" if code not in (0, None) and p.last_error else ""
                     if not again:
                         slot.done = True
@@ -410,17 +476,63 @@ class Launcher:
                             self._stop.set()
                         continue
                     ran = now - p.started
-                    slot.failures = 1 if ran > BACKOFF_RESET_S else slot.failures + 1
-                    delay = min(BACKOFF_MAX_S, BACKOFF_MIN_S * 2 ** (slot.failures - 1))
+                    if self._promote_spare(nid, slot, code):
+                        continue
+                    if forced:
+                        delay = 0.0
+                    else:
+                        slot.failures = 1 if ran > BACKOFF_RESET_S else slot.failures + 1
+                        delay = restart_delay(slot.failures)
                     slot.restart_at = now + delay
                     self.say(f"{nid} exited with {describe_status(code)}{why}; "
                              f"restart #{slot.restarts + 1} in {delay:.1f} s")
+                elif (p is not None and not slot.force_restart and nid not in self._swapping
+                      and self._reported.get(p.pid) == "retired"):
+                    # only a swap this launcher runs may retire a process (its token): one that
+                    # stopped publishing otherwise would be silent for good
+                    slot.force_restart = True
+                    self.say(f"{nid} (pid {p.pid}) stopped publishing outside a swap (it reports "
+                             f"'retired'): restarting it")
+                    self._signal(p, signal.SIGTERM)
+                elif p is not None and slot.spec.spare and slot.spare is None and now - p.started > SPARE_AFTER_S \
+                        and nid not in self._swapping:
+                    slot.spare = self._spawn(slot.spec, restarts=slot.restarts + 1, spare=True)
+                    self.say(f"{nid}: spare pid {slot.spare.pid} started (it takes over if pid {p.pid} exits)")
                 elif p is None and slot.restart_at is not None and now >= slot.restart_at:
                     slot.restarts += 1
                     slot.restart_at = None
                     slot.proc = self._spawn(slot.spec, restarts=slot.restarts)
                     self.say(f"{nid} restarted (pid {slot.proc.pid}, restart #{slot.restarts})")
+                if slot.spare is not None and slot.spare.popen.poll() is not None:
+                    self.say(f"{nid}: spare pid {slot.spare.pid} exited with "
+                             f"{describe_status(slot.spare.popen.returncode)}; another in {SPARE_AFTER_S:g} s")
+                    if slot.spare.reader:
+                        slot.spare.reader.join(0.5)
+                    slot.spare = None
             self._retired = [p for p in self._retired if p.popen.poll() is None]
+
+    def _promote_spare(self, nid: str, slot: Slot, code: int) -> bool:
+        """The node's warm spare takes over from its exited process (call with the lock held);
+        False when there is none that is ready."""
+        spare, slot.spare = slot.spare, None
+        if spare is None:
+            return False
+        ans = None
+        if spare.popen.poll() is None:
+            try:
+                ans = self._ctl(nid, spare, "takeover", {"cuts": {}, "restarts": slot.restarts + 1}, timeout=1.0)
+            except Exception:
+                ans = None
+        if not (ans or {}).get("ok"):
+            self.say(f"{nid}: spare pid {spare.pid} did not take over ({ans}); restarting instead")
+            threading.Thread(target=self._terminate, args=([spare], 1.0), daemon=True).start()
+            return False
+        slot.restarts += 1
+        spare.role, spare.started = "active", time.monotonic()
+        slot.proc = spare
+        self.say(f"{nid} exited with {describe_status(code)}; spare pid {spare.pid} took over "
+                 f"(restart #{slot.restarts})")
+        return True
 
     def run(self, duration: Optional[float] = None, until: Optional[list] = None) -> int:
         """Supervise until every node is done, ``until`` nodes are done, ``duration`` passed or stop()."""
@@ -446,7 +558,8 @@ class Launcher:
     def shutdown(self) -> int:
         self._stop.set()
         with self._lock:
-            procs = [s.proc for s in self.slots.values() if s.proc is not None] + self._retired
+            procs = [s.proc for s in self.slots.values() if s.proc is not None] + self._retired + \
+                [s.spare for s in self.slots.values() if s.spare is not None]
             for s in self.slots.values():
                 s.restart_at = None
         self._terminate(procs)
@@ -456,6 +569,10 @@ class Launcher:
                 slot.last_status = p.popen.returncode
         close_session(self.session, self._decl)
         self.session = None
+        if self._own_credentials:
+            from common.runtime import credentials
+            credentials.remove(self.graph)
+            self._own_credentials = False
         if self._own_run_dir:
             shutil.rmtree(self.run_dir, ignore_errors=True)
         bad = {nid: s.last_status for nid, s in self.slots.items()

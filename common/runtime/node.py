@@ -38,7 +38,10 @@ Runtime behaviour (see README "Runtime"):
   ``<graph>/@live/<id>`` while the node is up (declared after ``setup``);
 - SIGTERM/SIGINT stop the node cleanly (``teardown`` runs, exit status 0);
 - hot swap: a process started in standby (``NEEDLETRACK_STANDBY=1``) runs its handlers but holds
-  its outputs until the launcher hands over; see ``Runtime.handover``/``Runtime.takeover``.
+  its outputs until the launcher hands over; see ``Runtime._q_handover``/``_q_takeover``. Both
+  are honoured only with the process's control token (``NEEDLETRACK_CTL_TOKEN``, given by the
+  launcher that started it and sent only in a swap it runs); any other query is refused and
+  counted ``ctl_refused``.
 
 A node can also be used with no process and no network (unit tests)::
 
@@ -50,6 +53,7 @@ from __future__ import annotations
 
 import argparse
 import collections
+import hmac
 import importlib
 import json
 import logging
@@ -424,7 +428,8 @@ def _seq_of(msg) -> Optional[int]:
 class Runtime:
     """Hosts one node instance on a Zenoh session (one per process)."""
 
-    def __init__(self, graph, node_id: str, standby: bool = False, restarts: int = 0):
+    def __init__(self, graph, node_id: str, standby: bool = False, restarts: int = 0,
+                 ctl_token: Optional[str] = None, spare: bool = False):
         from common.runtime.graph import cmd_key, ctl_key, live_key, stats_key  # noqa: F401 (used below)
         self.graph = graph
         self.spec = graph.node(node_id)
@@ -434,7 +439,8 @@ class Runtime:
         self.errlog = _RateLimitedLog(self.log)
         self._stop = threading.Event()
         self._pub_lock = threading.Lock()
-        self.state = "standby" if standby else "active"       # active | standby | retired
+        self.state = "spare" if spare else "standby" if standby else "active"   # active | standby | retired | spare
+        self._activated = threading.Event()                   # a spare's takeover
         self._held: collections.deque = collections.deque(maxlen=STANDBY_BUFFER)   # (output, seq, payload)
         self._produced = False
         self._publishes = 0
@@ -451,6 +457,7 @@ class Runtime:
         self._ready = threading.Event()
         self._shm: Optional[ShmWriter] = None
         self.pose_volume_m = float(getattr(graph, "pose_volume_m", None) or POSE_VOLUME_M)
+        self._ctl_token = ctl_token              # handover/takeover need it (None: refused)
 
     # ---------------------------------------------------------------- setup
     def build(self, cls: type) -> Node:
@@ -485,7 +492,9 @@ class Runtime:
 
         from common.runtime.graph import cmd_key, ctl_key, zenoh_config
         g, nid = self.graph.name, self.node_id
+        t0 = time.monotonic()
         self.session = zenoh.open(zenoh_config(self.graph, role="node", identity=self.node_id))
+        self._open_s = time.monotonic() - t0
         for out in self.node.OUTPUTS:
             self._pubs[out] = self.session.declare_publisher(
                 self.graph.output_key(nid, out), congestion_control=zenoh.CongestionControl.BLOCK,
@@ -594,25 +603,52 @@ class Runtime:
                 first[out] = seq
         return first
 
+    def _ctl_request(self, query, op: str) -> Optional[dict]:
+        """The JSON payload of a handover/takeover query if it carries this process's control
+        token; otherwise replies a refusal, counts ``ctl_refused``, logs it and returns None."""
+        try:
+            req = json.loads(bytes(query.payload.to_bytes()).decode()) if query.payload else {}
+        except (ValueError, AttributeError, UnicodeDecodeError):
+            req = None
+        token = req.get("token") if isinstance(req, dict) else None
+        if (self._ctl_token and isinstance(token, str)
+                and hmac.compare_digest(token.encode(), self._ctl_token.encode())):
+            return req
+        self.stats.add("ctl_refused")
+        self.errlog.error(f"ctl:{op}", f"{op} refused: the query does not carry this process's control "
+                          f"token (only a swap run by its launcher may {op})")
+        self._reply(query, {"ok": False, "error": f"{op} refused: no valid control token"})
+        return None
+
     def _q_handover(self, query) -> None:
         """Old process: stop publishing now; reply, per output, the first seq the successor owns."""
+        if self._ctl_request(query, "handover") is None:
+            return
         with self._pub_lock:
             self.state = "retired"
             cuts = {out: seq + 1 for out, seq in self._last_seq.items()}
         self.log.info("handing over (cuts %s)", cuts)
-        self._reply(query, {"cuts": cuts})
+        self._reply(query, {"ok": True, "cuts": cuts})
 
     def _q_takeover(self, query) -> None:
-        """New process: publish the held outputs the predecessor did not, then go live."""
-        try:
-            cuts = json.loads(bytes(query.payload.to_bytes()).decode()).get("cuts", {}) if query.payload else {}
-        except (ValueError, AttributeError):
-            cuts = {}
+        """New process (or an old one whose swap failed after its handover): publish the held
+        outputs the predecessor did not, then go live."""
+        req = self._ctl_request(query, "takeover")
+        if req is None:
+            return
+        if self.state == "spare":            # the node's process exited: this one goes on at once
+            if isinstance(req.get("restarts"), int):
+                self._restarts = req["restarts"]
+            self.state = "active"
+            self._activated.set()
+            self._reply(query, {"ok": True, "flushed": 0})
+            return
+        cuts = req.get("cuts") if isinstance(req.get("cuts"), dict) else {}
         flushed = 0
         if self.node is not None and self.node.is_source():
             cuts = {}      # a new source starts its own sequence: nothing to line up with
         with self._pub_lock:
-            self._cuts = {k: int(v) for k, v in cuts.items()}
+            self._cuts = {k: v for k, v in cuts.items() if isinstance(v, int) and not isinstance(v, bool)}
             newest = {}
             for out, seq, _ in self._held:
                 if seq is not None:
@@ -692,6 +728,7 @@ class Runtime:
     def serve(self) -> int:
         """Run setup, the handler/step loop and teardown; returns the exit status."""
         node = self.node
+        t_setup = time.monotonic()
         try:
             node.setup()
         except NodeError as exc:
@@ -701,12 +738,28 @@ class Runtime:
             self.log.error("setup failed: %s: %s", type(exc).__name__, exc, exc_info=True)
             return 1
         from common.runtime.graph import live_key
+        setup_s = time.monotonic() - t_setup
+        if self.state == "spare":
+            # set up and idle, unseen (no liveliness token, no stats) until the launcher's takeover
+            self._ready.set()
+            self.log.info("spare ready (pid %d; setup %.2f s)", os.getpid(), setup_s)
+            while not self._stop.is_set() and not self._activated.wait(0.2):
+                pass
+            if not self._activated.is_set():
+                self._teardown()
+                return self.exit_status
+            while self.queue.get(0) is not None:         # what came while idle is stale (commands too)
+                pass
+            self.log.info("spare took over (pid %d)", os.getpid())
+            self._t0 = time.monotonic() - setup_s
         self._decl.append(self.session.liveliness().declare_token(live_key(self.graph.name, self.node_id)))
         self._ready.set()
         stats_thread = threading.Thread(target=self._stats_loop, name="stats", daemon=True)
         stats_thread.start()
         source = node.is_source()
-        self.log.info("up (pid %d%s)", os.getpid(), ", standby" if self.state == "standby" else "")
+        self.log.info("up (pid %d%s; started %.2f s ago: session %.2f s, setup %.2f s)", os.getpid(),
+                      ", standby" if self.state == "standby" else "", time.monotonic() - self._t0,
+                      getattr(self, "_open_s", 0.0), setup_s)
         q = self.queue
         step_failures = 0
         while not self._stop.is_set() and node.running:
@@ -737,12 +790,15 @@ class Runtime:
                 if item is not None:
                     self._dispatch(*item)
         self._stop.set()
-        try:
-            node.teardown()
-        except Exception as exc:
-            self.log.error("teardown failed: %s: %s", type(exc).__name__, exc, exc_info=True)
+        self._teardown()
         self._publish_stats()
         return self.exit_status
+
+    def _teardown(self) -> None:
+        try:
+            self.node.teardown()
+        except Exception as exc:
+            self.log.error("teardown failed: %s: %s", type(exc).__name__, exc, exc_info=True)
 
     def close(self) -> None:
         from common.runtime.graph import close_session
@@ -810,7 +866,9 @@ def _run(node_cls: Optional[type], argv: Optional[list]) -> int:
             log.error("cannot import nodes.%s: %s: %s", spec.module, type(exc).__name__, exc, exc_info=True)
             return 1
     rt = Runtime(graph, args.node, standby=os.environ.get("NEEDLETRACK_STANDBY") == "1",
-                 restarts=int(os.environ.get("NEEDLETRACK_RESTARTS", "0") or 0))
+                 restarts=int(os.environ.get("NEEDLETRACK_RESTARTS", "0") or 0),
+                 ctl_token=os.environ.pop("NEEDLETRACK_CTL_TOKEN", None),
+                 spare=os.environ.get("NEEDLETRACK_SPARE") == "1")
     try:
         rt.build(node_cls)
     except NodeError as exc:

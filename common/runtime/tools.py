@@ -48,13 +48,21 @@ def _load_or_report(path: str):
 
 
 def open_session(graph, wait_s: float = 2.0):
-    """A Zenoh session joined to ``graph`` (connects to its listen endpoints; under TLS with the
-    launcher's certificate, the operator's identity that may send commands); waits up to
+    """A Zenoh session joined to ``graph`` (connects to its listen endpoints; under TLS, the
+    graph's own or its launcher's per-run credentials, with the launcher's certificate: the
+    operator's identity that may send commands; exits 1 saying so when the graph has no run
+    credentials for this user, i.e. it is not running); waits up to
     ``wait_s`` for a first peer so that queries and liveliness see the graph at once."""
     import zenoh
 
+    from common.runtime.credentials import CredentialsError
     from common.runtime.graph import zenoh_config
-    session = zenoh.open(zenoh_config(graph, role="node"))     # as the launcher identity under TLS
+    try:
+        cfg = zenoh_config(graph, role="node")     # as the launcher identity, on the run's credentials
+    except CredentialsError as exc:                # not running for this user: say so, exit 1
+        print(f"needletrack: {exc.errors[0]}", file=sys.stderr)
+        raise SystemExit(1) from None
+    session = zenoh.open(cfg)
     deadline = time.monotonic() + wait_s
     while time.monotonic() < deadline and not list(session.info.peers_zid()):
         time.sleep(0.02)

@@ -21,6 +21,7 @@ from common.sim.randomise import (
     default_arm,
     degrade_stereo,
     get_preset,
+    noise_bank,
     keypoints_in_view,
     multiview_joints,
     plan_sequence,
@@ -82,6 +83,8 @@ class LiveSim:
         self.frame_in_sequence = 0
         self._rng = np.random.default_rng([self.seed, 7])
         self.place_needle()
+        if self.preset.noise_sigma[1] > 0:          # the first frame would make it: here, at set-up
+            noise_bank((height, width, 3))
 
     def place_needle(self, seed: int | None = None, T_world_needle=None) -> None:
         """A new needle pose (and scene look): the next planned one, the one planned for ``seed``,
@@ -132,6 +135,12 @@ class LiveSim:
         self.frame_in_sequence += 1
         return SimFrame(images, q, T_world_ecm, self.plan.spec.T_world_needle.copy(), truth,
                         self.sequence, step)
+
+    def warm_up(self) -> None:
+        """Render the current pose once and discard it (the GL pipeline's first use costs 3-4
+        frames on a CPU renderer); the script does not advance, so the frames are unchanged."""
+        q, _ = self.joints()
+        self.renderer.render(self.arm.T_world_ecm(q))
 
     def needle_in_view(self) -> bool:
         q, _ = self.joints()

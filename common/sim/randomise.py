@@ -364,6 +364,15 @@ _NOISE_BANK: dict = {}
 def _noise_field(shape, rng: np.random.Generator) -> np.ndarray:
     """Unit Gaussian noise (times _NOISE_SCALE, int16) of ``shape`` in every channel: a random
     window of a fixed bank, because drawing 6 M normals per image costs 30 ms."""
+    h, w, _ = shape
+    bank = noise_bank(shape)
+    y, x = rng.integers(0, _NOISE_PAD + 1, size=2)
+    return bank[y:y + h, x:x + w]
+
+
+def noise_bank(shape) -> np.ndarray:
+    """The fixed bank ``_noise_field`` draws windows of images of ``shape`` (h, w, channels)
+    from, made on first use (0.2-0.5 s for 1080p: a live source makes it in its set-up)."""
     h, w, ch = shape
     key = (h, w, ch)
     bank = _NOISE_BANK.get(key)
@@ -372,8 +381,7 @@ def _noise_field(shape, rng: np.random.Generator) -> np.ndarray:
         bank = np.random.default_rng(1234).standard_normal((h + _NOISE_PAD, w + _NOISE_PAD, ch), np.float32)
         bank = np.clip(bank * _NOISE_SCALE, -32767, 32767).astype(np.int16)
         _NOISE_BANK[key] = bank
-    y, x = rng.integers(0, _NOISE_PAD + 1, size=2)
-    return bank[y:y + h, x:x + w]
+    return bank
 
 
 def jpeg_quality(rng: np.random.Generator, preset: Preset) -> int:
