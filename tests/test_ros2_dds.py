@@ -18,11 +18,11 @@ import numpy as np
 import pytest
 from rospeer import ENV, PEER, LoopbackNamespace, need_rclpy
 
+from common.cli import dataset_main
 from common.data.dataset import Dataset
 from common.geometry.transforms import inv_T, pose_error
 from common.ros.bench import pose_pipeline
 from common.ros.conventions import pose_to_T, ros_covariance
-from common.sim.cli import main as dataset_main
 
 RIG = "jhu_daVinci"
 

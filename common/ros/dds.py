@@ -27,6 +27,7 @@ from __future__ import annotations
 import threading
 from functools import lru_cache
 
+from common.errors import NeedletrackError
 from common.ros.live import dds_type_name, type_hash
 from common.ros.types import normalise_type, typestore
 
@@ -48,7 +49,7 @@ def dds_topic_name(topic: str) -> str:
     return "rt/" + name
 
 
-class DdsError(RuntimeError):
+class DdsError(NeedletrackError, RuntimeError):
     """A DDS entity could not be made (bad config, no such type)."""
 
 
