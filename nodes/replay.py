@@ -30,6 +30,7 @@ from typing import Literal
 import numpy as np
 
 from common.data.dataset import DatasetError
+from common.frames import CAMERAS
 from common.runtime.camera_source import CameraSourceNode
 from common.runtime.messages import (
     Calibration,
@@ -42,7 +43,6 @@ from common.runtime.messages import (
 from common.runtime.node import NodeError, Prepared, run
 from common.runtime.pacing import PACED, AckWindow, SourceClock, parse_rate, sleep_in_slices
 
-CAMS = ("left", "right")
 ACKS = ("ack", "ack2")
 MAX_DECODED_BYTES = 8 << 30   # decode=true holds every image in memory: refuse more than 8 GiB
 
@@ -116,14 +116,14 @@ class ReplayNode(CameraSourceNode):
     def _decode_all(self) -> list:
         """Per frame: {camera: raw bgr8 bytes}, or None for a frame whose images fail."""
         w, h = self.ds.meta.image_size
-        need = len(self.frames) * len(CAMS) * w * h * 3
+        need = len(self.frames) * len(CAMERAS) * w * h * 3
         if need > MAX_DECODED_BYTES:
             raise NodeError(f"replay: decode=true would hold {need / 2**30:.1f} GiB of images "
                              f"({len(self.frames)} frames); play fewer with 'count'")
         out = []
         for fr in self.frames:
             imgs = {}
-            for cam in CAMS:
+            for cam in CAMERAS:
                 try:
                     img = self.ds.image(fr, cam)      # size and header checked before decoding
                 except DatasetError:
@@ -145,9 +145,9 @@ class ReplayNode(CameraSourceNode):
         fr = self.frames[pos]
         if self.decoded is not None:
             raw = self.decoded[pos]
-            return None if raw is None else [CameraImage(c, seq, stamp, w, h, "bgr8", raw[c]) for c in CAMS]
+            return None if raw is None else [CameraImage(c, seq, stamp, w, h, "bgr8", raw[c]) for c in CAMERAS]
         msgs = []
-        for cam in CAMS:
+        for cam in CAMERAS:
             rel = fr.image(cam)
             try:
                 data = self.ds.image_bytes(fr, cam)     # size and header checked, not decoded
@@ -186,7 +186,7 @@ class ReplayNode(CameraSourceNode):
         if msgs is None:     # counted and logged
             self.pos += 1
             return True
-        for cam, msg in zip(CAMS, msgs):
+        for cam, msg in zip(CAMERAS, msgs):
             if isinstance(msg, Prepared):
                 msg.msg.stamp_ns = stamp
             self.publish(cam, msg)

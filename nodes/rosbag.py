@@ -30,12 +30,12 @@ import time
 from dataclasses import dataclass
 from typing import Literal
 
+from common.frames import CAMERAS
 from common.runtime.camera_source import CameraSourceNode
 from common.runtime.messages import EndOfStream
 from common.runtime.node import NodeError, run
 from common.runtime.pacing import SourceClock, parse_rate, sleep_in_slices
 
-CAMS = ("left", "right")
 
 
 class RosbagNode(CameraSourceNode):

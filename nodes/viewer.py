@@ -26,6 +26,7 @@ from typing import Optional
 import numpy as np
 
 from common.evaluation.metrics import true_T_ecm_needle
+from common.frames import CAMERAS
 from common.geometry.camera import StereoRig
 from common.geometry.ecm_kinematics import EcmArm
 from common.geometry.needle import NeedleModel
@@ -46,7 +47,6 @@ from common.viewer.state import ViewerState
 from common.methods import POSE_METHODS, final_method
 from nodes._pose import PoseMethodInputs
 
-CAMERAS = ("left", "right")
 KEEP = 16           # frames remembered per input (by seq)
 PATH_POINTS = 600   # ECM path length (frames)
 

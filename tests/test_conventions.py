@@ -38,3 +38,11 @@ def test_the_readme_is_a_front_door_and_every_link_in_the_docs_resolves():
             if not (page.parent / target).exists():
                 broken.append(f"{page.relative_to(REPO)}: {target}")
     assert not broken, broken
+
+
+def test_the_cameras_are_named_in_one_place():
+    import re
+    found = [f"{p.relative_to(REPO)}:{i + 1}" for p in [*REPO.glob("common/**/*.py"), *REPO.glob("nodes/*.py")]
+             for i, line in enumerate(p.read_text().splitlines())
+             if re.match(r"^\s*(CAMERAS|CAMS)\s*=", line)]
+    assert found == ["common/frames.py:7"], found

@@ -21,6 +21,7 @@ import numpy as np
 import yaml
 
 from common.errors import NeedletrackError
+from common.frames import CAMERAS
 from common.geometry.camera import StereoRig
 from common.geometry.ecm_kinematics import EcmArm
 from common.geometry.needle import NeedleModel
@@ -39,7 +40,6 @@ VERSION = 1
 META_FILE = "dataset.yaml"
 FRAMES_FILE = "frames.jsonl"
 MAX_META_BYTES = 1 << 20           # dataset.yaml is a few KB
-CAMERAS = ("left", "right")
 IMAGE_EXTS = (".png", ".jpg", ".jpeg")
 _DIST_LENGTHS = (0, 4, 5, 8, 12, 14)
 

@@ -32,12 +32,12 @@ from common.detector.model import (
     global_size,
 )
 from common.data.dataset import DatasetError  # noqa: F401  (raised here; one class for a bad dataset folder)
+from common.frames import CAMERAS
 from common.geometry.camera import StereoRig
 from common.geometry.needle import NeedleModel
 from common.geometry.transforms import inv_T, make_T, rotvec_to_R, transform_points
 
 ARC_SAMPLES = 96
-CAMERAS = ("left", "right")
 
 
 @dataclass

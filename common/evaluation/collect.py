@@ -25,12 +25,12 @@ from common.evaluation.metrics import (
     summary,
     true_T_ecm_needle,
 )
+from common.frames import CAMERAS
 from common.geometry.ecm_kinematics import EcmArm
 from common.geometry.end_identity import TIP_SURE
 from common.geometry.needle import KEYPOINT_NAMES, NeedleModel
 from common.methods import EXTRA_METHODS, MULTIVIEW_METHODS, REPORTED_METHODS
 from common.runtime.messages import (
-    CAMERAS,
     Calibration,
     EndOfStream,
     GroundTruth,

@@ -23,10 +23,10 @@ import cv2
 import numpy as np
 
 from common.detector.data import DatasetError, _arc_pixels, read_dataset
+from common.frames import CAMERAS
 from common.geometry.camera import StereoRig
 from common.geometry.needle import NeedleModel
 
-CAMERAS = ("left", "right")
 
 
 SURE_SCORE = 0.5   # the pose nodes' default min_score

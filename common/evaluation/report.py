@@ -18,7 +18,7 @@ import numpy as np
 from common.evaluation.collect import Collected, Evaluation, evaluate
 from common.evaluation.metrics import NEES_99PCT
 from common.evaluation.results import PAPER, build_results, check_results, to_jsonable
-from common.runtime.messages import CAMERAS
+from common.frames import CAMERAS
 from common.geometry.needle import KEYPOINT_NAMES, NeedleModel
 from common.geometry.transforms import transform_points
 from common.methods import FINAL_ORDER, METHOD_COLOURS, MULTIVIEW_METHODS

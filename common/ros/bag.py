@@ -21,6 +21,7 @@ from typing import Optional
 import numpy as np
 
 from common.errors import NeedletrackError
+from common.frames import CAMERAS
 from common.geometry.camera import intrinsics_from_fovy
 from common.geometry.needle import NeedleModel
 from common.ros.conventions import (
@@ -36,7 +37,6 @@ from common.ros.topicmap import TopicMapError, candidates, load_topic_map, resol
 
 IMAGE_TYPES = ("sensor_msgs/msg/Image", "sensor_msgs/msg/CompressedImage")
 TIMED_ROLES = ("ecm_joints", "ecm_pose", "needle_pose", "camera_frame")
-CAMS = ("left", "right")
 MAX_JOINTS = 64              # a JointState with more names or values is refused (the ECM has 4)
 MAX_STATE_BYTES = 1 << 20    # a non-image message's serialised size (a JointState of 4 joints: ~120 B)
 HISTORY = 256                # time-varying states kept per role (each a pose or <= MAX_JOINTS floats)
@@ -311,9 +311,9 @@ class StereoAssembler:
         cs = state.get("camera_state", {})
         if "left" in cs and "right" in cs:
             fix = T_AMBFCAM_CV if self.map["camera_axes"] == "ambf" else np.eye(4)
-            return {c: pose_of(cs[c], self.scale) @ fix for c in CAMS}
+            return {c: pose_of(cs[c], self.scale) @ fix for c in CAMERAS}
         if reg is not None:
-            return {c: np.asarray(reg[c], float) for c in CAMS}
+            return {c: np.asarray(reg[c], float) for c in CAMERAS}
         if "camera_state" in self.has_role:
             raise _NotReady("camera_states")
         raise BagError(f"{self.path}: no camera poses: the bag has no camera State topics and the topic map "
@@ -321,7 +321,7 @@ class StereoAssembler:
 
     def _sample(self, index: int, left, right, state: dict) -> StereoSample:
         imgs = {}
-        for c, (t, msg) in zip(CAMS, (left, right)):
+        for c, (t, msg) in zip(CAMERAS, (left, right)):
             try:
                 imgs[c] = image_to_bgr(msg)
             except ImageError as exc:
@@ -333,7 +333,7 @@ class StereoAssembler:
         self._ensure_scale(state)
         poses = self._camera_poses(state)
         cams = {}
-        for c in CAMS:
+        for c in CAMERAS:
             K, D = self._intrinsics(c, state.get("camera_info", {}).get(c), w, h)
             cams[c] = {"K": K, "dist": D, "T_ecm_cam": poses[c]}
         T_world_ecm = None
@@ -472,7 +472,7 @@ def resolve_roles(m: dict, topics: dict, where: str) -> dict:
                            f"{', '.join(candidates(value))}; the bag has: {listing}")
         return None
 
-    for c in CAMS:
+    for c in CAMERAS:
         pick("image", m["images"][c], c, required=True, types=IMAGE_TYPES)
         pick("camera_info", (m.get("camera_info") or {}).get(c), c, types=("sensor_msgs/msg/CameraInfo",))
         pick("camera_state", (m.get("camera_states") or {}).get(c), c)

@@ -17,11 +17,11 @@ import time
 import numpy as np
 
 from common.data.dataset import DatasetMeta, DatasetWriter, Frame, staged_folder
+from common.frames import CAMERAS
 from common.geometry.camera import StereoRig
 from common.geometry.transforms import inv_T
 from common.ros.bag import BagError, BagStereo
 
-CAMS = ("left", "right")
 REST_TOL = 1e-6          # m and rad: the needle has not moved between two frames
 
 
@@ -53,17 +53,17 @@ def truth_projections(rig, needle, T_world_ecm, T_world_needle):
     from common.geometry.oracle import arc_bbox, true_keypoints
     T_en = inv_T(T_world_ecm) @ T_world_needle
     kp, vis, box = {}, {}, {}
-    for c in CAMS:
+    for c in CAMERAS:
         kp[c], vis[c] = true_keypoints(rig[c], T_en, needle)
         b = arc_bbox(rig[c], T_en, needle)
         box[c] = None if b is None else b.tolist()
-    if not all(np.all(np.isfinite(kp[c])) for c in CAMS):
+    if not all(np.all(np.isfinite(kp[c])) for c in CAMERAS):
         return None, None, None
     return kp, vis, box
 
 
 def _same_rig(a: dict, b: dict) -> str | None:
-    for c in CAMS:
+    for c in CAMERAS:
         for k in ("K", "dist", "T_ecm_cam"):
             x, y = np.asarray(a[c][k], float), np.asarray(b[c][k], float)
             if x.shape != y.shape or not np.allclose(x, y, atol=1e-6, rtol=1e-6):
@@ -76,7 +76,7 @@ def sample_fault(s, topics: dict) -> str | None:
     needle's pose), naming the topic it came from; None when all is."""
     def topic(*roles):
         return next((topics[r] for r in roles if r in topics), roles[0])
-    for c in CAMS:
+    for c in CAMERAS:
         for k in ("K", "dist"):
             if not np.all(np.isfinite(s.cameras[c][k])):
                 return f"{topic('camera_info.' + c)}: the {c} camera's {k} is not finite"

@@ -7,22 +7,22 @@ import json
 
 import numpy as np
 
+from common.frames import CAMERAS
 from common.runtime.messages import Calibration, CameraImage, EcmPose, GroundTruth
 
-CAMS = ("left", "right")
 
 
 def calibration_of(sample, needle, source: str, ecm: dict | None = None) -> Calibration:
     """The Calibration message of a StereoSample's rig."""
     cams = {c: {"K": np.asarray(sample.cameras[c]["K"], float).tolist(),
                 "dist": [float(x) for x in sample.cameras[c]["dist"]],
-                "T_ecm_cam": np.asarray(sample.cameras[c]["T_ecm_cam"], float).tolist()} for c in CAMS}
+                "T_ecm_cam": np.asarray(sample.cameras[c]["T_ecm_cam"], float).tolist()} for c in CAMERAS}
     return Calibration(stamp_ns=0, image_size=np.array(sample.image_size), cameras=cams,
                        needle=needle.to_dict(), ecm=ecm, source=source)
 
 
 def _rig_key(s) -> bytes:
-    return b"".join(np.asarray(s.cameras[c][k], float).tobytes() for c in CAMS for k in ("K", "dist", "T_ecm_cam"))
+    return b"".join(np.asarray(s.cameras[c][k], float).tobytes() for c in CAMERAS for k in ("K", "dist", "T_ecm_cam"))
 
 
 class SamplePublisher:
@@ -50,7 +50,7 @@ class SamplePublisher:
         from common.ros.convert import truth_projections
         self.calibrate(s)
         node = self.node
-        for c in CAMS:
+        for c in CAMERAS:
             # the sample's arrays are fresh and not modified after: no copy for raw bgr8
             node.publish(c, CameraImage.from_bgr(c, seq, stamp_ns, s.images[c], self.encoding, copy=False))
         if s.T_world_ecm is not None:
@@ -62,10 +62,10 @@ class SamplePublisher:
             node.publish("truth", GroundTruth(
                 seq=seq, stamp_ns=stamp_ns, sequence=sequence + sequence_offset, step=step,
                 ecm_joints=s.ecm_joints, T_world_ecm=s.T_world_ecm, T_world_needle=s.T_world_needle,
-                keypoints=None if kp is None else {c: np.asarray(kp[c], float) for c in CAMS},
-                visible=None if vis is None else {c: np.asarray(vis[c], bool) for c in CAMS},
+                keypoints=None if kp is None else {c: np.asarray(kp[c], float) for c in CAMERAS},
+                visible=None if vis is None else {c: np.asarray(vis[c], bool) for c in CAMERAS},
                 bbox=None if box is None else {c: None if box[c] is None else np.asarray(box[c], float)
-                                               for c in CAMS}))
+                                               for c in CAMERAS}))
         node._publish_calib()
 
 

@@ -23,12 +23,12 @@ import os
 import numpy as np
 import yaml
 
+from common.frames import CAMERAS
 from common.geometry.transforms import inv_T
 from common.ros import build
 from common.ros.conventions import F_AMBF_CAM, T_AMBF_NEEDLE, unit_scale
 from common.ros.types import typestore
 
-CAMS = ("left", "right")
 AMBF_TOPICS = {"left": "/ambf/env/cameras/cameraL", "right": "/ambf/env/cameras/cameraR"}
 DVRK_RIG = "jhu_daVinci"
 DVRK_JOINTS = ["outer_yaw", "outer_pitch", "insertion", "outer_roll"]
@@ -104,7 +104,7 @@ def dataset_to_bag(dataset: str, out: str, convention: str, *, unit: str | None 
                 if fr.T_world_ecm is not None:
                     bag.write("/ambf/env/CameraFrame/State",
                               _rigid_body_state(store, t, fr.T_world_ecm, scale, "CameraFrame"), t)
-                for c in CAMS:
+                for c in CAMERAS:
                     T_cf_cam = rig[c].T_ecm_cam @ F_AMBF_CAM        # AMBF camera axes
                     bag.write(AMBF_TOPICS[c] + "/State",
                               _camera_state(store, t, T_cf_cam, scale, "camera" + c[0].upper()), t)
@@ -126,11 +126,11 @@ def dataset_to_bag(dataset: str, out: str, convention: str, *, unit: str | None 
                     bag.write("/needle/measured_cp", build.make(store, "geometry_msgs/msg/PoseStamped",
                                                                 header=build.header(store, t, "ECM_base"),
                                                                 pose=build.pose(store, fr.T_world_needle)), t)
-                for c in CAMS:
+                for c in CAMERAS:
                     bag.write(f"/{DVRK_RIG}/{c}/camera_info",
                               build.camera_info(store, t, rig[c].K, rig[c].dist, ds.meta.image_size,
                                                 f"{DVRK_RIG}_{c}"), t)
-            for c in CAMS:
+            for c in CAMERAS:
                 img = ds.image(fr, c)
                 base = AMBF_TOPICS[c] + "/ImageData" if convention == "ambf" else f"/{DVRK_RIG}/{c}/image_raw"
                 if compressed:
@@ -142,7 +142,7 @@ def dataset_to_bag(dataset: str, out: str, convention: str, *, unit: str | None 
     if convention == "dvrk":
         reg = out.rstrip("/") + ".registration.yaml"
         with open(reg, "w") as f:
-            yaml.safe_dump({"T_ecm_cam": {c: rig[c].T_ecm_cam.tolist() for c in CAMS}}, f)
+            yaml.safe_dump({"T_ecm_cam": {c: rig[c].T_ecm_cam.tolist() for c in CAMERAS}}, f)
         tm = out.rstrip("/") + ".topics.yaml"
         with open(tm, "w") as f:
             yaml.safe_dump({"preset": "dvrk", "registration": os.path.basename(reg),
@@ -180,12 +180,12 @@ def distort_dataset(src: str, out: str, dist, image_format: str = "png", progres
     if np.any(ds.rig.left.dist) or np.any(ds.rig.right.dist):
         raise ValueError(f"{src}: already distorted; give a pinhole dataset")
     cams = ds.rig.to_dict()
-    for c in CAMS:
+    for c in CAMERAS:
         cams[c]["dist"] = [float(x) for x in dist]
     rig = StereoRig.from_dict(cams, ds.meta.image_size)
     meta = DatasetMeta(ds.meta.image_size, rig, ds.needle, ds.arm,
                        source=f"distorted twin of {os.path.basename(os.path.abspath(src))}, dist {list(dist)}")
-    maps = {c: distortion_maps(rig[c].K, rig[c].dist, ds.meta.image_size) for c in CAMS}
+    maps = {c: distortion_maps(rig[c].K, rig[c].dist, ds.meta.image_size) for c in CAMERAS}
     it = ds.frames
     if progress:
         from tqdm import tqdm
@@ -193,20 +193,20 @@ def distort_dataset(src: str, out: str, dist, image_format: str = "png", progres
     with DatasetWriter(out, meta, image_format=image_format) as w:
         for fr in it:
             imgs = {c: cv2.remap(ds.image(fr, c), *maps[c], cv2.INTER_CUBIC, borderMode=cv2.BORDER_REPLICATE)
-                    for c in CAMS}
+                    for c in CAMERAS}
             paths = w.write_images(fr.index, imgs)
             nf = Frame(index=fr.index, stamp_ns=fr.stamp_ns, left=paths["left"], right=paths["right"],
                        sequence=fr.sequence, step=fr.step, ecm_joints=fr.ecm_joints, T_world_ecm=fr.T_world_ecm,
                        T_world_needle=fr.T_world_needle)
             if fr.T_ecm_needle is not None:
                 kp, vis, box = {}, {}, {}
-                for c in CAMS:
+                for c in CAMERAS:
                     kp[c], v = true_keypoints(rig[c], fr.T_ecm_needle, ds.needle)
                     # occlusion as the source had it, and inside the distorted image
                     vis[c] = v & (fr.visible[c] if fr.visible is not None else True)
                     b = arc_bbox(rig[c], fr.T_ecm_needle, ds.needle)
                     box[c] = None if b is None else b.tolist()
-                if all(np.all(np.isfinite(kp[c])) for c in CAMS):
+                if all(np.all(np.isfinite(kp[c])) for c in CAMERAS):
                     nf.keypoints, nf.visible, nf.bbox = kp, vis, box
             w.append(nf)
     return len(ds.frames)

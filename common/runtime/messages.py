@@ -15,6 +15,7 @@ from typing import Optional
 
 import numpy as np
 
+from common.frames import CAMERAS  # noqa: F401  (re-exported)
 from common.runtime.checks import (  # noqa: F401  (re-exported: the messages' API)
     MAX_ARRAY_ELEMENTS,
     MAX_COORD,
@@ -33,7 +34,6 @@ from common.runtime.codec import _REGISTRY, Message, decode, encode, encode_part
 
 # ---------------------------------------------------------------- the messages
 
-CAMERAS = ("left", "right")
 ENCODINGS = ("bgr8", "png", "jpeg")
 
 

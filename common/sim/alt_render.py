@@ -31,6 +31,7 @@ from dataclasses import dataclass, field
 import cv2
 import numpy as np
 
+from common.frames import CAMERAS
 from common.geometry.camera import StereoRig
 from common.geometry.needle import NeedleModel
 from common.geometry.transforms import inv_T, transform_points
@@ -38,7 +39,6 @@ from common.sim.alt_meshes import LABELS, NeedleShape
 from common.sim.alt_raster import NEAR_M, rasterise
 from common.sim.alt_tissue import Tissue
 
-CAMERAS = ("left", "right")
 SUPERSAMPLE = 3            # samples per pixel side in the needle's region
 
 

@@ -24,12 +24,12 @@ import cv2  # noqa: E402
 import mujoco  # noqa: E402
 import numpy as np  # noqa: E402
 
+from common.frames import CAMERAS
 from common.geometry.camera import StereoRig  # noqa: E402
 from common.geometry.transforms import inv_T, transform_points  # noqa: E402
 from common.sim.scene import SceneModel, SceneSpec, structure_key  # noqa: E402
 
 LABELS = {"other": 0, "needle": 1, "thread": 2, "instrument": 3}
-CAMERAS = ("left", "right")
 
 
 @dataclass

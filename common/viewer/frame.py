@@ -9,9 +9,9 @@ from typing import Optional
 
 import numpy as np
 
+from common.frames import CAMERAS
 from common.viewer.draw import encode_jpeg, fig1_with_zoom
 
-CAMERAS = ("left", "right")
 
 
 def pictures(images: dict, rig, needle, poses: dict, final: Optional[str], keypoints: dict,

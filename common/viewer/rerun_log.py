@@ -20,10 +20,10 @@ from typing import Optional
 
 import numpy as np
 
+from common.frames import CAMERAS
 from common.geometry.transforms import transform_points
 from common.viewer.draw import TRUTH_BGR, method_bgr
 
-CAMERAS = ("left", "right")
 
 
 def _rgb(bgr) -> list:
