@@ -57,6 +57,7 @@ from common.geometry.refine import (
     RefineError,
 )
 from common.geometry.refine_tracking import TrackingConfig, TrackingRefiner
+from common.geometry.transforms import inv_T
 from common.runtime.messages import Calibration, EcmPose, Keypoints
 from common.runtime.node import NodeError, run
 from common.runtime.params import merge_schemas
@@ -103,6 +104,7 @@ class RefineNode(StereoPoseNode):
         self.outlier_px = self.p.outlier_px
         self.tracker: TrackingRefiner | None = None
         self._track: tuple[float, float] | None = None   # the tracked needle's end identity (track_identity)
+        self._T_world_needle: np.ndarray | None = None    # the tracked needle's last pose in world
 
     def on_calib(self, msg: Calibration):
         changed = self.calib is None or msg.cameras != self.calib.cameras or msg.needle != self.calib.needle
@@ -116,6 +118,7 @@ class RefineNode(StereoPoseNode):
         if self.tracker is not None:
             self.tracker.reset()          # the last pose is of the old stream
         self._track = None
+        self._T_world_needle = None
 
     def settle_end_identity(self, left: Keypoints, right: Keypoints) -> tuple[Keypoints, Keypoints]:
         """The frame's end identity read against the tracked needle's (``end_identity.settle``
@@ -128,9 +131,16 @@ class RefineNode(StereoPoseNode):
 
     def same_as_track(self, left: Keypoints, right: Keypoints) -> bool | None:
         """Whether the frame reads the tracked needle as the track does (its keypoints reproject
-        the tracked pose as read, not turned); None when there is no track or it cannot be told."""
-        prev = self.tracker.track(left.stamp_ns) if self.tracker is not None else None
-        if prev is None or self._track is None:
+        the tracked pose as read, not turned); None when there is no track or it cannot be told.
+        The tracked pose is the needle's last world pose seen from this frame's endoscope pose
+        (``expected_T_ecm_needle``: a needle at rest keeps its identity over the endoscope's
+        moves, so the views of a multi-view group vote), else the last frame's pose."""
+        if self.tracker is None or self._track is None:
+            return None
+        prev = self.expected_T_ecm_needle(left.seq)
+        if prev is None:
+            prev = self.tracker.track(left.stamp_ns)
+        if prev is None:
             return None
         uv, sc = self.stereo_arrays(left, right)
         tuv, tsc = self.stereo_arrays(turn_keypoints(left), turn_keypoints(right))
@@ -162,11 +172,21 @@ class RefineNode(StereoPoseNode):
             return
         if res.ambiguous:
             self.count("ambiguous")
+        T_world_ecm = self.ecm_poses.get(left.seq)
+        self._T_world_needle = None if T_world_ecm is None else T_world_ecm @ res.T_ecm_needle
         self.publish_pose(self.pose_message(left.seq, left.stamp_ns, "refined", res.T_ecm_needle,
                                             res.rms_px, "px", covariance=res.covariance,
                                             ambiguous=bool(res.ambiguous),
                                             model_sigma_m=self.config.model_sigma_mm * 1e-3 or None,
                                             model_sigma_rad=math.radians(self.config.model_sigma_deg) or None))
+
+    def expected_T_ecm_needle(self, seq: int) -> np.ndarray | None:
+        """Where the tracked needle is in frame ``seq``'s ECM frame if it has not moved: its last
+        world pose seen from this frame's endoscope pose (None: either is unknown)."""
+        T_world_ecm = self.ecm_poses.get(seq)
+        if self._T_world_needle is None or T_world_ecm is None:
+            return None
+        return inv_T(T_world_ecm) @ self._T_world_needle
 
     def support_normal_ecm(self, seq: int):
         """The support surface's normal in frame ``seq``'s ECM frame (None: not configured, or

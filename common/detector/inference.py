@@ -52,7 +52,7 @@ from common.detector.model import (
     global_size,
     invert_affine,
 )
-from common.detector.familiarity import load_familiarity
+from common.detector.familiarity import FamiliarityFileError, familiarity_path, load_familiarity
 from common.detector.ridge_ends import ends_on_ridge
 from common.detector.weights import DEFAULT_WEIGHTS, load_end_coefficients, load_model, pick_device
 from common.runtime.messages import CameraImage, Keypoints, MessageError
@@ -119,7 +119,7 @@ class KeypointDetector:
                  centreline: bool = True, arc_bcd: bool = True, along_arc: bool = False,
                  proposal_threshold: float = 0.2, proposals: int = 3, subpixel: bool = True,
                  min_extent_px: float = MIN_EXTENT_PX, max_ellipse_px: float = MAX_ELLIPSE_PX,
-                 ridge_ends: bool = True):
+                 ridge_ends: bool = True, familiarity: bool = True):
         self.device = pick_device(device)
         if threads:
             torch.set_num_threads(int(threads))
@@ -143,7 +143,12 @@ class KeypointDetector:
         self._track: dict[str, tuple] = {}
         self.last_mode = ""
         self.end_coef = load_end_coefficients(self.weights)
-        self.familiarity = load_familiarity(self.weights)
+        self.familiarity = load_familiarity(self.weights) if familiarity else None
+        size = 2 * sum(self.cfg.crop_widths[1:])
+        if self.familiarity is not None and self.familiarity.mean.size != size:
+            raise FamiliarityFileError(f"{familiarity_path(self.weights)}: a reference of {self.familiarity.mean.size} "
+                                       f"features, these weights' descriptor has {size}: refit it with "
+                                       f"`needletrack bench familiarity --fit`")
         self.last_evidence: EndEvidence | None = None
         self.last_descriptor: np.ndarray | None = None   # the last detection's (CropNet.forward_features)
 

@@ -135,15 +135,18 @@ class CropNet(nn.Module):
         return heat, pres
 
     def forward_features(self, x: torch.Tensor):
-        """(heatmaps, presence logit, the crop's descriptor (N, 2 w3): the deepest features'
-        spatial mean and max, what the presence head reads; ``common.detector.familiarity``)."""
+        """(heatmaps, presence logit, the crop's descriptor (N, 2 (w1 + w2 + w3)): the spatial
+        mean and standard deviation of the /4 and /8 encoder features (the look: colour, light,
+        texture) and the deepest features' mean and max (what the presence head reads);
+        ``common.detector.familiarity``)."""
         x = _normalise(x)
         a = self.e1(x)
         b = self.e2(a)
         c = self.e3(b)
         d = self.e4(c)
-        feat = torch.cat([d.mean((2, 3)), d.amax((2, 3))], 1)
-        pres = self.presence(feat)[:, 0]
+        deep = torch.cat([d.mean((2, 3)), d.amax((2, 3))], 1)
+        pres = self.presence(deep)[:, 0]
+        feat = torch.cat([b.mean((2, 3)), b.std((2, 3)), c.mean((2, 3)), c.std((2, 3)), deep], 1)
         u = self.d3(F.interpolate(self.l4(d), scale_factor=2.0, mode="nearest") + c)
         u = self.d2(F.interpolate(self.l3(u), scale_factor=2.0, mode="nearest") + b)
         u = self.d1(F.interpolate(self.l2(u), scale_factor=2.0, mode="nearest") + a)

@@ -21,24 +21,39 @@ import numpy as np
 from tqdm import tqdm
 
 from common.detector.end_identity import FEATURES
+from common.frames import CAMERAS
 from common.geometry.end_identity import TIP_SURE as SURE
 
 MIN_FIT_ERRORS = 5      # fewer detections read end for end (or as said) than this: warn at --fit
 
 
-def collect(folder: str, detector, step: int = 1) -> dict:
-    """Features (N, 3), labels (N,) (1: A at the true tip) and the images seen, for one folder."""
+def turn_hue(img: np.ndarray, degrees: float) -> np.ndarray:
+    """A BGR image with every colour's hue turned by ``degrees`` (saturation and value kept):
+    a look no training stage renders, from a folder of one it does."""
+    hsv = cv2.cvtColor(img, cv2.COLOR_BGR2HSV_FULL)
+    hsv[..., 0] = ((hsv[..., 0].astype(np.int32) + int(round(degrees * 256 / 360))) % 256).astype(np.uint8)
+    return cv2.cvtColor(hsv, cv2.COLOR_HSV2BGR_FULL)
+
+
+def collect(folder: str, detector, step: int = 1, hue: tuple | None = None) -> dict:
+    """Features (N, len(FEATURES)), labels (N,) (1: A at the true tip) and the images seen, for
+    one folder; ``hue`` (lo, hi): turn each image's hue by a draw from this range (degrees,
+    ``turn_hue``; one draw per frame, seeded by the folder's frame order)."""
     from common.data.dataset import Dataset
     ds = Dataset(folder)
     feats, labels, seen = [], [], 0
     frames = ds.frames[::step]
+    rng = np.random.default_rng(0)
     for fr in tqdm(frames, desc=Path(folder).name, unit="frame", leave=False):
+        shift = float(rng.uniform(*hue)) if hue else 0.0
         if fr.keypoints is None:
             continue
-        for cam in ("left", "right"):
+        for cam in CAMERAS:
             img = cv2.imread(str(Path(ds.path) / getattr(fr, cam)))
             if img is None:
                 continue
+            if shift:
+                img = turn_hue(img, shift)
             seen += 1
             detector.reset()
             kp = detector.detect(img, cam)
@@ -80,9 +95,21 @@ def main(argv=None) -> int:
     ap.add_argument("--step", type=int, default=1, help="every step-th frame (default 1)")
     ap.add_argument("--fit", metavar="FILE", help="fit the coefficients on these folders and write them here")
     ap.add_argument("--json", help="write the figures here")
+    ap.add_argument("--dump", metavar="NPZ", help="write each folder's features and labels here (numpy .npz)")
+    ap.add_argument("--hue-data", action="append", default=[], metavar="DIR",
+                    help="a folder read with its hues turned (--hue; repeatable): a look family no training renders")
+    ap.add_argument("--hue", default="40,100", help="the range of --hue-data's turn, degrees (default 40,100)")
     args = ap.parse_args(argv)
     det = KeypointDetector(args.weights, device="cpu", tracking=False, threads=1)
     data = {d: collect(d, det, args.step) for d in args.data}
+    try:
+        hue = tuple(float(v) for v in args.hue.split(","))
+        assert len(hue) == 2
+    except (ValueError, AssertionError):
+        ap.error(f"--hue: two degrees LO,HI, got {args.hue!r}")
+    data.update({f"{d}@hue": collect(d, det, args.step, hue) for d in args.hue_data})
+    if args.dump:
+        np.savez(args.dump, **{f"{Path(d).name}.{k}": v[k] for d, v in data.items() for k in ("features", "labels")})
     coef = load_end_coefficients(args.weights)
     coef = COEF if coef is None else coef
     if args.fit:

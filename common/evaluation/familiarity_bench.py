@@ -48,7 +48,7 @@ def main(argv=None) -> int:
     ap.add_argument("--fit", metavar="FILE", help="fit the reference on these folders and write it here")
     ap.add_argument("--json", help="write the figures here")
     args = ap.parse_args(argv)
-    det = KeypointDetector(args.weights, device="cpu", tracking=False, threads=1)
+    det = KeypointDetector(args.weights, device="cpu", tracking=False, threads=1, familiarity=not args.fit)
     feats = {d: descriptors(d, det, args.step) for d in args.data}
     if args.fit:
         fam = fit_familiarity(np.vstack(list(feats.values())), fitted_on=[Path(d).name for d in args.data])

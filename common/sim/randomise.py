@@ -13,7 +13,7 @@ Presets (``PRESETS``):
 
 Two look families no training stage renders (``FAMILIES``), for measuring how the detector and
 its stated end identity generalise:
-- ``silicone``: ``test`` on a silicone suture pad: mint green, sky blue, teal or pale grey; the
+- ``silicone``: ``test`` on a silicone suture pad: mint green, teal or blue; the
   held-out family of the first renderer (kept out of training and of every fit).
 - ``liver``: ``train`` on dark, glossy brown tissue under a warm light; the end identity's
   calibration family (fitted on, never trained on, never reported as held out).
@@ -92,7 +92,7 @@ PRESETS["liver"] = replace(PRESETS["train"], name="liver", family="liver")
 
 FAMILIES = {
     # tissue colours (RGB 0..1) and the light's colour of each family outside training
-    "silicone": {"tissue": ((0.62, 0.85, 0.72), (0.60, 0.75, 0.90), (0.35, 0.65, 0.65), (0.80, 0.82, 0.84)),
+    "silicone": {"tissue": ((0.55, 0.80, 0.62), (0.30, 0.60, 0.58), (0.30, 0.42, 0.68)),
                  "light": (1.0, 0.97, 0.92), "specular": (0.2, 0.5)},
     "liver": {"tissue": ((0.30, 0.14, 0.08), (0.40, 0.20, 0.10), (0.25, 0.15, 0.12)),
               "light": (1.0, 0.84, 0.62), "specular": (0.6, 0.9)},
