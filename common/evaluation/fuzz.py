@@ -73,11 +73,9 @@ class CleanStream:
         from common.geometry.needle import NeedleModel
         from common.geometry.oracle import random_needle_pose
         from common.geometry.transforms import make_T, rotvec_to_R
-        from nodes.detector import DetectorNode
-        from nodes.ecm import EcmNode
-        from nodes.epnp import EpnpNode
-        from nodes.fusion import FusionNode
-        from nodes.triangulate import TriangulateNode
+        from common.runtime.node import node_class
+        EcmNode, DetectorNode, EpnpNode, TriangulateNode, FusionNode = map(
+            node_class, ("ecm", "detector", "epnp", "triangulate", "fusion"))
         w, h = image_size
         rig, model = StereoRig.default(w, h), NeedleModel()
         arm = EcmArm(make_T(rotvec_to_R([0, 0, 0.2]), [0.1, 0.0, 0.3]), 0.01, 0.02)
@@ -269,13 +267,11 @@ class InputResult:
 
 
 def _node_specs(graph):
-    import importlib
-
-    from common.runtime.node import Node
+    from common.runtime.node import Node, node_class
     for spec in graph.nodes:
         if not spec.module:
             continue
-        cls = importlib.import_module(f"nodes.{spec.module}").NODE
+        cls = node_class(spec.module)
         if isinstance(cls, type) and issubclass(cls, Node):
             yield spec, cls
 
@@ -576,7 +572,8 @@ def fuzz_ros2(keys: str, kind: str, n: int, seed: int, clean_every: int = 10) ->
     it publishes a stereo pair again."""
     import logging
 
-    from nodes.ros2 import Ros2Node
+    from common.runtime.node import node_class
+    Ros2Node = node_class("ros2")
     rng, np_rng = random.Random(seed), np.random.default_rng(seed)
     s = RosSamples(keys)
     res = InputResult("ros2", f"{keys}:{kind}")

@@ -13,7 +13,6 @@ consumers listen. The launchers' output (every node's log) goes to ``log`` (a fi
 """
 from __future__ import annotations
 
-import importlib
 import os
 import socket
 import sys
@@ -27,7 +26,7 @@ from common.errors import NeedletrackError
 from common.methods import METHOD_NEEDS, POSE_OUTPUTS
 from common.runtime.graph import graph_from_dict, live_key, module_info
 from common.runtime.messages import Calibration
-from common.runtime.node import KEEP_ALL_LIMIT
+from common.runtime.node import KEEP_ALL_LIMIT, node_class
 from common.runtime.pairing import StereoPairer
 
 SOURCE = "replay"
@@ -380,7 +379,7 @@ def _lossless_main(argv=None) -> int:
         print("common.evaluation.pipeline_graph: NEEDLETRACK_GRAPH and NEEDLETRACK_NODE must be set "
               "(run by the launcher)", file=sys.stderr)
         return 2
-    base = importlib.import_module(f"nodes.{args.module}").NODE
+    base = node_class(args.module)
     return run(lossless_class(base, args.start_delay, args.peers), ["--graph", graph, "--node", node])
 
 

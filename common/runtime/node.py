@@ -805,6 +805,14 @@ class Runtime:
         close_session(self.session, self._decl)
 
 
+def node_class(module: str) -> type:
+    """The class ``nodes/<module>.py`` exports as ``NODE`` (a graph node's ``module``): how the
+    runtime, ``describe``, the evaluation and the fuzz load a node; the library never imports
+    ``nodes/``. Raises ``ImportError`` (and what the module raises) or ``AttributeError`` (no
+    ``NODE``)."""
+    return importlib.import_module(f"nodes.{module}").NODE
+
+
 def graph_param_errors(graph) -> list[str]:
     """Every node's params checked against its class's ``Params`` (imports ``nodes.<module>``,
     not the heavy libraries a node loads in ``setup``); errors carry their place, e.g.
@@ -814,7 +822,7 @@ def graph_param_errors(graph) -> list[str]:
         if not spec.module:
             continue
         try:
-            cls = importlib.import_module(f"nodes.{spec.module}").NODE
+            cls = node_class(spec.module)
         except Exception as exc:        # a node module that cannot load is a graph error too
             errors.append(f"nodes[{i}].module: cannot import nodes.{spec.module}: {type(exc).__name__}: {exc}")
             continue
@@ -857,8 +865,7 @@ def _run(node_cls: Optional[type], argv: Optional[list]) -> int:
             log.error("node %r has no module", spec.id)
             return 2
         try:
-            mod = importlib.import_module(f"nodes.{spec.module}")
-            node_cls = mod.NODE
+            node_cls = node_class(spec.module)
         except AttributeError:
             log.error("nodes/%s.py defines no NODE", spec.module)
             return 2
