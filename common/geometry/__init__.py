@@ -6,7 +6,8 @@ Conventions: 4x4 ``T_a_b`` maps frame b to frame a (``p_a = T_a_b @ p_b``), metr
 
 ``transforms`` (rigid transforms, rotations, means, errors), ``camera`` (pinhole + distortion,
 the stereo rig), ``needle`` (the arc model and keypoints A..E), ``ecm_kinematics`` (the
-endoscope arm), ``observations`` (usable keypoints, ``NoPose``), ``pnp`` (EPnP per camera and
+endoscope arm), ``observations`` (usable keypoints, ``NoPose``), ``lm`` (the batched Levenberg-Marquardt of
+the PnP and the dense fit), ``reprojection`` (the PnP's cost and fit), ``pnp`` (EPnP per camera and
 the joint stereo PnP, Pipeline I), ``triangulation`` (DLT + Arun, Pipeline II), ``fusion``
 (multi-view), ``refine`` and ``refine_tracking`` (the dense arc fit, cold and warm),
 ``rest_prior`` (the needle resting on a surface), ``oracle`` (true keypoints with simulated
