@@ -26,7 +26,8 @@ from common.errors import NeedletrackError
 from common.methods import METHOD_NEEDS, POSE_OUTPUTS
 from common.runtime.graph import graph_from_dict, live_key, module_info
 from common.runtime.messages import Calibration
-from common.runtime.node import KEEP_ALL_LIMIT, node_class
+from common.runtime.inputs import KEEP_ALL_LIMIT
+from common.runtime.node import node_class
 from common.runtime.pairing import StereoPairer
 
 SOURCE = "replay"
