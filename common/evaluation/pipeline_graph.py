@@ -206,7 +206,7 @@ class GraphRun:
         if self.session is None:
             import zenoh
 
-            from common.runtime.graph import zenoh_config
+            from common.runtime.zenoh_session import zenoh_config
             c = zenoh_config(self.main.graph, role="node")    # the operator's identity on the run's credentials
             c.insert_json5("mode", '"client"')
             c.insert_json5("listen/endpoints", "[]")

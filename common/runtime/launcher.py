@@ -16,7 +16,7 @@
 - It answers queries on ``<graph>/@launcher/status`` (its processes) and
   ``<graph>/@launcher/swap`` (hot swap, make-before-break; see ``Launcher.swap``). With
   ``zenoh.tls`` every link is mutual TLS and access control lets only the launcher identity
-  (launchers, CLI tools) send swaps, handovers and commands (``graph.access_control``); a
+  (launchers, CLI tools) send swaps, handovers and commands (``zenoh_session.access_control``); a
   listen endpoint beyond loopback without TLS is warned about.
 - A graph without ``zenoh.tls`` runs on per-run credentials (``common.runtime.credentials``):
   a CA and a certificate per member made at start in a 0700 directory of this user's, removed
@@ -54,15 +54,13 @@ from common.runtime.graph import (
     Graph,
     GraphError,
     NodeSpec,
-    close_session,
     ctl_key,
     graph_from_dict,
-    graph_warnings,
     launcher_key,
     stats_key,
-    tls_file_errors,
-    zenoh_config,
 )
+from common.runtime.graph_checks import graph_warnings
+from common.runtime.zenoh_session import close_session, tls_file_errors, zenoh_config
 from common.runtime.node import graph_param_errors
 
 STOP_GRACE_S = 5.0

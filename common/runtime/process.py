@@ -1,6 +1,6 @@
 """The process that hosts one node (``common.runtime.node.run``, docs/runtime.md):
 
-- one Zenoh session per process, configured from the graph (``common.runtime.graph.zenoh_config``);
+- one Zenoh session per process, configured from the graph (``common.runtime.zenoh_session.zenoh_config``);
 - inputs are subscribed on ``<graph>/<src node>/<output>``; payloads are decoded on the worker
   thread, handlers run one at a time there; a newest-only input that is not yet handled when a
   newer message comes drops the older (counted ``dropped``); a ``KEEP_ALL`` input queues all;
@@ -154,7 +154,8 @@ class Runtime(SwapControl):
     def open(self) -> None:
         import zenoh
 
-        from common.runtime.graph import cmd_key, ctl_key, zenoh_config
+        from common.runtime.graph import cmd_key, ctl_key
+        from common.runtime.zenoh_session import zenoh_config
         g, nid = self.graph.name, self.node_id
         t0 = time.monotonic()
         self.session = zenoh.open(zenoh_config(self.graph, role="node", identity=self.node_id))
@@ -381,7 +382,7 @@ class Runtime(SwapControl):
             self.log.error("teardown failed: %s: %s", type(exc).__name__, exc, exc_info=True)
 
     def close(self) -> None:
-        from common.runtime.graph import close_session
+        from common.runtime.zenoh_session import close_session
         close_session(self.session, self._decl)
 
 
