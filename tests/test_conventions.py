@@ -111,3 +111,17 @@ def test_the_layering_check_sees_what_it_guards(tmp_path):
     found = sorted(_imports(p, tmp_path), key=lambda x: x[1])
     assert found == [("common.geometry", 1), ("nodes.detector", 3), ("common.runtime.graph", 4),
                      ("common.sim", 5)], found
+
+
+def test_the_packages_re_export_their_entry_points():
+    """``from common.runtime import Node`` and the like: every name a package's ``__init__``
+    re-exports is the one its module defines; an unknown name is an AttributeError."""
+    import importlib
+
+    import pytest
+    for pkg in ("common.runtime", "common.geometry"):
+        p = importlib.import_module(pkg)
+        for name, mod in p._EXPORTS.items():
+            assert getattr(p, name) is getattr(importlib.import_module(f"{pkg}.{mod}"), name), (pkg, name)
+        with pytest.raises(AttributeError, match="no attribute 'nope'"):
+            p.nope

@@ -2,7 +2,7 @@
 
 ``model`` (the network), ``data`` (training samples from dataset folders), ``train`` (the
 ``needletrack train`` command), ``batches`` (what it trains on), ``inference``
-(``KeypointDetector`` and the ``learned`` backend), ``centreline_subpixel`` (the arc's centreline in the full-resolution image),
-``classical`` (an image-processing baseline), ``backends`` (the backend registry and the
+(``KeypointDetector`` and the ``learned`` backend), ``centreline_subpixel`` (the arc's
+centreline in the full-resolution image), ``classical`` (an image-processing baseline), ``backends`` (the backend registry and the
 ``oracle`` backend).
 """

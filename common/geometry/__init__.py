@@ -12,4 +12,25 @@ the joint stereo PnP, Pipeline I), ``triangulation`` (DLT + Arun, Pipeline II), 
 (multi-view), ``refine`` and ``refine_tracking`` (the dense arc fit, cold and warm),
 ``rest_prior`` (the needle resting on a surface), ``oracle`` (true keypoints with simulated
 detector errors).
+
+The entry points are re-exported here (``from common.geometry import pnp_joint``), each
+imported when first used.
 """
+from __future__ import annotations
+
+import importlib
+
+_EXPORTS = {
+    "make_T": "transforms", "inv_T": "transforms", "transform_points": "transforms",
+    "pose_error": "transforms", "Camera": "camera", "StereoRig": "camera", "NeedleModel": "needle",
+    "EcmArm": "ecm_kinematics", "NoPose": "observations", "pnp_average": "pnp", "pnp_joint": "pnp",
+    "triangulation_pose": "triangulation", "DenseRefiner": "refine", "refine_pose": "refine",
+    "RefineConfig": "refine",
+}
+__all__ = sorted(_EXPORTS)
+
+
+def __getattr__(name: str):
+    if name in _EXPORTS:
+        return getattr(importlib.import_module(f"{__name__}.{_EXPORTS[name]}"), name)
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
