@@ -134,8 +134,8 @@ class RefineConfig:
     # the rig's calibration), 1 sigma per axis, added to the covariance: from the images alone a
     # dense fit is a few hundredths of a millimetre and a tenth of a degree thin near the
     # endoscope, and errors the two nearly alike cameras share go into the pose, not the
-    # residuals. Chosen on the end-identity fit folders, not the test sets (NEES medians 4.6-6.4
-    # there; docs/geometry.md#covariances-and-nees).
+    # residuals. Chosen on the end-identity fit folders, not the test sets, for a NEES median
+    # near chi-square(6)'s 5.35 there (needletrack eval; docs/geometry.md#covariances-and-nees).
     model_sigma_mm: float = 0.03
     model_sigma_deg: float = 0.25
     # with a support surface's normal given (``refine(support_normal=)``): probability that the
