@@ -1,6 +1,7 @@
 """The process that hosts one node (``common.runtime.node.run``, docs/runtime.md):
 
-- one Zenoh session per process, configured from the graph (``common.runtime.zenoh_session.zenoh_config``);
+- one Zenoh session per process, configured from the graph
+  (``common.runtime.zenoh_session.zenoh_config``);
 - inputs are subscribed on ``<graph>/<src node>/<output>``; payloads are decoded on the worker
   thread, handlers run one at a time there; a newest-only input that is not yet handled when a
   newer message comes drops the older (counted ``dropped``); a ``KEEP_ALL`` input queues all;
@@ -12,17 +13,19 @@
   ``SeqClock`` (``Node.frame_clock``) sees every message's ``(epoch, seq)`` before its handler:
   a restarted source is a new stream (``on_stream_reset`` clears the node's per-frame state,
   counted ``stream_resets``), a lone far-off seq or foreign epoch is dropped (``seq_outlier``);
-- the pose invariant: a ``PoseEstimate`` that is not rigid and finite, has a covariance that is
-  not symmetric PSD, or lies beyond the graph's ``pose_volume_m`` (default 1 m) from the ECM is
-  not published: counted ``invalid_pose`` and logged;
-- outputs are published ``express`` (not batched: a hop costs ~2 ms less); payloads with a
+- the pose invariant (``Node.publish``, ``checks.PUBLISH_CHECKS``): a ``PoseEstimate`` that is
+  not rigid and finite, has a covariance that is not symmetric PSD, or lies beyond the graph's
+  ``pose_volume_m`` (default 1 m) from the ECM is not published: counted ``invalid_pose`` and
+  logged;
+- outputs are published ``express`` (not batched: a hop costs less, ``needletrack bench
+  transport``); payloads with a
   large field (images) go by Zenoh shared memory; a source may ``prepare`` its next message
   (the copy into shared memory done ahead) and ``wait_for_input`` between steps;
 - stats (``NodeStats``) once a second on ``<graph>/@stats/<id>``; a liveliness token
   ``<graph>/@live/<id>`` while the node is up (declared after ``setup``);
 - SIGTERM/SIGINT stop the node cleanly (``teardown`` runs, exit status 0);
 - hot swap: a process started in standby (``NEEDLETRACK_STANDBY=1``) runs its handlers but holds
-  its outputs until the launcher hands over; see ``Runtime._q_handover``/``_q_takeover``. Both
+  its outputs until the launcher hands over (``common.runtime.swap``). Both
   are honoured only with the process's control token (``NEEDLETRACK_CTL_TOKEN``, given by the
   launcher that started it and sent only in a swap it runs); any other query is refused and
   counted ``ctl_refused``.
@@ -39,9 +42,9 @@ import threading
 import time
 from typing import Optional
 
+from common.runtime.inputs import InputQueue
 from common.runtime.messages import Command, MessageError, NodeStats, decode, encode, encode_parts
 from common.runtime.node import POSE_VOLUME_M, Node, NodeError, Prepared, RateLimitedLog, _seq_of, node_class
-from common.runtime.inputs import InputQueue
 from common.runtime.params import ParamError
 from common.runtime.shm import ShmWriter
 from common.runtime.swap import STANDBY_BUFFER, SwapControl
