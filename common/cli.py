@@ -43,8 +43,8 @@ BENCHES = {
     "viewer-http": ("common.evaluation.http_fuzz:main", "the viewer page's server against floods, bursts, resets, idle clients"),
     "soak": ("common.evaluation.soak:main", "the default graph from a replay for a long run: accounting, RSS, restarts"),
     "geometry": ("common.evaluation.geometry_bench:main", "pose methods (PnP, triangulation, fusion) vs keypoint noise, on the oracle"),
-    "ros-bag": ("common.ros.bench:bag_main", "ROS bag read speed (stereo frames/s)"),
-    "ros-live": ("common.ros.bench:live_main", "latency the live ROS 2 path adds (p50/p99) against the native graph"),
+    "ros-bag": ("common.evaluation.ros_bench:bag_main", "ROS bag read speed (stereo frames/s)"),
+    "ros-live": ("common.evaluation.ros_bench:live_main", "latency the live ROS 2 path adds (p50/p99) against the native graph"),
 }
 
 

@@ -2,5 +2,6 @@
 over Zenoh (``live``), recordings as MCAP (``record``). ``types`` registers message definitions
 from text, ``images`` decodes sensor images, ``conventions`` and ``topicmap`` hold the AMBF and
 dVRK presets and their frames, ``synth`` writes the project's renders as bags (tests,
-figures). Imports ``geometry``, ``data`` and ``runtime``; its benchmarks (``bench``) the rest.
+figures). Imports ``geometry``, ``data`` and ``runtime``; its benchmarks are
+``common.evaluation.ros_bench``.
 """
