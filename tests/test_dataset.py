@@ -350,3 +350,14 @@ def test_the_docs_page_is_the_spec_and_lists_what_the_reader_parses():
     fields = _doc_fields(text, "## frames.jsonl")
     assert {"instruments", "needle_at_rest", "T_world_jaw", "jaw_rad", "holds_needle"} <= fields
     assert fields - {"T_world_jaw", "jaw_rad", "holds_needle"} == _FRAME_FIELDS
+
+
+def test_a_generation_of_takes_of_their_own_lengths_resumes_after_the_last_whole_take(tmp_path):
+    from common.data.dataset import resume_generation
+    cfg = {"motion": "throw", "seed": 1}
+    assert resume_generation(str(tmp_path), "gen.json", cfg, 3, 1, "gen", lengths=[3, 5, 2]) == (False, 0)
+    lines = [json.dumps({**GOOD, "index": i, "sequence": s, "step": k})
+             for i, (s, k) in enumerate([(0, 0), (0, 1), (0, 2), (1, 0), (1, 1)])]
+    (tmp_path / "frames.jsonl").write_text("\n".join(lines) + "\n" + '{"index": 5, "sta')   # torn in take 1
+    assert resume_generation(str(tmp_path), "gen.json", cfg, 3, 1, "gen", lengths=[3, 5, 2]) == (True, 1)
+    assert len((tmp_path / "frames.jsonl").read_text().splitlines()) == 3

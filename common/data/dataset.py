@@ -742,8 +742,10 @@ def truncate_frames(fpath: str, n: int) -> None:
 
 
 def resume_generation(folder: str, record_name: str, config: dict, sequences: int, steps: int,
-                      command: str, overwrite: bool = False, defaults: dict | None = None) -> tuple[bool, int]:
-    """Prepare ``folder`` for a resumable, sequence-by-sequence generation.
+                      command: str, overwrite: bool = False, defaults: dict | None = None,
+                      lengths: list | None = None) -> tuple[bool, int]:
+    """Prepare ``folder`` for a resumable, sequence-by-sequence generation of ``sequences`` of
+    ``steps`` frames each (``lengths``: each sequence's own frame count instead).
 
     ``record_name`` (e.g. generate.json) holds the settings ``config`` that must match for a run to
     be resumed or extended (``defaults`` fill settings an older record lacks). A torn last line of
@@ -767,13 +769,14 @@ def resume_generation(folder: str, record_name: str, config: dict, sequences: in
         raise ValueError(f"{folder} already holds a dataset not made by `{command}`; "
                          f"use another --out or --overwrite")
     done = 0
+    ends = np.cumsum(lengths if lengths is not None else [steps] * sequences)
     if resume:
-        done = min(truncate_torn_tail(fpath) // steps, sequences)
-        truncate_frames(fpath, done * steps)
+        done = int(np.searchsorted(ends, truncate_torn_tail(fpath), side="right"))
+        truncate_frames(fpath, int(ends[done - 1]) if done else 0)
         if done:  # the last kept line must be the end of sequence done-1
             with open(fpath) as f:
                 fr = parse_frame(json.loads(f.read().splitlines()[-1]))
-            if fr.sequence != done - 1 or fr.index != done * steps - 1:
+            if fr.sequence != done - 1 or fr.index != ends[done - 1] - 1:
                 raise ValueError(f"{fpath}: cannot resume, the last frame is not the end of sequence {done - 1}")
     with open(gpath, "w") as f:
         json.dump({"config": config, "sequences": sequences}, f, indent=1)
