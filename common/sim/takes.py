@@ -17,7 +17,7 @@ from common.geometry.camera import StereoRig
 from common.geometry.ecm_kinematics import EcmArm
 from common.geometry.needle import NeedleModel
 from common.geometry.transforms import transform_points
-from common.sim.motion import FPS, MOTIONS, ScriptedTake, script_take
+from common.sim.motion import FPS, INSTRUMENTS, MOTIONS, ScriptedTake, script_take
 from common.sim.randomise import Preset, aim_joints, sample_appearance
 from common.sim.scene import Instrument, SceneSpec
 
@@ -39,6 +39,7 @@ class TakePlan:
     script: ScriptedTake
     joints: list
     image_seed: int
+    motion: str = ""                   # what it was planned for (``mixed`` plays the others)
 
     def __len__(self) -> int:
         return len(self.script.frames)
@@ -67,7 +68,7 @@ def plan_take(seed: int, take: int, motion: str, preset: Preset, rig: StereoRig,
     spec = SceneSpec(rig=rig, needle=needle, T_world_needle=script.frames[0].T_world_needle, appearance=ap,
                      instruments=_instruments(script.frames[0]), thread_seed=int(rng.integers(1 << 30)),
                      texture_size=texture_size, msaa=msaa)
-    return TakePlan(spec, script, joints, int(rng.integers(1 << 30)))
+    return TakePlan(spec, script, joints, int(rng.integers(1 << 30)), motion)
 
 
 def _instruments(frame) -> list:
@@ -80,12 +81,22 @@ def frame_instruments(frame) -> dict:
     return {name: InstrumentPose(T.copy(), jaw, bool(holds)) for name, (T, jaw, holds) in frame.instruments.items()}
 
 
+def scene_instruments(instruments: list) -> dict:
+    """The instruments of a scene at rest (``SceneSpec.instruments``), named in order; whether
+    one holds the needle is not stated."""
+    return {name: InstrumentPose(ins.T_world_jaw, float(ins.jaw_open)) for name, ins in zip(INSTRUMENTS, instruments)}
+
+
+def take_spec(plan: TakePlan, frame) -> SceneSpec:
+    """The scene of one frame of a take."""
+    return replace(plan.spec, T_world_needle=frame.T_world_needle, instruments=_instruments(frame))
+
+
 def render_take(renderer, plan: TakePlan, arm: EcmArm, degrade=None):
     """Render a take: yields (BGR images by camera, frame fields) per frame; ``degrade`` (images
     -> images) applies the sensor model."""
     for step, (fr, q) in enumerate(zip(plan.script.frames, plan.joints)):
-        spec = replace(plan.spec, T_world_needle=fr.T_world_needle, instruments=_instruments(fr))
-        renderer.load(spec)
+        renderer.load(take_spec(plan, fr))
         T_world_ecm = arm.T_world_ecm(q)
         renders = renderer.render(T_world_ecm)
         gt = renderer.ground_truth(T_world_ecm, renders)
