@@ -14,6 +14,9 @@ and to check a converter end to end), and the distorted twin of a pinhole datase
   ``/ECM/measured_cp`` (PoseStamped, T_world_ecm), and, the dVRK having none, the needle's ground
   truth on ``/needle/measured_cp`` (PoseStamped, dataset needle frame); ``T_ecm_cam`` goes to a
   registration file ``<out>.registration.yaml`` with a topic map ``<out>.topics.yaml`` beside it.
+  A folder's ``instruments`` (``psm1``, ``psm2``) become ``/PSM{n}/measured_cp`` (PoseStamped: the
+  jaw frame in the arm's base, ``PSM_BASES``) and ``/PSM{n}/jaw/measured_js`` (JointState, the
+  jaw angle), with the arms' registration ``<out>.psm_registration.yaml`` (T_world_base per arm).
 ``compressed=True`` writes ``sensor_msgs/CompressedImage`` (JPEG) on ``.../compressed`` instead.
 """
 from __future__ import annotations
@@ -32,6 +35,10 @@ from common.ros.types import typestore
 AMBF_TOPICS = {"left": "/ambf/env/cameras/cameraL", "right": "/ambf/env/cameras/cameraR"}
 DVRK_RIG = "jhu_daVinci"
 DVRK_JOINTS = ["outer_yaw", "outer_pitch", "insertion", "outer_roll"]
+PSM_BASES = {   # where the synthetic dVRK's arms stand: T_world_base (world = the ECM base), metres
+    "psm1": np.array([[0.0, -1.0, 0.0, -0.18], [1.0, 0.0, 0.0, -0.02], [0.0, 0.0, 1.0, 0.21], [0, 0, 0, 1.0]]),
+    "psm2": np.array([[0.0, 1.0, 0.0, 0.18], [-1.0, 0.0, 0.0, -0.03], [0.0, 0.0, 1.0, 0.19], [0, 0, 0, 1.0]]),
+}
 STAMP_BASE_NS = 1_700_000_000 * 1_000_000_000   # bag stamps = this + the dataset's stamp_ns (ROS time 0 means unset)
 
 
@@ -126,6 +133,18 @@ def dataset_to_bag(dataset: str, out: str, convention: str, *, unit: str | None 
                     bag.write("/needle/measured_cp", build.make(store, "geometry_msgs/msg/PoseStamped",
                                                                 header=build.header(store, t, "ECM_base"),
                                                                 pose=build.pose(store, fr.T_world_needle)), t)
+                for name, inst in (fr.instruments or {}).items():
+                    arm = name.upper()
+                    if name not in PSM_BASES:
+                        raise ValueError(f"{dataset}: instrument {name!r}: the dvrk convention writes psm1 and psm2")
+                    T_base_jaw = inv_T(PSM_BASES[name]) @ inst.T_world_jaw
+                    bag.write(f"/{arm}/measured_cp", build.make(store, "geometry_msgs/msg/PoseStamped",
+                                                               header=build.header(store, t, f"{arm}_base"),
+                                                               pose=build.pose(store, T_base_jaw)), t)
+                    bag.write(f"/{arm}/jaw/measured_js", build.make(
+                        store, "sensor_msgs/msg/JointState", header=build.header(store, t), name=["jaw"],
+                        position=np.array([inst.jaw_rad]), velocity=np.zeros(1), effort=np.zeros(1)), t)
+                    result.setdefault("instruments", set()).add(name)
                 for c in CAMERAS:
                     bag.write(f"/{DVRK_RIG}/{c}/camera_info",
                               build.camera_info(store, t, rig[c].K, rig[c].dist, ds.meta.image_size,
@@ -144,10 +163,17 @@ def dataset_to_bag(dataset: str, out: str, convention: str, *, unit: str | None 
         with open(reg, "w") as f:
             yaml.safe_dump({"T_ecm_cam": {c: rig[c].T_ecm_cam.tolist() for c in CAMERAS}}, f)
         tm = out.rstrip("/") + ".topics.yaml"
+        topic_map = {"preset": "dvrk", "registration": os.path.basename(reg), "needle_pose": "/needle/measured_cp",
+                     "needle": ds.needle.to_dict()}
+        if result.get("instruments"):
+            psm_reg = out.rstrip("/") + ".psm_registration.yaml"
+            with open(psm_reg, "w") as f:
+                yaml.safe_dump({"T_world_base": {n: PSM_BASES[n].tolist() for n in sorted(result["instruments"])}}, f)
+            topic_map["instrument_registration"] = os.path.basename(psm_reg)
+            result["psm_registration"] = psm_reg
+            result["instruments"] = sorted(result["instruments"])
         with open(tm, "w") as f:
-            yaml.safe_dump({"preset": "dvrk", "registration": os.path.basename(reg),
-                            "needle_pose": "/needle/measured_cp",
-                            "needle": ds.needle.to_dict()}, f)
+            yaml.safe_dump(topic_map, f)
         result.update(registration=reg, topics_file=tm)
     return result
 

@@ -20,6 +20,8 @@ needle: {radius_m: 0.01018, keypoint_angles_deg: [30, 60, 90, 120, 150]}
 unit: m                            # m | dm | cm | mm | auto (AMBF: from the baseline)
 stereo_tolerance_ms: 5             # left/right header stamps further apart are not a pair
 ecm: {T_world_base: 4x4, L_rcc: 0.0, L_scopelen: 0.0}   # optional arm model for ecm_joints
+instruments: {psm1: {pose: /PSM1/measured_cp, jaw: /PSM1/jaw/measured_js}, psm2: {...}}
+instrument_registration: psm_reg.yaml   # {psm1: 4x4 T_world_base, ...}  (common/ros/instruments.py)
 ```
 
 AMBF only: ``camera_frame`` (the CameraFrame body's RigidBodyState: T_world_ecm, the ECM frame
@@ -36,6 +38,7 @@ import yaml
 
 from common.errors import NeedletrackError
 from common.ros.conventions import AMBF_FOVY_RAD, AMBF_NEEDLE_RADIUS_M, UNITS
+from common.ros.instruments import PRESET_INSTRUMENTS, merge_instruments, validate_instruments
 
 PRESETS = {
     "ambf": {
@@ -50,6 +53,7 @@ PRESETS = {
         "unit": "auto",
         "needle": {"radius_m": AMBF_NEEDLE_RADIUS_M},   # metres, whatever unit the scene is in
         "stereo_tolerance_ms": 5.0,
+        "instruments": PRESET_INSTRUMENTS["ambf"],
     },
     "dvrk": {
         # {rig} is found in the bag: the one name with both cameras' topics
@@ -65,11 +69,12 @@ PRESETS = {
         "camera_axes": "opencv",
         "unit": "m",
         "stereo_tolerance_ms": 5.0,
+        "instruments": PRESET_INSTRUMENTS["dvrk"],
     },
 }
 KEYS = {"preset", "images", "camera_info", "fovy_rad", "registration", "camera_axes", "ecm_joints", "ecm_pose",
         "needle_pose", "needle_frame", "T_given_needle", "needle", "unit", "stereo_tolerance_ms", "ecm",
-        "camera_frame", "camera_states"}
+        "camera_frame", "camera_states", "instruments", "instrument_registration"}
 
 
 class TopicMapError(NeedletrackError, ValueError):
@@ -100,7 +105,10 @@ def load_topic_map(preset: str | None, path_or_dict=None) -> dict:
         raise TopicMapError(f"{where}: preset must be one of {', '.join(PRESETS)}, got {name!r}")
     m = copy.deepcopy(PRESETS[name]) if name else {"camera_axes": "opencv", "needle_frame": "dataset",
                                                    "unit": "m", "stereo_tolerance_ms": 5.0}
+    inst = merge_instruments(m.get("instruments"), user.get("instruments")) if "instruments" in user else None
     m.update(copy.deepcopy(user))
+    if inst is not None:
+        m["instruments"] = inst
     m["preset"] = name
     base = os.path.dirname(where) if where != "topic map" else ""
     _validate(m, where, base)
@@ -153,6 +161,7 @@ def _validate(m: dict, where: str, base: str) -> None:
     nd = m.get("needle")
     if nd is not None and (not isinstance(nd, dict) or "radius_m" not in nd):
         raise TopicMapError(f"{where}: needle: expected {{radius_m: R, keypoint_angles_deg: [5 angles]}}")
+    validate_instruments(m, where, base, _T, TopicMapError)
 
 
 def candidates(value) -> list:
