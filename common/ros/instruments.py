@@ -21,10 +21,7 @@ A jaw angle below 0 (the dVRK's jaws squeezed shut read slightly negative) count
 """
 from __future__ import annotations
 
-import os
-
 import numpy as np
-import yaml
 
 INSTRUMENT_ROLES = ("instrument_pose", "instrument_jaw", "instrument_base")
 _ROLE_OF_KEY = {"pose": "instrument_pose", "jaw": "instrument_jaw", "base": "instrument_base"}
@@ -55,39 +52,30 @@ def merge_instruments(preset: dict | None, user) -> dict:
     return out
 
 
-def validate_instruments(m: dict, where: str, base_dir: str, rigid, error) -> None:
+def validate_instruments(m: dict, where: str, base_dir: str, rigid, error, referenced) -> None:
     """Check (and normalise in place) a map's ``instruments`` and ``instrument_registration``;
-    ``rigid(value, where, key)`` checks a 4x4, ``error(text)`` makes the exception."""
+    ``rigid(value, where, key)`` checks a 4x4, ``error(text)`` makes the exception,
+    ``referenced(value, where, base_dir, key)`` reads a value given as a file name
+    (``common.ros.topicmap``)."""
     from common.ros.conventions import UNITS
     inst = m.get("instruments")
-    if inst is None:
-        return
-    if not isinstance(inst, dict) or len(inst) > MAX_ARMS:
-        raise error(f"{where}: instruments: expected {{NAME: {{pose: TOPIC, jaw: TOPIC}}}} (at most {MAX_ARMS})")
-    for name, v in inst.items():
-        if not isinstance(v, dict):
-            raise error(f"{where}: instruments.{name}: expected {{pose: TOPIC, jaw: TOPIC, base: TOPIC}}")
-        unknown = set(v) - ENTRY_KEYS
-        if unknown:
-            raise error(f"{where}: instruments.{name}: unknown key {sorted(unknown)[0]!r} "
-                        f"(known: {', '.join(sorted(ENTRY_KEYS))})")
-        if not v.get("pose") or not v.get("jaw"):
-            raise error(f"{where}: instruments.{name}: needs a pose and a jaw topic")
-        if v.get("unit") is not None and v["unit"] not in UNITS:
-            raise error(f"{where}: instruments.{name}.unit: must be one of {', '.join(UNITS)}, got {v['unit']!r}")
-        if v.get("T_tip_jaw") is not None:
-            v["T_tip_jaw"] = rigid(v["T_tip_jaw"], where, f"instruments.{name}.T_tip_jaw")
-    reg = m.get("instrument_registration")
-    if isinstance(reg, (str, os.PathLike)):
-        path = reg if os.path.isabs(reg) or not base_dir else os.path.join(base_dir, reg)
-        try:
-            with open(path, encoding="utf-8") as f:
-                reg = yaml.safe_load(f)
-        except (OSError, yaml.YAMLError) as exc:
-            raise error(f"{where}: instrument_registration: cannot read {path}: {exc}") from None
-        where_reg = path
-    else:
-        where_reg = f"{where}: instrument_registration"
+    if inst is not None:
+        if not isinstance(inst, dict) or len(inst) > MAX_ARMS:
+            raise error(f"{where}: instruments: expected {{NAME: {{pose: TOPIC, jaw: TOPIC}}}} (at most {MAX_ARMS})")
+        for name, v in inst.items():
+            if not isinstance(v, dict):
+                raise error(f"{where}: instruments.{name}: expected {{pose: TOPIC, jaw: TOPIC, base: TOPIC}}")
+            unknown = set(v) - ENTRY_KEYS
+            if unknown:
+                raise error(f"{where}: instruments.{name}: unknown key {sorted(unknown)[0]!r} "
+                            f"(known: {', '.join(sorted(ENTRY_KEYS))})")
+            if not v.get("pose") or not v.get("jaw"):
+                raise error(f"{where}: instruments.{name}: needs a pose and a jaw topic")
+            if v.get("unit") is not None and v["unit"] not in UNITS:
+                raise error(f"{where}: instruments.{name}.unit: must be one of {', '.join(UNITS)}, got {v['unit']!r}")
+            if v.get("T_tip_jaw") is not None:
+                v["T_tip_jaw"] = rigid(v["T_tip_jaw"], where, f"instruments.{name}.T_tip_jaw")
+    reg, where_reg = referenced(m.get("instrument_registration"), where, base_dir, "instrument_registration")
     if reg is not None:
         if isinstance(reg, dict) and "T_world_base" in reg:
             reg = reg["T_world_base"]

@@ -123,6 +123,19 @@ def _T(v, where: str, key: str) -> np.ndarray:
     return T
 
 
+def referenced(value, where: str, base: str, key: str) -> tuple:
+    """(the value, where it came from) of a key that may name a YAML file (relative to ``base``,
+    the topic map's folder) instead of holding its value."""
+    if not isinstance(value, (str, os.PathLike)):
+        return value, f"{where}: {key}"
+    path = value if os.path.isabs(value) or not base else os.path.join(base, value)
+    try:
+        with open(path, encoding="utf-8") as f:
+            return yaml.safe_load(f), os.fspath(path)
+    except (OSError, yaml.YAMLError) as exc:
+        raise TopicMapError(f"{where}: {key}: cannot read {path}: {exc}") from None
+
+
 def _validate(m: dict, where: str, base: str) -> None:
     if "images" not in m or not isinstance(m["images"], dict) or set(m["images"]) != {"left", "right"}:
         raise TopicMapError(f"{where}: images: expected {{left: TOPIC, right: TOPIC}}")
@@ -138,17 +151,7 @@ def _validate(m: dict, where: str, base: str) -> None:
         raise TopicMapError(f"{where}: stereo_tolerance_ms: expected a number") from None
     if m.get("T_given_needle") is not None:
         m["T_given_needle"] = _T(m["T_given_needle"], where, "T_given_needle")
-    reg = m.get("registration")
-    if isinstance(reg, (str, os.PathLike)):
-        path = reg if os.path.isabs(reg) or not base else os.path.join(base, reg)
-        try:
-            with open(path, encoding="utf-8") as f:
-                reg = yaml.safe_load(f)
-        except (OSError, yaml.YAMLError) as exc:
-            raise TopicMapError(f"{where}: registration: cannot read {path}: {exc}") from None
-        where_reg = path
-    else:
-        where_reg = f"{where}: registration"
+    reg, where_reg = referenced(m.get("registration"), where, base, "registration")
     if reg is not None:
         if isinstance(reg, dict) and "T_ecm_cam" in reg:
             reg = reg["T_ecm_cam"]
@@ -161,7 +164,7 @@ def _validate(m: dict, where: str, base: str) -> None:
     nd = m.get("needle")
     if nd is not None and (not isinstance(nd, dict) or "radius_m" not in nd):
         raise TopicMapError(f"{where}: needle: expected {{radius_m: R, keypoint_angles_deg: [5 angles]}}")
-    validate_instruments(m, where, base, _T, TopicMapError)
+    validate_instruments(m, where, base, _T, TopicMapError, referenced)
 
 
 def candidates(value) -> list:
