@@ -114,3 +114,31 @@ def test_record_writes_instrument_states_as_a_dvrk_arm_and_plays_them_back():
     assert tm["instruments"]["psm2"] == {"pose": "/camera/instruments/psm2/measured_cp",
                                          "jaw": "/camera/instruments/psm2/jaw/measured_js"}
     assert sorted(load_topic_map(None, tm)["instruments"]) == ["psm1", "psm2"]
+
+
+def test_the_ros2_source_publishes_the_instruments(dvrk_take):
+    """The live source fed the bag's CDR samples as its Zenoh subscribers would deliver them (its
+    session on loopback, connected to nothing): the same InstrumentStates as the bag's."""
+    from graphtools import free_port
+
+    from common.ros.bag import open_reader
+    from common.runtime.messages import InstrumentState
+    from nodes.ros2 import Ros2Node
+    root, r = dvrk_take
+    node = Ros2Node.offline(params={"topics": r["topics_file"], "rig": "jhu_daVinci",
+                                    "connect": [f"tcp/127.0.0.1:{free_port()}"]})
+    reader = open_reader(root / "dvrk")
+    try:
+        for conn, t, raw in reader.messages():
+            if conn.topic in node.keys:
+                node._enqueue((conn.topic, node.keys[conn.topic], bytes(raw), t))
+                while not node.queue.empty():
+                    node.step()
+    finally:
+        reader.close()
+        node.teardown()
+    inst = [m for o, m in node.published if o == "instruments"]
+    src = Dataset(root / "ds")
+    assert len(inst) >= 2 * (FRAMES - 3) and all(isinstance(m, InstrumentState) for m in inst)
+    for m in inst:
+        assert np.abs(m.T_world_jaw - src[m.seq].instruments[m.name].T_world_jaw).max() < 1e-9
