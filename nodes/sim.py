@@ -18,7 +18,8 @@ samples, 4; 0 renders ~2.5x faster), ``encoding``
 (jpeg|png|bgr8, default jpeg), ``jpeg_quality`` (95), ``count`` (stop after this many frames;
 0 = never).
 
-Commands: ``place_needle`` (args: optional ``seed`` int, or ``T_world_needle`` 4x4), ``set_motion``
+Commands: ``place_needle`` (args: optional ``seed`` int, or ``T_world_needle`` 4x4: that needle
+stays at rest, whatever the motion, until the next ``place_needle`` without one), ``set_motion``
 (args: ``motion``).
 """
 import time

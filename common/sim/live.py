@@ -92,6 +92,7 @@ class LiveSim:
         self.frame_in_sequence = 0
         self._rng = np.random.default_rng([self.seed, 7])
         self.take = None
+        self.pinned = False                 # a needle placed by pose: at rest until the next place_needle
         self.place_needle()
         if self.preset.noise_sigma[1] > 0:          # the first frame would make it: here, at set-up
             noise_bank((height, width, 3))
@@ -101,6 +102,7 @@ class LiveSim:
         or exactly ``T_world_needle`` (4x4, world) with the endoscope aimed at it."""
         self.sequence += 1
         key = self.sequence if seed is None else int(seed)
+        self.pinned = T_world_needle is not None
         if self.motion in INSTRUMENT_MOTIONS and T_world_needle is None:
             self._start_take(key)
             return
@@ -153,7 +155,7 @@ class LiveSim:
         """Render the next frame and advance the script."""
         if self.motion == "multiview" and self.frame_in_sequence >= self.hold_frames * self.steps:
             self.place_needle()
-        if (self.motion in INSTRUMENT_MOTIONS) != (self.take is not None) or (
+        if (self.motion in INSTRUMENT_MOTIONS and not self.pinned) != (self.take is not None) or (
                 self.take is not None and (self.frame_in_sequence >= len(self.take) or self.take.motion != self.motion)):
             self.place_needle()                     # the next take (or back to a needle at rest)
         q, step = self.joints()
