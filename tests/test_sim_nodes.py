@@ -220,8 +220,16 @@ def test_sim_node_in_a_take_publishes_the_instruments_and_the_held_needle_with_t
             assert m.holds_needle and not held[(t.seq, "psm2")].holds_needle and m.jaw_rad < 0.1
             T_jn = inv_T(m.T_world_jaw) @ t.T_world_needle
             assert np.linalg.norm(T_jn[:3, 3]) < 0.02               # the needle's centre by the jaws
-        node.on_command(Command("set_motion", {"motion": "static"}))
         node.count_max = 0
+        T = truths[-1].T_world_needle.copy()                  # placed by pose: at rest, even in a take
+        T[:3, 3] += [0.0, 0.004, 0.002]
+        node.on_command(Command("place_needle", {"T_world_needle": T.tolist()}))
+        for _ in range(2):
+            node.published.clear()
+            node.step()
+            t = [m for o, m in node.published if o == "truth"][0]
+            assert np.allclose(t.T_world_needle, T) and t.needle_at_rest is None
+        node.on_command(Command("set_motion", {"motion": "static"}))
         node.published.clear()
         node.step()
         t = [m for o, m in node.published if o == "truth"][0]
