@@ -21,7 +21,6 @@ import numpy as np
 from common.geometry.camera import StereoRig
 from common.geometry.needle import NeedleModel
 from common.geometry.transforms import transform_points
-from common.sim.motion import INSTRUMENTS
 from common.sim.motion import MOTIONS as INSTRUMENT_MOTIONS
 from common.sim.randomise import (
     aim_joints,

@@ -27,7 +27,8 @@ import numpy as np
 
 from common.geometry.needle import NeedleModel
 from common.geometry.transforms import R_to_rotvec, inv_T, make_T, rotation_angle, rotvec_to_R, transform_points
-from common.sim.scene import PHANTOM_SIZE, phantom_height
+from common.sim.randomise import rest_height
+from common.sim.scene import phantom_height
 
 MOTIONS = ("pickup", "handover", "throw", "suture")
 FPS = 30.0
@@ -205,8 +206,7 @@ def _rest_pose(rng, needle: NeedleModel, wire_r: float, reach: float = 0.014) ->
     flip = rotvec_to_R([np.pi, 0, 0]) if rng.random() < 0.5 else np.eye(3)
     R = rotvec_to_R([0, 0, rng.uniform(-np.pi, np.pi)]) @ rotvec_to_R(np.append(rng.normal(0, 0.05, 2), 0)) @ flip
     T = make_T(R, np.append(rng.uniform(-reach, reach, 2), 0.0))
-    p = transform_points(T, needle.sample_arc(48))
-    T[2, 3] = float(np.max(phantom_height(p[:, 0], p[:, 1]) - p[:, 2])) + wire_r
+    T[2, 3] = rest_height(T, needle, wire_r)
     return T
 
 
