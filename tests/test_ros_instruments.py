@@ -142,3 +142,18 @@ def test_the_ros2_source_publishes_the_instruments(dvrk_take):
     assert len(inst) >= 2 * (FRAMES - 3) and all(isinstance(m, InstrumentState) for m in inst)
     for m in inst:
         assert np.abs(m.T_world_jaw - src[m.seq].instruments[m.name].T_world_jaw).max() < 1e-9
+
+
+def test_an_ambf_bag_in_decimetres_gives_the_instruments_through_the_crtk_wrapper_and_the_base(dvrk_take, tmp_path):
+    """The challenge's way: the tip in its base (CRTK, metres) and the base body's state (scene
+    units, here decimetres): the preset scales each by its own unit."""
+    root, _ = dvrk_take
+    r = dataset_to_bag(str(root / "ds"), str(tmp_path / "ambf.bag"), "ambf", max_frames=4)      # unit dm
+    assert r["instruments"] == ["psm1", "psm2"]
+    s = from_bag(str(tmp_path / "ambf.bag"), str(tmp_path / "conv"), preset="ambf")
+    assert s["unit"].startswith("dm") and s["topics"]["instrument_base.psm1"] == "/ambf/env/psm1/baselink/State"
+    src, out = Dataset(root / "ds"), Dataset(tmp_path / "conv")
+    assert len(out) == 4 and check_dataset(out).ok
+    for a, b in zip(src, out):
+        for name in ("psm1", "psm2"):
+            assert np.abs(a.instruments[name].T_world_jaw - b.instruments[name].T_world_jaw).max() < 1e-9

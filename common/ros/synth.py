@@ -8,7 +8,10 @@ and to check a converter end to end), and the distorted twin of a pinhole datase
   (= the dataset's ECM frame) and the Needle (AMBF needle body frame), ``ambf_msgs/CameraState``
   of both cameras (AMBF camera axes, pose in the CameraFrame), all positions in ``unit``
   (default ``dm``: the challenge's decimetres). No camera_info: the dataset must be a
-  fovy-1.2 pinhole rig.
+  fovy-1.2 pinhole rig. A folder's ``instruments`` become the challenge's CRTK wrapper topics
+  ``/CRTK/psm{n}/measured_cp`` (PoseStamped in the arm's base, metres) and
+  ``/CRTK/psm{n}/jaw/measured_js``, with the base body's ``/ambf/env/psm{n}/baselink/State``
+  (``PSM_BASES``, in ``unit``).
 - ``dvrk``: ROS 2 bag (MCAP by default) as a dVRK records it: ``/<rig>/{left,right}/image_raw``
   (``bgr8``) with ``camera_info`` (K, D plumb_bob), ``/ECM/measured_js`` (JointState),
   ``/ECM/measured_cp`` (PoseStamped, T_world_ecm), and, the dVRK having none, the needle's ground
@@ -53,6 +56,16 @@ def _camera_state(store, stamp, T, scale, name):
                       parent_name=build.make(store, "std_msgs/msg/String", data="CameraFrame"),
                       name=build.make(store, "std_msgs/msg/String", data=name),
                       pose=build.pose(store, T, scale))
+
+
+def _check_arm(dataset: str, name: str) -> None:
+    if name not in PSM_BASES:
+        raise ValueError(f"{dataset}: instrument {name!r}: the bags' conventions write psm1 and psm2")
+
+
+def _jaw_state(store, stamp, jaw_rad: float):
+    return build.make(store, "sensor_msgs/msg/JointState", header=build.header(store, stamp), name=["jaw"],
+                      position=np.array([float(jaw_rad)]), velocity=np.zeros(1), effort=np.zeros(1))
 
 
 class _Out:
@@ -115,6 +128,15 @@ def dataset_to_bag(dataset: str, out: str, convention: str, *, unit: str | None 
                     T_cf_cam = rig[c].T_ecm_cam @ F_AMBF_CAM        # AMBF camera axes
                     bag.write(AMBF_TOPICS[c] + "/State",
                               _camera_state(store, t, T_cf_cam, scale, "camera" + c[0].upper()), t)
+                for name, inst in (fr.instruments or {}).items():
+                    _check_arm(dataset, name)
+                    bag.write(f"/ambf/env/{name}/baselink/State",
+                              _rigid_body_state(store, t, PSM_BASES[name], scale, f"{name}/baselink"), t)
+                    bag.write(f"/CRTK/{name}/measured_cp", build.make(
+                        store, "geometry_msgs/msg/PoseStamped", header=build.header(store, t, f"{name}/baselink"),
+                        pose=build.pose(store, inv_T(PSM_BASES[name]) @ inst.T_world_jaw)), t)
+                    bag.write(f"/CRTK/{name}/jaw/measured_js", _jaw_state(store, t, inst.jaw_rad), t)
+                    result.setdefault("instruments", set()).add(name)
                 if fr.T_world_needle is not None:
                     bag.write("/ambf/env/Needle/State",
                               _rigid_body_state(store, t, fr.T_world_needle @ inv_T(T_AMBF_NEEDLE), scale,
@@ -134,16 +156,13 @@ def dataset_to_bag(dataset: str, out: str, convention: str, *, unit: str | None 
                                                                 header=build.header(store, t, "ECM_base"),
                                                                 pose=build.pose(store, fr.T_world_needle)), t)
                 for name, inst in (fr.instruments or {}).items():
+                    _check_arm(dataset, name)
                     arm = name.upper()
-                    if name not in PSM_BASES:
-                        raise ValueError(f"{dataset}: instrument {name!r}: the dvrk convention writes psm1 and psm2")
                     T_base_jaw = inv_T(PSM_BASES[name]) @ inst.T_world_jaw
                     bag.write(f"/{arm}/measured_cp", build.make(store, "geometry_msgs/msg/PoseStamped",
                                                                header=build.header(store, t, f"{arm}_base"),
                                                                pose=build.pose(store, T_base_jaw)), t)
-                    bag.write(f"/{arm}/jaw/measured_js", build.make(
-                        store, "sensor_msgs/msg/JointState", header=build.header(store, t), name=["jaw"],
-                        position=np.array([inst.jaw_rad]), velocity=np.zeros(1), effort=np.zeros(1)), t)
+                    bag.write(f"/{arm}/jaw/measured_js", _jaw_state(store, t, inst.jaw_rad), t)
                     result.setdefault("instruments", set()).add(name)
                 for c in CAMERAS:
                     bag.write(f"/{DVRK_RIG}/{c}/camera_info",
@@ -158,6 +177,8 @@ def dataset_to_bag(dataset: str, out: str, convention: str, *, unit: str | None 
                     bag.write(base, build.image(store, t, img, enc, c, i), t)
     finally:
         bag.close()
+    if convention == "ambf" and result.get("instruments"):
+        result["instruments"] = sorted(result["instruments"])
     if convention == "dvrk":
         reg = out.rstrip("/") + ".registration.yaml"
         with open(reg, "w") as f:
