@@ -38,12 +38,13 @@ BENCHES = {
     "graph": ("common.evaluation.graph_bench:main", "the full graph end to end"),
     "refine": ("common.evaluation.refine_bench:main", "dense pose refinement speed and accuracy (synthetic)"),
     "end-identity": ("common.evaluation.end_identity_bench:main", "tip vs tail: the detector's end identity on dataset folders"),
+    "familiarity": ("common.evaluation.familiarity_bench:main", "how unlike the training looks each folder's images are (--fit: the reference)"),
     "fuzz": ("common.evaluation.fuzz:main", "poison payloads into every input of every node (in process)"),
     "viewer-http": ("common.evaluation.http_fuzz:main", "the viewer page's server against floods, bursts, resets, idle clients"),
     "soak": ("common.evaluation.soak:main", "the default graph from a replay for a long run: accounting, RSS, restarts"),
     "geometry": ("common.evaluation.geometry_bench:main", "pose methods (PnP, triangulation, fusion) vs keypoint noise, on the oracle"),
-    "ros-bag": ("common.ros.bench:bag_main", "ROS bag read speed (stereo frames/s)"),
-    "ros-live": ("common.ros.bench:live_main", "latency the live ROS 2 path adds (p50/p99) against the native graph"),
+    "ros-bag": ("common.evaluation.ros_bench:bag_main", "ROS bag read speed (stereo frames/s)"),
+    "ros-live": ("common.evaluation.ros_bench:live_main", "latency the live ROS 2 path adds (p50/p99) against the native graph"),
 }
 
 

@@ -8,8 +8,9 @@
 # detector's `weights` (dataflow.yaml) or `needletrack eval --model OUT/model.pt`.
 # FIT="DIR ..." (folders of your look with ground truth, neither trained on nor TEST_DIR, e.g. 80
 # stereo frames of other sequences) fits the end-identity coefficients for the new weights, so
-# that the pose nodes still flag a frame whose tip they cannot tell; without FIT the new weights
-# state no end identity and every pose takes A as the tip.
+# that the pose nodes still flag a frame whose tip they cannot tell (the folders are also read
+# without colour, a look the new weights never saw), and their familiarity; without FIT the new
+# weights state no end identity and every pose takes A as the tip.
 set -euo pipefail
 if [ $# -lt 3 ]; then sed -n 2,12p "$0"; exit 2; fi
 OUT=$1; TEST=$2; shift 2
@@ -21,10 +22,12 @@ t0=$(date +%s)
 data=(); for d in "$@"; do data+=(--data "$d"); done
 needletrack train --init "$INIT" "${data[@]}" --config "$CONFIG" --out "$OUT"
 echo "[$(( $(date +%s) - t0 )) s] fine-tuned: $OUT/model.pt"
-rm -f "$OUT/end_identity.json"    # coefficients fitted for earlier weights do not hold for these
+rm -f "$OUT/end_identity.json" "$OUT/familiarity.json"   # fitted for earlier weights: they do not hold for these
 if [ -n "${FIT:-}" ]; then
-  fit=(); for d in $FIT; do fit+=(--data "$d"); done
-  needletrack bench end-identity --weights "$OUT/model.pt" "${fit[@]}" --fit "$OUT/end_identity.json"
+  fit=(); grey=(); for d in $FIT; do fit+=(--data "$d"); grey+=(--grey-data "$d"); done
+  needletrack bench familiarity --weights "$OUT/model.pt" "${fit[@]}" --fit "$OUT/familiarity.json"
+  echo "[$(( $(date +%s) - t0 )) s] familiarity fitted: $OUT/familiarity.json"
+  needletrack bench end-identity --weights "$OUT/model.pt" "${fit[@]}" "${grey[@]}" --fit "$OUT/end_identity.json"
   echo "[$(( $(date +%s) - t0 )) s] end identity fitted: $OUT/end_identity.json"
 else
   echo "warning: no FIT folders: $OUT/model.pt states no end identity (poses take A as the tip, never flagged for it)" >&2

@@ -3,10 +3,12 @@
 # simulator and train both networks from scratch (models/train.yaml). Stage B: render the looks
 # (the `wide` preset, threadless needles, 640x480 with and without lens distortion, the second
 # renderer's threaded scenes) and
-# train both networks on them from stage A's weights (models/looks.yaml). End identity: fit the
-# coefficients of P(A is the tip) on five small folders that no training stage sees
-# (end_identity.json beside the weights). The second renderer's threadless needles are never
-# rendered here: they are the held-out look.
+# train both networks on them from stage A's weights (models/looks.yaml). Familiarity: the
+# training looks' crop descriptors, from six small folders of them that no training stage sees
+# (familiarity.json). End identity: fit the coefficients of P(A is the tip) on those folders and
+# on a look family no training renders (`liver`, also read hue-turned and colourless), so that
+# the fit sees the network on unfamiliar images (end_identity.json). The second renderer's
+# threadless needles and the `silicone` pads are never rendered here: they are the held-out looks.
 # Prints the wall-clock of each stage.
 #   bash models/train_from_scratch.sh [DATA_DIR=data/train] [OUT=models/keypoint]
 # Resumable: rerun the same command (the generators and the trainer pick up where they stopped).
@@ -45,9 +47,14 @@ gen --out "$L/640" --sequences 200 --steps 2 --seed 8103 --randomise wide --widt
 gen --out "$L/640_none" --sequences 150 --steps 2 --seed 8104 --randomise wide --width 640 --height 480 --thread none
 needletrack dataset distort "$L/640_none" --out "$L/640_none_dist" --dist=-0.28,0.09,0.0005,-0.0004 --quiet
 needletrack dataset generate-negatives --out "$L/neg" --frames 200 --seed 8107 --randomise wide --quiet
-# end-identity folders (fit only, never trained on): the train look, `wide`, `wide` threadless, 640x480 both kinds
+# familiarity and end-identity folders (fit only, never trained on): the train and test looks,
+# `wide`, `wide` threadless, 640x480 both kinds; the `liver` family (a look no training renders)
 C="$DATA/end_identity"
 gen --out "$C/std" --sequences 40 --steps 2 --seed 8203 --randomise train --msaa 4
+gen --out "$C/test" --sequences 40 --steps 2 --seed 8204 --randomise test --msaa 4
+gen --out "$C/liver" --sequences 40 --steps 2 --seed 8301 --randomise liver --msaa 4
+gen --out "$C/liver_none" --sequences 40 --steps 2 --seed 8302 --randomise liver --msaa 4 --thread none
+gen --out "$C/liver640_none" --sequences 40 --steps 2 --seed 8303 --randomise liver --msaa 4 --width 640 --height 480 --thread none
 gen --out "$C/wide" --sequences 40 --steps 2 --seed 8201 --randomise wide --msaa 4
 gen --out "$C/wide_none" --sequences 40 --steps 2 --seed 8202 --randomise wide --msaa 4 --thread none
 gen --out "$C/640" --sequences 40 --steps 2 --seed 9642 --randomise wide --msaa 4 --width 640 --height 480
@@ -58,6 +65,12 @@ stamp "data: $L done"
 needletrack train --init "$OUT/stage_a/model.pt" --data "$L/std" --data "$L/std2" --data "$L/std_none" --data "$L/wide" --data "$L/wide_none" \
     --data "$L/640" --data "$L/640_none_dist" --data "$L/neg" --data "$L/alt" --config "$HERE/looks.yaml" --out "$OUT"
 stamp "trained: $OUT/model.pt"
-needletrack bench end-identity --weights "$OUT/model.pt" --data "$C/std" --data "$C/wide" --data "$C/wide_none" \
-    --data "$C/640" --data "$C/640_none" --fit "$OUT/end_identity.json"
+needletrack bench familiarity --weights "$OUT/model.pt" --data "$C/std" --data "$C/test" --data "$C/wide" \
+    --data "$C/wide_none" --data "$C/640" --data "$C/640_none" --fit "$OUT/familiarity.json"
+stamp "familiarity fitted: $OUT/familiarity.json"
+needletrack bench end-identity --weights "$OUT/model.pt" --data "$C/std" --data "$C/test" --data "$C/wide" --data "$C/wide_none" \
+    --data "$C/640" --data "$C/640_none" --data "$C/liver" --data "$C/liver_none" --data "$C/liver640_none" \
+    --hue-data "$C/liver" --hue-data "$C/liver_none" --hue-data "$C/liver640_none" \
+    --grey-data "$C/liver" --grey-data "$C/liver_none" --grey-data "$C/liver640_none" --grey-data "$C/wide" \
+    --grey-data "$C/wide_none" --fit "$OUT/end_identity.json"
 stamp "end identity fitted: $OUT/end_identity.json"

@@ -1,21 +1,19 @@
 """Keypoint detector node: camera images -> Keypoints A..E per camera, by a pluggable backend
 (common/detector/backends.py).
 
-Inputs: ``left``, ``right`` (CameraImage), ``truth`` (GroundTruth, for the oracle), ``calib``
-(Calibration). Outputs: ``left``, ``right`` (Keypoints with the image's ``seq``/``stamp_ns``).
-
-Params: ``backend`` (default ``oracle``); ``stride`` (below); every other param goes to the
-backend (oracle: ``noise_px``, ``missing_prob``, ``outlier_prob``, ``outlier_px``, ``seed``).
+Inputs, outputs and params: ``needletrack describe detector`` (docs/nodes.md); ``truth`` is for
+the oracle, each output carries its image's ``seq``/``stamp_ns``; every param but ``backend``,
+``stride`` (below) and ``max_wait`` goes to the backend.
 
 One detector process per camera (only ``left`` or only ``right`` wired) runs the two images of a
 frame in parallel, but two processes that each take the newest image when they are free drift
-apart and detect different frames, which then never pair (measured: 15 keypoint frames/s per
-camera, 8 stereo pairs/s). So such a detector detects only frames whose ``seq`` is a multiple of
-its stride, a power of two (``stride: auto``, the default there) just large enough that a
-detection fits in ``stride`` frame intervals (the median of the last 15 detection times, the frame stamps,
-with hysteresis): both cameras' detectors then pick the same frames whatever their
-own speed (powers of two nest), and a detector waits for its next frame instead of starting
-on a stale one. The other frames count ``stride_skipped``. A number fixes the stride; a
+apart and detect different frames, which then never pair (``needletrack bench graph`` counts
+the stereo frames/s that do). So such a detector detects only frames
+whose ``seq`` is a multiple of its stride, a power of two (``stride: auto``, the default there)
+just large enough that a detection fits in ``stride`` frame intervals (the median of the last 15
+detection times, the frame stamps, with hysteresis): both cameras' detectors then pick the same
+frames whatever their own speed (powers of two nest), and a detector waits for its next frame
+instead of starting on a stale one. The other frames count ``stride_skipped``. A number fixes the stride; a
 detector with both cameras wired, or whose image inputs keep every message, uses 1.
 
 A backend that needs no image (the oracle) never decodes one; with ``left``/``right`` not wired

@@ -1,13 +1,12 @@
 """Dense refinement node: the needle pose fitted to its whole visible arc in both cameras, with
 an uncertainty (common/geometry/refine.py).
 
-Inputs: ``left``, ``right`` (Keypoints, paired by ``seq``; their ``centreline`` is the dense
-observation), ``calib`` (Calibration), ``ecm`` (EcmPose, optional: adds ``T_world_needle``; a
-pose then waits, at most ``max_wait`` frames, for its frame's ECM pose).
-Output: ``pose`` (PoseEstimate, method ``refined``; ``residual`` = RMS in px over the keypoints
-and centreline points used; ``covariance`` over [rotation vector (rad), translation (m)] in the
-ECM frame; ``ambiguous`` when competing solutions fit nearly as well or the arc is seen
-edge-on, and then the covariance spans them).
+Inputs, outputs and params: ``needletrack describe refine`` (docs/nodes.md). The keypoints'
+``centreline`` is the dense observation; with ``ecm`` a pose waits (at most ``max_wait`` frames)
+for its frame's ECM pose and gets ``T_world_needle``. ``pose``: method ``refined``, ``residual``
+the RMS (px) over the keypoints and centreline points used, ``covariance`` over [rotation vector
+(rad), translation (m)] in the ECM frame, ``ambiguous`` when competing solutions fit nearly as
+well or the arc is seen edge-on (the covariance then spans them).
 
 Per frame: the minima of the joint stereo PnP on the keypoints, from the IPPE starts and
 stopped early (``common.geometry.pnp.refine_starts``), are the starting poses; ``DenseRefiner.refine``
@@ -20,24 +19,18 @@ found nothing is left out. Frames without any centreline are refined on the keyp
 starts from all its keypoints, both ways round, and is posed only when that fit is unambiguous
 and within ``unsure_max_rms_px`` (``common.geometry.refine_tracking``).
 
-Params: ``min_score`` (0.5: keypoints scoring lower are not used, by the PnP nor the fit);
-``max_rms_px`` (20: a worse fit is not published); ``max_residual_variance`` (1.5: nor is a fit
-whose residuals are larger than this many times the stated noise's variance: on the standard
-test set that is a needle's tail in an instrument's jaws, the centreline running along the jaw,
-where the fit tilts the arc by 80 deg; counted ``no_pose.poor_fit``); ``outlier_px`` (10, the joint PnP's outlier
-rejection); any ``RefineConfig`` field (e.g. ``sigma_kp_px``, ``sigma_curve_px``: defaults for
-detectors that state no noise; a stated ``keypoint_sigma_px`` / ``centreline_sigma_px`` is
-used instead; ``max_curve_points``, ``edge_on_deg``); ``tracking`` (true) and any ``TrackingConfig`` field
-(``max_gap_s``, ``cold_every``, ``max_start_px``, ``max_rms_growth``, ``rms_slack_px``,
-``mirror_chi2``, ``unsure_starts`` (true), ``unsure_max_rms_px`` (2));
-``support_normal_world`` (none: the normal, world frame, of the surface the needle may rest on,
-e.g. ``[0, 0, 1]`` for the simulator's phantom: with it, ``common.geometry.rest_prior`` picks between
-minima the images leave nearly equal; it needs the ``ecm`` input, and a frame whose ECM pose is
-not in yet uses the newest one; ``rest_prior``, ``rest_sigma_deg`` tune it). A frame
-that gives no pose is counted as
-``no_pose.<reason>`` (the PnP's reasons, or the refinement's: ``too_few_points``,
-``no_valid_candidate``, ``bad_centreline``, ``bad_keypoints``, ``high_residual``, ``poor_fit``,
-``unsure_keypoints``).
+Params: the node's own (``max_rms_px``, ``max_residual_variance``: a fit whose residuals are
+larger than that many times the stated noise's variance is not posed, counted
+``no_pose.poor_fit``: e.g. a needle's tail in an instrument's jaws, the centreline running along
+the jaw; ``outlier_px``: the joint PnP's outlier rejection), every ``RefineConfig`` field
+(``sigma_kp_px``, ``sigma_curve_px``: for detectors that state no noise, a stated
+``keypoint_sigma_px`` / ``centreline_sigma_px`` is used instead) and every ``TrackingConfig``
+field. ``support_normal_world`` (the normal, world frame, of a surface the needle may rest on,
+e.g. ``[0, 0, 1]`` for the simulator's phantom) lets ``common.geometry.rest_prior`` pick between
+minima the images leave nearly equal; it needs the ``ecm`` input (a frame whose ECM pose is not
+in yet uses the newest one). A frame that gives no pose is counted as ``no_pose.<reason>`` (the
+PnP's reasons, or the refinement's: ``too_few_points``, ``no_valid_candidate``,
+``bad_centreline``, ``bad_keypoints``, ``high_residual``, ``poor_fit``, ``unsure_keypoints``).
 """
 from __future__ import annotations
 
@@ -57,6 +50,7 @@ from common.geometry.refine import (
     RefineError,
 )
 from common.geometry.refine_tracking import TrackingConfig, TrackingRefiner
+from common.geometry.transforms import inv_T
 from common.runtime.messages import Calibration, EcmPose, Keypoints
 from common.runtime.node import NodeError, run
 from common.runtime.params import merge_schemas
@@ -103,6 +97,7 @@ class RefineNode(StereoPoseNode):
         self.outlier_px = self.p.outlier_px
         self.tracker: TrackingRefiner | None = None
         self._track: tuple[float, float] | None = None   # the tracked needle's end identity (track_identity)
+        self._T_world_needle: np.ndarray | None = None    # the tracked needle's last pose in world
 
     def on_calib(self, msg: Calibration):
         changed = self.calib is None or msg.cameras != self.calib.cameras or msg.needle != self.calib.needle
@@ -116,6 +111,7 @@ class RefineNode(StereoPoseNode):
         if self.tracker is not None:
             self.tracker.reset()          # the last pose is of the old stream
         self._track = None
+        self._T_world_needle = None
 
     def settle_end_identity(self, left: Keypoints, right: Keypoints) -> tuple[Keypoints, Keypoints]:
         """The frame's end identity read against the tracked needle's (``end_identity.settle``
@@ -128,9 +124,16 @@ class RefineNode(StereoPoseNode):
 
     def same_as_track(self, left: Keypoints, right: Keypoints) -> bool | None:
         """Whether the frame reads the tracked needle as the track does (its keypoints reproject
-        the tracked pose as read, not turned); None when there is no track or it cannot be told."""
-        prev = self.tracker.track(left.stamp_ns) if self.tracker is not None else None
-        if prev is None or self._track is None:
+        the tracked pose as read, not turned); None when there is no track or it cannot be told.
+        The tracked pose is the needle's last world pose seen from this frame's endoscope pose
+        (``expected_T_ecm_needle``: a needle at rest keeps its identity over the endoscope's
+        moves, so the views of a multi-view group vote), else the last frame's pose."""
+        if self.tracker is None or self._track is None:
+            return None
+        prev = self.expected_T_ecm_needle(left.seq)
+        if prev is None:
+            prev = self.tracker.track(left.stamp_ns)
+        if prev is None:
             return None
         uv, sc = self.stereo_arrays(left, right)
         tuv, tsc = self.stereo_arrays(turn_keypoints(left), turn_keypoints(right))
@@ -162,11 +165,21 @@ class RefineNode(StereoPoseNode):
             return
         if res.ambiguous:
             self.count("ambiguous")
+        T_world_ecm = self.ecm_poses.get(left.seq)
+        self._T_world_needle = None if T_world_ecm is None else T_world_ecm @ res.T_ecm_needle
         self.publish_pose(self.pose_message(left.seq, left.stamp_ns, "refined", res.T_ecm_needle,
                                             res.rms_px, "px", covariance=res.covariance,
                                             ambiguous=bool(res.ambiguous),
                                             model_sigma_m=self.config.model_sigma_mm * 1e-3 or None,
                                             model_sigma_rad=math.radians(self.config.model_sigma_deg) or None))
+
+    def expected_T_ecm_needle(self, seq: int) -> np.ndarray | None:
+        """Where the tracked needle is in frame ``seq``'s ECM frame if it has not moved: its last
+        world pose seen from this frame's endoscope pose (None: either is unknown)."""
+        T_world_ecm = self.ecm_poses.get(seq)
+        if self._T_world_needle is None or T_world_ecm is None:
+            return None
+        return inv_T(T_world_ecm) @ self._T_world_needle
 
     def support_normal_ecm(self, seq: int):
         """The support surface's normal in frame ``seq``'s ECM frame (None: not configured, or

@@ -12,8 +12,8 @@ params: ``path`` (the folder, required), ``rate`` (``recorded``: the folder's ow
 ``max``: as fast as possible; ``paced``: as fast as the graph takes frames, closed loop: at
 most ``in_flight`` frames (1) are out that not every wired ``ack``/``ack2`` input has answered
 with a message of that ``seq`` or later (e.g. both cameras' keypoints: with 1 the detectors
-never queue a frame, with 2 the next frame waits a whole detection at each detector, which
-measured 65-80 ms latency for the same rate); a frame unanswered for
+never queue a frame, with 2 the next frame waits a whole detection at each detector: more
+latency for the same rate, ``needletrack bench graph``); a frame unanswered for
 ``ack_timeout`` s (1.0) stops counting (``ack_timeouts``); or a number in Hz; default
 recorded), ``loop`` (false),
 ``start`` (first frame index, 0), ``count`` (frames to play; 0 = all), ``decode`` (false:
@@ -176,7 +176,7 @@ class ReplayNode(CameraSourceNode):
         if self.published_frames == 0 and self.last_calib is None:
             self._publish_calib(force=True)
         if self._waiting_for_ack():
-            self.wait_for_input(0.005)   # the next ack (polling cost ~2 ms of CPU per frame)
+            self.wait_for_input(0.005)   # the next ack (what this wait costs: needletrack bench graph, CPU per frame)
             self._publish_calib()
             return True
         fr = self.frames[self.pos]

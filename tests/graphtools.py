@@ -53,14 +53,8 @@ if str(REPO) not in sys.path:
     sys.path.insert(0, str(REPO))
 
 from common.runtime import credentials  # noqa: E402
-from common.runtime.graph import (  # noqa: E402
-    Graph,
-    launcher_key,
-    live_key,
-    load_graph,
-    stats_key,
-    zenoh_config,
-)
+from common.runtime.graph import Graph, launcher_key, live_key, load_graph, stats_key
+from common.runtime.zenoh_session import zenoh_config
 from common.runtime.messages import (  # noqa: E402
     Command,
     Message,

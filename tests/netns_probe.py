@@ -24,7 +24,8 @@ sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 import numpy as np  # noqa: E402
 import zenoh  # noqa: E402
 
-from common.runtime.graph import launcher_key, load_graph, stats_key, zenoh_config  # noqa: E402
+from common.runtime.graph import launcher_key, load_graph, stats_key
+from common.runtime.zenoh_session import zenoh_config
 from common.runtime.messages import Command, NodeStats, PoseEstimate, decode, encode  # noqa: E402
 
 FORGED_T = np.eye(4)

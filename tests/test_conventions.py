@@ -46,3 +46,82 @@ def test_the_cameras_are_named_in_one_place():
              for i, line in enumerate(p.read_text().splitlines())
              if re.match(r"^\s*(CAMERAS|CAMS)\s*=", line)]
     assert found == ["common/frames.py:7"], found
+
+
+# What each package of common/ may import (docs/architecture.md, "may import"); ``errors``,
+# ``frames`` and ``methods`` import nothing and anything may import them.
+LEAVES = {"errors", "frames", "methods"}
+MAY_IMPORT = {
+    "errors": set(), "frames": set(), "methods": set(),
+    "geometry": set(),
+    "runtime": set(),
+    "data": {"geometry", "runtime"},
+    "sim": {"geometry", "data"},
+    "detector": {"geometry", "data", "runtime"},
+    "ros": {"geometry", "data", "runtime"},
+    "viewer": {"geometry", "runtime", "evaluation"},
+    "evaluation": {"geometry", "runtime", "data", "sim", "detector", "ros", "viewer", "cli"},
+    "cli": {"data"},
+}
+
+
+def _imports(path: Path, root: Path = REPO):
+    """(imported module, line) of every import in ``path`` (under ``root``), function-level ones
+    too, relative ones resolved."""
+    parts = path.relative_to(root).with_suffix("").parts
+    package = parts if path.name == "__init__.py" else parts[:-1]
+    for node in ast.walk(ast.parse(path.read_text(), str(path))):
+        if isinstance(node, ast.Import):
+            for alias in node.names:
+                yield alias.name, node.lineno
+        elif isinstance(node, ast.ImportFrom):
+            if node.level:
+                base = ".".join(package[:len(package) - node.level + 1])
+                yield base + ("." + node.module if node.module else ""), node.lineno
+            else:
+                yield node.module, node.lineno
+
+
+def test_every_package_imports_only_what_the_architecture_allows():
+    """The layering of docs/architecture.md: geometry and the runtime stand alone, the library
+    never imports ``nodes/`` (a graph's node classes are loaded by module name,
+    ``common.runtime.node.node_class``), and each package imports only the packages below it."""
+    assert set(MAY_IMPORT) == {p.stem if p.is_file() else p.name for p in (REPO / "common").iterdir()
+                               if (p.suffix == ".py" and p.stem != "__init__") or (p / "__init__.py").exists()}
+    bad = []
+    for path in sorted(REPO.glob("common/**/*.py")):
+        rel = path.relative_to(REPO)
+        pkg = rel.parts[1] if len(rel.parts) > 2 else rel.stem
+        for mod, line in _imports(path):
+            top = mod.split(".")
+            if top[0] == "nodes":
+                bad.append(f"{rel}:{line}: imports {mod} (the library never imports nodes/)")
+            elif top[0] == "common" and len(top) > 1 and top[1] != pkg:
+                if top[1] not in LEAVES and top[1] not in MAY_IMPORT[pkg]:
+                    bad.append(f"{rel}:{line}: {pkg} imports {mod}")
+    assert not bad, "\n".join(bad)
+
+
+def test_the_layering_check_sees_what_it_guards(tmp_path):
+    """The import scan finds top-level, function-level and relative imports."""
+    p = tmp_path / "common" / "runtime" / "x.py"
+    p.parent.mkdir(parents=True)
+    p.write_text("import common.geometry\ndef f():\n    from nodes.detector import D\n"
+                 "from .graph import load_graph\nfrom ..sim import render\n")
+    found = sorted(_imports(p, tmp_path), key=lambda x: x[1])
+    assert found == [("common.geometry", 1), ("nodes.detector", 3), ("common.runtime.graph", 4),
+                     ("common.sim", 5)], found
+
+
+def test_the_packages_re_export_their_entry_points():
+    """``from common.runtime import Node`` and the like: every name a package's ``__init__``
+    re-exports is the one its module defines; an unknown name is an AttributeError."""
+    import importlib
+
+    import pytest
+    for pkg in ("common.runtime", "common.geometry"):
+        p = importlib.import_module(pkg)
+        for name, mod in p._EXPORTS.items():
+            assert getattr(p, name) is getattr(importlib.import_module(f"{pkg}.{mod}"), name), (pkg, name)
+        with pytest.raises(AttributeError, match="no attribute 'nope'"):
+            p.nope

@@ -20,7 +20,8 @@ import yaml
 from graphtools import REPO, cli
 
 from common.runtime import credentials
-from common.runtime.graph import ctl_key, graph_warnings, load_graph, validate_graph
+from common.runtime.graph import ctl_key, load_graph
+from common.runtime.graph_checks import graph_warnings, validate_graph
 from common.runtime.messages import PoseEstimate
 
 NOBODY = 65534

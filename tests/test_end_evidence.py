@@ -88,12 +88,40 @@ def test_a_small_needle_weighs_its_evidence_by_the_fitted_size_terms():
     times shorter than LENGTH_REF_PX the needle is (0 for a long one or an unknown length)."""
     big = EndEvidence(1.0, 2.0, length_px=400.0)
     small = EndEvidence(1.0, 2.0, length_px=40.0)            # a quarter of 160 px: small = 2
-    assert np.allclose(big.features(), [1, 2, 1, 0, 0, 0])
-    assert np.allclose(small.features(), [1, 2, 1, 2, 2, 4])
-    assert np.allclose(EndEvidence(1.0, 2.0).features(), [1, 2, 1, 0, 0, 0])
+    assert np.allclose(big.features(), [1, 2, 1, 0, 0, 0, 0, 0, 0])
+    assert np.allclose(small.features(), [1, 2, 1, 2, 2, 4, 0, 0, 0])
+    assert np.allclose(EndEvidence(1.0, 2.0).features(), [1, 2, 1, 0, 0, 0, 0, 0, 0])
     assert len(big.features()) == len(FEATURES)
     coef = np.array([0.0, 1.0, 0.0, 0.0, 0.0, -0.5])        # the network not trusted when this small
     assert big.p_a_is_tip(coef) == pytest.approx(1 / (1 + np.exp(-2.0)))
     assert small.p_a_is_tip(coef) == pytest.approx(0.5)
     # an older 3-coefficient fit reads the first three features
     assert small.p_a_is_tip(np.array([0.0, 1.0, 0.0])) == pytest.approx(1 / (1 + np.exp(-2.0)))
+
+
+def test_an_unfamiliar_image_weighs_the_networks_evidence_by_the_fitted_far_terms():
+    """far = log2(unfamiliarity) clipped to [0, 3]: 0 when familiar (<= 1) or not stated; the
+    fitted far_net_llr term takes the network's evidence back on an image unlike its training."""
+    familiar = EndEvidence(1.0, 2.0, length_px=400.0, unfamiliarity=0.8)
+    far = EndEvidence(1.0, 2.0, length_px=400.0, unfamiliarity=4.0)          # far = 2
+    very = EndEvidence(1.0, 2.0, length_px=400.0, unfamiliarity=1e6)         # clipped at 3
+    assert np.allclose(familiar.features()[6:], [0, 0, 0])
+    assert np.allclose(far.features()[6:], [2, 2, 4])
+    assert np.allclose(very.features()[6:], [3, 3, 6])
+    coef = np.zeros(len(FEATURES))
+    coef[1], coef[FEATURES.index("far_net_llr")] = 1.0, -0.5
+    assert familiar.p_a_is_tip(coef) == pytest.approx(1 / (1 + np.exp(-2.0)))
+    assert far.p_a_is_tip(coef) == pytest.approx(0.5)
+    # a six-coefficient fit (before the far terms) reads the first six features
+    assert far.p_a_is_tip(coef[:6]) == pytest.approx(1 / (1 + np.exp(-2.0)))
+
+
+def test_the_fit_weighs_samples():
+    """fit_coefficients with per-sample weights equals the fit on repeated samples."""
+    from common.detector.end_identity import fit_coefficients
+    rng = np.random.default_rng(0)
+    X = np.column_stack([rng.normal(size=60), np.ones(60)])
+    y = (X[:, 0] + rng.normal(0, 1, 60) > 0).astype(float)
+    w = rng.integers(1, 4, 60)
+    rep = np.repeat(np.arange(60), w)
+    assert np.allclose(fit_coefficients(X, y, weights=w), fit_coefficients(X[rep], y[rep]), atol=1e-6)

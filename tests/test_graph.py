@@ -6,14 +6,9 @@ from graphtools import REPO, cli
 
 import common.runtime.graph as graph_mod
 from common import cli as cli_mod
-from common.runtime.graph import (
-    GraphError,
-    load_graph,
-    module_info,
-    parse_param,
-    validate_graph,
-    zenoh_config,
-)
+from common.runtime.graph import GraphError, load_graph, module_info, parse_param
+from common.runtime.graph_checks import validate_graph
+from common.runtime.zenoh_session import zenoh_config
 
 GOOD = {"graph": "g", "nodes": [
     {"id": "count", "module": "counter", "params": {"rate_hz": 5}},

@@ -230,3 +230,32 @@ def test_detector_node_with_the_learned_backend_on_one_camera(rendered):
     vis = np.asarray(fields["visible"]["left"], bool)
     err = np.linalg.norm(good.uv - np.asarray(fields["keypoints"]["left"]), axis=1)[vis]
     assert np.median(err) < 5.0
+
+
+def test_each_detection_states_how_unlike_the_training_looks_its_image_is(detector, rendered):
+    """The shipped familiarity.json: a test-look render is familiar (about 1), and what the
+    detection states is the reference's distance of its crop descriptor (tests/test_familiarity.py
+    shows it growing off the reference)."""
+    images, _ = rendered
+    detector.reset()
+    kp = detector.detect(images["left"], "left")
+    assert kp.found and 0.3 < kp.unfamiliarity < 2.0
+    assert detector.last_evidence.unfamiliarity == pytest.approx(kp.unfamiliarity)
+    assert detector.familiarity.unfamiliarity(detector.last_descriptor) == pytest.approx(kp.unfamiliarity)
+    detector.reset()
+
+
+def test_a_familiarity_file_for_other_weights_is_refused(tmp_path):
+    import json
+    import shutil
+
+    from common.detector.familiarity import FamiliarityFileError
+    shutil.copy(DEFAULT_WEIGHTS, tmp_path / "model.pt")
+    fam = json.loads(DEFAULT_WEIGHTS.with_name("familiarity.json").read_text())
+    fam["mean"] = fam["mean"][:10]
+    fam["components"] = [c[:10] for c in fam["components"]]
+    (tmp_path / "familiarity.json").write_text(json.dumps(fam))
+    with pytest.raises(FamiliarityFileError, match="familiarity.json: a reference of 10 features.*bench familiarity"):
+        KeypointDetector(tmp_path / "model.pt", device="cpu")
+    (tmp_path / "familiarity.json").unlink()
+    assert KeypointDetector(tmp_path / "model.pt", device="cpu").familiarity is None

@@ -7,6 +7,7 @@ import pytest
 import torch
 import yaml
 
+from common.detector.batches import crop_batch, global_batch
 from common.detector.data import (
     AugConfig,
     DatasetError,
@@ -23,15 +24,7 @@ from common.detector.model import (
     crop_affine,
     crop_side,
 )
-from common.detector.train import (
-    DEFAULT_TRAIN,
-    crop_batch,
-    global_batch,
-    load_config,
-    losses,
-    main,
-    train,
-)
+from common.detector.train import DEFAULT_TRAIN, load_config, losses, main, train
 
 pytestmark = pytest.mark.training
 

@@ -125,7 +125,8 @@ def _counter(stats: dict, name: str) -> int:
 
 def test_a_graph_split_over_two_hosts_over_mtls_refuses_intruders(hosts, tmp_path):
     from common.runtime.certs import make_ca, make_cert, make_graph_certs
-    from common.runtime.graph import identity_name, load_graph
+    from common.runtime.graph import load_graph
+    from common.runtime.zenoh_session import identity_name
 
     name = f"mh{secrets.token_hex(3)}"
     graph_path = tmp_path / "graph.yaml"

@@ -13,7 +13,7 @@ from common.geometry.oracle import Oracle, random_needle_pose
 from common.geometry.pnp import refine_starts
 from common.geometry.refine import ArcObservation, DenseRefiner, RefineConfig
 from common.geometry.refine_tracking import TrackingConfig, TrackingRefiner
-from common.geometry.transforms import make_T, pose_error, rotvec_to_R
+from common.geometry.transforms import inv_T, make_T, pose_error, rotvec_to_R
 from common.runtime.messages import (
     Calibration,
     EcmPose,
@@ -276,3 +276,54 @@ def test_end_identity_belongs_to_the_tracked_needle_not_to_a_frame():
     assert all(q.end_identity == pytest.approx(p) for q in out[:5])
     assert out[5].end_identity < p and out[7].end_identity > 0.95
     assert node.counters["end_identity.turned"] == 1
+
+
+def test_a_needle_at_rest_keeps_its_identity_over_the_endoscopes_moves():
+    """Five views of one needle at rest from five endoscope poses, seconds apart (no frame
+    follows the last one as a video would). Each detector reading states 0.99; the third view
+    reads the needle end for end with the same 0.99. With the ECM poses, that view is read
+    against the needle's identity so far (its last world pose seen from the new endoscope pose):
+    turned back to the right reading, and flagged, since its own evidence contests it. Without
+    them it stands alone: a sure, turned pose (what the world track prevents)."""
+    import dataclasses
+
+    from nodes._pose import turn_keypoints
+    rng = np.random.default_rng(11)
+    T_ecm0 = random_needle_pose(rng, RIG, MODEL)
+    qs = [(0.0, 0.0, 0.05, 0.0), (0.04, 0.0, 0.05, 0.0), (0.0, 0.04, 0.05, 0.0),
+          (-0.04, 0.0, 0.05, 0.0), (0.0, -0.04, 0.05, 0.0)]
+    T_world_needle = ARM.T_world_ecm(qs[0]) @ T_ecm0
+    oracle = Oracle(noise_px=0.3, seed=4)
+
+    def run(with_ecm: bool):
+        wired = ["left", "right", "calib"] + (["ecm"] if with_ecm else [])
+        node = RefineNode.offline({}, wired=wired)
+        node.on_calib(CALIB)
+        truth = []
+        for seq, q in enumerate(qs):
+            T_world_ecm = ARM.T_world_ecm(q)
+            T = inv_T(T_world_ecm) @ T_world_needle
+            truth.append(T)
+            stamp = seq * 2_000_000_000
+            if with_ecm:
+                node.on_ecm(EcmPose(seq, stamp, T_world_ecm))
+            for cam in RIG.cameras:
+                uv, sc = oracle.keypoints(cam, T, MODEL, seq)
+                c, w = oracle.centreline(cam, T, MODEL, seq)
+                kp = Keypoints(cam.name, seq, stamp, True, uv, sc, 1.0, centreline=c, centreline_w=w,
+                               end_identity=0.99)
+                if seq == 2:
+                    kp = dataclasses.replace(turn_keypoints(kp), end_identity=0.99)
+                getattr(node, f"on_{cam.name}")(kp)
+        out = poses(node)
+        assert [p.seq for p in out] == list(range(len(qs)))
+        return out, truth
+
+    out, truth = run(with_ecm=True)
+    for pose, T in zip(out, truth):
+        assert np.degrees(pose_error(pose.T_ecm_needle, T)[1]) < 5.0
+    assert out[2].ambiguous and out[2].end_identity < 0.95
+    assert not any(p.ambiguous for i, p in enumerate(out) if i != 2)
+    alone, truth = run(with_ecm=False)
+    assert np.degrees(pose_error(alone[2].T_ecm_needle, truth[2])[1]) > 150.0
+    assert not alone[2].ambiguous and alone[2].end_identity > 0.95

@@ -12,7 +12,8 @@ from test_geometry_nodes import CALIB, MODEL, RIG, _multiview_dataset, detect, f
 
 from common.data.dataset import Dataset, DatasetError, check_dataset
 from common.geometry.oracle import random_needle_pose
-from common.runtime.graph import GraphError, load_graph, validate_graph
+from common.runtime.graph import GraphError, load_graph
+from common.runtime.graph_checks import validate_graph
 from common.runtime.messages import (
     Calibration,
     CameraImage,

@@ -12,7 +12,9 @@ from graphtools import REPO, cli, prepare_graph
 
 from common.runtime.graph import load_graph
 from common.runtime.messages import EcmJoints, Keypoints, encode
-from common.runtime.node import InputQueue, Node, NodeError, Runtime, Stats
+from common.runtime.inputs import InputQueue
+from common.runtime.node import Node, NodeError
+from common.runtime.process import Runtime, Stats
 
 COUNTER_RELAY = {"nodes": [
     {"id": "count", "module": "counter", "params": {"rate_hz": 40}},
@@ -364,7 +366,7 @@ def test_cli_tools_see_the_running_graph(run_graph):
 
 
 def test_shared_memory_pool_full_falls_back_to_the_socket():
-    from common.runtime.node import ShmWriter
+    from common.runtime.shm import ShmWriter
     w = ShmWriter(1 << 20)
     held = [w.payload(b"h", b"x" * 400_000), w.payload(b"h", b"x" * 400_000)]
     assert all(h is not None for h in held) and bytes(held[0].to_bytes())[:2] == b"hx"
@@ -386,7 +388,7 @@ def test_images_cross_processes_through_shared_memory_intact(run_graph):
 
 
 def test_handler_times_are_those_of_the_handlers_that_published():
-    from common.runtime.node import Stats
+    from common.runtime.process import Stats
     st = Stats()
     for ms, published in ((0.01, False), (12.0, True), (0.02, False), (0.03, False), (14.0, True)):
         st.proc(ms, published)

@@ -6,7 +6,7 @@ import os
 import signal
 import time
 
-from common.runtime.graph import validate_graph
+from common.runtime.graph_checks import validate_graph
 from common.runtime.messages import EcmJoints
 
 GRAPH = {"nodes": [

@@ -13,15 +13,9 @@ from graphtools import cli
 from netns_probe import intruder_config
 
 from common.runtime.certs import make_graph_certs
-from common.runtime.graph import (
-    GraphError,
-    access_control,
-    graph_warnings,
-    launcher_key,
-    load_graph,
-    validate_graph,
-    zenoh_config,
-)
+from common.runtime.graph import GraphError, launcher_key, load_graph
+from common.runtime.graph_checks import graph_warnings, validate_graph
+from common.runtime.zenoh_session import access_control, zenoh_config
 from common.runtime.messages import Command, encode
 
 pytestmark = pytest.mark.graph

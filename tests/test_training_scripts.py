@@ -16,7 +16,7 @@ ROOT = Path(__file__).resolve().parent.parent
 VALUES = {"DATA": "data/train", "OUT": "models/keypoint", "HERE": "models", "L": "data/train/looks",
           "C": "data/train/end_identity", "CONFIG": "models/finetune.yaml", "INIT": "models/keypoint/model.pt",
           "TEST": "data/test", "data[@]": "--data data/mine", "extra[@]": "--support-normal 0,0,1",
-          "fit[@]": "--data data/mine_fit"}
+          "fit[@]": "--data data/mine_fit", "grey[@]": "--grey-data data/mine_fit"}
 
 
 class Parsed(Exception):
@@ -59,6 +59,22 @@ def test_the_from_scratch_script_fits_the_end_identity_on_folders_it_does_not_tr
     found = calls(ROOT / "models/train_from_scratch.sh")
     fit = [a for a in found if a[:2] == ["bench", "end-identity"]]
     assert len(fit) == 1 and "--fit" in fit[0]
-    fit_dirs = {fit[0][i + 1] for i, a in enumerate(fit[0]) if a == "--data"}
+    fit_dirs = {fit[0][i + 1] for i, a in enumerate(fit[0]) if a in ("--data", "--hue-data", "--grey-data")}
     trained = {a[i + 1] for a in found if a[0] == "train" for i, x in enumerate(a) if x == "--data"}
     assert fit_dirs and not fit_dirs & trained
+
+
+def test_the_from_scratch_script_fits_familiarity_on_training_looks_and_the_end_identity_on_unfamiliar_ones_too():
+    """familiarity.json from folders of the training looks; the end identity's fit also sees a
+    look family no training renders (`liver`) and folders read hue-turned and colourless."""
+    found = calls(ROOT / "models/train_from_scratch.sh")
+    fam = [a for a in found if a[:2] == ["bench", "familiarity"]]
+    assert len(fam) == 1 and "--fit" in fam[0]
+    fit = [a for a in found if a[:2] == ["bench", "end-identity"]][0]
+    assert "--hue-data" in fit and "--grey-data" in fit
+    rendered = {a[a.index("--out") + 1]: a[a.index("--randomise") + 1] for a in found
+                if a[:2] == ["dataset", "generate"] and "--randomise" in a}
+    fit_looks = {rendered[fit[i + 1]] for i, x in enumerate(fit) if x == "--data"}
+    trained = {a[i + 1] for a in found if a[0] == "train" for i, x in enumerate(a) if x == "--data"}
+    trained_looks = {rendered[d] for d in trained if d in rendered}
+    assert "liver" in fit_looks and "liver" not in trained_looks and "silicone" not in trained_looks | fit_looks

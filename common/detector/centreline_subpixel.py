@@ -24,10 +24,12 @@ HALF_PX = 6.0        # profile half-length across the curve
 STEP_PX = 0.25       # profile sampling step
 SEARCH_PX = 3.0      # the edges are searched within this distance of the coarse station
 TRIM = 2             # stations left out at each end
-CENTRELINE_SIGMA_PX = 0.2   # 1-sigma error across the curve of a refined station (standard test set)
+CENTRELINE_SIGMA_PX = 0.2   # 1-sigma error across the curve of a refined station
+# (needletrack bench detector measures the centreline's distance to the true arc)
 # Neighbouring stations' errors move together (the crop's coarse curve, the wire's shading): in
-# a fit's covariance every this many count as one independent observation (the refined poses'
-# NEES median on the seed-5555 set: 16 as if independent, 5.5 with 5; chi-square(6): 5.35)
+# a fit's covariance every this many count as one independent observation (chosen so that the
+# refined poses' NEES median, in needletrack eval's results, comes near chi-square(6)'s 5.35;
+# taken as independent it is about three times that)
 CENTRELINE_CORR_POINTS = 5.0
 
 

@@ -15,10 +15,15 @@ A network that learned the end from the thread puts A's mass on both ends when t
 
 Both pieces of evidence weaken as the needle gets smaller in the image (a 640x480 stream shows
 the taper over a pixel or two): with ``small = clip(log2(LENGTH_REF_PX / length_px), 0, 3)``, the
-keypoints' polyline A..E length in pixels, ``p_a_is_tip = sigmoid(COEF . [shape_llr, net_llr, 1,
-small, small shape_llr, small net_llr])``, the coefficients fitted by logistic regression on the
-project's own renders with and without thread, at 1920x1080 and 640x480 (``fit_coefficients``).
-Three coefficients (an older fit) stand for the first three, the rest zero.
+keypoints' polyline A..E length in pixels. The network's evidence also means less on an image
+unlike its training data: with ``far = clip(log2(unfamiliarity), 0, 3)``
+(``common.detector.familiarity``; 0 for a familiar image or when not stated),
+``p_a_is_tip = sigmoid(COEF . [shape_llr, net_llr, 1, small, small shape_llr, small net_llr,
+far, far shape_llr, far net_llr])``, the coefficients fitted by logistic regression
+(``fit_coefficients``) on renders the weights never trained on, of looks they did and of looks
+they did not (so that the fit sees the network on unfamiliar images: ``needletrack bench
+end-identity --fit``). Three or six coefficients (older fits) stand for the first ones, the rest
+zero.
 Pixel convention: integer coordinates are pixel centres.
 """
 from __future__ import annotations
@@ -40,8 +45,11 @@ OUTSIDE_PX = 6.0         # the end profiles start this far past each end
 PEAK_RADIUS_CELLS = 2    # heatmap mass within this radius of a keypoint
 LLR_CLIP = 8.0
 LENGTH_REF_PX = 160.0    # a needle this long in the image (or longer) is not "small"
-FEATURES = ("shape_llr", "net_llr", "bias", "small", "small_shape_llr", "small_net_llr")
-COEF = np.array([1.0, 0.5, 0.0, 0.0, 0.0, 0.0])   # see FEATURES and fit_coefficients
+FEATURES = ("shape_llr", "net_llr", "bias", "small", "small_shape_llr", "small_net_llr",
+            "far", "far_shape_llr", "far_net_llr")
+COEF = np.array([1.0, 0.5, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0])   # see FEATURES and fit_coefficients
+FEATURE_SETS = (3, 6, len(FEATURES))
+"""The coefficient counts a fit may have: older fits use the first 3 or 6 features."""
 
 
 @dataclass
@@ -53,6 +61,7 @@ class EndEvidence:
     r_a: float = float("nan")       # rise length at A, px
     r_e: float = float("nan")
     length_px: float = float("nan")  # the keypoints' polyline A..E, px (NaN: not small)
+    unfamiliarity: float = float("nan")  # common.detector.familiarity (NaN: not stated, familiar)
 
     def features(self) -> np.ndarray:
         """The FEATURES vector, unmeasured evidence as 0 (no evidence)."""
@@ -60,11 +69,13 @@ class EndEvidence:
         f = np.where(np.isfinite(f), np.clip(f, -LLR_CLIP, LLR_CLIP), 0.0)
         small = (float(np.clip(np.log2(LENGTH_REF_PX / self.length_px), 0.0, 3.0))
                  if np.isfinite(self.length_px) and self.length_px > 0 else 0.0)
-        return np.array([f[0], f[1], 1.0, small, small * f[0], small * f[1]])
+        u = self.unfamiliarity
+        far = float(np.clip(np.log2(u), 0.0, 3.0)) if np.isfinite(u) and u > 0 else 0.0
+        return np.array([f[0], f[1], 1.0, small, small * f[0], small * f[1], far, far * f[0], far * f[1]])
 
     def p_a_is_tip(self, coef: np.ndarray = COEF) -> float:
-        """Probability that A is the tip as said (0.5: the images cannot tell); ``coef`` of 3
-        (an older fit) or len(FEATURES)."""
+        """Probability that A is the tip as said (0.5: the images cannot tell); ``coef`` of one
+        of ``FEATURE_SETS``' lengths (the first features)."""
         coef = np.asarray(coef, float)
         z = float(self.features()[:len(coef)] @ coef)
         return float(1.0 / (1.0 + np.exp(-z)))
@@ -175,15 +186,18 @@ def network_evidence(kp_logits: np.ndarray, uv_cells: np.ndarray) -> float:
                  - np.log(mass_near(pa, E) * mass_near(pe, A) + eps))
 
 
-def fit_coefficients(features: np.ndarray, labels: np.ndarray, l2: float = 1e-2, iters: int = 50) -> np.ndarray:
+def fit_coefficients(features: np.ndarray, labels: np.ndarray, l2: float = 1e-2, iters: int = 50,
+                     weights: np.ndarray | None = None) -> np.ndarray:
     """Logistic regression (Newton's method, a little L2) of labels (1: A is the tip as said) on
-    features (N, len(FEATURES)) as ``EndEvidence.features`` gives them."""
+    features (N, len(FEATURES)) as ``EndEvidence.features`` gives them; ``weights`` (N,) per
+    sample (default 1)."""
     X, y = np.asarray(features, float), np.asarray(labels, float)
+    sw = np.ones(len(y)) if weights is None else np.asarray(weights, float)
     w = np.zeros(X.shape[1])
     for _ in range(iters):
         p = 1.0 / (1.0 + np.exp(-X @ w))
-        g = X.T @ (p - y) + l2 * w
-        H = (X * (p * (1 - p))[:, None]).T @ X + l2 * np.eye(len(w))
+        g = X.T @ (sw * (p - y)) + l2 * w
+        H = (X * (sw * p * (1 - p))[:, None]).T @ X + l2 * np.eye(len(w))
         step = np.linalg.solve(H, g)
         w -= step
         if np.abs(step).max() < 1e-8:

@@ -42,6 +42,7 @@ from common.detector.arc_fit import (
 )
 from common.detector.end_identity import EndEvidence, network_evidence, polyline_length, shape_evidence
 from common.detector.model import (
+    CropWithFeatures,
     FrozenForInference,
     apply_affine,
     crop_affine,
@@ -51,6 +52,7 @@ from common.detector.model import (
     global_size,
     invert_affine,
 )
+from common.detector.familiarity import FamiliarityFileError, familiarity_path, load_familiarity
 from common.detector.ridge_ends import ends_on_ridge
 from common.detector.weights import DEFAULT_WEIGHTS, load_end_coefficients, load_model, pick_device
 from common.runtime.messages import CameraImage, Keypoints, MessageError
@@ -64,10 +66,11 @@ MAX_ELLIPSE_PX = 0.25
 MIN_ELLIPSE_SHARE = 0.5      # of the centreline points on that ellipse (a jaw may bend the rest)
 MIN_ELLIPSE_POINTS = 8       # fewer (a needle mostly hidden) are not judged
 # The keypoints' 1-sigma error per image axis as a stereo fit should take it (stated in every
-# message): 0.75 px measured (0.94 px mean distance, standard test set), raised to 1 px because
-# the two cameras' nearly identical images give nearly alike errors, which a stereo fit absorbs
-# (its residuals: 0.25 px RMS). pnp_joint's covariance on the seed-5555 set: NEES median 50 from
-# its residuals alone, 4.7 with this (chi-square(6): 5.35); the dense fit's assumed 1 px as well.
+# message): a little above the error needletrack bench detector measures on the test set,
+# because the two cameras' nearly identical images give nearly alike errors, which a stereo fit
+# absorbs (its residuals are smaller than that error). With it pnp_joint's covariance is honest
+# (its NEES median in needletrack eval's results near chi-square(6)'s 5.35; from its residuals
+# alone about ten times that); the dense fit assumes 1 px as well.
 KEYPOINT_SIGMA_PX = 1.0
 log = logging.getLogger("needletrack.keypoint_detector")
 
@@ -117,13 +120,14 @@ class KeypointDetector:
                  centreline: bool = True, arc_bcd: bool = True, along_arc: bool = False,
                  proposal_threshold: float = 0.2, proposals: int = 3, subpixel: bool = True,
                  min_extent_px: float = MIN_EXTENT_PX, max_ellipse_px: float = MAX_ELLIPSE_PX,
-                 ridge_ends: bool = True):
+                 ridge_ends: bool = True, familiarity: bool = True):
         self.device = pick_device(device)
         if threads:
             torch.set_num_threads(int(threads))
         self.weights = Path(weights or DEFAULT_WEIGHTS)
         self.model, self.meta = load_model(self.weights, self.device)
-        self._glob, self._crop = FrozenForInference(self.model.glob), FrozenForInference(self.model.crop)
+        self._glob = FrozenForInference(self.model.glob)
+        self._crop = FrozenForInference(CropWithFeatures(self.model.crop))
         self.cfg = self.model.cfg
         self.threshold = float(threshold)
         self.tracking = bool(tracking)
@@ -140,7 +144,14 @@ class KeypointDetector:
         self._track: dict[str, tuple] = {}
         self.last_mode = ""
         self.end_coef = load_end_coefficients(self.weights)
+        self.familiarity = load_familiarity(self.weights) if familiarity else None
+        size = 2 * sum(self.cfg.crop_widths[1:])
+        if self.familiarity is not None and self.familiarity.mean.size != size:
+            raise FamiliarityFileError(f"{familiarity_path(self.weights)}: a reference of {self.familiarity.mean.size} "
+                                       f"features, these weights' descriptor has {size}: refit it with "
+                                       f"`needletrack bench familiarity --fit`")
         self.last_evidence: EndEvidence | None = None
+        self.last_descriptor: np.ndarray | None = None   # the last detection's (CropNet.forward_features)
 
     def reset(self, camera: str | None = None) -> None:
         """Forget the tracking box (of one camera, or all)."""
@@ -170,7 +181,7 @@ class KeypointDetector:
         M = crop_affine(cx, cy, crop_side(self.cfg, bw, bh), self.cfg.crop)
         crop = cv2.warpAffine(img, M, (self.cfg.crop, self.cfg.crop), flags=cv2.INTER_LINEAR,
                               borderMode=cv2.BORDER_REPLICATE)
-        heat, pres = self._crop(self._tensor(crop))
+        heat, pres, feat = self._crop(self._tensor(crop))
         heat = heat.float().cpu()
         uv, score = decode_heatmaps(heat[:, :5], self.cfg.out_stride)
         uv_crop = uv[0].numpy().astype(np.float64)
@@ -179,7 +190,8 @@ class KeypointDetector:
         on_arc = self._ends_from_ridge(uv_crop, sc, heat, line) if ridge else None
         Minv = invert_affine(M)
         res = {"M": M, "Minv": Minv, "uv": apply_affine(Minv, uv_crop), "uv_crop": uv_crop, "scores": sc,
-               "presence": float(torch.sigmoid(pres[0])), "line": line, "heat": heat}
+               "presence": float(torch.sigmoid(pres[0])), "line": line, "heat": heat,
+               "feat": feat[0].float().cpu().numpy()}
         if on_arc is not None:
             res["on_arc"], res["ends_from_ridge"] = on_arc, True
         return res
@@ -256,10 +268,18 @@ class KeypointDetector:
         cells = (res["uv_crop"] - (s - 1) / 2.0) / s
         net = network_evidence(res["heat"][0, :5].numpy(), cells)
         length = polyline_length(res["uv"])
+        far = self.unfamiliarity(res)
         if res.get("centreline") is None:
-            return EndEvidence(float("nan"), net, length_px=length)
+            return EndEvidence(float("nan"), net, length_px=length, unfamiliarity=far)
         shape, r_a, r_e = shape_evidence(img, res["centreline"])
-        return EndEvidence(shape, net, r_a, r_e, length)
+        return EndEvidence(shape, net, r_a, r_e, length, far)
+
+    def unfamiliarity(self, res) -> float:
+        """How unlike the training looks the crop is (``common.detector.familiarity``; about 1
+        when familiar); NaN without a familiarity file beside the weights."""
+        if self.familiarity is None:
+            return float("nan")
+        return self.familiarity.unfamiliarity(res["feat"])
 
     def _p_a_is_tip(self, res) -> float | None:
         """The stated probability that A is the tip: None without coefficients; 0.5 (the image
@@ -353,15 +373,18 @@ class KeypointDetector:
             self.reset(camera)
             return Keypoints.not_found(camera, seq, stamp_ns, self.name, f"no needle: {not_ellipse}", conf)
         self.last_evidence = self._end_evidence(res, img)
+        self.last_descriptor = res["feat"]
         self._track[camera] = self._box_of({"uv": res["uv"]})   # as _moved compares it
         cx, cy, bw, bh = self._box_of(res)
+        far = self.last_evidence.unfamiliarity
         return Keypoints(camera, seq, stamp_ns, True, res["uv"].astype(np.float64),
                          res["scores"].astype(np.float64), float(conf),
-                         np.array([cx - bw / 2, cy - bh / 2, cx + bw / 2, cy + bh / 2]), self.name, None,
-                         res["centreline"], res["centreline_w"], res["centreline_sigma"], res.get("on_arc"),
-                         None if res["centreline_sigma"] is None else CENTRELINE_CORR_POINTS,
-                         KEYPOINT_SIGMA_PX,
-                         self._p_a_is_tip(res))
+                         bbox=np.array([cx - bw / 2, cy - bh / 2, cx + bw / 2, cy + bh / 2]), detector=self.name,
+                         centreline=res["centreline"], centreline_w=res["centreline_w"],
+                         centreline_sigma_px=res["centreline_sigma"], on_arc=res.get("on_arc"),
+                         centreline_corr_points=None if res["centreline_sigma"] is None else CENTRELINE_CORR_POINTS,
+                         keypoint_sigma_px=KEYPOINT_SIGMA_PX, end_identity=self._p_a_is_tip(res),
+                         unfamiliarity=far if np.isfinite(far) else None)
 
     def detect_message(self, msg: CameraImage) -> Keypoints:
         """Keypoints of a ``CameraImage``; corrupt or inconsistent image data -> "no needle"."""

@@ -131,16 +131,37 @@ class CropNet(nn.Module):
         self.presence = nn.Linear(2 * w3, 1)
 
     def forward(self, x: torch.Tensor):
+        heat, pres, _ = self.forward_features(x)
+        return heat, pres
+
+    def forward_features(self, x: torch.Tensor):
+        """(heatmaps, presence logit, the crop's descriptor (N, 2 (w1 + w2 + w3)): the spatial
+        mean and standard deviation of the /4 and /8 encoder features (the look: colour, light,
+        texture) and the deepest features' mean and max (what the presence head reads);
+        ``common.detector.familiarity``)."""
         x = _normalise(x)
         a = self.e1(x)
         b = self.e2(a)
         c = self.e3(b)
         d = self.e4(c)
-        pres = self.presence(torch.cat([d.mean((2, 3)), d.amax((2, 3))], 1))[:, 0]
+        deep = torch.cat([d.mean((2, 3)), d.amax((2, 3))], 1)
+        pres = self.presence(deep)[:, 0]
+        feat = torch.cat([b.mean((2, 3)), b.std((2, 3)), c.mean((2, 3)), c.std((2, 3)), deep], 1)
         u = self.d3(F.interpolate(self.l4(d), scale_factor=2.0, mode="nearest") + c)
         u = self.d2(F.interpolate(self.l3(u), scale_factor=2.0, mode="nearest") + b)
         u = self.d1(F.interpolate(self.l2(u), scale_factor=2.0, mode="nearest") + a)
-        return self.head(u), pres
+        return self.head(u), pres, feat
+
+
+class CropWithFeatures(nn.Module):
+    """A ``CropNet`` that also returns its descriptor (``CropNet.forward_features``), for tracing."""
+
+    def __init__(self, crop: CropNet):
+        super().__init__()
+        self.crop = crop
+
+    def forward(self, x: torch.Tensor):
+        return self.crop.forward_features(x)
 
 
 class KeypointModel(nn.Module):

@@ -10,7 +10,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from common.detector.end_identity import FEATURES
+from common.detector.end_identity import FEATURE_SETS, FEATURES
 from common.detector.model import (
     KeypointModel,
     ModelConfig,
@@ -34,8 +34,8 @@ def load_end_coefficients(weights) -> np.ndarray | None:
         coef = np.asarray(json.loads(path.read_text())["coef"], float)
     except (OSError, ValueError, KeyError, TypeError) as exc:
         raise ModelFileError(f"{path}: not an end-identity coefficient file ({exc})") from None
-    if coef.shape not in ((3,), (len(FEATURES),)) or not np.isfinite(coef).all():
-        raise ModelFileError(f"{path}: coef must be 3 or {len(FEATURES)} finite numbers "
+    if coef.ndim != 1 or len(coef) not in FEATURE_SETS or not np.isfinite(coef).all():
+        raise ModelFileError(f"{path}: coef must be {' or '.join(map(str, FEATURE_SETS))} finite numbers "
                              f"({', '.join(FEATURES)}), got {coef.tolist()}")
     return coef
 

@@ -5,5 +5,5 @@
 ``report`` (tables and figures), ``cli`` (the
 ``needletrack eval`` command), ``pipeline_graph`` (the graph an evaluation runs); the
 ``needletrack bench`` benchmarks: ``graph_bench``, ``transport_bench``, ``sim_bench``,
-``detector_bench``, ``refine_bench``, ``geometry_bench``.
+``detector_bench``, ``refine_bench``, ``geometry_bench``, ``ros_bench`` (``ros-bag``, ``ros-live``), ``fuzz`` (with ``fuzz_payloads``, ``fuzz_ros``).
 """

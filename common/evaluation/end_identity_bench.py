@@ -5,9 +5,11 @@ labels each detection: its A at the true tip (A..E as said) or at the true tail 
 folder it prints the network's own swap rate, how often each piece of evidence
 (``common.detector.end_identity``) points the right way, and what the stated probability does:
 sure and right, sure and wrong (the failure that matters), and unsure (the pose nodes flag it).
-``--fit FILE`` fits the evidence's coefficients on the given folders and writes them as JSON
-(the detector reads ``end_identity.json`` beside its weights); fit on folders that are not the
-ones you report.
+``--fit FILE`` fits the evidence's coefficients on the given folders, each weighing the same,
+and writes them as JSON (the detector reads ``end_identity.json`` beside its weights). Fit on
+folders no training stage saw, of looks the weights know and of looks they do not, so that the
+fit sees the network on unfamiliar images: ``--hue-data`` and ``--grey-data`` read a folder with
+its hues turned or without colour (looks no training renders). Never fit on a folder you report.
 """
 from __future__ import annotations
 
@@ -21,24 +23,49 @@ import numpy as np
 from tqdm import tqdm
 
 from common.detector.end_identity import FEATURES
+from common.frames import CAMERAS
 from common.geometry.end_identity import TIP_SURE as SURE
 
 MIN_FIT_ERRORS = 5      # fewer detections read end for end (or as said) than this: warn at --fit
+FOLDER_WEIGHT = 1000.0  # at --fit every folder weighs as this many detections, however many it has
+FIT_L2 = 1.0            # the fit's L2 penalty on the coefficients, against FOLDER_WEIGHT per folder
 
 
-def collect(folder: str, detector, step: int = 1) -> dict:
-    """Features (N, 3), labels (N,) (1: A at the true tip) and the images seen, for one folder."""
+def turn_hue(img: np.ndarray, degrees: float) -> np.ndarray:
+    """A BGR image with every colour's hue turned by ``degrees`` (saturation and value kept):
+    a look no training stage renders, from a folder of one it does."""
+    hsv = cv2.cvtColor(img, cv2.COLOR_BGR2HSV_FULL)
+    hsv[..., 0] = ((hsv[..., 0].astype(np.int32) + int(round(degrees * 256 / 360))) % 256).astype(np.uint8)
+    return cv2.cvtColor(hsv, cv2.COLOR_HSV2BGR_FULL)
+
+
+def to_grey(img: np.ndarray) -> np.ndarray:
+    """A BGR image without its colours (luma in all three channels): a look no training renders."""
+    return cv2.cvtColor(cv2.cvtColor(img, cv2.COLOR_BGR2GRAY), cv2.COLOR_GRAY2BGR)
+
+
+def collect(folder: str, detector, step: int = 1, hue: tuple | None = None, grey: bool = False) -> dict:
+    """Features (N, len(FEATURES)), labels (N,) (1: A at the true tip) and the images seen, for
+    one folder; ``hue`` (lo, hi): turn each image's hue by a draw from this range (degrees,
+    ``turn_hue``; one draw per frame, seeded by the folder's frame order); ``grey``: read the
+    images without colour (``to_grey``)."""
     from common.data.dataset import Dataset
     ds = Dataset(folder)
     feats, labels, seen = [], [], 0
     frames = ds.frames[::step]
+    rng = np.random.default_rng(0)
     for fr in tqdm(frames, desc=Path(folder).name, unit="frame", leave=False):
+        shift = float(rng.uniform(*hue)) if hue else 0.0
         if fr.keypoints is None:
             continue
-        for cam in ("left", "right"):
+        for cam in CAMERAS:
             img = cv2.imread(str(Path(ds.path) / getattr(fr, cam)))
             if img is None:
                 continue
+            if shift:
+                img = turn_hue(img, shift)
+            if grey:
+                img = to_grey(img)
             seen += 1
             detector.reset()
             kp = detector.detect(img, cam)
@@ -75,20 +102,39 @@ def main(argv=None) -> int:
     from common.detector.weights import DEFAULT_WEIGHTS, load_end_coefficients
     ap = argparse.ArgumentParser(prog="needletrack bench end-identity", description=__doc__,
                                  formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("--data", action="append", required=True, help="dataset folder with ground truth (repeatable)")
+    ap.add_argument("--data", action="append", default=[], help="dataset folder with ground truth (repeatable)")
     ap.add_argument("--weights", default=str(DEFAULT_WEIGHTS))
     ap.add_argument("--step", type=int, default=1, help="every step-th frame (default 1)")
     ap.add_argument("--fit", metavar="FILE", help="fit the coefficients on these folders and write them here")
     ap.add_argument("--json", help="write the figures here")
+    ap.add_argument("--dump", metavar="NPZ", help="write each folder's features and labels here (numpy .npz)")
+    ap.add_argument("--hue-data", action="append", default=[], metavar="DIR",
+                    help="a folder read with its hues turned (--hue; repeatable): a look family no training renders")
+    ap.add_argument("--hue", default="40,100", help="the range of --hue-data's turn, degrees (default 40,100)")
+    ap.add_argument("--grey-data", action="append", default=[], metavar="DIR",
+                    help="a folder read without colour (repeatable): a look family no training renders")
     args = ap.parse_args(argv)
+    if not (args.data or args.hue_data or args.grey_data):
+        ap.error("give at least one folder: --data, --hue-data or --grey-data")
     det = KeypointDetector(args.weights, device="cpu", tracking=False, threads=1)
     data = {d: collect(d, det, args.step) for d in args.data}
+    try:
+        hue = tuple(float(v) for v in args.hue.split(","))
+        assert len(hue) == 2
+    except (ValueError, AssertionError):
+        ap.error(f"--hue: two degrees LO,HI, got {args.hue!r}")
+    data.update({f"{d}@hue": collect(d, det, args.step, hue) for d in args.hue_data})
+    data.update({f"{d}@grey": collect(d, det, args.step, grey=True) for d in args.grey_data})
+    if args.dump:
+        np.savez(args.dump, **{f"{Path(d).name}.{k}": v[k] for d, v in data.items() for k in ("features", "labels")})
     coef = load_end_coefficients(args.weights)
     coef = COEF if coef is None else coef
     if args.fit:
         X = np.vstack([d["features"] for d in data.values()])
         y = np.concatenate([d["labels"] for d in data.values()])
-        coef = fit_coefficients(X, y)
+        w = np.concatenate([np.full(len(d["labels"]), FOLDER_WEIGHT / max(len(d["labels"]), 1))
+                            for d in data.values()])
+        coef = fit_coefficients(X, y, l2=FIT_L2, weights=w)
         turned, as_said = int(np.sum(y == 0)), int(np.sum(y == 1))
         if min(turned, as_said) < MIN_FIT_ERRORS:
             print(f"warning: of {len(y)} detections the network read {turned} end for end and {as_said} "
@@ -96,7 +142,8 @@ def main(argv=None) -> int:
                   f"state a sure tip too often (add frames, or a harder part of the look)", file=sys.stderr)
         Path(args.fit).write_text(json.dumps({
             "features": list(FEATURES), "coef": [float(c) for c in coef],
-            "fitted_on": [str(Path(d)) for d in args.data], "images": int(len(y))}, indent=1) + "\n")
+            "fitted_on": [Path(d.split("@")[0]).name + ("@" + d.split("@")[1] if "@" in d else "") for d in data],
+            "detections": int(len(y))}, indent=1) + "\n")
         print(f"wrote {args.fit}: coef {np.round(coef, 3).tolist()} from {len(y)} detections")
     rows = [summary(name, d, coef) for name, d in data.items()]
     print(f"{'set':<28} {'found':>6} {'net swaps':>9} {'shape ok':>8} {'net ok':>7} "

@@ -21,13 +21,8 @@ read through the bag reader (``common/ros/bagfuzz.py``).
 The clean stream is the oracle's: a still needle seen by the default rig while the ECM yaws,
 through the ecm, detector (oracle keypoints; an image backend gets a 1080p JPEG) and pose nodes.
 
-The ROS 2 way in (``--node ros2``, included by default): CDR samples into an offline ``ros2``
-source on bridge and rmw_zenoh keys, through its own queue and ``step``, between clean frames
-of a dVRK-like system: random bytes, truncated and bit-flipped CDR, garbage after the message,
-CDR padded as rmw_fastrtps writes it (accepted), another type's CDR on a topic (rmw_zenoh: a key
-naming that type), a 389 KB PNG of 20000x20000, a JointState of 10^6 names, NaN/inf in
-camera_info K/D and in a pose. Crashes, published messages the graph's codec refuses, and the
-clean frames until a stereo pair comes out again.
+The ROS 2 way in (``--node ros2``, included by default): ``common.evaluation.fuzz_ros``. The
+clean stream and the poison payloads: ``common.evaluation.fuzz_payloads``.
 """
 from __future__ import annotations
 
@@ -41,16 +36,11 @@ from collections import Counter
 from pathlib import Path
 from typing import Optional
 
-import msgpack
 import numpy as np
 
+from common.evaluation.fuzz_payloads import FRAME_HZ, KINDS, CleanStream, poison
 from common.runtime.messages import (
-    Calibration,
-    CameraImage,
     Command,
-    EcmJoints,
-    GroundTruth,
-    InstrumentState,
     MessageError,
     PoseEstimate,
     decode,
@@ -58,201 +48,7 @@ from common.runtime.messages import (
     pose_invariant_error,
 )
 
-FRAME_HZ = 30.0
 RECOVERY_LIMIT = 60          # clean frames (2 s at 30 Hz) a node may need to publish again
-
-
-# ====================================================================== the clean stream
-
-class CleanStream:
-    """Messages of frame ``seq`` per graph key (``camera/left``, ``ecm/pose``, ...), built once
-    for ``period`` frames from the library nodes offline and re-stamped per seq."""
-
-    def __init__(self, period: int = 16, seed: int = 0, image_size=(1920, 1080)):
-        from common.geometry.camera import StereoRig
-        from common.geometry.ecm_kinematics import EcmArm
-        from common.geometry.needle import NeedleModel
-        from common.geometry.oracle import random_needle_pose
-        from common.geometry.transforms import make_T, rotvec_to_R
-        from nodes.detector import DetectorNode
-        from nodes.ecm import EcmNode
-        from nodes.epnp import EpnpNode
-        from nodes.fusion import FusionNode
-        from nodes.triangulate import TriangulateNode
-        w, h = image_size
-        rig, model = StereoRig.default(w, h), NeedleModel()
-        arm = EcmArm(make_T(rotvec_to_R([0, 0, 0.2]), [0.1, 0.0, 0.3]), 0.01, 0.02)
-        self.calib = Calibration(0, np.array([w, h]), rig.to_dict(), model.to_dict(), arm.to_dict(), "fuzz")
-        rng = np.random.default_rng(seed)
-        T_en = random_needle_pose(rng, rig, model, max_offaxis=0.15)
-        T_wn = arm.T_world_ecm([0, 0, 0.05, 0]) @ T_en
-        import cv2
-        img = np.full((h, w, 3), 90, np.uint8)
-        jpeg = cv2.imencode(".jpg", img)[1].tobytes()
-        ecm = EcmNode.offline({}, wired=["joints", "calib"])
-        det = DetectorNode.offline({"backend": "oracle", "noise_px": 0.2, "seed": seed},
-                                   wired=["truth", "calib"])
-        stereo = ["left", "right", "calib", "ecm"]
-        poses = {"pnp_average": EpnpNode.offline({"method": "average"}, wired=stereo),
-                 "pnp_joint": EpnpNode.offline({"method": "joint"}, wired=stereo),
-                 "triangulation": TriangulateNode.offline({}, wired=stereo)}
-        fusion = FusionNode.offline({}, wired=["pose", "ecm", "truth"])
-        for n in (ecm, det, *poses.values()):
-            n.deliver("calib", self.calib)
-        self.frames = []
-        for i in range(period):
-            k = i % 8 if i % 8 < 5 else 8 - i % 8
-            q = np.array([-0.1 + 0.05 * k, 0.0, 0.05, 0.0])
-            T_we = arm.T_world_ecm(q)
-            stamp = int(i * 1e9 / FRAME_HZ)
-            f = {"camera/joints": EcmJoints(i, stamp, q),
-                 "camera/truth": GroundTruth(i, stamp, sequence=0, step=i, ecm_joints=q, T_world_ecm=T_we,
-                                             T_world_needle=T_wn)}
-            for cam in ("left", "right"):
-                f[f"camera/{cam}"] = CameraImage(cam, i, stamp, w, h, "jpeg", jpeg)
-            f["camera/instruments"] = InstrumentState("psm1", i, stamp, T_wn @ make_T(np.eye(3), [0, 0, 0.01]), 0.06, True)
-            for node, key, msg in ((ecm, "joints", f["camera/joints"]), (det, "truth", f["camera/truth"])):
-                node.published.clear()
-                node.deliver(key, msg)
-            f["ecm/pose"] = ecm.published[-1][1]
-            kps = {o: m for o, m in det.published}
-            f["detector_left/left"], f["detector_right/right"] = kps["left"], kps["right"]
-            for name, node in poses.items():
-                node.published.clear()
-                node.deliver("ecm", f["ecm/pose"])
-                node.deliver("left", kps["left"])
-                node.deliver("right", kps["right"])
-                out = [m for o, m in node.published if o == "pose"]
-                if out:
-                    f[f"{name}/pose"] = out[-1]
-            fusion.published.clear()
-            fusion.deliver("ecm", f["ecm/pose"])
-            fusion.deliver("truth", f["camera/truth"])
-            if "pnp_joint/pose" in f:
-                fusion.deliver("pose", f["pnp_joint/pose"])
-            if fusion.published:
-                f["fusion/pose"] = fusion.published[-1][1]
-            self.frames.append(f)
-        self.aliases = {"epnp_average/pose": "pnp_average/pose", "epnp_joint/pose": "pnp_joint/pose",
-                        "triangulate/pose": "triangulation/pose", "refine/pose": "pnp_joint/pose"}
-
-    def message(self, key: str, seq: int, epoch: Optional[int] = None):
-        """The clean message on ``key`` (a graph key) for frame ``seq``; None if there is none."""
-        if key.endswith("/calib"):
-            return self.calib
-        f = self.frames[seq % len(self.frames)]
-        msg = f.get(self.aliases.get(key, key))
-        if msg is None:
-            return None
-        kw = {"seq": seq, "stamp_ns": int(seq * 1e9 / FRAME_HZ)}
-        if hasattr(msg, "epoch"):
-            kw["epoch"] = epoch
-        if isinstance(msg, PoseEstimate) and msg.T_world_needle is not None:
-            kw["T_world_needle"] = msg.T_world_needle.copy()
-        return dataclasses.replace(msg, **kw)
-
-
-# ====================================================================== poison
-
-KINDS = ("random_bytes", "truncated", "bit_flips", "type_confused", "missing_field", "extra_field",
-         "wrong_schema", "non_finite", "huge", "far_seq", "negative_seq", "new_epoch", "epoch_run")
-
-
-def _ext_keep(code, data):
-    return msgpack.ExtType(code, data)
-
-
-def _random_value(rng: random.Random):
-    return rng.choice([None, True, 0, -1, 2 ** 63, 2 ** 64 - 1, -2 ** 63, 1.5, float("nan"), float("inf"),
-                       -float("inf"), 1e300, "", "x" * 1000, b"\x00" * 7, [], [1, "a"], [[1.0, 2.0], [3.0]],
-                       {"a": 1}, {1: 2}, [[float("nan")] * 2] * 5, msgpack.ExtType(1, b"\x92\xa7float64\x91\xcf"
-                       + (2 ** 40).to_bytes(8, "big")), msgpack.ExtType(7, b"zz")])
-
-
-def poison(msg, kind: str, rng: random.Random, np_rng: np.random.Generator) -> bytes:
-    """One poison payload of ``kind`` made from the clean message ``msg``."""
-    payload = encode(msg)
-    if kind == "random_bytes":
-        return bytes(np_rng.integers(0, 256, rng.randint(0, 2048), dtype=np.uint8))
-    if kind == "truncated":
-        return payload[:rng.randint(0, max(0, len(payload) - 1))]
-    if kind == "bit_flips":
-        b = bytearray(payload[:4096]) if len(payload) > 4096 and rng.random() < 0.5 else bytearray(payload)
-        for _ in range(rng.randint(1, 8)):
-            i = rng.randrange(len(b))
-            b[i] ^= 1 << rng.randrange(8)
-        return bytes(b)
-    if kind in ("type_confused", "missing_field", "extra_field", "wrong_schema"):
-        d = msgpack.unpackb(payload, raw=False, ext_hook=_ext_keep, strict_map_key=False)
-        body = d["body"]
-        if kind == "type_confused":
-            body[rng.choice(list(body))] = _random_value(rng)
-        elif kind == "missing_field":
-            body.pop(rng.choice(list(body)), None)
-        elif kind == "extra_field":
-            body[rng.choice(["zzz", "seq2", 7])] = _random_value(rng)
-        else:
-            r = rng.random()
-            if r < 0.3:
-                d["schema"] = rng.choice(["needletrack.PoseEstimate", "needletrack.Calibration", "x", 5])
-            elif r < 0.6:
-                d["version"] = rng.choice([0, 2, "1", None])
-            else:
-                d["body"] = _random_value(rng)
-        return msgpack.packb(d, use_bin_type=True)
-    m = dataclasses.replace(msg)
-    fields = {f.name: getattr(m, f.name) for f in dataclasses.fields(m)}
-    if kind in ("non_finite", "huge"):
-        arrays = [k for k, v in fields.items() if isinstance(v, np.ndarray) and v.dtype.kind == "f" and v.size]
-        floats = [k for k, v in fields.items() if isinstance(v, float)]
-        dicts = [k for k, v in fields.items() if isinstance(v, dict)]
-        bad = rng.choice([float("nan"), float("inf"), -float("inf")]) if kind == "non_finite" else \
-            rng.choice([1e300, -1e300, 1e12, 3.4e38])
-        choice = rng.random()
-        if arrays and choice < 0.6:
-            k = rng.choice(arrays)
-            a = fields[k].copy()
-            if kind == "huge" and rng.random() < 0.3:
-                a = np.resize(a, (10 ** 6,) + a.shape[1:]) if a.ndim else a
-            else:
-                a.flat[rng.randrange(a.size)] = bad
-            setattr(m, k, a)
-        elif dicts and choice < 0.8:                       # nested (Calibration, GroundTruth maps)
-            k = rng.choice(dicts)
-            d = {kk: (dict(v) if isinstance(v, dict) else v) for kk, v in fields[k].items()}
-            kk = rng.choice(list(d))
-            if isinstance(d[kk], dict) and d[kk]:
-                d[kk][rng.choice(list(d[kk]))] = bad
-            else:
-                d[kk] = bad if rng.random() < 0.5 else [bad, 1.0]
-            setattr(m, k, d)
-        elif floats:
-            setattr(m, rng.choice(floats), bad)
-        elif isinstance(m, CameraImage):
-            m.width, m.height = rng.choice([(10 ** 9, 1080), (0, 0), (20000, 20000), (-5, 3)])
-        else:
-            ints = [k for k, v in fields.items() if isinstance(v, int) and not isinstance(v, bool)]
-            if ints:
-                setattr(m, rng.choice(ints), rng.choice([2 ** 64 - 1, 2 ** 63, -2 ** 63]))
-        return _encode_any(m)
-    if kind == "far_seq" and hasattr(m, "seq"):
-        m.seq = rng.choice([2 ** 62, 2 ** 63 - 1, m.seq + 10 ** 6, rng.randrange(2 ** 40, 2 ** 62)])
-    elif kind == "negative_seq" and hasattr(m, "seq"):
-        m.seq = -rng.randint(1, 2 ** 40)
-    elif kind in ("new_epoch", "epoch_run") and hasattr(m, "epoch"):
-        m.epoch = rng.randrange(1, 2 ** 56)
-    return _encode_any(m)
-
-
-def _encode_any(m) -> bytes:
-    try:
-        return encode(m)
-    except (TypeError, ValueError, OverflowError):      # not encodable as such: the raw body
-        body = {k: (v.tolist() if isinstance(v, np.ndarray) else v) for k, v in m.to_body().items()}
-        try:
-            return msgpack.packb({"schema": m.SCHEMA, "version": m.VERSION, "body": body}, use_bin_type=True)
-        except (TypeError, ValueError, OverflowError):
-            return b"\xc1"
 
 
 # ====================================================================== the run
@@ -271,13 +67,11 @@ class InputResult:
 
 
 def _node_specs(graph):
-    import importlib
-
-    from common.runtime.node import Node
+    from common.runtime.node import Node, node_class
     for spec in graph.nodes:
         if not spec.module:
             continue
-        cls = importlib.import_module(f"nodes.{spec.module}").NODE
+        cls = node_class(spec.module)
         if isinstance(cls, type) and issubclass(cls, Node):
             yield spec, cls
 
@@ -436,203 +230,6 @@ def summary(results: list) -> dict:
             "max_recovery_frames": max((x for x in rec if x is not None), default=0)}
 
 
-# ====================================================================== ROS 2 samples (the ros2 source)
-
-ROS_KINDS = ("random_bytes", "truncated", "bit_flips", "trailing_garbage", "padded", "wrong_type",
-             "huge_compressed_image", "huge_joint_state", "non_finite_calibration", "non_finite_pose")
-ROS_RIG = "fuzz"
-
-
-class RosSamples:
-    """CDR samples of a dVRK-like ROS 2 system (stereo 320x240 images, camera_info, the ECM's
-    pose and joints) on bridge or rmw_zenoh keys, as the ``ros2`` source receives them."""
-
-    def __init__(self, keys: str, size=(320, 240)):
-        from common.geometry.camera import StereoRig
-        from common.ros import build
-        from common.ros.types import typestore
-        self.keys, self.size, self.st, self.build = keys, size, typestore(2), build
-        self.rig = StereoRig.default(*size)
-        self.img = np.full((size[1], size[0], 3), 90, np.uint8)
-        self.topics = {"left": f"/{ROS_RIG}/left/image_raw", "right": f"/{ROS_RIG}/right/image_raw",
-                       "info_left": f"/{ROS_RIG}/left/camera_info", "info_right": f"/{ROS_RIG}/right/camera_info",
-                       "pose": "/ECM/measured_cp", "joints": "/ECM/measured_js",
-                       "compressed": f"/{ROS_RIG}/left/image_raw/compressed"}
-
-    def params(self) -> dict:
-        """The ``ros2`` node's params for this system (its Zenoh endpoint is never reached)."""
-        reg = {c: self.rig[c].T_ecm_cam.tolist() for c in ("left", "right")}
-        return {"preset": "dvrk", "rig": ROS_RIG, "keys": self.keys, "topics": {"registration": reg},
-                "connect": ["tcp/127.0.0.1:9"], "max_queue": 64}
-
-    def key(self, topic: str, msgtype: str) -> str:
-        from common.ros.live import topic_key
-        return topic_key(topic, msgtype, self.keys)
-
-    def messages(self, stamp: int) -> list:
-        """(topic, message) of one frame: calibration, ECM pose and joints, then the images."""
-        b, st = self.build, self.st
-        out = [(self.topics["info_" + c], b.camera_info(st, stamp, self.rig[c].K, self.rig[c].dist, self.size))
-               for c in ("left", "right")]
-        out.append((self.topics["pose"], b.make(st, "geometry_msgs/msg/PoseStamped", header=b.header(st, stamp),
-                                                pose=b.pose(st, np.eye(4)))))
-        out.append((self.topics["joints"], b.make(st, "sensor_msgs/msg/JointState", header=b.header(st, stamp),
-                                                  name=["yaw", "pitch", "insertion", "roll"],
-                                                  position=np.array([0.0, 0.1, 0.05, 0.0]))))
-        out += [(self.topics[c], b.image(st, stamp, self.img, "bgr8")) for c in ("left", "right")]
-        return out
-
-    def frame(self, stamp: int) -> list:
-        """(topic, key, payload) of one clean frame."""
-        from common.ros.cdr import encode
-        return [(t, self.key(t, m.__msgtype__), encode(m)) for t, m in self.messages(stamp)]
-
-
-_HUGE: dict = {}
-
-
-def _huge(kind: str, s: RosSamples) -> bytes:
-    """The big poison payloads, made once: a 20000x20000 PNG (389 KB of zeros' deflate) and a
-    JointState of 10^6 names."""
-    if kind not in _HUGE:
-        from common.ros.cdr import encode
-        b, st = s.build, s.st
-        if kind == "huge_compressed_image":
-            import zlib
-            z, rows = zlib.compressobj(9), b"\0" * (20000 + 1) * 500               # 8-bit grey
-            raw = b"".join(z.compress(rows) for _ in range(40)) + z.flush()     # 20000 rows of zeros
-
-            def chunk(tag, data):
-                return len(data).to_bytes(4, "big") + tag + data + zlib.crc32(tag + data).to_bytes(4, "big")
-            png = (b"\x89PNG\r\n\x1a\n" + chunk(b"IHDR", (20000).to_bytes(4, "big") * 2 + b"\x08\x00\0\0\0")
-                   + chunk(b"IDAT", raw) + chunk(b"IEND", b""))
-            msg = b.make(st, "sensor_msgs/msg/CompressedImage", header=b.header(st, 1), format="png",
-                         data=np.frombuffer(png, np.uint8))
-        else:
-            msg = b.make(st, "sensor_msgs/msg/JointState", header=b.header(st, 1), name=["j"] * 10 ** 6,
-                         position=np.zeros(4))
-        _HUGE[kind] = encode(msg)
-    return _HUGE[kind]
-
-
-def ros_poison(s: RosSamples, kind: str, stamp: int, rng: random.Random, np_rng) -> tuple:
-    """One poison sample ``(topic, key, payload)`` of ``kind`` for the ros2 source."""
-    from common.ros.cdr import encode, fastcdr_estimate
-    b, st = s.build, s.st
-    clean = s.messages(stamp)
-    topic, msg = rng.choice(clean)
-    key, payload = s.key(topic, msg.__msgtype__), encode(msg)
-    if kind == "random_bytes":
-        head = b"\x00\x01\x00\x00" if rng.random() < 0.5 else b""
-        return topic, key, head + bytes(np_rng.integers(0, 256, rng.randint(0, 512), dtype=np.uint8))
-    if kind == "truncated":
-        return topic, key, payload[:rng.randint(0, len(payload) - 1)]
-    if kind == "bit_flips":
-        p = bytearray(payload)
-        for _ in range(rng.randint(1, 8)):
-            i = rng.randrange(min(len(p), 512))
-            p[i] ^= 1 << rng.randrange(8)
-        return topic, key, bytes(p)
-    if kind == "trailing_garbage":
-        return topic, key, payload + bytes(np_rng.integers(0, 256, rng.randint(4, 64), dtype=np.uint8)) + b"\xff" * 8
-    if kind == "padded":                  # what rmw_fastrtps sends: accepted
-        return topic, key, payload + b"\0" * (4 + fastcdr_estimate(msg, msg.__msgtype__) - len(payload))
-    if kind == "wrong_type":              # another type's CDR on this topic (rmw_zenoh: its key says so)
-        other_topic, other = rng.choice([x for x in clean if x[1].__msgtype__ != msg.__msgtype__])
-        return topic, s.key(topic, other.__msgtype__), encode(other)
-    if kind in ("huge_compressed_image", "huge_joint_state"):
-        t = s.topics["compressed" if kind == "huge_compressed_image" else "joints"]
-        mt = "sensor_msgs/msg/CompressedImage" if kind == "huge_compressed_image" else "sensor_msgs/msg/JointState"
-        return t, s.key(t, mt), _huge(kind, s)
-    bad = rng.choice([float("nan"), float("inf"), -float("inf")])
-    if kind == "non_finite_calibration":
-        c = rng.choice(("left", "right"))
-        K, D = s.rig[c].K.copy(), np.array(s.rig[c].dist, float).reshape(-1).copy()
-        if rng.random() < 0.5:
-            K.flat[rng.choice([0, 2, 4, 5])] = bad
-        else:
-            D[rng.randrange(len(D))] = bad
-        t = s.topics["info_" + c]
-        return t, s.key(t, "sensor_msgs/msg/CameraInfo"), encode(b.camera_info(st, stamp, K, D, s.size))
-    t = s.topics["pose"]
-    m = b.make(st, "geometry_msgs/msg/PoseStamped", header=b.header(st, stamp), pose=b.pose(st, np.eye(4)))
-    part = m.pose.position if rng.random() < 0.5 else m.pose.orientation
-    setattr(part, rng.choice([f for f in ("x", "y", "z", "w") if hasattr(part, f)]), bad)
-    return t, s.key(t, m.__msgtype__), encode(m)
-
-
-def _ros_published_problem(node, start: int) -> int:
-    """Messages the ros2 source published that the graph's codec refuses (a NaN calibration)."""
-    bad = 0
-    for _, m in node.published[start:]:
-        try:
-            decode(encode(m))
-        except MessageError:
-            bad += 1
-    return bad
-
-
-def fuzz_ros2(keys: str, kind: str, n: int, seed: int, clean_every: int = 10) -> InputResult:
-    """``n`` poison samples of ``kind`` into an offline ``ros2`` source on ``keys`` keys, between
-    clean frames, through the node's own path (its queue, then ``step``); then clean frames until
-    it publishes a stereo pair again."""
-    import logging
-
-    from nodes.ros2 import Ros2Node
-    rng, np_rng = random.Random(seed), np.random.default_rng(seed)
-    s = RosSamples(keys)
-    res = InputResult("ros2", f"{keys}:{kind}")
-    node = Ros2Node.offline(s.params(), node_id="ros2")
-    node.log.setLevel(logging.CRITICAL)
-    stamp = [1_700_000_000 * 10 ** 9]
-
-    def put(item) -> None:
-        node.queue.put((item[0], item[1], item[2], 0))
-        try:
-            node.step()
-        except Exception as exc:              # step must swallow anything a peer sends
-            res.crashes += 1
-            res.first_crash = res.first_crash or f"{kind}: step: {type(exc).__name__}: {exc}"[:300]
-
-    def clean_frame() -> None:
-        stamp[0] += int(1e9 / FRAME_HZ)
-        for item in s.frame(stamp[0]):
-            put(item)
-    try:
-        for _ in range(4):
-            clean_frame()
-        start = len(node.published)
-        for i in range(n):
-            put(ros_poison(s, kind, stamp[0], rng, np_rng))
-            res.payloads += 1
-            if (i + 1) % clean_every == 0:
-                clean_frame()
-        res.refused = int(node.counters.get("bad_samples", 0))
-        res.delivered = res.payloads - res.refused
-        res.invalid_published = _ros_published_problem(node, start)
-        mark = len(node.published)
-        for k in range(1, RECOVERY_LIMIT + 1):
-            clean_frame()
-            if any(o == "left" for o, _ in node.published[mark:]):
-                res.recovery_frames = k
-                break
-    finally:
-        node.teardown()
-    return res
-
-
-def run_fuzz_ros2(per_input: int, seed: int = 0, log=print) -> list:
-    """``fuzz_ros2`` for every kind on both key forms."""
-    results = []
-    for j, keys in enumerate(("bridge", "rmw_zenoh")):
-        for i, kind in enumerate(ROS_KINDS):
-            t0 = time.perf_counter()
-            r = fuzz_ros2(keys, kind, per_input, seed * 7919 + j * 101 + i)
-            results.append(r)
-            log(result_line(r, time.perf_counter() - t0))
-    return results
-
-
 def live_check(args) -> int:
     """``--live``: the default graph in processes (camera: a replay at 30 Hz, as the soak), a
     clean period, then ``--poison-s`` seconds of poison payloads of every kind on every input
@@ -740,6 +337,7 @@ def main(argv=None) -> int:
     print(f"fuzz: {args.graph}, {args.per_input} poison payloads per input (kinds: {', '.join(KINDS)})")
     results = run_fuzz(graph, args.per_input, args.seed, args.node)
     if not args.node or "ros2" in args.node:    # the ROS 2 way in (not in dataflow.yaml)
+        from common.evaluation.fuzz_ros import run_fuzz_ros2
         results += run_fuzz_ros2(args.per_input, args.seed)
     s = summary(results)
     print(f"fuzz: {s['payloads']} payloads into {s['inputs']} inputs of {len({r.node for r in results})} nodes "

@@ -162,7 +162,8 @@ def intruder_check(graph_path: str = "dataflow.yaml", clean_s: float = 20.0, dur
     import zenoh
 
     from common.evaluation.restart_bench import bench_graph
-    from common.runtime.graph import REPO_ROOT, zenoh_config
+    from common.runtime.graph import REPO_ROOT
+    from common.runtime.zenoh_session import zenoh_config
     from common.runtime.launcher import Launcher
     from common.runtime.messages import GroundTruth, MessageError, PoseEstimate, decode
     graph = bench_graph(graph_path)

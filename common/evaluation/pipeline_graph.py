@@ -13,7 +13,6 @@ consumers listen. The launchers' output (every node's log) goes to ``log`` (a fi
 """
 from __future__ import annotations
 
-import importlib
 import os
 import socket
 import sys
@@ -27,7 +26,8 @@ from common.errors import NeedletrackError
 from common.methods import METHOD_NEEDS, POSE_OUTPUTS
 from common.runtime.graph import graph_from_dict, live_key, module_info
 from common.runtime.messages import Calibration
-from common.runtime.node import KEEP_ALL_LIMIT
+from common.runtime.inputs import KEEP_ALL_LIMIT
+from common.runtime.node import node_class
 from common.runtime.pairing import StereoPairer
 
 SOURCE = "replay"
@@ -206,7 +206,7 @@ class GraphRun:
         if self.session is None:
             import zenoh
 
-            from common.runtime.graph import zenoh_config
+            from common.runtime.zenoh_session import zenoh_config
             c = zenoh_config(self.main.graph, role="node")    # the operator's identity on the run's credentials
             c.insert_json5("mode", '"client"')
             c.insert_json5("listen/endpoints", "[]")
@@ -380,7 +380,7 @@ def _lossless_main(argv=None) -> int:
         print("common.evaluation.pipeline_graph: NEEDLETRACK_GRAPH and NEEDLETRACK_NODE must be set "
               "(run by the launcher)", file=sys.stderr)
         return 2
-    base = importlib.import_module(f"nodes.{args.module}").NODE
+    base = node_class(args.module)
     return run(lossless_class(base, args.start_delay, args.peers), ["--graph", graph, "--node", node])
 
 

@@ -47,7 +47,8 @@ def measure(graph, node: str, pose_keys: list, kills: int, settle_s: float, log)
     """Per kill, the recovery steps in seconds after the kill (see the module docstring)."""
     import zenoh
 
-    from common.runtime.graph import live_key, stats_key, zenoh_config
+    from common.runtime.graph import live_key, stats_key
+    from common.runtime.zenoh_session import zenoh_config
     from common.runtime.launcher import Launcher
     from common.runtime.messages import MessageError, NodeStats, decode
     launcher = Launcher(graph, out=log)

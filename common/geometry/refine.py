@@ -43,6 +43,7 @@ from typing import Mapping, Optional, Sequence
 
 import numpy as np
 
+from common.geometry import lm
 from common.geometry.camera import Camera, StereoRig
 from common.geometry.needle import NeedleModel
 from common.geometry.rest_prior import resting_log_prior
@@ -50,7 +51,6 @@ from common.geometry.arc_problem import RefineError, _orthonormalise, _Problem, 
 from common.geometry.transforms import (
     R_to_rotvec,
     make_T,
-    rotvecs_to_Rs,
     transform_points,
 )
 
@@ -134,8 +134,8 @@ class RefineConfig:
     # the rig's calibration), 1 sigma per axis, added to the covariance: from the images alone a
     # dense fit is a few hundredths of a millimetre and a tenth of a degree thin near the
     # endoscope, and errors the two nearly alike cameras share go into the pose, not the
-    # residuals. Chosen on the end-identity fit folders, not the test sets (NEES medians 4.6-6.4
-    # there; docs/geometry.md#covariances-and-nees).
+    # residuals. Chosen on the end-identity fit folders, not the test sets, for a NEES median
+    # near chi-square(6)'s 5.35 there (needletrack eval; docs/geometry.md#covariances-and-nees).
     model_sigma_mm: float = 0.03
     model_sigma_deg: float = 0.25
     # with a support surface's normal given (``refine(support_normal=)``): probability that the
@@ -253,91 +253,34 @@ def _pose_delta(T, T_ref):
 
 # ------------------------------------------------------------------ the solver
 
-_I6 = np.eye(6)
+def _linearise(prob: _Problem, R, t, prev=None):
+    """``lm.run``'s view of the fit: residuals, Jacobians, IRLS weights, robust costs (inf for
+    an invalid pose) and the observed points' feet, carried over from ``prev`` when given."""
+    r, J, cs, valid = prob.linearise(R, t, None if prev is None else prev["cs"])
+    rho, wr = prob.robust(r)
+    cost = rho.sum(1)
+    cost[~(valid & np.isfinite(cost))] = np.inf
+    return r, J, wr, cost, {"cs": cs}
 
 
-def _lm(prob: _Problem, R, t, cfg: RefineConfig, n_iter: int, state=None):
-    """Batched Levenberg-Marquardt on K poses; returns the state dict (poses, costs, ...).
+def _lm(prob: _Problem, fits: lm.Fits, cfg: RefineConfig, n_iter: int) -> lm.Fits:
+    """The batched Levenberg-Marquardt (``lm.run``) on K poses.
 
     A pose is done when the step on offer is far inside its own uncertainty (the step's cost
-    change ``dx' H dx`` below ``step_tol`` residual variances), when a step is negligible in
-    absolute terms, or after ``max_reject`` rejected steps in a row (a cost at rounding level)."""
-    K = len(R)
-    if state is None:
-        r, J, cs, valid = prob.linearise(R, t)
-        rho, wr = prob.robust(r)
-        cost = rho.sum(1)
-        cost[~(valid & np.isfinite(cost))] = np.inf
-        state = dict(R=R, t=t, r=r, J=J, cs=cs, wr=wr, cost=cost, lam=np.full(K, 1e-3),
-                     rej=np.zeros(K, int), done=~np.isfinite(cost), iters=0)
-    s = state
-    dof = max(prob.n_res - 6, 1)
-    for _ in range(n_iter):
-        act = np.flatnonzero(~s["done"])
-        if len(act) == 0:
-            break
-        s["iters"] += 1
-        r, J, wr = s["r"][act], s["J"][act], s["wr"][act]
-        JtW = np.swapaxes(J * wr[..., None], 1, 2)
-        H = JtW @ J
-        g = (JtW @ r[..., None])[..., 0]
-        dg = np.maximum(np.diagonal(H, axis1=1, axis2=2), 1e-300)
-        # Jacobi scaling: rotation (rad) and translation (m) columns differ by ~1e2.
-        sc = 1.0 / np.sqrt(dg)
-        A = H * sc[:, :, None] * sc[:, None, :] + s["lam"][act, None, None] * _I6
-        try:
-            dx = -sc * np.linalg.solve(A, (g * sc)[..., None])[..., 0]
-        except np.linalg.LinAlgError:
-            dx = -sc * np.stack([np.linalg.lstsq(a, b * c, rcond=None)[0] for a, b, c in zip(A, g, sc)])
-        # Trust region: no step turns more than max_step_rad or moves more than max_step_m (a
-        # nearly face-on arc leaves its tilt weakly determined; a full step may leap far).
+    change ``dx' H dx`` below ``step_tol`` residual variances; then it is taken unevaluated: its
+    effect on the residuals and Jacobian kept for the covariance is within the same fraction of
+    a variance), when a step is negligible in absolute terms, or after ``max_reject`` rejected
+    steps in a row (a cost at rounding level). No step turns more than ``max_step_rad`` or
+    moves more than ``max_step_m`` (a nearly face-on arc leaves its tilt weakly determined; a
+    full step may leap far); after a step above ``research_rad``/``research_m`` the feet are
+    searched afresh, else carried over."""
+    def stop(dx, acc, pred, c1, c0, fits, act):
         adx = np.abs(dx)
-        rot, tra = adx[:, :3].max(axis=1), adx[:, 3:].max(axis=1)
-        shrink = np.minimum(1.0, np.minimum(cfg.max_step_rad / np.maximum(rot, 1e-300),
-                                            cfg.max_step_m / np.maximum(tra, 1e-300)))
-        dx = dx * shrink[:, None]
-        rot, tra = rot * shrink, tra * shrink
-        # Converged when the step on offer is far inside the pose's own uncertainty: its cost
-        # change below step_tol residual variances (then it is not taken, nor evaluated).
-        quad = (dx[:, None, :] @ H @ dx[..., None])[:, 0, 0]
-        # (residuals are in sigmas, so a variance above 1 is outliers' doing: not a looser bound)
-        within = (shrink == 1.0) & (quad < cfg.step_tol * np.minimum(s["cost"][act] / dof, 1.0))
-        if within.any():
-            # the small step is still taken, unevaluated (its effect on the fit's residuals and
-            # Jacobian, kept for the covariance, is within the same fraction of a variance)
-            iw = act[within]
-            s["R"][iw] = rotvecs_to_Rs(dx[within, :3]) @ s["R"][iw]
-            s["t"][iw] = s["t"][iw] + dx[within, 3:]
-            s["done"][iw] = True
-            go = ~within
-            if not go.any():
-                break
-            act, dx, rot, tra = act[go], dx[go], rot[go], tra[go]
-        Rn = rotvecs_to_Rs(dx[:, :3]) @ s["R"][act]
-        tn = s["t"][act] + dx[:, 3:]
-        # Feet: carried over from the current poses, searched afresh after a large step.
-        big = rot.max() > cfg.research_rad or tra.max() > cfg.research_m
-        warm = None if big else s["cs"][act]
-        rn, Jn, csn, validn = prob.linearise(Rn, tn, warm)
-        rho_n, wr_n = prob.robust(rn)
-        cost_n = rho_n.sum(1)
-        cost_n[~(validn & np.isfinite(cost_n))] = np.inf
-        old = s["cost"][act]
-        acc = cost_n <= old
-        ia = act[acc]
-        new = (("R", Rn), ("t", tn), ("r", rn), ("J", Jn), ("cs", csn), ("wr", wr_n), ("cost", cost_n))
-        if len(ia) == K:                       # every pose active and accepted: take them all
-            s.update(new)
-        else:
-            for key, val in new:
-                s[key][ia] = val[acc]
-        s["lam"][ia] = np.maximum(s["lam"][ia] / 3.0, 1e-9)
-        s["lam"][act[~acc]] *= 4.0
-        s["rej"][ia] = 0
-        s["rej"][act[~acc]] += 1
-        small = (rot < 1e-11) & (tra < 1e-12)
-        s["done"][act] |= small | (s["rej"][act] >= cfg.max_reject)
-    return s
+        small = (adx[:, :3].max(axis=1) < 1e-11) & (adx[:, 3:].max(axis=1) < 1e-12)
+        return small | (fits.rej[act] >= cfg.max_reject)
+    return lm.run(fits, lambda R, t, prev: _linearise(prob, R, t, prev), n_iter, stop, damping="thirds",
+                  max_step=(cfg.max_step_rad, cfg.max_step_m), settle_tol=cfg.step_tol,
+                  dof=max(prob.n_res - 6, 1), relinearise=(cfg.research_rad, cfg.research_m))
 
 
 class DenseRefiner:
@@ -370,16 +313,15 @@ class DenseRefiner:
         R = _orthonormalise(np.stack([T[:3, :3] for T in starts]))
         t = np.stack([T[:3, 3] for T in starts])
 
-        s = _lm(prob, R, t, cfg, cfg.coarse_iter)
-        if not np.any(np.isfinite(s["cost"])):
+        s = _lm(prob, lm.Fits(R, t, _linearise(prob, R, t)), cfg, cfg.coarse_iter)
+        if not np.any(np.isfinite(s.cost)):
             raise RefineError("no_valid_candidate", "every candidate puts the needle behind a camera")
         # Merge the candidates that met; go on with the best max_candidates.
-        keep = np.flatnonzero(np.isfinite(s["cost"]))
+        keep = np.flatnonzero(np.isfinite(s.cost))
         keep = _dedupe(s, keep, cfg.distinct_mm, cfg.distinct_deg)[:cfg.max_candidates]
-        s = {k: (v[keep] if isinstance(v, np.ndarray) else v) for k, v in s.items()}
-        s = _lm(prob, s["R"], s["t"], cfg, cfg.max_iter - cfg.coarse_iter, state=s)
+        s = _lm(prob, s.take(keep), cfg, cfg.max_iter - cfg.coarse_iter)
         log_prior = None if support_normal is None else resting_log_prior(
-            s["R"], support_normal, cfg.rest_prior, math.radians(cfg.rest_sigma_deg))
+            s.R, support_normal, cfg.rest_prior, math.radians(cfg.rest_sigma_deg))
         return _result(prob, s, cfg, log_prior)
 
 
@@ -412,11 +354,11 @@ def _near_any(T, Ts, mm, deg) -> bool:
 
 
 def _dedupe(s, idx, mm, deg):
-    order = idx[np.argsort(s["cost"][idx])]
+    order = idx[np.argsort(s.cost[idx])]
     kept: list[int] = []
     for i in order:
-        Ti = make_T(s["R"][i], s["t"][i])
-        if not _near_any(Ti, [make_T(s["R"][j], s["t"][j]) for j in kept], mm, deg):
+        Ti = make_T(s.R[i], s.t[i])
+        if not _near_any(Ti, [make_T(s.R[j], s.t[j]) for j in kept], mm, deg):
             kept.append(int(i))
     return np.array(kept, int)
 
@@ -431,21 +373,21 @@ def _result(prob: _Problem, s, cfg: RefineConfig, log_prior=None) -> RefineResul
     """The best minimum: the lowest cost, or with ``log_prior`` (K,) the lowest cost in residual
     variances less twice the log prior. Competitors, the ambiguity and the covariance's
     inflation are judged on the costs alone."""
-    order = np.argsort(s["cost"])
-    order = order[np.isfinite(s["cost"][order])]
+    order = np.argsort(s.cost)
+    order = order[np.isfinite(s.cost[order])]
     b = order[0]
-    r = s["r"][b]
+    r = s.r[b]
     _, wr = prob.robust(r)
     s2 = _residual_variance(prob, r, wr, cfg)
-    k = 0 if log_prior is None else int(np.argmin(s["cost"][order] / s2 - 2.0 * np.asarray(log_prior)[order]))
+    k = 0 if log_prior is None else int(np.argmin(s.cost[order] / s2 - 2.0 * np.asarray(log_prior)[order]))
     if k:
         order = np.concatenate([order[k:k + 1], np.delete(order, k)])
         b = order[0]
-        r = s["r"][b]
+        r = s.r[b]
         _, wr = prob.robust(r)
         s2 = _residual_variance(prob, r, wr, cfg)
-    T0 = make_T(s["R"][b], s["t"][b])
-    J = s["J"][b]
+    T0 = make_T(s.R[b], s.t[b])
+    J = s.J[b]
     n_res = prob.n_res
     H = J.T @ ((wr * prob.cov_scale)[:, None] * J)
     cov = s2 * _inv_psd(H)
@@ -458,15 +400,15 @@ def _result(prob: _Problem, s, cfg: RefineConfig, log_prior=None) -> RefineResul
     rms = lambda sq, n: math.sqrt(sq / n) if n else float("nan")
 
     # Competing solutions: other distinct minima, and how much worse they fit.
-    cands, reasons = [(T0, float(s["cost"][b]))], []
+    cands, reasons = [(T0, float(s.cost[b]))], []
     competitors = []
     for j in order[1:]:
-        Tj = make_T(s["R"][j], s["t"][j])
+        Tj = make_T(s.R[j], s.t[j])
         if _near_any(Tj, [c[0] for c in cands], cfg.distinct_mm, cfg.distinct_deg):
             continue
-        cands.append((Tj, float(s["cost"][j])))
+        cands.append((Tj, float(s.cost[j])))
         # judged on the images alone: a prior may pick between minima, not hide one
-        competitors.append((Tj, abs(s["cost"][j] - s["cost"][b]) / s2))
+        competitors.append((Tj, abs(s.cost[j] - s.cost[b]) / s2))
     view = _view_angle_deg(prob, T0)
     edge_on = view < cfg.edge_on_deg
     close = [(Tj, dchi) for Tj, dchi in competitors if dchi < cfg.ambiguity_chi2]
@@ -486,8 +428,8 @@ def _result(prob: _Problem, s, cfg: RefineConfig, log_prior=None) -> RefineResul
     return RefineResult(
         T_ecm_needle=T0, covariance=cov, rms_px=rms(sq_kp + sq_curve, 2 * prob.n_kp + prob.n_curve),
         rms_kp_px=rms(sq_kp, 2 * prob.n_kp), rms_curve_px=rms(sq_curve, prob.n_curve),
-        cost=float(s["cost"][b]), ambiguous=bool(reasons),
-        reasons=tuple(reasons), view_angle_deg=view, n_iter=int(s["iters"]),
+        cost=float(s.cost[b]), ambiguous=bool(reasons),
+        reasons=tuple(reasons), view_angle_deg=view, n_iter=int(s.rounds),
         n_residuals=n_res, candidates=cands,
         competitor_chi2=float(min((dchi for _, dchi in competitors), default=np.inf)),
         residual_variance=float(s2))

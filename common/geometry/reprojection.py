@@ -1,5 +1,6 @@
 """The weighted reprojection error of a needle pose in one or more cameras, its analytic
-Jacobian, a batched Levenberg-Marquardt over many starting poses, and the pose covariance.
+Jacobian, its batched Levenberg-Marquardt over many starting poses (``lm``), and the pose
+covariance.
 
 Poses ``T_ecm_needle`` in the ECM frame (m, rad), pixels ideal (undistorted). Cost
 ``sum_i w_i |r_i|^2`` (px^2, ``w_i`` the keypoint's score). Perturbation convention (Jacobians,
@@ -15,8 +16,9 @@ from typing import Sequence
 
 import numpy as np
 
+from common.geometry import lm
 from common.geometry.observations import CameraObs
-from common.geometry.transforms import make_T, rotvecs_to_Rs, skew
+from common.geometry.transforms import make_T, skew
 
 
 class ReprojectionProblem:
@@ -74,6 +76,12 @@ class ReprojectionProblem:
         Jw = B @ (-q @ _SKEW).reshape(q.shape + (3,))
         return r, np.concatenate([Jw, B], axis=3).reshape(len(R), -1, 6), ok
 
+    def _linearise(self, R, t, prev=None):
+        """``lm.run``'s view: (r, J, weights None (in r already), cost, no extra); a pose with a
+        point behind its camera costs inf."""
+        r, J, ok = self._residuals(R, t)
+        return r, J, None, np.where(ok, np.einsum("km,km->k", r, r), np.inf), {}
+
     def _to_internal(self, Ts):
         Ts = np.asarray(Ts, dtype=float).reshape(-1, 4, 4)
         R = Ts[:, :3, :3].copy()
@@ -122,58 +130,31 @@ class ReprojectionProblem:
         if self.n < 3 or k == 0:
             return [None] * k
         R, t = self._to_internal(T0s)
-        r, J, ok = self._residuals(R, t)
-        cost = np.where(ok, np.einsum("km,km->k", r, r), np.inf)
-        lam, nu = np.full(k, 1e-3), np.full(k, 2.0)   # Marquardt-scaled damping, Nielsen's update
-        iters = np.zeros(k, dtype=int)
-        converged = np.zeros(k, dtype=bool)
-        merged = np.full(k, -1)
-        cos_merge = math.cos(merge_rad)
-        eye = np.eye(6)
-        act = np.flatnonzero(ok)                       # the fits still running
-        for _ in range(max_iter):
-            if len(act) == 0:
-                break
-            iters[act] += 1
-            Ja, ra, la, ca = J[act], r[act], lam[act], cost[act]
-            g = np.einsum("kmi,km->ki", Ja, ra)
-            H = Ja.transpose(0, 2, 1) @ Ja
-            D = np.einsum("kii->ki", H) + 1e-30
-            try:
-                delta = -np.linalg.solve(H + (la[:, None] * D)[:, :, None] * eye, g[..., None])[..., 0]
-            except np.linalg.LinAlgError:
-                lam[act] *= nu[act]
-                nu[act] *= 2.0
-                continue
-            step_m = (np.sqrt(np.einsum("ki,ki->k", delta[:, :3], delta[:, :3])) * self.size
-                      + np.sqrt(np.einsum("ki,ki->k", delta[:, 3:], delta[:, 3:])))
-            # the decrease the linear model predicts: delta^T (lam D delta - g) > 0
-            pred = np.einsum("ki,ki->k", delta, la[:, None] * D * delta - g)
-            R1 = rotvecs_to_Rs(delta[:, :3]) @ R[act]
-            t1 = t[act] + delta[:, 3:]
-            r1, J1, ok1 = self._residuals(R1, t1)
-            c1 = np.where(ok1, np.einsum("km,km->k", r1, r1), np.inf)
-            acc = c1 <= ca
-            with np.errstate(invalid="ignore", over="ignore"):
-                rho = (ca - c1) / np.maximum(pred, 1e-300)
-                shrink = np.maximum(1.0 / 3.0, 1.0 - (2.0 * rho - 1.0) ** 3)
-            ia = act[acc]
-            R[ia], t[ia], r[ia], J[ia], cost[ia] = R1[acc], t1[acc], r1[acc], J1[acc], c1[acc]
-            lam[act] = np.where(acc, la * shrink, la * nu[act])
-            nu[act] = np.where(acc, 2.0, nu[act] * 2.0)
-            done = np.where(acc, (step_m < tol_m) | (pred <= rel_tol * c1) | (c1 < 1e-26),
-                            (step_m < tol_m) | (pred <= 1e-3 * rel_tol * ca))   # nothing to gain
-            converged[act[done]] = True
-            act = act[~done]
-            # fits heading to a minimum already found stop there
-            if len(act) and converged.any():
-                conv_idx = np.flatnonzero(converged)
-                near_t = np.all(np.abs(t[act, None, :] - t[None, conv_idx, :]) < merge_m, axis=2)
-                cosang = (np.einsum("aij,cij->ac", R[act], R[conv_idx]) - 1.0) / 2.0
-                near = near_t & (cosang > cos_merge)
-                hit = near.any(axis=1)
-                merged[act[hit]] = conv_idx[np.argmax(near[hit], axis=1)]
-                act = act[~hit]
+        size, cos_merge = self.size, math.cos(merge_rad)
+
+        def stop(dx, acc, pred, c1, c0, fits, act):
+            step_m = (np.sqrt(np.einsum("ki,ki->k", dx[:, :3], dx[:, :3])) * size
+                      + np.sqrt(np.einsum("ki,ki->k", dx[:, 3:], dx[:, 3:])))
+            return np.where(acc, (step_m < tol_m) | (pred <= rel_tol * c1) | (c1 < 1e-26),
+                            (step_m < tol_m) | (pred <= 1e-3 * rel_tol * c0))   # nothing to gain
+
+        def merge(fits, act):
+            """Fits heading to a minimum already found stop there."""
+            if not fits.converged.any():
+                return np.ones(len(act), bool)
+            conv_idx = np.flatnonzero(fits.converged)
+            near_t = np.all(np.abs(fits.t[act, None, :] - fits.t[None, conv_idx, :]) < merge_m, axis=2)
+            cosang = (np.einsum("aij,cij->ac", fits.R[act], fits.R[conv_idx]) - 1.0) / 2.0
+            near = near_t & (cosang > cos_merge)
+            hit = near.any(axis=1)
+            fits.merged[act[hit]] = conv_idx[np.argmax(near[hit], axis=1)]
+            return ~hit
+
+        s = lm.run(lm.Fits(R, t, self._linearise(R, t)), self._linearise, max_iter, stop,
+                   damping="nielsen", after=merge, scaled=False)
+        ok = np.isfinite(s.cost)
+        R, t, r, J, cost = s.R, s.t, s.r, s.J, s.cost
+        iters, converged, merged = s.iters, s.converged, s.merged
         out: list = []
         for i in range(k):
             if not ok[i]:

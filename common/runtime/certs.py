@@ -7,7 +7,7 @@ For a graph with ``zenoh.tls: {ca: certs/ca.pem, cert: "certs/{id}.pem", key: "c
 makes (in the folder of ``zenoh.tls.cert``, or ``--out DIR``) a CA (``ca.pem``, ``ca.key``; an
 existing CA there is reused) and, for the launcher identity and every node, ``<id>.pem`` and
 ``<id>.key`` with the common name ``<graph>:<id>`` that the graph's access control matches
-(``graph.access_control``). Keys are EC P-256, mode 0600. Every certificate is both a server and
+(``zenoh_session.access_control``). Keys are EC P-256, mode 0600. Every certificate is both a server and
 a client certificate (every member listens and connects). ``--host`` adds subject alternative
 names (addresses or DNS names), needed only with ``zenoh.tls.verify_name: true``.
 
@@ -27,12 +27,8 @@ from pathlib import Path
 from typing import Iterable, Optional
 
 from common.errors import NeedletrackError
-from common.runtime.graph import (
-    LAUNCHER_IDENTITY,
-    GraphError,
-    identity_name,
-    load_graph,
-)
+from common.runtime.graph import LAUNCHER_IDENTITY, GraphError, load_graph
+from common.runtime.zenoh_session import identity_name
 
 DEFAULT_DAYS = 30
 

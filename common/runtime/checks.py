@@ -235,3 +235,19 @@ def _finite_array(where: str, value, shape) -> np.ndarray:
     if not np.isfinite(a).all():
         raise MessageError(f"{where}: not finite")
     return a
+
+
+# The checks a message passes before a node publishes it, by message type: the counter a failure
+# adds to and ``check(msg, pose_volume_m)`` -> the violation or None. The generic runtime knows
+# no message type; a type added here is checked at every node's ``publish``.
+PUBLISH_CHECKS = {"PoseEstimate": ("invalid_pose", pose_invariant_error)}
+
+
+def publish_check_error(msg, pose_volume_m: Optional[float]) -> Optional[tuple]:
+    """``(counter, violation)`` if ``msg`` fails its type's check before publishing
+    (``PUBLISH_CHECKS``), else None."""
+    entry = PUBLISH_CHECKS.get(type(msg).__name__)
+    if entry is None:
+        return None
+    err = entry[1](msg, pose_volume_m)
+    return None if err is None else (entry[0], err)

@@ -9,7 +9,7 @@ id, common name ``<graph>:<id>``, as ``needletrack certs`` makes), in a run dire
         ca.pem  launcher.pem  launcher.key  <node>.pem  <node>.key  owner.json
 
 The graph then runs over mutual TLS on its loopback endpoints (``tcp/`` becomes ``tls/``) with
-the access control of ``graph.access_control``: only the graph's own nodes and the operator
+the access control of ``zenoh_session.access_control``: only the graph's own nodes and the operator
 (the launcher and the CLI tools of the same user, which find the directory by the graph's name
 and first listen endpoint) may publish, command, swap or hand over. Another user cannot read the
 directory; a process without the files cannot complete a TLS handshake with any member. The CA
@@ -29,7 +29,8 @@ import time
 from pathlib import Path
 from typing import Optional
 
-from common.runtime.graph import DEFAULT_ENDPOINT, LAUNCHER_IDENTITY, Graph, GraphError, TlsSettings, identity_name
+from common.runtime.graph import DEFAULT_ENDPOINT, LAUNCHER_IDENTITY, Graph, GraphError, TlsSettings
+from common.runtime.zenoh_session import identity_name
 
 OWNER_FILE = "owner.json"
 

@@ -58,7 +58,8 @@ def _type_name(tp) -> str:
 def describe(module: str) -> dict:
     """``{"module", "summary", "inputs": [(name, type)], "outputs": [...], "params": [(name,
     type, default, doc)]}`` of ``nodes/<module>.py``."""
-    cls = importlib.import_module(f"nodes.{module}").NODE
+    from common.runtime.node import node_class
+    cls = node_class(module)
     doc = inspect.getdoc(importlib.import_module(f"nodes.{module}")) or inspect.getdoc(cls) or ""
     summary = doc.split("\n\n")[0].replace("\n", " ").strip()
     schema = cls.param_schema({}) if hasattr(cls, "param_schema") else getattr(cls, "Params", None)

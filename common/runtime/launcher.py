@@ -16,7 +16,7 @@
 - It answers queries on ``<graph>/@launcher/status`` (its processes) and
   ``<graph>/@launcher/swap`` (hot swap, make-before-break; see ``Launcher.swap``). With
   ``zenoh.tls`` every link is mutual TLS and access control lets only the launcher identity
-  (launchers, CLI tools) send swaps, handovers and commands (``graph.access_control``); a
+  (launchers, CLI tools) send swaps, handovers and commands (``zenoh_session.access_control``); a
   listen endpoint beyond loopback without TLS is warned about.
 - A graph without ``zenoh.tls`` runs on per-run credentials (``common.runtime.credentials``):
   a CA and a certificate per member made at start in a 0700 directory of this user's, removed
@@ -46,7 +46,7 @@ import threading
 import time
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Iterable, Optional
+from typing import Optional
 
 from common.runtime.graph import (
     LAUNCHER_IDENTITY,
@@ -54,21 +54,16 @@ from common.runtime.graph import (
     Graph,
     GraphError,
     NodeSpec,
-    close_session,
-    ctl_key,
-    graph_from_dict,
-    graph_warnings,
     launcher_key,
     stats_key,
-    tls_file_errors,
-    zenoh_config,
 )
+from common.runtime.graph_checks import graph_warnings
+from common.runtime.zenoh_session import close_session, tls_file_errors, zenoh_config
 from common.runtime.node import graph_param_errors
+from common.runtime.swap import LauncherSwap
 
 STOP_GRACE_S = 5.0
 BACKOFF_MIN_S, BACKOFF_MAX_S, BACKOFF_RESET_S = 0.5, 10.0, 10.0
-SWAP_READY_TIMEOUT_S = 120.0
-SWAP_WARM_TIMEOUT_S = 5.0
 SPARE_AFTER_S = 5.0             # a node's spare is started once its process has run this long
 
 
@@ -128,7 +123,7 @@ class Slot:
     spare: Optional[Proc] = None    # a warm spare process (``spare: true``): set up, idle
 
 
-class Launcher:
+class Launcher(LauncherSwap):
     def __init__(self, graph: Graph, only: Optional[list] = None, out=None, run_dir: Optional[str] = None,
                  stop_on_config_error: bool = True):
         self.graph = graph
@@ -289,156 +284,6 @@ class Launcher:
                              "uptime_s": round(time.monotonic() - p.started, 1) if p else None})
         query.reply(query.key_expr, json.dumps({"graph": self.graph.name, "launcher_pid": os.getpid(),
                                                 "nodes": rows}).encode())
-
-    def _q_swap(self, query) -> None:
-        self._swaps.put(query)   # answered from the swap thread: never block a Zenoh callback
-
-    # ---------------------------------------------------------------- swap
-    def _ctl(self, node_id: str, proc: Proc, op: str, payload: Optional[dict] = None, timeout: float = 2.0):
-        """A control query to one process; handover and takeover carry its token."""
-        kw = {"timeout": timeout}
-        if op in ("handover", "takeover"):
-            payload = {**(payload or {}), "token": proc.token}
-        if payload is not None:
-            kw["payload"] = json.dumps(payload).encode()
-        for reply in self.session.get(ctl_key(self.graph.name, node_id, proc.pid, op), **kw):
-            if reply.ok is not None:
-                return json.loads(reply.ok.payload.to_bytes().decode())
-        return None
-
-    def _covers(self, node_id: str, old: Optional[Proc], status: dict) -> bool:
-        """Whether the standby process holds outputs from the frame after the old process's last
-        output on: a lagging old process (a slow backend) may not have reached the standby's
-        first frame yet, and handing over then would lose the frames in between."""
-        first = status.get("held_first") or {}
-        if old is None or old.popen.poll() is not None or not first:
-            return True
-        ans = self._ctl(node_id, old, "status", timeout=0.5) or {}
-        last = ans.get("last_seq") or {}
-        return all(out not in last or last[out] + 1 >= seq for out, seq in first.items())
-
-    def swap(self, node_id: str, module: Optional[str] = None, params: Optional[dict] = None,
-             unset: Iterable[str] = ()) -> dict:
-        """Replace a running node by a new process (another module and/or params), make-before-break.
-        ``params`` are set over the node's own, then the names in ``unset`` are removed; the new
-        spec is checked like a launched graph's (its params against the node's ``Params``).
-
-        1. the new process starts in standby: it runs its handlers but holds its outputs;
-        2. once it is up and has produced an output, and its held outputs reach back to the frame
-           after the old process's last output (or ``SWAP_WARM_TIMEOUT_S`` passed), the old
-           process is told to hand over: it stops publishing at once and answers, per output, the
-           sequence number after the last one it published (the cut);
-        3. the new process publishes its held outputs with seq >= cut and goes live, dropping any
-           later output with seq < cut; so no frame seq is published by both;
-        4. the old process is stopped. Returns a summary; raises ValueError/RuntimeError.
-        """
-        with self._lock:
-            slot = self.slots.get(node_id)
-            if slot is None:
-                raise ValueError(f"no node {node_id!r} in this launcher (nodes: {', '.join(self.slots)})")
-            old = slot.proc
-            new_spec = NodeSpec(**{**slot.spec.__dict__})
-            new_spec.params = {k: v for k, v in {**slot.spec.params, **(params or {})}.items() if k not in set(unset)}
-            if module:
-                new_spec.module, new_spec.command = module, None
-            data = self.graph.to_dict()
-            data["nodes"] = [new_spec.to_dict() if n["id"] == node_id else n for n in data["nodes"]]
-            new_graph = graph_from_dict(data)       # raises GraphError with every problem
-            index = [n.id for n in new_graph.nodes].index(node_id)
-            errors = [e for e in graph_param_errors(new_graph) if e.startswith(f"nodes[{index}].")]
-            if errors:
-                raise GraphError(errors, f"swap {node_id}")
-            # a node process reads its spec from the graph file: a refused swap must restore it,
-            # or a later restart of the old node would run the refused spec
-            old_graph, old_graph_file = self.graph, self.graph_file
-            self.graph = new_graph
-            self.graph_file = self._write_graph()
-            new_spec = new_graph.node(node_id)
-            t0 = time.monotonic()
-            new = self._spawn(new_spec, restarts=slot.restarts, standby=True)
-            self._swapping.add(node_id)
-        handed = None
-        self.say(f"swap {node_id}: standby pid {new.pid} ({new_spec.module}, params {new_spec.params})")
-        try:
-            status = None
-            deadline = time.monotonic() + SWAP_READY_TIMEOUT_S
-            warm_deadline = None
-            while time.monotonic() < deadline:
-                if new.popen.poll() is not None:
-                    raise RuntimeError(f"new {node_id} process exited with {describe_status(new.popen.returncode)} "
-                                       f"before taking over")
-                if new_spec.module:
-                    status = self._ctl(node_id, new, "status", timeout=0.5)
-                    if status and status.get("ready"):
-                        if not new_spec.outputs or (status.get("produced") and self._covers(node_id, old, status)):
-                            break
-                        warm_deadline = warm_deadline or time.monotonic() + SWAP_WARM_TIMEOUT_S
-                        if time.monotonic() > warm_deadline:
-                            break
-                elif time.monotonic() - t0 > 2.0:    # a command node: no handover protocol
-                    break
-                time.sleep(0.05)
-            else:
-                raise RuntimeError(f"new {node_id} process not ready after {SWAP_READY_TIMEOUT_S:.0f} s")
-            ready_s = time.monotonic() - t0
-            cuts = {}
-            if old is not None and old.popen.poll() is None:
-                handed = self._ctl(node_id, old, "handover")
-                if handed is not None and handed.get("ok") is False:
-                    raise RuntimeError(f"{node_id} (pid {old.pid}) refused the handover: {handed.get('error')}")
-                cuts = (handed or {}).get("cuts", {})
-            taken = self._ctl(node_id, new, "takeover", {"cuts": cuts}) if new_spec.module else {}
-            if new_spec.module and not (taken or {}).get("ok"):
-                raise RuntimeError(f"new {node_id} process did not take over: {taken}")
-        except Exception:
-            self._terminate([new], grace=2.0)
-            if handed is not None and old is not None and old.popen.poll() is None:
-                self._ctl(node_id, old, "takeover", {"cuts": {}})     # the old one goes on publishing
-            with self._lock:
-                self.graph, self.graph_file = old_graph, old_graph_file
-                self._swapping.discard(node_id)
-            raise
-        with self._lock:
-            new.role = "active"
-            slot.spec, slot.proc = new_spec, new
-            slot.done, slot.restart_at = False, None
-            if old is not None:
-                old.role = "retired"
-                self._retired.append(old)
-            if slot.spare is not None:             # set up with the old spec: a new one follows
-                old_spare, slot.spare = slot.spare, None
-                self._retired.append(old_spare)
-                threading.Thread(target=self._terminate, args=([old_spare], 2.0), daemon=True).start()
-            self._swapping.discard(node_id)
-        if old is not None:
-            threading.Thread(target=self._terminate, args=([old],), daemon=True).start()
-        summary = {"ok": True, "node": node_id, "module": new_spec.module, "params": new_spec.params,
-                   "old_pid": old.pid if old else None, "new_pid": new.pid, "cuts": cuts,
-                   "flushed": (taken or {}).get("flushed", 0), "ready_s": round(ready_s, 3)}
-        self.say(f"swap {node_id}: pid {summary['old_pid']} -> {new.pid} at cuts {cuts} "
-                 f"(ready in {ready_s:.2f} s)")
-        return summary
-
-    def _swap_loop(self) -> None:
-        while not self._stop.is_set():
-            try:
-                query = self._swaps.get(timeout=0.2)
-            except queue.Empty:
-                continue
-            try:
-                req = json.loads(query.payload.to_bytes().decode()) if query.payload else {}
-                ans = self.swap(req["node"], req.get("module"), req.get("params") or {}, req.get("unset") or ())
-            except GraphError as exc:
-                ans = {"ok": False, "error": "the swapped graph is invalid", "errors": exc.errors}
-            except Exception as exc:
-                ans = {"ok": False, "error": f"{type(exc).__name__}: {exc}"}
-            if not ans.get("ok"):
-                self.say(f"swap failed: {ans.get('error')} {ans.get('errors', '')}")
-            try:
-                query.reply(query.key_expr, json.dumps(ans).encode())
-            except Exception as exc:
-                self.say(f"swap reply not sent: {exc}")
-            del query
 
     # ---------------------------------------------------------------- supervision
     def start(self) -> None:

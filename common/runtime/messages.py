@@ -172,7 +172,8 @@ class Keypoints(Message):
     stereo fit should take it (px; errors the two cameras' detections share included; absent:
     the consumer's default). ``end_identity`` optionally states the probability that A is the
     needle's tip as said (0.5: the image cannot tell the tip from the tail; absent: A is taken as
-    said).
+    said). ``unfamiliarity`` optionally states how unlike the detector's training looks the
+    image is (about 1: familiar; larger: less so; ``common.detector.familiarity``).
     """
 
     SCHEMA = "needletrack.Keypoints"
@@ -186,7 +187,8 @@ class Keypoints(Message):
               "on_arc": ("array", (5,), "optional"),
               "centreline_corr_points": ("float", "optional"),
               "keypoint_sigma_px": ("float", "optional"),
-              "end_identity": ("float", "optional"), "epoch": ("int", "optional")}
+              "end_identity": ("float", "optional"), "unfamiliarity": ("float", "optional"),
+              "epoch": ("int", "optional")}
     camera: str
     seq: int
     stamp_ns: int
@@ -205,6 +207,7 @@ class Keypoints(Message):
     keypoint_sigma_px: Optional[float] = None
     end_identity: Optional[float] = None
     epoch: Optional[int] = None
+    unfamiliarity: Optional[float] = None
 
     def validate(self):
         s = self.centreline_sigma_px
@@ -219,6 +222,9 @@ class Keypoints(Message):
         e = self.end_identity
         if e is not None and not (0.0 <= e <= 1.0):
             raise MessageError(f"Keypoints.end_identity: must be a probability in [0, 1], got {e}")
+        f = self.unfamiliarity
+        if f is not None and not (np.isfinite(f) and f >= 0):
+            raise MessageError(f"Keypoints.unfamiliarity: must be a finite number >= 0, got {f}")
 
     @classmethod
     def not_found(cls, camera: str, seq: int, stamp_ns: int, detector: str, reason: str,

@@ -56,7 +56,7 @@ def open_session(graph, wait_s: float = 2.0):
     import zenoh
 
     from common.runtime.credentials import CredentialsError
-    from common.runtime.graph import zenoh_config
+    from common.runtime.zenoh_session import zenoh_config
     try:
         cfg = zenoh_config(graph, role="node")     # as the launcher identity, on the run's credentials
     except CredentialsError as exc:                # not running for this user: say so, exit 1
@@ -90,7 +90,7 @@ def validate_main(argv: list) -> int:
             print(f"{path}: {len(errors)} error(s):\n" + "\n".join(f"  {e}" for e in errors), file=sys.stderr)
             rc = 2
             continue
-        from common.runtime.graph import graph_warnings
+        from common.runtime.graph_checks import graph_warnings
         for w in graph_warnings(g):
             print(f"{path}: WARNING {w}", file=sys.stderr)
         print(f"{path}: ok: graph {g.name!r}, {len(g.nodes)} nodes ({', '.join(g.ids())})"

@@ -11,6 +11,13 @@ Presets (``PRESETS``):
   yellowish; flat-lit scenes in a third of the frames; tip tapers from short to long and blunter
   or thicker tails; the thread cut short or tissue-coloured in a third of the frames.
 
+Two look families no training stage renders (``FAMILIES``), for measuring how the detector and
+its stated end identity generalise:
+- ``silicone``: ``test`` on a silicone suture pad: mint green, teal or blue; the
+  held-out family of the first renderer (kept out of training and of every fit).
+- ``liver``: ``train`` on dark, glossy brown tissue under a warm light; the end identity's
+  calibration family (fitted on, never trained on, never reported as held out).
+
 Image rotation (the paper's other augmentation) changes the camera model, so it is not baked
 into data that claims a pinhole ``K``; trainers apply ``rotate_with_keypoints`` on the fly.
 """
@@ -71,6 +78,7 @@ class Preset:
     contrast: float               # +- relative contrast
     p_shadows: float = 0.0        # probability of cast shadows (they make a frame ~3x slower to render)
     looks: bool = False           # the ``wide`` looks (drawn after the others: other presets keep their draws)
+    family: str = ""              # a look family of FAMILIES (drawn last)
 
 
 PRESETS = {
@@ -79,6 +87,16 @@ PRESETS = {
     "train": Preset("train", 1.0, True, 0.35, 0.25, 0.8, 0.09, (0, 5.0), (0, 1.2), (55, 100), 0.3, 0.3, 0.25),
 }
 PRESETS["wide"] = replace(PRESETS["train"], name="wide", looks=True)
+PRESETS["silicone"] = replace(PRESETS["test"], name="silicone", family="silicone")
+PRESETS["liver"] = replace(PRESETS["train"], name="liver", family="liver")
+
+FAMILIES = {
+    # tissue colours (RGB 0..1) and the light's colour of each family outside training
+    "silicone": {"tissue": ((0.55, 0.80, 0.62), (0.30, 0.60, 0.58), (0.30, 0.42, 0.68)),
+                 "light": (1.0, 0.97, 0.92), "specular": (0.2, 0.5)},
+    "liver": {"tissue": ((0.30, 0.14, 0.08), (0.40, 0.20, 0.10), (0.25, 0.15, 0.12)),
+              "light": (1.0, 0.84, 0.62), "specular": (0.6, 0.9)},
+}
 
 # tissue colours of the ``wide`` preset (RGB 0..1): pale pink, salmon, red, dark red, magenta,
 # purple, yellowish (fat), tan
@@ -124,7 +142,19 @@ def sample_appearance(rng: np.random.Generator, preset: Preset) -> Appearance:
         ambient=jit(0.12, 0.08, 0.02, 0.3),
         shadows=shadows,
     )
-    return sample_looks(rng, a) if preset.looks else a
+    a = sample_looks(rng, a) if preset.looks else a
+    return sample_family(rng, a, preset.family) if preset.family else a
+
+
+def sample_family(rng: np.random.Generator, a: Appearance, family: str) -> Appearance:
+    """A look family's tissue and light on top of an appearance (``FAMILIES``)."""
+    f = FAMILIES[family]
+    i, k = rng.integers(len(f["tissue"]), size=2)
+    tissue = np.asarray(f["tissue"][i]) + rng.uniform(0, 0.5) * (np.asarray(f["tissue"][k]) - f["tissue"][i])
+    light = np.asarray(f["light"]) * rng.uniform(0.95, 1.0, 3)
+    return replace(a, tissue_rgb=tuple(np.clip(tissue * rng.uniform(0.9, 1.08) + rng.normal(0, 0.02, 3), 0.05, 1.0)),
+                   light_rgb=tuple(np.clip(light, 0.0, 1.0)),
+                   tissue_specular=float(rng.uniform(*f["specular"])))
 
 
 def sample_looks(rng: np.random.Generator, a: Appearance) -> Appearance:
