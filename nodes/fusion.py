@@ -7,7 +7,8 @@ inputs' shared model error (``model_sigma_m``, ``model_sigma_rad``) taken out be
 added back once; ``ambiguous`` when every averaged estimate was; ``end_identity`` voted by the
 estimates, those turned end for end counting against it, a contested tip below 0.95 flagged
 (``end_identity.contested``). ``truth`` is used only for its ``sequence`` label (a new multi-view
-group resets the queue). Command ``reset`` empties the queue. Params: ``needletrack describe
+group resets the queue) and ``needle_at_rest``: a frame of a take whose needle moves is no
+multi-view group, its estimate passes alone (``resets.moving_needle``). Command ``reset`` empties the queue. Params: ``needletrack describe
 fusion`` ([docs/nodes.md](../docs/nodes.md)).
 """
 from __future__ import annotations
@@ -52,12 +53,14 @@ class FusionNode(Node):
         self.reset_on_sequence = p.reset_on_sequence
         self.ecm_poses = SeqCache()
         self.sequences = SeqCache()
+        self.moving = SeqCache()                              # seqs whose needle moves in its take
         self.pending = SeqJoin(p.max_wait, in_order=True)    # views waiting for their ECM pose / truth
 
     def on_stream_reset(self):
         """A new source stream: the window of views and every per-frame cache start again."""
         self.ecm_poses.clear()
         self.sequences.clear()
+        self.moving.clear()
         gone = self.pending.reset()
         if gone:
             self.count("no_pose.source_restart", len(gone))
@@ -70,6 +73,8 @@ class FusionNode(Node):
 
     def on_truth(self, msg: GroundTruth):
         self.sequences.put(msg.seq, msg.sequence)
+        if msg.multiview_group is None and msg.sequence is not None:
+            self.moving.put(msg.seq, True)
         self._drain()
 
     def on_pose(self, msg: PoseEstimate):
@@ -108,6 +113,9 @@ class FusionNode(Node):
         sequence = msg.sequence
         if sequence is None and self.reset_on_sequence:
             sequence = self.sequences.get(msg.seq)
+        if self.reset_on_sequence and self.moving.get(msg.seq):
+            self.fusion.reset()                               # a moving needle: no views to fuse
+            self.count("resets.moving_needle")
         out = self.fusion.add(msg.T_ecm_needle, T_world_ecm, msg.covariance, seq=msg.seq,
                               sequence=sequence if self.reset_on_sequence else None,
                               common_sigma_m=msg.model_sigma_m or 0.0, ambiguous=bool(msg.ambiguous),

@@ -3,7 +3,8 @@
 Outputs as ``sim``: ``left``/``right`` (``CameraImage`` carrying the PNG/JPEG file bytes as
 they are, ``seq`` = frame index, plus ``loop * frames`` when looping), ``joints`` (when the
 folder has ``ecm_joints``), ``measured`` (``EcmPose`` of a frame with ``T_world_ecm`` but no
-joints, e.g. a converted bag: wire it to the ``ecm`` node's ``measured`` input), ``truth`` (when it has any ground truth), ``calib`` (before the first
+joints, e.g. a converted bag: wire it to the ``ecm`` node's ``measured`` input), ``truth`` (when it has any ground truth),
+``instruments`` (``InstrumentState`` per instrument of a frame that lists ``instruments``), ``calib`` (before the first
 frame, then once a second), and ``eos`` (``EndOfStream``) after the last frame when not looping.
 ``stamp_ns`` is the wall-clock time of publishing (the recorded stamps set the pace).
 
@@ -39,6 +40,7 @@ from common.runtime.messages import (
     EcmPose,
     EndOfStream,
     GroundTruth,
+    InstrumentState,
 )
 from common.runtime.node import NodeError, Prepared, run
 from common.runtime.pacing import PACED, AckWindow, SourceClock, parse_rate, sleep_in_slices
@@ -50,7 +52,7 @@ MAX_DECODED_BYTES = 8 << 30   # decode=true holds every image in memory: refuse 
 class ReplayNode(CameraSourceNode):
     """Dataset folder source."""
 
-    OUTPUTS = ("left", "right", "joints", "measured", "truth", "calib", "eos")
+    OUTPUTS = ("left", "right", "joints", "measured", "truth", "instruments", "calib", "eos")
     INPUTS = {"ack": None, "ack2": None}     # any message with a ``seq`` (``rate: paced``)
     FEEDBACK = ("ack", "ack2")               # acknowledgements from downstream: a declared cycle
     KEEP_ALL = ACKS
@@ -197,6 +199,8 @@ class ReplayNode(CameraSourceNode):
         truth = GroundTruth.from_frame(fr, seq, stamp)
         if truth is not None:
             self.publish("truth", truth)
+        for name, pose in (fr.instruments or {}).items():
+            self.publish("instruments", InstrumentState.from_pose(name, pose, seq, stamp))
         self.published_frames += 1
         if self.rate == PACED:
             self.acks.sent(seq)

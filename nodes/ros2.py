@@ -5,7 +5,7 @@ zenoh-bridge-ros2dds, ``tcp/127.0.0.1:7447`` by default), to the topics of a top
 (presets ``ambf``/``dvrk``, ``topics``; docs/ros.md), by bridge keys or rmw_zenoh keys
 (``keys``), decodes the CDR samples with ``rosbags``, pairs the stereo images by header stamp
 and publishes as ``rosbag`` does (``common/ros/source.py``): ``left``/``right``, ``measured``,
-``truth``, ``calib``. ``seq`` counts the stereo pairs; ``stamp_ns`` is the images' header stamp.
+``truth``, ``instruments`` (``InstrumentState`` of each arm whose pose and jaw topics speak), ``calib``. ``seq`` counts the stereo pairs; ``stamp_ns`` is the images' header stamp.
 
 params: ``preset``, ``topics`` (file or mapping), ``rig`` (the dVRK preset's ``{rig}``, e.g.
 ``jhu_daVinci``), ``keys`` (bridge | rmw_zenoh), ``distro`` (humble | jazzy | kilted | rolling:
@@ -40,7 +40,8 @@ from common.runtime.node import NodeError, run
 
 DEFAULT_TYPES = {"camera_info": "sensor_msgs/msg/CameraInfo", "ecm_joints": "sensor_msgs/msg/JointState",
                  "ecm_pose": "geometry_msgs/msg/PoseStamped", "camera_frame": "ambf_msgs/msg/RigidBodyState",
-                 "camera_state": "ambf_msgs/msg/CameraState"}
+                 "camera_state": "ambf_msgs/msg/CameraState", "instrument_pose": "geometry_msgs/msg/PoseStamped",
+                 "instrument_jaw": "sensor_msgs/msg/JointState", "instrument_base": "ambf_msgs/msg/RigidBodyState"}
 
 
 def open_session(connect: list, mode: str = "peer"):
@@ -67,7 +68,7 @@ def role_type(role: str, topic: str, m: dict) -> str:
 class Ros2Node(CameraSourceNode):
     """Live ROS 2 (over Zenoh) camera source."""
 
-    OUTPUTS = ("left", "right", "measured", "truth", "calib")
+    OUTPUTS = ("left", "right", "measured", "truth", "instruments", "calib")
 
     @dataclass
     class Params:
@@ -89,6 +90,7 @@ class Ros2Node(CameraSourceNode):
 
     def setup(self):
         from common.ros.bag import StereoAssembler
+        from common.ros.instruments import instrument_topics
         from common.ros.live import topic_key
         from common.ros.source import SamplePublisher, topics_param
         from common.ros.topicmap import (
@@ -121,6 +123,8 @@ class Ros2Node(CameraSourceNode):
         for role in ("ecm_joints", "ecm_pose", "needle_pose", "camera_frame"):
             for t in candidates(m.get(role)):
                 roles[t] = (role, None)
+        for t, role, arm in instrument_topics(m):
+            roles[t] = (role, arm)
         self.map = m
         via = f"dds domain {p.domain_id}" if p.transport == "dds" else p.keys
         self.asm = StereoAssembler(m, f"ros2 ({via})", roles, report=self._refused)

@@ -9,7 +9,9 @@ as a capture card, or ``jpeg``/``png``; ``seq`` = the stereo frame's index in th
 ``loop * frames`` when looping; ``stamp_ns`` the image header stamp), ``measured`` (``EcmPose``
 with the bag's ``T_world_ecm`` and joints: wire it to the ``ecm`` node's ``measured`` input),
 ``truth`` (``GroundTruth`` when the bag has the needle's pose: keypoints projected through the
-rig, ``sequence``/``step`` from the needle at rest), ``calib`` (from the first pair, then once a
+rig, ``sequence``/``step`` from the needle at rest), ``instruments`` (``InstrumentState`` per
+arm of the topic map whose pose and jaw the bag has: ``/PSM1/measured_cp`` and
+``/PSM1/jaw/measured_js`` in the dvrk preset), ``calib`` (from the first pair, then once a
 second, and at once when the bag's camera_info changes), ``eos`` after the last pair when not
 looping.
 
@@ -41,7 +43,7 @@ from common.runtime.pacing import SourceClock, parse_rate, sleep_in_slices
 class RosbagNode(CameraSourceNode):
     """ROS bag source."""
 
-    OUTPUTS = ("left", "right", "measured", "truth", "calib", "eos")
+    OUTPUTS = ("left", "right", "measured", "truth", "instruments", "calib", "eos")
 
     @dataclass
     class Params:

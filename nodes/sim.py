@@ -2,18 +2,24 @@
 
 Outputs: ``left``/``right`` (``CameraImage``, sharing ``seq``), ``joints`` (``EcmJoints``),
 ``truth`` (``GroundTruth``: poses, keypoints, visibility, boxes; ``sequence``/``step`` of the
-multi-view protocol), ``calib`` (``Calibration``: before the first frame, then once a second).
+multi-view protocol; ``needle_at_rest`` false in a take whose needle moves), ``instruments``
+(``InstrumentState``, one per instrument and frame: ``psm1``, ``psm2``, their jaw frames,
+openings and, in a take of an instrument motion, ``holds_needle``), ``calib`` (``Calibration``:
+before the first frame, then once a second).
 ``stamp_ns`` is the wall-clock time of the frame.
 
 params: ``width``/``height`` (1920x1080), ``rate_hz`` (30; a maximum: rendering 1080p on the CPU
 is slower; 0 = as fast as possible), ``randomise`` (none|test|train, default test), ``seed`` (0),
-``motion`` (static|multiview|sweep, default sweep), ``steps`` (5) and ``hold_frames`` (15) of the
+``motion`` (static|multiview|sweep: the endoscope moves, the needle rests; pickup|handover|throw|suture:
+the instruments move the needle, one take after another, docs/datasets.md; default sweep),
+``steps`` (5) and ``hold_frames`` (15) of the
 multi-view protocol, ``sweep_period_s`` (8), ``sweep_amplitude_rad`` (0.06), ``msaa`` (anti-aliasing
 samples, 4; 0 renders ~2.5x faster), ``encoding``
 (jpeg|png|bgr8, default jpeg), ``jpeg_quality`` (95), ``count`` (stop after this many frames;
 0 = never).
 
-Commands: ``place_needle`` (args: optional ``seed`` int, or ``T_world_needle`` 4x4), ``set_motion``
+Commands: ``place_needle`` (args: optional ``seed`` int, or ``T_world_needle`` 4x4: that needle
+stays at rest, whatever the motion, until the next ``place_needle`` without one), ``set_motion``
 (args: ``motion``).
 """
 import time
@@ -29,6 +35,7 @@ from common.runtime.messages import (
     Command,
     EcmJoints,
     GroundTruth,
+    InstrumentState,
     rigid_error,
 )
 from common.runtime.node import NodeError, run
@@ -38,7 +45,7 @@ from common.runtime.pacing import Pacer
 class SimNode(CameraSourceNode):
     """Live simulator source."""
 
-    OUTPUTS = ("left", "right", "joints", "truth", "calib")
+    OUTPUTS = ("left", "right", "joints", "truth", "instruments", "calib")
 
     @dataclass
     class Params:
@@ -93,6 +100,8 @@ class SimNode(CameraSourceNode):
                                                    self.jpeg_quality))
         self.publish("joints", EcmJoints(self.seq, stamp, np.asarray(fr.q, float)))
         self.publish("truth", GroundTruth.from_frame(fr, self.seq, stamp))
+        for name, pose in (fr.instruments or {}).items():
+            self.publish("instruments", InstrumentState.from_pose(name, pose, self.seq, stamp))
         self.seq += 1
         self._publish_calib()
         return True

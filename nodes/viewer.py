@@ -1,12 +1,14 @@
 """Viewer: the tracker live in a browser. A fan-out consumer: any number of them,
 never slowing the pipeline: the images (the only large inputs) are newest-only, so a slow
-viewer drops frames; the small messages (poses, keypoints, truth, ECM poses, calibration) queue,
+viewer drops frames; the small messages (poses, keypoints, truth, ECM poses, instruments,
+calibration) queue,
 each handled in microseconds, so that every pose counts in the rates and finds its truth.
 
 Two outputs, both on loopback:
 
 - its own page (``common.viewer.page``), ``viewer: http://127.0.0.1:<port>/`` printed at start:
-  the paper's Fig. 1 on both cameras (``common.viewer.draw.draw_fig1``), each method's pose,
+  the paper's Fig. 1 on both cameras (``common.viewer.draw.draw_fig1``; with ``instruments``
+  wired, each instrument's jaw frame and which one holds the needle), each method's pose,
   error, rate and latency, and plots of them;
 - Rerun (when ``rerun-sdk`` is installed, the ``viewer`` extra): the same pictures in the two
   cameras' frusta, every method's needle arc in 3D, the ECM's path, the time series; its web
@@ -30,17 +32,19 @@ from common.frames import CAMERAS
 from common.geometry.camera import StereoRig
 from common.geometry.ecm_kinematics import EcmArm
 from common.geometry.needle import NeedleModel
+from common.geometry.transforms import inv_T
 from common.runtime.messages import (
     Calibration,
     CameraImage,
     EcmPose,
     GroundTruth,
+    InstrumentState,
     Keypoints,
     PoseEstimate,
 )
 from common.runtime.node import Node, NodeError, run
 from common.runtime.pairing import SeqCache
-from common.viewer.draw import PoseToDraw, decode_small
+from common.viewer.draw import InstrumentToDraw, PoseToDraw, decode_small
 from common.viewer.frame import log_frame, pictures
 from common.viewer.page import HttpLimits, PageServer
 from common.viewer.state import ViewerState
@@ -69,7 +73,7 @@ class ViewerNode(PoseMethodInputs, Node):
 
     INPUTS = {"left": CameraImage, "right": CameraImage,
               "keypoints_left": Keypoints, "keypoints_right": Keypoints,
-              "truth": GroundTruth, "calib": Calibration, "ecm": EcmPose,
+              "truth": GroundTruth, "calib": Calibration, "ecm": EcmPose, "instruments": InstrumentState,
               **{m: PoseEstimate for m in POSE_METHODS}}
     OUTPUTS = ()
     KEEP_ALL = tuple(k for k in INPUTS if k not in ("left", "right"))
@@ -107,6 +111,7 @@ class ViewerNode(PoseMethodInputs, Node):
         self.poses = {m: SeqCache(KEEP) for m in POSE_METHODS}
         self.truths = SeqCache(KEEP)
         self.ecm = SeqCache(KEEP)
+        self.instruments = SeqCache(KEEP)           # seq -> {name: InstrumentState}
         self.path = collections.deque(maxlen=PATH_POINTS)
         self.last_sample = {c: -1e9 for c in CAMERAS}
         self.rendered = -1
@@ -209,6 +214,24 @@ class ViewerNode(PoseMethodInputs, Node):
     def on_truth(self, msg: GroundTruth):
         self.truths.put(msg.seq, msg)
 
+    def on_instruments(self, msg: InstrumentState):
+        self.instruments.setdefault(msg.seq, {})[msg.name] = msg
+        self.instruments.move_to_end(msg.seq)
+        while len(self.instruments) > KEEP:
+            self.instruments.popitem(last=False)
+
+    def _instruments_to_draw(self, seq: int) -> list:
+        """The frame's instruments in the ECM frame (its ECM pose from ``ecm`` or the truth)."""
+        T_we = self.ecm.get(seq)
+        gt = self.truths.get(seq)
+        if T_we is None and gt is not None and gt.T_world_ecm is not None:
+            T_we = np.asarray(gt.T_world_ecm, float)
+        if T_we is None:
+            return []
+        T_ew = inv_T(T_we)
+        return [InstrumentToDraw(n, T_ew @ np.asarray(m.T_world_jaw, float), m.holds_needle)
+                for n, m in sorted(self.instruments.get(seq, {}).items())]
+
     def on_ecm(self, msg: EcmPose):
         T = np.asarray(msg.T_world_ecm, float)
         self.ecm.put(msg.seq, T)
@@ -246,7 +269,7 @@ class ViewerNode(PoseMethodInputs, Node):
             kps[cam] = np.asarray(kp.uv, float) if kp is not None and kp.found else None
         images = {cam: self.images[cam][seq][:2] for cam in CAMERAS}
         jpegs = pictures(images, self.rig, self.needle, poses, self.final, kps, T_true, seq,
-                         self.p.jpeg_quality)
+                         self.p.jpeg_quality, self._instruments_to_draw(seq))
         for cam, jpeg in jpegs.items():
             self.page.set_frame(cam, jpeg)
         row = self.state.methods.get(self.final, {})

@@ -234,3 +234,130 @@ def test_torn_tail_is_dropped_on_resume(tmp_path):
     assert len(Dataset(tmp_path)) == 4
     with pytest.raises(DatasetError):
         DatasetWriter(tmp_path, _meta(arm=False), resume=True)
+
+
+# ---------------------------------------------------------------- instruments and moving takes
+
+I4 = np.eye(4).tolist()
+
+
+@pytest.mark.parametrize("inst, expect", [
+    ({"psm1": {"T_world_jaw": [[1, 0, 0, 0]] * 4, "jaw_rad": 0.1}},
+     "frames.jsonl:2: instruments.psm1.T_world_jaw: last row"),
+    ({"psm1": {"jaw_rad": 0.1}}, "frames.jsonl:2: instruments.psm1.T_world_jaw: required field missing"),
+    ({"psm2": {"T_world_jaw": I4}}, "frames.jsonl:2: instruments.psm2.jaw_rad: required field missing"),
+    ({"psm1": {"T_world_jaw": I4, "jaw_rad": -0.2}}, "frames.jsonl:2: instruments.psm1.jaw_rad: must be an opening"),
+    ({"psm1": {"T_world_jaw": I4, "jaw_rad": 0.1, "holds_needle": 1}},
+     "frames.jsonl:2: instruments.psm1.holds_needle: expected true or false"),
+    ({"psm1": [1]}, "frames.jsonl:2: instruments.psm1: expected a map"),
+    ({"": {"T_world_jaw": I4, "jaw_rad": 0.1}}, "frames.jsonl:2: instruments.'': not an instrument name"),
+    ([I4], "frames.jsonl:2: instruments: expected a map"),
+])
+def test_broken_instruments_are_rejected_with_file_line_field(tmp_path, inst, expect):
+    _foreign(tmp_path, [GOOD, {**GOOD, "index": 1, "instruments": inst}])
+    with pytest.raises(DatasetError) as exc:
+        Dataset(tmp_path)
+    assert expect in str(exc.value), str(exc.value)
+
+
+def test_needle_at_rest_must_be_a_bool(tmp_path):
+    _foreign(tmp_path, [GOOD, {**GOOD, "index": 1, "needle_at_rest": "no"}])
+    with pytest.raises(DatasetError, match="frames.jsonl:2: needle_at_rest: expected true or false"):
+        Dataset(tmp_path)
+
+
+def _moving(meta, n=4, slip=0.0, mixed=False):
+    """A take whose needle moves with psm1's jaws (``slip`` m: the needle slides in them at frame 2)."""
+    frames = []
+    T_jn = make_T(rotvec_to_R([0.1, 0.4, -0.2]), [0.0, -0.01, 0.002])
+    for i in range(n):
+        fr = _frame(meta, i, seq=0, step=i)
+        T_wj = fr.T_world_needle @ np.linalg.inv(T_jn) @ make_T(rotvec_to_R([0, 0, 0.05 * i]), [0.001 * i, 0, 0])
+        T_wn = T_wj @ T_jn
+        if i >= 2:
+            T_wn = T_wn @ make_T(np.eye(3), [slip, 0, 0])
+        from common.data.instruments import InstrumentPose
+        fr.T_world_needle = T_wn
+        fr.keypoints = project_keypoints(meta, fr.T_world_ecm, T_wn)
+        fr.visible = {c: np.zeros(5, bool) for c in ("left", "right")}
+        fr.needle_at_rest = True if (mixed and i == 3) else False
+        fr.instruments = {"psm1": InstrumentPose(T_wj, 0.0, True),
+                          "psm2": InstrumentPose(make_T(np.eye(3), [0.02, 0, 0.03]), 0.6, False)}
+        frames.append(fr)
+    return frames
+
+
+def _write_frames(folder, meta, frames):
+    img = np.zeros((H, W, 3), np.uint8)
+    with DatasetWriter(folder, meta) as w:
+        for fr in frames:
+            w.write_images(fr.index, {"left": img, "right": img})
+            w.append(fr)
+
+
+def test_a_moving_take_round_trips_and_is_no_multiview_group(tmp_path):
+    meta = _meta()
+    frames = _moving(meta)
+    _write_frames(tmp_path, meta, frames)
+    ds = Dataset(tmp_path)
+    rep = check_dataset(ds)
+    assert rep.ok, rep.errors
+    fr = ds[2]
+    assert fr.needle_at_rest is False and not fr.at_rest and fr.multiview_group is None
+    assert fr.instruments["psm1"].holds_needle is True and fr.instruments["psm2"].jaw_rad == 0.6
+    assert np.array_equal(fr.instruments["psm1"].T_world_jaw, frames[2].instruments["psm1"].T_world_jaw)
+    assert list(ds.sequences()) == [0] and ds.multiview_groups() == {}
+    rest = Dataset(_write(tmp_path / "rest", 4) and tmp_path / "rest")
+    assert sorted(rest.multiview_groups()) == [0, 1] and rest[0].at_rest and rest[0].multiview_group == 0
+    from common.runtime.messages import GroundTruth
+    assert GroundTruth.from_frame(fr, 2, 3).needle_at_rest is False
+
+
+def test_check_finds_a_needle_that_slips_in_the_jaws_and_a_take_half_at_rest(tmp_path):
+    meta = _meta()
+    _write_frames(tmp_path / "slip", meta, _moving(meta, slip=1e-4))
+    errs = check_dataset(Dataset(tmp_path / "slip")).errors
+    assert len(errs) == 1 and "frames.jsonl:3: instruments.psm1: holds_needle" in errs[0] and "0.1000 mm" in errs[0]
+    _write_frames(tmp_path / "mixed", meta, _moving(meta, mixed=True))
+    errs = check_dataset(Dataset(tmp_path / "mixed")).errors
+    assert any("frames.jsonl:4: needle_at_rest: True in sequence 0" in e for e in errs), errs
+    # a needle that moves in a sequence not marked moving is still an error
+    frames = _moving(meta)
+    for fr in frames:
+        fr.needle_at_rest = None
+    _write_frames(tmp_path / "unmarked", meta, frames)
+    errs = check_dataset(Dataset(tmp_path / "unmarked")).errors
+    assert errs and "the needle must be at rest" in errs[0]
+
+
+def _doc_fields(text: str, heading: str) -> set:
+    """The first column of the tables under ``heading`` in docs/dataset.md (up to the next ##)."""
+    part = text.split(heading, 1)[1].split("\n## ", 1)[0]
+    cells = [ln.split("|")[1] for ln in part.splitlines() if ln.startswith("| `")]
+    return {name for cell in cells for name in cell.split("`")[1::2]}
+
+
+def test_the_docs_page_is_the_spec_and_lists_what_the_reader_parses():
+    from pathlib import Path
+
+    from common.data.dataset import _FRAME_FIELDS
+    root = Path(__file__).resolve().parents[1]
+    text = (root / "docs" / "dataset.md").read_text()
+    shared = root.parent / "shared" / "specs" / "dataset.md"            # the project's contract, beside main
+    for spec in (shared, Path("/work/shared/specs/dataset.md")):
+        if spec.is_file():
+            assert spec.read_text() == text, f"docs/dataset.md differs from {spec}"
+    fields = _doc_fields(text, "## frames.jsonl")
+    assert {"instruments", "needle_at_rest", "T_world_jaw", "jaw_rad", "holds_needle"} <= fields
+    assert fields - {"T_world_jaw", "jaw_rad", "holds_needle"} == _FRAME_FIELDS
+
+
+def test_a_generation_of_takes_of_their_own_lengths_resumes_after_the_last_whole_take(tmp_path):
+    from common.data.dataset import resume_generation
+    cfg = {"motion": "throw", "seed": 1}
+    assert resume_generation(str(tmp_path), "gen.json", cfg, 3, 1, "gen", lengths=[3, 5, 2]) == (False, 0)
+    lines = [json.dumps({**GOOD, "index": i, "sequence": s, "step": k})
+             for i, (s, k) in enumerate([(0, 0), (0, 1), (0, 2), (1, 0), (1, 1)])]
+    (tmp_path / "frames.jsonl").write_text("\n".join(lines) + "\n" + '{"index": 5, "sta')   # torn in take 1
+    assert resume_generation(str(tmp_path), "gen.json", cfg, 3, 1, "gen", lengths=[3, 5, 2]) == (True, 1)
+    assert len((tmp_path / "frames.jsonl").read_text().splitlines()) == 3

@@ -1,5 +1,6 @@
 """Evaluation library on synthetic messages: known errors in, the same errors out."""
 import json
+from dataclasses import replace
 
 import numpy as np
 import pytest
@@ -224,6 +225,8 @@ def test_last_steps_and_overlay_choice():
     col = synthetic(n_seq=3, steps=4, drop={("pnp_joint", 6)})
     truths = col.truths
     assert last_steps(truths) == [3, 7, 11]
+    moving = {s: replace(gt, needle_at_rest=False) if gt.sequence == 1 else gt for s, gt in truths.items()}
+    assert last_steps(moving) == [3, 4, 5, 6, 7, 11]       # a moving take: every frame a view of its own
     ev = evaluate(col)
     chosen = dict(select_overlay_frames(ev))
     assert chosen[6] == "nopose_pnp_joint"

@@ -270,6 +270,19 @@ def test_fusion_node_maps_views_through_the_ecm_and_resets_on_sequence():
     assert len(node.fusion) == 0
 
 
+def test_fusion_node_does_not_fuse_the_frames_of_a_moving_take():
+    rng = np.random.default_rng(4)
+    T_wn, T_we, T_en = multiview_scenario(rng, RIG, MODEL, ARM)
+    node = FusionNode.offline({}, wired=["pose", "ecm", "truth"])
+    for s, (T_w, T_e) in enumerate(zip(T_we, T_en)):
+        node.on_ecm(EcmPose(s, s, T_w))
+        node.on_truth(GroundTruth(s, s, sequence=4, needle_at_rest=False))
+        node.on_pose(PoseEstimate(s, s, "pnp_joint", T_e))
+    fused = outputs(node, "pose")
+    assert [p.n_views for p in fused] == [1] * len(T_en)
+    assert node.counters["resets.moving_needle"] == len(T_en)
+
+
 def test_fusion_node_drops_estimates_whose_ecm_pose_never_comes():
     node = FusionNode.offline({"max_wait": 2}, wired=["pose", "ecm"])
     T = make_T(np.eye(3), [0, 0, -0.15])

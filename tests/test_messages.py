@@ -17,6 +17,7 @@ from common.runtime.messages import (
     EcmPose,
     EndOfStream,
     GroundTruth,
+    InstrumentState,
     Keypoints,
     MessageError,
     NodeStats,
@@ -52,6 +53,9 @@ def examples():
         GroundTruth(seq=1, stamp_ns=2, sequence=0, step=1, ecm_joints=np.zeros(4), T_world_ecm=T,
                     T_world_needle=T, keypoints={"left": np.zeros((5, 2)), "right": np.ones((5, 2))},
                     visible={"left": np.ones(5, dtype=bool), "right": np.zeros(5, dtype=bool)}),
+        GroundTruth(seq=2, stamp_ns=3, sequence=4, step=2, T_world_needle=T, needle_at_rest=False),
+        InstrumentState("psm1", seq=5, stamp_ns=6, T_world_jaw=T, jaw_rad=0.4, holds_needle=True),
+        InstrumentState("psm2", seq=5, stamp_ns=6, T_world_jaw=np.eye(4), jaw_rad=0.0),
         Command("place_needle", {"distance_m": 0.15, "seed": 3}),
         NodeStats("det", "detector", 42, 1, 2.5, {"in.left": 3, "state": "active"}, {"in.left": 29.9}, 1.0, 2.0),
         EndOfStream(frames=30, stamp_ns=9),
@@ -86,7 +90,7 @@ def test_calibration_round_trips():
 def test_all_message_types_are_registered():
     assert {c.__name__ for c in MESSAGE_TYPES.values()} >= {
         "CameraImage", "EcmJoints", "EcmPose", "Keypoints", "PoseEstimate", "Points3D", "GroundTruth",
-        "Calibration", "Command", "NodeStats", "EndOfStream"}
+        "Calibration", "Command", "NodeStats", "EndOfStream", "InstrumentState"}
 
 
 @settings(max_examples=60, deadline=None, suppress_health_check=[HealthCheck.too_slow])
@@ -233,3 +237,30 @@ def test_ground_truth_from_a_dataset_frame_and_a_simulated_one():
         assert np.allclose(back.ecm_joints, [0.1, 0.0, 0.05, 0.0]) and np.allclose(back.T_world_needle, T)
         assert np.allclose(back.keypoints["right"], kp["right"]) and back.visible["right"].tolist() == vis["right"].tolist()
         assert back.bbox["right"] is None and np.allclose(back.bbox["left"], bbox["left"])
+
+
+@pytest.mark.parametrize("field,bad,text", [
+    ("T_world_jaw", np.diag([1.0, 1.0, 1.0, 2.0]).tolist(), "InstrumentState.T_world_jaw"),
+    ("T_world_jaw", np.eye(3).tolist(), r"InstrumentState.T_world_jaw: expected shape \(4, 4\)"),
+    ("jaw_rad", -0.1, r"InstrumentState.jaw_rad: an opening angle in \[0, pi\]"),
+    ("jaw_rad", float("nan"), "InstrumentState.jaw_rad: not finite"),
+    ("name", "", "InstrumentState.name: 1 to 32 printable characters"),
+    ("holds_needle", 1, "InstrumentState.holds_needle: expected bool"),
+])
+def test_instrument_states_with_bad_fields_are_refused(field, bad, text):
+    body = InstrumentState("psm1", 1, 2, np.eye(4), 0.3).to_body()
+    body = {**body, "T_world_jaw": body["T_world_jaw"].tolist(), field: bad}
+    with pytest.raises(MessageError, match=text):
+        decode(msgpack.packb({"schema": InstrumentState.SCHEMA, "version": 1, "body": body}), InstrumentState)
+
+
+def test_instrument_state_from_a_dataset_frame_and_moving_truth_is_no_multiview_group():
+    from common.data.instruments import InstrumentPose
+    T = np.eye(4)
+    T[:3, 3] = [0.01, 0.0, 0.03]
+    msg = decode(encode(InstrumentState.from_pose("psm2", InstrumentPose(T, 0.25, False), 7, 8)))
+    assert (msg.name, msg.seq, msg.stamp_ns, msg.jaw_rad, msg.holds_needle) == ("psm2", 7, 8, 0.25, False)
+    assert np.array_equal(msg.T_world_jaw, T)
+    assert GroundTruth(1, 2, sequence=3).multiview_group == 3
+    assert GroundTruth(1, 2, sequence=3, needle_at_rest=True).multiview_group == 3
+    assert GroundTruth(1, 2, sequence=3, needle_at_rest=False).multiview_group is None

@@ -200,3 +200,64 @@ def test_sim_node_publishes_consistent_frames_and_obeys_commands():
         assert np.allclose([m for o, m in node.published if o == "truth"][0].T_world_needle, T)
     finally:
         node.teardown()
+
+
+def test_sim_node_in_a_take_publishes_the_instruments_and_the_held_needle_with_them():
+    from common.runtime.messages import InstrumentState
+    node = SimNode.offline(params={"width": 160, "height": 120, "rate_hz": 0, "count": 3, "motion": "handover",
+                                   "randomise": "none", "encoding": "png", "msaa": 0})
+    try:
+        assert _run(node)
+        msgs = [(o, _roundtrip(m)) for o, m in node.published]
+        inst = [m for o, m in msgs if o == "instruments"]
+        truths = [m for o, m in msgs if o == "truth"]
+        assert all(isinstance(m, InstrumentState) for m in inst)
+        assert [(m.seq, m.name) for m in inst] == [(s, n) for s in range(3) for n in ("psm1", "psm2")]
+        assert all(t.needle_at_rest is False and t.multiview_group is None for t in truths)
+        held = {(m.seq, m.name): m for m in inst}
+        for t in truths:                      # psm1 holds it at the start of a handover, psm2 waits open
+            m = held[(t.seq, "psm1")]
+            assert m.holds_needle and not held[(t.seq, "psm2")].holds_needle and m.jaw_rad < 0.1
+            T_jn = inv_T(m.T_world_jaw) @ t.T_world_needle
+            assert np.linalg.norm(T_jn[:3, 3]) < 0.02               # the needle's centre by the jaws
+        node.count_max = 0
+        T = truths[-1].T_world_needle.copy()                  # placed by pose: at rest, even in a take
+        T[:3, 3] += [0.0, 0.004, 0.002]
+        node.on_command(Command("place_needle", {"T_world_needle": T.tolist()}))
+        for _ in range(2):
+            node.published.clear()
+            node.step()
+            t = [m for o, m in node.published if o == "truth"][0]
+            assert np.allclose(t.T_world_needle, T) and t.needle_at_rest is None
+        node.on_command(Command("set_motion", {"motion": "static"}))
+        node.published.clear()
+        node.step()
+        t = [m for o, m in node.published if o == "truth"][0]
+        assert t.needle_at_rest is None and [m.holds_needle for o, m in node.published if o == "instruments"] == []
+    finally:
+        node.teardown()
+
+
+def test_replay_publishes_the_instruments_a_folder_lists(tmp_path):
+    from common.data.dataset import Dataset
+    from common.data.instruments import InstrumentPose
+    from common.runtime.messages import InstrumentState
+    _dataset(tmp_path, 2)
+    ds = Dataset(tmp_path)
+    lines = []
+    for fr in ds.frames:
+        if fr.index == 1:
+            fr.needle_at_rest = False
+            fr.instruments = {"psm2": InstrumentPose(make_T(np.eye(3), [0.01, 0.0, 0.03]), 0.4, True)}
+            fr.sequence = 1
+        lines.append(fr.to_json())
+    (tmp_path / "frames.jsonl").write_text("".join(__import__("json").dumps(o) + "\n" for o in lines))
+    node = ReplayNode.offline(params={"path": str(tmp_path), "rate": "max"})
+    assert _run(node)
+    inst = [(o, _roundtrip(m)) for o, m in node.published if o == "instruments"]
+    assert len(inst) == 1 and isinstance(inst[0][1], InstrumentState)
+    m = inst[0][1]
+    assert (m.name, m.seq, m.jaw_rad, m.holds_needle) == ("psm2", 1, 0.4, True)
+    assert np.allclose(m.T_world_jaw[:3, 3], [0.01, 0.0, 0.03])
+    truth = [m for o, m in node.published if o == "truth"]
+    assert truth[1].needle_at_rest is False and truth[0].needle_at_rest is None

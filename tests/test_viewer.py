@@ -26,7 +26,9 @@ from common.runtime.messages import (
 from common.viewer.draw import (
     AMBIGUOUS_BGR,
     DETECTION_BGR,
+    HOLDER_BGR,
     TRUTH_BGR,
+    InstrumentToDraw,
     PoseToDraw,
     decode_small,
     downscale,
@@ -106,6 +108,21 @@ def test_fig1_draws_the_final_arc_truth_detections_and_ambiguity():
     amb = draw_fig1(img, 0.5, cam, NEEDLE, {"refined": PoseToDraw(T_NEEDLE, ambiguous=True)}, "refined")
     assert _count(amb, AMBIGUOUS_BGR, 10) > 30                # the AMBIGUOUS label
     assert _count(amb, method_bgr("refined")) < _count(pic, method_bgr("refined"))   # dashed
+
+
+def test_fig1_draws_each_instruments_jaw_frame_and_rings_the_holder():
+    img = np.zeros((H // 2, W // 2, 3), np.uint8)
+    cam = RIG.left
+    T_a = make_T(rotvec_to_R([2.5, 0.2, 0.4]), [-0.012, 0.004, -0.07])
+    T_b = make_T(rotvec_to_R([2.5, -0.3, 0.1]), [0.03, -0.012, -0.075])
+    pic = draw_fig1(img, 0.5, cam, NEEDLE, {}, None,
+                    instruments=[InstrumentToDraw("psm1", T_a, True), InstrumentToDraw("psm2", T_b, False)])
+    for T, holds in ((T_a, True), (T_b, False)):
+        x, y = np.round((cam.project_from_ecm(T[:3, 3][None])[0] + 0.5) * 0.5 - 0.5).astype(int)
+        near = pic[max(0, y - 12):y + 13, max(0, x - 12):x + 13]
+        assert near.any()                                              # its axes start at the pivot
+        assert (_count(near, HOLDER_BGR, 10) > 5) == holds             # the holder alone ringed
+    assert not draw_fig1(img, 0.5, cam, NEEDLE, {}, None).any()
 
 
 def test_the_zoomed_inset_shows_the_needle_large_in_the_top_right_corner():
@@ -191,6 +208,20 @@ def test_viewer_node_offline_draws_sampled_frames_with_their_pose(capsys):
         jpeg = urllib.request.urlopen(node.page.url + "right.jpg", timeout=5).read()
         pic = cv2.imdecode(np.frombuffer(jpeg, np.uint8), cv2.IMREAD_COLOR)
         assert pic.shape == (270, 480, 3) and _count(pic, method_bgr("refined"), 50) > 50
+        # an instrument holding the needle: ringed in the next picture
+        from common.runtime.messages import InstrumentState
+        T_jaw = make_T(rotvec_to_R([2.5, 0.2, 0.4]), [-0.015, -0.01, -0.07])   # clear of the inset
+        assert _count(pic, HOLDER_BGR, 10) == 0
+        node.on_truth(GroundTruth(3, 3, T_world_ecm=np.eye(4), T_world_needle=T_NEEDLE))
+        node.on_instruments(InstrumentState("psm1", 3, 3, T_jaw, 0.05, True))
+        for c in ("left", "right"):
+            (node.on_left if c == "left" else node.on_right)(CameraImage.from_bgr(c, 3, 3, img, "jpeg"))
+        node.on_refined(PoseEstimate(3, time.time_ns(), "refined", T_NEEDLE))
+        jpeg = urllib.request.urlopen(node.page.url + "left.jpg", timeout=5).read()
+        pic = cv2.imdecode(np.frombuffer(jpeg, np.uint8), cv2.IMREAD_COLOR)
+        assert node.counters["frames_drawn"] == 4, node.counters
+        assert [i.name for i in node._instruments_to_draw(3)] == ["psm1"]
+        assert _count(pic, HOLDER_BGR, 60) > 10
         node.on_left(CameraImage("left", 9, 9, W, H, "jpeg", b"broken"))
         assert node.counters["bad_input"] == 1
     finally:

@@ -25,7 +25,9 @@ from common.frames import CAMERAS
 from common.geometry.camera import StereoRig
 from common.geometry.ecm_kinematics import EcmArm
 from common.geometry.needle import NeedleModel
-from common.geometry.transforms import inv_T, transform_points
+from common.geometry.transforms import inv_T, pose_error, transform_points
+from common.data.instruments import T_jaw_needle, instruments_json, parse_instruments
+from common.data.values import _Bad, _bools, _int, _matrix, _num, _rigid, _vector  # noqa: F401
 from common.runtime.limits import (
     InputLimitError,
     compose_yaml,
@@ -50,71 +52,6 @@ class DatasetError(NeedletrackError, ValueError):
 
 def _where(file: str, line: Optional[int], fieldname: str) -> str:
     return f"{file}:{line}: {fieldname}" if line is not None else f"{file}: {fieldname}"
-
-
-# ---------------------------------------------------------------- value parsers
-
-class _Bad(Exception):
-    """Raised by the parsers below with the reason; wrapped into a DatasetError with the place."""
-
-
-def _num(v) -> float:
-    if isinstance(v, bool) or not isinstance(v, (int, float)):
-        raise _Bad(f"expected a number, got {type(v).__name__} {v!r}"[:120])
-    if not math.isfinite(v):
-        raise _Bad(f"expected a finite number, got {v!r}")
-    return float(v)
-
-
-def _int(v) -> int:
-    if isinstance(v, bool) or not isinstance(v, int):
-        if isinstance(v, float) and v.is_integer():
-            return int(v)
-        raise _Bad(f"expected an integer, got {type(v).__name__} {v!r}"[:120])
-    return v
-
-
-def _matrix(v, rows: int, cols: int) -> np.ndarray:
-    if not isinstance(v, (list, tuple)) or len(v) != rows:
-        raise _Bad(f"expected {rows} rows of {cols} numbers")
-    out = np.empty((rows, cols))
-    for i, row in enumerate(v):
-        if not isinstance(row, (list, tuple)) or len(row) != cols:
-            raise _Bad(f"row {i}: expected {cols} numbers, got {row!r}"[:120])
-        for j, x in enumerate(row):
-            try:
-                out[i, j] = _num(x)
-            except _Bad as exc:
-                raise _Bad(f"[{i}][{j}]: {exc}") from None
-    return out
-
-
-def _vector(v, n: Optional[int]) -> np.ndarray:
-    if not isinstance(v, (list, tuple)) or (n is not None and len(v) != n):
-        raise _Bad(f"expected a list of {n} numbers, got {v!r}"[:120])
-    out = np.empty(len(v))
-    for i, x in enumerate(v):
-        try:
-            out[i] = _num(x)
-        except _Bad as exc:
-            raise _Bad(f"[{i}]: {exc}") from None
-    return out
-
-
-def _rigid(v) -> np.ndarray:
-    T = _matrix(v, 4, 4)
-    if not np.allclose(T[3], [0, 0, 0, 1], atol=1e-9):
-        raise _Bad(f"last row must be [0, 0, 0, 1], got {T[3].tolist()}")
-    R = T[:3, :3]
-    if not np.allclose(R.T @ R, np.eye(3), atol=1e-4) or np.linalg.det(R) < 0:
-        raise _Bad("rotation part is not a rotation (R^T R != I or det < 0)")
-    return T
-
-
-def _bools(v, n: int) -> np.ndarray:
-    if not isinstance(v, (list, tuple)) or len(v) != n or not all(isinstance(b, bool) for b in v):
-        raise _Bad(f"expected a list of {n} booleans, got {v!r}"[:120])
-    return np.array(v, dtype=bool)
 
 
 # ---------------------------------------------------------------- dataset.yaml
@@ -259,8 +196,10 @@ def parse_meta(text: str, file: str = META_FILE) -> DatasetMeta:
 class Frame:
     """One stereo frame (a line of frames.jsonl). Image paths are relative to the folder.
 
-    ``keypoints[c]`` (5, 2) px, ``visible[c]`` (5,) bool, ``bbox[c]`` [x0, y0, x1, y1] or None.
-    Optional fields are None when the file leaves them out or null.
+    ``keypoints[c]`` (5, 2) px, ``visible[c]`` (5,) bool, ``bbox[c]`` [x0, y0, x1, y1] or None,
+    ``instruments`` {name: ``common.data.instruments.InstrumentPose``}, ``needle_at_rest`` False
+    when the needle moves during its sequence (then the sequence is a take, not a multi-view
+    group: ``multiview_group``). Optional fields are None when the file leaves them out or null.
     """
 
     index: int
@@ -275,10 +214,23 @@ class Frame:
     keypoints: Optional[dict] = None
     visible: Optional[dict] = None
     bbox: Optional[dict] = None
+    needle_at_rest: Optional[bool] = None
+    instruments: Optional[dict] = None
     line: Optional[int] = field(default=None, compare=False)
 
     def image(self, camera: str) -> str:
         return {"left": self.left, "right": self.right}[camera]
+
+    @property
+    def at_rest(self) -> bool:
+        """The needle at rest over its sequence (``needle_at_rest`` absent means true)."""
+        return self.needle_at_rest is not False
+
+    @property
+    def multiview_group(self) -> Optional[int]:
+        """The multi-view group of this frame: its ``sequence`` when the needle is at rest, else
+        None (a frame of a moving take is a view of its own)."""
+        return self.sequence if self.at_rest else None
 
     @property
     def T_ecm_needle(self) -> Optional[np.ndarray]:
@@ -303,11 +255,15 @@ class Frame:
         if self.bbox is not None:
             d["bbox"] = {c: (None if self.bbox.get(c) is None else [float(x) for x in self.bbox[c]])
                          for c in CAMERAS}
+        if self.needle_at_rest is not None:
+            d["needle_at_rest"] = bool(self.needle_at_rest)
+        if self.instruments is not None:
+            d["instruments"] = instruments_json(self.instruments)
         return d
 
 
 _FRAME_FIELDS = {"index", "stamp_ns", "left", "right", "sequence", "step", "ecm_joints", "T_world_ecm",
-                 "T_world_needle", "keypoints", "visible", "bbox"}
+                 "T_world_needle", "keypoints", "visible", "bbox", "needle_at_rest", "instruments"}
 
 
 def _relpath(v) -> str:
@@ -349,6 +305,12 @@ def _bbox(v) -> list:
     return b.tolist()
 
 
+def _flag(v) -> bool:
+    if not isinstance(v, bool):
+        raise _Bad(f"expected true or false, got {v!r}"[:120])
+    return v
+
+
 def parse_frame(obj, line: Optional[int] = None, file: str = FRAMES_FILE) -> Frame:
     """Validate one decoded frames.jsonl object."""
     def fail(name, msg):
@@ -364,7 +326,8 @@ def parse_frame(obj, line: Optional[int] = None, file: str = FRAMES_FILE) -> Fra
                "T_world_ecm": (_rigid,), "T_world_needle": (_rigid,),
                "keypoints": (lambda v: _per_camera(v, _matrix, 5, 2),),
                "visible": (lambda v: _per_camera(v, _bools, 5),),
-               "bbox": (lambda v: _per_camera(v, _bbox, nullable=True),)}
+               "bbox": (lambda v: _per_camera(v, _bbox, nullable=True),),
+               "needle_at_rest": (_flag,), "instruments": (parse_instruments,)}
     vals = {}
     for k, (fn, *args) in parsers.items():
         v = obj.get(k)
@@ -373,7 +336,7 @@ def parse_frame(obj, line: Optional[int] = None, file: str = FRAMES_FILE) -> Fra
         try:
             vals[k] = fn(v, *args)
         except _Bad as exc:
-            fail(k, str(exc))
+            fail(k if exc.sub is None else f"{k}.{exc.sub}", str(exc))
     if vals["index"] < 0:
         fail("index", f"must be >= 0, got {vals['index']}")
     if vals.get("step") is not None and vals["step"] < 0:
@@ -488,12 +451,18 @@ class Dataset:
             raise DatasetError(_where(FRAMES_FILE, fr.line, f"{camera}: {exc}")) from None
 
     def sequences(self) -> dict:
-        """Frames grouped by ``sequence`` (frames without one are left out), in file order."""
+        """Frames grouped by ``sequence`` (frames without one are left out), in file order: the
+        takes, whether the needle rests (a multi-view group) or moves (see ``multiview_groups``)."""
         out: dict = {}
         for fr in self.frames:
             if fr.sequence is not None:
                 out.setdefault(fr.sequence, []).append(fr)
         return out
+
+    def multiview_groups(self) -> dict:
+        """The sequences whose needle is at rest (``Frame.multiview_group``): the frames that
+        show one needle pose from several endoscope poses."""
+        return {s: frs for s, frs in self.sequences().items() if all(f.at_rest for f in frs)}
 
 
 # ---------------------------------------------------------------- writer
@@ -679,11 +648,44 @@ def check_frame(meta: DatasetMeta, fr: Frame, tol_px: float = 0.1, tol_fk_m: flo
     return errs, reproj, fk
 
 
+GRASP_TOL_M, GRASP_TOL_RAD = 1e-6, 1e-5
+"""How far a held needle may move in the jaws between two frames (JSON keeps full precision)."""
+
+
+def check_take(first: Frame, prev: Optional[Frame], fr: Frame) -> list:
+    """A frame against its sequence: all of it at rest or all of it moving; at rest, the
+    first frame's ``T_world_needle``; moving, the needle rigid in the jaws of an instrument that
+    holds it in this frame and the one before (``holds_needle``)."""
+    where = f"{FRAMES_FILE}:{fr.line}"
+    if fr.at_rest != first.at_rest:
+        return [f"{where}: needle_at_rest: {fr.needle_at_rest} in sequence {fr.sequence}, whose first frame "
+                f"(line {first.line}) says {first.needle_at_rest}; a sequence rests or moves as a whole"]
+    if fr.at_rest:
+        if (fr.T_world_needle is not None and first.T_world_needle is not None
+                and not np.allclose(fr.T_world_needle, first.T_world_needle, atol=1e-9)):
+            return [f"{where}: T_world_needle: differs from the first frame of sequence {fr.sequence} "
+                    f"(line {first.line}); the needle must be at rest (or the frames say needle_at_rest: false)"]
+        return []
+    errs = []
+    if prev is None or fr.T_world_needle is None or prev.T_world_needle is None:
+        return errs
+    for name, inst in (fr.instruments or {}).items():
+        before = (prev.instruments or {}).get(name)
+        if not (inst.holds_needle and before is not None and before.holds_needle):
+            continue
+        dt, da = pose_error(T_jaw_needle(before, prev.T_world_needle), T_jaw_needle(inst, fr.T_world_needle))
+        if dt > GRASP_TOL_M or da > GRASP_TOL_RAD:
+            errs.append(f"{where}: instruments.{name}: holds_needle in this frame and the one before (line "
+                        f"{prev.line}), but the needle moved {dt * 1000:.4f} mm / {np.rad2deg(da):.4f} deg in its jaws")
+    return errs
+
+
 def check_dataset(ds: Dataset, tol_px: float = 0.1, images: bool = True, progress: bool = False,
                   max_errors: int = 50) -> CheckReport:
     """The spec's consistency checks over a loaded folder (see ``check_frame``), plus: every
     image decodes at ``image_size``; frames of one ``sequence`` share one ``T_world_needle``
-    (the needle at rest) and have increasing ``step``."""
+    (the needle at rest) or, in a moving take, keep the needle rigid in the jaws that hold it
+    (``check_take``), and have increasing ``step``."""
     rep = CheckReport(frames=len(ds))
     errs = []
     reprojs = []
@@ -692,6 +694,7 @@ def check_dataset(ds: Dataset, tol_px: float = 0.1, images: bool = True, progres
         from tqdm import tqdm
         it = tqdm(it, desc="check", unit="frame")
     seq_first: dict = {}
+    prev: dict = {}
     for fr in it:
         e, rp, fk = check_frame(ds.meta, fr, tol_px)
         errs += e
@@ -704,10 +707,8 @@ def check_dataset(ds: Dataset, tol_px: float = 0.1, images: bool = True, progres
             if first is None:
                 seq_first[fr.sequence] = fr
             else:
-                if (fr.T_world_needle is not None and first.T_world_needle is not None
-                        and not np.allclose(fr.T_world_needle, first.T_world_needle, atol=1e-9)):
-                    errs.append(f"{FRAMES_FILE}:{fr.line}: T_world_needle: differs from the first frame of "
-                                f"sequence {fr.sequence} (line {first.line}); the needle must be at rest")
+                errs += check_take(first, prev.get(fr.sequence), fr)
+            prev[fr.sequence] = fr
         if images:
             for c in CAMERAS:
                 try:
@@ -741,8 +742,10 @@ def truncate_frames(fpath: str, n: int) -> None:
 
 
 def resume_generation(folder: str, record_name: str, config: dict, sequences: int, steps: int,
-                      command: str, overwrite: bool = False, defaults: dict | None = None) -> tuple[bool, int]:
-    """Prepare ``folder`` for a resumable, sequence-by-sequence generation.
+                      command: str, overwrite: bool = False, defaults: dict | None = None,
+                      lengths: list | None = None) -> tuple[bool, int]:
+    """Prepare ``folder`` for a resumable, sequence-by-sequence generation of ``sequences`` of
+    ``steps`` frames each (``lengths``: each sequence's own frame count instead).
 
     ``record_name`` (e.g. generate.json) holds the settings ``config`` that must match for a run to
     be resumed or extended (``defaults`` fill settings an older record lacks). A torn last line of
@@ -766,13 +769,14 @@ def resume_generation(folder: str, record_name: str, config: dict, sequences: in
         raise ValueError(f"{folder} already holds a dataset not made by `{command}`; "
                          f"use another --out or --overwrite")
     done = 0
+    ends = np.cumsum(lengths if lengths is not None else [steps] * sequences)
     if resume:
-        done = min(truncate_torn_tail(fpath) // steps, sequences)
-        truncate_frames(fpath, done * steps)
+        done = int(np.searchsorted(ends, truncate_torn_tail(fpath), side="right"))
+        truncate_frames(fpath, int(ends[done - 1]) if done else 0)
         if done:  # the last kept line must be the end of sequence done-1
             with open(fpath) as f:
                 fr = parse_frame(json.loads(f.read().splitlines()[-1]))
-            if fr.sequence != done - 1 or fr.index != done * steps - 1:
+            if fr.sequence != done - 1 or fr.index != ends[done - 1] - 1:
                 raise ValueError(f"{fpath}: cannot resume, the last frame is not the end of sequence {done - 1}")
     with open(gpath, "w") as f:
         json.dump({"config": config, "sequences": sequences}, f, indent=1)

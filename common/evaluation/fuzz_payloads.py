@@ -15,6 +15,7 @@ from common.runtime.messages import (
     CameraImage,
     EcmJoints,
     GroundTruth,
+    InstrumentState,
     PoseEstimate,
     encode,
 )
@@ -68,6 +69,7 @@ class CleanStream:
                                              T_world_needle=T_wn)}
             for cam in ("left", "right"):
                 f[f"camera/{cam}"] = CameraImage(cam, i, stamp, w, h, "jpeg", jpeg)
+            f["camera/instruments"] = InstrumentState("psm1", i, stamp, T_wn @ make_T(np.eye(3), [0, 0, 0.01]), 0.06, True)
             for node, key, msg in ((ecm, "joints", f["camera/joints"]), (det, "truth", f["camera/truth"])):
                 node.published.clear()
                 node.deliver(key, msg)

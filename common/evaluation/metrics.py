@@ -99,11 +99,13 @@ def true_T_ecm_needle(gt: GroundTruth, arm=None) -> Optional[np.ndarray]:
 def last_steps(truths: dict) -> list[int]:
     """Seqs of the last step of every sequence (largest ``step``, then largest seq).
 
-    A frame without ``sequence`` is a sequence of its own.
+    A frame without ``sequence``, or of a take whose needle moves (``needle_at_rest`` false), is a
+    sequence of its own (``GroundTruth.multiview_group``).
     """
     best: dict = {}
     for seq, gt in truths.items():
-        key = ("seq", seq) if gt.sequence is None else ("sequence", gt.sequence)
+        group = gt.multiview_group
+        key = ("seq", seq) if group is None else ("sequence", group)
         rank = (gt.step if gt.step is not None else -1, seq)
         if key not in best or rank > best[key][0]:
             best[key] = (rank, seq)

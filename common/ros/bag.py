@@ -33,10 +33,11 @@ from common.ros.conventions import (
     unit_scale,
 )
 from common.ros.images import ImageError, image_problem, image_to_bgr
+from common.ros.instruments import INSTRUMENT_ROLES, instrument_poses, instrument_topics
 from common.ros.topicmap import TopicMapError, candidates, load_topic_map, resolve_rig
 
 IMAGE_TYPES = ("sensor_msgs/msg/Image", "sensor_msgs/msg/CompressedImage")
-TIMED_ROLES = ("ecm_joints", "ecm_pose", "needle_pose", "camera_frame")
+TIMED_ROLES = ("ecm_joints", "ecm_pose", "needle_pose", "camera_frame") + INSTRUMENT_ROLES
 MAX_JOINTS = 64              # a JointState with more names or values is refused (the ECM has 4)
 MAX_STATE_BYTES = 1 << 20    # a non-image message's serialised size (a JointState of 4 joints: ~120 B)
 HISTORY = 256                # time-varying states kept per role (each a pose or <= MAX_JOINTS floats)
@@ -72,6 +73,7 @@ class StereoSample:
     T_world_ecm: Optional[np.ndarray] = None
     T_world_needle: Optional[np.ndarray] = None
     info: dict = field(default_factory=dict)
+    instruments: Optional[dict] = None         # {arm: common.data.instruments.InstrumentPose}, world, m
 
 
 class _TransformAsPose:
@@ -134,6 +136,15 @@ def message_problem(role: str, msg, values: bool = True) -> str | None:
         cam = {"K": K.reshape(3, 3), "dist": D if len(D) else np.zeros(5), "T_ecm_cam": np.eye(4)}
         size = np.array([max(1, int(msg.width)), max(1, int(msg.height))])
         return _codec_problem(Calibration(0, size, {"left": cam, "right": cam}, {"radius_m": 0.01}))
+    if role == "instrument_jaw":
+        if not hasattr(msg, "position"):
+            return f"a {msgtype} is not a sensor_msgs/msg/JointState"
+        pos = np.asarray(msg.position, float).reshape(-1)
+        if len(pos) < 1 or len(pos) > MAX_JOINTS:
+            return f"a jaw JointState needs 1 to {MAX_JOINTS} positions, got {len(pos)}"
+        if values and not np.isfinite(pos[0]):
+            return f"non-finite jaw angle {pos[0]}"
+        return None
     if role == "ecm_joints":
         if not hasattr(msg, "position"):
             return f"a {msgtype} is not a sensor_msgs/msg/JointState"
@@ -182,6 +193,8 @@ def _kept(role: str, msg):
     """What the assembler keeps of a time-varying state: the pose or the first 4 joint positions."""
     if role == "ecm_joints":
         return np.asarray(msg.position, float).reshape(-1)[:4].copy()
+    if role == "instrument_jaw":
+        return np.asarray(msg.position, float).reshape(-1)[:1].copy()
     return pose_part(msg)
 
 
@@ -353,7 +366,9 @@ class StereoAssembler:
         T_world_needle = None
         if "needle_pose" in state:
             T_world_needle = pose_of(state["needle_pose"], self.scale) @ self.T_given_needle
-        return StereoSample(index, left[0], imgs, cams, (w, h), q, T_world_ecm, T_world_needle)
+        instruments = instrument_poses(self.map, state, self.scale)
+        return StereoSample(index, left[0], imgs, cams, (w, h), q, T_world_ecm, T_world_needle,
+                            instruments=instruments)
 
     def feed_bytes(self, topic: str, raw, msgtype: str, decode=None) -> list:
         """``feed`` the message serialised in ``raw``, decoded by ``decode(raw, msgtype)`` (default
@@ -402,7 +417,8 @@ class StereoAssembler:
                     self.counts["unpaired_left" if q is L else "unpaired_right"] += 1
         elif role in TIMED_ROLES:
             hdr = getattr(msg, "header", None)
-            self.hist.setdefault(role, deque(maxlen=HISTORY)).append(
+            key = role if cam is None else f"{role}.{cam}"      # an instrument's: one per arm
+            self.hist.setdefault(key, deque(maxlen=HISTORY)).append(
                 (None if hdr is None else stamp_ns(hdr), _kept(role, msg)))
         elif cam is not None:
             self.state.setdefault(role, {})[cam] = msg
@@ -478,6 +494,13 @@ def resolve_roles(m: dict, topics: dict, where: str) -> dict:
         pick("camera_state", (m.get("camera_states") or {}).get(c), c)
     for role in ("ecm_joints", "ecm_pose", "needle_pose", "camera_frame"):
         pick(role, m.get(role), types=("sensor_msgs/msg/JointState",) if role == "ecm_joints" else None)
+    picked = {}
+    for t, role, arm in instrument_topics(m):        # the first alternative the bag has, per arm and role
+        if t in topics and (role, arm) not in picked:
+            if role == "instrument_jaw" and topics[t] != "sensor_msgs/msg/JointState":
+                raise BagError(f"{where}: topic {t} ({arm} jaw) has type {topics[t]}, expected sensor_msgs/msg/JointState")
+            picked[(role, arm)] = t
+            roles[t] = (role, arm)
     return roles
 
 

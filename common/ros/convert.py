@@ -7,7 +7,8 @@ visibility (in front of the camera and inside the image: a bag has no occlusion 
 the arc's box, all through the distortion model when there is one. Consecutive frames whose
 ground-truth needle pose stays put (within ``REST_TOL``: 1 um, 1 urad) form a ``sequence``
 (the spec's multi-view group: the needle at rest while the endoscope moves), ``step`` counting
-within it.
+within it. The instruments the bag's topic map names (``common/ros/instruments.py``) go into each
+frame's ``instruments`` (jaw frame in world, jaw angle; no ``holds_needle``: a bag does not say).
 """
 from __future__ import annotations
 
@@ -137,7 +138,7 @@ def from_bag(bag: str, out: str, preset: str | None = None, topics=None, image_f
                                        f"a dataset folder holds one rig: convert the parts separately")
                 paths = writer.write_images(n, s.images)
                 fr = Frame(index=n, stamp_ns=s.stamp_ns, left=paths["left"], right=paths["right"],
-                           ecm_joints=s.ecm_joints, T_world_ecm=s.T_world_ecm)
+                           ecm_joints=s.ecm_joints, T_world_ecm=s.T_world_ecm, instruments=s.instruments)
                 if s.T_world_needle is not None and s.T_world_ecm is not None:
                     fr.sequence, fr.step = groups(s.T_world_needle)
                     fr.T_world_needle = s.T_world_needle

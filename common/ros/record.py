@@ -14,6 +14,7 @@ What each message becomes (topics under ``/<node>/<output>``):
 | PoseEstimate | ``...`` PoseStamped (T_ecm_needle, frame ``ECM``), ``.../with_covariance`` PoseWithCovarianceStamped, ``.../world`` PoseStamped (T_world_needle) |
 | Keypoints | ``...`` needletrack_msgs/msg/Keypoints (common/ros/types.py) |
 | GroundTruth | ``.../needle`` PoseStamped (T_world_needle), ``.../ecm`` PoseStamped (T_world_ecm) |
+| InstrumentState | ``.../<name>/measured_cp`` PoseStamped (T_world_jaw, frame ``world``), ``.../<name>/jaw/measured_js`` sensor_msgs/JointState (``jaw``: jaw_rad), as a dVRK arm publishes them |
 
 Header stamps are the messages' ``stamp_ns``; log times the moment of receipt.
 
@@ -181,6 +182,12 @@ def ros_messages(base: str, msg) -> list:
         sc = np.zeros(5) if msg.scores is None else np.asarray(msg.scores, float).reshape(5)
         out.append((base, build.make(st, KEYPOINTS_MSG[0], header=build.header(st, msg.stamp_ns, FRAME_IDS[msg.camera]),
                                      camera=msg.camera, u=uv[:, 0].copy(), v=uv[:, 1].copy(), score=sc)))
+    elif isinstance(msg, M.InstrumentState):
+        out.append((f"{base}/{msg.name}/measured_cp", _pose_stamped(st, msg.T_world_jaw, msg.stamp_ns,
+                                                                    FRAME_IDS["world"])))
+        out.append((f"{base}/{msg.name}/jaw/measured_js", build.make(
+            st, "sensor_msgs/msg/JointState", header=build.header(st, msg.stamp_ns), name=["jaw"],
+            position=np.array([msg.jaw_rad]), velocity=np.zeros(0), effort=np.zeros(0))))
     elif isinstance(msg, M.GroundTruth):
         if msg.T_world_needle is not None:
             out.append((f"{base}/needle", _pose_stamped(st, msg.T_world_needle, msg.stamp_ns, FRAME_IDS["world"])))
@@ -191,7 +198,8 @@ def ros_messages(base: str, msg) -> list:
 
 def replay_topic_map(recorded: dict) -> dict | None:
     """The topic map that plays a recording back through the ``rosbag`` source: ``recorded``
-    maps each ``/<node>/<output>`` to its graph message type name and the last Calibration."""
+    maps each ``/<node>/<output>`` to its graph message type name and the last Calibration, and
+    (``instruments``) each InstrumentState output to the instrument names seen on it."""
     images = {c: [b + "/image_raw" for b, t in recorded["types"].items() if t == "CameraImage" and b.endswith("/" + c)]
               for c in ("left", "right")}
     calib = recorded.get("calibration")
@@ -219,6 +227,11 @@ def replay_topic_map(recorded: dict) -> dict | None:
         if t == "GroundTruth" and b.startswith(src + "/"):
             m["needle_pose"] = b + "/needle"
             m.setdefault("ecm_pose", b + "/ecm")
+    inst = recorded.get("instruments") or {}
+    for b in sorted(inst, key=lambda b: not b.startswith(src + "/")):    # the camera source's first
+        for name in sorted(inst[b]):
+            m.setdefault("instruments", {}).setdefault(
+                name, {"pose": f"{b}/{name}/measured_cp", "jaw": f"{b}/{name}/jaw/measured_js"})
     return m
 
 
@@ -237,7 +250,7 @@ def record(graph, out: str, keys=(), duration: float = 0.0, stop_on_eos: bool = 
     (``out + ".topics.yaml"``) is written as soon as a calibration and both cameras' images have
     come, and again when it changes. Returns a summary; ``error`` says why a recording stopped
     early (a full disk: the file keeps its complete chunks)."""
-    from common.runtime.messages import Calibration, EndOfStream, MessageError, decode
+    from common.runtime.messages import Calibration, EndOfStream, InstrumentState, MessageError, decode
     from common.runtime.tools import open_session
     keys = [graph.resolve_key(k) for k in keys] or [f"{graph.name}/*/*"]
     q: queue.Queue = queue.Queue(maxsize=4096)
@@ -282,6 +295,10 @@ def record(graph, out: str, keys=(), duration: float = 0.0, stop_on_eos: bool = 
                 continue
             new_topic = base not in recorded["types"]
             recorded["types"].setdefault(base, type(msg).__name__)
+            if isinstance(msg, InstrumentState):
+                names = recorded.setdefault("instruments", {}).setdefault(base, set())
+                new_topic |= msg.name not in names
+                names.add(msg.name)
             for topic, rmsg in rows:
                 writer.write(topic, rmsg, t_rx, getattr(msg, "stamp_ns", t_rx) or t_rx)
                 n += 1

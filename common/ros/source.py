@@ -1,5 +1,5 @@
 """What the ROS sources (``rosbag``, ``ros2``) publish for a ``StereoSample``: the images, the
-measured ECM pose, the ground truth and the calibration, in the graph's messages (shared so the
+measured ECM pose, the ground truth, the instruments (``InstrumentState`` per arm) and the calibration, in the graph's messages (shared so the
 two sources agree to the byte)."""
 from __future__ import annotations
 
@@ -8,7 +8,7 @@ import json
 import numpy as np
 
 from common.frames import CAMERAS
-from common.runtime.messages import Calibration, CameraImage, EcmPose, GroundTruth
+from common.runtime.messages import Calibration, CameraImage, EcmPose, GroundTruth, InstrumentState
 
 
 
@@ -66,6 +66,8 @@ class SamplePublisher:
                 visible=None if vis is None else {c: np.asarray(vis[c], bool) for c in CAMERAS},
                 bbox=None if box is None else {c: None if box[c] is None else np.asarray(box[c], float)
                                                for c in CAMERAS}))
+        for name, pose in (s.instruments or {}).items():
+            node.publish("instruments", InstrumentState.from_pose(name, pose, seq, stamp_ns))
         node._publish_calib()
 
 

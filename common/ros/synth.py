@@ -8,12 +8,18 @@ and to check a converter end to end), and the distorted twin of a pinhole datase
   (= the dataset's ECM frame) and the Needle (AMBF needle body frame), ``ambf_msgs/CameraState``
   of both cameras (AMBF camera axes, pose in the CameraFrame), all positions in ``unit``
   (default ``dm``: the challenge's decimetres). No camera_info: the dataset must be a
-  fovy-1.2 pinhole rig.
+  fovy-1.2 pinhole rig. A folder's ``instruments`` become the challenge's CRTK wrapper topics
+  ``/CRTK/psm{n}/measured_cp`` (PoseStamped in the arm's base, metres) and
+  ``/CRTK/psm{n}/jaw/measured_js``, with the base body's ``/ambf/env/psm{n}/baselink/State``
+  (``PSM_BASES``, in ``unit``).
 - ``dvrk``: ROS 2 bag (MCAP by default) as a dVRK records it: ``/<rig>/{left,right}/image_raw``
   (``bgr8``) with ``camera_info`` (K, D plumb_bob), ``/ECM/measured_js`` (JointState),
   ``/ECM/measured_cp`` (PoseStamped, T_world_ecm), and, the dVRK having none, the needle's ground
   truth on ``/needle/measured_cp`` (PoseStamped, dataset needle frame); ``T_ecm_cam`` goes to a
   registration file ``<out>.registration.yaml`` with a topic map ``<out>.topics.yaml`` beside it.
+  A folder's ``instruments`` (``psm1``, ``psm2``) become ``/PSM{n}/measured_cp`` (PoseStamped: the
+  jaw frame in the arm's base, ``PSM_BASES``) and ``/PSM{n}/jaw/measured_js`` (JointState, the
+  jaw angle), with the arms' registration ``<out>.psm_registration.yaml`` (T_world_base per arm).
 ``compressed=True`` writes ``sensor_msgs/CompressedImage`` (JPEG) on ``.../compressed`` instead.
 """
 from __future__ import annotations
@@ -32,6 +38,10 @@ from common.ros.types import typestore
 AMBF_TOPICS = {"left": "/ambf/env/cameras/cameraL", "right": "/ambf/env/cameras/cameraR"}
 DVRK_RIG = "jhu_daVinci"
 DVRK_JOINTS = ["outer_yaw", "outer_pitch", "insertion", "outer_roll"]
+PSM_BASES = {   # where the synthetic dVRK's arms stand: T_world_base (world = the ECM base), metres
+    "psm1": np.array([[0.0, -1.0, 0.0, -0.18], [1.0, 0.0, 0.0, -0.02], [0.0, 0.0, 1.0, 0.21], [0, 0, 0, 1.0]]),
+    "psm2": np.array([[0.0, 1.0, 0.0, 0.18], [-1.0, 0.0, 0.0, -0.03], [0.0, 0.0, 1.0, 0.19], [0, 0, 0, 1.0]]),
+}
 STAMP_BASE_NS = 1_700_000_000 * 1_000_000_000   # bag stamps = this + the dataset's stamp_ns (ROS time 0 means unset)
 
 
@@ -46,6 +56,16 @@ def _camera_state(store, stamp, T, scale, name):
                       parent_name=build.make(store, "std_msgs/msg/String", data="CameraFrame"),
                       name=build.make(store, "std_msgs/msg/String", data=name),
                       pose=build.pose(store, T, scale))
+
+
+def _check_arm(dataset: str, name: str) -> None:
+    if name not in PSM_BASES:
+        raise ValueError(f"{dataset}: instrument {name!r}: the bags' conventions write psm1 and psm2")
+
+
+def _jaw_state(store, stamp, jaw_rad: float):
+    return build.make(store, "sensor_msgs/msg/JointState", header=build.header(store, stamp), name=["jaw"],
+                      position=np.array([float(jaw_rad)]), velocity=np.zeros(1), effort=np.zeros(1))
 
 
 class _Out:
@@ -108,6 +128,15 @@ def dataset_to_bag(dataset: str, out: str, convention: str, *, unit: str | None 
                     T_cf_cam = rig[c].T_ecm_cam @ F_AMBF_CAM        # AMBF camera axes
                     bag.write(AMBF_TOPICS[c] + "/State",
                               _camera_state(store, t, T_cf_cam, scale, "camera" + c[0].upper()), t)
+                for name, inst in (fr.instruments or {}).items():
+                    _check_arm(dataset, name)
+                    bag.write(f"/ambf/env/{name}/baselink/State",
+                              _rigid_body_state(store, t, PSM_BASES[name], scale, f"{name}/baselink"), t)
+                    bag.write(f"/CRTK/{name}/measured_cp", build.make(
+                        store, "geometry_msgs/msg/PoseStamped", header=build.header(store, t, f"{name}/baselink"),
+                        pose=build.pose(store, inv_T(PSM_BASES[name]) @ inst.T_world_jaw)), t)
+                    bag.write(f"/CRTK/{name}/jaw/measured_js", _jaw_state(store, t, inst.jaw_rad), t)
+                    result.setdefault("instruments", set()).add(name)
                 if fr.T_world_needle is not None:
                     bag.write("/ambf/env/Needle/State",
                               _rigid_body_state(store, t, fr.T_world_needle @ inv_T(T_AMBF_NEEDLE), scale,
@@ -126,6 +155,15 @@ def dataset_to_bag(dataset: str, out: str, convention: str, *, unit: str | None 
                     bag.write("/needle/measured_cp", build.make(store, "geometry_msgs/msg/PoseStamped",
                                                                 header=build.header(store, t, "ECM_base"),
                                                                 pose=build.pose(store, fr.T_world_needle)), t)
+                for name, inst in (fr.instruments or {}).items():
+                    _check_arm(dataset, name)
+                    arm = name.upper()
+                    T_base_jaw = inv_T(PSM_BASES[name]) @ inst.T_world_jaw
+                    bag.write(f"/{arm}/measured_cp", build.make(store, "geometry_msgs/msg/PoseStamped",
+                                                               header=build.header(store, t, f"{arm}_base"),
+                                                               pose=build.pose(store, T_base_jaw)), t)
+                    bag.write(f"/{arm}/jaw/measured_js", _jaw_state(store, t, inst.jaw_rad), t)
+                    result.setdefault("instruments", set()).add(name)
                 for c in CAMERAS:
                     bag.write(f"/{DVRK_RIG}/{c}/camera_info",
                               build.camera_info(store, t, rig[c].K, rig[c].dist, ds.meta.image_size,
@@ -139,15 +177,24 @@ def dataset_to_bag(dataset: str, out: str, convention: str, *, unit: str | None 
                     bag.write(base, build.image(store, t, img, enc, c, i), t)
     finally:
         bag.close()
+    if convention == "ambf" and result.get("instruments"):
+        result["instruments"] = sorted(result["instruments"])
     if convention == "dvrk":
         reg = out.rstrip("/") + ".registration.yaml"
         with open(reg, "w") as f:
             yaml.safe_dump({"T_ecm_cam": {c: rig[c].T_ecm_cam.tolist() for c in CAMERAS}}, f)
         tm = out.rstrip("/") + ".topics.yaml"
+        topic_map = {"preset": "dvrk", "registration": os.path.basename(reg), "needle_pose": "/needle/measured_cp",
+                     "needle": ds.needle.to_dict()}
+        if result.get("instruments"):
+            psm_reg = out.rstrip("/") + ".psm_registration.yaml"
+            with open(psm_reg, "w") as f:
+                yaml.safe_dump({"T_world_base": {n: PSM_BASES[n].tolist() for n in sorted(result["instruments"])}}, f)
+            topic_map["instrument_registration"] = os.path.basename(psm_reg)
+            result["psm_registration"] = psm_reg
+            result["instruments"] = sorted(result["instruments"])
         with open(tm, "w") as f:
-            yaml.safe_dump({"preset": "dvrk", "registration": os.path.basename(reg),
-                            "needle_pose": "/needle/measured_cp",
-                            "needle": ds.needle.to_dict()}, f)
+            yaml.safe_dump(topic_map, f)
         result.update(registration=reg, topics_file=tm)
     return result
 

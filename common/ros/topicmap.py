@@ -20,6 +20,8 @@ needle: {radius_m: 0.01018, keypoint_angles_deg: [30, 60, 90, 120, 150]}
 unit: m                            # m | dm | cm | mm | auto (AMBF: from the baseline)
 stereo_tolerance_ms: 5             # left/right header stamps further apart are not a pair
 ecm: {T_world_base: 4x4, L_rcc: 0.0, L_scopelen: 0.0}   # optional arm model for ecm_joints
+instruments: {psm1: {pose: /PSM1/measured_cp, jaw: /PSM1/jaw/measured_js}, psm2: {...}}
+instrument_registration: psm_reg.yaml   # {psm1: 4x4 T_world_base, ...}  (common/ros/instruments.py)
 ```
 
 AMBF only: ``camera_frame`` (the CameraFrame body's RigidBodyState: T_world_ecm, the ECM frame
@@ -36,6 +38,7 @@ import yaml
 
 from common.errors import NeedletrackError
 from common.ros.conventions import AMBF_FOVY_RAD, AMBF_NEEDLE_RADIUS_M, UNITS
+from common.ros.instruments import PRESET_INSTRUMENTS, merge_instruments, validate_instruments
 
 PRESETS = {
     "ambf": {
@@ -50,6 +53,7 @@ PRESETS = {
         "unit": "auto",
         "needle": {"radius_m": AMBF_NEEDLE_RADIUS_M},   # metres, whatever unit the scene is in
         "stereo_tolerance_ms": 5.0,
+        "instruments": PRESET_INSTRUMENTS["ambf"],
     },
     "dvrk": {
         # {rig} is found in the bag: the one name with both cameras' topics
@@ -65,11 +69,12 @@ PRESETS = {
         "camera_axes": "opencv",
         "unit": "m",
         "stereo_tolerance_ms": 5.0,
+        "instruments": PRESET_INSTRUMENTS["dvrk"],
     },
 }
 KEYS = {"preset", "images", "camera_info", "fovy_rad", "registration", "camera_axes", "ecm_joints", "ecm_pose",
         "needle_pose", "needle_frame", "T_given_needle", "needle", "unit", "stereo_tolerance_ms", "ecm",
-        "camera_frame", "camera_states"}
+        "camera_frame", "camera_states", "instruments", "instrument_registration"}
 
 
 class TopicMapError(NeedletrackError, ValueError):
@@ -100,7 +105,10 @@ def load_topic_map(preset: str | None, path_or_dict=None) -> dict:
         raise TopicMapError(f"{where}: preset must be one of {', '.join(PRESETS)}, got {name!r}")
     m = copy.deepcopy(PRESETS[name]) if name else {"camera_axes": "opencv", "needle_frame": "dataset",
                                                    "unit": "m", "stereo_tolerance_ms": 5.0}
+    inst = merge_instruments(m.get("instruments"), user.get("instruments")) if "instruments" in user else None
     m.update(copy.deepcopy(user))
+    if inst is not None:
+        m["instruments"] = inst
     m["preset"] = name
     base = os.path.dirname(where) if where != "topic map" else ""
     _validate(m, where, base)
@@ -113,6 +121,19 @@ def _T(v, where: str, key: str) -> np.ndarray:
             not np.allclose(T[:3, :3].T @ T[:3, :3], np.eye(3), atol=1e-6) or np.linalg.det(T[:3, :3]) < 0:
         raise TopicMapError(f"{where}: {key}: expected a 4x4 rigid transform, got {np.asarray(v).tolist()}")
     return T
+
+
+def referenced(value, where: str, base: str, key: str) -> tuple:
+    """(the value, where it came from) of a key that may name a YAML file (relative to ``base``,
+    the topic map's folder) instead of holding its value."""
+    if not isinstance(value, (str, os.PathLike)):
+        return value, f"{where}: {key}"
+    path = value if os.path.isabs(value) or not base else os.path.join(base, value)
+    try:
+        with open(path, encoding="utf-8") as f:
+            return yaml.safe_load(f), os.fspath(path)
+    except (OSError, yaml.YAMLError) as exc:
+        raise TopicMapError(f"{where}: {key}: cannot read {path}: {exc}") from None
 
 
 def _validate(m: dict, where: str, base: str) -> None:
@@ -130,17 +151,7 @@ def _validate(m: dict, where: str, base: str) -> None:
         raise TopicMapError(f"{where}: stereo_tolerance_ms: expected a number") from None
     if m.get("T_given_needle") is not None:
         m["T_given_needle"] = _T(m["T_given_needle"], where, "T_given_needle")
-    reg = m.get("registration")
-    if isinstance(reg, (str, os.PathLike)):
-        path = reg if os.path.isabs(reg) or not base else os.path.join(base, reg)
-        try:
-            with open(path, encoding="utf-8") as f:
-                reg = yaml.safe_load(f)
-        except (OSError, yaml.YAMLError) as exc:
-            raise TopicMapError(f"{where}: registration: cannot read {path}: {exc}") from None
-        where_reg = path
-    else:
-        where_reg = f"{where}: registration"
+    reg, where_reg = referenced(m.get("registration"), where, base, "registration")
     if reg is not None:
         if isinstance(reg, dict) and "T_ecm_cam" in reg:
             reg = reg["T_ecm_cam"]
@@ -153,6 +164,7 @@ def _validate(m: dict, where: str, base: str) -> None:
     nd = m.get("needle")
     if nd is not None and (not isinstance(nd, dict) or "radius_m" not in nd):
         raise TopicMapError(f"{where}: needle: expected {{radius_m: R, keypoint_angles_deg: [5 angles]}}")
+    validate_instruments(m, where, base, _T, TopicMapError, referenced)
 
 
 def candidates(value) -> list:

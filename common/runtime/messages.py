@@ -302,7 +302,9 @@ class Points3D(Message):
 @register
 @dataclass
 class GroundTruth(Message):
-    """Per-frame ground truth, with the dataset spec's optional per-frame fields."""
+    """Per-frame ground truth, with the dataset spec's optional per-frame fields.
+    ``needle_at_rest`` False: the needle moves within its ``sequence`` (a take, not a multi-view
+    group; see ``multiview_group``)."""
 
     SCHEMA = "needletrack.GroundTruth"
     FIELDS = {"seq": ("int",), "stamp_ns": ("int",), "sequence": ("int", "optional"),
@@ -310,7 +312,8 @@ class GroundTruth(Message):
               "T_world_ecm": ("array", (4, 4), "optional"),
               "T_world_needle": ("array", (4, 4), "optional"),
               "keypoints": ("camera_map", (5, 2), "optional"), "visible": ("camera_map", (5,), "optional"),
-              "bbox": ("camera_map", (4,), "optional"), "epoch": ("int", "optional")}
+              "bbox": ("camera_map", (4,), "optional"), "epoch": ("int", "optional"),
+              "needle_at_rest": ("bool", "optional")}
     seq: int
     stamp_ns: int
     sequence: Optional[int] = None
@@ -322,17 +325,25 @@ class GroundTruth(Message):
     visible: Optional[dict] = None
     bbox: Optional[dict] = None
     epoch: Optional[int] = None
+    needle_at_rest: Optional[bool] = None
 
     def validate(self):
         for name in ("T_world_ecm", "T_world_needle"):
             _rigid(getattr(self, name), f"GroundTruth.{name}")
+
+    @property
+    def multiview_group(self) -> Optional[int]:
+        """The ``sequence`` when its frames show one needle at rest (a multi-view group), else
+        None: each frame of a moving take is a view of its own."""
+        return None if self.needle_at_rest is False else self.sequence
 
     @classmethod
     def from_frame(cls, frame, seq: int, stamp_ns: int) -> "GroundTruth | None":
         """The ground truth of a frame: a dataset's (``common.data.dataset.Frame``) or the
         simulator's (``common.sim.live.SimFrame``), anything with ``sequence``, ``step``,
         ``ecm_joints``, ``T_world_ecm``, ``T_world_needle`` and ``keypoints`` / ``visible`` /
-        ``bbox`` by camera (each may be None). None when the frame has no truth at all."""
+        ``bbox`` by camera (each may be None), and optionally ``needle_at_rest``. None when the
+        frame has no truth at all."""
         kp, vis, bbox = frame.keypoints, frame.visible, frame.bbox
         if all(v is None for v in (frame.T_world_needle, kp, vis, bbox, frame.T_world_ecm)):
             return None
@@ -343,7 +354,43 @@ class GroundTruth(Message):
                    keypoints=None if kp is None else {c: np.asarray(kp[c], float) for c in CAMERAS},
                    visible=None if vis is None else {c: np.asarray(vis[c], bool) for c in CAMERAS},
                    bbox=None if bbox is None else {c: None if bbox[c] is None else np.asarray(bbox[c], float)
-                                                   for c in CAMERAS})
+                                                   for c in CAMERAS},
+                   needle_at_rest=getattr(frame, "needle_at_rest", None))
+
+
+@register
+@dataclass
+class InstrumentState(Message):
+    """A patient-side instrument's measured state, as a dVRK PSM reports it: ``name`` (``psm1``,
+    ``psm2``), ``T_world_jaw`` the jaw frame in world (m; origin at the jaws' pivot, z along the
+    closed jaws towards their tips, y the axis they open about: ``docs/dataset.md``), ``jaw_rad``
+    the opening (rad, 0 closed). ``seq`` is the camera frame it belongs to; ``stamp_ns`` the
+    measurement's time. ``holds_needle``: ground truth, from a simulator or a labelled dataset."""
+
+    SCHEMA = "needletrack.InstrumentState"
+    FIELDS = {"name": ("str",), "seq": ("int",), "stamp_ns": ("int",), "T_world_jaw": ("array", (4, 4)),
+              "jaw_rad": ("float",), "holds_needle": ("bool", "optional"), "epoch": ("int", "optional")}
+    name: str
+    seq: int
+    stamp_ns: int
+    T_world_jaw: np.ndarray
+    jaw_rad: float
+    holds_needle: Optional[bool] = None
+    epoch: Optional[int] = None
+
+    def validate(self):
+        if not 1 <= len(self.name) <= 32 or not self.name.isprintable():
+            raise MessageError(f"InstrumentState.name: 1 to 32 printable characters, got {self.name[:40]!r}")
+        _rigid(self.T_world_jaw, "InstrumentState.T_world_jaw")
+        if not 0.0 <= self.jaw_rad <= np.pi:
+            raise MessageError(f"InstrumentState.jaw_rad: an opening angle in [0, pi] rad, got {self.jaw_rad:g}")
+
+    @classmethod
+    def from_pose(cls, name: str, pose, seq: int, stamp_ns: int) -> "InstrumentState":
+        """From a dataset frame's instrument (anything with ``T_world_jaw``, ``jaw_rad``,
+        ``holds_needle``: ``common.data.instruments.InstrumentPose``)."""
+        return cls(name, seq, stamp_ns, np.asarray(pose.T_world_jaw, float), float(pose.jaw_rad),
+                   pose.holds_needle)
 
 
 @register

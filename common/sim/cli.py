@@ -40,6 +40,10 @@ def add_parsers(sub) -> dict:
     _generate_args(g)
     g.add_argument("--randomise", default="train", choices=PRESET_NAMES,
                    help="randomisation preset (default train)")
+    g.add_argument("--motion", default="none", choices=["none", "pickup", "handover", "throw", "suture", "mixed"],
+                   help="none (default): the multi-view protocol; else each sequence is a moving take of "
+                        "that instrument script at 30 Hz, as long as its script (--steps unused; mixed: "
+                        "pickup, handover, throw, suture in turn; docs/simulation.md)")
     g.add_argument("--jobs", type=int, default=2, help="render processes (default 2)")
     g.add_argument("--msaa", type=int, default=4, choices=[0, 2, 4, 8],
                    help="anti-aliasing samples (default 4; 0 renders ~2.5x faster with jagged thin wires)")
@@ -77,10 +81,11 @@ def _generate(args) -> int:
     import common.sim.render  # noqa: F401  (selects the headless GL backend first)
     from common.sim.generate import GenerateConfig, generate
     cfg = GenerateConfig(args.sequences, args.steps, args.seed, args.randomise, args.width, args.height,
-                         args.format, args.quality, args.msaa, args.step_rad, args.thread)
+                         args.format, args.quality, args.msaa, args.step_rad, args.thread, args.motion)
     t0 = time.time()
     n = generate(args.out, cfg, jobs=args.jobs, progress=not args.quiet, overwrite=args.overwrite)
-    print(f"{args.out}: {n} frames ({args.sequences} sequences x {args.steps} steps, "
+    shape = f"{args.steps} steps" if args.motion == "none" else f"{args.motion} takes"
+    print(f"{args.out}: {n} frames ({args.sequences} sequences x {shape}, "
           f"{args.width}x{args.height}, randomise={args.randomise}, seed={args.seed}) "
           f"in {time.time() - t0:.1f} s")
     return 0

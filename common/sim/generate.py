@@ -1,4 +1,5 @@
-"""Dataset generation from the built-in scene: N needle poses x K endoscope poses.
+"""Dataset generation from the built-in scene: N needle poses x K endoscope poses, or N moving
+takes of an instrument motion script (``motion``: ``common.sim.takes``), each as long as its script.
 
 Sequence ``s`` of a run seeded ``seed`` depends only on (seed, s, steps, preset, image size), so a
 run is reproducible, resumable after an interruption (finished sequences are kept) and can be
@@ -32,6 +33,7 @@ class GenerateConfig:
     msaa: int = 4
     step_rad: float = MULTIVIEW_STEP_RAD   # ECM joint step between a sequence's endoscope poses
     thread: str = "random"                 # "none": no suture thread drawn (a threadless twin)
+    motion: str = "none"                   # "none": the multi-view protocol; else a take's script
 
     def stable(self) -> dict:
         """What must match for a folder to be resumed or extended."""
@@ -39,7 +41,14 @@ class GenerateConfig:
         d.pop("sequences")
         if d["thread"] == "random":        # folders made before the option resume as they were
             d.pop("thread")
+        if d["motion"] == "none":
+            d.pop("motion")
         return d
+
+    def take_plan(self, take: int, meta, preset, tex: int = 1024):
+        from common.sim.takes import plan_take
+        return plan_take(self.seed, take, self.motion, preset, meta.rig, meta.needle, meta.arm, tex, self.msaa,
+                         thread=self.thread != "none")
 
 
 def scene_meta(width: int, height: int, source: str):
@@ -62,6 +71,8 @@ def render_sequence(renderer, cfg: GenerateConfig, sequence: int) -> list[tuple[
     meta = scene_meta(cfg.width, cfg.height, "")
     preset = get_preset(cfg.randomise)
     tex = 1024
+    if cfg.motion != "none":
+        return _render_take(renderer, cfg, sequence, meta, preset, tex)
     plan = plan_sequence(cfg.seed, sequence, cfg.steps, preset, meta.rig, meta.needle, meta.arm, tex, cfg.msaa,
                          cfg.step_rad, thread=cfg.thread != "none")
     renderer.load(plan.spec)
@@ -82,15 +93,36 @@ def render_sequence(renderer, cfg: GenerateConfig, sequence: int) -> list[tuple[
     return out
 
 
+def _render_take(renderer, cfg: GenerateConfig, sequence: int, meta, preset, tex: int) -> list:
+    from common.sim.randomise import degrade_stereo, jpeg_quality
+    from common.sim.takes import render_take
+    plan = cfg.take_plan(sequence, meta, preset, tex)
+    rng = np.random.default_rng(plan.image_seed)
+    out = []
+    for images, fields in render_take(renderer, plan, meta.arm,
+                                      lambda im: degrade_stereo(im, rng, preset, jpeg=cfg.image_format != "jpg")):
+        out.append((images, {"sequence": sequence, **fields}, min(cfg.jpeg_quality, jpeg_quality(rng, preset))))
+    return out
+
+
+def take_lengths(cfg: GenerateConfig) -> list[int]:
+    """Frames of each of the run's sequences (``steps`` each, or each take's script)."""
+    if cfg.motion == "none":
+        return [cfg.steps] * cfg.sequences
+    from common.sim.randomise import get_preset
+    meta, preset = scene_meta(cfg.width, cfg.height, ""), get_preset(cfg.randomise)
+    return [len(cfg.take_plan(s, meta, preset)) for s in range(cfg.sequences)]
+
+
 # ---------------------------------------------------------------- worker processes
 
 _WORKER = {}
 
 
-def _init_worker(cfg: GenerateConfig, folder: str) -> None:
+def _init_worker(cfg: GenerateConfig, folder: str, offsets: list) -> None:
     from common.sim.render import SceneRenderer
     _WORKER["renderer"] = SceneRenderer()
-    _WORKER["cfg"], _WORKER["folder"] = cfg, folder
+    _WORKER["cfg"], _WORKER["folder"], _WORKER["offsets"] = cfg, folder, offsets
 
 
 def _work(sequence: int) -> list[dict]:
@@ -99,7 +131,7 @@ def _work(sequence: int) -> list[dict]:
     cfg, folder = _WORKER["cfg"], _WORKER["folder"]
     frames = []
     for images, fields, quality in render_sequence(_WORKER["renderer"], cfg, sequence):
-        index = sequence * cfg.steps + fields["step"]
+        index = _WORKER["offsets"][sequence] + fields["step"]
         paths = write_frame_images(folder, index, images, cfg.image_format, quality)
         fr = Frame(index=index, stamp_ns=int(round(index * 1e9 / FPS)), left=paths["left"],
                    right=paths["right"], **fields)
@@ -112,6 +144,9 @@ def generate(folder: str, cfg: GenerateConfig, jobs: int = 2, progress: bool = T
     """Generate (or resume, or extend) a dataset folder; returns the number of frames in it."""
     if not (np.isfinite(cfg.step_rad) and 0.0 <= cfg.step_rad <= 0.5):
         raise ValueError(f"dataset generate: --step-rad must be in [0, 0.5] rad, got {cfg.step_rad}")
+    from common.sim.takes import TAKE_MOTIONS
+    if cfg.motion != "none" and cfg.motion not in TAKE_MOTIONS:
+        raise ValueError(f"dataset generate: --motion must be none or one of {TAKE_MOTIONS}, got {cfg.motion!r}")
     import multiprocessing as mp
 
     import mujoco
@@ -119,18 +154,22 @@ def generate(folder: str, cfg: GenerateConfig, jobs: int = 2, progress: bool = T
 
     from common.data.dataset import DatasetWriter, resume_generation
     # settings added later default to their old behaviour
+    lengths = take_lengths(cfg)
     resume, done = resume_generation(folder, GENERATE_FILE, cfg.stable(), cfg.sequences, cfg.steps,
-                                     "dataset generate", overwrite, GenerateConfig(1, 1).stable())
+                                     "dataset generate", overwrite, GenerateConfig(1, 1).stable(), lengths)
+    what = (f"steps={cfg.steps} step_rad={cfg.step_rad:g}" if cfg.motion == "none" else
+            f"motion={cfg.motion} (moving takes)")
     source = (f"needletrack dataset generate (MuJoCo {mujoco.__version__} built-in suturing scene): "
-              f"randomise={cfg.randomise} seed={cfg.seed} steps={cfg.steps} step_rad={cfg.step_rad:g}")
+              f"randomise={cfg.randomise} seed={cfg.seed} {what}")
+    offsets = [int(x) for x in np.concatenate([[0], np.cumsum(lengths)])]
     meta = scene_meta(cfg.width, cfg.height, source)
     writer = DatasetWriter(folder, meta, cfg.image_format, cfg.jpeg_quality, resume=resume)
     todo = list(range(done, cfg.sequences))
-    bar = tqdm(total=cfg.sequences * cfg.steps, initial=done * cfg.steps, unit="frame",
+    bar = tqdm(total=offsets[-1], initial=offsets[done], unit="frame",
                desc="generate", disable=not progress, smoothing=0.1)
     try:
         if jobs <= 1 or len(todo) <= 1:
-            _init_worker(cfg, folder)
+            _init_worker(cfg, folder, offsets)
             results = map(_work, todo)
             _consume(results, writer, bar)
         else:
@@ -138,7 +177,7 @@ def generate(folder: str, cfg: GenerateConfig, jobs: int = 2, progress: bool = T
             env_threads = os.environ.get("LP_NUM_THREADS")
             os.environ["LP_NUM_THREADS"] = env_threads or str(max(1, (os.cpu_count() or 2) // jobs))
             try:
-                with ctx.Pool(jobs, initializer=_init_worker, initargs=(cfg, folder)) as pool:
+                with ctx.Pool(jobs, initializer=_init_worker, initargs=(cfg, folder, offsets)) as pool:
                     _consume(pool.imap(_work, todo), writer, bar)
             finally:
                 if env_threads is None:

@@ -5,7 +5,12 @@ Motion scripts (``MOTIONS``):
 - ``multiview``: the paper's protocol: ``steps`` endoscope poses per needle pose, one random
   revolute ECM joint moving 0.05 rad between poses, each held ``hold_frames`` frames; then a new
   needle pose (a new ``sequence``);
-- ``sweep``: smooth yaw/pitch oscillation of ``sweep_amplitude_rad`` over ``sweep_period_s``.
+- ``sweep``: smooth yaw/pitch oscillation of ``sweep_amplitude_rad`` over ``sweep_period_s``;
+- ``pickup``, ``handover``, ``throw``, ``suture``: the instruments move the needle
+  (``common.sim.motion``), one take after another, each a new ``sequence`` with
+  ``needle_at_rest`` false (``common.sim.takes``).
+
+Every frame carries the instruments (``SimFrame.instruments``: name -> ``InstrumentPose``).
 """
 from __future__ import annotations
 
@@ -16,6 +21,7 @@ import numpy as np
 from common.geometry.camera import StereoRig
 from common.geometry.needle import NeedleModel
 from common.geometry.transforms import transform_points
+from common.sim.motion import MOTIONS as INSTRUMENT_MOTIONS
 from common.sim.randomise import (
     aim_joints,
     default_arm,
@@ -28,7 +34,7 @@ from common.sim.randomise import (
 )
 from common.sim.render import SceneRenderer
 
-MOTIONS = ("static", "multiview", "sweep")
+MOTIONS = ("static", "multiview", "sweep") + INSTRUMENT_MOTIONS
 
 
 @dataclass
@@ -42,6 +48,8 @@ class SimFrame:
     truth: dict            # keypoints / visible / bbox by camera
     sequence: int
     step: int
+    instruments: dict | None = None    # name -> common.data.instruments.InstrumentPose
+    needle_at_rest: bool | None = None
 
     @property
     def ecm_joints(self) -> np.ndarray:
@@ -82,6 +90,8 @@ class LiveSim:
         self.sequence = -1
         self.frame_in_sequence = 0
         self._rng = np.random.default_rng([self.seed, 7])
+        self.take = None
+        self.pinned = False                 # a needle placed by pose: at rest until the next place_needle
         self.place_needle()
         if self.preset.noise_sigma[1] > 0:          # the first frame would make it: here, at set-up
             noise_bank((height, width, 3))
@@ -91,6 +101,11 @@ class LiveSim:
         or exactly ``T_world_needle`` (4x4, world) with the endoscope aimed at it."""
         self.sequence += 1
         key = self.sequence if seed is None else int(seed)
+        self.pinned = T_world_needle is not None
+        if self.motion in INSTRUMENT_MOTIONS and T_world_needle is None:
+            self._start_take(key)
+            return
+        self.take = None
         plan = plan_sequence(self.seed, key, self.steps, self.preset, self.rig, self.needle, self.arm,
                              self.texture_size, self.msaa)
         if T_world_needle is not None:
@@ -108,8 +123,20 @@ class LiveSim:
         self.frame_in_sequence = 0
         self._img_rng = np.random.default_rng(plan.image_seed)
 
+    def _start_take(self, key: int) -> None:
+        from common.sim.takes import plan_take
+        self.take = plan_take(self.seed, key, self.motion, self.preset, self.rig, self.needle, self.arm,
+                              self.texture_size, self.msaa)
+        self.plan = self.take
+        self.renderer.load(self.take.spec)
+        self.frame_in_sequence = 0
+        self._img_rng = np.random.default_rng(self.take.image_seed)
+
     def joints(self) -> tuple[np.ndarray, int]:
         """Joints of the current frame under the motion script, and the multiview step."""
+        if self.take is not None:
+            k = min(self.frame_in_sequence, len(self.take) - 1)
+            return self.take.joints[k].copy(), k
         q0 = self.plan.joints[0]
         if self.motion == "static":
             return q0.copy(), 0
@@ -127,14 +154,25 @@ class LiveSim:
         """Render the next frame and advance the script."""
         if self.motion == "multiview" and self.frame_in_sequence >= self.hold_frames * self.steps:
             self.place_needle()
+        if (self.motion in INSTRUMENT_MOTIONS and not self.pinned) != (self.take is not None) or (
+                self.take is not None and (self.frame_in_sequence >= len(self.take) or self.take.motion != self.motion)):
+            self.place_needle()                     # the next take (or back to a needle at rest)
         q, step = self.joints()
         T_world_ecm = self.arm.T_world_ecm(q)
+        if self.take is not None:
+            from common.sim.takes import frame_instruments, take_spec
+            sf = self.take.script.frames[step]
+            self.renderer.load(take_spec(self.take, sf))
+            T_world_needle, instruments, at_rest = sf.T_world_needle.copy(), frame_instruments(sf), False
+        else:
+            from common.sim.takes import scene_instruments
+            T_world_needle, at_rest = self.plan.spec.T_world_needle.copy(), None
+            instruments = scene_instruments(self.plan.spec.instruments)
         renders = self.renderer.render(T_world_ecm)
         truth = self.renderer.ground_truth(T_world_ecm, renders)
         images = degrade_stereo({c: r.bgr for c, r in renders.items()}, self._img_rng, self.preset)
         self.frame_in_sequence += 1
-        return SimFrame(images, q, T_world_ecm, self.plan.spec.T_world_needle.copy(), truth,
-                        self.sequence, step)
+        return SimFrame(images, q, T_world_ecm, T_world_needle, truth, self.sequence, step, instruments, at_rest)
 
     def warm_up(self) -> None:
         """Render the current pose once and discard it (the GL pipeline's first use costs 3-4
@@ -143,8 +181,9 @@ class LiveSim:
         self.renderer.render(self.arm.T_world_ecm(q))
 
     def needle_in_view(self) -> bool:
-        q, _ = self.joints()
-        return keypoints_in_view(self.rig, self.needle, self.plan.spec.T_world_needle, self.arm.T_world_ecm(q))
+        q, step = self.joints()
+        T = (self.take.script.frames[step].T_world_needle if self.take is not None else self.plan.spec.T_world_needle)
+        return keypoints_in_view(self.rig, self.needle, T, self.arm.T_world_ecm(q))
 
     def close(self) -> None:
         self.renderer.close()

@@ -176,7 +176,7 @@ def sample_looks(rng: np.random.Generator, a: Appearance) -> Appearance:
 
 # ---------------------------------------------------------------- needle and instruments
 
-def _rest_height(T: np.ndarray, needle: NeedleModel, wire_r: float) -> float:
+def rest_height(T: np.ndarray, needle: NeedleModel, wire_r: float) -> float:
     """z translation that puts the lowest part of the wire on the phantom's surface."""
     p = transform_points(T, needle.sample_arc(48))
     gap = phantom_height(p[:, 0], p[:, 1]) - p[:, 2]
@@ -196,7 +196,7 @@ def sample_needle_pose(rng: np.random.Generator, needle: NeedleModel, wire_r: fl
         R = rotvec_to_R([0, 0, rng.uniform(-np.pi, np.pi)]) @ rotvec_to_R(
             np.append(rng.normal(0, 0.08, 2), 0.0)) @ flip
     T = make_T(R, [xy[0], xy[1], 0.0])
-    T[2, 3] = _rest_height(T, needle, wire_r)
+    T[2, 3] = rest_height(T, needle, wire_r)
     if held:
         T[2, 3] += rng.uniform(0.003, 0.025)
     return T

@@ -288,15 +288,43 @@ class Appearance:
     texture_seed: int = 0
 
 
+JAW_PIVOT_M = 0.0045
+"""Distance of the jaws' pivot from the instrument body's origin (m), along the shaft."""
+
+T_BODY_JAW = np.array([[0.0, 1.0, 0.0, 0.0], [1.0, 0.0, 0.0, 0.0], [0.0, 0.0, -1.0, JAW_PIVOT_M], [0, 0, 0, 1.0]])
+"""The jaw frame of ``docs/dataset.md`` in the instrument body (whose z runs up the shaft and whose
+x the jaws turn about): origin at the pivot, z along the closed jaws towards their tips, y the
+axis they open about, x = y cross z."""
+
+
 @dataclass
 class Instrument:
-    """A patient-side instrument: jaw tip position (world), shaft direction from the tip towards
-    the trocar (world unit vector), roll about the shaft (rad) and jaw opening (rad)."""
+    """A patient-side instrument: the body's origin near the jaw tips (world), shaft direction from
+    there towards the trocar (world unit vector), roll about the shaft (rad) and jaw opening (rad,
+    0 closed). ``T_world_jaw`` is its jaw frame (``T_BODY_JAW``); ``from_jaw`` the inverse."""
 
     tip: tuple
     shaft_dir: tuple
     roll: float = 0.0
     jaw_open: float = 0.3
+
+    @property
+    def T_world_body(self) -> np.ndarray:
+        return make_T(_frame_from_z(np.asarray(self.shaft_dir, float), self.roll), self.tip)
+
+    @property
+    def T_world_jaw(self) -> np.ndarray:
+        return self.T_world_body @ T_BODY_JAW
+
+    @classmethod
+    def from_jaw(cls, T_world_jaw: np.ndarray, jaw_rad: float) -> "Instrument":
+        """The instrument whose jaw frame is ``T_world_jaw`` (4x4, world), opened ``jaw_rad``."""
+        T_wb = np.asarray(T_world_jaw, float) @ np.linalg.inv(T_BODY_JAW)
+        z = T_wb[:3, 2]
+        x0 = _perp(z)
+        y0 = np.cross(z, x0)
+        x = T_wb[:3, 0]
+        return cls(tuple(T_wb[:3, 3]), tuple(z), float(np.arctan2(x @ y0, x @ x0)), float(jaw_rad))
 
 
 @dataclass
@@ -323,15 +351,20 @@ def _fmt(a) -> str:
     return " ".join(f"{v:.9g}" for v in np.asarray(a, dtype=float).reshape(-1))
 
 
-def _quat_from_z(z: np.ndarray, roll: float = 0.0) -> np.ndarray:
-    """Quaternion [w,x,y,z] of a frame whose z axis is ``z`` (unit), rolled about it."""
+def _frame_from_z(z: np.ndarray, roll: float = 0.0) -> np.ndarray:
+    """Rotation of a frame whose z axis is ``z`` (unit), rolled about it."""
     z = np.asarray(z, dtype=float)
     z = z / np.linalg.norm(z)
     x = _perp(z)
     y = np.cross(z, x)
     c, s = np.cos(roll), np.sin(roll)
     x, y = c * x + s * y, -s * x + c * y
-    return R_to_quat(np.stack([x, y, z], axis=1))
+    return np.stack([x, y, z], axis=1)
+
+
+def _quat_from_z(z: np.ndarray, roll: float = 0.0) -> np.ndarray:
+    """Quaternion [w,x,y,z] of a frame whose z axis is ``z`` (unit), rolled about it."""
+    return R_to_quat(_frame_from_z(z, roll))
 
 
 def rig_check(rig: StereoRig) -> None:
@@ -382,10 +415,10 @@ def build_mjcf(spec: SceneSpec) -> str:
         inst.append(f"""
     <body name="instrument{i}" mocap="true" pos="{_fmt(_HIDDEN)}">
       <geom name="instrument{i}_shaft" type="cylinder" fromto="0 0 0.011 0 0 0.25" size="0.0042" material="shaft"/>
-      <geom name="instrument{i}_wrist" type="cylinder" fromto="0 0 0.0045 0 0 0.011" size="0.0032" material="jaw"/>
-      <geom name="instrument{i}_pin" type="cylinder" fromto="-0.0028 0 0.0045 0.0028 0 0.0045" size="0.0012" material="jaw"/>
-      <body name="instrument{i}_jawbody0" pos="0 0 0.0045"><geom name="instrument{i}_jaw0" type="box" pos="0 0.0006 -0.0035" size="0.0011 0.0005 0.0036" material="jaw"/></body>
-      <body name="instrument{i}_jawbody1" pos="0 0 0.0045"><geom name="instrument{i}_jaw1" type="box" pos="0 -0.0006 -0.0035" size="0.0011 0.0005 0.0036" material="jaw"/></body>
+      <geom name="instrument{i}_wrist" type="cylinder" fromto="0 0 {JAW_PIVOT_M} 0 0 0.011" size="0.0032" material="jaw"/>
+      <geom name="instrument{i}_pin" type="cylinder" fromto="-0.0028 0 {JAW_PIVOT_M} 0.0028 0 {JAW_PIVOT_M}" size="0.0012" material="jaw"/>
+      <body name="instrument{i}_jawbody0" pos="0 0 {JAW_PIVOT_M}"><geom name="instrument{i}_jaw0" type="box" pos="0 0.0006 -0.0035" size="0.0011 0.0005 0.0036" material="jaw"/></body>
+      <body name="instrument{i}_jawbody1" pos="0 0 {JAW_PIVOT_M}"><geom name="instrument{i}_jaw1" type="box" pos="0 -0.0006 -0.0035" size="0.0011 0.0005 0.0036" material="jaw"/></body>
     </body>""")
     markers = [f"""
     <geom name="marker{i}" type="sphere" pos="0 0 -5" size="0.001" rgba="0.1 0.9 0.2 1"/>"""

@@ -12,7 +12,10 @@ What ``draw_fig1`` draws on one camera's image:
 - the needle's axes at its origin (x red, y green, z blue, one radius long);
 - every other method's arc (thin, its colour);
 - the detector's keypoints (yellow circles);
-- the ground truth's arc and keypoints (green crosses) when known.
+- the ground truth's arc and keypoints (green crosses) when known;
+- each instrument's jaw frame (``InstrumentToDraw``): its axes (x red, y green, z blue, 5 mm)
+  at the jaws' pivot, labelled with its name; the one that holds the needle ringed and labelled
+  "holds".
 """
 from __future__ import annotations
 
@@ -118,6 +121,34 @@ def _label(img, text, org, colour, size=0.45) -> None:
     cv2.putText(img, text, org, cv2.FONT_HERSHEY_SIMPLEX, size, colour, 1, cv2.LINE_AA)
 
 
+JAW_AXIS_M = 0.005
+HOLDER_BGR = (255, 0, 255)
+
+
+@dataclass
+class InstrumentToDraw:
+    """An instrument for one frame: its name, ``T_ecm_jaw`` (m) and whether it holds the needle."""
+    name: str
+    T_ecm_jaw: np.ndarray
+    holds_needle: Optional[bool] = None
+
+
+def draw_instruments(out: np.ndarray, scale: float, cam, instruments, offset=(0.0, 0.0), lw: int = 1) -> None:
+    """Each instrument's jaw axes and name on ``out`` (in place); the holder ringed."""
+    axes = np.vstack([np.zeros(3), np.eye(3) * JAW_AXIS_M])
+    for ins in instruments:
+        o, *ends = project(cam, ins.T_ecm_jaw, axes, scale, offset)
+        if not np.all(np.isfinite(o)) or np.abs(o).max() > 1e5:
+            continue
+        for e, c in zip(ends, AXIS_BGR, strict=True):
+            if np.all(np.isfinite(e)) and np.abs(e).max() < 1e5:
+                cv2.arrowedLine(out, _ipt(o), _ipt(e), c, lw, cv2.LINE_AA, tipLength=0.2)
+        text = ins.name + (" holds" if ins.holds_needle else "")
+        if ins.holds_needle:
+            cv2.circle(out, _ipt(o), 6 + 2 * lw, HOLDER_BGR, lw + 1, cv2.LINE_AA)
+        _label(out, text, (_ipt(o)[0] + 8, _ipt(o)[1] + 14), HOLDER_BGR if ins.holds_needle else TEXT_BGR)
+
+
 @dataclass
 class PoseToDraw:
     """A method's pose for one frame: ``T_ecm_needle`` (m) and whether it is ambiguous."""
@@ -127,14 +158,16 @@ class PoseToDraw:
 
 def draw_fig1(img: np.ndarray, scale: float, cam, needle: NeedleModel, poses: dict,
               final: Optional[str], keypoints: Optional[np.ndarray] = None,
-              T_true: Optional[np.ndarray] = None, caption: str = "", offset=(0.0, 0.0)) -> np.ndarray:
+              T_true: Optional[np.ndarray] = None, caption: str = "", offset=(0.0, 0.0),
+              instruments=()) -> np.ndarray:
     """Fig. 1 on a copy of ``img`` (``cam``'s full-size image through ``to_picture(scale, offset)``):
     ``poses`` method -> PoseToDraw, ``final`` the method drawn in full (module docstring),
     ``keypoints`` the detector's (5, 2) full-size pixels (NaN rows: not found), ``T_true`` the
-    true ``T_ecm_needle``. ``caption`` goes top left."""
+    true ``T_ecm_needle``, ``instruments`` InstrumentToDraw. ``caption`` goes top left."""
     out = img.copy()
     arc, kps = needle.sample_arc(48), needle.keypoints()
     lw = max(1, int(round(2 * max(1.0, out.shape[1] / 960))))
+    draw_instruments(out, scale, cam, instruments, offset, max(1, lw // 2))
     if T_true is not None:
         _polyline(out, project(cam, T_true, arc, scale, offset), TRUTH_BGR, 1)
         for p in project(cam, T_true, kps, scale, offset):
@@ -173,13 +206,13 @@ def draw_fig1(img: np.ndarray, scale: float, cam, needle: NeedleModel, poses: di
 def fig1_with_zoom(img: np.ndarray, scale: float, cam, needle: NeedleModel, poses: dict,
                    final: Optional[str], keypoints: Optional[np.ndarray] = None,
                    T_true: Optional[np.ndarray] = None, caption: str = "",
-                   zoom_frac: float = 0.42) -> np.ndarray:
+                   zoom_frac: float = 0.42, instruments=()) -> np.ndarray:
     """``draw_fig1`` plus, in the top right corner, a zoomed crop around the needle (the final
     pose's arc, else the truth, else the detections) drawn at the zoomed resolution; its box is
     outlined on the picture. Same arguments as ``draw_fig1``; ``zoom_frac``: the inset's width
     over the picture's."""
     from common.evaluation.report import _crop_box
-    out = draw_fig1(img, scale, cam, needle, poses, final, keypoints, T_true, caption)
+    out = draw_fig1(img, scale, cam, needle, poses, final, keypoints, T_true, caption, instruments=instruments)
     arc = needle.sample_arc(24)
     pose = poses.get(final) if final else None
     if pose is not None:
@@ -203,7 +236,7 @@ def fig1_with_zoom(img: np.ndarray, scale: float, cam, needle: NeedleModel, pose
                       (max(1, int(round((x1 - x0) * z))), max(1, int(round((y1 - y0) * z)))),
                       interpolation=cv2.INTER_CUBIC)
     inset = draw_fig1(crop, scale * z, cam, needle, poses, final, keypoints, T_true,
-                      f"x{z:.1f}", offset=(x0 * z, y0 * z))
+                      f"x{z:.1f}", offset=(x0 * z, y0 * z), instruments=instruments)
     ih, iw = inset.shape[:2]
     ih, iw = min(ih, h - 4), min(iw, w - 4)
     cv2.rectangle(out, (x0, y0), (x1, y1), TEXT_BGR, 1)

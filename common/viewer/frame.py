@@ -15,14 +15,15 @@ from common.viewer.draw import encode_jpeg, fig1_with_zoom
 
 
 def pictures(images: dict, rig, needle, poses: dict, final: Optional[str], keypoints: dict,
-             T_true, seq: int, quality: int = 75) -> dict:
+             T_true, seq: int, quality: int = 75, instruments=()) -> dict:
     """``{camera: JPEG bytes}``: each camera's Fig. 1 (with its zoomed inset). ``images``:
     camera -> (downscaled BGR image, scale); ``poses``: method -> ``PoseToDraw``; ``keypoints``:
-    camera -> (5, 2) full-size px or None."""
+    camera -> (5, 2) full-size px or None; ``instruments``: ``InstrumentToDraw``."""
     out = {}
     for cam, (small, scale) in images.items():
         caption = f"{cam}  seq {seq}  {final or 'no pose input'}" + ("" if final in poses else ": no pose")
-        pic = fig1_with_zoom(small, scale, rig[cam], needle, poses, final, keypoints.get(cam), T_true, caption)
+        pic = fig1_with_zoom(small, scale, rig[cam], needle, poses, final, keypoints.get(cam), T_true, caption,
+                             instruments=instruments)
         out[cam] = encode_jpeg(pic, quality)
     return out
 
