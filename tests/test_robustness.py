@@ -424,3 +424,15 @@ def test_poison_messages_neither_crash_nor_stall_a_graph(run_graph, tmp_path):
     for node in ("detector", "ecm", "triangulate", "fusion"):
         c = g.stats(node).counters
         assert c["handler_errors"] == 0 and c["decode_errors"] > 0, (node, c)
+
+
+def test_a_transform_with_huge_elements_is_refused_without_an_overflow_warning():
+    """A fuzzed 4x4 of 1e300s is named not rigid, and numpy warns of no overflow on the way."""
+    import warnings
+
+    from common.runtime.checks import rigid_error
+    T = np.eye(4)
+    T[:3, :3] = 1e300
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        assert "not a rigid transform" in rigid_error(T, "PoseEstimate.T_ecm_needle")

@@ -134,6 +134,8 @@ def rigid_error(T, where: str) -> Optional[str]:
     if not np.isfinite(T).all():
         return f"{where}: not finite"
     R = T[:3, :3]
+    if np.abs(R).max() > 2.0:       # no rotation has an element beyond 1 (and R.T @ R would overflow)
+        return f"{where}: not a rigid transform (rotation elements beyond 1)"
     if (np.abs(T[3] - (0.0, 0.0, 0.0, 1.0)).max() > RIGID_TOL
             or np.abs(R.T @ R - np.eye(3)).max() > RIGID_TOL or abs(np.linalg.det(R) - 1.0) > RIGID_TOL):
         return f"{where}: not a rigid transform (rotation not orthonormal with det 1, or bottom row not 0 0 0 1)"
