@@ -57,6 +57,8 @@ def test_a_familiarity_file_round_trips_and_bad_files_are_named(tmp_path):
         Familiarity.from_dict({"mean": []}, "x")
 
 
-def test_too_few_detections_to_fit_is_an_error():
-    with pytest.raises(ValueError, match="need at least"):
-        fit_familiarity(np.zeros((10, 40)), components=8)
+def test_too_few_detections_to_fit_is_an_error_and_few_fit_fewer_components():
+    with pytest.raises(ValueError, match="need at least 10"):
+        fit_familiarity(np.zeros((9, 40)), components=8)
+    fam = fit_familiarity(np.random.default_rng(0).normal(size=(12, 40)), components=8)
+    assert len(fam.variances) == 6 and np.isfinite(fam.median_distance)

@@ -39,7 +39,10 @@ def test_finetune_recipe_trains_fits_the_end_identity_then_scores_before_and_aft
     assert run.returncode == 0, run.stdout[-2000:] + run.stderr[-2000:]
     assert (out / "model.pt").is_file()
     fitted = json.loads((out / "end_identity.json").read_text())      # the stale file replaced
-    assert fitted["fitted_on"] == [str(fit_dir)] and len(fitted["coef"]) == len(FEATURES)
+    # folder names, not the machine's paths; the fit folder also read without colour
+    assert fitted["fitted_on"] == [fit_dir.name, f"{fit_dir.name}@grey"] and len(fitted["coef"]) == len(FEATURES)
+    assert "too few for a familiarity reference" in run.stderr          # 2 frames: said, not fitted
+    assert not (out / "familiarity.json").exists()
     assert load_end_coefficients(out / "model.pt") is not None
     assert "too few of one kind to learn how sure" in run.stderr        # a 2-frame fit folder says so
     assert "== before" in run.stdout and "== after" in run.stdout

@@ -23,7 +23,10 @@ import numpy as np
 from common.errors import NeedletrackError
 
 COMPONENTS = 24
-"""Principal directions modelled one by one; the rest share one residual variance."""
+"""Principal directions modelled one by one (fewer when fewer than twice as many detections are
+given); the rest share one residual variance."""
+MIN_DETECTIONS = 10
+"""Fewer detections than this do not make a reference (``fit_familiarity`` refuses)."""
 FORMAT = "needletrack-familiarity"
 
 
@@ -89,13 +92,14 @@ def fit_familiarity(features: np.ndarray, fitted_on=(), components: int = COMPON
     """The reference of descriptors (N, D) of detections on the training looks."""
     X = np.asarray(features, float)
     n, d = X.shape
-    if n < 2 * components:
-        raise ValueError(f"fit_familiarity: {n} detections for {components} components; need at least {2 * components}")
+    if n < MIN_DETECTIONS:
+        raise ValueError(f"fit_familiarity: {n} detections; need at least {MIN_DETECTIONS} "
+                         f"(folders of the training looks where the detector finds the needle)")
     mean = X.mean(axis=0)
     Xc = X - mean
     _, s, vt = np.linalg.svd(Xc, full_matrices=False)
     var_all = s ** 2 / (n - 1)
-    k = min(components, d - 1)
+    k = max(1, min(components, d - 1, n // 2))
     floor = 1e-6 * max(var_all[0], 1e-12)
     resid = max(float(var_all[k:].sum()) / max(d - k, 1), floor)
     fam = Familiarity(mean, vt[:k], np.maximum(var_all[:k], floor), resid, 1.0, tuple(fitted_on), n)

@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import sys
 from pathlib import Path
 
 import cv2
@@ -37,7 +38,7 @@ def descriptors(folder: str, detector, step: int = 1) -> np.ndarray:
 
 
 def main(argv=None) -> int:
-    from common.detector.familiarity import fit_familiarity, load_familiarity, save_familiarity
+    from common.detector.familiarity import MIN_DETECTIONS, fit_familiarity, load_familiarity, save_familiarity
     from common.detector.inference import KeypointDetector
     from common.detector.weights import DEFAULT_WEIGHTS
     ap = argparse.ArgumentParser(prog="needletrack bench familiarity", description=__doc__,
@@ -51,7 +52,13 @@ def main(argv=None) -> int:
     det = KeypointDetector(args.weights, device="cpu", tracking=False, threads=1, familiarity=not args.fit)
     feats = {d: descriptors(d, det, args.step) for d in args.data}
     if args.fit:
-        fam = fit_familiarity(np.vstack(list(feats.values())), fitted_on=[Path(d).name for d in args.data])
+        X = np.vstack(list(feats.values()))
+        if len(X) < MIN_DETECTIONS:
+            print(f"warning: {len(X)} detections in {', '.join(args.data)}: too few for a familiarity "
+                  f"reference (at least {MIN_DETECTIONS}); {args.fit} not written: these weights state no "
+                  f"unfamiliarity (add frames of the looks they were trained on)", file=sys.stderr)
+            return 0
+        fam = fit_familiarity(X, fitted_on=[Path(d).name for d in args.data])
         save_familiarity(fam, args.fit)
         print(f"wrote {args.fit}: {fam.detections} detections, {len(fam.variances)} components")
     else:
