@@ -581,6 +581,16 @@ def staged_folder(out: str):
         raise
 
 
+def link_or_copy(src: str, dst: str) -> None:
+    """Put the file ``src`` at ``dst`` (folders made): a hard link when both lie on one file
+    system, else a copy."""
+    os.makedirs(os.path.dirname(os.fspath(dst)) or ".", exist_ok=True)
+    try:
+        os.link(src, dst)
+    except OSError:
+        shutil.copy2(src, dst)
+
+
 TRUTH_FIELDS = ("T_world_needle", "keypoints", "visible", "bbox")
 """The frame fields that come from the needle's true pose: a recording has none of them."""
 
@@ -595,12 +605,7 @@ def without_truth(src: str, out: str) -> int:
         with open(os.path.join(tmp, FRAMES_FILE), "w", encoding="utf-8") as f:
             for fr in ds.frames:
                 for c in CAMERAS:
-                    dst = os.path.join(tmp, fr.image(c))
-                    os.makedirs(os.path.dirname(dst), exist_ok=True)
-                    try:
-                        os.link(os.path.join(ds.path, fr.image(c)), dst)
-                    except OSError:
-                        shutil.copy2(os.path.join(ds.path, fr.image(c)), dst)
+                    link_or_copy(os.path.join(ds.path, fr.image(c)), os.path.join(tmp, fr.image(c)))
                 d = {k: v for k, v in fr.to_json().items() if k not in TRUTH_FIELDS}
                 f.write(json.dumps(d, separators=(",", ":")) + "\n")
     return len(ds.frames)

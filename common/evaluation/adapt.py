@@ -102,9 +102,13 @@ def main(argv=None) -> int:
         return rc
     from common.evaluation.adapt_calibration import refit
     fit = out / "labels" / "fit"
-    report["calibration"] = refit(out / "model.pt", args.model, fit if fit.is_dir() else None,
-                                  progress=not args.quiet)
-    print(f"{stamp()} familiarity and end identity refitted beside {out / 'model.pt'}")
+    earlier = json.loads((out / "adapt.json").read_text()) if (out / "adapt.json").is_file() else {}
+    if earlier.get("calibration") and (out / "end_identity.json").is_file():
+        report["calibration"] = earlier["calibration"]          # a finished run's: kept
+    else:
+        report["calibration"] = refit(out / "model.pt", args.model, fit if fit.is_dir() else None,
+                                      progress=not args.quiet)
+        print(f"{stamp()} familiarity and end identity refitted beside {out / 'model.pt'}")
     _write_report(out, report)
     beside = ", ".join(n for n in ("end_identity.json", "familiarity.json", "adapt.json") if (out / n).is_file())
     print(f"wrote {out / 'model.pt'} (+ {beside}); score it with "

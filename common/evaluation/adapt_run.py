@@ -9,8 +9,6 @@ complete: a rerun keeps it (resumable).
 from __future__ import annotations
 
 import json
-import threading
-import time
 from dataclasses import dataclass, field
 from pathlib import Path
 

@@ -39,7 +39,14 @@ from pathlib import Path
 
 import numpy as np
 
-from common.data.dataset import Dataset, DatasetWriter, Frame, project_keypoints, staged_folder
+from common.data.dataset import (
+    Dataset,
+    DatasetWriter,
+    Frame,
+    link_or_copy,
+    project_keypoints,
+    staged_folder,
+)
 from common.frames import CAMERAS
 from common.geometry.end_identity import TIP_SURE
 from common.geometry.fusion import MultiViewFusion
@@ -190,14 +197,6 @@ def labelled_frame(ds: Dataset, fr: Frame, T_world_ecm, T_world_needle, index: i
                  T_world_needle=T_world_needle, keypoints=kps, visible=vis, bbox=box)
 
 
-def _place_image(src: Path, dst: Path) -> None:
-    dst.parent.mkdir(parents=True, exist_ok=True)
-    try:
-        os.link(src, dst)          # no copy when both lie on one file system
-    except OSError:
-        shutil.copy2(src, dst)
-
-
 def write_labels(sources: list, out, cfg: LabelConfig = LabelConfig(), progress: bool = True) -> dict:
     """Judge every group of every ``(folder, outputs)`` in ``sources`` and write the kept ones'
     frames as two dataset folders, ``out/train`` and ``out/fit`` (every ``fit_every``-th kept
@@ -242,7 +241,7 @@ def write_labels(sources: list, out, cfg: LabelConfig = LabelConfig(), progress:
                         for c in CAMERAS:
                             src = Path(ds.path) / fr.image(c)
                             paths[c] = f"images/{c}/{w.n_frames:06d}{src.suffix.lower()}"
-                            _place_image(src, Path(tmp) / paths[c])
+                            link_or_copy(str(src), str(Path(tmp) / paths[c]))
                         w.append(labelled_frame(ds, fr, T_we, v.T_world_needle, w.n_frames, g, paths))
                         rows.append({"part": part, "index": w.n_frames - 1, "folder": str(folder),
                                      "source_index": int(fr.index), "group": v.key})
