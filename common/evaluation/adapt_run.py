@@ -107,7 +107,7 @@ def record_pipeline(folder, out_file, *, model: str | None = None, support_norma
                          "inputs": {"pose": "refine/pose", "eos": "replay/eos", **keypoint_sources(True)},
                          "restart": "never"})
     log_path = Path(log_file) if log_file else out_file.with_suffix(".log")
-    timeout = timeout or (180 + n / 10.0 * 3)
+    timeout = timeout or (180 + 2.0 * n)      # generous: the detectors pace the run, not the replay
     with open(log_path, "w") as log:
         try:
             with GraphRun(doc, log) as run:
