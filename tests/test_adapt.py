@@ -10,7 +10,7 @@ import yaml
 
 from common.cli import dataset_main
 from common.data.dataset import TRUTH_FIELDS, Dataset, check_dataset, without_truth
-from common.evaluation.adapt_calibration import safe_scale, sure_wrong
+from common.evaluation.adapt_calibration import safe_scale, sure_share, sure_wrong
 from common.evaluation.adapt_run import FrameOutputs, read_recording, recording_complete
 from common.evaluation.pseudo_labels import LabelConfig, score_against_truth, write_labels
 from common.frames import CAMERAS
@@ -131,6 +131,11 @@ def test_the_end_identity_is_never_surer_than_the_shipped_weights_allow():
     assert s < 1.0 and sure_wrong(X, y, s * coef) <= 0.01
     assert safe_scale(X, y, coef, bound=0.0) >= 0.0 and sure_wrong(X, y, 0.0 * coef) == 0.0
     assert safe_scale(X, y, np.array([0.5, 0.0]), bound=0.0) == 1.0   # never sure: kept whole
+    # never surer than the shipped weights, even where no error shows
+    right = np.column_stack([np.where(y == 1, 3.0, -3.0), np.zeros(400)])
+    assert sure_wrong(right, y, coef) == 0.0 and sure_share(right, coef) == 1.0
+    s = safe_scale(right, y, coef, bound=0.0, max_sure=0.5)
+    assert s < 1.0 and sure_share(right, s * coef) <= 0.5
 
 
 def test_an_unfinished_recording_is_refused(tmp_path):

@@ -8,12 +8,14 @@ training never sees:
 - end identity (``common.detector.end_identity``): each detection is labelled by the group's
   agreed tip, which the *shipped* model's views voted for. Those labels are not independent of
   the model that made them: a group whose views all read the needle end for end the same way
-  is kept, labelled turned, and no geometry can see it. So the fit is never trusted further
-  than the shipped weights: ``safe_scale`` shrinks the fitted coefficients (towards stating
-  nothing, p = 0.5, which is never sure and so never surely wrong) until, on the held-out
-  groups, the new weights are surely wrong against the group's tip no more often than the
-  shipped weights with their own coefficients are. The shipped weights' coefficients are the
-  fallback when too few held-out detections exist.
+  is kept, labelled turned, and no geometry can see it; and a held-out set with few errors
+  cannot say how sure the new weights may be. So the new weights are never surer than the
+  shipped ones: ``safe_scale`` shrinks the coefficients (towards stating nothing, p = 0.5, which
+  is never sure and so never surely wrong) until, on the held-out groups' images, the new
+  weights state a sure tip no more often than the shipped weights with their own coefficients
+  do, and are surely wrong against the group's tip no more often. The coefficients are fitted
+  only when the new weights read at least ``MIN_FIT_ERRORS`` of the held-out detections each
+  way (as said, end for end); else the shipped coefficients are the start.
 """
 from __future__ import annotations
 
@@ -34,11 +36,22 @@ def sure_wrong(X: np.ndarray, y: np.ndarray, coef: np.ndarray) -> float:
     return summary("", {"features": X, "labels": y, "images": len(y)}, coef)["sure_wrong"] if len(y) else 0.0
 
 
-def safe_scale(X: np.ndarray, y: np.ndarray, coef: np.ndarray, bound: float) -> float:
+def sure_share(X: np.ndarray, coef: np.ndarray) -> float:
+    """Share of detections whose stated tip is sure either way (``TIP_SURE``)."""
+    from common.geometry.end_identity import TIP_SURE
+    if not len(X):
+        return 0.0
+    p = 1.0 / (1.0 + np.exp(-X[:, :len(coef)] @ coef))
+    return float(np.mean((p >= TIP_SURE) | (p <= 1 - TIP_SURE)))
+
+
+def safe_scale(X: np.ndarray, y: np.ndarray, coef: np.ndarray, bound: float,
+               max_sure: float = 1.0) -> float:
     """The largest of ``SCALES`` at which ``coef`` is surely wrong on (X, y) no more often than
-    ``bound`` (the shipped weights' rate on the same groups)."""
+    ``bound`` and sure no more often than ``max_sure`` (the shipped weights' rates on the same
+    groups)."""
     for s in SCALES:
-        if sure_wrong(X, y, s * coef) <= bound + 1e-12:
+        if sure_wrong(X, y, s * coef) <= bound + 1e-12 and sure_share(X, s * coef) <= max_sure + 1e-12:
             return s
     return 0.0
 
@@ -50,7 +63,7 @@ def refit(new_weights, shipped_weights, fit_folder, log=print, progress: bool = 
     from common.detector.familiarity import fit_familiarity, save_familiarity
     from common.detector.inference import KeypointDetector
     from common.detector.weights import load_end_coefficients
-    from common.evaluation.end_identity_bench import FIT_L2, collect
+    from common.evaluation.end_identity_bench import FIT_L2, MIN_FIT_ERRORS, collect
     from common.evaluation.familiarity_bench import descriptors
     new_weights = Path(new_weights)
     out_end, out_fam = new_weights.parent / "end_identity.json", new_weights.parent / "familiarity.json"
@@ -78,14 +91,17 @@ def refit(new_weights, shipped_weights, fit_folder, log=print, progress: bool = 
     old = collect(str(fit_folder), KeypointDetector(str(shipped_weights), device="cpu", tracking=False, threads=1))
     X, y = new["features"], new["labels"]
     bound = sure_wrong(old["features"], old["labels"], shipped_coef)
-    if len(y) >= MIN_DETECTIONS and 0 < y.mean() < 1:
+    max_sure = sure_share(old["features"], shipped_coef)
+    errors = int(min(np.sum(y == 0), np.sum(y == 1)))
+    if len(y) >= MIN_DETECTIONS and errors >= MIN_FIT_ERRORS:
         coef = fit_coefficients(X, y, l2=FIT_L2, weights=np.full(len(y), 1000.0 / len(y)))
         how = "fitted on the group-agreed tips"
     else:
         coef = np.asarray(shipped_coef, float)
-        how = ("shipped coefficients (too few held-out detections)" if len(y) < MIN_DETECTIONS else
-               "shipped coefficients (the held-out detections are all read one way: nothing to fit)")
-    s = safe_scale(X, y, coef, bound)
+        how = (f"shipped coefficients (too few held-out detections: {len(y)})" if len(y) < MIN_DETECTIONS else
+               f"shipped coefficients (the new weights read {errors} held-out detections against the "
+               f"group's tip: too few to fit how sure they may be)")
+    s = safe_scale(X, y, coef, bound, max_sure)
     coef = s * coef
     Path(out_end).write_text(json.dumps({
         "features": list(FEATURES), "coef": [float(c) for c in coef],
@@ -93,8 +109,10 @@ def refit(new_weights, shipped_weights, fit_folder, log=print, progress: bool = 
         "detections": int(len(y))}, indent=1) + "\n")
     done["end_identity"] = {"how": how, "scale": s, "detections": int(len(y)),
                             "sure_wrong_new": sure_wrong(X, y, coef), "sure_wrong_shipped": bound,
+                            "sure_new": sure_share(X, coef), "sure_shipped": max_sure,
                             "network_swaps_new": float(np.mean(y == 0)) if len(y) else None,
                             "network_swaps_shipped": float(np.mean(old["labels"] == 0)) if len(old["labels"]) else None}
-    log(f"end identity: {how}, scaled {s:g}; on the held-out groups surely wrong "
+    log(f"end identity: {how}, scaled {s:g}; on the held-out groups sure "
+        f"{done['end_identity']['sure_new']:.1%} (shipped {max_sure:.1%}), surely wrong "
         f"{done['end_identity']['sure_wrong_new']:.1%} (shipped {bound:.1%})")
     return done
