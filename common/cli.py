@@ -25,6 +25,7 @@ COMMANDS = {
     "dataset": ("common.cli:dataset_main", "make, check, convert and look at dataset folders"),
     "train": ("common.detector.train:main", "train the keypoint detector"),
     "eval": ("common.evaluation.cli:main", "evaluate pose pipelines"),
+    "adapt": ("common.evaluation.adapt:main", "fit the detector to a scene from recordings without ground truth"),
     "results": ("common.evaluation.results_page:main", "evaluate the documented sets and write docs/results.md"),
     "record": ("common.ros.record:record_main", "record a running graph to MCAP with ROS 2 schemas"),
     "view": ("common.viewer.cli:main", "open a recording (.rrd) in Rerun's web viewer on 127.0.0.1"),

@@ -1,5 +1,6 @@
-"""``needletrack dataset check|show``: validate a dataset folder against the spec and its ground
-truth, and look at it (a contact sheet with the true keypoints)."""
+"""``needletrack dataset check|show|strip-truth``: validate a dataset folder against the spec and
+its ground truth, look at it (a contact sheet with the true keypoints), and copy it without its
+ground truth (what a user's recording holds)."""
 from __future__ import annotations
 
 import sys
@@ -19,7 +20,20 @@ def add_parsers(sub) -> dict:
     s.add_argument("--cols", type=int, default=4)
     s.add_argument("--camera", default="left", choices=["left", "right"])
     s.add_argument("--tile-width", type=int, default=480)
-    return {"check": _check, "show": _show}
+
+    t = sub.add_parser("strip-truth", help="copy a folder without its ground truth (needle pose, "
+                                           "keypoints, visible, bbox): the images, calibration and "
+                                           "endoscope poses a recording holds")
+    t.add_argument("path")
+    t.add_argument("--out", required=True, help="output folder (new; images hard-linked when possible)")
+    return {"check": _check, "show": _show, "strip-truth": _strip}
+
+
+def _strip(args) -> int:
+    from common.data.dataset import without_truth
+    n = without_truth(args.path, args.out)
+    print(f"{args.out}: {n} frames without ground truth")
+    return 0
 
 
 def _check(args) -> int:

@@ -550,6 +550,36 @@ def staged_folder(out: str):
         raise
 
 
+def link_or_copy(src: str, dst: str) -> None:
+    """Put the file ``src`` at ``dst`` (folders made): a hard link when both lie on one file
+    system, else a copy."""
+    os.makedirs(os.path.dirname(os.fspath(dst)) or ".", exist_ok=True)
+    try:
+        os.link(src, dst)
+    except OSError:
+        shutil.copy2(src, dst)
+
+
+TRUTH_FIELDS = ("T_world_needle", "keypoints", "visible", "bbox")
+"""The frame fields that come from the needle's true pose: a recording has none of them."""
+
+
+def without_truth(src: str, out: str) -> int:
+    """Copy the folder ``src`` to the new folder ``out`` without its ground truth
+    (``TRUTH_FIELDS``): images (hard-linked when they share a file system), dataset.yaml, and
+    each frame's stamps, sequence, endoscope joints and pose. Returns the frames written."""
+    ds = Dataset(src)
+    with staged_folder(out) as tmp:
+        shutil.copy2(os.path.join(ds.path, META_FILE), os.path.join(tmp, META_FILE))
+        with open(os.path.join(tmp, FRAMES_FILE), "w", encoding="utf-8") as f:
+            for fr in ds.frames:
+                for c in CAMERAS:
+                    link_or_copy(os.path.join(ds.path, fr.image(c)), os.path.join(tmp, fr.image(c)))
+                d = {k: v for k, v in fr.to_json().items() if k not in TRUTH_FIELDS}
+                f.write(json.dumps(d, separators=(",", ":")) + "\n")
+    return len(ds.frames)
+
+
 def write_frame_images(folder: str, index: int, images: dict, image_format: str = "jpg",
                        jpeg_quality: int = 95) -> dict:
     """Write ``images`` ({camera: BGR}) of frame ``index`` under folder/images/<camera>/."""

@@ -273,8 +273,9 @@ def _bench(args, dataset: str, out: Path, res: dict) -> int:
     return 0
 
 
-def _wait_with_progress(run, n_frames: int, timeout: float, quiet: bool) -> None:
-    """Wait for the evaluator, showing frames replayed (from the replay's stats) as a bar."""
+def _wait_with_progress(run, n_frames: int, timeout: float, quiet: bool, until=("evaluator",)) -> None:
+    """Wait for the ``until`` nodes (the evaluator), showing frames replayed (from the replay's
+    stats) as a bar."""
     import threading
 
     from tqdm import tqdm
@@ -283,7 +284,7 @@ def _wait_with_progress(run, n_frames: int, timeout: float, quiet: bool) -> None
 
     def waiter():
         try:
-            run.wait(["evaluator"], timeout)
+            run.wait(list(until), timeout)
         except Exception as exc:
             err.append(exc)
         done.set()
