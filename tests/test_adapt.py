@@ -9,7 +9,9 @@ import pytest
 import yaml
 
 from common.cli import dataset_main
-from common.data.dataset import TRUTH_FIELDS, Dataset, check_dataset, without_truth
+from common.data.check import check_dataset
+from common.data.dataset import Dataset
+from common.data.writer import TRUTH_FIELDS, without_truth
 from common.evaluation.adapt_calibration import safe_scale, sure_share, sure_wrong
 from common.evaluation.adapt_run import FrameOutputs, read_recording, recording_complete
 from common.evaluation.pseudo_labels import LabelConfig, score_against_truth, write_labels

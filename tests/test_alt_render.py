@@ -8,7 +8,8 @@ import numpy as np
 import pytest
 
 from common.cli import dataset_main
-from common.data.dataset import Dataset, check_dataset
+from common.data.check import check_dataset
+from common.data.dataset import Dataset
 from common.geometry.camera import StereoRig
 from common.geometry.needle import NeedleModel
 from common.geometry.transforms import inv_T, make_T, rotvec_to_R, transform_points

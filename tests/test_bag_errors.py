@@ -10,7 +10,9 @@ import pytest
 import yaml
 
 from common.cli import dataset_main
-from common.data.dataset import Dataset, check_dataset, staged_folder
+from common.data.check import check_dataset
+from common.data.dataset import Dataset
+from common.data.writer import staged_folder
 from common.ros.bag import BagError, BagStereo
 from common.ros.bagfuzz import damage_mcap, fuzz_bags, mcap_records, synthetic_bag, topic_map
 

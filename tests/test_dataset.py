@@ -7,16 +7,9 @@ import numpy as np
 import pytest
 import yaml
 
-from common.data.dataset import (
-    Dataset,
-    DatasetError,
-    DatasetMeta,
-    DatasetWriter,
-    Frame,
-    check_dataset,
-    project_keypoints,
-    truncate_torn_tail,
-)
+from common.data.check import check_dataset, project_keypoints
+from common.data.dataset import Dataset, DatasetError, DatasetMeta, Frame
+from common.data.writer import DatasetWriter, truncate_torn_tail
 from common.geometry.camera import StereoRig
 from common.geometry.ecm_kinematics import EcmArm
 from common.geometry.needle import NeedleModel
@@ -353,7 +346,7 @@ def test_the_docs_page_is_the_spec_and_lists_what_the_reader_parses():
 
 
 def test_a_generation_of_takes_of_their_own_lengths_resumes_after_the_last_whole_take(tmp_path):
-    from common.data.dataset import resume_generation
+    from common.data.writer import resume_generation
     cfg = {"motion": "throw", "seed": 1}
     assert resume_generation(str(tmp_path), "gen.json", cfg, 3, 1, "gen", lengths=[3, 5, 2]) == (False, 0)
     lines = [json.dumps({**GOOD, "index": i, "sequence": s, "step": k})

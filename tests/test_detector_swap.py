@@ -8,7 +8,9 @@ import signal
 
 import numpy as np
 
-from common.data.dataset import DatasetMeta, DatasetWriter, Frame, project_keypoints
+from common.data.check import project_keypoints
+from common.data.dataset import DatasetMeta, Frame
+from common.data.writer import DatasetWriter
 from common.geometry.camera import StereoRig
 from common.geometry.needle import NeedleModel
 from common.geometry.transforms import make_T, rotvec_to_R

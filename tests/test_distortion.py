@@ -8,7 +8,8 @@ import cv2
 import numpy as np
 
 from common.cli import dataset_main
-from common.data.dataset import Dataset, check_dataset
+from common.data.check import check_dataset
+from common.data.dataset import Dataset
 from common.detector.centreline_subpixel import ellipse_residual
 from common.detector.learned import _undistorter
 from common.evaluation.cli import main as eval_main

@@ -340,7 +340,9 @@ def test_pipeline_offline_end_to_end_five_views():
 
 def _multiview_dataset(folder, n_frames=10):
     """A still needle, the ECM yawing 0.05 rad per frame (back and forth), as a dataset folder."""
-    from common.data.dataset import DatasetMeta, DatasetWriter, Frame, project_keypoints
+    from common.data.check import project_keypoints
+    from common.data.dataset import DatasetMeta, Frame
+    from common.data.writer import DatasetWriter
     w, h = 1920, 1080
     meta = DatasetMeta((w, h), StereoRig.default(w, h), MODEL, ARM, "geometry graph test")
     img = np.full((h, w, 3), 90, np.uint8)

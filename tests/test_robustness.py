@@ -10,7 +10,8 @@ import numpy as np
 import pytest
 from test_geometry_nodes import CALIB, MODEL, RIG, _multiview_dataset, detect, frame
 
-from common.data.dataset import Dataset, DatasetError, check_dataset
+from common.data.check import check_dataset
+from common.data.dataset import Dataset, DatasetError
 from common.geometry.oracle import random_needle_pose
 from common.runtime.graph import GraphError, load_graph
 from common.runtime.graph_checks import validate_graph

@@ -9,7 +9,8 @@ import numpy as np
 import pytest
 
 from common.cli import dataset_main
-from common.data.dataset import Dataset, check_dataset
+from common.data.check import check_dataset
+from common.data.dataset import Dataset
 from common.evaluation.cli import main as eval_main
 from common.ros.bag import BagError, BagStereo
 from common.ros.conventions import AMBF_NEEDLE_RADIUS_M, T_AMBF_NEEDLE

@@ -8,7 +8,8 @@ import yaml
 from test_ros_bag import run_oracle_eval
 
 from common.cli import dataset_main
-from common.data.dataset import Dataset, check_dataset
+from common.data.check import check_dataset
+from common.data.dataset import Dataset
 from common.ros.convert import from_bag
 from common.ros.synth import PSM_BASES, dataset_to_bag
 from common.ros.topicmap import TopicMapError, load_topic_map

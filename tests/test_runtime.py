@@ -402,7 +402,8 @@ def test_handler_times_are_those_of_the_handlers_that_published():
 def test_a_replay_sends_its_prepared_raw_frames_intact_through_shared_memory(run_graph, tmp_path):
     """The replay copies its next frame into shared memory before sending it (``Node.prepare``);
     what arrives is the recorded image, stamped when sent."""
-    from common.data.dataset import DatasetMeta, DatasetWriter, Frame
+    from common.data.dataset import DatasetMeta, Frame
+    from common.data.writer import DatasetWriter
     from common.geometry.camera import StereoRig
     from common.geometry.needle import NeedleModel
     from common.runtime.messages import CameraImage

@@ -6,7 +6,8 @@ import pytest
 
 import common.sim.render  # noqa: F401  (headless GL before mujoco)
 from common.cli import dataset_main
-from common.data.dataset import Dataset, check_dataset
+from common.data.check import check_dataset
+from common.data.dataset import Dataset
 from common.geometry.camera import StereoRig
 from common.geometry.needle import NeedleModel
 from common.geometry.transforms import transform_points

@@ -6,12 +6,9 @@ import numpy as np
 import pytest
 
 import common.sim.render  # noqa: F401  (headless GL before mujoco)
-from common.data.dataset import (
-    DatasetMeta,
-    DatasetWriter,
-    Frame,
-    project_keypoints,
-)
+from common.data.check import project_keypoints
+from common.data.dataset import DatasetMeta, Frame
+from common.data.writer import DatasetWriter
 from common.geometry.camera import StereoRig
 from common.geometry.ecm_kinematics import EcmArm
 from common.geometry.needle import NeedleModel

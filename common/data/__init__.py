@@ -1,3 +1,4 @@
-"""The dataset folder format (docs/dataset.md): ``dataset`` reads, writes and checks folders;
-``values`` parses its values, ``instruments`` a frame's instruments.
+"""The dataset folder format (docs/dataset.md): ``dataset`` reads folders, ``writer`` writes
+them, ``check`` runs the format's consistency checks; ``values`` parses its values,
+``instruments`` a frame's instruments.
 Imports ``geometry``, and ``runtime.limits`` for the limits on what it reads from disk."""

@@ -30,14 +30,15 @@ def add_parsers(sub) -> dict:
 
 
 def _strip(args) -> int:
-    from common.data.dataset import without_truth
+    from common.data.writer import without_truth
     n = without_truth(args.path, args.out)
     print(f"{args.out}: {n} frames without ground truth")
     return 0
 
 
 def _check(args) -> int:
-    from common.data.dataset import Dataset, check_dataset
+    from common.data.check import check_dataset
+    from common.data.dataset import Dataset
     ds = Dataset(args.path)
     rep = check_dataset(ds, tol_px=args.tol_px, images=not args.no_images, progress=sys.stderr.isatty())
     print(f"{args.path}: {rep.frames} frames, {ds.meta.image_size[0]}x{ds.meta.image_size[1]}, "

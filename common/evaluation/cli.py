@@ -70,7 +70,8 @@ def check_folder(path: str, progress: bool = True):
     Beyond the spec, evaluation needs ground truth: ``T_world_needle`` and the endoscope pose
     (``T_world_ecm``, or ``ecm_joints`` with the ``ecm`` arm) on every frame.
     """
-    from common.data.dataset import Dataset, DatasetError, check_dataset
+    from common.data.check import check_dataset
+    from common.data.dataset import Dataset, DatasetError
     ds = Dataset(path)
     if len(ds) == 0:
         raise DatasetError(f"{path}/frames.jsonl: no frames")

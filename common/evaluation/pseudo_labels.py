@@ -21,7 +21,7 @@ fails names the drop reason):
   ``max_view_px`` (median over the found keypoints) of the fused pose's projection.
 
 Every frame of a kept group, posed or not, gets the fused pose: keypoints from
-``common.data.dataset.project_keypoints`` (the spec's projection), ``visible`` where they lie in
+``common.data.check.project_keypoints`` (the spec's projection), ``visible`` where they lie in
 front of the camera and inside the image (``common.geometry.oracle.true_keypoints``; an
 occluder is not known), ``bbox`` the projected arc's (``oracle.arc_bbox``), and
 ``T_world_needle``/``T_world_ecm`` (the centreline target the trainer projects from them).
@@ -39,14 +39,9 @@ from pathlib import Path
 
 import numpy as np
 
-from common.data.dataset import (
-    Dataset,
-    DatasetWriter,
-    Frame,
-    link_or_copy,
-    project_keypoints,
-    staged_folder,
-)
+from common.data.check import project_keypoints
+from common.data.dataset import Dataset, Frame
+from common.data.writer import DatasetWriter, link_or_copy, staged_folder
 from common.frames import CAMERAS
 from common.geometry.end_identity import TIP_SURE
 from common.geometry.fusion import MultiViewFusion

@@ -17,7 +17,8 @@ import time
 
 import numpy as np
 
-from common.data.dataset import DatasetMeta, DatasetWriter, Frame, staged_folder
+from common.data.dataset import DatasetMeta, Frame
+from common.data.writer import DatasetWriter, staged_folder
 from common.frames import CAMERAS
 from common.geometry.camera import StereoRig
 from common.geometry.transforms import inv_T

@@ -220,7 +220,8 @@ def distort_dataset(src: str, out: str, dist, image_format: str = "png", progres
     projected with the distortion. Returns the number of frames."""
     import cv2
 
-    from common.data.dataset import Dataset, DatasetMeta, DatasetWriter, Frame
+    from common.data.dataset import Dataset, DatasetMeta, Frame
+    from common.data.writer import DatasetWriter
     from common.geometry.camera import StereoRig
     from common.geometry.oracle import arc_bbox, true_keypoints
     ds = Dataset(src)

@@ -359,7 +359,8 @@ def generate_alt(folder: str, cfg: AltGenerateConfig, progress: bool = True, ove
     """Generate (or resume, or extend) a folder; returns the number of frames in it."""
     from tqdm import tqdm
 
-    from common.data.dataset import DatasetWriter, Frame, resume_generation
+    from common.data.dataset import Frame
+    from common.data.writer import DatasetWriter, resume_generation
     if cfg.width < 16 or cfg.height < 16:
         raise ValueError(f"generate-alt: image size {cfg.width}x{cfg.height} is too small")
     resume, done = resume_generation(folder, GENERATE_FILE, cfg.stable(), cfg.sequences, cfg.steps,

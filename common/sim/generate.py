@@ -127,7 +127,8 @@ def _init_worker(cfg: GenerateConfig, folder: str, offsets: list) -> None:
 
 def _work(sequence: int) -> list[dict]:
     """Render sequence ``sequence``, write its images; returns its frames.jsonl objects."""
-    from common.data.dataset import Frame, write_frame_images
+    from common.data.dataset import Frame
+    from common.data.writer import write_frame_images
     cfg, folder = _WORKER["cfg"], _WORKER["folder"]
     frames = []
     for images, fields, quality in render_sequence(_WORKER["renderer"], cfg, sequence):
@@ -152,7 +153,7 @@ def generate(folder: str, cfg: GenerateConfig, jobs: int = 2, progress: bool = T
     import mujoco
     from tqdm import tqdm
 
-    from common.data.dataset import DatasetWriter, resume_generation
+    from common.data.writer import DatasetWriter, resume_generation
     # settings added later default to their old behaviour
     lengths = take_lengths(cfg)
     resume, done = resume_generation(folder, GENERATE_FILE, cfg.stable(), cfg.sequences, cfg.steps,
@@ -209,7 +210,8 @@ def generate_needle_free(folder, n_frames: int, seed: int = 777, preset: str = "
 
     from tqdm import tqdm
 
-    from common.data.dataset import DatasetWriter, Frame
+    from common.data.dataset import Frame
+    from common.data.writer import DatasetWriter
     from common.sim.randomise import (
         PALE_THREAD_RGB,
         THREAD_RGBS,
