@@ -62,9 +62,11 @@ def plain(msg):
 
 
 def rclpy_bytes(items: list) -> list:
-    """Run the peer's ``bytes`` command on ``[{"type", "values", "cdr"}]``."""
-    res = subprocess.run([sys.executable, str(PEER), "bytes"], input=json.dumps(items), capture_output=True,
-                         text=True, env=ENV, timeout=300)
+    """Run the peer's ``bytes`` command on ``[{"type", "values", "cdr"}]``: serialisation only (no
+    ``rclpy.init``, no participant), still in a loopback-only namespace like every rclpy process."""
+    with LoopbackNamespace("rospeerB", multicast=False) as ns:
+        res = subprocess.run(ns.argv([sys.executable, str(PEER), "bytes"]), input=json.dumps(items),
+                             capture_output=True, text=True, env=ENV, timeout=300)
     assert res.returncode == 0, res.stderr[-3000:]
     return json.loads(res.stdout)
 
