@@ -165,13 +165,13 @@ class RefineNode(StereoPoseNode):
             return
         if res.ambiguous:
             self.count("ambiguous")
-        T_world_ecm = self.ecm_poses.get(left.seq)
-        self._T_world_needle = None if T_world_ecm is None else T_world_ecm @ res.T_ecm_needle
-        self.publish_pose(self.pose_message(left.seq, left.stamp_ns, "refined", res.T_ecm_needle,
-                                            res.rms_px, "px", covariance=res.covariance,
-                                            ambiguous=bool(res.ambiguous),
-                                            model_sigma_m=self.config.model_sigma_mm * 1e-3 or None,
-                                            model_sigma_rad=math.radians(self.config.model_sigma_deg) or None))
+        pose = self.pose_message(left.seq, left.stamp_ns, "refined", res.T_ecm_needle,
+                                 res.rms_px, "px", covariance=res.covariance,
+                                 ambiguous=bool(res.ambiguous),
+                                 model_sigma_m=self.config.model_sigma_mm * 1e-3 or None,
+                                 model_sigma_rad=math.radians(self.config.model_sigma_deg) or None)
+        self._T_world_needle = pose.T_world_needle    # None until the frame's ECM pose is known
+        self.publish_pose(pose)
 
     def expected_T_ecm_needle(self, seq: int) -> np.ndarray | None:
         """Where the tracked needle is in frame ``seq``'s ECM frame if it has not moved: its last
