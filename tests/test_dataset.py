@@ -333,7 +333,7 @@ def _doc_fields(text: str, heading: str) -> set:
 def test_the_docs_page_is_the_spec_and_lists_what_the_reader_parses():
     from pathlib import Path
 
-    from common.data.dataset import _FRAME_FIELDS
+    from common.data.dataset import _FRAME_FIELDS, EXTENSION_FIELDS, parse_frame
     root = Path(__file__).resolve().parents[1]
     text = (root / "docs" / "dataset.md").read_text()
     shared = root.parent / "shared" / "specs" / "dataset.md"            # the project's contract, beside main
@@ -343,6 +343,13 @@ def test_the_docs_page_is_the_spec_and_lists_what_the_reader_parses():
     fields = _doc_fields(text, "## frames.jsonl")
     assert {"instruments", "needle_at_rest", "T_world_jaw", "jaw_rad", "holds_needle"} <= fields
     assert fields - {"T_world_jaw", "jaw_rad", "holds_needle"} == _FRAME_FIELDS
+    assert not EXTENSION_FIELDS & fields                                 # ours, documented in datasets.md
+    ours = (root / "docs" / "datasets.md").read_text()
+    assert all(f"`{f}`" in ours for f in EXTENSION_FIELDS)
+    fr = parse_frame({**GOOD, "arc_visible": {"left": 0.25, "right": 1}})
+    assert fr.arc_visible == {"left": 0.25, "right": 1.0} and fr.to_json()["arc_visible"] == fr.arc_visible
+    with pytest.raises(DatasetError, match=r"arc_visible\.right: expected a share in \[0, 1\], got 1\.5"):
+        parse_frame({**GOOD, "arc_visible": {"left": 0.25, "right": 1.5}}, 3)
 
 
 def test_a_generation_of_takes_of_their_own_lengths_resumes_after_the_last_whole_take(tmp_path):

@@ -139,3 +139,36 @@ def test_broken_data_folders_are_rejected_with_file_and_line(tiny_data, tmp_path
         read_dataset(bad)
     rc = main(["--data", str(bad), "--out", str(tmp_path / "o"), "--no-progress"])
     assert rc == 2 and "frames.jsonl:2" in capsys.readouterr().err
+
+
+def test_hidden_keypoints_train_towards_a_diffuse_heatmap_whose_score_is_under_the_gate():
+    """``train.hidden_sigma``: a hidden keypoint's target is wide, so a network that fits it
+    states a score (peak mass) under the pose nodes' 0.5 gate; a seen one's stays sharp."""
+    import torch
+
+    from common.detector.model import decode_heatmaps, gaussian_targets
+    m = 48
+    uv = torch.tensor([[[20.3, 25.6], [30.0, 10.0]]])
+    valid = torch.tensor([[1.0, 0.3]])
+    sigma = torch.where((valid > 0) & (valid < 1), 4.0, 1.5)
+    t = gaussian_targets(uv, valid, m, sigma)
+    assert torch.allclose(t.sum((-2, -1)), valid)
+    _, score = decode_heatmaps(torch.log((t / valid[..., None, None]).clamp_min(1e-12)), 1)
+    assert score[0, 0] > 0.75 and score[0, 1] < 0.3
+    same = gaussian_targets(uv, valid, m, 1.5)
+    assert torch.allclose(same[0, 0], t[0, 0]) and not torch.allclose(same[0, 1], t[0, 1])
+
+
+def test_motion_blur_and_hue_augmentations_keep_the_image_and_move_no_mass():
+    from common.detector.data import motion_blur, turn_hue
+    img = np.zeros((41, 41, 3), np.uint8)
+    img[20, 20] = 250
+    b = motion_blur(img, 9.0, 0.0)
+    row = b[20, :, 0]
+    assert (row > 0).sum() >= 7 and b[:, 20, 0].astype(int).sum() == row[20]   # spread along x only
+    assert abs(int(b[..., 0].astype(int).sum()) - 250) < 12
+    assert motion_blur(img, 0.5, 0.3) is img
+    red = np.full((4, 4, 3), (30, 30, 200), np.uint8)
+    assert np.array_equal(turn_hue(turn_hue(red, 120), 240), red)
+    g = turn_hue(red, 120)[0, 0]
+    assert g[1] > g[0] and g[1] > g[2]                                         # red -> green

@@ -194,3 +194,40 @@ def test_jaws_hide_what_they_cover(tmp_path):
         for cam in ("left", "right"):
             seen_through += bool(gt["visible"][cam][2])
     assert seen_through == 0
+
+
+def test_arc_visible_is_the_seen_share_of_the_arc_and_agrees_with_the_keypoints(throw_take):
+    """``arc_visible`` (needletrack's own field): a share in [0, 1]; all five keypoints hidden
+    means less than the whole arc seen, all five seen means more than none of it."""
+    from common.data.dataset import Dataset
+    frames = [json.loads(ln) for ln in (throw_take / "frames.jsonl").read_text().splitlines() if ln.strip()]
+    shares = []
+    for f in frames:
+        for cam in ("left", "right"):
+            a, v = f["arc_visible"][cam], f["visible"][cam]
+            assert 0.0 <= a <= 1.0
+            if not any(v):
+                assert a < 1.0
+            if all(v):
+                assert a > 0.0
+            shares.append(a)
+    assert max(shares) - min(shares) > 0.3           # the tissue hides more of it as the tip goes in
+    assert Dataset(throw_take)[0].arc_visible["left"] == frames[0]["arc_visible"]["left"]
+
+
+def test_take_every_keeps_every_kth_frame_of_the_same_take(throw_take, tmp_path):
+    from common.cli import dataset_main
+    out = tmp_path / "every"
+    assert dataset_main(["generate", "--out", str(out), "--sequences", "1", "--motion", "throw", "--width", "160",
+                         "--height", "120", "--msaa", "0", "--seed", "7", "--randomise", "test", "--thread", "none",
+                         "--jobs", "1", "--quiet", "--take-every", "5"]) == 0
+    assert dataset_main(["check", str(out)]) == 0
+    full = [json.loads(ln) for ln in (throw_take / "frames.jsonl").read_text().splitlines() if ln.strip()]
+    some = [json.loads(ln) for ln in (out / "frames.jsonl").read_text().splitlines() if ln.strip()]
+    assert [f["index"] for f in some] == list(range(len(some))) and len(some) == -(-len(full) // 5)
+    for f in some:                                   # the same frames of the same take, step kept
+        g = full[f["step"]]
+        assert f["step"] % 5 == 0 and np.allclose(f["T_world_needle"], g["T_world_needle"])
+        assert f["keypoints"] == g["keypoints"]
+    assert dataset_main(["generate", "--out", str(tmp_path / "bad"), "--sequences", "1", "--take-every", "3",
+                         "--quiet"]) == 1                # a multi-view set has no take to thin out

@@ -195,7 +195,8 @@ class Frame:
     """One stereo frame (a line of frames.jsonl). Image paths are relative to the folder.
 
     ``keypoints[c]`` (5, 2) px, ``visible[c]`` (5,) bool, ``bbox[c]`` [x0, y0, x1, y1] or None,
-    ``instruments`` {name: ``common.data.instruments.InstrumentPose``}, ``needle_at_rest`` False
+    ``instruments`` {name: ``common.data.instruments.InstrumentPose``}, ``arc_visible[c]`` the share
+    of the arc seen (needletrack's own field, docs/datasets.md), ``needle_at_rest`` False
     when the needle moves during its sequence (then the sequence is a take, not a multi-view
     group: ``multiview_group``). Optional fields are None when the file leaves them out or null.
     """
@@ -214,6 +215,7 @@ class Frame:
     bbox: Optional[dict] = None
     needle_at_rest: Optional[bool] = None
     instruments: Optional[dict] = None
+    arc_visible: Optional[dict] = None
     line: Optional[int] = field(default=None, compare=False)
 
     def image(self, camera: str) -> str:
@@ -257,11 +259,16 @@ class Frame:
             d["needle_at_rest"] = bool(self.needle_at_rest)
         if self.instruments is not None:
             d["instruments"] = instruments_json(self.instruments)
+        if self.arc_visible is not None:
+            d["arc_visible"] = {c: float(self.arc_visible[c]) for c in CAMERAS}
         return d
 
 
 _FRAME_FIELDS = {"index", "stamp_ns", "left", "right", "sequence", "step", "ecm_joints", "T_world_ecm",
                  "T_world_needle", "keypoints", "visible", "bbox", "needle_at_rest", "instruments"}
+"""The frame fields of docs/dataset.md (the shared spec)."""
+EXTENSION_FIELDS = {"arc_visible"}
+"""needletrack's own frame fields (docs/datasets.md): other readers ignore them, as the spec says."""
 
 
 def _relpath(v) -> str:
@@ -303,6 +310,13 @@ def _bbox(v) -> list:
     return b.tolist()
 
 
+def _share(v) -> float:
+    x = _num(v)
+    if not 0.0 <= x <= 1.0:
+        raise _Bad(f"expected a share in [0, 1], got {x:g}")
+    return x
+
+
 def _flag(v) -> bool:
     if not isinstance(v, bool):
         raise _Bad(f"expected true or false, got {v!r}"[:120])
@@ -325,7 +339,8 @@ def parse_frame(obj, line: Optional[int] = None, file: str = FRAMES_FILE) -> Fra
                "keypoints": (lambda v: _per_camera(v, _matrix, 5, 2),),
                "visible": (lambda v: _per_camera(v, _bools, 5),),
                "bbox": (lambda v: _per_camera(v, _bbox, nullable=True),),
-               "needle_at_rest": (_flag,), "instruments": (parse_instruments,)}
+               "needle_at_rest": (_flag,), "instruments": (parse_instruments,),
+               "arc_visible": (lambda v: _per_camera(v, _share),)}
     vals = {}
     for k, (fn, *args) in parsers.items():
         v = obj.get(k)

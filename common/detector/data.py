@@ -281,6 +281,10 @@ class AugConfig:
     blur: float = 0.3            # probability of a Gaussian blur (sigma 0.3 .. 1.2 px)
     noise: float = 6.0           # max Gaussian noise sigma (intensity levels)
     jpeg: float = 0.2            # probability of JPEG re-compression (quality 55 .. 95)
+    hue: float = 0.0             # probability of turning the hue by any angle (colours no render has)
+    motion_blur: float = 0.0     # probability of a linear motion blur of a stage-2 crop ...
+    motion_blur_px: float = 6.0  # ... up to this long in full-image px, any direction (a needle at
+                                 # 20 mm/s or 90 deg/s, 10-16 cm away, over a 1/60 s exposure)
     global_window: tuple = (0, 0)  # stage 1 trains on random (w, h) windows of the downscaled
                                    # image, multiples of 8 (0 = the whole image): cheaper steps
     window_needle: float = 0.7   # probability that a window holds the needle's centre
@@ -294,8 +298,31 @@ class AugConfig:
         return cls(**d)
 
 
+def motion_blur(img: np.ndarray, length_px: float, angle_rad: float) -> np.ndarray:
+    """A linear motion blur: the mean of the image over a ``length_px`` segment at ``angle_rad``
+    (an exposure during which the scene moves uniformly that far)."""
+    n = int(np.ceil(length_px)) | 1
+    if n < 2 or length_px < 1.0:
+        return img
+    k = np.zeros((n, n), np.float32)
+    c = (n - 1) / 2.0
+    d = np.array([np.cos(angle_rad), np.sin(angle_rad)]) * (length_px - 1) / 2.0
+    cv2.line(k, (int(round(c - d[0])), int(round(c - d[1]))), (int(round(c + d[0])), int(round(c + d[1]))), 1.0, 1,
+             cv2.LINE_AA)
+    return cv2.filter2D(img, -1, k / max(k.sum(), 1e-6), borderType=cv2.BORDER_REPLICATE)
+
+
+def turn_hue(img: np.ndarray, angle_deg: float) -> np.ndarray:
+    """The BGR uint8 image with its hue turned by ``angle_deg`` (OpenCV's 180-step hue circle)."""
+    hsv = cv2.cvtColor(img, cv2.COLOR_BGR2HSV)
+    hsv[..., 0] = ((hsv[..., 0].astype(np.int32) + int(round(angle_deg / 2.0))) % 180).astype(np.uint8)
+    return cv2.cvtColor(hsv, cv2.COLOR_HSV2BGR)
+
+
 def photometric(img: np.ndarray, aug: AugConfig, rng: np.random.Generator) -> np.ndarray:
-    """Random brightness, contrast, colour balance, blur, noise and JPEG on a uint8 BGR image."""
+    """Random hue, brightness, contrast, colour balance, blur, noise and JPEG on a uint8 BGR image."""
+    if aug.hue > 0 and rng.random() < aug.hue:
+        img = turn_hue(img, rng.uniform(0, 360))
     x = img.astype(np.float32)
     gain = (1 + rng.uniform(-aug.contrast, aug.contrast)) * (1 + rng.uniform(-aug.colour, aug.colour, 3))
     mean = x.mean()
@@ -354,6 +381,8 @@ def crop_sample(rec: ImageRecord, cfg: ModelConfig, aug: AugConfig | None, rng: 
     M = crop_affine(cx, cy, side, c, angle, flip)
     img = crop_from(rec.region, rec.origin, M, c)
     if aug is not None:
+        if aug.motion_blur > 0 and rng.random() < aug.motion_blur:
+            img = motion_blur(img, rng.uniform(0, aug.motion_blur_px) * c / side, rng.uniform(0, np.pi))
         img = photometric(img, aug, rng)
     kp_c = apply_affine(M, np.nan_to_num(rec.kp, nan=-1e6))
     in_crop = np.isfinite(rec.kp).all(1) & (kp_c >= -0.5).all(1) & (kp_c <= c - 0.5).all(1)

@@ -245,10 +245,13 @@ def _fold(conv: nn.Conv2d, bn: nn.BatchNorm2d) -> nn.Conv2d:
 
 # ---------------------------------------------------------------- targets and losses
 
-def gaussian_targets(uv_cells: torch.Tensor, valid: torch.Tensor, m: int, sigma: float) -> torch.Tensor:
-    """Soft targets (N, K, m, m): a Gaussian of ``sigma`` cells centred on ``uv_cells`` (N, K, 2)
-    = (x, y) in cell coordinates, summing to ``valid`` (N, K): a weight, 0 for no target."""
+def gaussian_targets(uv_cells: torch.Tensor, valid: torch.Tensor, m: int, sigma) -> torch.Tensor:
+    """Soft targets (N, K, m, m): a Gaussian of ``sigma`` cells (a float, or (N, K) per keypoint)
+    centred on ``uv_cells`` (N, K, 2) = (x, y) in cell coordinates, summing to ``valid`` (N, K): a
+    weight, 0 for no target."""
     g = torch.arange(m, dtype=torch.float32, device=uv_cells.device)
+    if torch.is_tensor(sigma):
+        sigma = sigma[..., None].float()
     gx = torch.exp(-0.5 * ((g[None, None, :] - uv_cells[..., 0:1]) / sigma) ** 2)   # N,K,m
     gy = torch.exp(-0.5 * ((g[None, None, :] - uv_cells[..., 1:2]) / sigma) ** 2)
     t = gy[..., :, None] * gx[..., None, :]

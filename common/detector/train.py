@@ -72,6 +72,9 @@ DEFAULT_TRAIN = {
     "hard_mining_at": 0.0,    # when to mine: fraction(s) of the schedule (0 = before the first step)
     "hard_mining_images": 0,  # mine on at most this many images (a seeded random subset); 0 = all
     "hard_prob": 0.2,         # fraction of stage-2 samples drawn from the mined hard negatives
+    "hidden_sigma": 0.0,      # >0: a hidden keypoint's target is a Gaussian this wide (cells), so that
+                              # its heatmap is diffuse and its score (peak mass) stays under the gate;
+                              # 0: as wide as a seen one's (model.kp_sigma)
 }
 
 
@@ -108,14 +111,18 @@ def load_config(path: str | None) -> dict:
     return cfg
 
 
-def losses(model: KeypointModel, cb, gb, w: dict) -> dict:
-    """Loss terms of a stage-2 batch ``cb`` and a stage-1 batch ``gb`` (either may be None)."""
+def losses(model: KeypointModel, cb, gb, w: dict, hidden_sigma: float = 0.0) -> dict:
+    """Loss terms of a stage-2 batch ``cb`` and a stage-1 batch ``gb`` (either may be None).
+    ``hidden_sigma`` > 0: hidden keypoints (weight under 1, ``crop_sample``) get targets that wide."""
     cfg = model.cfg
     out = {}
     if cb is not None:
         x, kpc, valid, line, pres = cb
         heat, p = model.crop(x)
-        out["kp"] = keypoint_loss(heat[:, :5], gaussian_targets(kpc, valid, cfg.heat, cfg.kp_sigma))
+        sigma = cfg.kp_sigma
+        if hidden_sigma > 0:
+            sigma = torch.where((valid > 0) & (valid < 1), float(hidden_sigma), float(cfg.kp_sigma))
+        out["kp"] = keypoint_loss(heat[:, :5], gaussian_targets(kpc, valid, cfg.heat, sigma))
         out["line"] = F.binary_cross_entropy_with_logits(heat[:, 5], line)
         out["presence"] = F.binary_cross_entropy_with_logits(p, pres)
     if gb is not None:
@@ -365,7 +372,7 @@ def train(data_dirs, out, config_path=None, log=print, progress=True, init=None)
             cb = (crop_batch(tr, idx, mcfg, aug, rng, hard, float(tcfg["hard_prob"]))
                   if "crop" in stages else None)
             gb = global_batch(tr, gidx, mcfg, aug, rng) if "global" in stages else None
-            L = losses(model, cb, gb, w)
+            L = losses(model, cb, gb, w, float(tcfg["hidden_sigma"]))
             lr = base_lr * min(1.0, (step_count + 1) / max(1, warm)) * 0.5 * (1 + math.cos(math.pi * frac))
             for g in opt.param_groups:
                 g["lr"] = lr

@@ -44,6 +44,9 @@ def add_parsers(sub) -> dict:
                    help="none (default): the multi-view protocol; else each sequence is a moving take of "
                         "that instrument script at 30 Hz, as long as its script (--steps unused; mixed: "
                         "pickup, handover, throw, suture in turn; docs/simulation.md)")
+    g.add_argument("--take-every", type=int, default=1, metavar="K",
+                   help="with --motion: keep every K-th frame of each take (default 1: all, at 30 Hz); "
+                        "for training sets, more takes for the same rendering time")
     g.add_argument("--jobs", type=int, default=2, help="render processes (default 2)")
     g.add_argument("--msaa", type=int, default=4, choices=[0, 2, 4, 8],
                    help="anti-aliasing samples (default 4; 0 renders ~2.5x faster with jagged thin wires)")
@@ -81,7 +84,8 @@ def _generate(args) -> int:
     import common.sim.render  # noqa: F401  (selects the headless GL backend first)
     from common.sim.generate import GenerateConfig, generate
     cfg = GenerateConfig(args.sequences, args.steps, args.seed, args.randomise, args.width, args.height,
-                         args.format, args.quality, args.msaa, args.step_rad, args.thread, args.motion)
+                         args.format, args.quality, args.msaa, args.step_rad, args.thread, args.motion,
+                         args.take_every)
     t0 = time.time()
     n = generate(args.out, cfg, jobs=args.jobs, progress=not args.quiet, overwrite=args.overwrite)
     shape = f"{args.steps} steps" if args.motion == "none" else f"{args.motion} takes"

@@ -34,6 +34,7 @@ class GenerateConfig:
     step_rad: float = MULTIVIEW_STEP_RAD   # ECM joint step between a sequence's endoscope poses
     thread: str = "random"                 # "none": no suture thread drawn (a threadless twin)
     motion: str = "none"                   # "none": the multi-view protocol; else a take's script
+    take_every: int = 1                    # keep every k-th frame of a take (training sets: more takes per hour)
 
     def stable(self) -> dict:
         """What must match for a folder to be resumed or extended."""
@@ -43,6 +44,8 @@ class GenerateConfig:
             d.pop("thread")
         if d["motion"] == "none":
             d.pop("motion")
+        if d["take_every"] == 1:
+            d.pop("take_every")
         return d
 
     def take_plan(self, take: int, meta, preset, tex: int = 1024):
@@ -88,7 +91,8 @@ def render_sequence(renderer, cfg: GenerateConfig, sequence: int) -> list[tuple[
         quality = min(cfg.jpeg_quality, jpeg_quality(rng, preset))
         fields = {"sequence": sequence, "step": step, "ecm_joints": np.asarray(q, float),
                   "T_world_ecm": T_world_ecm, "T_world_needle": plan.spec.T_world_needle,
-                  "keypoints": gt["keypoints"], "visible": gt["visible"], "bbox": gt["bbox"]}
+                  "keypoints": gt["keypoints"], "visible": gt["visible"], "bbox": gt["bbox"],
+                  "arc_visible": gt["arc_visible"]}
         out.append((images, fields, quality))
     return out
 
@@ -100,7 +104,8 @@ def _render_take(renderer, cfg: GenerateConfig, sequence: int, meta, preset, tex
     rng = np.random.default_rng(plan.image_seed)
     out = []
     for images, fields in render_take(renderer, plan, meta.arm,
-                                      lambda im: degrade_stereo(im, rng, preset, jpeg=cfg.image_format != "jpg")):
+                                      lambda im: degrade_stereo(im, rng, preset, jpeg=cfg.image_format != "jpg"),
+                                      every=cfg.take_every):
         out.append((images, {"sequence": sequence, **fields}, min(cfg.jpeg_quality, jpeg_quality(rng, preset))))
     return out
 
@@ -111,7 +116,8 @@ def take_lengths(cfg: GenerateConfig) -> list[int]:
         return [cfg.steps] * cfg.sequences
     from common.sim.randomise import get_preset
     meta, preset = scene_meta(cfg.width, cfg.height, ""), get_preset(cfg.randomise)
-    return [len(cfg.take_plan(s, meta, preset)) for s in range(cfg.sequences)]
+    k = cfg.take_every
+    return [-(-len(cfg.take_plan(s, meta, preset)) // k) for s in range(cfg.sequences)]
 
 
 # ---------------------------------------------------------------- worker processes
@@ -131,8 +137,8 @@ def _work(sequence: int) -> list[dict]:
     from common.data.writer import write_frame_images
     cfg, folder = _WORKER["cfg"], _WORKER["folder"]
     frames = []
-    for images, fields, quality in render_sequence(_WORKER["renderer"], cfg, sequence):
-        index = _WORKER["offsets"][sequence] + fields["step"]
+    for i, (images, fields, quality) in enumerate(render_sequence(_WORKER["renderer"], cfg, sequence)):
+        index = _WORKER["offsets"][sequence] + i
         paths = write_frame_images(folder, index, images, cfg.image_format, quality)
         fr = Frame(index=index, stamp_ns=int(round(index * 1e9 / FPS)), left=paths["left"],
                    right=paths["right"], **fields)
@@ -146,6 +152,8 @@ def generate(folder: str, cfg: GenerateConfig, jobs: int = 2, progress: bool = T
     if not (np.isfinite(cfg.step_rad) and 0.0 <= cfg.step_rad <= 0.5):
         raise ValueError(f"dataset generate: --step-rad must be in [0, 0.5] rad, got {cfg.step_rad}")
     from common.sim.takes import TAKE_MOTIONS
+    if cfg.take_every < 1 or (cfg.take_every > 1 and cfg.motion == "none"):
+        raise ValueError(f"dataset generate: --take-every must be >= 1 and needs --motion, got {cfg.take_every}")
     if cfg.motion != "none" and cfg.motion not in TAKE_MOTIONS:
         raise ValueError(f"dataset generate: --motion must be none or one of {TAKE_MOTIONS}, got {cfg.motion!r}")
     import multiprocessing as mp

@@ -254,28 +254,47 @@ def needle_keypoints_cam(rig: StereoRig, needle, T_world_needle, T_world_ecm) ->
     return {c: transform_points(rig[c].T_cam_ecm, p_ecm) for c in CAMERAS}
 
 
+ARC_VISIBLE_SAMPLES = 49
+"""Points along the arc (A..E, equally spaced) whose visibility gives ``arc_visible``."""
+
+
+def _seen(uv: np.ndarray, z: np.ndarray, inside: np.ndarray, render, wire_radius_m: float) -> np.ndarray:
+    """(N,) bool: projected points (uv px, camera depth z m) shown by the render: their pixel holds
+    the needle, or nothing in front of them closer than two wire radii."""
+    v = np.zeros(len(uv), bool)
+    h, w = render.label.shape
+    for k in np.flatnonzero(inside):
+        u0 = min(max(int(round(uv[k, 0])), 0), w - 1)
+        v0 = min(max(int(round(uv[k, 1])), 0), h - 1)
+        v[k] = bool(render.label[v0, u0] == LABELS["needle"] or render.depth[v0, u0] > z[k] - 2 * wire_radius_m)
+    return v
+
+
 def frame_ground_truth(rig: StereoRig, needle, T_world_needle, T_world_ecm, renders,
                        wire_radius_m: float) -> dict:
-    """keypoints / visible / bbox per camera from the exact projection and the renders."""
+    """keypoints / visible / bbox per camera from the exact projection and the renders, and
+    ``arc_visible``: the share of ``ARC_VISIBLE_SAMPLES`` points along the arc that are seen."""
     p_cam = needle_keypoints_cam(rig, needle, T_world_needle, T_world_ecm)
-    kps, vis, boxes = {}, {}, {}
+    T_ecm_needle = inv_T(T_world_ecm) @ T_world_needle
+    arc_ecm = transform_points(T_ecm_needle, needle.sample_arc(ARC_VISIBLE_SAMPLES))
+    kps, vis, boxes, arc_vis = {}, {}, {}, {}
     for c in CAMERAS:
         cam = rig[c]
         uv = cam.project(p_cam[c])
         inside = cam.in_image(uv) & (p_cam[c][:, 2] > 0)
         r = renders.get(c)
         v = np.zeros(5, bool)
+        arc_vis[c] = 0.0
         if r is not None:
-            h, w = r.label.shape
-            for k in np.flatnonzero(inside):
-                u0 = min(max(int(round(uv[k, 0])), 0), w - 1)
-                v0 = min(max(int(round(uv[k, 1])), 0), h - 1)
-                v[k] = bool(r.label[v0, u0] == LABELS["needle"]
-                            or r.depth[v0, u0] > p_cam[c][k, 2] - 2 * wire_radius_m)
+            v = _seen(uv, p_cam[c][:, 2], inside, r, wire_radius_m)
+            a_cam = transform_points(cam.T_cam_ecm, arc_ecm)
+            a_uv = cam.project(a_cam)
+            a_in = cam.in_image(a_uv) & (a_cam[:, 2] > 0)
+            arc_vis[c] = float(_seen(a_uv, a_cam[:, 2], a_in, r, wire_radius_m).mean())
             ys, xs = np.nonzero(r.label == LABELS["needle"])
             boxes[c] = (None if len(xs) == 0 else
                         [float(xs.min()) - 0.5, float(ys.min()) - 0.5, float(xs.max()) + 0.5, float(ys.max()) + 0.5])
         else:
             boxes[c] = None
         kps[c], vis[c] = uv, v
-    return {"keypoints": kps, "visible": vis, "bbox": boxes}
+    return {"keypoints": kps, "visible": vis, "bbox": boxes, "arc_visible": arc_vis}

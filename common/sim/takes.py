@@ -92,10 +92,13 @@ def take_spec(plan: TakePlan, frame) -> SceneSpec:
     return replace(plan.spec, T_world_needle=frame.T_world_needle, instruments=_instruments(frame))
 
 
-def render_take(renderer, plan: TakePlan, arm: EcmArm, degrade=None):
-    """Render a take: yields (BGR images by camera, frame fields) per frame; ``degrade`` (images
-    -> images) applies the sensor model."""
+def render_take(renderer, plan: TakePlan, arm: EcmArm, degrade=None, every: int = 1):
+    """Render a take: yields (BGR images by camera, frame fields) per frame, or per ``every``-th
+    frame (``step`` stays the frame's index in the 30 Hz take); ``degrade`` (images -> images)
+    applies the sensor model."""
     for step, (fr, q) in enumerate(zip(plan.script.frames, plan.joints)):
+        if step % every:
+            continue
         renderer.load(take_spec(plan, fr))
         T_world_ecm = arm.T_world_ecm(q)
         renders = renderer.render(T_world_ecm)
@@ -105,4 +108,5 @@ def render_take(renderer, plan: TakePlan, arm: EcmArm, degrade=None):
             images = degrade(images)
         yield images, {"step": step, "ecm_joints": np.asarray(q, float), "T_world_ecm": T_world_ecm,
                        "T_world_needle": fr.T_world_needle, "keypoints": gt["keypoints"], "visible": gt["visible"],
-                       "bbox": gt["bbox"], "needle_at_rest": False, "instruments": frame_instruments(fr)}
+                       "bbox": gt["bbox"], "arc_visible": gt["arc_visible"], "needle_at_rest": False,
+                       "instruments": frame_instruments(fr)}
