@@ -348,7 +348,7 @@ def test_the_docs_page_is_the_spec_and_lists_what_the_reader_parses():
     assert all(f"`{f}`" in ours for f in EXTENSION_FIELDS)
     fr = parse_frame({**GOOD, "arc_visible": {"left": 0.25, "right": 1}})
     assert fr.arc_visible == {"left": 0.25, "right": 1.0} and fr.to_json()["arc_visible"] == fr.arc_visible
-    with pytest.raises(DatasetError, match=r"arc_visible\.right: expected a share in \[0, 1\], got 1\.5"):
+    with pytest.raises(DatasetError, match=r"frames.jsonl:3: arc_visible: right: expected a share in \[0, 1\], got 1\.5"):
         parse_frame({**GOOD, "arc_visible": {"left": 0.25, "right": 1.5}}, 3)
 
 
