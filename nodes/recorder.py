@@ -11,29 +11,17 @@ Params: ``out`` (the file, required; replaced), ``drain_s`` (default 3).
 from __future__ import annotations
 
 import json
-import math
 import time
 from dataclasses import dataclass, fields
 
-import numpy as np
-
+from common.evaluation.results import to_jsonable
 from common.runtime.messages import EndOfStream, Keypoints, PoseEstimate
 from common.runtime.node import Node, NodeError, run
 
 
-def _jsonable(v):
-    if isinstance(v, np.ndarray):
-        return [_jsonable(x) for x in v.tolist()] if v.ndim else _jsonable(v.item())
-    if isinstance(v, list):
-        return [_jsonable(x) for x in v]
-    if isinstance(v, float) and not math.isfinite(v):
-        return None
-    return v
-
-
 def message_record(kind: str, msg) -> dict:
     """One line of the file: the message's fields, JSON-ready."""
-    return {"kind": kind, **{f.name: _jsonable(getattr(msg, f.name)) for f in fields(msg)}}
+    return {"kind": kind, **{f.name: to_jsonable(getattr(msg, f.name)) for f in fields(msg)}}
 
 
 class RecorderNode(Node):

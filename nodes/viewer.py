@@ -46,7 +46,8 @@ from common.runtime.node import Node, NodeError, run
 from common.runtime.pairing import SeqCache
 from common.viewer.draw import InstrumentToDraw, PoseToDraw, decode_small
 from common.viewer.frame import log_frame, pictures
-from common.viewer.page import HttpLimits, PageServer
+from common.viewer.http_request import HttpLimits
+from common.viewer.page import PageServer
 from common.viewer.state import ViewerState
 from common.methods import POSE_METHODS, final_method
 from nodes._pose import PoseMethodInputs

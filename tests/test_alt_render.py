@@ -227,8 +227,8 @@ def test_aim_joints_points_the_scope_at_the_target():
         assert np.allclose((target - o) / d, view_direction(arm, q), atol=1e-9)
 
 
-FIRST_RENDERER = ("common.sim.scene", "common.sim.render", "common.sim.randomise", "common.sim.generate",
-                  "common.sim.live")
+FIRST_RENDERER = ("common.sim.scene", "common.sim.scene_meshes", "common.sim.scene_textures", "common.sim.render",
+                  "common.sim.randomise", "common.sim.generate", "common.sim.live")
 
 
 def test_renderer_shares_no_code_with_the_first():

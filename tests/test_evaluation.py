@@ -5,11 +5,8 @@ from dataclasses import replace
 import numpy as np
 import pytest
 
-from common.evaluation.report import (
-    report_markdown,
-    select_overlay_frames,
-    write_outputs,
-)
+from common.evaluation.overlays import select_overlay_frames
+from common.evaluation.report import report_markdown, write_outputs
 from common.evaluation.collect import Collected, evaluate
 from common.evaluation.metrics import keypoint_errors_2d, last_steps, pearson, pose_nees, summary
 from common.evaluation.results import RESULT_KEYS, build_results, check_results, to_jsonable

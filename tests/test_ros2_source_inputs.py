@@ -12,6 +12,7 @@ import pytest
 
 from common.evaluation.fuzz_ros import RosSamples, _huge, fuzz_ros2, ros_poison
 from common.ros import bag as rosbag_mod
+from common.ros import roles as ros_roles
 from common.ros.cdr import encode
 from nodes.ros2 import Ros2Node
 
@@ -124,7 +125,7 @@ def test_joint_arrays_and_history_are_bounded(src, caplog):
     assert src.node.asm.refused[topic] == 2
     src.node.last_bad_log.clear()                                    # (the log is once a second per topic)
     src.put(topic, key, encode(js))                                  # small, but 100 joints
-    assert f"joint arrays longer than {rosbag_mod.MAX_JOINTS}" in caplog.text
+    assert f"joint arrays longer than {ros_roles.MAX_JOINTS}" in caplog.text
     assert src.node.asm.refused[topic] == 3
     for _ in range(rosbag_mod.HISTORY + 20):
         src.frame()

@@ -99,7 +99,7 @@ def test_record_writes_instrument_states_as_a_dvrk_arm_and_plays_them_back():
     from common.geometry.camera import StereoRig
     from common.geometry.needle import NeedleModel
     from common.geometry.transforms import make_T, rotvec_to_R
-    from common.ros.bag import pose_of
+    from common.ros.roles import pose_of
     from common.ros.record import replay_topic_map, ros_messages
     from common.runtime.messages import Calibration, InstrumentState
     T = make_T(rotvec_to_R([0.2, -0.4, 1.1]), [0.01, -0.02, 0.03])

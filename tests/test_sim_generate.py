@@ -22,7 +22,7 @@ from common.sim.randomise import (
     rotate_with_keypoints,
     sample_appearance,
 )
-from common.sim.scene import PHANTOM_SIZE, needle_mesh, phantom_height
+from common.sim.scene_meshes import PHANTOM_SIZE, needle_mesh, phantom_height
 
 
 @pytest.mark.parametrize("preset", sorted(PRESETS))

@@ -11,7 +11,8 @@ import yaml
 from common.geometry.needle import NeedleModel
 from common.geometry.transforms import inv_T, pose_error, transform_points
 from common.sim.motion import FPS, MAX_SPEED_M_S, MAX_TURN_RAD_S, MOTIONS, grasp_pose, minimum_jerk, script_take
-from common.sim.scene import T_BODY_JAW, Instrument, phantom_height
+from common.sim.scene import T_BODY_JAW, Instrument
+from common.sim.scene_meshes import phantom_height
 
 NEEDLE = NeedleModel()
 

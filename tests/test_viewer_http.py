@@ -21,7 +21,8 @@ from common.evaluation.http_fuzz import (
     rss_mb,
     statuses,
 )
-from common.viewer.page import HostCheck, HttpLimits, HttpRefusal, PageServer, host_name, parse_head
+from common.viewer.http_request import HostCheck, HttpLimits, HttpRefusal, host_name, parse_head
+from common.viewer.page import PageServer
 
 DEADLINE = 30.0        # generous: the machine is shared
 

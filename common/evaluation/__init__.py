@@ -2,8 +2,9 @@
 
 ``metrics`` (errors, NEES, which frames count), ``collect`` (a run's messages scored),
 ``results`` (``results.json``), ``timing``, ``results_page`` (``needletrack results``),
-``report`` (tables and figures), ``cli`` (the
-``needletrack eval`` command), ``pipeline_graph`` (the graph an evaluation runs); the
+``report`` (tables and figures), ``overlays`` (the frames drawn), ``cli`` (the
+``needletrack eval`` command), ``pipeline_graph`` (the graph an evaluation runs), ``folder_detections`` (the detector run
+cold over a folder's images); the
 ``needletrack bench`` benchmarks: ``graph_bench``, ``transport_bench``, ``sim_bench``,
 ``detector_bench``, ``refine_bench``, ``geometry_bench``, ``ros_bench`` (``ros-bag``, ``ros-live``), ``fuzz`` (with ``fuzz_payloads``, ``fuzz_ros``).
 """

@@ -20,10 +20,9 @@ from pathlib import Path
 
 import cv2
 import numpy as np
-from tqdm import tqdm
 
 from common.detector.end_identity import FEATURES
-from common.frames import CAMERAS
+from common.evaluation.folder_detections import cold_detections
 from common.geometry.end_identity import TIP_SURE as SURE
 
 MIN_FIT_ERRORS = 5      # fewer detections read end for end (or as said) than this: warn at --fit
@@ -49,33 +48,27 @@ def collect(folder: str, detector, step: int = 1, hue: tuple | None = None, grey
     one folder; ``hue`` (lo, hi): turn each image's hue by a draw from this range (degrees,
     ``turn_hue``; one draw per frame, seeded by the folder's frame order); ``grey``: read the
     images without colour (``to_grey``)."""
-    from common.data.dataset import Dataset
-    ds = Dataset(folder)
     feats, labels, seen = [], [], 0
-    frames = ds.frames[::step]
     rng = np.random.default_rng(0)
-    for fr in tqdm(frames, desc=Path(folder).name, unit="frame", leave=False):
-        shift = float(rng.uniform(*hue)) if hue else 0.0
-        if fr.keypoints is None:
-            continue
-        for cam in CAMERAS:
-            img = cv2.imread(str(Path(ds.path) / getattr(fr, cam)))
-            if img is None:
-                continue
+
+    def look(_frame):
+        shift = float(rng.uniform(*hue)) if hue else 0.0      # one draw per frame, skipped ones too
+
+        def change(img):
             if shift:
                 img = turn_hue(img, shift)
-            if grey:
-                img = to_grey(img)
-            seen += 1
-            detector.reset()
-            kp = detector.detect(img, cam)
-            true = np.asarray(fr.keypoints[cam], float)
-            if not kp.found or not np.isfinite(true[[0, 4]]).all():
-                continue
-            as_said = np.linalg.norm(kp.uv[0] - true[0]) + np.linalg.norm(kp.uv[4] - true[4])
-            turned = np.linalg.norm(kp.uv[0] - true[4]) + np.linalg.norm(kp.uv[4] - true[0])
-            feats.append(detector.last_evidence.features())
-            labels.append(float(as_said < turned))
+            return to_grey(img) if grey else img
+        return change
+
+    for fr, cam, kp in cold_detections(folder, detector, step, only=lambda fr: fr.keypoints is not None, look=look):
+        seen += 1
+        true = np.asarray(fr.keypoints[cam], float)
+        if not kp.found or not np.isfinite(true[[0, 4]]).all():
+            continue
+        as_said = np.linalg.norm(kp.uv[0] - true[0]) + np.linalg.norm(kp.uv[4] - true[4])
+        turned = np.linalg.norm(kp.uv[0] - true[4]) + np.linalg.norm(kp.uv[4] - true[0])
+        feats.append(detector.last_evidence.features())
+        labels.append(float(as_said < turned))
     return {"features": np.array(feats).reshape(-1, len(FEATURES)), "labels": np.array(labels), "images": seen}
 
 

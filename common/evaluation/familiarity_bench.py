@@ -14,26 +14,14 @@ import json
 import sys
 from pathlib import Path
 
-import cv2
 import numpy as np
-from tqdm import tqdm
 
-from common.frames import CAMERAS
+from common.evaluation.folder_detections import cold_detections
 
 
 def descriptors(folder: str, detector, step: int = 1) -> np.ndarray:
     """The crop descriptors (N, D) of the needles the detector finds in a folder's images."""
-    from common.data.dataset import Dataset
-    ds = Dataset(folder)
-    out = []
-    for fr in tqdm(ds.frames[::step], desc=Path(folder).name, unit="frame", leave=False):
-        for cam in CAMERAS:
-            img = cv2.imread(str(Path(ds.path) / getattr(fr, cam)))
-            if img is None:
-                continue
-            detector.reset()
-            if detector.detect(img, cam).found:
-                out.append(detector.last_descriptor)
+    out = [detector.last_descriptor for _fr, _cam, kp in cold_detections(folder, detector, step) if kp.found]
     return np.array(out, float).reshape(len(out), -1)
 
 

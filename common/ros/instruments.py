@@ -104,7 +104,7 @@ def instrument_poses(m: dict, state: dict, scale: float) -> dict | None:
     """``{arm: InstrumentPose}`` of the arms whose pose and jaw the ``state`` holds
     (``state["instrument_pose.psm1"]`` etc.: a pose part and the jaw's positions); None if none."""
     from common.data.instruments import InstrumentPose
-    from common.ros.bag import pose_of
+    from common.ros.roles import pose_of
     from common.ros.conventions import unit_scale
     out = {}
     reg = m.get("instrument_registration") or {}

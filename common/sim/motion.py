@@ -28,7 +28,7 @@ import numpy as np
 from common.geometry.needle import NeedleModel
 from common.geometry.transforms import R_to_rotvec, inv_T, make_T, rotation_angle, rotvec_to_R, transform_points
 from common.sim.randomise import rest_height
-from common.sim.scene import phantom_height
+from common.sim.scene_meshes import phantom_height
 
 MOTIONS = ("pickup", "handover", "throw", "suture")
 FPS = 30.0

@@ -32,13 +32,8 @@ from common.geometry.camera import StereoRig
 from common.geometry.ecm_kinematics import MULTIVIEW_STEP_RAD, REVOLUTE_JOINTS, EcmArm
 from common.geometry.needle import NeedleModel
 from common.geometry.transforms import inv_T, make_T, rotvec_to_R, transform_points
-from common.sim.scene import (
-    PHANTOM_SIZE,
-    Appearance,
-    Instrument,
-    SceneSpec,
-    phantom_height,
-)
+from common.sim.scene import Appearance, Instrument, SceneSpec
+from common.sim.scene_meshes import PHANTOM_SIZE, phantom_height
 
 RCM_WORLD = np.array([0.0, -0.12, 0.27])  # the ECM's remote centre of motion above the table
 DISTANCE_RANGE_M = (0.10, 0.25)

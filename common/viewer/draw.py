@@ -25,7 +25,7 @@ from typing import Optional
 import cv2
 import numpy as np
 
-from common.evaluation.report import TRUTH_BGR, _bgr
+from common.evaluation.overlays import TRUTH_BGR, _bgr
 from common.methods import METHOD_COLOURS
 from common.geometry.needle import KEYPOINT_NAMES, NeedleModel
 from common.geometry.transforms import transform_points
@@ -211,7 +211,7 @@ def fig1_with_zoom(img: np.ndarray, scale: float, cam, needle: NeedleModel, pose
     pose's arc, else the truth, else the detections) drawn at the zoomed resolution; its box is
     outlined on the picture. Same arguments as ``draw_fig1``; ``zoom_frac``: the inset's width
     over the picture's."""
-    from common.evaluation.report import _crop_box
+    from common.evaluation.overlays import _crop_box
     out = draw_fig1(img, scale, cam, needle, poses, final, keypoints, T_true, caption, instruments=instruments)
     arc = needle.sample_arc(24)
     pose = poses.get(final) if final else None
