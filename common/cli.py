@@ -36,6 +36,7 @@ BENCHES = {
     "restart": ("common.evaluation.restart_bench:main", "seconds without poses after kill -9 of the camera"),
     "sim": ("common.evaluation.sim_bench:main", "simulator rendering"),
     "detector": ("common.evaluation.detector_bench:main", "keypoint detector speed and accuracy"),
+    "held": ("common.evaluation.held_bench:main", "the detector on moving takes, by the share of the needle seen"),
     "graph": ("common.evaluation.graph_bench:main", "the full graph end to end"),
     "refine": ("common.evaluation.refine_bench:main", "dense pose refinement speed and accuracy (synthetic)"),
     "end-identity": ("common.evaluation.end_identity_bench:main", "tip vs tail: the detector's end identity on dataset folders"),

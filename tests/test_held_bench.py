@@ -1,0 +1,64 @@
+"""``needletrack bench held``: the detector on moving takes, binned by the share of the arc seen."""
+import json
+
+import numpy as np
+import pytest
+
+from common.evaluation.held_bench import image_record, summarise, visible_fraction
+from common.runtime.messages import Keypoints
+
+
+def _kp(uv, scores, found=True):
+    if not found:
+        return Keypoints.not_found("left", 0, 0, "t", "no needle")
+    return Keypoints("left", 0, 0, True, np.asarray(uv, float), np.asarray(scores, float), 0.9)
+
+
+def test_records_count_hidden_points_stated_sure_and_errors_of_seen_points_only():
+    truth = np.arange(10, dtype=float).reshape(5, 2)
+    vis = np.array([True, True, True, False, False])
+    uv = truth + [[1, 0], [0, 2], [0, 0], [30, 0], [0, 0]]
+    r = image_record(_kp(uv, [0.9, 0.9, 0.2, 0.8, 0.1]), truth, vis, 0.45)
+    assert r["err_visible"] == [1.0, 2.0, 0.0] and r["err_sure"] == [1.0, 2.0]
+    assert r["hidden"] == 2 and r["hidden_sure"] == 1 and r["any_sure"]
+    miss = image_record(_kp(None, None, found=False), truth, vis, 0.05)
+    assert not miss["found"] and miss["err_visible"] == [] and not miss["any_sure"] and miss["hidden"] == 0
+    unsure = image_record(_kp(uv, [0.3] * 5), truth, np.zeros(5, bool), 0.05)
+    rows = summarise([r, miss, unsure])
+    low, mid = rows[0], rows[2]
+    assert low["bin"] == "0-10%" and low["images"] == 2 and low["found"] == 0.5 and low["no_sure_points"] == 1.0
+    assert low["hidden_sure"] == 0.0 and low["hidden_keypoints"] == 5
+    assert mid["bin"] == "30-60%" and mid["kp_error_mean_px"] == pytest.approx(1.0)
+    assert mid["hidden_sure"] == 0.5 and rows[1]["images"] == 0
+
+
+def test_visible_fraction_prefers_arc_visible_and_falls_back_to_the_keypoints():
+    from common.data.dataset import parse_frame
+    base = {"index": 0, "stamp_ns": 0, "left": "a.png", "right": "a.png"}
+    f = parse_frame({**base, "visible": {"left": [True, False, False, False, False], "right": [True] * 5}})
+    assert visible_fraction(f, "left") == 0.2 and visible_fraction(f, "right") == 1.0
+    g = parse_frame({**base, "visible": {"left": [True] * 5, "right": [True] * 5},
+                     "arc_visible": {"left": 0.33, "right": 0.9}})
+    assert visible_fraction(g, "left") == 0.33
+
+
+def test_the_bench_runs_a_generated_take_and_writes_its_figures(tmp_path, capsys):
+    from common.cli import bench_main, dataset_main
+    out = tmp_path / "take"
+    assert dataset_main(["generate", "--out", str(out), "--sequences", "1", "--motion", "pickup", "--width", "320",
+                         "--height", "240", "--msaa", "0", "--seed", "5", "--randomise", "test", "--jobs", "1",
+                         "--take-every", "8", "--quiet"]) == 0
+    assert bench_main(["held", "--data", str(out), "--quiet", "--json", str(tmp_path / "r.json"),
+                       "--picture", str(tmp_path / "r.png")]) == 0
+    text = capsys.readouterr().out
+    assert "found where >= 30% of the arc is seen" in text and "| 60-100% |" in text
+    r = json.loads((tmp_path / "r.json").read_text())
+    n = len((out / "frames.jsonl").read_text().splitlines())
+    assert r["frames"] == n and r["images"] == 2 * n == sum(b["images"] for b in r["bins"])
+    assert (tmp_path / "r.png").stat().st_size > 5000
+    # a folder of needles at rest has no take to run on
+    still = tmp_path / "still"
+    assert dataset_main(["generate", "--out", str(still), "--sequences", "1", "--width", "160", "--height", "120",
+                         "--msaa", "0", "--jobs", "1", "--quiet"]) == 0
+    assert bench_main(["held", "--data", str(still), "--quiet"]) == 1
+    assert "no frame of a moving take" in capsys.readouterr().err
