@@ -85,3 +85,14 @@ def test_the_detector_moves_collapsed_ends_and_states_no_end_identity():
     assert np.abs(uv_crop - TRUE).max() < 1.5               # B..D on the arc through the new ends
     assert sc[0] >= 0.35 and np.all(sc[1:4] == min(sc[0], sc[4]))
     assert det._p_a_is_tip({"ends_from_ridge": True}) == 0.5
+
+
+def test_a_point_the_arc_places_over_a_stretch_with_no_ridge_keeps_its_own_score():
+    from common.detector.arc_fit import RIDGE_SEEN, ridge_seen, unseen_on_arc_scores
+    line = np.full((32, 32), -8.0)
+    line[10, 2:20] = 6.0                                   # a ridge along row 10, x 2..19
+    pts = np.array([[5.0, 10.0], [18.4, 10.6], [26.0, 10.0], [np.nan, 1.0]])
+    seen = ridge_seen(line, pts)
+    assert seen[0] > 0.99 and seen[1] > 0.99 and seen[2] < RIDGE_SEEN and seen[3] == 0.0
+    sc = unseen_on_arc_scores(np.full(4, 0.9), np.array([0.2, 0.2, 0.2, 0.1]), line, pts)
+    assert sc.tolist() == [0.9, 0.9, 0.2, 0.1]

@@ -180,3 +180,31 @@ def refine_along_arc(prob: np.ndarray, fit, t_pred_deg: float, half_deg: float =
     if not np.isfinite(mass).all() or mass.sum() <= 1e-9:
         return float(t_pred_deg)
     return float((mass * ts).sum() / mass.sum())
+
+
+RIDGE_SEEN = 0.3
+"""Centreline probability under which a point placed on the fitted arc is taken as not seen."""
+
+
+def ridge_seen(line_logit: np.ndarray, cells: np.ndarray, radius: int = 1) -> np.ndarray:
+    """(N,) the centreline heatmap's highest probability within ``radius`` cells of each point
+    (cell coordinates (N, 2)): near 1 where the network sees the wire, near 0 where the arc
+    runs hidden (under the jaws, in tissue) or out of the crop."""
+    m = line_logit.shape[-1]
+    out = np.zeros(len(cells))
+    for i, (x, y) in enumerate(np.asarray(cells, float)):
+        if not (np.isfinite(x) and np.isfinite(y)):
+            continue
+        ix, iy = int(round(x)), int(round(y))
+        x0, x1, y0, y1 = max(ix - radius, 0), min(ix + radius + 1, m), max(iy - radius, 0), min(iy + radius + 1, m)
+        if x0 < x1 and y0 < y1:
+            out[i] = 1.0 / (1.0 + np.exp(-float(line_logit[y0:y1, x0:x1].max())))
+    return out
+
+
+def unseen_on_arc_scores(scores: np.ndarray, own: np.ndarray, line_logit: np.ndarray, cells: np.ndarray) -> np.ndarray:
+    """Scores of points placed on the fitted arc (``scores``): where no centreline ridge runs
+    under a point (``ridge_seen`` < ``RIDGE_SEEN``), the point's own heatmap score ``own`` caps
+    it, so a keypoint the arc places over a hidden stretch is not stated sure."""
+    hidden = ridge_seen(line_logit, cells) < RIDGE_SEEN
+    return np.where(hidden, np.minimum(scores, own), scores)

@@ -39,6 +39,7 @@ from common.detector.arc_fit import (
     fit_arc_affine,
     ideal_peak_mass,
     refine_along_arc,
+    unseen_on_arc_scores,
 )
 from common.detector.end_identity import EndEvidence, network_evidence, polyline_length, shape_evidence
 from common.detector.model import (
@@ -212,8 +213,9 @@ class KeypointDetector:
         fit = fit_arc_affine(a, e, line)
         if fit is None:
             return np.zeros(5, bool)
+        own = sc[1:4].copy()
         uv_crop[1:4] = arc_at(fit, ARC_ANGLES_DEG[1:4]) * s + (s - 1) / 2.0
-        sc[1:4] = min(sc[0], sc[4])
+        sc[1:4] = unseen_on_arc_scores(np.full(3, min(sc[0], sc[4])), own, line, (uv_crop[1:4] - (s - 1) / 2.0) / s)
         return np.array([False, True, True, True, False])
 
     def _place_bcd(self, res) -> None:
@@ -233,9 +235,12 @@ class KeypointDetector:
             m = heat.shape[-1]
             prob = torch.softmax(heat[0, 1:4].reshape(3, -1), -1).reshape(3, m, m).numpy()
             t = np.array([refine_along_arc(prob[i], fit, t[i]) for i in range(3)])
+        own = sc[1:4].copy()
         uv_crop[1:4] = arc_at(fit, t) * st + (st - 1) / 2.0
-        # B..D now rest on A, E and the ridge, not on their own (along-arc diffuse) heatmaps
-        sc[1:4] = min(sc[0], sc[4])
+        # B..D now rest on A, E and the ridge, not on their own (along-arc diffuse) heatmaps;
+        # one over a stretch with no ridge (hidden) keeps its own, lower score
+        sc[1:4] = unseen_on_arc_scores(np.full(3, min(sc[0], sc[4])), own, res["line"],
+                                       (uv_crop[1:4] - (st - 1) / 2.0) / st)
         res["on_arc"] = np.array([False, True, True, True, False])
         res["uv"] = apply_affine(res["Minv"], uv_crop)
 
