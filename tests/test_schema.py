@@ -74,3 +74,26 @@ def test_params_take_constraints_on_the_field_and_keep_did_you_mean():
         "n.params.windw: unknown param (did you mean 'window'?)"]
     with pytest.raises(ParamError, match="rate_hz: expected number, got 'fast'"):
         parse_params(_Params, {"rate_hz": "fast"})
+
+
+def test_the_graph_file_is_checked_from_its_declared_fields():
+    from common.runtime.graph import NodeSpec, ZenohSettings
+    from common.runtime.graph_checks import validate_graph
+    from common.runtime.schema import file_keys
+    assert file_keys(ZenohSettings) == ["connect", "listen", "mode", "open", "shm_pool_mb", "tls"]  # not run_credentials
+    assert "feedback" in file_keys(NodeSpec)
+    doc = {"graph": "g", "zenoh": {"mode": "mesh", "shm_pool_mb": -1, "tls": {"ca": "", "cert": "c.pem"}},
+           "nodes": [{"id": "cmd", "command": [], "restart": None, "spare": 1, "inputs": 5, "feedback": ["x"]}]}
+    assert validate_graph(doc) == [
+        "zenoh.mode: must be one of peer, client, router; got 'mesh'",
+        "zenoh.tls.ca: expected a file path, got ''",
+        "zenoh.tls.cert: must contain '{id}' (each node, and the launcher, has its own certificate: "
+        "e.g. 'certs/{id}.pem'); got 'c.pem'",
+        "zenoh.tls.key: missing (a PEM file path, with {id})",
+        "zenoh.shm_pool_mb: expected a non-negative int, got -1",
+        "nodes[0].id: must be a name of letters, digits, '_', '-', '.'; got 'cmd'",
+        "nodes[0].command: expected a non-empty list of strings, got []",
+        "nodes[0].restart: must be one of never, on-failure, always; got None",
+        "nodes[0].spare: expected true or false, got 1",
+        "nodes[0].feedback: expected a list of this node's input names, got ['x']",   # inputs: 5 crashed this check
+        "nodes[0].inputs: expected a map of input name -> 'node/output', got int"]

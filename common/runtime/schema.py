@@ -31,11 +31,17 @@ from common.runtime.checks import MAX_ARRAY_ELEMENTS, MAX_COORD, MAX_INT
 
 
 class Says:
-    """The words of a refusal, on a constraint: ``text`` formatted with ``value``; a payload that
-    breaks several constraints is refused for the lowest ``order`` first (then field order)."""
+    """The words of a refusal, on a constraint: ``text`` formatted with ``value`` (and ``kind``,
+    the value's YAML kind: ``kind_name``); a payload that breaks several constraints is refused
+    for the lowest ``order`` first (then field order). ``types``: the words are for a value of
+    the wrong type too; ``missing``: the words for a required field that is absent or null (a
+    file's field, ``section_errors``)."""
 
-    def __init__(self, text: str, order: int = 2):
-        self.text, self.order = text, order
+    def __init__(self, text: str, order: int = 2, types: bool = False, missing: Optional[str] = None):
+        self.text, self.order, self.types, self.missing = text, order, types, missing
+
+    def say(self, value) -> str:
+        return self.text.format(value=value, kind=kind_name(value))
 
     def __repr__(self):
         return f"Says({self.text!r})"
@@ -179,7 +185,9 @@ def dec_hook(tp, obj):
 @dataclasses.dataclass(frozen=True)
 class Field:
     """One declared field: ``name``, its full type, the type under ``Optional``/``Annotated``
-    (``base``), whether it may be absent or null, its ``Says``, and its default (``NODEFAULT``)."""
+    (``base``), whether it may be null (and absent, on the wire), its ``Says``, its default
+    (``NODEFAULT``), and ``key``: its name in a file (``dataclasses.field(metadata={"key": ...})``;
+    None: not in the file)."""
 
     name: str
     type: Any
@@ -187,6 +195,7 @@ class Field:
     optional: bool
     says: Optional[Says]
     default: Any = msgspec.NODEFAULT
+    key: Optional[str] = None
 
 
 def _unwrap(tp):
@@ -212,8 +221,9 @@ def fields_of(cls) -> tuple:
     out = []
     for f in dataclasses.fields(cls):
         base, optional, says = _unwrap(hints[f.name])
-        default = f.default if f.default is not dataclasses.MISSING else msgspec.NODEFAULT
-        out.append(Field(f.name, hints[f.name], base, optional, says, default))
+        default = (f.default if f.default is not dataclasses.MISSING else
+                   f.default_factory if f.default_factory is not dataclasses.MISSING else msgspec.NODEFAULT)
+        out.append(Field(f.name, hints[f.name], base, optional, says, default, f.metadata.get("key", f.name)))
     return tuple(out)
 
 
@@ -229,6 +239,12 @@ def wire_struct(cls) -> type:
 
 def _type_name(value) -> str:
     return type(value).__name__
+
+
+def kind_name(v) -> str:
+    """A value's kind in a YAML file's words: map, list, string, int, number, bool, null."""
+    return {dict: "map", list: "list", str: "string", int: "int", float: "number", bool: "bool",
+            type(None): "null"}.get(type(v), type(v).__name__)
 
 
 def field_refusal(f: Field, value) -> Optional[tuple]:
@@ -258,14 +274,14 @@ def field_refusal(f: Field, value) -> Optional[tuple]:
         return None
     except msgspec.ValidationError as exc:
         detail = str(exc)
-    said = None if f.says is None else (f.says.order, f.says.text.format(value=value))
+    said = None if f.says is None else (f.says.order, f.says.say(value))
     if base is int and not -MAX_INT <= value <= MAX_INT:
         return 0, f"out of the int64 range, got {value}"
     if base is float:
         value = float(value)
         if not abs(value) <= MAX_COORD:          # NaN and inf fail this too
             return 0, f"not finite, or beyond {MAX_COORD:g}: got {value}"
-        said = None if said is None else (said[0], f.says.text.format(value=value))
+        said = None if said is None else (said[0], f.says.say(value))
     if origin is Literal:
         return 0, f"must be one of {typing.get_args(base)}, got {value!r}"
     return said or (0, detail)
@@ -302,3 +318,40 @@ def refusal(owner: str, fields: tuple, body, defaults: bool = False) -> str:
         if later is None or order < later[0]:
             later = (order, placed)
     return later[1] if later else f"{owner}: invalid"
+
+
+def file_keys(cls) -> list:
+    """The keys a file's section may hold: ``cls``'s fields that are in the file, sorted."""
+    return sorted(f.key for f in fields_of(cls) if f.key is not None)
+
+
+def unknown_key_errors(where: str, cls, data: dict) -> list:
+    """An error for each key of the file section ``data`` that ``cls`` does not declare."""
+    keys = file_keys(cls)
+    return [f"{where}{k}: unknown key (allowed: {', '.join(keys)})" for k in data if k not in keys]
+
+
+def section_errors(where: str, cls, data: dict, keys: Optional[tuple] = None) -> list:
+    """Every problem of the file section ``data`` (a map) against the dataclass ``cls``: each
+    field of ``keys`` (default: all) in declared order that is missing (``Says.missing``) or
+    refused (a ``Says(types=True)``'s words, else ``field_refusal``'s). A field of a dataclass
+    type (a nested section) is only checked to be a map here. ``where`` prefixes each
+    (``"zenoh."``, ``"nodes[2]."``)."""
+    fields = [f for f in fields_of(cls) if f.key is not None]
+    errs = []
+    for f in fields:
+        if keys is not None and f.key not in keys:
+            continue
+        value = data.get(f.key)
+        if f.says is not None and f.says.missing is not None and value is None:
+            errs.append(f"{where}{f.key}: {f.says.missing}")
+            continue
+        if f.key not in data or value is None and f.optional:
+            continue
+        if dataclasses.is_dataclass(f.base):
+            why = None if isinstance(value, dict) else (0, f"expected a map, got {kind_name(value)}")
+        else:
+            why = field_refusal(f, value)
+        if why is not None:
+            errs.append(f"{where}{f.key}: {f.says.say(value) if f.says is not None and f.says.types else why[1]}")
+    return errs
