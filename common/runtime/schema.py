@@ -104,7 +104,8 @@ class Array(metaclass=_ArrayKind):
         if not isinstance(value, np.ndarray):
             raise ValueError(f"expected array, got {type(value).__name__}")
         shape = cls.SHAPE
-        if len(value.shape) != len(shape) or any(s is not None and s != v for s, v in zip(shape, value.shape)):
+        if value.shape != shape and (len(value.shape) != len(shape) or any(
+                s is not None and s != v for s, v in zip(shape, value.shape))):
             want = tuple("N" if s is None else s for s in shape)
             raise ValueError(f"expected shape {want}, got {value.shape}")
         if value.size > MAX_ARRAY_ELEMENTS:
@@ -126,10 +127,13 @@ def values_error(a: np.ndarray, nan_ok: bool, where: str = "") -> None:
     if a.dtype.kind not in "fiub":
         raise ValueError(f"{lead}expected a numeric array, got dtype {a.dtype}")
     if a.dtype.kind == "f":
-        bad = ~(np.abs(a) <= MAX_COORD)
-        if nan_ok:
-            bad &= ~np.isnan(a)
-        if bad.any():
+        if not a.size:
+            return
+        top = (np.fmax if nan_ok else np.maximum).reduce(np.abs(a), axis=None)   # fmax: NaN left out
+        if top > MAX_COORD or not nan_ok and top != top:
+            bad = ~(np.abs(a) <= MAX_COORD)
+            if nan_ok:
+                bad &= ~np.isnan(a)
             raise ValueError(f"{lead}not finite, or beyond {MAX_COORD:g} ({int(bad.sum())} element(s))")
     elif a.dtype.kind in "iu" and a.size and np.abs(a.astype(np.float64)).max() > MAX_COORD:
         raise ValueError(f"{lead}element(s) beyond {MAX_COORD:g}")
