@@ -39,6 +39,9 @@ ENCODINGS = ("bgr8", "png", "jpeg")
 
 PositivePx = number("must be positive, got {value}", gt=0)
 """A 1-sigma error in pixels: finite and positive."""
+AtLeastOne = number("must be at least 1, got {value}", ge=1)
+Probability = number("must be a probability in [0, 1], got {value}", ge=0, le=1)
+NonNegativeNumber = number("must be a finite number >= 0, got {value}", ge=0)
 
 
 @register
@@ -188,11 +191,11 @@ class Keypoints(Message):
     centreline_w: Optional[Array[None]] = None
     centreline_sigma_px: Optional[PositivePx] = None
     on_arc: Optional[Array[5]] = None
-    centreline_corr_points: Optional[number("must be at least 1, got {value}", ge=1)] = None
+    centreline_corr_points: Optional[AtLeastOne] = None
     keypoint_sigma_px: Optional[PositivePx] = None
-    end_identity: Optional[number("must be a probability in [0, 1], got {value}", ge=0, le=1)] = None
+    end_identity: Optional[Probability] = None
     epoch: Optional[NonNegative] = None
-    unfamiliarity: Optional[number("must be a finite number >= 0, got {value}", ge=0)] = None
+    unfamiliarity: Optional[NonNegativeNumber] = None
 
     def validate(self):
         pass

@@ -26,7 +26,7 @@ import functools
 import sys
 import types
 import typing
-from typing import Annotated, Any, Literal, Mapping, Union
+from typing import Annotated, Literal, Mapping, Union
 
 import msgspec
 
