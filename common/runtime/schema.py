@@ -1,7 +1,7 @@
 """The one schema mechanism (msgspec): a field is declared once, as its type annotation with its
 constraints on it, and converted strictly; a refusal is placed: ``Owner.field: why``.
 
-Declaring a field (a message's, a node's params'):
+Declaring a field (a message's, a node's params', a graph file's):
 
 - ``NonNegative``, ``Int64``, ``Number`` (finite, within ``MAX_COORD``), ``bool``, ``str``,
   ``Literal[...]`` (one of), ``dict``, ``memoryview`` (bytes, decoded as a view of the payload);
@@ -13,8 +13,10 @@ Declaring a field (a message's, a node's params'):
 - ``Optional[...]``: may be absent or null; any other field is required.
 
 ``refusal`` is the layer between msgspec's ``ValidationError`` and the placed messages: when a
-strict conversion fails it walks the fields in their declared order and names the first that
-fails, the type errors of every field before any ``Says`` (``order``) of any field.
+message's strict conversion fails it walks the fields in their declared order and names the
+first that fails, the type errors of every field before any ``Says`` (``order``) of any field.
+``section_errors`` lists every failing field of a file's section (``common.runtime.graph_checks``);
+node params: ``common.runtime.params``.
 """
 from __future__ import annotations
 
@@ -220,7 +222,7 @@ def _unwrap(tp):
 
 @functools.lru_cache(maxsize=None)
 def fields_of(cls) -> tuple:
-    """The ``Field``s of a dataclass (a message, a node's params), in declared order."""
+    """The ``Field``s of a dataclass (a message, a file's section), in declared order."""
     hints = typing.get_type_hints(cls, include_extras=True)
     out = []
     for f in dataclasses.fields(cls):
@@ -295,11 +297,11 @@ _KINDS = {bool: (bool, "bool"), str: (str, "string"), dict: (dict, "map"), list:
           memoryview: ((bytes, bytearray, memoryview), "bytes"), bytes: ((bytes, bytearray, memoryview), "bytes")}
 
 
-def refusal(owner: str, fields: tuple, body, defaults: bool = False) -> str:
-    """The placed message for ``body``, which a strict conversion refused: the unknown field
-    first, then the first field in declared order that is missing or of the wrong type, then the
-    first that breaks a ``Says`` (lowest order). ``defaults``: a field with a default may be
-    absent (a node's params; on the wire only the ``Optional`` ones may)."""
+def refusal(owner: str, fields: tuple, body) -> str:
+    """The placed message for a message's ``body``, which a strict conversion refused: the
+    unknown field first, then the first field in declared order that is missing (only the
+    ``Optional`` ones may be) or of the wrong type, then the first that breaks a ``Says``
+    (lowest order)."""
     if not isinstance(body, dict):
         return f"{owner}: body is not a map"
     known = {f.name for f in fields}
@@ -309,7 +311,7 @@ def refusal(owner: str, fields: tuple, body, defaults: bool = False) -> str:
     later = None
     for f in fields:
         if f.name not in body:
-            if f.optional or defaults and f.default is not msgspec.NODEFAULT:
+            if f.optional:
                 continue
             return f"{owner}.{f.name}: missing"
         got = field_refusal(f, body[f.name])
