@@ -97,3 +97,27 @@ def test_the_graph_file_is_checked_from_its_declared_fields():
         "nodes[0].spare: expected true or false, got 1",
         "nodes[0].feedback: expected a list of this node's input names, got ['x']",   # inputs: 5 crashed this check
         "nodes[0].inputs: expected a map of input name -> 'node/output', got int"]
+
+
+def test_dataset_yaml_is_read_from_its_declared_sections():
+    import yaml
+
+    from common.data.dataset import DatasetError, DatasetMeta, MetaYaml, parse_meta
+    from common.geometry.camera import StereoRig
+    from common.geometry.needle import NeedleModel
+    from common.runtime.schema import fields_of
+    assert [f.name for f in fields_of(MetaYaml)] == ["format", "version", "image_size", "cameras", "needle", "ecm"]
+    d = DatasetMeta((640, 480), StereoRig.default(640, 480), NeedleModel(), None, "x").to_dict()
+    assert parse_meta(yaml.safe_dump(d)).image_size == (640, 480)
+    d["cameras"]["right"]["dist"] = [0.1] * 3
+    with pytest.raises(DatasetError, match=r"dataset.yaml:\d+: cameras.right.dist: OpenCV distortion needs 4, 5"):
+        parse_meta(yaml.safe_dump(d))
+    d["needle"]["radius_m"] = -0.01
+    with pytest.raises(DatasetError, match="cameras.right.dist"):        # the first in declared order
+        parse_meta(yaml.safe_dump(d))
+    del d["cameras"]["right"]["dist"], d["needle"]["keypoint_angles_deg"]
+    with pytest.raises(DatasetError, match="needle.radius_m: must be positive, got -0.01"):
+        parse_meta(yaml.safe_dump(d))
+    d["needle"]["radius_m"] = 0.01
+    with pytest.raises(DatasetError, match="needle.keypoint_angles_deg: required field missing"):
+        parse_meta(yaml.safe_dump(d))
