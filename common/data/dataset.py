@@ -9,6 +9,7 @@ Images are returned as (h, w, 3) uint8 BGR arrays, whatever the file holds.
 """
 from __future__ import annotations
 
+import dataclasses
 import json
 import os
 from dataclasses import dataclass, field
@@ -25,7 +26,7 @@ from common.geometry.ecm_kinematics import EcmArm
 from common.geometry.needle import NeedleModel
 from common.geometry.transforms import inv_T
 from common.data.instruments import instruments_json, parse_instruments
-from common.data.values import _Bad, _bools, _int, _matrix, _num, _rigid, _vector  # noqa: F401
+from common.data.values import FileValue, _Bad, _bools, _int, _matrix, _num, _rigid, _vector  # noqa: F401
 from common.runtime.limits import (
     InputLimitError,
     compose_yaml,
@@ -34,6 +35,7 @@ from common.runtime.limits import (
     load_yaml,
     read_image_file,
 )
+from common.runtime.schema import fields_of
 
 FORMAT = "needle-dataset"
 VERSION = 1
@@ -101,8 +103,117 @@ def _yaml_lines(text: str) -> dict:
     return lines
 
 
+# dataset.yaml's sections: each field declared once, its type the parser of its value with the
+# field's own constraints (``FileValue``); ``parse_meta`` refuses the first that fails, in this order
+
+class _Format(FileValue):
+    @staticmethod
+    def parse(v):
+        if v != FORMAT:
+            raise _Bad(f"must be {FORMAT!r}, got {v!r}")
+        return v
+
+
+class _Version(FileValue):
+    @staticmethod
+    def parse(v):
+        if isinstance(v, bool) or v != VERSION:
+            raise _Bad(f"unknown version {v!r} (this reader knows version {VERSION})")
+        return VERSION
+
+
+class _ImageSize(FileValue):
+    @staticmethod
+    def parse(v):
+        size = _vector(v, 2)
+        if np.any(size <= 0) or np.any(size != np.round(size)):
+            raise _Bad(f"must be two positive integers [width, height], got {size.tolist()}")
+        return int(size[0]), int(size[1])
+
+
+class _CameraMatrix(FileValue):
+    @staticmethod
+    def parse(v):
+        K = _matrix(v, 3, 3)
+        if K[0, 0] <= 0 or K[1, 1] <= 0 or not np.allclose(K[2], [0, 0, 1]) or K[1, 0] != 0:
+            raise _Bad(f"not a camera matrix [[fx,s,cx],[0,fy,cy],[0,0,1]]: {K.tolist()}")
+        return K
+
+
+class _Distortion(FileValue):
+    @staticmethod
+    def parse(v):
+        dist = _vector(v, None)
+        if len(dist) not in _DIST_LENGTHS:
+            raise _Bad(f"OpenCV distortion needs 4, 5, 8, 12 or 14 numbers, got {len(dist)}")
+        return dist if len(dist) else np.zeros(5)
+
+
+class _Rigid(FileValue):
+    parse = staticmethod(_rigid)
+
+
+class _Number(FileValue):
+    parse = staticmethod(_num)
+
+
+class _Radius(FileValue):
+    @staticmethod
+    def parse(v):
+        r = _num(v)
+        if r <= 0:
+            raise _Bad(f"must be positive, got {r}")
+        return r
+
+
+class _Angles(FileValue):
+    @staticmethod
+    def parse(v):
+        return tuple(_vector(v, 5))
+
+
+@dataclass
+class CameraYaml:
+    """A camera of dataset.yaml (``cameras.left``, ``cameras.right``); no ``dist``: none."""
+    K: _CameraMatrix
+    dist: Optional[_Distortion]
+    T_ecm_cam: _Rigid
+
+
+@dataclass
+class CamerasYaml:
+    left: CameraYaml
+    right: CameraYaml
+
+
+@dataclass
+class NeedleYaml:
+    radius_m: _Radius
+    keypoint_angles_deg: _Angles
+    wire_diameter_m: Optional[_Number] = None
+
+
+@dataclass
+class EcmYaml:
+    T_world_base: _Rigid
+    L_rcc: Optional[_Number] = None
+    L_scopelen: Optional[_Number] = None
+
+
+@dataclass
+class MetaYaml:
+    """dataset.yaml (``docs/dataset.md``)."""
+    format: _Format
+    version: _Version
+    image_size: _ImageSize
+    cameras: CamerasYaml
+    needle: NeedleYaml
+    ecm: Optional[EcmYaml] = None
+
+
 def parse_meta(text: str, file: str = META_FILE) -> DatasetMeta:
-    """Parse and validate dataset.yaml text."""
+    """Parse and validate dataset.yaml text: the sections it declares (``MetaYaml``), the first
+    field that fails named with its line."""
     try:
         d = load_yaml(text, file)
     except InputLimitError as exc:
@@ -122,66 +233,35 @@ def parse_meta(text: str, file: str = META_FILE) -> DatasetMeta:
         name = ".".join(str(p) for p in path) or "(document)"
         raise DatasetError(_where(file, line, f"{name}: {msg}"))
 
-    def get(mapping: dict, path: tuple, required: bool = True):
-        key = path[-1]
+    def section(path: tuple, cls, mapping) -> dict:
         if not isinstance(mapping, dict):
-            fail(path[:-1], "expected a mapping")
-        if key not in mapping or mapping[key] is None:
-            if required:
-                fail(path, "required field missing")
-            return None
-        return mapping[key]
+            fail(path, "expected a mapping" if path else "expected a mapping at the top level")
+        out = {}
+        for f in fields_of(cls):
+            v = mapping.get(f.key)
+            if v is None:
+                if not f.optional:
+                    fail(path + (f.key,), "required field missing")
+                out[f.name] = None
+            elif dataclasses.is_dataclass(f.base):
+                out[f.name] = section(path + (f.key,), f.base, v)
+            else:
+                try:
+                    out[f.name] = f.base.check(v)
+                except ValueError as exc:
+                    fail(path + (f.key,), str(exc))
+        return out
 
-    def parse(path, value, fn, *args):
-        try:
-            return fn(value, *args)
-        except _Bad as exc:
-            fail(path, str(exc))
-
-    if not isinstance(d, dict):
-        fail((), "expected a mapping at the top level")
-    if get(d, ("format",)) != FORMAT:
-        fail(("format",), f"must be {FORMAT!r}, got {d.get('format')!r}")
-    version = get(d, ("version",))
-    if isinstance(version, bool) or version != VERSION:
-        fail(("version",), f"unknown version {version!r} (this reader knows version {VERSION})")
-    size = parse(("image_size",), get(d, ("image_size",)), _vector, 2)
-    if np.any(size <= 0) or np.any(size != np.round(size)):
-        fail(("image_size",), f"must be two positive integers [width, height], got {size.tolist()}")
-    w, h = int(size[0]), int(size[1])
-    cams = get(d, ("cameras",))
-    parsed = {}
-    for c in CAMERAS:
-        cd = get(cams, ("cameras", c))
-        K = parse(("cameras", c, "K"), get(cd, ("cameras", c, "K")), _matrix, 3, 3)
-        if K[0, 0] <= 0 or K[1, 1] <= 0 or not np.allclose(K[2], [0, 0, 1]) or K[1, 0] != 0:
-            fail(("cameras", c, "K"), f"not a camera matrix [[fx,s,cx],[0,fy,cy],[0,0,1]]: {K.tolist()}")
-        dist = get(cd, ("cameras", c, "dist"), required=False)
-        dist = np.zeros(5) if dist is None else parse(("cameras", c, "dist"), dist, _vector, None)
-        if len(dist) not in _DIST_LENGTHS:
-            fail(("cameras", c, "dist"), f"OpenCV distortion needs 4, 5, 8, 12 or 14 numbers, got {len(dist)}")
-        if len(dist) == 0:
-            dist = np.zeros(5)
-        T = parse(("cameras", c, "T_ecm_cam"), get(cd, ("cameras", c, "T_ecm_cam")), _rigid)
-        parsed[c] = {"K": K, "dist": dist, "T_ecm_cam": T}
-    rig = StereoRig.from_dict(parsed, (w, h))
-    nd = get(d, ("needle",))
-    radius = parse(("needle", "radius_m"), get(nd, ("needle", "radius_m")), _num)
-    angles = parse(("needle", "keypoint_angles_deg"), get(nd, ("needle", "keypoint_angles_deg")), _vector, 5)
-    if radius <= 0:
-        fail(("needle", "radius_m"), f"must be positive, got {radius}")
-    extra = {}
-    if isinstance(nd, dict) and nd.get("wire_diameter_m") is not None:
-        extra["wire_diameter_m"] = parse(("needle", "wire_diameter_m"), nd["wire_diameter_m"], _num)
-    needle = NeedleModel(radius_m=radius, keypoint_angles_deg=tuple(angles), **extra)
-    arm = None
-    ed = get(d, ("ecm",), required=False)
-    if ed is not None:
-        Tb = parse(("ecm", "T_world_base"), get(ed, ("ecm", "T_world_base")), _rigid)
-        lr = ed.get("L_rcc") if isinstance(ed, dict) else None
-        ls = ed.get("L_scopelen") if isinstance(ed, dict) else None
-        arm = EcmArm(Tb, 0.0 if lr is None else parse(("ecm", "L_rcc"), lr, _num),
-                     0.0 if ls is None else parse(("ecm", "L_scopelen"), ls, _num))
+    m = section((), MetaYaml, d)
+    w, h = m["image_size"]
+    rig = StereoRig.from_dict({c: {"K": m["cameras"][c]["K"], "dist": np.zeros(5) if m["cameras"][c]["dist"] is None
+                                   else m["cameras"][c]["dist"], "T_ecm_cam": m["cameras"][c]["T_ecm_cam"]}
+                               for c in CAMERAS}, (w, h))
+    nd = m["needle"]
+    extra = {} if nd["wire_diameter_m"] is None else {"wire_diameter_m": nd["wire_diameter_m"]}
+    needle = NeedleModel(radius_m=nd["radius_m"], keypoint_angles_deg=nd["keypoint_angles_deg"], **extra)
+    ed = m["ecm"]
+    arm = None if ed is None else EcmArm(ed["T_world_base"], ed["L_rcc"] or 0.0, ed["L_scopelen"] or 0.0)
     source = d.get("source")
     if source is not None and not isinstance(source, str):
         source = str(source)

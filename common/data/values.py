@@ -1,6 +1,7 @@
 """The value parsers of the dataset reader: each takes a decoded JSON/YAML value and returns it
 checked and converted, or raises ``_Bad`` with the reason (the caller adds the file, line and
-field, see ``common.data.dataset.DatasetError``)."""
+field, see ``common.data.dataset.DatasetError``). ``FileValue``: a parser as the type of a
+declared field (``common.runtime.schema``), as dataset.yaml's sections declare theirs."""
 from __future__ import annotations
 
 import math
@@ -16,6 +17,22 @@ class _Bad(Exception):
     def __init__(self, msg: str, sub: Optional[str] = None):
         super().__init__(msg)
         self.sub = sub
+
+
+class FileValue:
+    """A field type of a dataset file: ``check`` parses a decoded value with ``parse`` (one of
+    the parsers below, and the field's own constraints), ValueError with the reason."""
+
+    @staticmethod
+    def parse(v):
+        raise NotImplementedError
+
+    @classmethod
+    def check(cls, v):
+        try:
+            return cls.parse(v)
+        except _Bad as exc:
+            raise ValueError(str(exc)) from None
 
 
 def _num(v) -> float:

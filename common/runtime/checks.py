@@ -1,6 +1,7 @@
 """The checks a message's fields pass at decoding and at publishing: the limits (finite,
-bounded), field specs (``_check``), rigid transforms, covariances, image headers, the pose
-invariant. Each failure names the message type and the field (``MessageError``)."""
+bounded; the fields declare them, ``common.runtime.schema``), rigid transforms, covariances,
+image headers, the pose invariant. Each failure names the message type and the field
+(``MessageError``)."""
 from __future__ import annotations
 
 import math
@@ -31,98 +32,8 @@ class MessageError(NeedletrackError, ValueError):
     """A payload that is not a valid message; the text names the message type and field."""
 
 
-def _check(msg_name: str, fname: str, value, spec):
-    """Validate and normalise one field value against its spec; returns the value to store."""
-    kind = spec[0]
-    where = f"{msg_name}.{fname}"
-    if value is None:
-        if "optional" in spec[1:]:
-            return None
-        raise MessageError(f"{where}: required, got null")
-    if kind == "int":
-        if isinstance(value, bool) or not isinstance(value, int):
-            raise MessageError(f"{where}: expected int, got {type(value).__name__}")
-        if not -MAX_INT <= value <= MAX_INT:
-            raise MessageError(f"{where}: out of the int64 range, got {value}")
-        return value
-    if kind == "float":
-        if isinstance(value, bool) or not isinstance(value, (int, float)):
-            raise MessageError(f"{where}: expected number, got {type(value).__name__}")
-        value = float(value)
-        if not abs(value) <= MAX_COORD:          # NaN and inf fail this too
-            raise MessageError(f"{where}: not finite, or beyond {MAX_COORD:g}: got {value}")
-        return value
-    if kind == "bool":
-        if not isinstance(value, bool):
-            raise MessageError(f"{where}: expected bool, got {type(value).__name__}")
-        return value
-    if kind == "str":
-        if not isinstance(value, str):
-            raise MessageError(f"{where}: expected string, got {type(value).__name__}")
-        if len(spec) > 1 and isinstance(spec[1], tuple) and value not in spec[1]:
-            raise MessageError(f"{where}: must be one of {spec[1]}, got {value!r}")
-        return value
-    if kind == "bytes":
-        if not isinstance(value, (bytes, bytearray, memoryview)):
-            raise MessageError(f"{where}: expected bytes, got {type(value).__name__}")
-        return value if isinstance(value, (bytes, memoryview)) else bytes(value)
-    if kind == "dict":
-        if not isinstance(value, dict):
-            raise MessageError(f"{where}: expected map, got {type(value).__name__}")
-        return value
-    if kind == "array":
-        shape = spec[1]
-        if isinstance(value, list):  # tolerate plain lists from other writers
-            try:
-                value = np.asarray(value, dtype=float)
-            except (TypeError, ValueError):
-                raise MessageError(f"{where}: expected numeric array") from None
-        if not isinstance(value, np.ndarray):
-            raise MessageError(f"{where}: expected array, got {type(value).__name__}")
-        if len(value.shape) != len(shape) or any(s is not None and s != v for s, v in zip(shape, value.shape)):
-            want = tuple("N" if s is None else s for s in shape)
-            raise MessageError(f"{where}: expected shape {want}, got {value.shape}")
-        if value.size > MAX_ARRAY_ELEMENTS:
-            raise MessageError(f"{where}: {value.size} elements, at most {MAX_ARRAY_ELEMENTS}")
-        _check_values(where, value, "nan" in spec)
-        return value
-    if kind == "camera_map":  # {"left": array, "right": array}, each of shape spec[1]
-        if not isinstance(value, dict) or set(value) - {"left", "right"}:
-            raise MessageError(f"{where}: expected a map with keys left/right")
-        out = {}
-        for k, v in value.items():
-            if v is None:
-                out[k] = None
-                continue
-            try:
-                a = v if isinstance(v, np.ndarray) else np.asarray(v, dtype=float)
-            except (TypeError, ValueError):
-                raise MessageError(f"{where}.{k}: expected a numeric array") from None
-            if a.shape != spec[1]:
-                raise MessageError(f"{where}.{k}: expected shape {spec[1]}, got {a.shape}")
-            _check_values(f"{where}.{k}", a, True)
-            out[k] = a
-        return out
-    raise AssertionError(kind)
-
-
 MAX_ARRAY_ELEMENTS = 1 << 20
 """Largest number of elements of an array field (a centreline has a few hundred points)."""
-
-
-def _check_values(where: str, a: np.ndarray, nan_ok: bool) -> None:
-    """Numeric arrays: every element finite (NaN allowed when ``nan_ok``: "missing") and at most
-    ``MAX_COORD`` in size; inf is never allowed."""
-    if a.dtype.kind not in "fiub":
-        raise MessageError(f"{where}: expected a numeric array, got dtype {a.dtype}")
-    if a.dtype.kind == "f":
-        bad = ~(np.abs(a) <= MAX_COORD)
-        if nan_ok:
-            bad &= ~np.isnan(a)
-        if bad.any():
-            raise MessageError(f"{where}: not finite, or beyond {MAX_COORD:g} ({int(bad.sum())} element(s))")
-    elif a.dtype.kind in "iu" and a.size and np.abs(a.astype(np.float64)).max() > MAX_COORD:
-        raise MessageError(f"{where}: element(s) beyond {MAX_COORD:g}")
 
 
 def rigid_error(T, where: str) -> Optional[str]:
@@ -160,9 +71,6 @@ def covariance_error(C, where: str) -> Optional[str]:
     if np.linalg.eigvalsh(0.5 * (C + C.T)).min() < -1e-9 * scale:
         return f"{where}: not positive semi-definite"
     return None
-
-
-_NONNEGATIVE = ("seq", "stamp_ns", "epoch", "frames")
 
 
 def image_header_size(data) -> Optional[tuple]:

@@ -8,11 +8,14 @@ from __future__ import annotations
 
 import dataclasses
 import math
+from typing import Any
 
 import msgpack
+import msgspec
 import numpy as np
 
-from common.runtime.checks import _NONNEGATIVE, MessageError, _check
+from common.runtime.checks import MessageError
+from common.runtime.schema import dec_hook, fields_of, refusal, wire_struct
 
 _EXT_NDARRAY = 1
 _DTYPES = {"bool", "uint8", "uint16", "int32", "int64", "float32", "float64"}
@@ -49,7 +52,7 @@ def _ndarray_header(data: bytes):
     p = 2 + (data[1] & 0x1f)
     if not 0x90 <= data[p] <= 0x9f:                              # fixarray(ndim)
         return None
-    dtype, ndim, p = data[2:p].decode("ascii", "replace"), data[p] & 0x0f, p + 1
+    dtype, ndim, p = bytes(data[2:p]).decode("ascii", "replace"), data[p] & 0x0f, p + 1
     shape = []
     for _ in range(ndim):
         b = data[p]
@@ -92,22 +95,34 @@ def _ext_hook(code, data):
 
 
 class Message:
-    """Base of all messages: a dataclass with a schema name, a version and field specs."""
+    """Base of all messages: a dataclass with a schema name and a version, whose annotations
+    declare the fields and their constraints (``common.runtime.schema``)."""
 
     SCHEMA: str = ""
     VERSION: int = 1
-    FIELDS: dict = {}
 
     def to_body(self) -> dict:
         return {f.name: getattr(self, f.name) for f in dataclasses.fields(self)}
 
 
 _REGISTRY: dict[str, type] = {}
+_BODY_DECODERS: dict[type, msgspec.msgpack.Decoder] = {}
 
 
 def register(cls):
+    """Register a message type: its schema name, and the decoder of its body (its fields)."""
     _REGISTRY[cls.SCHEMA] = cls
+    _BODY_DECODERS[cls] = msgspec.msgpack.Decoder(wire_struct(cls), dec_hook=dec_hook, ext_hook=_ext_hook)
     return cls
+
+
+class _Envelope(msgspec.Struct):
+    schema: Any = msgspec.UNSET
+    version: Any = None
+    body: msgspec.Raw = msgspec.UNSET
+
+
+_ENVELOPE = msgspec.msgpack.Decoder(_Envelope)
 
 
 _TAIL_MIN = 1 << 16     # a bytes field at least this large travels as the payload's tail
@@ -149,65 +164,19 @@ def encode_parts(msg: Message) -> tuple:
     return head, tail
 
 
-def _unpack_with_tail(buf: bytes):
-    """Fast path for payloads made by ``encode`` with a tail field: unpack the small head and
-    return the tail as a memoryview of ``buf``; None if ``buf`` does not have that layout."""
-    n = len(buf)
-    limit = min(n - 5, _TAIL_MIN)
-    p = buf.find(b"\xc6", 0, limit)
-    while p != -1:
-        if int.from_bytes(buf[p + 1:p + 5], "big") == n - p - 5:
-            try:
-                data = msgpack.unpackb(buf[:p] + b"\xc0", ext_hook=_ext_hook, raw=False, strict_map_key=False)
-            except Exception:
-                return None
-            body = data.get("body") if isinstance(data, dict) else None
-            if not isinstance(body, dict) or not body or list(body.values())[-1] is not None:
-                return None
-            body[list(body)[-1]] = memoryview(buf)[p + 5:]
-            return data
-        p = buf.find(b"\xc6", p + 1, limit)
-    return None
+def _not_msgpack(what: str, exc: Exception) -> MessageError:
+    return MessageError(f"{what}: not valid msgpack ({type(exc).__name__}: {exc})")
 
 
 def decode(payload, expect: type | None = None) -> Message:
     """msgpack bytes -> validated Message. ``expect`` restricts the accepted message type."""
+    buf = payload if isinstance(payload, bytes) else bytes(payload)
     try:
-        buf = payload if isinstance(payload, bytes) else bytes(payload)
-        data = _unpack_with_tail(buf) if len(buf) > _TAIL_MIN else None
-        if data is None:
-            data = msgpack.unpackb(buf, ext_hook=_ext_hook, raw=False, strict_map_key=False)
-    except MessageError:
-        raise
-    except Exception as exc:
-        what = expect.__name__ if expect else "message"
-        raise MessageError(f"{what}: not valid msgpack ({type(exc).__name__}: {exc})") from None
-    if not isinstance(data, dict) or "schema" not in data or "body" not in data:
-        raise MessageError(f"{expect.__name__ if expect else 'message'}: missing schema envelope")
-    cls = _REGISTRY.get(data["schema"])
-    if cls is None:
-        raise MessageError(f"message: unknown schema {data['schema']!r}")
-    if expect is not None and cls is not expect:
-        raise MessageError(f"{expect.__name__}: got a {cls.__name__} instead")
-    if data.get("version") != cls.VERSION:
-        raise MessageError(f"{cls.__name__}.version: expected {cls.VERSION}, got {data.get('version')!r}")
-    body = data["body"]
-    if not isinstance(body, dict):
-        raise MessageError(f"{cls.__name__}: body is not a map")
-    unknown = set(body) - set(cls.FIELDS)
-    if unknown:
-        raise MessageError(f"{cls.__name__}.{min(unknown, key=str)}: unknown field")
-    kwargs = {}
-    for fname, spec in cls.FIELDS.items():
-        if fname not in body:
-            if "optional" in spec[1:]:
-                continue
-            raise MessageError(f"{cls.__name__}.{fname}: missing")
-        kwargs[fname] = _check(cls.__name__, fname, body[fname], spec)
-    for fname in _NONNEGATIVE:
-        if kwargs.get(fname) is not None and kwargs[fname] < 0:
-            raise MessageError(f"{cls.__name__}.{fname}: must not be negative, got {kwargs[fname]}")
-    msg = cls(**kwargs)
+        cls, body = _decode_body(buf, expect)
+    except MessageError as exc:
+        raise _first_error(buf, expect, exc) from None
+    msg = object.__new__(cls)
+    msg.__dict__.update(msgspec.structs.asdict(body))
     try:
         msg.validate()
     except MessageError:
@@ -215,3 +184,55 @@ def decode(payload, expect: type | None = None) -> Message:
     except Exception as exc:   # a validate() that trips on a value it did not foresee
         raise MessageError(f"{cls.__name__}: invalid ({type(exc).__name__}: {exc})") from None
     return msg
+
+
+def _decode_body(buf: bytes, expect):
+    """``(message type, its body as a Struct of its fields)``: the envelope, then the body
+    converted strictly to the fields the type declares."""
+    what = expect.__name__ if expect else "message"
+    try:
+        env = _ENVELOPE.decode(buf)
+    except msgspec.ValidationError:
+        raise MessageError(f"{what}: missing schema envelope") from None
+    except Exception as exc:
+        raise _not_msgpack(what, exc) from None
+    if env.schema is msgspec.UNSET or env.body is msgspec.UNSET:
+        raise MessageError(f"{what}: missing schema envelope")
+    cls = _REGISTRY.get(env.schema) if isinstance(env.schema, str) else None
+    if cls is None:
+        raise MessageError(f"message: unknown schema {env.schema!r}")
+    if expect is not None and cls is not expect:
+        raise MessageError(f"{expect.__name__}: got a {cls.__name__} instead")
+    if env.version != cls.VERSION:
+        raise MessageError(f"{cls.__name__}.version: expected {cls.VERSION}, got {env.version!r}")
+    try:
+        return cls, _BODY_DECODERS[cls].decode(env.body)
+    except MessageError:
+        raise
+    except msgspec.ValidationError:
+        raise MessageError(_refusal(cls, env.body)) from None
+    except Exception as exc:
+        raise _not_msgpack(cls.__name__, exc) from None
+
+
+def _first_error(buf: bytes, expect, exc: MessageError) -> MessageError:
+    """What is wrong with a refused payload first: not msgpack at all (anywhere in it, an ndarray
+    extension included), else ``exc``."""
+    try:
+        msgspec.msgpack.decode(buf, ext_hook=_ext_hook)
+    except MessageError as first:
+        return first
+    except Exception as first:
+        return _not_msgpack(expect.__name__ if expect else "message", first)
+    return exc
+
+
+def _refusal(cls, raw) -> str:
+    """Why ``cls``'s decoder refused the body ``raw``, placed as ``Type.field: why``."""
+    try:
+        body = msgspec.msgpack.decode(raw, ext_hook=_ext_hook)
+    except MessageError as exc:
+        return str(exc)
+    except Exception as exc:
+        return str(_not_msgpack(cls.__name__, exc))
+    return refusal(cls.__name__, fields_of(cls), body)

@@ -34,11 +34,13 @@ import functools
 import re
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Optional
+from typing import Annotated, Any, Literal, Optional, Union
 
+import msgspec
 import yaml
 
 from common.errors import NeedletrackError
+from common.runtime.schema import Says
 
 DEFAULT_ENDPOINT = "tcp/127.0.0.1:7447"
 RESTART_POLICIES = ("never", "on-failure", "always")
@@ -46,14 +48,23 @@ ZENOH_MODES = ("peer", "client", "router")
 NODES_DIR = Path(__file__).resolve().parents[2] / "nodes"
 REPO_ROOT = NODES_DIR.parent
 
-_NAME_RE = re.compile(r"^[A-Za-z0-9_][A-Za-z0-9_.-]*$")
-_MODULE_RE = re.compile(r"^[A-Za-z_][A-Za-z0-9_]*(\.[A-Za-z_][A-Za-z0-9_]*)*$")
+_NAME = r"^[A-Za-z0-9_][A-Za-z0-9_.-]*$"
+_NAME_RE = re.compile(_NAME)
+_MODULE = r"^[A-Za-z_][A-Za-z0-9_]*(\.[A-Za-z_][A-Za-z0-9_]*)*$"
+_MODULE_RE = re.compile(_MODULE)
 _ENDPOINT_RE = re.compile(r"^(tcp|udp|tls|quic|ws|unixsock-stream)/\S+$")
-_TOP_KEYS = {"graph", "zenoh", "nodes", "pose_volume_m"}
-_ZENOH_KEYS = {"mode", "listen", "connect", "shm_pool_mb", "tls", "open"}
-_TLS_KEYS = {"ca", "cert", "key", "verify_name"}
 LAUNCHER_IDENTITY = "launcher"     # the TLS identity of launchers and CLI tools (the operator)
-_NODE_KEYS = {"id", "module", "command", "params", "inputs", "outputs", "restart", "env", "feedback", "spare"}
+
+# the graph file's fields (common/runtime/schema.py): a field is declared once below, its type and
+# constraints with the words of its refusal; graph_checks.validate_graph adds what joins fields
+_NAMED = "must be a name of letters, digits, '_', '-', '.'; got {value!r}"
+Name = Annotated[str, msgspec.Meta(pattern=_NAME), Says(_NAMED, types=True)]
+Flag = Annotated[bool, Says("expected true or false, got {value!r}", types=True)]
+PemPath = Annotated[str, msgspec.Meta(min_length=1), Says("expected a file path, got {value!r}", types=True,
+                                                          missing="missing (a PEM file path)")]
+PemPathOfId = Annotated[str, msgspec.Meta(min_length=1), Says("expected a file path, got {value!r}", types=True,
+                                                              missing="missing (a PEM file path, with {id})")]
+Endpoints = Annotated[list, Says("expected a list of endpoints, got {kind}", types=True)]
 
 
 class GraphError(NeedletrackError, ValueError):
@@ -65,15 +76,18 @@ class GraphError(NeedletrackError, ValueError):
         super().__init__(f"{source}: {len(self.errors)} error(s)\n" + "\n".join(f"  {e}" for e in self.errors))
 
 
+_FEEDBACK = "expected a list of this node's input names, got {value!r}"
+
+
 @dataclass
 class TlsSettings:
     """Mutual TLS of a graph: ``ca`` (PEM of the CA that signed every member), ``cert``/``key``
     (PEM paths with ``{id}``: the node id, or ``launcher`` for launchers and CLI tools).
     Paths are absolute once loaded (relative ones are taken from the graph file's folder)."""
-    ca: str
-    cert: str
-    key: str
-    verify_name: bool = False      # check the peer's certificate names the address connected to
+    ca: PemPath
+    cert: PemPathOfId
+    key: PemPathOfId
+    verify_name: Flag = False      # check the peer's certificate names the address connected to
 
     def files(self, identity: str) -> tuple:
         """(ca, cert, key) paths of ``identity``."""
@@ -88,27 +102,36 @@ class TlsSettings:
 
 @dataclass
 class ZenohSettings:
-    mode: str = "peer"
-    listen: list = field(default_factory=lambda: [DEFAULT_ENDPOINT])
-    connect: list = field(default_factory=list)
-    shm_pool_mb: int = 64
-    tls: Optional[TlsSettings] = None
-    open: bool = False             # no per-run credentials: any local process may join (a warning)
-    run_credentials: Optional[str] = None   # the run directory whose certificates ``tls`` names (not in the YAML)
+    mode: Annotated[Literal[ZENOH_MODES], Says(f"must be one of {', '.join(ZENOH_MODES)}; got {{value!r}}",
+                                               types=True)] = "peer"
+    listen: Endpoints = field(default_factory=lambda: [DEFAULT_ENDPOINT])
+    connect: Endpoints = field(default_factory=list)
+    shm_pool_mb: Annotated[int, msgspec.Meta(ge=0), Says("expected a non-negative int, got {value!r}", types=True)] = 64
+    tls: Annotated[TlsSettings, Says("expected a map {{ca, cert, key}}, got {kind}", types=True)] = None   # None: no TLS
+    open: Flag = False             # no per-run credentials: any local process may join (a warning)
+    run_credentials: Optional[str] = field(default=None, metadata={"key": None})   # the run directory whose certificates ``tls`` names (not in the YAML)
 
 
 @dataclass
 class NodeSpec:
-    id: str
-    module: Optional[str] = None
-    command: Optional[list] = None
-    params: dict = field(default_factory=dict)
-    inputs: dict = field(default_factory=dict)      # input name -> "node/output"
-    outputs: list = field(default_factory=list)
-    restart: str = "on-failure"
-    spare: bool = False            # a warm spare process takes over when the node's process exits
-    env: dict = field(default_factory=dict)
-    feedback: list = field(default_factory=list)    # inputs that close a declared cycle (acks)
+    """One node of the graph file; a field that may be null in the file is loaded as empty."""
+    id: Annotated[str, msgspec.Meta(pattern=r"^(?!cmd$)" + _NAME[1:]), Says(_NAMED, types=True, missing="missing")]
+    module: Annotated[str, msgspec.Meta(pattern=_MODULE),
+                      Says("expected a module name like 'sim', got {value!r}", types=True)] = None   # None: a command
+    command: Annotated[list[Union[str, int, float, bool]], msgspec.Meta(min_length=1),
+                       Says("expected a non-empty list of strings, got {value!r}", types=True)] = None
+    params: Annotated[Optional[dict], Says("expected a map, got {kind}", types=True)] = field(default_factory=dict)
+    inputs: Annotated[Optional[dict], Says("expected a map of input name -> 'node/output', got {kind}",
+                                           types=True)] = field(default_factory=dict)      # input name -> "node/output"
+    outputs: Annotated[Optional[list], Says("expected a list of output names, got {kind}", types=True)] = field(
+        default_factory=list)
+    restart: Annotated[Literal[RESTART_POLICIES], Says(f"must be one of {', '.join(RESTART_POLICIES)}; got {{value!r}}",
+                                                       types=True)] = "on-failure"
+    spare: Flag = False            # a warm spare process takes over when the node's process exits
+    env: Annotated[Optional[dict], Says("expected a map of NAME: value, got {kind}", types=True)] = field(
+        default_factory=dict)
+    feedback: Annotated[Optional[list[str]], Says(_FEEDBACK, types=True)] = field(
+        default_factory=list)    # inputs that close a declared cycle (acks)
 
     def to_dict(self) -> dict:
         d = {"id": self.id}
@@ -129,11 +152,15 @@ class NodeSpec:
 
 @dataclass
 class Graph:
-    name: str
-    zenoh: ZenohSettings
-    nodes: list
-    path: Optional[Path] = None
-    pose_volume_m: Optional[float] = None    # the pose invariant's working volume (m from the ECM; None: 1 m)
+    name: Annotated[str, msgspec.Meta(pattern=_NAME), Says(
+        _NAMED, types=True, missing="missing (the key prefix of the graph, e.g. 'needletrack')")] = field(
+        metadata={"key": "graph"})
+    zenoh: Annotated[Optional[ZenohSettings], Says("expected a map, got {kind}", types=True)]
+    nodes: Annotated[list, Says("expected a list, got {kind}", types=True, missing="missing (a list of nodes)")]
+    path: Optional[Path] = field(default=None, metadata={"key": None})
+    # the pose invariant's working volume (m from the ECM; None: 1 m)
+    pose_volume_m: Optional[Annotated[float, msgspec.Meta(gt=0, lt=1e6),
+                                      Says("expected a positive number of metres, got {value!r}", types=True)]] = None
 
     def node(self, node_id: str) -> NodeSpec:
         for n in self.nodes:

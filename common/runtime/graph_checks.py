@@ -11,88 +11,55 @@ from common.runtime.graph import (
     Graph,
     LAUNCHER_IDENTITY,
     module_info,
-    _MODULE_RE,
+    _FEEDBACK,
     _NAME_RE,
-    _NODE_KEYS,
-    RESTART_POLICIES,
-    _TLS_KEYS,
-    _TOP_KEYS,
-    _ZENOH_KEYS,
-    ZENOH_MODES,
+    NodeSpec,
+    TlsSettings,
+    ZenohSettings,
 )
+from common.runtime.schema import kind_name, section_errors, unknown_key_errors
 from common.runtime.zenoh_session import _endpoint_host, _is_loopback
 
 
-def _tname(v) -> str:
-    return {dict: "map", list: "list", str: "string", int: "int", float: "number", bool: "bool",
-            type(None): "null"}.get(type(v), type(v).__name__)
-
-
 def validate_graph(data: Any) -> list:
-    """Every error of a parsed graph document, each prefixed with its place; [] if valid."""
-    errs: list[str] = []
+    """Every error of a parsed graph document, each prefixed with its place; [] if valid. Each
+    field's own checks are declared on it (``Graph``, ``ZenohSettings``, ``TlsSettings``,
+    ``NodeSpec``: ``common.runtime.schema.section_errors``); what joins fields is checked here."""
     if not isinstance(data, dict):
-        return [f"top level: expected a map with keys graph, zenoh, nodes; got {_tname(data)}"]
-    for k in data:
-        if k not in _TOP_KEYS:
-            errs.append(f"{k}: unknown key (allowed: {', '.join(sorted(_TOP_KEYS))})")
-    name = data.get("graph")
-    if name is None:
-        errs.append("graph: missing (the key prefix of the graph, e.g. 'needletrack')")
-    elif not isinstance(name, str) or not _NAME_RE.match(name):
-        errs.append(f"graph: must be a name of letters, digits, '_', '-', '.'; got {name!r}")
-
-    z = data.get("zenoh", {})
-    if z is None:
-        z = {}
-    if not isinstance(z, dict):
-        errs.append(f"zenoh: expected a map, got {_tname(z)}")
-    else:
-        for k in z:
-            if k not in _ZENOH_KEYS:
-                errs.append(f"zenoh.{k}: unknown key (allowed: {', '.join(sorted(_ZENOH_KEYS))})")
-        if "mode" in z and z["mode"] not in ZENOH_MODES:
-            errs.append(f"zenoh.mode: must be one of {', '.join(ZENOH_MODES)}; got {z['mode']!r}")
+        return [f"top level: expected a map with keys graph, zenoh, nodes; got {kind_name(data)}"]
+    errs = unknown_key_errors("", Graph, data) + section_errors("", Graph, data, ("graph", "zenoh"))
+    z = data.get("zenoh") or {}
+    if isinstance(z, dict):
+        errs += unknown_key_errors("zenoh.", ZenohSettings, z) + section_errors("zenoh.", ZenohSettings, z, ("mode",))
         for k in ("listen", "connect"):
-            if k in z:
-                v = z[k]
-                if not isinstance(v, list):
-                    errs.append(f"zenoh.{k}: expected a list of endpoints, got {_tname(v)}")
-                    continue
-                for i, e in enumerate(v):
-                    if not isinstance(e, str) or not _ENDPOINT_RE.match(e):
-                        errs.append(f"zenoh.{k}[{i}]: not an endpoint like 'tcp/127.0.0.1:7447': {e!r}")
-                    elif e.startswith("tls/") and "tls" not in z:
-                        errs.append(f"zenoh.{k}[{i}]: {e!r} is a TLS endpoint: configure zenoh.tls "
-                                    f"{{ca, cert, key}} (certificates: `needletrack certs`; docs/multi-host.md)")
-                    elif "tls" in z and not e.startswith("tls/"):
-                        errs.append(f"zenoh.{k}[{i}]: {e!r}: with zenoh.tls every endpoint must be tls/ "
-                                    f"(another protocol would bypass TLS and access control)")
-                    elif "tls" not in z and z.get("open") is not True and not e.startswith(("tcp/", "tls/")):
-                        errs.append(f"zenoh.{k}[{i}]: {e!r}: the per-run credentials (the default) need tcp/ "
-                                    f"endpoints (they run as tls/); use tcp/, zenoh.tls, or zenoh.open: true")
-        if "open" in z and not isinstance(z["open"], bool):
-            errs.append(f"zenoh.open: expected true or false, got {z['open']!r}")
-        elif z.get("open") is True and "tls" in z:
+            wrong = section_errors("zenoh.", ZenohSettings, z, (k,))
+            errs += wrong
+            for i, e in enumerate(z[k] if k in z and not wrong else ()):
+                if not isinstance(e, str) or not _ENDPOINT_RE.match(e):
+                    errs.append(f"zenoh.{k}[{i}]: not an endpoint like 'tcp/127.0.0.1:7447': {e!r}")
+                elif e.startswith("tls/") and "tls" not in z:
+                    errs.append(f"zenoh.{k}[{i}]: {e!r} is a TLS endpoint: configure zenoh.tls "
+                                f"{{ca, cert, key}} (certificates: `needletrack certs`; docs/multi-host.md)")
+                elif "tls" in z and not e.startswith("tls/"):
+                    errs.append(f"zenoh.{k}[{i}]: {e!r}: with zenoh.tls every endpoint must be tls/ "
+                                f"(another protocol would bypass TLS and access control)")
+                elif "tls" not in z and z.get("open") is not True and not e.startswith(("tcp/", "tls/")):
+                    errs.append(f"zenoh.{k}[{i}]: {e!r}: the per-run credentials (the default) need tcp/ "
+                                f"endpoints (they run as tls/); use tcp/, zenoh.tls, or zenoh.open: true")
+        wrong = section_errors("zenoh.", ZenohSettings, z, ("open",))
+        errs += wrong
+        if not wrong and z.get("open") is True and "tls" in z:
             errs.append("zenoh.open: true contradicts zenoh.tls (a TLS graph admits only its certificates): "
                         "remove one")
         if "tls" in z:
-            errs += _tls_errors(z["tls"])
-        if "shm_pool_mb" in z and (isinstance(z["shm_pool_mb"], bool) or not isinstance(z["shm_pool_mb"], int)
-                                   or z["shm_pool_mb"] < 0):
-            errs.append(f"zenoh.shm_pool_mb: expected a non-negative int, got {z['shm_pool_mb']!r}")
+            errs += _tls_errors(z)
+        errs += section_errors("zenoh.", ZenohSettings, z, ("shm_pool_mb",))
+    errs += section_errors("", Graph, data, ("pose_volume_m",))
 
-    pv = data.get("pose_volume_m")
-    if pv is not None and (isinstance(pv, bool) or not isinstance(pv, (int, float)) or not 0 < pv < 1e6):
-        errs.append(f"pose_volume_m: expected a positive number of metres, got {pv!r}")
-
-    nodes = data.get("nodes")
-    if nodes is None:
-        errs.append("nodes: missing (a list of nodes)")
-        return errs
-    if not isinstance(nodes, list):
-        errs.append(f"nodes: expected a list, got {_tname(nodes)}")
-        return errs
+    wrong = section_errors("", Graph, data, ("nodes",))
+    if wrong:
+        return errs + wrong
+    nodes = data["nodes"]
     if not nodes:
         errs.append("nodes: empty")
 
@@ -110,107 +77,94 @@ def validate_graph(data: Any) -> list:
                 ids[nid] = i
                 outs = n.get("outputs")
                 if outs is None and isinstance(n.get("module"), str):
-                    info = module_info(n["module"]) if _MODULE_RE.match(n["module"]) else None
+                    info = module_info(n["module"]) if not section_errors("", NodeSpec, n, ("module",)) else None
                     outs = info["outputs"] if info else None
                 outputs[nid] = outs if isinstance(outs, list) else None
 
     for i, n in enumerate(nodes):
         at = f"nodes[{i}]"
         if not isinstance(n, dict):
-            errs.append(f"{at}: expected a map with id and module, got {_tname(n)}")
+            errs.append(f"{at}: expected a map with id and module, got {kind_name(n)}")
             continue
-        for k in n:
-            if k not in _NODE_KEYS:
-                errs.append(f"{at}.{k}: unknown key (allowed: {', '.join(sorted(_NODE_KEYS))})")
-        nid = n.get("id")
-        if nid is None:
-            errs.append(f"{at}.id: missing")
-        elif not isinstance(nid, str) or not _NAME_RE.match(nid) or nid in ("cmd",):
-            errs.append(f"{at}.id: must be a name of letters, digits, '_', '-', '.'; got {nid!r}")
-        elif nid == LAUNCHER_IDENTITY and isinstance(z, dict) and "tls" in z:
-            errs.append(f"{at}.id: {nid!r} is the launcher's TLS identity (zenoh.tls): rename the node")
-        info = None
-        has_mod, has_cmd = "module" in n, "command" in n
-        if has_mod == has_cmd:
-            errs.append(f"{at}: needs exactly one of 'module' (a module of nodes/) or 'command'")
-        if has_mod:
-            m = n["module"]
-            if not isinstance(m, str) or not _MODULE_RE.match(m):
-                errs.append(f"{at}.module: expected a module name like 'sim', got {m!r}")
-            else:
-                info = module_info(m)
-                if info is None:
-                    errs.append(f"{at}.module: unknown module {m!r}: no file nodes/{m.replace('.', '/')}.py "
-                                f"(available: {', '.join(available_modules())})")
-                elif info["syntax_error"]:
-                    errs.append(f"{at}.module: nodes/{m}.py has a syntax error at {info['syntax_error']}")
-                elif not info["has_node"]:
-                    errs.append(f"{at}.module: nodes/{m}.py defines no NODE")
-        if has_cmd:
-            c = n["command"]
-            if not isinstance(c, list) or not c or not all(isinstance(a, (str, int, float)) for a in c):
-                errs.append(f"{at}.command: expected a non-empty list of strings, got {c!r}")
-        if "params" in n and n["params"] is not None and not isinstance(n["params"], dict):
-            errs.append(f"{at}.params: expected a map, got {_tname(n['params'])}")
-        if "restart" in n and n["restart"] not in RESTART_POLICIES:
-            errs.append(f"{at}.restart: must be one of {', '.join(RESTART_POLICIES)}; got {n['restart']!r}")
-        if "spare" in n and not isinstance(n["spare"], bool):
-            errs.append(f"{at}.spare: expected true or false, got {n['spare']!r}")
-        elif n.get("spare") is True and ("module" not in n or n.get("restart") == "never"):
-            errs.append(f"{at}.spare: a spare needs a module node that is restarted (restart: on-failure or always)")
-        if "env" in n and n["env"] is not None:
-            env = n["env"]
-            if not isinstance(env, dict):
-                errs.append(f"{at}.env: expected a map of NAME: value, got {_tname(env)}")
-            else:
-                for k, v in env.items():
-                    if not isinstance(k, str) or not re.match(r"^[A-Za-z_][A-Za-z0-9_]*$", k):
-                        errs.append(f"{at}.env.{k}: not a valid environment variable name")
-                    elif not isinstance(v, (str, int, float, bool)):
-                        errs.append(f"{at}.env.{k}: expected a scalar, got {_tname(v)}")
-        fb = n.get("feedback")
-        if fb is not None and (not isinstance(fb, list) or not all(isinstance(x, str) for x in fb)
-                               or not set(fb) <= set(n.get("inputs") or {})):
-            errs.append(f"{at}.feedback: expected a list of this node's input names, got {fb!r}")
-        outs = n.get("outputs")
-        if outs is not None:
-            if not isinstance(outs, list):
-                errs.append(f"{at}.outputs: expected a list of output names, got {_tname(outs)}")
-            else:
-                seen = set()
-                for j, o in enumerate(outs):
-                    if not isinstance(o, str) or not _NAME_RE.match(o) or o == "cmd":
-                        errs.append(f"{at}.outputs[{j}]: bad output name {o!r}")
-                    elif o in seen:
-                        errs.append(f"{at}.outputs[{j}]: duplicate output {o!r}")
-                    elif info and info["outputs"] is not None and o not in info["outputs"]:
-                        errs.append(f"{at}.outputs[{j}]: module {n['module']!r} has no output {o!r} "
-                                    f"(outputs: {', '.join(info['outputs']) or 'none'})")
-                    seen.add(o)
-        ins = n.get("inputs")
-        if ins is not None:
-            if not isinstance(ins, dict):
-                errs.append(f"{at}.inputs: expected a map of input name -> 'node/output', got {_tname(ins)}")
-            else:
-                for name, src in ins.items():
-                    where = f"{at}.inputs.{name}"
-                    if not isinstance(name, str) or not _NAME_RE.match(name):
-                        errs.append(f"{where}: bad input name")
-                        continue
-                    if info and info["inputs"] is not None and name not in info["inputs"]:
-                        errs.append(f"{where}: module {n['module']!r} has no input {name!r} "
-                                    f"(inputs: {', '.join(info['inputs']) or 'none'})")
-                    if not isinstance(src, str) or src.count("/") != 1:
-                        errs.append(f"{where}: expected 'node/output', got {src!r}")
-                        continue
-                    sid, sout = src.split("/")
-                    if sid not in ids:
-                        errs.append(f"{where}: no node {sid!r}")
-                    elif outputs.get(sid) is not None and sout not in outputs[sid]:
-                        errs.append(f"{where}: node {sid!r} has no output {sout!r} "
-                                    f"(outputs: {', '.join(map(str, outputs[sid])) or 'none'})")
+        errs += _node_errors(at, n, isinstance(z, dict) and "tls" in z, ids, outputs)
     if not errs:
         errs += graph_cycles(nodes)
+    return errs
+
+
+def _node_errors(at: str, n: dict, tls: bool, ids: dict, outputs: dict) -> list:
+    """The errors of the graph's node ``n`` (at ``at``), its wiring against the other nodes'
+    ``ids`` and ``outputs`` included."""
+    errs = unknown_key_errors(f"{at}.", NodeSpec, n)
+    wrong = section_errors(f"{at}.", NodeSpec, n, ("id",))
+    errs += wrong
+    if not wrong and n["id"] == LAUNCHER_IDENTITY and tls:
+        errs.append(f"{at}.id: {n['id']!r} is the launcher's TLS identity (zenoh.tls): rename the node")
+    info = None
+    has_mod, has_cmd = "module" in n, "command" in n
+    if has_mod == has_cmd:
+        errs.append(f"{at}: needs exactly one of 'module' (a module of nodes/) or 'command'")
+    if has_mod:
+        wrong = section_errors(f"{at}.", NodeSpec, n, ("module",))
+        errs += wrong
+        m = n["module"]
+        if not wrong:
+            info = module_info(m)
+            if info is None:
+                errs.append(f"{at}.module: unknown module {m!r}: no file nodes/{m.replace('.', '/')}.py "
+                            f"(available: {', '.join(available_modules())})")
+            elif info["syntax_error"]:
+                errs.append(f"{at}.module: nodes/{m}.py has a syntax error at {info['syntax_error']}")
+            elif not info["has_node"]:
+                errs.append(f"{at}.module: nodes/{m}.py defines no NODE")
+    errs += section_errors(f"{at}.", NodeSpec, n, ("command", "params", "restart"))
+    wrong = section_errors(f"{at}.", NodeSpec, n, ("spare",))
+    errs += wrong
+    if not wrong and n.get("spare") is True and ("module" not in n or n.get("restart") == "never"):
+        errs.append(f"{at}.spare: a spare needs a module node that is restarted (restart: on-failure or always)")
+    wrong = section_errors(f"{at}.", NodeSpec, n, ("env",))
+    errs += wrong
+    for k, v in (n.get("env") or {}).items() if not wrong else ():
+        if not isinstance(k, str) or not re.match(r"^[A-Za-z_][A-Za-z0-9_]*$", k):
+            errs.append(f"{at}.env.{k}: not a valid environment variable name")
+        elif not isinstance(v, (str, int, float, bool)):
+            errs.append(f"{at}.env.{k}: expected a scalar, got {kind_name(v)}")
+    wrong = section_errors(f"{at}.", NodeSpec, n, ("feedback",))
+    ins = n.get("inputs")
+    if not wrong and not set(n.get("feedback") or ()) <= set(ins if isinstance(ins, (dict, list)) else ()):
+        wrong = [f"{at}.feedback: " + _FEEDBACK.format(value=n["feedback"])]
+    errs += wrong
+    wrong = section_errors(f"{at}.", NodeSpec, n, ("outputs",))
+    errs += wrong
+    seen = set()
+    for j, o in enumerate(n.get("outputs") or () if not wrong else ()):
+        if not isinstance(o, str) or not _NAME_RE.match(o) or o == "cmd":
+            errs.append(f"{at}.outputs[{j}]: bad output name {o!r}")
+        elif o in seen:
+            errs.append(f"{at}.outputs[{j}]: duplicate output {o!r}")
+        elif info and info["outputs"] is not None and o not in info["outputs"]:
+            errs.append(f"{at}.outputs[{j}]: module {n['module']!r} has no output {o!r} "
+                        f"(outputs: {', '.join(info['outputs']) or 'none'})")
+        seen.add(o)
+    wrong = section_errors(f"{at}.", NodeSpec, n, ("inputs",))
+    errs += wrong
+    for name, src in (ins or {}).items() if not wrong else ():
+        where = f"{at}.inputs.{name}"
+        if not isinstance(name, str) or not _NAME_RE.match(name):
+            errs.append(f"{where}: bad input name")
+            continue
+        if info and info["inputs"] is not None and name not in info["inputs"]:
+            errs.append(f"{where}: module {n['module']!r} has no input {name!r} "
+                        f"(inputs: {', '.join(info['inputs']) or 'none'})")
+        if not isinstance(src, str) or src.count("/") != 1:
+            errs.append(f"{where}: expected 'node/output', got {src!r}")
+            continue
+        sid, sout = src.split("/")
+        if sid not in ids:
+            errs.append(f"{where}: no node {sid!r}")
+        elif outputs.get(sid) is not None and sout not in outputs[sid]:
+            errs.append(f"{where}: node {sid!r} has no output {sout!r} "
+                        f"(outputs: {', '.join(map(str, outputs[sid])) or 'none'})")
     return errs
 
 
@@ -247,22 +201,21 @@ def graph_cycles(nodes: list) -> list:
     return errs
 
 
-def _tls_errors(t: Any) -> list:
-    if not isinstance(t, dict):
-        return [f"zenoh.tls: expected a map {{ca, cert, key}}, got {_tname(t)}"]
-    errs = [f"zenoh.tls.{k}: unknown key (allowed: {', '.join(sorted(_TLS_KEYS))})" for k in t if k not in _TLS_KEYS]
+def _tls_errors(z: dict) -> list:
+    """The errors of ``zenoh.tls``: the section's declared fields, and each identity's files
+    named with ``{id}``."""
+    errs = section_errors("zenoh.", ZenohSettings, z, ("tls",))
+    t = z["tls"]
+    if errs:
+        return errs
+    errs = unknown_key_errors("zenoh.tls.", TlsSettings, t)
     for k in ("ca", "cert", "key"):
-        v = t.get(k)
-        if v is None:
-            errs.append(f"zenoh.tls.{k}: missing (a PEM file path" + (")" if k == "ca" else ", with {id})"))
-        elif not isinstance(v, str) or not v:
-            errs.append(f"zenoh.tls.{k}: expected a file path, got {v!r}")
-        elif k != "ca" and "{id}" not in v:
+        wrong = section_errors("zenoh.tls.", TlsSettings, t, (k,))
+        errs += wrong
+        if k != "ca" and not wrong and "{id}" not in t[k]:
             errs.append(f"zenoh.tls.{k}: must contain '{{id}}' (each node, and the launcher, has its own "
-                        f"certificate: e.g. 'certs/{{id}}.{'pem' if k == 'cert' else 'key'}'); got {v!r}")
-    if "verify_name" in t and not isinstance(t["verify_name"], bool):
-        errs.append(f"zenoh.tls.verify_name: expected true or false, got {t['verify_name']!r}")
-    return errs
+                        f"certificate: e.g. 'certs/{{id}}.{'pem' if k == 'cert' else 'key'}'); got {t[k]!r}")
+    return errs + section_errors("zenoh.tls.", TlsSettings, t, ("verify_name",))
 
 
 def graph_warnings(graph: "Graph") -> list:

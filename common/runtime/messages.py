@@ -11,7 +11,7 @@ consumers pair them by ``seq`` (see ``common.runtime.pairing``).
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Optional
+from typing import Literal, Optional
 
 import numpy as np
 
@@ -31,10 +31,17 @@ from common.runtime.checks import (  # noqa: F401  (re-exported: the messages' A
     rigid_error,
 )
 from common.runtime.codec import _REGISTRY, Message, decode, encode, encode_parts, register  # noqa: F401
+from common.runtime.schema import Array, ArrayNaN, ByCamera, Bytes, Int64, NonNegative, Number, number
 
 # ---------------------------------------------------------------- the messages
 
 ENCODINGS = ("bgr8", "png", "jpeg")
+
+PositivePx = number("must be positive, got {value}", gt=0)
+"""A 1-sigma error in pixels: finite and positive."""
+AtLeastOne = number("must be at least 1, got {value}", ge=1)
+Probability = number("must be a probability in [0, 1], got {value}", ge=0, le=1)
+NonNegativeNumber = number("must be a finite number >= 0, got {value}", ge=0)
 
 
 @register
@@ -47,17 +54,14 @@ class CameraImage(Message):
     """
 
     SCHEMA = "needletrack.CameraImage"
-    FIELDS = {"camera": ("str", CAMERAS), "seq": ("int",), "stamp_ns": ("int",),
-              "width": ("int",), "height": ("int",), "encoding": ("str", ENCODINGS),
-              "data": ("bytes",), "epoch": ("int", "optional")}
-    camera: str
-    seq: int
-    stamp_ns: int
-    width: int
-    height: int
-    encoding: str
-    data: bytes
-    epoch: Optional[int] = None
+    camera: Literal[CAMERAS]
+    seq: NonNegative
+    stamp_ns: NonNegative
+    width: Int64
+    height: Int64
+    encoding: Literal[ENCODINGS]
+    data: Bytes
+    epoch: Optional[NonNegative] = None
 
     def validate(self):
         if not (1 <= self.width <= MAX_IMAGE_SIDE and 1 <= self.height <= MAX_IMAGE_SIDE):
@@ -121,11 +125,10 @@ class EcmJoints(Message):
     """ECM joint state q = [yaw, pitch, insertion, roll] (rad, rad, m, rad)."""
 
     SCHEMA = "needletrack.EcmJoints"
-    FIELDS = {"seq": ("int",), "stamp_ns": ("int",), "q": ("array", (4,)), "epoch": ("int", "optional")}
-    seq: int
-    stamp_ns: int
-    q: np.ndarray
-    epoch: Optional[int] = None
+    seq: NonNegative
+    stamp_ns: NonNegative
+    q: Array[4]
+    epoch: Optional[NonNegative] = None
 
     def validate(self):
         if not np.all(np.isfinite(self.q)):
@@ -139,16 +142,13 @@ class EcmPose(Message):
     cameras' poses ``T_world_left``/``T_world_right`` when the calibration is known."""
 
     SCHEMA = "needletrack.EcmPose"
-    FIELDS = {"seq": ("int",), "stamp_ns": ("int",), "T_world_ecm": ("array", (4, 4)),
-              "q": ("array", (4,), "optional"), "T_world_left": ("array", (4, 4), "optional"),
-              "T_world_right": ("array", (4, 4), "optional"), "epoch": ("int", "optional")}
-    seq: int
-    stamp_ns: int
-    T_world_ecm: np.ndarray
-    q: Optional[np.ndarray] = None
-    T_world_left: Optional[np.ndarray] = None
-    T_world_right: Optional[np.ndarray] = None
-    epoch: Optional[int] = None
+    seq: NonNegative
+    stamp_ns: NonNegative
+    T_world_ecm: Array[4, 4]
+    q: Optional[Array[4]] = None
+    T_world_left: Optional[Array[4, 4]] = None
+    T_world_right: Optional[Array[4, 4]] = None
+    epoch: Optional[NonNegative] = None
 
     def validate(self):
         for name in ("T_world_ecm", "T_world_left", "T_world_right"):
@@ -177,54 +177,28 @@ class Keypoints(Message):
     """
 
     SCHEMA = "needletrack.Keypoints"
-    FIELDS = {"camera": ("str", CAMERAS), "seq": ("int",), "stamp_ns": ("int",),
-              "found": ("bool",), "uv": ("array", (5, 2), "nan"), "scores": ("array", (5,)),
-              "confidence": ("float",), "bbox": ("array", (4,), "optional"),
-              "detector": ("str",), "reason": ("str", "optional"),
-              "centreline": ("array", (None, 2), "optional"),
-              "centreline_w": ("array", (None,), "optional"),
-              "centreline_sigma_px": ("float", "optional"),
-              "on_arc": ("array", (5,), "optional"),
-              "centreline_corr_points": ("float", "optional"),
-              "keypoint_sigma_px": ("float", "optional"),
-              "end_identity": ("float", "optional"), "unfamiliarity": ("float", "optional"),
-              "epoch": ("int", "optional")}
-    camera: str
-    seq: int
-    stamp_ns: int
+    camera: Literal[CAMERAS]
+    seq: NonNegative
+    stamp_ns: NonNegative
     found: bool
-    uv: np.ndarray
-    scores: np.ndarray
-    confidence: float
-    bbox: Optional[np.ndarray] = None
+    uv: ArrayNaN[5, 2]
+    scores: Array[5]
+    confidence: Number
+    bbox: Optional[Array[4]] = None
     detector: str = ""
     reason: Optional[str] = None
-    centreline: Optional[np.ndarray] = None
-    centreline_w: Optional[np.ndarray] = None
-    centreline_sigma_px: Optional[float] = None
-    on_arc: Optional[np.ndarray] = None
-    centreline_corr_points: Optional[float] = None
-    keypoint_sigma_px: Optional[float] = None
-    end_identity: Optional[float] = None
-    epoch: Optional[int] = None
-    unfamiliarity: Optional[float] = None
+    centreline: Optional[Array[None, 2]] = None
+    centreline_w: Optional[Array[None]] = None
+    centreline_sigma_px: Optional[PositivePx] = None
+    on_arc: Optional[Array[5]] = None
+    centreline_corr_points: Optional[AtLeastOne] = None
+    keypoint_sigma_px: Optional[PositivePx] = None
+    end_identity: Optional[Probability] = None
+    epoch: Optional[NonNegative] = None
+    unfamiliarity: Optional[NonNegativeNumber] = None
 
     def validate(self):
-        s = self.centreline_sigma_px
-        if s is not None and not (np.isfinite(s) and s > 0):
-            raise MessageError(f"Keypoints.centreline_sigma_px: must be positive, got {s}")
-        c = self.centreline_corr_points
-        if c is not None and not (np.isfinite(c) and c >= 1):
-            raise MessageError(f"Keypoints.centreline_corr_points: must be at least 1, got {c}")
-        k = self.keypoint_sigma_px
-        if k is not None and not (np.isfinite(k) and k > 0):
-            raise MessageError(f"Keypoints.keypoint_sigma_px: must be positive, got {k}")
-        e = self.end_identity
-        if e is not None and not (0.0 <= e <= 1.0):
-            raise MessageError(f"Keypoints.end_identity: must be a probability in [0, 1], got {e}")
-        f = self.unfamiliarity
-        if f is not None and not (np.isfinite(f) and f >= 0):
-            raise MessageError(f"Keypoints.unfamiliarity: must be a finite number >= 0, got {f}")
+        pass
 
     @classmethod
     def not_found(cls, camera: str, seq: int, stamp_ns: int, detector: str, reason: str,
@@ -248,32 +222,23 @@ class PoseEstimate(Message):
     """
 
     SCHEMA = "needletrack.PoseEstimate"
-    FIELDS = {"seq": ("int",), "stamp_ns": ("int",), "method": ("str",),
-              "T_ecm_needle": ("array", (4, 4)), "T_world_needle": ("array", (4, 4), "optional"),
-              "T_world_ecm": ("array", (4, 4), "optional"),
-              "residual": ("float",), "residual_unit": ("str", "optional"),
-              "n_views": ("int",), "covariance": ("array", (6, 6), "optional"),
-              "ambiguous": ("bool", "optional"), "points_ecm": ("array", (None, 3), "optional", "nan"),
-              "sequence": ("int", "optional"), "epoch": ("int", "optional"),
-              "model_sigma_m": ("float", "optional"), "model_sigma_rad": ("float", "optional"),
-              "end_identity": ("float", "optional")}
-    seq: int
-    stamp_ns: int
+    seq: NonNegative
+    stamp_ns: NonNegative
     method: str
-    T_ecm_needle: np.ndarray
-    T_world_needle: Optional[np.ndarray] = None
-    T_world_ecm: Optional[np.ndarray] = None
-    residual: float = 0.0
+    T_ecm_needle: Array[4, 4]
+    T_world_needle: Optional[Array[4, 4]] = None
+    T_world_ecm: Optional[Array[4, 4]] = None
+    residual: Number = 0.0
     residual_unit: Optional[str] = None
-    n_views: int = 1
-    covariance: Optional[np.ndarray] = None
+    n_views: Int64 = 1
+    covariance: Optional[Array[6, 6]] = None
     ambiguous: Optional[bool] = None
-    points_ecm: Optional[np.ndarray] = None
-    sequence: Optional[int] = None
-    epoch: Optional[int] = None
-    model_sigma_m: Optional[float] = None
-    model_sigma_rad: Optional[float] = None
-    end_identity: Optional[float] = None
+    points_ecm: Optional[ArrayNaN[None, 3]] = None
+    sequence: Optional[Int64] = None
+    epoch: Optional[NonNegative] = None
+    model_sigma_m: Optional[Number] = None
+    model_sigma_rad: Optional[Number] = None
+    end_identity: Optional[Number] = None
 
     def validate(self):
         err = pose_invariant_error(self)
@@ -287,13 +252,11 @@ class Points3D(Message):
     """Triangulated keypoints A..E in the ECM frame (m); NaN rows where a point is missing."""
 
     SCHEMA = "needletrack.Points3D"
-    FIELDS = {"seq": ("int",), "stamp_ns": ("int",), "points_ecm": ("array", (5, 3), "nan"),
-              "valid": ("array", (5,)), "epoch": ("int", "optional")}
-    seq: int
-    stamp_ns: int
-    points_ecm: np.ndarray
-    valid: np.ndarray
-    epoch: Optional[int] = None
+    seq: NonNegative
+    stamp_ns: NonNegative
+    points_ecm: ArrayNaN[5, 3]
+    valid: Array[5]
+    epoch: Optional[NonNegative] = None
 
     def validate(self):
         pass
@@ -307,24 +270,17 @@ class GroundTruth(Message):
     group; see ``multiview_group``)."""
 
     SCHEMA = "needletrack.GroundTruth"
-    FIELDS = {"seq": ("int",), "stamp_ns": ("int",), "sequence": ("int", "optional"),
-              "step": ("int", "optional"), "ecm_joints": ("array", (4,), "optional"),
-              "T_world_ecm": ("array", (4, 4), "optional"),
-              "T_world_needle": ("array", (4, 4), "optional"),
-              "keypoints": ("camera_map", (5, 2), "optional"), "visible": ("camera_map", (5,), "optional"),
-              "bbox": ("camera_map", (4,), "optional"), "epoch": ("int", "optional"),
-              "needle_at_rest": ("bool", "optional")}
-    seq: int
-    stamp_ns: int
-    sequence: Optional[int] = None
-    step: Optional[int] = None
-    ecm_joints: Optional[np.ndarray] = None
-    T_world_ecm: Optional[np.ndarray] = None
-    T_world_needle: Optional[np.ndarray] = None
-    keypoints: Optional[dict] = None
-    visible: Optional[dict] = None
-    bbox: Optional[dict] = None
-    epoch: Optional[int] = None
+    seq: NonNegative
+    stamp_ns: NonNegative
+    sequence: Optional[Int64] = None
+    step: Optional[Int64] = None
+    ecm_joints: Optional[Array[4]] = None
+    T_world_ecm: Optional[Array[4, 4]] = None
+    T_world_needle: Optional[Array[4, 4]] = None
+    keypoints: Optional[ByCamera[Array[5, 2]]] = None
+    visible: Optional[ByCamera[Array[5]]] = None
+    bbox: Optional[ByCamera[Array[4]]] = None
+    epoch: Optional[NonNegative] = None
     needle_at_rest: Optional[bool] = None
 
     def validate(self):
@@ -368,15 +324,13 @@ class InstrumentState(Message):
     measurement's time. ``holds_needle``: ground truth, from a simulator or a labelled dataset."""
 
     SCHEMA = "needletrack.InstrumentState"
-    FIELDS = {"name": ("str",), "seq": ("int",), "stamp_ns": ("int",), "T_world_jaw": ("array", (4, 4)),
-              "jaw_rad": ("float",), "holds_needle": ("bool", "optional"), "epoch": ("int", "optional")}
     name: str
-    seq: int
-    stamp_ns: int
-    T_world_jaw: np.ndarray
-    jaw_rad: float
+    seq: NonNegative
+    stamp_ns: NonNegative
+    T_world_jaw: Array[4, 4]
+    jaw_rad: Number
     holds_needle: Optional[bool] = None
-    epoch: Optional[int] = None
+    epoch: Optional[NonNegative] = None
 
     def validate(self):
         if not 1 <= len(self.name) <= 32 or not self.name.isprintable():
@@ -399,7 +353,6 @@ class Command(Message):
     """A request to a node (e.g. the sim's ``place_needle``); ``args`` is a plain map."""
 
     SCHEMA = "needletrack.Command"
-    FIELDS = {"name": ("str",), "args": ("dict", "optional")}
     name: str
     args: Optional[dict] = None
 
@@ -414,18 +367,15 @@ class NodeStats(Message):
     times of the messages whose handler published (the frame's work; a sink: every message)."""
 
     SCHEMA = "needletrack.NodeStats"
-    FIELDS = {"node": ("str",), "module": ("str",), "pid": ("int",), "stamp_ns": ("int",),
-              "uptime_s": ("float",), "counters": ("dict",), "rates_hz": ("dict",),
-              "proc_ms_p50": ("float",), "proc_ms_p99": ("float",)}
     node: str
     module: str
-    pid: int
-    stamp_ns: int
-    uptime_s: float
+    pid: Int64
+    stamp_ns: NonNegative
+    uptime_s: Number
     counters: dict
     rates_hz: dict
-    proc_ms_p50: float
-    proc_ms_p99: float
+    proc_ms_p50: Number
+    proc_ms_p99: Number
 
     def validate(self):
         pass
@@ -437,9 +387,8 @@ class EndOfStream(Message):
     """Sent by a finite source (replay) after its last frame: ``frames`` were published."""
 
     SCHEMA = "needletrack.EndOfStream"
-    FIELDS = {"frames": ("int",), "stamp_ns": ("int",)}
-    frames: int
-    stamp_ns: int
+    frames: NonNegative
+    stamp_ns: NonNegative
 
     def validate(self):
         pass
@@ -453,10 +402,8 @@ class Calibration(Message):
     keypoint_angles_deg) and optionally ``ecm`` (T_world_base, L_rcc, L_scopelen)."""
 
     SCHEMA = "needletrack.Calibration"
-    FIELDS = {"stamp_ns": ("int",), "image_size": ("array", (2,)), "cameras": ("dict",),
-              "needle": ("dict",), "ecm": ("dict", "optional"), "source": ("str", "optional")}
-    stamp_ns: int
-    image_size: np.ndarray
+    stamp_ns: NonNegative
+    image_size: Array[2]
     cameras: dict
     needle: dict
     ecm: Optional[dict] = None

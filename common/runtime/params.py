@@ -11,20 +11,27 @@ default::
 ``parse_params(Params, raw, where)`` returns the instance, or raises ``ParamError`` listing every
 unknown name and every value of the wrong type with its place, e.g.
 ``nodes[2].params.threads: expected int, got 'five'``. ``param_errors`` gives the same list
-without raising (``needletrack validate`` reports them all). Types understood: ``int``, ``float``
-(an int is accepted), ``bool``, ``str``, ``dict``, ``list[T]``, ``tuple[T, ...]``,
-``Literal[...]``, unions (``X | None``). No coercion of strings: ``'5'`` is not an int.
+without raising (``needletrack validate`` reports them all). A value is converted strictly by
+msgspec, the schema mechanism of messages too (``common.runtime.schema``): ``int``, ``float``
+(finite; an int is accepted), ``bool``, ``str``, ``dict``, ``list[T]``, ``tuple[T, ...]``,
+``Literal[...]``, unions (``X | None``), and constraints on the field
+(``Annotated[float, msgspec.Meta(ge=0), Says("must not be negative, got {value}")]``). No
+coercion of strings: ``'5'`` is not an int.
 """
 from __future__ import annotations
 
 import dataclasses
 import difflib
-import math
+import functools
+import sys
 import types
 import typing
-from typing import Any, Literal, Mapping, Union
+from typing import Annotated, Literal, Mapping, Union
+
+import msgspec
 
 from common.errors import NeedletrackError
+from common.runtime.schema import Says, dec_hook
 
 
 class ParamError(NeedletrackError, ValueError):
@@ -48,34 +55,50 @@ def _describe(tp) -> str:
     return {float: "number", dict: "map", str: "string"}.get(tp, getattr(tp, "__name__", str(tp)))
 
 
-def _matches(value: Any, tp) -> bool:
-    origin = typing.get_origin(tp)
-    if tp is Any:
-        return True
-    if origin in (Union, types.UnionType):
-        return any(_matches(value, a) for a in typing.get_args(tp))
-    if origin is Literal:
-        return any(value == a and type(value) is type(a) for a in typing.get_args(tp))
-    if origin in (list, tuple):
-        inner = typing.get_args(tp)[0]
-        return isinstance(value, (list, tuple)) and all(_matches(v, inner) for v in value)
-    if origin is dict or tp is dict:
-        return isinstance(value, dict)
-    if tp is type(None):
-        return value is None
-    if tp is bool:
-        return isinstance(value, bool)
-    if tp is int:
-        return isinstance(value, int) and not isinstance(value, bool)
+_FINITE = Annotated[float, msgspec.Meta(ge=-sys.float_info.max, le=sys.float_info.max)]
+
+
+@functools.lru_cache(maxsize=None)
+def _finite(tp):
+    """``tp`` with each bare ``float`` in it finite (msgspec's float takes inf and NaN)."""
+    origin, args = typing.get_origin(tp), typing.get_args(tp)
     if tp is float:
-        return isinstance(value, (int, float)) and not isinstance(value, bool) and math.isfinite(value)
-    if tp is str:
-        return isinstance(value, str)
-    raise TypeError(f"param type {tp!r} is not supported")
+        return _FINITE
+    if origin in (Union, types.UnionType):
+        return Union[tuple(_finite(a) for a in args)]
+    if origin is list:
+        return list[_finite(args[0])]
+    if origin is tuple and args:
+        return tuple[tuple(a if a is Ellipsis else _finite(a) for a in args)]
+    if origin is dict and args:
+        return dict[_finite(args[0]), _finite(args[1])]
+    return tp
+
+
+def _convert(tp, value):
+    """``(value converted to tp, None)`` or ``(None, why not)``: msgspec's strict conversion."""
+    try:
+        return msgspec.convert(value, _finite(tp), dec_hook=dec_hook), None
+    except msgspec.ValidationError as exc:
+        if typing.get_origin(tp) is Annotated and _convert(tp.__origin__, value)[1] is None:
+            says = next((m for m in tp.__metadata__ if isinstance(m, Says)), None)   # the type fits, a constraint not
+            detail = str(exc)
+            return None, says.text.format(value=value) if says else f"{detail[:1].lower()}{detail[1:]}, got {value!r}"
+        return None, f"expected {_describe(_bare(tp))}, got {value!r}"
+
+
+def _bare(tp):
+    return tp.__origin__ if typing.get_origin(tp) is Annotated else tp
 
 
 def _hints(schema: type) -> dict:
+    """The field types, without their constraints (for describing them)."""
     return typing.get_type_hints(schema, include_extras=False)
+
+
+def _declared(schema: type) -> dict:
+    """The field types with their constraints (``Annotated``)."""
+    return typing.get_type_hints(schema, include_extras=True)
 
 
 def did_you_mean(name, names: list) -> str:
@@ -92,31 +115,32 @@ def param_errors(schema: type, raw: Mapping | None, where: str = "params") -> li
         return []
     if not isinstance(raw, Mapping):
         return [f"{where}: expected a map, got {type(raw).__name__}"]
-    hints = _hints(schema)
+    return _converted(schema, raw, where)[1]
+
+
+def _converted(schema: type, raw: Mapping, where: str) -> tuple:
+    """``(the converted values by name, every problem placed)``."""
+    hints = _declared(schema)
     names = [f.name for f in dataclasses.fields(schema)]
-    errors = []
+    kw, errors = {}, []
     for key, value in raw.items():
         if key not in hints:
             errors.append(f"{where}.{key}: unknown param ({did_you_mean(key, names)})")
-        elif not _matches(value, hints[key]):
-            errors.append(f"{where}.{key}: expected {_describe(hints[key])}, got {value!r}")
-    return errors
+            continue
+        kw[key], why = _convert(hints[key], value)
+        if why:
+            errors.append(f"{where}.{key}: {why}")
+    return kw, errors
 
 
 def parse_params(schema: type, raw: Mapping | None, where: str = "params"):
     """An instance of the dataclass ``schema`` from ``raw``; ParamError if anything is wrong.
-    Lists become tuples where the field is a tuple."""
-    errors = param_errors(schema, raw, where)
+    Lists become tuples where the field is a tuple, an int a float where it is a float."""
+    if raw is not None and not isinstance(raw, Mapping):
+        raise ParamError([f"{where}: expected a map, got {type(raw).__name__}"])
+    kw, errors = _converted(schema, raw or {}, where)
     if errors:
         raise ParamError(errors)
-    hints = _hints(schema)
-    kw = {}
-    for key, value in (raw or {}).items():
-        if typing.get_origin(hints[key]) is tuple and isinstance(value, list):
-            value = tuple(value)
-        if hints[key] is float and isinstance(value, int):
-            value = float(value)
-        kw[key] = value
     try:
         return schema(**kw)
     except (TypeError, ValueError) as exc:      # a dataclass's own __post_init__ checks
