@@ -11,7 +11,8 @@ Each frame is stepped once, in ``seq`` order, when its ECM pose is in and either
 or a later frame's pose came (the refine node posed nothing for it): a frame without a pose is
 predicted by the motion model (counted ``coasted``). A frame waits at most ``max_wait`` frames
 for its pose; one that comes later is dropped (``late_pose``). An instrument's state is the
-newest at or before the frame, at most ``max_wait`` frames old.
+newest at or before the frame, at most ``max_wait`` frames old (at most ``MAX_INSTRUMENTS``
+names are followed; more are counted ``instruments.too_many``).
 
 Outputs: ``pose``, method ``params.method`` (``tracked``): ``T_ecm_needle`` with
 ``T_world_needle``, ``T_world_ecm`` and the covariance (ECM axes); ``residual`` the
@@ -30,6 +31,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from common.data.instruments import MAX_INSTRUMENTS
 from common.geometry.end_identity import state
 from common.geometry.fusion import covariance_to_frame
 from common.geometry.needle import NeedleModel
@@ -109,6 +111,9 @@ class TrackerNode(Node):
         self.sequences.put(msg.seq, msg.sequence)
 
     def on_instruments(self, msg: InstrumentState):
+        if msg.name not in self.jaws and len(self.jaws) >= MAX_INSTRUMENTS:
+            self.count("instruments.too_many")      # a bounded table: names past it are dropped
+            return
         self.jaws.setdefault(msg.name, SeqCache(64)).put(
             msg.seq, Jaw(np.asarray(msg.T_world_jaw, float), float(msg.jaw_rad)))
 
