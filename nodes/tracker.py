@@ -5,7 +5,9 @@ Inputs: ``pose`` (the refine node's ``PoseEstimate``s, with covariance: the meas
 ``ecm`` (``EcmPose``: the frame clock and each frame's endoscope pose), ``instruments``
 (``InstrumentState`` per instrument and frame: the jaws' pose and opening; ``holds_needle`` is
 never read), ``calib`` (the needle model) and optionally ``truth``, read only for its
-``sequence`` label (a new take starts a new track, ``resets.sequence``).
+``sequence`` label (a new take starts a new track, ``resets.sequence``), and ``eos`` (a finite
+source's ``EndOfStream``: the frames still waiting are stepped at once, and later ones as soon
+as their ECM pose is in).
 
 Each frame is stepped once, in ``seq`` order, when its ECM pose is in and either its pose is in
 or a later frame's pose came (the refine node posed nothing for it): a frame without a pose is
@@ -40,6 +42,7 @@ from common.geometry.transforms import inv_T
 from common.runtime.messages import (
     Calibration,
     EcmPose,
+    EndOfStream,
     GroundTruth,
     InHandPose,
     InstrumentState,
@@ -66,9 +69,9 @@ class TrackerNode(Node):
     """Refined poses + instruments' states -> the tracked pose, and the needle in the jaws."""
 
     INPUTS = {"pose": PoseEstimate, "ecm": EcmPose, "instruments": InstrumentState,
-              "calib": Calibration, "truth": GroundTruth}
+              "calib": Calibration, "truth": GroundTruth, "eos": EndOfStream}
     OUTPUTS = ("pose", "in_hand")
-    KEEP_ALL = ("pose", "ecm", "instruments", "calib", "truth")
+    KEEP_ALL = ("pose", "ecm", "instruments", "calib", "truth", "eos")
 
     Params = merge_schemas("TrackerParams", TrackerConfig, _NodeParams)
 
@@ -95,6 +98,7 @@ class TrackerNode(Node):
         self.newest_pose = -1
         self.stepped = -1                   # the last frame stepped
         self.sequence = None
+        self.ended = False                  # the source said EndOfStream: no frame waits any more
 
     def on_stream_reset(self):
         self._clear()
@@ -123,6 +127,14 @@ class TrackerNode(Node):
             self.frames.hold(msg.seq, msg.seq)
         self._drain()
 
+    def on_eos(self, msg: EndOfStream):
+        """A finite source ended: every frame still waiting is stepped now (a pose still in
+        flight for one of them comes late)."""
+        self.ended = True
+        for seq in sorted(self.frames.drop()):
+            if seq > self.stepped and seq in self.ecm:
+                self._step(seq)
+
     def on_pose(self, msg: PoseEstimate):
         if msg.seq <= self.stepped:
             self.count("late_pose")
@@ -134,7 +146,7 @@ class TrackerNode(Node):
 
     # ---------------------------------------------------------------- frames
     def _ready(self, seq: int, _item) -> bool:
-        return seq in self.poses or self.newest_pose > seq
+        return seq in self.poses or self.newest_pose > seq or self.ended
 
     def _drain(self):
         for seq, _complete in self.frames.due(self._ready):

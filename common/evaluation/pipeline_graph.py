@@ -147,9 +147,11 @@ def pipeline_graph(dataset: str, *, detector: str = "learned", detector_params: 
                       "inputs": {"pose": "refine/pose", "ecm": "ecm/pose", "truth": "replay/truth"},
                       "outputs": ["pose"], "env": one})
     if "tracked" in wanted:
-        nodes.append({"id": "tracker", "module": "tracker", "params": dict(tracker_params or {}),
+        # lossless: a frame waits for its refined pose as long as the queues may hold it back
+        nodes.append({"id": "tracker", "module": "tracker",
+                      "params": {**({"max_wait": 120} if lossless else {}), **(tracker_params or {})},
                       "inputs": {"pose": "refine/pose", "ecm": "ecm/pose", "instruments": "replay/instruments",
-                                 "calib": "replay/calib", "truth": "replay/truth"},
+                                 "calib": "replay/calib", "truth": "replay/truth", "eos": "replay/eos"},
                       "outputs": ["pose", "in_hand"], "env": one})
     for n in nodes:   # wire only what a module declares (optional inputs come and go)
         info = module_info(n["module"])

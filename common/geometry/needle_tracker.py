@@ -23,7 +23,8 @@ Grasp and release come from what the system measures, never from ground truth (`
 at most ``closed_rad``) with the tracked arc between them (within ``grasp_reach_m`` of the jaws'
 axis, from the pivot to ``jaw_length_m`` along z). Every grasp is on trial: beside it the
 alternative, the needle left where it was, is kept, and each frame's measurement adds to the
-log likelihood ratio of the two (a sequential test: nothing while the jaws stand still). At
+log likelihood ratio of the two (a sequential test; a frame counts only where the two predictions
+lie at least 1 sigma apart: nothing while the jaws stand still). At
 ``-grasp_llr`` the needle moves with the jaws and the grasp is sure; at ``+grasp_llr`` it stayed
 behind: the grasp is undone, the needle at rest, and those jaws grasp nothing until they open.
 The holder lets go when its jaws open (``jaw_rad`` at least ``open_rad``): to another instrument
@@ -75,7 +76,7 @@ class TrackerConfig:
     grasp_reach_m: float = 0.002            # the arc this near the jaws' axis lies between them
     jaw_length_m: float = 0.009             # the jaws' axis: from the pivot this far along z
     grasp_llr: float = 4.6                  # log likelihood ratio that settles a trial (100:1): grasp, rest
-    max_coast_s: float = 1.0                # a free needle unseen this long is lost
+    max_coast_s: float = 0.5                # a free needle unseen this long is lost
 
     def __post_init__(self):
         if not (self.gate_nis > 0 and self.reset_after >= 1 and self.grasp_llr > 0
@@ -216,7 +217,7 @@ class NeedleTracker:
         self.last_seen_ns: Optional[int] = None
         self.identity: Optional[tuple] = None      # end_identity.track_identity's state
         self.rejected = 0
-        self.trial: Optional[dict] = None          # a grasp on trial: the pose left behind, the evidence
+        self.trial: Optional[dict] = None          # the alternative: the needle stayed (_arm_trial)
         self.refused: set = set()                  # jaws whose grasp was undone, until they open
         self._last_jaws: dict = {}
 
@@ -329,7 +330,7 @@ class NeedleTracker:
                        and jaw_holds(jaws[n], T, self.needle, self.cfg)), None)
         self._set_world("held" if holder else "rest", T, P, jaws, holder)
         if holder is not None:          # on trial, as every grasp
-            self.trial = {"T": T, "P": P, "llr": 0.0}
+            self._arm_trial(T, P)
 
     def _modes(self, jaws: dict) -> Optional[str]:
         """Grasp, handover, release and rest decided from the jaws and the track; the event."""
@@ -342,7 +343,7 @@ class NeedleTracker:
                           and jaw_holds(jaws[n], Tw, self.needle, c)), None)
             if other is not None:
                 self._set_world("held", Tw, Pw, jaws, other)
-                self.trial = None
+                self._arm_trial(Tw, Pw)          # the new grasp is on trial too
                 return f"handover:{other}"
             self.trial = None
             self._set_world("free", Tw, Pw, jaws)
@@ -350,24 +351,43 @@ class NeedleTracker:
         holder = next((n for n in sorted(jaws) if n not in self.refused
                        and jaw_holds(jaws[n], Tw, self.needle, c)), None)
         if holder is not None:
-            self.trial = {"T": Tw, "P": Pw, "llr": 0.0}
+            self._arm_trial(Tw, Pw)
             self._set_world("held", Tw, Pw, jaws, holder)
             return f"grasp:{holder}"
         if self.mode == "free" and self.trial is None:
-            self.trial = {"T": self.T.copy(), "P": self.P[:6, :6].copy(), "llr": 0.0}
+            self._arm_trial(self.T, self.P[:6, :6])
         return None
 
-    def _weigh_trial(self, m: Measurement, jaws: dict) -> None:
-        """A grasp on trial: the frame's evidence (log likelihood ratio, each frame's share
-        bounded by half the gate) that the needle stayed behind rather than moved with the jaws."""
-        t = self.trial
+    def _arm_trial(self, T_world: np.ndarray, P_world: np.ndarray) -> None:
+        """Keep beside the state the alternative that the needle stays at ``T_world``: a filter
+        of a needle at rest from there, and the evidence against it (log likelihood ratio)."""
+        self.trial = {"T": T_world.copy(), "P": np.array(P_world, float), "stamp": self.stamp_ns, "llr": 0.0}
 
-        def loglik(T_pred, S):
-            d = min(nis(pose_delta(T, T_pred), S)
-                    for T in (m.T_world_needle, turned_end_for_end(m.T_world_needle, self.needle)))
-            return -0.5 * (min(d, self.cfg.gate_nis) + np.linalg.slogdet(S)[1])
+    def _weigh_trial(self, m: Measurement, jaws: dict, stamp_ns: int) -> None:
+        """The frame's evidence that the needle stayed (the alternative) rather than moved as the
+        state says: half the difference of the two predictions' Mahalanobis^2 under the state's
+        predicted covariance (the same for both: what differs is where they put the needle),
+        each bounded by the gate, counted only when the predictions lie at least 1 sigma apart
+        (jaws that stand still tell nothing). Then the alternative takes the measurement, as a
+        needle at rest."""
+        t, c = self.trial, self.cfg
+        dt = max(0.0, (stamp_ns - t["stamp"]) * 1e-9) if t["stamp"] is not None else 0.0
+        t["P"] = t["P"] + random_walk(c.rest_sigma_rad, c.rest_sigma_m, dt)
+        t["stamp"] = stamp_ns
+        readings = (m.T_world_needle, turned_end_for_end(m.T_world_needle, self.needle))
         Tw, Pw = self.world(jaws)
-        t["llr"] += loglik(t["T"], t["P"] + m.covariance) - loglik(Tw, Pw + m.covariance)
+        S = Pw + m.covariance
+
+        def dist(T_pred):
+            return min(min(nis(pose_delta(T, T_pred), S) for T in readings), c.gate_nis)
+        if nis(pose_delta(Tw, t["T"]), S) >= 1.0:      # only where the two tell different stories
+            t["llr"] += 0.5 * (dist(Tw) - dist(t["T"]))
+        S_alt = t["P"] + m.covariance
+        r = min((pose_delta(T, t["T"]) for T in readings), key=lambda r: nis(r, S_alt))
+        if nis(r, S_alt) <= c.gate_nis:
+            K = np.linalg.solve(S_alt, t["P"]).T
+            t["T"] = retract(t["T"], K @ r)
+            t["P"] = _sym((np.eye(6) - K) @ t["P"])
 
     def _settle_trial(self, jaws: dict) -> Optional[str]:
         """A grasp: sure once the evidence says the needle moves with the jaws; undone (the
@@ -417,7 +437,7 @@ class NeedleTracker:
             used, event = True, "start"
         elif measurement is not None:
             if self.trial is not None:
-                self._weigh_trial(measurement, jaws)
+                self._weigh_trial(measurement, jaws, stamp_ns)
             read = self._read(measurement, jaws)
             used = read is not None
             if used:
