@@ -16,6 +16,9 @@ for its pose; one that comes later is dropped (``late_pose``). An instrument's s
 newest at or before the frame, at most ``max_wait`` frames old (at most ``MAX_INSTRUMENTS``
 names are followed; more are counted ``instruments.too_many``).
 
+An ``ambiguous`` pose is read with its mirror image (``refine.mirror_pose``) as the alternative
+the track may explain better.
+
 Outputs: ``pose``, method ``params.method`` (``tracked``): ``T_ecm_needle`` with
 ``T_world_needle``, ``T_world_ecm`` and the covariance (ECM axes); ``residual`` the
 measurement's Mahalanobis^2 against the prediction (unit ``chi2``; 0 when coasted);
@@ -38,6 +41,7 @@ from common.geometry.end_identity import state
 from common.geometry.fusion import covariance_to_frame
 from common.geometry.needle import NeedleModel
 from common.geometry.needle_tracker import Jaw, Measurement, NeedleTracker, TrackerConfig
+from common.geometry.refine import mirror_pose
 from common.geometry.transforms import inv_T
 from common.runtime.messages import (
     Calibration,
@@ -169,9 +173,12 @@ class TrackerNode(Node):
         if pose.covariance is None:
             self.count("no_covariance")
             return None
-        return Measurement(T_world_ecm @ np.asarray(pose.T_ecm_needle, float),
+        T_ecm_needle = np.asarray(pose.T_ecm_needle, float)
+        # an ambiguous fit: its mirror image fits the images nearly as well (the covariance spans it)
+        mirror = (T_world_ecm @ mirror_pose(T_ecm_needle, self.needle),) if pose.ambiguous else ()
+        return Measurement(T_world_ecm @ T_ecm_needle,
                            covariance_to_frame(np.asarray(pose.covariance, float), T_world_ecm[:3, :3]),
-                           pose.end_identity)
+                           pose.end_identity, pose.model_sigma_m or 0.0, pose.model_sigma_rad or 0.0, mirror)
 
     def _step(self, seq: int):
         self.stepped = seq

@@ -250,3 +250,18 @@ def test_config_refuses_nonsense():
         TrackerConfig(closed_rad=0.5, open_rad=0.4)
     with pytest.raises(ValueError, match="slip_sigma_m"):
         TrackerConfig(slip_sigma_m=-1.0)
+
+
+def test_the_error_every_measurement_shares_is_not_averaged_away():
+    frames = take("pickup", 12)
+    rng = np.random.default_rng(12)
+    C = stated_covariance(rng)
+    common = (0.3e-3, math.radians(1.0))
+    C_all = C + np.diag([common[1] ** 2] * 3 + [common[0] ** 2] * 3)
+    tr = NeedleTracker(NEEDLE)
+    for k, fr in enumerate(frames[:60]):
+        m = measure(rng, fr.T_world_needle, C)
+        o = tr.step(k * DT_NS, jaws_of(fr), Measurement(m.T_world_needle, C_all, None, *common))
+    # the track's position variance never drops below the shared part, however many frames
+    assert np.linalg.eigvalsh(o.covariance[3:, 3:]).min() >= common[0] ** 2
+    assert np.linalg.eigvalsh(o.covariance[:3, :3]).min() >= common[1] ** 2

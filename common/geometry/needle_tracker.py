@@ -46,7 +46,7 @@ from typing import Optional
 import numpy as np
 
 from common.geometry.end_identity import end_for_end_delta, sigmoid, track_identity
-from common.geometry.fusion import covariance_to_frame
+from common.geometry.fusion import covariance_to_frame, without_common
 from common.geometry.needle import NeedleModel
 from common.geometry.refine import _pose_delta as pose_delta
 from common.geometry.transforms import inv_T, make_T, rotvec_to_R, skew, transform_points
@@ -100,10 +100,24 @@ class Jaw:
 @dataclass(frozen=True)
 class Measurement:
     """A measured ``T_world_needle`` with its covariance (6x6, [w, v], world axes) and the
-    probability that its tip is where it says (None: not stated)."""
+    probability that its tip is where it says (None: not stated). ``alternatives``: other poses
+    (world) the images fit nearly as well (an ambiguous fit's mirror image, whose spread the
+    covariance already spans): the track takes the reading it explains best. ``common_sigma_m``,
+    ``common_sigma_rad``: the part of its error, 1 sigma per axis, that every measurement of
+    this needle shares (``PoseEstimate.model_sigma_*``, inside ``covariance``): the filter takes
+    it out before weighing and states it again with the track, as a fusion of views does
+    (``common.geometry.fusion.without_common``), since averaging frames cannot shrink it."""
     T_world_needle: np.ndarray
     covariance: np.ndarray
     end_identity: Optional[float] = None
+    common_sigma_m: float = 0.0
+    common_sigma_rad: float = 0.0
+    alternatives: tuple = ()
+
+    def own(self) -> "Measurement":
+        """The measurement with its covariance less the shared part."""
+        C = without_common(self.covariance, self.common_sigma_m, self.common_sigma_rad)
+        return Measurement(self.T_world_needle, C, self.end_identity, alternatives=self.alternatives)
 
 
 @dataclass(frozen=True)
@@ -220,6 +234,7 @@ class NeedleTracker:
         self.trial: Optional[dict] = None          # the alternative: the needle stayed (_arm_trial)
         self.refused: set = set()                  # jaws whose grasp was undone, until they open
         self._last_jaws: dict = {}
+        self.common = np.zeros(6)                  # the shared error's variances, the newest measurement's
 
     @property
     def active(self) -> bool:
@@ -298,24 +313,29 @@ class NeedleTracker:
 
     def _read(self, m: Measurement, jaws: dict):
         """How to read ``m`` against the track: (turn it, the track turned, nis, residual, S,
-        H), or None when neither reading lies within the gate."""
-        T_turned = turned_end_for_end(m.T_world_needle, self.needle)
-        cand = [self._innovation(T, m.covariance, jaws) for T in (m.T_world_needle, T_turned)]
-        d = [nis(r, S) for r, S, _ in cand]
-        if min(d) > self.cfg.gate_nis:
+        H), or None when no reading lies within the gate. The readings: the pose and its
+        ``alternatives``, each as it is and turned end for end."""
+        readings = [(T, turned) for P in (m.T_world_needle, *m.alternatives)
+                    for T, turned in ((P, False), (turned_end_for_end(P, self.needle), True))]
+
+        def best(of_turned=None):
+            cand = [(self._innovation(T, m.covariance, jaws), turned) for T, turned in readings
+                    if of_turned is None or turned == of_turned]
+            (r, S, H), turned = min(cand, key=lambda c: nis(c[0][0], c[0][1]))
+            return nis(r, S), r, S, H, turned
+        d, r, S, H, turned = best()
+        if d > self.cfg.gate_nis:
             return None
-        same = d[0] <= d[1]                        # the track explains the reading as read
+        same = not turned                          # the track explains the reading as read
         if m.end_identity is None:                 # no evidence: the reading the track explains
-            turn, flip = not same, False
-        else:
-            turn, self.identity = track_identity(m.end_identity, self.identity, same)
-            flip = same == turn
-        if flip:   # the evidence outweighs the track's: the track turns, the reading stands
-            self.T = turned_end_for_end(self.T, self.needle)      # T @ half turn, in any frame
-            r, S, H = self._innovation(T_turned if turn else m.T_world_needle, m.covariance, jaws)
-            return turn, True, nis(r, S), r, S, H
-        r, S, H = cand[int(turn)]
-        return turn, False, d[int(turn)], r, S, H
+            return turned, False, d, r, S, H
+        turn, self.identity = track_identity(m.end_identity, self.identity, same)
+        if same != turn:                           # the evidence agrees with the track
+            return turned, False, d, r, S, H
+        # the evidence outweighs the track's: the track turns, the reading stands
+        self.T = turned_end_for_end(self.T, self.needle)      # T @ half turn, in any frame
+        d, r, S, H, turned = best(of_turned=turn)
+        return turned, True, d, r, S, H
 
     # -- modes
     def _start(self, m: Measurement, jaws: dict) -> None:
@@ -430,6 +450,9 @@ class NeedleTracker:
                 return None
         if measurement is None and not self.active:
             return None
+        if measurement is not None:
+            self.common = np.array([measurement.common_sigma_rad ** 2] * 3 + [measurement.common_sigma_m ** 2] * 3)
+            measurement = measurement.own()
         used, turned, d = None, False, float("nan")
         if not self.active:
             self._start(measurement, jaws)
@@ -464,8 +487,9 @@ class NeedleTracker:
 
     def _output(self, jaws, used, turned, d, event) -> Tracked:
         Tw, Pw = self.world(jaws)
+        Pw = Pw + np.diag(self.common)              # isotropic: the same in every frame's axes
         held = self.mode == "held"
         p = None if self.identity is None else sigmoid(self.identity[0])
-        return Tracked(Tw.copy(), Pw.copy(), self.mode, self.holder,
-                       self.T.copy() if held else None, self.P.copy() if held else None,
+        return Tracked(Tw.copy(), Pw, self.mode, self.holder,
+                       self.T.copy() if held else None, self.P + np.diag(self.common) if held else None,
                        p, used, turned, d, event)
