@@ -94,9 +94,9 @@ class TrackerNode(Node):
         self._clear()
 
     def _clear(self):
-        self.poses = SeqCache()
-        self.ecm = SeqCache()               # seq -> EcmPose
-        self.sequences = SeqCache()
+        self.poses = SeqCache(2 * self.p.max_wait + 64)
+        self.ecm = SeqCache(2 * self.p.max_wait + 64)   # seq -> EcmPose
+        self.sequences = SeqCache(2 * self.p.max_wait + 64)
         self.jaws: dict = {}                # name -> SeqCache(seq -> Jaw)
         self.frames = SeqJoin(self.p.max_wait, in_order=True)
         self.newest_pose = -1
@@ -122,7 +122,8 @@ class TrackerNode(Node):
         if msg.name not in self.jaws and len(self.jaws) >= MAX_INSTRUMENTS:
             self.count("instruments.too_many")      # a bounded table: names past it are dropped
             return
-        self.jaws.setdefault(msg.name, SeqCache(64)).put(
+        # the states of every frame that may still wait for its pose
+        self.jaws.setdefault(msg.name, SeqCache(2 * self.p.max_wait + 64)).put(
             msg.seq, Jaw(np.asarray(msg.T_world_jaw, float), float(msg.jaw_rad)))
 
     def on_ecm(self, msg: EcmPose):

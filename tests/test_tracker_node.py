@@ -11,6 +11,7 @@ from common.geometry.transforms import inv_T, make_T, pose_error
 from common.runtime.messages import (
     Calibration,
     EcmPose,
+    EndOfStream,
     GroundTruth,
     InHandPose,
     InstrumentState,
@@ -95,3 +96,28 @@ def test_the_node_refuses_what_cannot_work():
         TrackerNode.offline(wired=["pose", "instruments"])
     with pytest.raises(NodeError, match="closed_rad"):
         TrackerNode.offline(params={"closed_rad": 1.0, "open_rad": 0.5})
+
+
+def test_poses_far_behind_the_instruments_still_find_their_jaws():
+    """As in a lossless run: the source's messages come 100 frames ahead of the refined poses."""
+    frames, T_world_ecm = handover()
+    frames = frames[:150]
+    node = TrackerNode.offline(params={"max_wait": 120})
+    node.on_calib(CALIB)
+    C = np.diag([np.radians(0.5) ** 2] * 3 + [0.2e-3 ** 2] * 3)
+    rng = np.random.default_rng(3)
+    for k, fr in enumerate(frames):
+        for name, (T, jaw, holds) in fr.instruments.items():
+            node.on_instruments(InstrumentState(name, k, k * DT_NS, T, jaw, holds))
+        node.on_ecm(EcmPose(k, k * DT_NS, T_world_ecm))
+        j = k - 100
+        if j >= 0 and j % 3 == 0:             # every third frame posed, 100 frames late
+            T_ecm = retract(inv_T(T_world_ecm) @ frames[j].T_world_needle, rng.multivariate_normal(np.zeros(6), C))
+            node.on_pose(PoseEstimate(j, j * DT_NS, "refined", T_ecm, covariance=C))
+    node.on_eos(EndOfStream(len(frames), 0))
+    poses = {m.seq: m for o, m in node.published if o == "pose"}
+    assert sorted(poses) == list(range(len(frames)))
+    assert node.counters["events.handover"] == 1 and "events.release" not in node.counters
+    assert len([m for o, m in node.published if o == "in_hand"]) == len(frames)
+    err = [pose_error(m.T_world_needle, frames[s].T_world_needle)[0] for s, m in poses.items()]
+    assert max(err) < 1e-3
