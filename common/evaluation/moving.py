@@ -136,3 +136,46 @@ def moving_markdown(moving: dict) -> list:
               f"{_fmt(h['position_mm']['mean'])} mm / {_fmt(h['orientation_deg']['mean'])} deg mean, "
               f"{_fmt(h['position_mm']['median'])} mm / {_fmt(h['orientation_deg']['median'])} deg median."]
     return L + [""]
+
+
+def plot_take(ev, truths: dict, visible: dict, path, methods=("refined", "tracked")) -> bool:
+    """One take's figure: each method's position and orientation error over its frames, and the
+    share of the arc seen. The take: the longest moving one. False (nothing drawn) without one."""
+    seqs = moving_seqs(truths)
+    takes: dict = {}
+    for s in seqs:
+        takes.setdefault(truths[s].sequence, []).append(s)
+    if not takes:
+        return False
+    take = max(takes.values(), key=len)
+    import matplotlib
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    from common.methods import METHOD_COLOURS
+    fig, (a_pos, a_rot) = plt.subplots(2, 1, figsize=(8, 5.5), sharex=True)
+    x = np.arange(len(take)) / 30.0
+    for m in methods:
+        if m not in ev.pose:
+            continue
+        e = _errors(ev.pose[m], set(take))
+        pos = np.array([e.get(s, (np.nan,) * 3)[0] for s in take]) * 1e3
+        rot = np.degrees([e.get(s, (np.nan,) * 3)[1] for s in take])
+        a_pos.plot(x, pos, ".-", ms=3, lw=1, color=METHOD_COLOURS.get(m), label=m)
+        a_rot.plot(x, rot, ".-", ms=3, lw=1, color=METHOD_COLOURS.get(m), label=m)
+    for ax in (a_pos, a_rot):
+        share = ax.twinx()
+        share.fill_between(x, [visible.get(s) or 0.0 for s in take], color="grey", alpha=0.15, step="mid")
+        share.axhline(SEEN, color="grey", lw=0.8, ls=":")
+        share.set_ylim(0, 1)
+        share.set_ylabel("share of the arc seen", fontsize=8)
+        ax.grid(alpha=0.3)
+    a_pos.set_ylabel("position error (mm)")
+    a_rot.set_ylabel("orientation error (deg)")
+    a_rot.set_xlabel("time in the take (s, at 30 Hz)")
+    a_pos.legend(fontsize=8, loc="upper left")
+    a_pos.set_title(f"take {truths[take[0]].sequence}: errors (a gap: not posed) and the arc seen (grey)", fontsize=9)
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+    return True

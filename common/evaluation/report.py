@@ -15,7 +15,7 @@ import numpy as np
 
 from common.evaluation.collect import Collected, Evaluation, evaluate
 from common.evaluation.metrics import NEES_99PCT
-from common.evaluation.moving import moving_markdown, moving_summary
+from common.evaluation.moving import moving_markdown, moving_summary, plot_take
 from common.evaluation.overlays import write_overlays
 from common.evaluation.results import PAPER, build_results, check_results, to_jsonable
 from common.geometry.needle import KEYPOINT_NAMES, NeedleModel
@@ -310,7 +310,7 @@ def write_outputs(outdir, col: Collected, *, dataset: str, detector: str,
                   extra: Optional[dict] = None, methods: Optional[list] = None,
                   visible: Optional[dict] = None) -> dict:
     """Write results.json, report.md, error_vs_distance.png, nees.png (when a method states
-    covariances) and overlays/ into ``outdir``;
+    covariances), tracking.png (moving takes: ``moving.plot_take``) and overlays/ into ``outdir``;
     returns the results document. ``load_images`` as in ``write_overlays`` (None: black);
     ``methods`` as in ``evaluate``; ``visible``: {seq: share of the arc seen} for the moving
     takes' figures (``common.evaluation.moving``; key ``moving``, when the run has moving frames)."""
@@ -338,4 +338,6 @@ def write_outputs(outdir, col: Collected, *, dataset: str, detector: str,
     if not plot_nees(ev, outdir / "nees.png"):
         (outdir / "nees.png").unlink(missing_ok=True)     # a stale one from an earlier run
     write_per_frame_csv(outdir / "per_frame.csv", col, ev)
+    if not (moving is not None and plot_take(ev, col.truths, visible or {}, outdir / "tracking.png")):
+        (outdir / "tracking.png").unlink(missing_ok=True)     # a stale one from an earlier run
     return res
