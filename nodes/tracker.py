@@ -9,12 +9,14 @@ never read), ``calib`` (the needle model) and optionally ``truth``, read only fo
 source's ``EndOfStream``: the frames still waiting are stepped at once, and later ones as soon
 as their ECM pose is in).
 
-Each frame is stepped once, in ``seq`` order, when its ECM pose is in and either its pose is in
-or a later frame's pose came (the refine node posed nothing for it): a frame without a pose is
+Each frame is stepped once, in ``seq`` order, when its ECM pose, its truth (when wired) and the
+states of the instruments heard from in the last ``max_wait`` frames are in, and either its pose is in or a later frame's pose
+came (the refine node posed nothing for it): a frame without a pose is
 predicted by the motion model (counted ``coasted``). A frame waits at most ``max_wait`` frames
 for its pose; one that comes later is dropped (``late_pose``). An instrument's state is the
 newest at or before the frame, at most ``max_wait`` frames old (at most ``MAX_INSTRUMENTS``
-names are followed; more are counted ``instruments.too_many``).
+names are followed, one quiet for ``max_wait`` frames making room; more are counted
+``instruments.too_many``).
 
 An ``ambiguous`` pose is read with its mirror image (``refine.mirror_pose``) as the alternative
 the track may explain better.
@@ -117,14 +119,19 @@ class TrackerNode(Node):
 
     def on_truth(self, msg: GroundTruth):
         self.sequences.put(msg.seq, msg.sequence)
+        self._drain()
 
     def on_instruments(self, msg: InstrumentState):
         if msg.name not in self.jaws and len(self.jaws) >= MAX_INSTRUMENTS:
-            self.count("instruments.too_many")      # a bounded table: names past it are dropped
-            return
+            stalest = min(self.jaws, key=lambda n: max(self.jaws[n], default=-1))
+            if max(self.jaws[stalest], default=-1) >= msg.seq - self.p.max_wait:
+                self.count("instruments.too_many")      # a bounded table of live names
+                return
+            del self.jaws[stalest]                      # an instrument gone quiet makes room
         # the states of every frame that may still wait for its pose
         self.jaws.setdefault(msg.name, SeqCache(2 * self.p.max_wait + 64)).put(
             msg.seq, Jaw(np.asarray(msg.T_world_jaw, float), float(msg.jaw_rad)))
+        self._drain()
 
     def on_ecm(self, msg: EcmPose):
         self.ecm.put(msg.seq, msg)
@@ -151,7 +158,14 @@ class TrackerNode(Node):
 
     # ---------------------------------------------------------------- frames
     def _ready(self, seq: int, _item) -> bool:
-        return seq in self.poses or self.newest_pose > seq or self.ended
+        """The frame's pose is in, or will not come; and its truth and the state of every
+        instrument heard from in the last ``max_wait`` frames are in (each instrument's states
+        come in order: a later one means this one came)."""
+        pose = seq in self.poses or self.newest_pose > seq or self.ended
+        truth = not self.wired("truth") or seq in self.sequences or self.ended
+        live = [max(states) for states in self.jaws.values() if states]
+        jaws = all(n >= seq for n in live if n >= seq - self.p.max_wait) or self.ended
+        return pose and truth and jaws
 
     def _drain(self):
         for seq, _complete in self.frames.due(self._ready):

@@ -86,6 +86,9 @@ def test_a_late_pose_is_dropped_and_a_new_take_starts_a_new_track():
     node.on_ecm(EcmPose(30, 30 * DT_NS, T_world_ecm))
     far = make_T(np.eye(3), [0.05, 0, 0]) @ frames[30].T_world_needle
     node.on_pose(PoseEstimate(30, 30 * DT_NS, "refined", inv_T(T_world_ecm) @ far, covariance=np.eye(6) * 1e-8))
+    assert node.stepped == 29                      # its pose is in; its instruments' states are not
+    for name, (T, jaw, holds) in frames[30].instruments.items():
+        node.on_instruments(InstrumentState(name, 30, 30 * DT_NS, T, jaw, holds))
     assert node.counters["resets.sequence"] == 1
     last = [m for o, m in node.published if o == "pose"][-1]
     assert last.seq == 30 and pose_error(last.T_world_needle, far)[0] < 1e-6
@@ -121,3 +124,17 @@ def test_poses_far_behind_the_instruments_still_find_their_jaws():
     assert len([m for o, m in node.published if o == "in_hand"]) == len(frames)
     err = [pose_error(m.T_world_needle, frames[s].T_world_needle)[0] for s, m in poses.items()]
     assert max(err) < 1e-3
+
+
+def test_instruments_that_go_quiet_make_room_and_hold_nothing_up():
+    """Eight names heard once (junk) fill the table; once they are quiet for max_wait frames the
+    real instruments get in again, and frames no longer wait for them."""
+    frames, T_world_ecm = handover()
+    node = TrackerNode.offline(params={"max_wait": 5})
+    T = frames[0].instruments["psm1"][0]
+    for i in range(8):
+        node.on_instruments(InstrumentState(f"junk{i}", 0, 0, T, 0.5))
+    assert node.counters["instruments.too_many"] == 0
+    feed(node, frames[:40], T_world_ecm, np.random.default_rng(4))
+    assert {"psm1", "psm2"} <= set(node.jaws) and node.counters["instruments.too_many"] > 0
+    assert node.stepped == 39
