@@ -28,7 +28,9 @@ lie at least 1 sigma apart: nothing while the jaws stand still). At
 ``-grasp_llr`` the needle moves with the jaws and the grasp is sure; at ``+grasp_llr`` it stayed
 behind: the grasp is undone, the needle at rest, and those jaws grasp nothing until they open.
 The holder lets go when its jaws open (``jaw_rad`` at least ``open_rad``): to another instrument
-whose jaws hold it (a handover), else the needle is free. A free needle is weighed the same way
+whose jaws hold it (a handover), else the needle stays where the jaws let it go, at rest (in the
+tissue, on the pad): measurements that say otherwise (``reset_after`` rejected) start the track
+again, free. A free needle is weighed the same way
 against the alternative that it stays where it was: at ``+grasp_llr`` it is at rest; at
 ``-grasp_llr`` it moves, and the alternative is armed again where it is.
 
@@ -365,8 +367,8 @@ class NeedleTracker:
                 self._set_world("held", Tw, Pw, jaws, other)
                 self._arm_trial(Tw, Pw)          # the new grasp is on trial too
                 return f"handover:{other}"
-            self.trial = None
-            self._set_world("free", Tw, Pw, jaws)
+            self.trial = None              # let go where something holds it: tissue, the pad
+            self._set_world("rest", Tw, Pw, jaws)
             return "release"
         holder = next((n for n in sorted(jaws) if n not in self.refused
                        and jaw_holds(jaws[n], Tw, self.needle, c)), None)
