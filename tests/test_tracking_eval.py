@@ -76,3 +76,14 @@ def test_eval_tracks_a_pickup_take_with_the_oracle(tmp_path):
     assert h["frames"] > 10 and h["posed"] >= 0.9 * h["frames"] and h["position_mm"]["mean"] < 0.1
     assert res["node_counters"]["tracker"].get("events.grasp") == 1
     assert "## Moving takes" in (out / "report.md").read_text()
+
+
+def test_the_lag_is_the_shift_that_brings_the_poses_nearest_the_truth():
+    from common.evaluation.moving import lag_frames
+    truths = {s: GroundTruth(s, s, sequence=0, T_world_needle=make_T(np.eye(3), [0.001 * s, 0, 0.1]),
+                             needle_at_rest=False) for s in range(40)}
+    late = {s: SimpleNamespace(T_world_needle=truths[max(s - 3, 0)].T_world_needle) for s in range(40)}
+    assert lag_frames(late, truths, range(40)) == 3
+    assert lag_frames({s: SimpleNamespace(T_world_needle=truths[s].T_world_needle) for s in range(40)},
+                      truths, range(40)) == 0
+    assert lag_frames({}, truths, range(40)) is None

@@ -6,7 +6,8 @@ else the share of visible keypoints: ``common.evaluation.metrics.visible_fractio
 counts as seen from ``SEEN`` (30%) when both cameras see that much. The in-hand pose is scored
 from the ``IN_HAND_FROM``-th frame (10th) of each run of frames one instrument holds the needle
 (the truth's ``holds_needle``), against ``inv(T_world_jaw) @ T_world_needle``; a frame where the
-tracker names no holder, or another, counts as ``wrong_holder``.
+tracker names no holder, or another, counts as ``wrong_holder``. A method's lag behind the truth:
+the shift in frames that brings its world poses nearest the truth (``lag_frames``).
 """
 from __future__ import annotations
 
@@ -90,10 +91,30 @@ def in_hand_table(truths: dict, instruments: dict, in_hand: dict, seqs) -> dict:
             "position_mm": summary(np.array(pos) * 1e3), "orientation_deg": summary(np.degrees(rot))}
 
 
-def moving_summary(ev, truths: dict, instruments: dict, in_hand: dict, visible: dict, methods) -> Optional[dict]:
+def lag_frames(poses: dict, truths: dict, seqs, max_lag: int = 8) -> Optional[int]:
+    """How many frames a method's world poses lag the truth: the shift ``k`` (0..``max_lag``)
+    that makes the pose of frame ``s`` nearest (mean distance) to the truth of frame ``s - k`` of
+    the same take, over frames where the needle moves (the truth moved since the frame before).
+    None: nothing to compare."""
+    moving = [s for s in seqs if s - 1 in truths and truths[s - 1].sequence == truths[s].sequence
+              and np.linalg.norm(truths[s].T_world_needle[:3, 3] - truths[s - 1].T_world_needle[:3, 3]) > 1e-5]
+    best, best_err = None, np.inf
+    for k in range(max_lag + 1):
+        d = [np.linalg.norm(np.asarray(poses[s].T_world_needle)[:3, 3] - truths[s - k].T_world_needle[:3, 3])
+             for s in moving if s in poses and poses[s].T_world_needle is not None and s - k in truths
+             and truths[s - k].sequence == truths[s].sequence]
+        if d and np.mean(d) < best_err:
+            best, best_err = k, float(np.mean(d))
+    return best
+
+
+def moving_summary(ev, truths: dict, instruments: dict, in_hand: dict, visible: dict, methods,
+                   poses: Optional[dict] = None) -> Optional[dict]:
     """The ``moving`` section of results.json (None: no moving frame). ``ev``: the run's
     ``Evaluation``; ``instruments``: {seq: {name: InstrumentState}}; ``in_hand``: {seq:
-    InHandPose}; ``visible``: {seq: share of the arc seen}; ``methods``: those to score."""
+    InHandPose}; ``visible``: {seq: share of the arc seen}; ``methods``: those to score;
+    ``poses``: {method: {seq: PoseEstimate}}, for each method's lag behind the truth (``lag_ms``:
+    ``lag_frames`` at 30 Hz)."""
     seqs = set(moving_seqs(truths))
     if not seqs:
         return None
@@ -105,6 +126,9 @@ def moving_summary(ev, truths: dict, instruments: dict, in_hand: dict, visible: 
         seen = [s for s in errors if visible.get(s) is not None and visible[s] >= SEEN]
         out["methods"][m] = {"all": _summary(errors, list(errors)), "seen": _summary(errors, seen),
                              "by_visible": by_visible(errors, visible)}
+        lag = lag_frames((poses or {}).get(m, {}), truths, sorted(seqs))
+        if lag is not None:                  # frames of the take's 30 Hz: 1000 / 30 ms each
+            out["methods"][m]["lag_ms"] = lag * 1e3 / 30.0
     if instruments:
         out["in_hand"] = in_hand_table(truths, instruments, in_hand, sorted(seqs))
     return out
@@ -129,6 +153,10 @@ def moving_markdown(moving: dict) -> list:
                      f"| {_fmt(r['position_mm']['mean'])} | {_fmt(r['position_mm']['median'])} "
                      f"| {_fmt(r['orientation_deg']['mean'])} | {_fmt(r['orientation_deg']['median'])} "
                      f"| {_fmt(r['nees_median'])} |")
+    lags = {m: d["lag_ms"] for m, d in moving["methods"].items() if d.get("lag_ms") is not None}
+    if lags:
+        L += ["", "Lag behind the truth (the shift that brings the poses nearest it, in 30 Hz frames): " +
+              ", ".join(f"{m} {v:.0f} ms" for m, v in lags.items()) + "."]
     h = moving.get("in_hand")
     if h:
         L += ["", f"The needle in the jaws (`T_jaw_needle`, from the {IN_HAND_FROM}th held frame on): "
