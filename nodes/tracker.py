@@ -157,18 +157,19 @@ class TrackerNode(Node):
         self._drain()
 
     # ---------------------------------------------------------------- frames
-    def _ready(self, seq: int, _item) -> bool:
+    def _ready(self, seq: int, heard: list) -> bool:
         """The frame's pose is in, or will not come; and its truth and the state of every
-        instrument heard from in the last ``max_wait`` frames are in (each instrument's states
-        come in order: a later one means this one came)."""
-        pose = seq in self.poses or self.newest_pose > seq or self.ended
-        truth = not self.wired("truth") or seq in self.sequences or self.ended
-        live = [max(states) for states in self.jaws.values() if states]
-        jaws = all(n >= seq for n in live if n >= seq - self.p.max_wait) or self.ended
-        return pose and truth and jaws
+        instrument heard from in the last ``max_wait`` frames are in (``heard``: each one's newest
+        seq; their states come in order: a later one means this one came)."""
+        if self.ended:
+            return True
+        pose = seq in self.poses or self.newest_pose > seq
+        truth = not self.wired("truth") or seq in self.sequences
+        return pose and truth and all(n >= seq for n in heard if n >= seq - self.p.max_wait)
 
     def _drain(self):
-        for seq, _complete in self.frames.due(self._ready):
+        heard = [next(reversed(states)) for states in self.jaws.values() if states]   # newest put last
+        for seq, _complete in self.frames.due(lambda s, _item: self._ready(s, heard)):
             if seq > self.stepped:
                 self._step(seq)
 
