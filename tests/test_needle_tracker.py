@@ -7,6 +7,7 @@ import numpy as np
 import pytest
 
 from common.evaluation.metrics import pose_nees
+from common.evaluation.tracker_bench import stated_covariance
 from common.geometry.needle import NeedleModel
 from common.geometry.needle_tracker import (
     MODES,
@@ -32,15 +33,6 @@ def take(motion: str, seed: int):
 def jaws_of(frame) -> dict:
     """What the system measures of the instruments: pose and opening, never ``holds``."""
     return {n: Jaw(T, jaw) for n, (T, jaw, _holds) in frame.instruments.items()}
-
-
-def stated_covariance(rng, pos_mm=(0.2, 0.2, 0.8), rot_deg=(0.5, 0.5, 2.0)) -> np.ndarray:
-    """An anisotropic covariance like a stereo fit's (depth and one turn worse), random axes."""
-    Q = np.linalg.qr(rng.normal(size=(3, 3)))[0]
-    C = np.zeros((6, 6))
-    C[:3, :3] = Q @ np.diag(np.radians(rot_deg) ** 2) @ Q.T
-    C[3:, 3:] = Q @ np.diag((np.asarray(pos_mm) * 1e-3) ** 2) @ Q.T
-    return C
 
 
 def measure(rng, T_true, C, end_identity=None) -> Measurement:
@@ -266,3 +258,15 @@ def test_the_error_every_measurement_shares_is_not_averaged_away():
     # the track's position variance never drops below the shared part, however many frames
     assert np.linalg.eigvalsh(o.covariance[3:, 3:]).min() >= common[0] ** 2
     assert np.linalg.eigvalsh(o.covariance[:3, :3]).min() >= common[1] ** 2
+
+
+def test_the_bench_prints_its_figures(tmp_path, capsys):
+    import json
+
+    from common.evaluation.tracker_bench import main
+    assert main(["--takes", "4", "--json", str(tmp_path / "t.json")]) == 0
+    res = json.loads((tmp_path / "t.json").read_text())
+    for run in ("seen", "hidden"):
+        r = res[run]
+        assert r["swaps"] == 0 and r["in_hand"]["wrong_holder"] == 0 and r["position_mm"] < 0.5
+    assert "T_jaw_needle from the 10th held frame" in capsys.readouterr().out
