@@ -138,3 +138,16 @@ def test_instruments_that_go_quiet_make_room_and_hold_nothing_up():
     feed(node, frames[:40], T_world_ecm, np.random.default_rng(4))
     assert {"psm1", "psm2"} <= set(node.jaws) and node.counters["instruments.too_many"] > 0
     assert node.stepped == 39
+
+
+def test_an_in_hand_pose_that_breaks_its_contract_is_refused_by_field():
+    from common.runtime.messages import MessageError
+    T = make_T(np.eye(3), [0.0, 0.0, 0.004])
+    ok = InHandPose("psm1", 1, 2, "psm1_jaw", T, np.eye(6) * 1e-8, 0.9)
+    assert decode(encode(ok), InHandPose).frame_id == "psm1_jaw"
+    for bad, field in ((InHandPose("psm1", 1, 2, "psm1_jaw", T, -np.eye(6), None), "covariance"),
+                       (InHandPose("psm1", 1, 2, "psm1_jaw", 2 * T, np.eye(6), None), "T_jaw_needle"),
+                       (InHandPose("psm1", 1, 2, "", T, np.eye(6), None), "frame_id"),
+                       (InHandPose("psm1", 1, 2, "psm1_jaw", T, np.eye(6), 1.5), "end_identity")):
+        with pytest.raises(MessageError, match=f"InHandPose.{field}"):
+            decode(encode(bad), InHandPose)
