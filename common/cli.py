@@ -37,6 +37,7 @@ BENCHES = {
     "sim": ("common.evaluation.sim_bench:main", "simulator rendering"),
     "detector": ("common.evaluation.detector_bench:main", "keypoint detector speed and accuracy"),
     "held": ("common.evaluation.held_bench:main", "the detector on moving takes, by the share of the needle seen"),
+    "tracker": ("common.evaluation.tracker_bench:main", "the needle tracker on the motion scripts' takes (no rendering)"),
     "graph": ("common.evaluation.graph_bench:main", "the full graph end to end"),
     "refine": ("common.evaluation.refine_bench:main", "dense pose refinement speed and accuracy (synthetic)"),
     "end-identity": ("common.evaluation.end_identity_bench:main", "tip vs tail: the detector's end identity on dataset folders"),

@@ -37,17 +37,19 @@ class PoseMethod:
 
 
 REGISTRY = (
-    PoseMethod("pnp_average", "epnp_average/pose", "#1f77b4", 4, always_reported=True, paper=(2.26, 6.74),
+    PoseMethod("pnp_average", "epnp_average/pose", "#1f77b4", 5, always_reported=True, paper=(2.26, 6.74),
                label="Pipeline I: EPnP per camera, averaged"),
-    PoseMethod("pnp_joint", "epnp_joint/pose", "#ff7f0e", 3, always_reported=True,
+    PoseMethod("pnp_joint", "epnp_joint/pose", "#ff7f0e", 4, always_reported=True,
                label="one pose fitted in both cameras"),
-    PoseMethod("triangulation", "triangulate/pose", "#9467bd", 5, always_reported=True, paper=(6.13, 35.61),
+    PoseMethod("triangulation", "triangulate/pose", "#9467bd", 6, always_reported=True, paper=(6.13, 35.61),
                label="Pipeline II: DLT triangulation and Arun's registration"),
-    PoseMethod("multiview", "fusion/pose", "#d62728", 2, fuses="pnp_joint", always_reported=True,
+    PoseMethod("multiview", "fusion/pose", "#d62728", 3, fuses="pnp_joint", always_reported=True,
                paper=(1.76, 8.55), label="fusion of pnp_joint over the endoscope's poses"),
-    PoseMethod("refined", "refine/pose", "#17becf", 0, label="dense arc fit, with a covariance"),
-    PoseMethod("multiview_refined", "fusion_refined/pose", "#8c564b", 1, fuses="refined",
+    PoseMethod("refined", "refine/pose", "#17becf", 1, label="dense arc fit, with a covariance"),
+    PoseMethod("multiview_refined", "fusion_refined/pose", "#8c564b", 2, fuses="refined",
                label="fusion of refined poses"),
+    PoseMethod("tracked", "tracker/pose", "#2ca02c", 0,
+               label="refined poses filtered over time: at rest, in the jaws, free"),
 )
 BY_NAME = {m.name: m for m in REGISTRY}
 

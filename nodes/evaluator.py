@@ -10,6 +10,8 @@ resting prior, reported), ``rrd`` (also write a Rerun recording of the frames, p
 and errors there: ``common.viewer.recording``), ``drain_s`` (default 3: how long to wait
 after EndOfStream when some poses never come), ``quiet``.
 
+``instruments`` (the source's ``InstrumentState``s, with ``holds_needle``) and ``in_hand`` (the
+tracker's ``InHandPose``) give the moving takes' in-hand figures (``common.evaluation.moving``).
 Inputs named after the pose methods (``pnp_average``, ``pnp_joint``, ``triangulation``,
 ``multiview``, ``refined``, ``multiview_refined``) carry ``PoseEstimate``; wire any subset.
 Processing times of every node come from the graph's ``@stats`` key.
@@ -27,6 +29,8 @@ from common.runtime.messages import (
     Calibration,
     EndOfStream,
     GroundTruth,
+    InHandPose,
+    InstrumentState,
     Keypoints,
     MessageError,
     NodeStats,
@@ -43,7 +47,7 @@ class EvaluatorNode(PoseMethodInputs, Node):
     """Compares every output of the graph with the ground truth and writes the evaluation."""
 
     INPUTS = {"truth": GroundTruth, "left": Keypoints, "right": Keypoints, "points3d": Points3D,
-              "calib": Calibration, "eos": EndOfStream,
+              "calib": Calibration, "eos": EndOfStream, "instruments": InstrumentState, "in_hand": InHandPose,
               **{m: PoseEstimate for m in POSE_METHODS}}
     OUTPUTS = ()
     KEEP_ALL = tuple(INPUTS)
@@ -121,6 +125,12 @@ class EvaluatorNode(PoseMethodInputs, Node):
     def on_calib(self, msg):
         self.col.add_calib(msg)
 
+    def on_instruments(self, msg):
+        self.col.add_instrument(msg)
+
+    def on_in_hand(self, msg):
+        self.col.add_in_hand(msg, self._seen())
+
     def on_eos(self, msg):
         self._seen()
         self.col.add_eos(msg)
@@ -165,6 +175,7 @@ class EvaluatorNode(PoseMethodInputs, Node):
                  "graph_methods": self.methods}
         res = write_outputs(self.out, self.col, dataset=str(self.dataset_path or ""),
                             detector=self.detector, load_images=loader, extra=extra,
+                            visible=self._visible(),
                             methods=list(REPORTED_METHODS) + [m for m in EXTRA_METHODS
                                                      if m in self.methods or self.col.poses.get(m)])
         self.log.info("wrote %s (frames %d)", self.out, res["frames"])
@@ -183,6 +194,19 @@ class EvaluatorNode(PoseMethodInputs, Node):
         n = write_rrd(self.p.rrd, self.col, StereoRig.from_dict(cal.cameras, cal.image_size),
                       NeedleModel.from_dict(cal.needle), EcmArm.from_calibration(cal.ecm), loader)
         self.log.info("wrote %s (%d frames)", self.p.rrd, n)
+
+    def _visible(self) -> dict:
+        """{seq: the share of the arc seen in both cameras} from the dataset folder's frames
+        (``arc_visible``), else from the truth's visible keypoints."""
+        from common.evaluation.moving import stereo_visible
+        frames = {}
+        if self.dataset_path:
+            try:
+                from common.data.dataset import Dataset
+                frames = {fr.index: fr for fr in Dataset(self.dataset_path, check_files=False).frames}
+            except Exception as exc:    # the truth's visible keypoints stand in
+                self.log.warning("visible fractions from the truth's keypoints: %s", exc)
+        return {s: stereo_visible(frames.get(s, gt)) for s, gt in self.col.truths.items()}
 
     def _image_loader(self):
         if not self.dataset_path:

@@ -23,6 +23,11 @@ challenge's scene units). The covariance is ROS's: 6x6 row-major over (x, y, z, 
 x, y, z) in the header frame, from the PoseEstimate's [rotation vector, translation] in the ECM
 frame (rotated into the header frame; scaled by the unit). Header stamp = the pose's
 ``stamp_ns`` (the source image's stamp).
+
+Input ``in_hand`` (optional; the tracker's ``InHandPose``, docs/tracking.md): while an instrument
+holds the needle, ``T_jaw_needle`` goes out as ``geometry_msgs/PoseWithCovarianceStamped`` on
+``in_hand_topic``, header ``frame_id`` the instrument's jaw frame (``psm1_jaw``, ``psm2_jaw``:
+the message's ``frame_id``), the covariance in those axes.
 """
 from __future__ import annotations
 
@@ -34,7 +39,7 @@ from typing import Literal
 import numpy as np
 
 from common.ros.conventions import ros_covariance
-from common.runtime.messages import Calibration, PoseEstimate
+from common.runtime.messages import Calibration, InHandPose, PoseEstimate
 from common.runtime.node import Node, NodeError, run
 
 UNITS = {"m": 1.0, "dm": 0.1, "cm": 0.01, "mm": 0.001}
@@ -43,7 +48,7 @@ UNITS = {"m": 1.0, "dm": 0.1, "cm": 0.01, "mm": 0.001}
 class Ros2OutNode(Node):
     """PoseEstimate -> ROS 2 PoseStamped / PoseWithCovarianceStamped over Zenoh."""
 
-    INPUTS = {"pose": PoseEstimate, "calib": Calibration}
+    INPUTS = {"pose": PoseEstimate, "calib": Calibration, "in_hand": InHandPose}
     OUTPUTS = ()
     KEEP_ALL = ("calib",)
 
@@ -51,6 +56,7 @@ class Ros2OutNode(Node):
     class Params:
         topic: str = "/needletrack/needle_pose"
         cov_topic: str = "/needletrack/needle_pose_with_covariance"
+        in_hand_topic: str = "/needletrack/needle_in_jaw"   # the in_hand input's (when wired)
         frame: Literal["ecm", "left", "world"] = "ecm"
         frame_ids: dict = field(default_factory=lambda: {"ecm": "ECM", "left": "left_camera_optical",
                                                          "world": "world"})
@@ -81,6 +87,10 @@ class Ros2OutNode(Node):
         targets = [("pose", p.topic, "geometry_msgs/msg/PoseStamped")]
         if p.cov_topic:
             targets.append(("cov", p.cov_topic, "geometry_msgs/msg/PoseWithCovarianceStamped"))
+        if self.wired("in_hand"):
+            if not p.in_hand_topic.startswith("/"):
+                raise NodeError(f"in_hand_topic must be an absolute ROS name, got {p.in_hand_topic!r}")
+            targets.append(("in_hand", p.in_hand_topic, "geometry_msgs/msg/PoseWithCovarianceStamped"))
         self.sent = {name: 0 for name, _, _ in targets}
         if p.transport == "dds":
             from common.ros.dds import DdsError, DdsLink
@@ -157,6 +167,17 @@ class Ros2OutNode(Node):
             cov = ros_covariance(msg.covariance, R_frame_ecm, self.scale)
             pwc = build.make(st, "geometry_msgs/msg/PoseWithCovariance", pose=pose, covariance=cov.reshape(-1))
             self._put("cov", build.make(st, "geometry_msgs/msg/PoseWithCovarianceStamped", header=hdr, pose=pwc))
+
+    def on_in_hand(self, msg: InHandPose):
+        """The needle in the jaws, in the jaw frame ``msg.frame_id``, with its covariance."""
+        from common.ros import build
+        from common.ros.types import typestore
+        st = typestore(2)
+        hdr = build.header(st, msg.stamp_ns, msg.frame_id)
+        pose = build.pose(st, np.asarray(msg.T_jaw_needle, float), self.scale)
+        cov = ros_covariance(msg.covariance, np.eye(3), self.scale)
+        pwc = build.make(st, "geometry_msgs/msg/PoseWithCovariance", pose=pose, covariance=cov.reshape(-1))
+        self._put("in_hand", build.make(st, "geometry_msgs/msg/PoseWithCovarianceStamped", header=hdr, pose=pwc))
 
     def teardown(self):
         for t in getattr(self, "tokens", []):

@@ -38,6 +38,7 @@ def test_the_final_method_and_the_last_stage():
     assert final_method([]) is None
     assert final_method(["pnp_average", "multiview"]) == "multiview"
     assert final_method(["pnp_joint", "refined"]) == "refined"
+    assert final_method(["multiview_refined", "refined", "tracked"]) == "tracked"
     assert final_method(["someone_elses"]) == "someone_elses"
     assert in_final_order(["x", "triangulation", "refined"]) == ["refined", "triangulation", "x"]
     assert last_stage(["refined", "multiview", "pnp_joint"]) == "multiview"
@@ -48,10 +49,13 @@ def test_the_final_method_and_the_last_stage():
 
 def test_the_pipeline_graph_wires_every_method():
     from common.evaluation.pipeline_graph import pipeline_graph
-    doc = pipeline_graph("dataset", detector="oracle", refine=True)
+    doc = pipeline_graph("dataset", detector="oracle", refine=True, tracker=True)
     ids = {n["id"] for n in doc["nodes"]}
     for m, out in POSE_OUTPUTS.items():
         assert out.split("/")[0] in ids, m
+    static = {n["id"] for n in pipeline_graph("dataset", detector="oracle", refine=True)["nodes"]}
+    assert static == ids - {"tracker"}      # the tracker only for moving takes, or when asked
+    assert "tracker" in {n["id"] for n in pipeline_graph("dataset", detector="oracle", methods=["tracked"])["nodes"]}
 
 
 def test_method_names_are_listed_only_in_the_registry():

@@ -3,7 +3,8 @@
 Checks the folder against the dataset spec (exit 2 with file, line and field when it breaks
 it, or when it has no ground truth to compare with), then runs the real graph on it: replay ->
 detector -> epnp (average, joint) -> triangulate -> ecm -> fusion (-> refine -> fusion) ->
-evaluator, on a free loopback port. Every node queues all its inputs (none keeps only the
+evaluator, on a free loopback port; on a folder of moving takes (``needle_at_rest: false``) also
+the tracker (method ``tracked``, its in-hand poses scored: docs/tracking.md#evaluation). Every node queues all its inputs (none keeps only the
 newest, as in a live graph), so every frame is scored whatever the load. The evaluator writes
 OUTDIR (results.json, report.md, error_vs_distance.png, per_frame.csv, overlays/); this command
 prints the summary. The graph's log is OUTDIR/graph.log and the graph itself OUTDIR/graph.yaml.
@@ -183,7 +184,8 @@ def main(argv=None) -> int:
     doc = pipeline_graph(dataset, detector=args.detector, detector_params=det_params, rate=rate,
                          refine=False if args.no_refine else None, lossless=True,
                          split_detector=split, refine_tracking=False,   # refined: a single-frame method
-                         refine_params={"support_normal_world": args.support_normal} if args.support_normal else None)
+                         refine_params={"support_normal_world": args.support_normal} if args.support_normal else None,
+                         tracker=any(fr.needle_at_rest is False for fr in ds.frames))   # moving takes
     evaluator = {"id": "evaluator", "module": "evaluator",
                  "params": {"out": str(out.resolve()), "dataset": str(Path(dataset).resolve()),
                             "detector": args.detector, "noise_px": args.noise_px,
@@ -191,7 +193,9 @@ def main(argv=None) -> int:
                             "rrd": str(Path(args.rrd).resolve()) if args.rrd else None},
                  "inputs": {"truth": "replay/truth", "calib": "replay/calib", "eos": "replay/eos",
                             **keypoint_sources(split),
-                            "points3d": "triangulate/points", **pose_inputs(doc)},
+                            "points3d": "triangulate/points", **pose_inputs(doc),
+                            **({"instruments": "replay/instruments", "in_hand": "tracker/in_hand"}
+                               if any(n["id"] == "tracker" for n in doc["nodes"]) else {})},
                  "restart": "never"}
     doc["nodes"].append(evaluator)
     log_path = out / "graph.log"

@@ -34,6 +34,8 @@ from common.runtime.messages import (
     Calibration,
     EndOfStream,
     GroundTruth,
+    InHandPose,
+    InstrumentState,
     Keypoints,
     NodeStats,
     Points3D,
@@ -62,6 +64,8 @@ class Collected:
     node_ms: dict = field(default_factory=dict)
     node_cpu_ms: dict = field(default_factory=dict)      # node -> CPU ms per frame over the run
     node_counters: dict = field(default_factory=dict)
+    instruments: dict = field(default_factory=dict)      # seq -> {name: InstrumentState}
+    in_hand: dict = field(default_factory=dict)          # seq -> InHandPose (the tracker's)
     first_arrival_ns: Optional[int] = None
     last_arrival_ns: Optional[int] = None
 
@@ -88,6 +92,13 @@ class Collected:
         field may name a variant, e.g. the epnp node's ``joint``)."""
         self.poses.setdefault(method, {})[msg.seq] = msg
         self.arrivals_ns.setdefault(method, {})[msg.seq] = now_ns
+        self._touch(now_ns)
+
+    def add_instrument(self, msg: InstrumentState):
+        self.instruments.setdefault(msg.seq, {})[msg.name] = msg
+
+    def add_in_hand(self, msg: InHandPose, now_ns: int):
+        self.in_hand[msg.seq] = msg
         self._touch(now_ns)
 
     def add_calib(self, msg: Calibration):

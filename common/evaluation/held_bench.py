@@ -26,19 +26,9 @@ import numpy as np
 
 from common.data.dataset import Dataset, DatasetError
 from common.evaluation.detector_bench import SURE_SCORE, make_detector
+from common.evaluation.metrics import VISIBLE_BINS as BINS  # noqa: F401  (the bench's bins)
+from common.evaluation.metrics import visible_fraction
 from common.frames import CAMERAS
-
-BINS = (0.0, 0.1, 0.3, 0.6, 1.0001)
-"""Edges of the visible-fraction bins: under 10%, 10-30%, 30-60%, 60-100%."""
-
-
-def visible_fraction(frame, camera: str) -> float | None:
-    """The share of the arc seen in ``camera``: ``arc_visible``, else the share of visible keypoints."""
-    if frame.arc_visible is not None:
-        return float(frame.arc_visible[camera])
-    if frame.visible is not None:
-        return float(np.mean(frame.visible[camera]))
-    return None
 
 
 def image_record(k, kp: np.ndarray, vis: np.ndarray, fraction: float, gate: float = SURE_SCORE) -> dict:

@@ -238,3 +238,16 @@ def _needle_visible(gt: GroundTruth, camera: str) -> Optional[bool]:
     if gt.bbox is not None and camera in gt.bbox:
         return gt.bbox[camera] is not None
     return None
+
+
+VISIBLE_BINS = (0.0, 0.1, 0.3, 0.6, 1.0001)
+"""Edges of the visible-fraction bins: under 10%, 10-30%, 30-60%, 60-100%."""
+
+
+def visible_fraction(frame, camera: str) -> Optional[float]:
+    """The share of the arc seen in ``camera``: ``arc_visible``, else the share of visible keypoints."""
+    if getattr(frame, "arc_visible", None) is not None:
+        return float(frame.arc_visible[camera])
+    if frame.visible is not None and frame.visible.get(camera) is not None:
+        return float(np.mean(frame.visible[camera]))
+    return None

@@ -51,7 +51,8 @@ def pipeline_graph(dataset: str, *, detector: str = "learned", detector_params: 
                    sinks: Optional[list] = None, lossless: bool = False,
                    split_detector: bool = False, methods=None,
                    start_delay_s: float = 1.0, decode: bool = False,
-                   refine_tracking: bool = True, refine_params: Optional[dict] = None) -> dict:
+                   refine_tracking: bool = True, refine_params: Optional[dict] = None,
+                   tracker: bool = False, tracker_params: Optional[dict] = None) -> dict:
     """The graph document of the whole pipeline on a replayed dataset folder.
 
     ``refine``: include the refinement node and a fusion over refined poses (default: when
@@ -70,17 +71,24 @@ def pipeline_graph(dataset: str, *, detector: str = "learned", detector_params: 
     ``refine_tracking``: the refinement starts a frame from the last one's pose when it can
     (``common.geometry.refine_tracking``; false: every frame on its own, a single-frame method);
     ``refine_params``: more params of the refine node (e.g. ``support_normal_world``).
+    ``tracker``: also the tracker node (method ``tracked``: the refined poses over time with the
+    instruments' states, docs/tracking.md), for folders of moving takes; also when ``methods``
+    names ``tracked``. ``tracker_params``: its params.
     ``rate="paced"``: the replay sends the next frame once both cameras' keypoints of the last
     one are out (closed loop, as fast as the graph goes); the detectors then take every frame.
     """
     if refine is None:
         refine = has_module("refine")
     wanted = set(POSE_OUTPUTS) if methods is None else set(methods)
+    if methods is None and not tracker:
+        wanted.discard("tracked")
     unknown = wanted - set(POSE_OUTPUTS)
     if unknown:
         raise ValueError(f"unknown pose method(s) {sorted(unknown)}; known: {', '.join(POSE_OUTPUTS)}")
-    if not refine:
-        wanted -= {"refined", "multiview_refined"}
+    if "tracked" in wanted:
+        wanted.add("refined")           # the tracker filters the refined poses
+    if not refine:                      # nor what fuses or filters the refined poses
+        wanted = {m for m in wanted if m not in ("refined", "tracked") and "refined" not in METHOD_NEEDS.get(m, ())}
     for m in list(wanted):          # a fusion needs the single-frame method it fuses
         wanted |= set(METHOD_NEEDS.get(m, ()))
     port = port or free_port()
@@ -98,7 +106,7 @@ def pipeline_graph(dataset: str, *, detector: str = "learned", detector_params: 
         {"id": SOURCE, "module": "replay",
          "params": {"path": str(Path(dataset).resolve()), "rate": rate, "loop": bool(loop),
                     "count": int(count), "decode": bool(decode)},
-         "outputs": ["left", "right", "joints", "measured", "truth", "calib", "eos"]}]
+         "outputs": ["left", "right", "joints", "measured", "truth", "instruments", "calib", "eos"]}]
     if split_detector:   # one process per camera: the two images are detected in parallel
         for cam in ("left", "right"):
             nodes.append({"id": f"detector_{cam}", "module": "detector", "params": dict(det_params),
@@ -138,6 +146,13 @@ def pipeline_graph(dataset: str, *, detector: str = "learned", detector_params: 
                       "params": {"method": "multiview_refined"},
                       "inputs": {"pose": "refine/pose", "ecm": "ecm/pose", "truth": "replay/truth"},
                       "outputs": ["pose"], "env": one})
+    if "tracked" in wanted:
+        # lossless: a frame waits for its refined pose as long as the queues may hold it back
+        nodes.append({"id": "tracker", "module": "tracker",
+                      "params": {**({"max_wait": 120} if lossless else {}), **(tracker_params or {})},
+                      "inputs": {"pose": "refine/pose", "ecm": "ecm/pose", "instruments": "replay/instruments",
+                                 "calib": "replay/calib", "truth": "replay/truth", "eos": "replay/eos"},
+                      "outputs": ["pose", "in_hand"], "env": one})
     for n in nodes:   # wire only what a module declares (optional inputs come and go)
         info = module_info(n["module"])
         if info and info["inputs"] is not None:

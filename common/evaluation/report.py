@@ -15,6 +15,7 @@ import numpy as np
 
 from common.evaluation.collect import Collected, Evaluation, evaluate
 from common.evaluation.metrics import NEES_99PCT
+from common.evaluation.moving import moving_markdown, moving_summary, plot_take
 from common.evaluation.overlays import write_overlays
 from common.evaluation.results import PAPER, build_results, check_results, to_jsonable
 from common.geometry.needle import KEYPOINT_NAMES, NeedleModel
@@ -163,6 +164,8 @@ def report_markdown(res: dict) -> str:
         L += ["", "## Why frames gave no pose (node counters)", "",
               "| node | counter | count |", "| --- | --- | ---: |"]
         L += [f"| {n} | {k} | {v} |" for n, c in why.items() for k, v in sorted(c.items()) if v]
+    if res.get("moving"):
+        L += [""] + moving_markdown(res["moving"])
     L += ["", "Overlays of chosen frames, worst cases included, are in `overlays/`.", ""]
     return "\n".join(L)
 
@@ -304,17 +307,22 @@ def write_per_frame_csv(path, col: Collected, ev: Evaluation) -> None:
 
 def write_outputs(outdir, col: Collected, *, dataset: str, detector: str,
                   load_images: Optional[Callable[[int], dict]] = None,
-                  extra: Optional[dict] = None, methods: Optional[list] = None) -> dict:
+                  extra: Optional[dict] = None, methods: Optional[list] = None,
+                  visible: Optional[dict] = None) -> dict:
     """Write results.json, report.md, error_vs_distance.png, nees.png (when a method states
-    covariances) and overlays/ into ``outdir``;
+    covariances), tracking.png (moving takes: ``moving.plot_take``) and overlays/ into ``outdir``;
     returns the results document. ``load_images`` as in ``write_overlays`` (None: black);
-    ``methods`` as in ``evaluate``."""
+    ``methods`` as in ``evaluate``; ``visible``: {seq: share of the arc seen} for the moving
+    takes' figures (``common.evaluation.moving``; key ``moving``, when the run has moving frames)."""
     from common.geometry.camera import StereoRig
 
     outdir = Path(outdir)
     outdir.mkdir(parents=True, exist_ok=True)
     ev = evaluate(col, methods)
     res = to_jsonable(build_results(col, dataset=dataset, detector=detector, ev=ev, extra=extra))
+    moving = moving_summary(ev, col.truths, col.instruments, col.in_hand, visible or {}, list(ev.pose), col.poses)
+    if moving is not None:
+        res["moving"] = to_jsonable(moving)
     problems = check_results(res)
     if problems:  # a bug here, not bad input: say so rather than write a broken file
         raise AssertionError("results.json would break its contract: " + "; ".join(problems))
@@ -330,4 +338,6 @@ def write_outputs(outdir, col: Collected, *, dataset: str, detector: str,
     if not plot_nees(ev, outdir / "nees.png"):
         (outdir / "nees.png").unlink(missing_ok=True)     # a stale one from an earlier run
     write_per_frame_csv(outdir / "per_frame.csv", col, ev)
+    if not (moving is not None and plot_take(ev, col.truths, visible or {}, outdir / "tracking.png")):
+        (outdir / "tracking.png").unlink(missing_ok=True)     # a stale one from an earlier run
     return res

@@ -455,4 +455,39 @@ class Calibration(Message):
                 raise MessageError(f"Calibration.needle.wire_diameter_m: must be in (0, 0.01) m, got {float(w):g}")
 
 
+@register
+@dataclass
+class InHandPose(Message):
+    """The needle in the jaws that hold it, what a suturing planner drives along the arc:
+    ``T_jaw_needle`` (4x4, m) in the jaw frame of instrument ``name`` (``docs/dataset.md``: origin at
+    the jaws' pivot, z along the closed jaws), ``frame_id`` that frame's name (``<name>_jaw``,
+    e.g. ``psm1_jaw``), ``covariance`` (6, 6) over [rotation vector (rad), translation (m)] in jaw
+    axes (``R = exp([w]x) R0``, ``t = t0 + v``), ``end_identity`` the probability that the tip is
+    where the pose puts it. ``seq``, ``stamp_ns``: the camera frame's (docs/tracking.md)."""
+
+    SCHEMA = "needletrack.InHandPose"
+    FIELDS = {"name": ("str",), "seq": ("int",), "stamp_ns": ("int",), "frame_id": ("str",),
+              "T_jaw_needle": ("array", (4, 4)), "covariance": ("array", (6, 6)),
+              "end_identity": ("float", "optional"), "epoch": ("int", "optional")}
+    name: str
+    seq: int
+    stamp_ns: int
+    frame_id: str
+    T_jaw_needle: np.ndarray
+    covariance: np.ndarray
+    end_identity: Optional[float] = None
+    epoch: Optional[int] = None
+
+    def validate(self):
+        for label, text in (("name", self.name), ("frame_id", self.frame_id)):
+            if not 1 <= len(text) <= 64 or not text.isprintable():
+                raise MessageError(f"InHandPose.{label}: 1 to 64 printable characters, got {text[:40]!r}")
+        _rigid(self.T_jaw_needle, "InHandPose.T_jaw_needle")
+        err = covariance_error(self.covariance, "InHandPose.covariance")
+        if err:
+            raise MessageError(err)
+        if self.end_identity is not None and not 0.0 <= float(self.end_identity) <= 1.0:
+            raise MessageError(f"InHandPose.end_identity: a probability in [0, 1], got {self.end_identity}")
+
+
 MESSAGE_TYPES = dict(_REGISTRY)

@@ -1,0 +1,497 @@
+"""The needle tracked over time: at rest, held in an instrument's jaws, or free and moving.
+
+An error-state extended Kalman filter on SE(3). A pose's error is ``[w, v]`` (rad, m) with
+``R = exp([w]x) R_hat`` and ``t = t_hat + v``, in the axes of the frame the pose is expressed in:
+the order and convention of ``PoseEstimate.covariance``. The state, by mode:
+
+- ``rest``: ``T_world_needle``, still but for a slow random walk (``rest_sigma_*``, per sqrt(s)):
+  the case of the multi-view fusion;
+- ``held``: ``T_jaw_needle`` of the holding instrument, its error in jaw axes, constant but for
+  a slow slip (``slip_sigma_*``): the grasp-constrained state of Chiu, Richter and Yip (2022).
+  The pose it gives is ``T_world_needle = T_world_jaw(t) @ T_jaw_needle``, the jaw frame as the
+  instrument measures it; that measurement's own error (``jaw_sigma_*``, about the jaws' pivot)
+  adds to what is stated in world;
+- ``free``: ``T_world_needle`` and its velocity ``[omega, u]`` (rad/s, m/s, world axes; ``u``
+  the origin's), constant but for white acceleration noise (``accel_*``): 12 error states.
+
+A measurement is a ``T_world_needle`` with its 6x6 covariance (world axes). It is gated by its
+Mahalanobis distance to the prediction (``gate_nis``, chi-square with 6 degrees of freedom);
+``reset_after`` rejected in a row start the track again from the newest one.
+
+Grasp and release come from what the system measures, never from ground truth (``jaw_holds``,
+``NeedleTracker._modes``): an instrument grasps the needle when its jaws are closed (``jaw_rad``
+at most ``closed_rad``) with the tracked arc between them (within ``grasp_reach_m`` of the jaws'
+axis, from the pivot to ``jaw_length_m`` along z). Every grasp is on trial: beside it the
+alternative, the needle left where it was, is kept, and each frame's measurement adds to the
+log likelihood ratio of the two (a sequential test; a frame counts only where the two predictions
+lie at least 1 sigma apart: nothing while the jaws stand still). At
+``-grasp_llr`` the needle moves with the jaws and the grasp is sure; at ``+grasp_llr`` it stayed
+behind: the grasp is undone, the needle at rest, and those jaws grasp nothing until they open.
+The holder lets go when its jaws open (``jaw_rad`` at least ``open_rad``): to another instrument
+whose jaws hold it (a handover), else the needle stays where the jaws let it go, at rest (in the
+tissue, on the pad): measurements that say otherwise (``reset_after`` rejected) start the track
+again, free. A free needle is weighed the same way
+against the alternative that it stays where it was: at ``+grasp_llr`` it is at rest; at
+``-grasp_llr`` it moves, and the alternative is armed again where it is.
+
+Which end is the tip belongs to the track: a measurement is read as it is or turned end for end
+(``end_identity.end_for_end_delta``), whichever lies within the gate, and its stated end
+identity is evidence for or against the track's (``end_identity.track_identity``), never a new
+truth on its own.
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from typing import Optional
+
+import numpy as np
+
+from common.geometry.end_identity import end_for_end_delta, sigmoid, track_identity
+from common.geometry.fusion import covariance_to_frame, without_common
+from common.geometry.needle import NeedleModel
+from common.geometry.refine import _pose_delta as pose_delta
+from common.geometry.transforms import inv_T, make_T, rotvec_to_R, skew, transform_points
+
+MODES = ("rest", "held", "free")
+CHI2_6_999 = 22.46
+"""Chi-square with 6 degrees of freedom exceeds this in 0.1% of the draws."""
+
+
+@dataclass(frozen=True)
+class TrackerConfig:
+    """The tracker's models and rules (see the module docstring); lengths m, angles rad, time s."""
+    gate_nis: float = CHI2_6_999            # a measurement farther than this (Mahalanobis^2) is rejected
+    reset_after: int = 3                    # rejected measurements in a row that start the track again
+    rest_sigma_m: float = 0.05e-3           # random walk of a needle at rest, per sqrt(s)
+    rest_sigma_rad: float = math.radians(0.2)
+    slip_sigma_m: float = 0.1e-3            # slip in the jaws, per sqrt(s)
+    slip_sigma_rad: float = math.radians(0.5)
+    accel_m_s2: float = 0.1                 # white acceleration of a free needle
+    accel_rad_s2: float = 3.0
+    free_speed_m_s: float = 0.02            # 1 sigma of a just-freed needle's velocity
+    free_turn_rad_s: float = math.radians(90.0)
+    jaw_sigma_m: float = 0.05e-3            # the jaws' measured pose: its error, about the pivot
+    jaw_sigma_rad: float = math.radians(0.1)
+    closed_rad: float = 0.3                 # jaws at or below this are closed
+    open_rad: float = 0.45                  # a holder's jaws at or above this let go
+    grasp_reach_m: float = 0.002            # the arc this near the jaws' axis lies between them
+    jaw_length_m: float = 0.009             # the jaws' axis: from the pivot this far along z
+    grasp_llr: float = 4.6                  # log likelihood ratio that settles a trial (100:1): grasp, rest
+    max_coast_s: float = 0.5                # a free needle unseen this long is lost
+
+    def __post_init__(self):
+        if not (self.gate_nis > 0 and self.reset_after >= 1 and self.grasp_llr > 0
+                and 0 <= self.closed_rad < self.open_rad and self.max_coast_s > 0
+                and min(self.grasp_reach_m, self.jaw_length_m) > 0):
+            raise ValueError("tracker: needs gate_nis, grasp_llr > 0, reset_after >= 1, "
+                             "0 <= closed_rad < open_rad, max_coast_s > 0 and positive grasp lengths")
+        for name in ("rest_sigma_m", "rest_sigma_rad", "slip_sigma_m", "slip_sigma_rad", "accel_m_s2",
+                     "accel_rad_s2", "free_speed_m_s", "free_turn_rad_s", "jaw_sigma_m", "jaw_sigma_rad"):
+            if not getattr(self, name) >= 0:
+                raise ValueError(f"tracker: {name} must be >= 0, got {getattr(self, name)}")
+
+
+@dataclass(frozen=True)
+class Jaw:
+    """An instrument's measured state: ``T_world_jaw`` (4x4, m; docs/dataset.md) and opening (rad)."""
+    T_world_jaw: np.ndarray
+    jaw_rad: float
+
+
+@dataclass(frozen=True)
+class Measurement:
+    """A measured ``T_world_needle`` with its covariance (6x6, [w, v], world axes) and the
+    probability that its tip is where it says (None: not stated). ``alternatives``: other poses
+    (world) the images fit nearly as well (an ambiguous fit's mirror image, whose spread the
+    covariance already spans): the track takes the reading it explains best. ``common_sigma_m``,
+    ``common_sigma_rad``: the part of its error, 1 sigma per axis, that every measurement of
+    this needle shares (``PoseEstimate.model_sigma_*``, inside ``covariance``): the filter takes
+    it out before weighing and states it again with the track, as a fusion of views does
+    (``common.geometry.fusion.without_common``), since averaging frames cannot shrink it."""
+    T_world_needle: np.ndarray
+    covariance: np.ndarray
+    end_identity: Optional[float] = None
+    common_sigma_m: float = 0.0
+    common_sigma_rad: float = 0.0
+    alternatives: tuple = ()
+
+    def own(self) -> "Measurement":
+        """The measurement with its covariance less the shared part."""
+        C = without_common(self.covariance, self.common_sigma_m, self.common_sigma_rad)
+        return Measurement(self.T_world_needle, C, self.end_identity, alternatives=self.alternatives)
+
+
+@dataclass(frozen=True)
+class Tracked:
+    """The track after a frame: ``T_world_needle`` and its covariance (6x6, world axes); the
+    ``mode``, the ``holder`` and, while held, ``T_jaw_needle`` with its covariance (jaw axes);
+    ``end_identity`` the track's probability that its tip is right (None: never stated);
+    ``used``: the frame's measurement updated the track (None: there was none), ``turned``: it
+    was read end for end, ``nis`` its Mahalanobis^2; ``event``: what changed (``start``,
+    ``grasp:NAME``, ``handover:NAME``, ``release``, ``ungrasp``, ``rest``, ``restart``,
+    ``flip``), or None."""
+    T_world_needle: np.ndarray
+    covariance: np.ndarray
+    mode: str
+    holder: Optional[str] = None
+    T_jaw_needle: Optional[np.ndarray] = None
+    jaw_covariance: Optional[np.ndarray] = None
+    end_identity: Optional[float] = None
+    used: Optional[bool] = None
+    turned: bool = False
+    nis: float = float("nan")
+    event: Optional[str] = None
+
+
+# ---------------------------------------------------------------- small pieces
+
+def retract(T: np.ndarray, d: np.ndarray) -> np.ndarray:
+    """``T`` moved by the error ``d`` = [w, v]: ``R = exp([w]x) R``, ``t = t + v``."""
+    return make_T(rotvec_to_R(d[:3]) @ T[:3, :3], T[:3, 3] + d[3:6])
+
+
+def turned_end_for_end(T: np.ndarray, needle: NeedleModel) -> np.ndarray:
+    """The pose read end for end: the half turn of ``end_identity.end_for_end_delta``."""
+    return retract(T, end_for_end_delta(T, needle))
+
+
+def jaw_jacobian(T_world_jaw: np.ndarray, T_world_needle: np.ndarray) -> np.ndarray:
+    """d(needle pose error, world) / d(jaw pose error about its pivot, world): a turn of the jaws
+    moves the needle's origin by its lever arm from the pivot."""
+    J = np.eye(6)
+    J[3:, :3] = -skew(T_world_needle[:3, 3] - T_world_jaw[:3, 3])
+    return J
+
+
+def random_walk(sigma_rad: float, sigma_m: float, dt: float) -> np.ndarray:
+    """6x6 process noise of a pose's random walk over ``dt`` s (sigmas per sqrt(s))."""
+    return np.diag([sigma_rad ** 2] * 3 + [sigma_m ** 2] * 3) * max(dt, 0.0)
+
+
+def constant_velocity(dt: float, accel_rad_s2: float, accel_m_s2: float) -> tuple[np.ndarray, np.ndarray]:
+    """(F, Q) 12x12 of the error [w, v, omega, u] over ``dt`` s under white acceleration."""
+    F = np.eye(12)
+    F[:6, 6:] = dt * np.eye(6)
+    q = np.array([accel_rad_s2 ** 2] * 3 + [accel_m_s2 ** 2] * 3)
+    Q = np.zeros((12, 12))
+    Q[:6, :6] = np.diag(q) * dt ** 3 / 3
+    Q[:6, 6:] = Q[6:, :6] = np.diag(q) * dt ** 2 / 2
+    Q[6:, 6:] = np.diag(q) * dt
+    return F, Q
+
+
+def nis(r: np.ndarray, S: np.ndarray) -> float:
+    """Mahalanobis^2 of a residual ``r`` under covariance ``S`` (inf when S is singular)."""
+    try:
+        return float(r @ np.linalg.solve(S, r))
+    except np.linalg.LinAlgError:
+        return float("inf")
+
+
+def jaw_holds(jaw: Jaw, T_world_needle: np.ndarray, needle: NeedleModel, cfg: TrackerConfig,
+              n_arc: int = 33) -> bool:
+    """Whether ``jaw``'s jaws are closed on the arc at ``T_world_needle``: closed, and some point
+    of the arc within ``grasp_reach_m`` of the jaws' axis (pivot to ``jaw_length_m`` along z)."""
+    if not jaw.jaw_rad <= cfg.closed_rad:
+        return False
+    p = transform_points(inv_T(jaw.T_world_jaw) @ T_world_needle, needle.sample_arc(n_arc))
+    z = np.clip(p[:, 2], 0.0, cfg.jaw_length_m)
+    d = np.sqrt(p[:, 0] ** 2 + p[:, 1] ** 2 + (p[:, 2] - z) ** 2)
+    return bool(d.min() <= cfg.grasp_reach_m)
+
+
+def _rot(R: np.ndarray, n: int = 6) -> np.ndarray:
+    """blkdiag(R, R[, ...]) of size n: a [w, v(, ...)] error from one frame's axes to another's."""
+    A = np.zeros((n, n))
+    for i in range(0, n, 3):
+        A[i:i + 3, i:i + 3] = R
+    return A
+
+
+def _sym(P: np.ndarray) -> np.ndarray:
+    return 0.5 * (P + P.T)
+
+
+# ---------------------------------------------------------------- the filter
+
+class NeedleTracker:
+    """The filter (see the module docstring). ``step`` once per frame, in time order."""
+
+    def __init__(self, needle: NeedleModel, config: TrackerConfig = TrackerConfig()):
+        self.needle, self.cfg = needle, config
+        self.reset()
+
+    def reset(self) -> None:
+        """Forget the track."""
+        self.mode: Optional[str] = None
+        self.holder: Optional[str] = None
+        self.T = None                  # T_world_needle (rest, free) or T_jaw_needle (held)
+        self.P = None                  # 6x6 (rest, held) or 12x12 (free)
+        self.vel = np.zeros(6)         # free: [omega, u]
+        self.stamp_ns: Optional[int] = None
+        self.last_seen_ns: Optional[int] = None
+        self.identity: Optional[tuple] = None      # end_identity.track_identity's state
+        self.rejected = 0
+        self.trial: Optional[dict] = None          # the alternative: the needle stayed (_arm_trial)
+        self.refused: set = set()                  # jaws whose grasp was undone, until they open
+        self._last_jaws: dict = {}
+        self.common = np.zeros(6)                  # the shared error's variances, the newest measurement's
+
+    @property
+    def active(self) -> bool:
+        return self.mode is not None
+
+    # -- the state seen in world
+    def world(self, jaws: dict) -> tuple[np.ndarray, np.ndarray]:
+        """(T_world_needle, 6x6 covariance in world axes) of the current state."""
+        if self.mode != "held":
+            return self.T, self.P[:6, :6]
+        Tj = jaws[self.holder].T_world_jaw
+        Tw = Tj @ self.T
+        return Tw, _sym(covariance_to_frame(self.P, Tj[:3, :3]) + self._jaw_noise(Tj, Tw))
+
+    def _jaw_noise(self, T_world_jaw: np.ndarray, T_world_needle: np.ndarray) -> np.ndarray:
+        """The jaws' measured pose's error as it moves a held needle (6x6, world axes)."""
+        J = jaw_jacobian(T_world_jaw, T_world_needle)
+        return J @ np.diag([self.cfg.jaw_sigma_rad ** 2] * 3 + [self.cfg.jaw_sigma_m ** 2] * 3) @ J.T
+
+    def _set_world(self, mode: str, T_world: np.ndarray, P_world: np.ndarray, jaws: dict,
+                   holder: Optional[str] = None) -> None:
+        """Put the state in ``mode`` from a world pose and its covariance (a free needle starts
+        with no known velocity: 0, 1 sigma ``free_speed_m_s``, ``free_turn_rad_s``)."""
+        self.mode, self.holder = mode, holder
+        if mode == "held":
+            Tj = jaws[holder].T_world_jaw
+            self.T, self.P = inv_T(Tj) @ T_world, _sym(covariance_to_frame(P_world, Tj[:3, :3].T))
+        elif mode == "free":
+            c = self.cfg
+            self.T, self.vel = T_world, np.zeros(6)
+            self.P = np.zeros((12, 12))
+            self.P[:6, :6] = P_world
+            self.P[6:, 6:] = np.diag([c.free_turn_rad_s ** 2] * 3 + [c.free_speed_m_s ** 2] * 3)
+        else:
+            self.T, self.P = T_world, P_world
+
+    # -- predict
+    def predict(self, stamp_ns: int) -> None:
+        """The state carried to ``stamp_ns`` by its mode's motion model."""
+        dt = max(0.0, (stamp_ns - self.stamp_ns) * 1e-9)
+        self.stamp_ns = stamp_ns
+        c = self.cfg
+        if self.mode == "free":
+            F, Q = constant_velocity(dt, c.accel_rad_s2, c.accel_m_s2)
+            self.T = retract(self.T, dt * self.vel)
+            self.P = _sym(F @ self.P @ F.T + Q)
+        elif self.mode == "held":
+            self.P = self.P + random_walk(c.slip_sigma_rad, c.slip_sigma_m, dt)
+        else:
+            self.P = self.P + random_walk(c.rest_sigma_rad, c.rest_sigma_m, dt)
+
+    # -- update
+    def _innovation(self, T_meas: np.ndarray, R_meas: np.ndarray, jaws: dict):
+        """(residual, S, H) of a measured world pose against the state."""
+        Tw, _ = self.world(jaws)
+        r = pose_delta(T_meas, Tw)
+        n = len(self.P)
+        H = np.zeros((6, n))
+        if self.mode == "held":
+            Tj = jaws[self.holder].T_world_jaw
+            H[:, :6] = _rot(Tj[:3, :3])
+            R_meas = R_meas + self._jaw_noise(Tj, Tw)
+        else:
+            H[:, :6] = np.eye(6)
+        return r, _sym(H @ self.P @ H.T + R_meas), H
+
+    def _correct(self, r: np.ndarray, S: np.ndarray, H: np.ndarray) -> None:
+        K = np.linalg.solve(S, H @ self.P).T
+        dx = K @ r
+        self.T = retract(self.T, dx[:6])
+        if self.mode == "free":
+            self.vel = self.vel + dx[6:]
+        IKH = np.eye(len(self.P)) - K @ H
+        S_r = S - H @ self.P @ H.T                 # the measurement's noise (Joseph form)
+        self.P = _sym(IKH @ self.P @ IKH.T + K @ S_r @ K.T)
+
+    def _read(self, m: Measurement, jaws: dict):
+        """How to read ``m`` against the track: (turn it, the track turned, nis, residual, S,
+        H), or None when no reading lies within the gate. The readings: the pose and its
+        ``alternatives``, each as it is and turned end for end."""
+        readings = [(T, turned) for P in (m.T_world_needle, *m.alternatives)
+                    for T, turned in ((P, False), (turned_end_for_end(P, self.needle), True))]
+
+        def best(of_turned=None):
+            cand = [(self._innovation(T, m.covariance, jaws), turned) for T, turned in readings
+                    if of_turned is None or turned == of_turned]
+            (r, S, H), turned = min(cand, key=lambda c: nis(c[0][0], c[0][1]))
+            return nis(r, S), r, S, H, turned
+        d, r, S, H, turned = best()
+        if d > self.cfg.gate_nis:
+            return None
+        same = not turned                          # the track explains the reading as read
+        if m.end_identity is None:                 # no evidence: the reading the track explains
+            return turned, False, d, r, S, H
+        turn, self.identity = track_identity(m.end_identity, self.identity, same)
+        if same != turn:                           # the evidence agrees with the track
+            return turned, False, d, r, S, H
+        # the evidence outweighs the track's: the track turns, the reading stands
+        self.T = turned_end_for_end(self.T, self.needle)      # T @ half turn, in any frame
+        d, r, S, H, turned = best(of_turned=turn)
+        return turned, True, d, r, S, H
+
+    # -- modes
+    def _start(self, m: Measurement, jaws: dict) -> None:
+        """A new track from ``m``: held when some jaws hold it, else at rest."""
+        T, P = m.T_world_needle, np.asarray(m.covariance, float)
+        self.identity, self.trial = None, None
+        if m.end_identity is not None:
+            turn, self.identity = track_identity(m.end_identity, None, None)
+            if turn:
+                T = turned_end_for_end(T, self.needle)
+        holder = next((n for n in sorted(jaws) if n not in self.refused
+                       and jaw_holds(jaws[n], T, self.needle, self.cfg)), None)
+        self._set_world("held" if holder else "rest", T, P, jaws, holder)
+        if holder is not None:          # on trial, as every grasp
+            self._arm_trial(T, P)
+
+    def _modes(self, jaws: dict) -> Optional[str]:
+        """Grasp, handover, release and rest decided from the jaws and the track; the event."""
+        c = self.cfg
+        Tw, Pw = self.world(jaws)
+        if self.mode == "held":
+            if jaws[self.holder].jaw_rad < c.open_rad:
+                return None
+            other = next((n for n in sorted(jaws) if n != self.holder
+                          and jaw_holds(jaws[n], Tw, self.needle, c)), None)
+            if other is not None:
+                self._set_world("held", Tw, Pw, jaws, other)
+                self._arm_trial(Tw, Pw)          # the new grasp is on trial too
+                return f"handover:{other}"
+            self.trial = None              # let go where something holds it: tissue, the pad
+            self._set_world("rest", Tw, Pw, jaws)
+            return "release"
+        holder = next((n for n in sorted(jaws) if n not in self.refused
+                       and jaw_holds(jaws[n], Tw, self.needle, c)), None)
+        if holder is not None:
+            self._arm_trial(Tw, Pw)
+            self._set_world("held", Tw, Pw, jaws, holder)
+            return f"grasp:{holder}"
+        if self.mode == "free" and self.trial is None:
+            self._arm_trial(self.T, self.P[:6, :6])
+        return None
+
+    def _arm_trial(self, T_world: np.ndarray, P_world: np.ndarray) -> None:
+        """Keep beside the state the alternative that the needle stays at ``T_world``: a filter
+        of a needle at rest from there, and the evidence against it (log likelihood ratio)."""
+        self.trial = {"T": T_world.copy(), "P": np.array(P_world, float), "stamp": self.stamp_ns, "llr": 0.0}
+
+    def _weigh_trial(self, m: Measurement, jaws: dict, stamp_ns: int) -> None:
+        """The frame's evidence that the needle stayed (the alternative) rather than moved as the
+        state says: half the difference of the two predictions' Mahalanobis^2 under the state's
+        predicted covariance (the same for both: what differs is where they put the needle),
+        each bounded by the gate, counted only when the predictions lie at least 1 sigma apart
+        (jaws that stand still tell nothing). Then the alternative takes the measurement, as a
+        needle at rest."""
+        t, c = self.trial, self.cfg
+        dt = max(0.0, (stamp_ns - t["stamp"]) * 1e-9) if t["stamp"] is not None else 0.0
+        t["P"] = t["P"] + random_walk(c.rest_sigma_rad, c.rest_sigma_m, dt)
+        t["stamp"] = stamp_ns
+        readings = (m.T_world_needle, turned_end_for_end(m.T_world_needle, self.needle))
+        Tw, Pw = self.world(jaws)
+        S = Pw + m.covariance
+
+        def dist(T_pred):
+            return min(min(nis(pose_delta(T, T_pred), S) for T in readings), c.gate_nis)
+        if nis(pose_delta(Tw, t["T"]), S) >= 1.0:      # only where the two tell different stories
+            t["llr"] += 0.5 * (dist(Tw) - dist(t["T"]))
+        S_alt = t["P"] + m.covariance
+        r = min((pose_delta(T, t["T"]) for T in readings), key=lambda r: nis(r, S_alt))
+        if nis(r, S_alt) <= c.gate_nis:
+            K = np.linalg.solve(S_alt, t["P"]).T
+            t["T"] = retract(t["T"], K @ r)
+            t["P"] = _sym((np.eye(6) - K) @ t["P"])
+
+    def _settle_trial(self, jaws: dict) -> Optional[str]:
+        """A grasp: sure once the evidence says the needle moves with the jaws; undone (the
+        needle left where it was, at rest) once it says it stayed behind. A free needle: at rest
+        once the evidence says it stays where the alternative was armed; armed again where it
+        is once the evidence says it moves."""
+        t, c = self.trial, self.cfg
+        if self.mode == "free":
+            if t["llr"] >= c.grasp_llr:
+                self.trial = None
+                self._set_world("rest", self.T, self.P[:6, :6], jaws)
+                return "rest"
+            if t["llr"] <= -c.grasp_llr:
+                self.trial = None
+            return None
+        if t["llr"] <= -c.grasp_llr:
+            self.trial = None
+        elif t["llr"] >= c.grasp_llr:
+            self.trial = None
+            self.refused.add(self.holder)
+            self._set_world("rest", t["T"], t["P"], jaws)
+            return "ungrasp"
+        return None
+
+    # -- one frame
+    def step(self, stamp_ns: int, jaws: dict, measurement: Optional[Measurement]) -> Optional[Tracked]:
+        """The track at ``stamp_ns`` given the instruments' states (``{name: Jaw}``) and the
+        frame's measurement (None: no pose this frame). None while there is no track."""
+        event = None
+        self.refused = {n for n in self.refused if n in jaws and jaws[n].jaw_rad < self.cfg.open_rad}
+        if self.active and self.mode == "held" and self.holder not in jaws:
+            Tw, Pw = self.world(self._last_jaws)      # the holder's state did not come: let it go
+            self._set_world("free", Tw, Pw, jaws)
+            event = "release"
+        if self.active:
+            self.predict(stamp_ns)
+            if self.mode == "free" and measurement is None and \
+                    (stamp_ns - self.last_seen_ns) * 1e-9 > self.cfg.max_coast_s:
+                self.reset()
+                return None
+        if measurement is None and not self.active:
+            return None
+        if measurement is not None:
+            self.common = np.array([measurement.common_sigma_rad ** 2] * 3 + [measurement.common_sigma_m ** 2] * 3)
+            measurement = measurement.own()
+        used, turned, d = None, False, float("nan")
+        if not self.active:
+            self._start(measurement, jaws)
+            self.stamp_ns = self.last_seen_ns = stamp_ns
+            used, event = True, "start"
+        elif measurement is not None:
+            if self.trial is not None:
+                self._weigh_trial(measurement, jaws, stamp_ns)
+            read = self._read(measurement, jaws)
+            used = read is not None
+            if used:
+                turned, flipped, d, r, S, H = read
+                self._correct(r, S, H)
+                self.rejected, self.last_seen_ns = 0, stamp_ns
+                event = "flip" if flipped else event
+            else:
+                self.rejected += 1
+                if self.rejected >= self.cfg.reset_after:
+                    refused = self.refused
+                    self.reset()
+                    self.refused = refused
+                    self._start(measurement, jaws)
+                    self.stamp_ns = self.last_seen_ns = stamp_ns
+                    if self.mode == "rest":       # it moved: free until it settles
+                        self._set_world("free", self.T, self.P, jaws)
+                    used, event = True, "restart"
+            if self.trial is not None and event != "restart":
+                event = self._settle_trial(jaws) or event
+        event = self._modes(jaws) or event
+        self._last_jaws = dict(jaws)
+        return self._output(jaws, used, turned, d, event)
+
+    def _output(self, jaws, used, turned, d, event) -> Tracked:
+        Tw, Pw = self.world(jaws)
+        Pw = Pw + np.diag(self.common)              # isotropic: the same in every frame's axes
+        held = self.mode == "held"
+        p = None if self.identity is None else sigmoid(self.identity[0])
+        return Tracked(Tw.copy(), Pw, self.mode, self.holder,
+                       self.T.copy() if held else None, self.P + np.diag(self.common) if held else None,
+                       p, used, turned, d, event)

@@ -1,0 +1,89 @@
+"""The moving takes' evaluation (common/evaluation/moving.py): its tables on hand-made frames, and
+``needletrack eval`` with the tracker on a small generated pickup take with the oracle."""
+import json
+from types import SimpleNamespace
+
+import numpy as np
+import pytest
+
+from common.evaluation.moving import by_visible, held_runs, in_hand_table, stereo_visible
+from common.geometry.transforms import make_T
+from common.runtime.messages import GroundTruth, InHandPose, InstrumentState
+
+
+def _truth(seq, sequence=0):
+    return GroundTruth(seq, seq, sequence=sequence, T_world_needle=make_T(np.eye(3), [0, 0, 0.1]),
+                       needle_at_rest=False)
+
+
+def _inst(seq, holds):
+    T = make_T(np.eye(3), [0.0, 0.0, 0.095])
+    return {"psm1": InstrumentState("psm1", seq, seq, T, 0.06 if holds else 0.9, holds)}
+
+
+def test_held_runs_count_frames_per_holder_and_take():
+    truths = {s: _truth(s, 0 if s < 20 else 1) for s in range(30)}
+    inst = {s: _inst(s, 5 <= s < 25) for s in range(30)}
+    runs = held_runs(truths, inst, sorted(truths))
+    assert runs[5] == ("psm1", 0) and runs[19] == ("psm1", 14)
+    assert runs[20] == ("psm1", 0)                # a new take starts a new run
+    assert 4 not in runs and 25 not in runs
+
+
+def test_the_in_hand_pose_is_scored_from_the_10th_held_frame():
+    truths = {s: _truth(s) for s in range(40)}
+    inst = {s: _inst(s, s >= 5) for s in range(40)}
+    T_true = make_T(np.eye(3), [0.0, 0.0, 0.005])     # the needle 5 mm along the jaws
+    off = make_T(np.eye(3), [0.0, 0.001, 0.005])      # 1 mm off
+    in_hand = {s: InHandPose("psm1", s, s, "psm1_jaw", T_true if s < 30 else off, np.eye(6) * 1e-8)
+               for s in range(10, 38)}
+    t = in_hand_table(truths, inst, in_hand, sorted(truths))
+    assert t["frames"] == 40 - 14 and t["wrong_holder"] == 2     # held from 5: scored from 14; 38, 39 missing
+    assert t["posed"] == 24 and t["position_mm"]["max"] == pytest.approx(1.0)
+    assert t["position_mm"]["mean"] == pytest.approx(8 / 24)
+
+
+def test_the_visible_share_is_the_smaller_cameras_and_bins_count_unposed_frames():
+    f = SimpleNamespace(arc_visible={"left": 0.8, "right": 0.35}, visible=None)
+    assert stereo_visible(f) == 0.35
+    g = SimpleNamespace(visible={"left": np.array([1, 1, 0, 0, 0], bool), "right": np.ones(5, bool)})
+    assert stereo_visible(g) == pytest.approx(0.4)
+    errors = {0: (1e-3, 0.01, 5.0), 1: (np.nan, np.nan, np.nan), 2: (2e-3, 0.02, 6.0)}
+    rows = by_visible(errors, {0: 0.05, 1: 0.5, 2: 0.9})
+    assert [r["n"] for r in rows] == [1, 0, 1, 1]
+    assert rows[2]["posed"] == 0 and rows[3]["position_mm"]["mean"] == pytest.approx(2.0)
+
+
+@pytest.mark.graph
+def test_eval_tracks_a_pickup_take_with_the_oracle(tmp_path):
+    from common.cli import dataset_main
+    from common.evaluation.cli import main as eval_main
+    ds = tmp_path / "pickup"
+    assert dataset_main(["generate", "--out", str(ds), "--sequences", "1", "--motion", "pickup",
+                         "--width", "320", "--height", "240", "--msaa", "0", "--jobs", "1", "--seed", "3400",
+                         "--take-every", "2", "--quiet"]) == 0
+    out = tmp_path / "out"
+    assert eval_main(["--dataset", str(ds), "--detector", "oracle", "--out", str(out), "--quiet",
+                      "--timeout", "300"]) == 0
+    res = json.loads((out / "results.json").read_text())
+    t = res["pose"]["tracked"]
+    assert t["n"] >= 0.95 * t["expected"] and t["position_mm"]["mean"] < 0.1 and t["orientation_deg"]["mean"] < 0.3
+    mv = res["moving"]
+    assert mv["frames"] == res["frames"]
+    seen = mv["methods"]["tracked"]["seen"]
+    assert seen["posed_share"] >= 0.95 and seen["position_mm"]["mean"] < 0.1
+    h = mv["in_hand"]
+    assert h["frames"] > 10 and h["posed"] >= 0.9 * h["frames"] and h["position_mm"]["mean"] < 0.1
+    assert res["node_counters"]["tracker"].get("events.grasp") == 1
+    assert "## Moving takes" in (out / "report.md").read_text()
+
+
+def test_the_lag_is_the_shift_that_brings_the_poses_nearest_the_truth():
+    from common.evaluation.moving import lag_frames
+    truths = {s: GroundTruth(s, s, sequence=0, T_world_needle=make_T(np.eye(3), [0.001 * s, 0, 0.1]),
+                             needle_at_rest=False) for s in range(40)}
+    late = {s: SimpleNamespace(T_world_needle=truths[max(s - 3, 0)].T_world_needle) for s in range(40)}
+    assert lag_frames(late, truths, range(40)) == 3
+    assert lag_frames({s: SimpleNamespace(T_world_needle=truths[s].T_world_needle) for s in range(40)},
+                      truths, range(40)) == 0
+    assert lag_frames({}, truths, range(40)) is None
