@@ -466,17 +466,14 @@ class InHandPose(Message):
     where the pose puts it. ``seq``, ``stamp_ns``: the camera frame's (docs/tracking.md)."""
 
     SCHEMA = "needletrack.InHandPose"
-    FIELDS = {"name": ("str",), "seq": ("int",), "stamp_ns": ("int",), "frame_id": ("str",),
-              "T_jaw_needle": ("array", (4, 4)), "covariance": ("array", (6, 6)),
-              "end_identity": ("float", "optional"), "epoch": ("int", "optional")}
     name: str
-    seq: int
-    stamp_ns: int
+    seq: NonNegative
+    stamp_ns: NonNegative
     frame_id: str
-    T_jaw_needle: np.ndarray
-    covariance: np.ndarray
-    end_identity: Optional[float] = None
-    epoch: Optional[int] = None
+    T_jaw_needle: Array[4, 4]
+    covariance: Array[6, 6]
+    end_identity: Optional[Number] = None
+    epoch: Optional[NonNegative] = None
 
     def validate(self):
         for label, text in (("name", self.name), ("frame_id", self.frame_id)):
