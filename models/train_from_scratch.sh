@@ -9,7 +9,6 @@
 # on a look family no training renders (`liver`, also read hue-turned and colourless), so that
 # the fit sees the network on unfamiliar images (end_identity.json). The second renderer's
 # threadless needles and the `silicone` pads are never rendered here: they are the held-out looks.
-# Stage C: held, moving, partly hidden needles from stage B's weights (models/held.yaml).
 # Prints the wall-clock of each stage.
 #   bash models/train_from_scratch.sh [DATA_DIR=data/train] [OUT=models/keypoint]
 # Resumable: rerun the same command (the generators and the trainer pick up where they stopped).
@@ -64,24 +63,7 @@ wait "$alt"
 stamp "data: $L done"
 
 needletrack train --init "$OUT/stage_a/model.pt" --data "$L/std" --data "$L/std2" --data "$L/std_none" --data "$L/wide" --data "$L/wide_none" \
-    --data "$L/640" --data "$L/640_none_dist" --data "$L/neg" --data "$L/alt" --config "$HERE/looks.yaml" --out "$OUT/stage_b"
-stamp "stage B trained: $OUT/stage_b/model.pt"
-
-# stage C: held, moving, partly hidden needles (every 6th frame of the instruments' takes), with
-# needles at rest of the train and `wide` looks, 640x480, the second renderer and needle-free frames
-H="$DATA/held"
-gen --out "$H/move_train" --sequences 40 --motion mixed --take-every 6 --seed 3501 --randomise train --msaa 4
-gen --out "$H/move_wide_none" --sequences 24 --motion mixed --take-every 6 --seed 3502 --randomise wide --thread none --msaa 4
-gen --out "$H/static_train" --sequences 150 --steps 2 --seed 3503 --randomise train --msaa 4
-gen --out "$H/static_wide_none" --sequences 100 --steps 2 --seed 3504 --randomise wide --thread none --msaa 0
-gen --out "$H/move_640" --sequences 16 --motion mixed --take-every 6 --seed 3505 --randomise wide --width 640 --height 480
-gen --out "$H/static_640_none" --sequences 80 --steps 2 --seed 3506 --randomise wide --width 640 --height 480 --thread none
-needletrack dataset generate-alt --out "$H/alt" --sequences 40 --steps 2 --seed 3507 --supersample 2 --quiet
-needletrack dataset generate-negatives --out "$H/neg" --frames 100 --seed 3508 --randomise wide --quiet
-stamp "data: $H done"
-needletrack train --init "$OUT/stage_b/model.pt" --data "$H/move_train" --data "$H/move_wide_none" --data "$H/static_train" \
-    --data "$H/static_wide_none" --data "$H/move_640" --data "$H/static_640_none" --data "$H/alt" --data "$H/neg" \
-    --config "$HERE/held.yaml" --out "$OUT"
+    --data "$L/640" --data "$L/640_none_dist" --data "$L/neg" --data "$L/alt" --config "$HERE/looks.yaml" --out "$OUT"
 stamp "trained: $OUT/model.pt"
 needletrack bench familiarity --weights "$OUT/model.pt" --data "$C/std" --data "$C/test" --data "$C/wide" \
     --data "$C/wide_none" --data "$C/640" --data "$C/640_none" --fit "$OUT/familiarity.json"
