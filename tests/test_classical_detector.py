@@ -3,7 +3,7 @@ import numpy as np
 
 from common.detector.backends import load_backend
 from common.detector.classical import ClassicalDetector
-from common.detector.data import _background, render_synthetic
+from common.detector.synthetic import _background, render_synthetic
 from common.geometry.camera import StereoRig
 from common.geometry.needle import NeedleModel
 from common.geometry.transforms import make_T, rotvec_to_R, transform_points

@@ -3,7 +3,7 @@ import json
 
 import numpy as np
 
-from common.detector.data import write_synthetic_dataset
+from common.detector.synthetic import write_synthetic_dataset
 from common.evaluation.detector_bench import SURE_SCORE, main, run
 
 

@@ -15,8 +15,8 @@ from common.detector.data import (
     crop_sample,
     load_records,
     read_dataset,
-    write_synthetic_dataset,
 )
+from common.detector.synthetic import write_synthetic_dataset
 from common.detector.model import (
     KeypointModel,
     ModelConfig,

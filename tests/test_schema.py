@@ -102,7 +102,7 @@ def test_the_graph_file_is_checked_from_its_declared_fields():
 def test_dataset_yaml_is_read_from_its_declared_sections():
     import yaml
 
-    from common.data.dataset import DatasetError, DatasetMeta, MetaYaml, parse_meta
+    from common.data.meta import DatasetError, DatasetMeta, MetaYaml, parse_meta
     from common.geometry.camera import StereoRig
     from common.geometry.needle import NeedleModel
     from common.runtime.schema import fields_of
