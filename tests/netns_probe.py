@@ -1,4 +1,4 @@
-"""A member or an intruder of a graph, run in a network namespace by tests/test_multihost_tls.py.
+"""A member or an intruder of a graph, run in a network namespace by tests/runtime/test_multihost_tls.py.
 
 ``python tests/netns_probe.py GRAPH AS ACTION [ARGS]`` prints one JSON line ``{"peers": n, ...}``.
 

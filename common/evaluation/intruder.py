@@ -9,7 +9,7 @@ real poses on ``--keys`` it saw, moved ``--offset-mm`` along x; blind ones with 
 when it sees none), and the answers to a handover query on ``<graph>/@ctl/*/*/handover`` and a
 swap on ``<graph>/@launcher/swap``. On an open graph (``zenoh.open: true``, or before per-run
 credentials) everything gets in; on the default graph nothing does. ``needletrack bench fuzz
---live`` runs it against the default graph; ``tests/test_credentials.py`` as another user.
+--live`` runs it against the default graph; ``tests/runtime/test_credentials.py`` as another user.
 """
 from __future__ import annotations
 

@@ -1,4 +1,4 @@
-"""Damaged bag files for the readers (``needletrack bench fuzz --bags N``, tests/test_bag_errors.py):
+"""Damaged bag files for the readers (``needletrack bench fuzz --bags N``, tests/ros/test_bag_errors.py):
 a small synthetic stereo recording (an MCAP written the way ``needletrack record`` writes, zstd
 chunks, and a ROS 1 bag), then copies of it cut short, with a chunk's bytes overwritten, a CRC
 changed, a record length made absurd (4 GiB, 2^63), bit flips, or the summary and footer

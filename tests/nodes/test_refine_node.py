@@ -112,7 +112,7 @@ def test_node_support_normal_is_turned_into_each_frames_ecm_frame():
 
 
 def test_node_tracks_a_video_as_the_library_does():
-    from tests.test_refine_tracking import FRAME_NS, video
+    from tests.geometry.test_refine_tracking import FRAME_NS, video
     node = RefineNode.offline({"cold_every": 4}, wired=["left", "right", "calib"])
     node.on_calib(CALIB)
     tracker = TrackingRefiner(DenseRefiner(RIG, MODEL), MODEL.keypoints(), config=TrackingConfig(cold_every=4))
@@ -253,7 +253,7 @@ def test_end_identity_belongs_to_the_tracked_needle_not_to_a_frame():
     import dataclasses
 
     from nodes._pose import turn_keypoints
-    from tests.test_refine_tracking import FRAME_NS, video
+    from tests.geometry.test_refine_tracking import FRAME_NS, video
     node = RefineNode.offline({}, wired=["left", "right", "calib"])
     node.on_calib(CALIB)
     frames = video(8)

@@ -1,7 +1,7 @@
 """zenoh.tls: validation with places, the warning for a listen beyond loopback without TLS, the
 session configuration, the certificates of ``needletrack certs``, and a TLS graph on loopback
 (swap, commands) that refuses what an identity may not do. The two-host test is
-tests/test_multihost_tls.py."""
+tests/runtime/test_multihost_tls.py."""
 import json
 import secrets
 import subprocess

@@ -16,7 +16,7 @@ from common.methods import (
 from nodes.evaluator import EvaluatorNode
 from nodes.monitor import MonitorNode
 
-REPO = Path(__file__).resolve().parents[1]
+REPO = Path(__file__).resolve().parents[2]
 
 
 def test_the_registry_is_consistent():

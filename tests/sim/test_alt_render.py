@@ -239,7 +239,7 @@ def test_renderer_shares_no_code_with_the_first():
         code = (f"import sys, {module}; "
                 f"print(' '.join(m for m in sys.modules if m == 'mujoco' or m in {FIRST_RENDERER!r}))")
         out = subprocess.run([sys.executable, "-c", code], check=True, capture_output=True, text=True,
-                             cwd=str(__import__("pathlib").Path(__file__).parents[1]))
+                             cwd=str(__import__("pathlib").Path(__file__).parents[2]))
         return out.stdout.split()
     assert imported("common.sim.alt_generate") == []
     assert imported("common.sim.cli") == []

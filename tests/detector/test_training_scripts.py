@@ -12,7 +12,7 @@ from common.cli import main as needletrack
 
 pytestmark = pytest.mark.training
 
-ROOT = Path(__file__).resolve().parent.parent
+ROOT = Path(__file__).resolve().parents[2]
 VALUES = {"DATA": "data/train", "OUT": "models/keypoint", "HERE": "models", "L": "data/train/looks",
           "C": "data/train/end_identity", "CONFIG": "models/finetune.yaml", "INIT": "models/keypoint/model.pt",
           "TEST": "data/test", "data[@]": "--data data/mine", "extra[@]": "--support-normal 0,0,1",

@@ -334,7 +334,7 @@ def test_the_docs_page_is_the_spec_and_lists_what_the_reader_parses():
     from pathlib import Path
 
     from common.data.dataset import _FRAME_FIELDS, EXTENSION_FIELDS, parse_frame
-    root = Path(__file__).resolve().parents[1]
+    root = Path(__file__).resolve().parents[2]
     text = (root / "docs" / "dataset.md").read_text()
     shared = root.parent / "shared" / "specs" / "dataset.md"            # the project's contract, beside main
     for spec in (shared, Path("/work/shared/specs/dataset.md")):

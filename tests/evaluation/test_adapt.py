@@ -156,7 +156,7 @@ def test_adapt_runs_the_pipeline_labels_trains_and_resumes(tmp_path):
     truth = _generate(tmp_path / "truth", 960, 540, sequences=3, steps=4, seed=6)
     bare = tmp_path / "bare"
     without_truth(str(truth), str(bare))
-    cfg = yaml.safe_load(open(os.path.join(os.path.dirname(__file__), "..", "models", "finetune.yaml")))
+    cfg = yaml.safe_load(open(os.path.join(os.path.dirname(__file__), "..", "..", "models", "finetune.yaml")))
     cfg["train"].update(epochs=1, steps_per_epoch=2, batch=4, global_batch=4, hard_negatives=0,
                         val_fraction=0.0, threads=1, warmup_steps=1)
     (tmp_path / "tiny.yaml").write_text(yaml.safe_dump(cfg))

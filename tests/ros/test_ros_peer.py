@@ -75,7 +75,7 @@ def test_every_type_the_project_uses_is_compared():
     TFMessage, a sequence of the TransformStamped compared here, whose package has no wheel)."""
     import re
     from pathlib import Path
-    root = Path(__file__).resolve().parent.parent
+    root = Path(__file__).resolve().parents[2]
     used = set()
     for p in list((root / "common" / "ros").glob("*.py")) + list((root / "nodes").glob("ros*.py")):
         used |= set(re.findall(r'"((?:sensor|geometry)_msgs/msg/[A-Za-z]+)"', p.read_text()))

@@ -20,7 +20,7 @@ from common.runtime.messages import CameraImage
 from common.viewer.browser import find_chromium, screenshot
 from common.viewer.draw import method_bgr
 
-REPO = Path(__file__).resolve().parent.parent
+REPO = Path(__file__).resolve().parents[2]
 FINAL = "pnp_joint"
 
 

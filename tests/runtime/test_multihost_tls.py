@@ -23,7 +23,7 @@ import yaml
 
 pytestmark = pytest.mark.netns
 
-REPO = Path(__file__).resolve().parent.parent
+REPO = Path(__file__).resolve().parents[2]
 PROBE = REPO / "tests" / "netns_probe.py"
 ENV = dict(os.environ, PYTHONPATH=str(REPO), PYTHONUNBUFFERED="1")
 

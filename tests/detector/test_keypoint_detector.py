@@ -234,7 +234,7 @@ def test_detector_node_with_the_learned_backend_on_one_camera(rendered):
 
 def test_each_detection_states_how_unlike_the_training_looks_its_image_is(detector, rendered):
     """The shipped familiarity.json: a test-look render is familiar (about 1), and what the
-    detection states is the reference's distance of its crop descriptor (tests/test_familiarity.py
+    detection states is the reference's distance of its crop descriptor (tests/detector/test_familiarity.py
     shows it growing off the reference)."""
     images, _ = rendered
     detector.reset()

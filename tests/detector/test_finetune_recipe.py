@@ -17,7 +17,7 @@ from common.sim.generate import GenerateConfig, generate
 
 pytestmark = pytest.mark.training
 
-ROOT = Path(__file__).resolve().parent.parent
+ROOT = Path(__file__).resolve().parents[2]
 
 
 def test_finetune_recipe_trains_fits_the_end_identity_then_scores_before_and_after(tmp_path):

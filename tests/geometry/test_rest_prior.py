@@ -6,7 +6,7 @@ import pytest
 
 from common.geometry.rest_prior import resting_log_prior
 from common.geometry.transforms import rotvec_to_R
-from tests.test_refine import (
+from tests.geometry.test_refine import (
     REFINER,
     _delta,
     errors_mm_deg,

@@ -2,7 +2,7 @@
 import ast
 from pathlib import Path
 
-REPO = Path(__file__).resolve().parents[1]
+REPO = Path(__file__).resolve().parents[2]
 
 
 def test_every_error_class_derives_from_the_projects_base():
