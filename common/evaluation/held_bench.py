@@ -26,8 +26,7 @@ import numpy as np
 
 from common.data.dataset import Dataset, DatasetError
 from common.evaluation.detector_bench import SURE_SCORE, make_detector
-from common.evaluation.metrics import VISIBLE_BINS as BINS  # noqa: F401  (the bench's bins)
-from common.evaluation.metrics import visible_fraction
+from common.evaluation.metrics import VISIBLE_BINS, visible_fraction
 from common.frames import CAMERAS
 
 
@@ -44,7 +43,7 @@ def image_record(k, kp: np.ndarray, vis: np.ndarray, fraction: float, gate: floa
             "any_sure": bool(sure.any())}
 
 
-def summarise(records: list[dict], bins=BINS) -> list[dict]:
+def summarise(records: list[dict], bins=VISIBLE_BINS) -> list[dict]:
     """Per visible-fraction bin: images, found share, keypoint errors, hidden-and-sure share,
     the share with no sure keypoint."""
     out = []

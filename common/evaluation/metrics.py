@@ -22,16 +22,7 @@ from common.geometry.needle import NeedleModel
 from common.geometry.refine import tip_for_tail
 from common.geometry.transforms import R_to_rotvec, inv_T, pose_error
 from common.methods import MULTIVIEW_METHODS
-from common.runtime.messages import (
-    
-    
-    
-    GroundTruth,
-    Keypoints,
-    
-    Points3D,
-    PoseEstimate,
-)
+from common.runtime.messages import GroundTruth, Keypoints, Points3D, PoseEstimate
 
 
 # ---------------------------------------------------------------- statistics

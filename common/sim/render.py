@@ -261,13 +261,11 @@ ARC_VISIBLE_SAMPLES = 49
 def _seen(uv: np.ndarray, z: np.ndarray, inside: np.ndarray, render, wire_radius_m: float) -> np.ndarray:
     """(N,) bool: projected points (uv px, camera depth z m) shown by the render: their pixel holds
     the needle, or nothing in front of them closer than two wire radii."""
-    v = np.zeros(len(uv), bool)
     h, w = render.label.shape
-    for k in np.flatnonzero(inside):
-        u0 = min(max(int(round(uv[k, 0])), 0), w - 1)
-        v0 = min(max(int(round(uv[k, 1])), 0), h - 1)
-        v[k] = bool(render.label[v0, u0] == LABELS["needle"] or render.depth[v0, u0] > z[k] - 2 * wire_radius_m)
-    return v
+    u = np.clip(np.round(np.nan_to_num(uv[:, 0])).astype(int), 0, w - 1)
+    v = np.clip(np.round(np.nan_to_num(uv[:, 1])).astype(int), 0, h - 1)
+    shown = (render.label[v, u] == LABELS["needle"]) | (render.depth[v, u] > z - 2 * wire_radius_m)
+    return np.asarray(inside, bool) & shown
 
 
 def frame_ground_truth(rig: StereoRig, needle, T_world_needle, T_world_ecm, renders,
