@@ -42,6 +42,7 @@ def test_visible_fraction_prefers_arc_visible_and_falls_back_to_the_keypoints():
     assert visible_fraction(g, "left") == 0.33
 
 
+@pytest.mark.slow
 def test_the_bench_runs_a_generated_take_and_writes_its_figures(tmp_path, capsys):
     from common.cli import bench_main, dataset_main
     out = tmp_path / "take"

@@ -74,6 +74,7 @@ def native_poses(ds, tmp_path) -> dict:
     return got
 
 
+@pytest.mark.netns
 def test_rclpy_nodes_in_poses_out_over_dds(ds, tmp_path):
     need_rclpy()
     from graphtools import prepare_graph
@@ -137,6 +138,7 @@ print(len(got), got[0].hex() if got else "")
 """
 
 
+@pytest.mark.netns
 def test_localhost_only_discovery_as_docs_say(tmp_path):
     """docs/ros.md: an rclpy node with ROS_AUTOMATIC_DISCOVERY_RANGE=LOCALHOST, on a loopback
     without the MULTICAST flag (as a host has it), is found by a DDS link with the documented

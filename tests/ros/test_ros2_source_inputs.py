@@ -162,6 +162,7 @@ def test_padded_samples_as_ros_2_writes_them_are_accepted(src):
     assert src.node.counters.get("bad_samples", 0) == 0
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("keys", ["bridge", "rmw_zenoh"])
 def test_every_ros_poison_kind_on_both_key_forms(keys):
     """A small run of ``needletrack bench fuzz``'s ROS part: no crash, nothing invalid published,

@@ -119,6 +119,7 @@ def test_ambf_si_bag_infers_metres_and_a_wrong_unit_is_a_tenfold_error(ds640, tm
     np.testing.assert_allclose(b.T_world_needle[:3, 3], a.T_world_needle[:3, 3] / 10)
 
 
+@pytest.mark.slow
 def test_ambf_scene_in_dm_and_in_si_converts_to_the_same_dataset(ds640, tmp_path):
     """The 2021-22 challenge's scene is in decimetres, AMBF 2.0's in metres: the same scene in
     both units converts to the same dataset (the needle radius 10.18 mm in both), and the oracle
@@ -190,6 +191,7 @@ def _as_rclpy_wrote_it(bag_in, bag_out, poison=()):
     return padded
 
 
+@pytest.mark.slow
 def test_a_bag_rclpy_serialised_converts_exactly_and_bad_messages_are_skipped(ds640, tmp_path, caplog):
     from common.ros import build
     from common.ros.cdr import encode

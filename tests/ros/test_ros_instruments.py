@@ -28,6 +28,7 @@ def dvrk_take(tmp_path_factory):
     return root, r
 
 
+@pytest.mark.slow
 def test_a_dvrk_mcap_with_psm_topics_converts_with_the_instruments_in_world(dvrk_take, tmp_path):
     root, r = dvrk_take
     assert r["instruments"] == ["psm1", "psm2"]

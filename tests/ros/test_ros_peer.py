@@ -158,6 +158,7 @@ def test_cyclone_idl_types_write_our_bytes(name):
     assert back == sample
 
 
+@pytest.mark.slow
 def test_a_bag_rclpy_serialised_converts_and_the_oracle_is_exact(rclpy_results, tmp_path):
     """Every message of a dVRK-convention MCAP re-serialised by rclpy (positions-only JointState
     included) -> ``from-bag`` -> the oracle is exact."""
