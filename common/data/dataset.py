@@ -9,6 +9,7 @@ Images are returned as (h, w, 3) uint8 BGR arrays, whatever the file holds.
 """
 from __future__ import annotations
 
+import dataclasses
 import json
 import os
 from dataclasses import dataclass, field
@@ -40,87 +41,6 @@ from common.runtime.limits import InputLimitError, describe_path, inside, read_i
 
 
 # ---------------------------------------------------------------- frames.jsonl
-
-@dataclass
-class Frame:
-    """One stereo frame (a line of frames.jsonl). Image paths are relative to the folder.
-
-    ``keypoints[c]`` (5, 2) px, ``visible[c]`` (5,) bool, ``bbox[c]`` [x0, y0, x1, y1] or None,
-    ``instruments`` {name: ``common.data.instruments.InstrumentPose``}, ``arc_visible[c]`` the share
-    of the arc seen (needletrack's own field, docs/datasets.md), ``needle_at_rest`` False
-    when the needle moves during its sequence (then the sequence is a take, not a multi-view
-    group: ``multiview_group``). Optional fields are None when the file leaves them out or null.
-    """
-
-    index: int
-    stamp_ns: int
-    left: str
-    right: str
-    sequence: Optional[int] = None
-    step: Optional[int] = None
-    ecm_joints: Optional[np.ndarray] = None
-    T_world_ecm: Optional[np.ndarray] = None
-    T_world_needle: Optional[np.ndarray] = None
-    keypoints: Optional[dict] = None
-    visible: Optional[dict] = None
-    bbox: Optional[dict] = None
-    needle_at_rest: Optional[bool] = None
-    instruments: Optional[dict] = None
-    arc_visible: Optional[dict] = None
-    line: Optional[int] = field(default=None, compare=False)
-
-    def image(self, camera: str) -> str:
-        return {"left": self.left, "right": self.right}[camera]
-
-    @property
-    def at_rest(self) -> bool:
-        """The needle at rest over its sequence (``needle_at_rest`` absent means true)."""
-        return self.needle_at_rest is not False
-
-    @property
-    def multiview_group(self) -> Optional[int]:
-        """The multi-view group of this frame: its ``sequence`` when the needle is at rest, else
-        None (a frame of a moving take is a view of its own)."""
-        return self.sequence if self.at_rest else None
-
-    @property
-    def T_ecm_needle(self) -> Optional[np.ndarray]:
-        if self.T_world_ecm is None or self.T_world_needle is None:
-            return None
-        return inv_T(self.T_world_ecm) @ self.T_world_needle
-
-    def to_json(self) -> dict:
-        d = {"index": int(self.index), "stamp_ns": int(self.stamp_ns), "left": self.left, "right": self.right}
-        if self.sequence is not None:
-            d["sequence"] = int(self.sequence)
-        if self.step is not None:
-            d["step"] = int(self.step)
-        for k in ("ecm_joints", "T_world_ecm", "T_world_needle"):
-            v = getattr(self, k)
-            if v is not None:
-                d[k] = np.asarray(v, dtype=float).tolist()
-        if self.keypoints is not None:
-            d["keypoints"] = {c: np.asarray(self.keypoints[c], dtype=float).tolist() for c in CAMERAS}
-        if self.visible is not None:
-            d["visible"] = {c: [bool(b) for b in self.visible[c]] for c in CAMERAS}
-        if self.bbox is not None:
-            d["bbox"] = {c: (None if self.bbox.get(c) is None else [float(x) for x in self.bbox[c]])
-                         for c in CAMERAS}
-        if self.needle_at_rest is not None:
-            d["needle_at_rest"] = bool(self.needle_at_rest)
-        if self.instruments is not None:
-            d["instruments"] = instruments_json(self.instruments)
-        if self.arc_visible is not None:
-            d["arc_visible"] = {c: float(self.arc_visible[c]) for c in CAMERAS}
-        return d
-
-
-_FRAME_FIELDS = {"index", "stamp_ns", "left", "right", "sequence", "step", "ecm_joints", "T_world_ecm",
-                 "T_world_needle", "keypoints", "visible", "bbox", "needle_at_rest", "instruments"}
-"""The frame fields of docs/dataset.md (the shared spec)."""
-EXTENSION_FIELDS = {"arc_visible"}
-"""needletrack's own frame fields (docs/datasets.md): other readers ignore them, as the spec says."""
-
 
 def _relpath(v) -> str:
     if not isinstance(v, str) or not v:
@@ -174,37 +94,130 @@ def _flag(v) -> bool:
     return v
 
 
+def _count(v) -> int:
+    n = _int(v)
+    if n < 0:
+        raise _Bad(f"must be >= 0, got {n}")
+    return n
+
+
+_NO_DEFAULT = object()
+
+
+def _line(parse, default=_NO_DEFAULT, extension: bool = False):
+    """A field of a frames.jsonl line: ``parse`` its value's parser (``_Bad`` with the reason);
+    no ``default``: required; ``extension``: needletrack's own field (``EXTENSION_FIELDS``)."""
+    meta = {"parse": parse, "extension": extension}
+    return field(metadata=meta) if default is _NO_DEFAULT else field(default=default, metadata=meta)
+
+
+@dataclass
+class Frame:
+    """One stereo frame (a line of frames.jsonl). Image paths are relative to the folder.
+
+    ``keypoints[c]`` (5, 2) px, ``visible[c]`` (5,) bool, ``bbox[c]`` [x0, y0, x1, y1] or None,
+    ``instruments`` {name: ``common.data.instruments.InstrumentPose``}, ``arc_visible[c]`` the share
+    of the arc seen (needletrack's own field, docs/datasets.md), ``needle_at_rest`` False
+    when the needle moves during its sequence (then the sequence is a take, not a multi-view
+    group: ``multiview_group``). Optional fields are None when the file leaves them out or null.
+    Each field of the file is declared once, here, with the parser of its value (``_line``).
+    """
+
+    index: int = _line(_count)
+    stamp_ns: int = _line(_int)
+    left: str = _line(_relpath)
+    right: str = _line(_relpath)
+    sequence: Optional[int] = _line(_int, None)
+    step: Optional[int] = _line(_count, None)
+    ecm_joints: Optional[np.ndarray] = _line(lambda v: _vector(v, 4), None)
+    T_world_ecm: Optional[np.ndarray] = _line(_rigid, None)
+    T_world_needle: Optional[np.ndarray] = _line(_rigid, None)
+    keypoints: Optional[dict] = _line(lambda v: _per_camera(v, _matrix, 5, 2), None)
+    visible: Optional[dict] = _line(lambda v: _per_camera(v, _bools, 5), None)
+    bbox: Optional[dict] = _line(lambda v: _per_camera(v, _bbox, nullable=True), None)
+    needle_at_rest: Optional[bool] = _line(_flag, None)
+    instruments: Optional[dict] = _line(parse_instruments, None)
+    arc_visible: Optional[dict] = _line(lambda v: _per_camera(v, _share), None, extension=True)
+    line: Optional[int] = field(default=None, compare=False)      # the line of frames.jsonl it was read from
+
+    def image(self, camera: str) -> str:
+        return {"left": self.left, "right": self.right}[camera]
+
+    @property
+    def at_rest(self) -> bool:
+        """The needle at rest over its sequence (``needle_at_rest`` absent means true)."""
+        return self.needle_at_rest is not False
+
+    @property
+    def multiview_group(self) -> Optional[int]:
+        """The multi-view group of this frame: its ``sequence`` when the needle is at rest, else
+        None (a frame of a moving take is a view of its own)."""
+        return self.sequence if self.at_rest else None
+
+    @property
+    def T_ecm_needle(self) -> Optional[np.ndarray]:
+        if self.T_world_ecm is None or self.T_world_needle is None:
+            return None
+        return inv_T(self.T_world_ecm) @ self.T_world_needle
+
+    def to_json(self) -> dict:
+        d = {"index": int(self.index), "stamp_ns": int(self.stamp_ns), "left": self.left, "right": self.right}
+        if self.sequence is not None:
+            d["sequence"] = int(self.sequence)
+        if self.step is not None:
+            d["step"] = int(self.step)
+        for k in ("ecm_joints", "T_world_ecm", "T_world_needle"):
+            v = getattr(self, k)
+            if v is not None:
+                d[k] = np.asarray(v, dtype=float).tolist()
+        if self.keypoints is not None:
+            d["keypoints"] = {c: np.asarray(self.keypoints[c], dtype=float).tolist() for c in CAMERAS}
+        if self.visible is not None:
+            d["visible"] = {c: [bool(b) for b in self.visible[c]] for c in CAMERAS}
+        if self.bbox is not None:
+            d["bbox"] = {c: (None if self.bbox.get(c) is None else [float(x) for x in self.bbox[c]])
+                         for c in CAMERAS}
+        if self.needle_at_rest is not None:
+            d["needle_at_rest"] = bool(self.needle_at_rest)
+        if self.instruments is not None:
+            d["instruments"] = instruments_json(self.instruments)
+        if self.arc_visible is not None:
+            d["arc_visible"] = {c: float(self.arc_visible[c]) for c in CAMERAS}
+        return d
+
+
+def _file_fields(extension: bool) -> frozenset:
+    return frozenset(f.name for f in dataclasses.fields(Frame) if "parse" in f.metadata
+                     and f.metadata["extension"] == extension)
+
+
+_FRAME_FIELDS = _file_fields(False)
+"""The frame fields of docs/dataset.md (the shared spec)."""
+EXTENSION_FIELDS = _file_fields(True)
+"""needletrack's own frame fields (docs/datasets.md): other readers ignore them, as the spec says."""
+
+
 def parse_frame(obj, line: Optional[int] = None, file: str = FRAMES_FILE) -> Frame:
-    """Validate one decoded frames.jsonl object."""
+    """Validate one decoded frames.jsonl object: the required fields first, then each field with
+    its parser, in the order ``Frame`` declares them."""
     def fail(name, msg):
         raise DatasetError(_where(file, line, f"{name}: {msg}"))
 
     if not isinstance(obj, dict):
         fail("(line)", f"expected a JSON object, got {type(obj).__name__}")
-    for k in ("index", "stamp_ns", "left", "right"):
-        if k not in obj or obj[k] is None:
-            fail(k, "required field missing")
-    parsers = {"index": (_int,), "stamp_ns": (_int,), "left": (_relpath,), "right": (_relpath,),
-               "sequence": (_int,), "step": (_int,), "ecm_joints": (_vector, 4),
-               "T_world_ecm": (_rigid,), "T_world_needle": (_rigid,),
-               "keypoints": (lambda v: _per_camera(v, _matrix, 5, 2),),
-               "visible": (lambda v: _per_camera(v, _bools, 5),),
-               "bbox": (lambda v: _per_camera(v, _bbox, nullable=True),),
-               "needle_at_rest": (_flag,), "instruments": (parse_instruments,),
-               "arc_visible": (lambda v: _per_camera(v, _share),)}
+    declared = [f for f in dataclasses.fields(Frame) if "parse" in f.metadata]
+    for f in declared:
+        if f.default is dataclasses.MISSING and obj.get(f.name) is None:
+            fail(f.name, "required field missing")
     vals = {}
-    for k, (fn, *args) in parsers.items():
-        v = obj.get(k)
+    for f in declared:
+        v = obj.get(f.name)
         if v is None:
             continue
         try:
-            vals[k] = fn(v, *args)
+            vals[f.name] = f.metadata["parse"](v)
         except _Bad as exc:
-            fail(k if exc.sub is None else f"{k}.{exc.sub}", str(exc))
-    if vals["index"] < 0:
-        fail("index", f"must be >= 0, got {vals['index']}")
-    if vals.get("step") is not None and vals["step"] < 0:
-        fail("step", f"must be >= 0, got {vals['step']}")
+            fail(f.name if exc.sub is None else f"{f.name}.{exc.sub}", str(exc))
     return Frame(line=line, **vals)
 
 
