@@ -8,6 +8,11 @@ import pytest
 os.environ.setdefault("MUJOCO_GL", "egl")  # before any test module imports mujoco
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
+# a few test modules share helpers with another folder's (``from test_ros_bag import ...``): every
+# folder on the path, so that one folder runs alone as in the whole suite
+for _folder in sorted(Path(__file__).resolve().parent.iterdir()):
+    if _folder.is_dir() and any(_folder.glob("test_*.py")):
+        sys.path.insert(0, str(_folder))
 
 from graphtools import free_port as _free_port  # noqa: E402
 from graphtools import launch_graph

@@ -47,6 +47,7 @@ from typing import Optional
 
 import numpy as np
 
+from common.geometry.config import NonNegativeNumber, check_fields
 from common.geometry.end_identity import end_for_end_delta, sigmoid, track_identity
 from common.geometry.fusion import covariance_to_frame, without_common
 from common.geometry.needle import NeedleModel
@@ -63,16 +64,16 @@ class TrackerConfig:
     """The tracker's models and rules (see the module docstring); lengths m, angles rad, time s."""
     gate_nis: float = CHI2_6_999            # a measurement farther than this (Mahalanobis^2) is rejected
     reset_after: int = 3                    # rejected measurements in a row that start the track again
-    rest_sigma_m: float = 0.05e-3           # random walk of a needle at rest, per sqrt(s)
-    rest_sigma_rad: float = math.radians(0.2)
-    slip_sigma_m: float = 0.1e-3            # slip in the jaws, per sqrt(s)
-    slip_sigma_rad: float = math.radians(0.5)
-    accel_m_s2: float = 0.1                 # white acceleration of a free needle
-    accel_rad_s2: float = 3.0
-    free_speed_m_s: float = 0.02            # 1 sigma of a just-freed needle's velocity
-    free_turn_rad_s: float = math.radians(90.0)
-    jaw_sigma_m: float = 0.05e-3            # the jaws' measured pose: its error, about the pivot
-    jaw_sigma_rad: float = math.radians(0.1)
+    rest_sigma_m: NonNegativeNumber = 0.05e-3           # random walk of a needle at rest, per sqrt(s)
+    rest_sigma_rad: NonNegativeNumber = math.radians(0.2)
+    slip_sigma_m: NonNegativeNumber = 0.1e-3            # slip in the jaws, per sqrt(s)
+    slip_sigma_rad: NonNegativeNumber = math.radians(0.5)
+    accel_m_s2: NonNegativeNumber = 0.1                 # white acceleration of a free needle
+    accel_rad_s2: NonNegativeNumber = 3.0
+    free_speed_m_s: NonNegativeNumber = 0.02            # 1 sigma of a just-freed needle's velocity
+    free_turn_rad_s: NonNegativeNumber = math.radians(90.0)
+    jaw_sigma_m: NonNegativeNumber = 0.05e-3            # the jaws' measured pose: its error, about the pivot
+    jaw_sigma_rad: NonNegativeNumber = math.radians(0.1)
     closed_rad: float = 0.3                 # jaws at or below this are closed
     open_rad: float = 0.45                  # a holder's jaws at or above this let go
     grasp_reach_m: float = 0.002            # the arc this near the jaws' axis lies between them
@@ -86,10 +87,7 @@ class TrackerConfig:
                 and min(self.grasp_reach_m, self.jaw_length_m) > 0):
             raise ValueError("tracker: needs gate_nis, grasp_llr > 0, reset_after >= 1, "
                              "0 <= closed_rad < open_rad, max_coast_s > 0 and positive grasp lengths")
-        for name in ("rest_sigma_m", "rest_sigma_rad", "slip_sigma_m", "slip_sigma_rad", "accel_m_s2",
-                     "accel_rad_s2", "free_speed_m_s", "free_turn_rad_s", "jaw_sigma_m", "jaw_sigma_rad"):
-            if not getattr(self, name) >= 0:
-                raise ValueError(f"tracker: {name} must be >= 0, got {getattr(self, name)}")
+        check_fields(self, "tracker: {name} {why}")
 
 
 @dataclass(frozen=True)

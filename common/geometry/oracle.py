@@ -19,10 +19,12 @@ noise of ``centreline_noise_px`` (default: half of ``noise_px``), on a random st
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import Optional
 
 import numpy as np
 
 from common.geometry.camera import Camera, StereoRig
+from common.geometry.config import NonNegativeNumber, Probability, check_fields
 from common.geometry.needle import NeedleModel
 from common.geometry.transforms import inv_T, make_T, rotvec_to_R, transform_points
 
@@ -58,23 +60,15 @@ def arc_bbox(camera: Camera, T_ecm_needle: np.ndarray, model: NeedleModel, n: in
 class Oracle:
     """Oracle keypoint generator (see the module docstring). Pixel sizes in px."""
 
-    noise_px: float = 0.0
-    missing_prob: float = 0.0
-    outlier_prob: float = 0.0
-    outlier_px: float = 30.0
+    noise_px: NonNegativeNumber = 0.0
+    missing_prob: Probability = 0.0
+    outlier_prob: Probability = 0.0
+    outlier_px: NonNegativeNumber = 30.0
     seed: int = 0
-    centreline_noise_px: float | None = None      # None: noise_px / 2
+    centreline_noise_px: Optional[NonNegativeNumber] = None      # None: noise_px / 2
 
     def __post_init__(self):
-        for name in ("noise_px", "outlier_px") + (() if self.centreline_noise_px is None
-                                                  else ("centreline_noise_px",)):
-            v = getattr(self, name)
-            if not (np.isfinite(v) and v >= 0):
-                raise ValueError(f"oracle: {name} must be >= 0, got {v}")
-        for name in ("missing_prob", "outlier_prob"):
-            v = getattr(self, name)
-            if not (0.0 <= v <= 1.0):
-                raise ValueError(f"oracle: {name} must be in [0, 1], got {v}")
+        check_fields(self, "oracle: {name} {why}")
 
     @classmethod
     def from_params(cls, params: dict) -> "Oracle":

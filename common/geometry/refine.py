@@ -44,6 +44,7 @@ from typing import Mapping, Optional, Sequence
 import numpy as np
 
 from common.geometry import lm
+from common.geometry.config import NonNegativeNumber, PositiveNumber, at_least, check_fields, in_range
 from common.geometry.camera import Camera, StereoRig
 from common.geometry.needle import NeedleModel
 from common.geometry.rest_prior import resting_log_prior
@@ -95,74 +96,57 @@ class ArcObservation:
 @dataclass(frozen=True)
 class RefineConfig:
     """Tuning of the fit. Pixel sigmas set the relative weight of the two terms; the robust
-    scale is in units of those sigmas."""
+    scale is in units of those sigmas. Each field's constraint is on its type
+    (``common.geometry.config``)."""
 
-    max_curve_points: int = 64      # observed centreline points kept per camera (even in arc length)
-    n_samples: int = 24             # projected arc samples that start each point's foot search
-    foot_steps: int = 1             # then Newton steps along the projected arc, once per pose
-    warm_steps: int = 1             # Newton steps from feet carried over from the previous pose
-    research_rad: float = 0.02      # after a step this large (rotation, rad) the feet are searched
-    research_m: float = 0.001       # afresh (or translation, m); smaller steps carry them over
-    max_step_rad: float = 0.1       # a step turns at most this much (rad) ...
-    max_step_m: float = 0.005       # ... and moves at most this much (m)
-    sigma_kp_px: float = 1.0        # assumed keypoint noise
-    sigma_curve_px: float = 0.5     # assumed centreline noise
+    max_curve_points: at_least(2) = 64      # observed centreline points kept per camera (even in arc length)
+    n_samples: at_least(2) = 24             # projected arc samples that start each point's foot search
+    foot_steps: at_least(1) = 1             # then Newton steps along the projected arc, once per pose
+    warm_steps: at_least(1) = 1             # Newton steps from feet carried over from the previous pose
+    research_rad: PositiveNumber = 0.02      # after a step this large (rotation, rad) the feet are searched
+    research_m: PositiveNumber = 0.001       # afresh (or translation, m); smaller steps carry them over
+    max_step_rad: PositiveNumber = 0.1       # a step turns at most this much (rad) ...
+    max_step_m: PositiveNumber = 0.005       # ... and moves at most this much (m)
+    sigma_kp_px: PositiveNumber = 1.0        # assumed keypoint noise
+    sigma_curve_px: PositiveNumber = 0.5     # assumed centreline noise
     min_score: float = 0.5          # keypoints scored below are left out (as the PnP does)
     # one camera poses the needle only through its arc's apparent size and shape: at 10-25 cm its
     # depth and tilt can be off by centimetres and tens of degrees, so the default needs both
     min_cameras: int = 2
     min_centreline_w: float = 0.05  # centreline points weighted below are left out
-    cauchy_scale: float = 3.0       # robust loss scale, in sigmas
-    cauchy_scale_end: float = 1.0   # the same for the overshoot past an arc's end (spurs: thread, glare)
-    max_iter: int = 30
-    step_tol: float = 1.0           # converged after a step worth < this many residual variances
-    max_reject: int = 5             # ... or after this many rejected steps in a row
-    coarse_iter: int = 3            # iterations every candidate gets before those that met merge
-    max_candidates: int = 3         # and the best this many are refined to the end
+    cauchy_scale: PositiveNumber = 3.0       # robust loss scale, in sigmas
+    cauchy_scale_end: PositiveNumber = 1.0   # the same for the overshoot past an arc's end (spurs: thread, glare)
+    max_iter: at_least(1) = 30
+    step_tol: PositiveNumber = 1.0           # converged after a step worth < this many residual variances
+    max_reject: at_least(1) = 5             # ... or after this many rejected steps in a row
+    coarse_iter: at_least(0) = 3            # iterations every candidate gets before those that met merge
+    max_candidates: at_least(1) = 3         # and the best this many are refined to the end
     add_mirrors: bool = True        # also refine each candidate's mirror image about the line of sight
-    merge_mm: float = 5.0           # starting poses closer than this and merge_deg are refined once
-    merge_deg: float = 10.0
-    ambiguity_chi2: float = 9.0     # a competitor costing < this many residual variances more: ambiguous
-    distinct_mm: float = 1.0        # competitors closer than this and distinct_deg are the same solution
-    distinct_deg: float = 2.0
+    merge_mm: PositiveNumber = 5.0           # starting poses closer than this and merge_deg are refined once
+    merge_deg: PositiveNumber = 10.0
+    ambiguity_chi2: PositiveNumber = 9.0     # a competitor costing < this many residual variances more: ambiguous
+    distinct_mm: PositiveNumber = 1.0        # competitors closer than this and distinct_deg are the same solution
+    distinct_deg: PositiveNumber = 2.0
     edge_on_deg: float = 10.0       # arc plane within this angle of the line of sight -> ambiguous
-    edge_on_chi2: float = 100.0     # and then competitors costing < this many variances more count
+    edge_on_chi2: PositiveNumber = 100.0     # and then competitors costing < this many variances more count
     min_depth_m: float = 1e-3       # every point must be this far in front of both cameras
-    max_depth_m: float = 2.0        # and the needle nearer than this (a PnP start may run off)
-    min_sigma_ratio: float = 0.25   # the covariance assumes at least this fraction of the sigmas
+    max_depth_m: PositiveNumber = 2.0        # and the needle nearer than this (a PnP start may run off)
+    min_sigma_ratio: PositiveNumber = 0.25   # the covariance assumes at least this fraction of the sigmas
     # The error no image noise explains (the needle's wire, arc, taper and swage against the model,
     # the rig's calibration), 1 sigma per axis, added to the covariance: from the images alone a
     # dense fit is a few hundredths of a millimetre and a tenth of a degree thin near the
     # endoscope, and errors the two nearly alike cameras share go into the pose, not the
     # residuals. Chosen on the end-identity fit folders, not the test sets, for a NEES median
     # near chi-square(6)'s 5.35 there (needletrack eval; docs/geometry.md#covariances-and-nees).
-    model_sigma_mm: float = 0.03
-    model_sigma_deg: float = 0.25
+    model_sigma_mm: NonNegativeNumber = 0.03
+    model_sigma_deg: NonNegativeNumber = 0.25
     # with a support surface's normal given (``refine(support_normal=)``): probability that the
     # needle rests on it, and the spread of its tilt then (common/geometry/rest_prior.py)
-    rest_prior: float = 0.5
-    rest_sigma_deg: float = 10.0
+    rest_prior: in_range(0.0, 1.0) = 0.5
+    rest_sigma_deg: PositiveNumber = 10.0
 
     def __post_init__(self):
-        positive = ("sigma_kp_px", "sigma_curve_px", "cauchy_scale", "cauchy_scale_end", "step_tol", "merge_mm",
-                    "merge_deg", "distinct_mm", "distinct_deg", "ambiguity_chi2",
-                    "research_rad", "research_m", "max_step_rad", "max_step_m",
-                    "min_sigma_ratio", "max_depth_m", "edge_on_chi2", "rest_sigma_deg")
-        for name in positive:
-            v = getattr(self, name)
-            if not (np.isfinite(v) and v > 0):
-                raise ValueError(f"RefineConfig.{name}: must be a positive number, got {v}")
-        for name, lo in (("max_curve_points", 2), ("n_samples", 2), ("max_iter", 1),
-                         ("max_candidates", 1), ("max_reject", 1), ("coarse_iter", 0),
-                         ("foot_steps", 1), ("warm_steps", 1)):
-            if int(getattr(self, name)) < lo:
-                raise ValueError(f"RefineConfig.{name}: must be at least {lo}, got {getattr(self, name)}")
-        for name in ("model_sigma_mm", "model_sigma_deg"):
-            v = getattr(self, name)
-            if not (np.isfinite(v) and v >= 0):
-                raise ValueError(f"RefineConfig.{name}: must be a number >= 0, got {v}")
-        if not 0.0 <= self.rest_prior < 1.0:
-            raise ValueError(f"RefineConfig.rest_prior: must be in [0, 1), got {self.rest_prior}")
+        check_fields(self)
 
 
 @dataclass

@@ -15,7 +15,8 @@ without raising (``needletrack validate`` reports them all). A value is converte
 msgspec, the schema mechanism of messages too (``common.runtime.schema``): ``int``, ``float``
 (finite; an int is accepted), ``bool``, ``str``, ``dict``, ``list[T]``, ``tuple[T, ...]``,
 ``Literal[...]``, unions (``X | None``), and constraints on the field
-(``Annotated[float, msgspec.Meta(ge=0), Says("must not be negative, got {value}")]``). No
+(``Annotated[float, msgspec.Meta(ge=0), Says("must not be negative, got {value}")]``, or the
+words as the ``Meta``'s ``description``: ``common.geometry.config``). No
 coercion of strings: ``'5'`` is not an int.
 """
 from __future__ import annotations
@@ -82,8 +83,10 @@ def _convert(tp, value):
     except msgspec.ValidationError as exc:
         if typing.get_origin(tp) is Annotated and _convert(tp.__origin__, value)[1] is None:
             says = next((m for m in tp.__metadata__ if isinstance(m, Says)), None)   # the type fits, a constraint not
+            words = says.text if says else next((m.description for m in tp.__metadata__       # or a Meta's words
+                                                 if isinstance(m, msgspec.Meta) and m.description), None)
             detail = str(exc)
-            return None, says.text.format(value=value) if says else f"{detail[:1].lower()}{detail[1:]}, got {value!r}"
+            return None, words.format(value=value) if words else f"{detail[:1].lower()}{detail[1:]}, got {value!r}"
         return None, f"expected {_describe(_bare(tp))}, got {value!r}"
 
 
@@ -152,7 +155,7 @@ def merge_schemas(name: str, *schemas: type, drop: tuple = ()) -> type:
     name)."""
     fields, sources = {}, {}
     for s in schemas:
-        hints = _hints(s)
+        hints = _declared(s)                   # with their constraints
         for f in dataclasses.fields(s):
             if f.name in drop:
                 continue

@@ -22,7 +22,6 @@ from common.runtime.messages import (
     decode,
     encode,
 )
-from common.runtime.node import NodeError
 from common.runtime.params import ParamError
 from nodes.refine import RefineNode
 
@@ -134,7 +133,7 @@ def test_node_params_reach_the_fit():
     assert node.config.sigma_curve_px == 0.3 and node.config.min_score == 0.7 and node.config.max_curve_points == 48
     assert node.max_rms_px == 5 and not node.tracking.enabled and node.tracking.cold_every == 7
     assert RefineNode.offline({}, wired=["left", "right", "calib"]).config.min_score == 0.5
-    with pytest.raises(NodeError, match="sigma_kp_px"):
+    with pytest.raises(ParamError, match=r"sigma_kp_px: must be a positive number, got -1.0"):   # RefineConfig's constraint
         RefineNode.offline({"sigma_kp_px": -1.0})
     with pytest.raises(ParamError, match="max_iter: expected int, got 'many'"):
         RefineNode.offline({"max_iter": "many"})

@@ -1,0 +1,69 @@
+"""Constraints on the fields of the geometry's configs (``RefineConfig``, ``TrackerConfig``,
+``Oracle``), declared once on the field as msgspec ``Meta`` (``Annotated[float, Meta(gt=0)]``)
+with the words of the refusal as its ``description`` (``{value}``: the value refused).
+
+The runtime's params read the same annotations (``common.runtime.params``): a node param that
+breaks one is refused where the graph sets it, in the same words. ``check_fields`` refuses a
+config built in code. The geometry does not import the runtime; both speak msgspec.
+"""
+from __future__ import annotations
+
+import dataclasses
+import functools
+import sys
+import types
+import typing
+from typing import Annotated
+
+import msgspec
+
+_MAX = sys.float_info.max
+
+PositiveNumber = Annotated[float, msgspec.Meta(gt=0, le=_MAX, description="must be a positive number, got {value}")]
+"""A finite number > 0."""
+
+NonNegativeNumber = Annotated[float, msgspec.Meta(ge=0, le=_MAX, description="must be >= 0, got {value}")]
+"""A finite number >= 0."""
+
+Probability = Annotated[float, msgspec.Meta(ge=0, le=1, description="must be in [0, 1], got {value}")]
+
+
+def at_least(lo: int) -> type:
+    """An int >= ``lo``."""
+    return Annotated[int, msgspec.Meta(ge=lo, description=f"must be at least {lo}, got {{value}}")]
+
+
+def in_range(lo: float, below: float) -> type:
+    """A number in ``[lo, below)``."""
+    return Annotated[float, msgspec.Meta(ge=lo, lt=below, description=f"must be in [{lo:g}, {below:g}), got {{value}}")]
+
+
+@functools.lru_cache(maxsize=None)
+def _constrained(cls) -> tuple:
+    """``(name, type, words)`` of ``cls``'s fields that carry a ``Meta``, in declared order."""
+    hints = typing.get_type_hints(cls, include_extras=True)
+    out = []
+    for f in dataclasses.fields(cls):
+        tp = hints[f.name]
+        if typing.get_origin(tp) in (typing.Union, types.UnionType):      # Optional[...]: its other type
+            tp = next(a for a in typing.get_args(tp) if a is not type(None))
+        if typing.get_origin(tp) is not Annotated:
+            continue
+        meta = next((m for m in tp.__metadata__ if isinstance(m, msgspec.Meta)), None)
+        if meta is not None:
+            out.append((f.name, tp, meta.description))
+    return tuple(out)
+
+
+def check_fields(obj, where: str = "{owner}.{name}: {why}") -> None:
+    """ValueError for the first field of the dataclass ``obj`` that breaks its declared
+    constraint, placed by ``where`` (``owner``: the class's name, ``name``, ``why``)."""
+    for name, tp, words in _constrained(type(obj)):
+        value = getattr(obj, name)
+        if value is None:                 # an Optional field left out
+            continue
+        try:
+            msgspec.convert(value.item() if hasattr(value, "item") else value, tp)   # numpy scalars as Python's
+        except msgspec.ValidationError as exc:
+            why = words.format(value=value) if words else str(exc)
+            raise ValueError(where.format(owner=type(obj).__name__, name=name, why=why)) from None
