@@ -16,7 +16,10 @@ the order and convention of ``PoseEstimate.covariance``. The state, by mode:
 
 A measurement is a ``T_world_needle`` with its 6x6 covariance (world axes). It is gated by its
 Mahalanobis distance to the prediction (``gate_nis``, chi-square with 6 degrees of freedom);
-``reset_after`` rejected in a row start the track again from the newest one.
+``reset_after`` rejected in a row start the track again from the newest one; ``reset_after_held``
+a settled track (at rest or held, its grasp sure, that long in its mode): a needle lying still or
+moving with closed jaws does not jump, but a fit biased by jaws or tissue hiding part of the arc
+can be wrong many frames in a row.
 
 Grasp and release come from what the system measures, never from ground truth (``jaw_holds``,
 ``NeedleTracker._modes``): an instrument grasps the needle when its jaws are closed (``jaw_rad``
@@ -24,15 +27,13 @@ at most ``closed_rad``) with the tracked arc between them (within ``grasp_reach_
 axis, from the pivot to ``jaw_length_m`` along z). Every grasp is on trial: beside it the
 alternative, the needle left where it was, is kept, and each frame's measurement adds to the
 log likelihood ratio of the two (a sequential test; a frame counts only where the two predictions
-lie at least 1 sigma apart: nothing while the jaws stand still). At
-``-grasp_llr`` the needle moves with the jaws and the grasp is sure; at ``+grasp_llr`` it stayed
-behind: the grasp is undone, the needle at rest, and those jaws grasp nothing until they open.
-The holder lets go when its jaws open (``jaw_rad`` at least ``open_rad``): to another instrument
-whose jaws hold it (a handover), else the needle stays where the jaws let it go, at rest (in the
-tissue, on the pad): measurements that say otherwise (``reset_after`` rejected) start the track
-again, free. A free needle is weighed the same way
-against the alternative that it stays where it was: at ``+grasp_llr`` it is at rest; at
-``-grasp_llr`` it moves, and the alternative is armed again where it is.
+lie at least 1 sigma apart: nothing while the jaws stand still). At ``-grasp_llr`` the needle
+moves with the jaws and the grasp is sure; at ``+grasp_llr`` it stayed behind: the grasp is
+undone, the needle at rest, and those jaws grasp nothing until they open. The holder lets go when
+its jaws open (``jaw_rad`` at least ``open_rad``): to another instrument whose jaws hold it (a
+handover), else the needle stays where the jaws let it go, at rest (in the tissue, on the pad).
+A free needle is weighed the same way against the alternative that it stays where it was: at
+``+grasp_llr`` it is at rest; at ``-grasp_llr`` it moves, and the alternative is armed again.
 
 Which end is the tip belongs to the track: a measurement is read as it is or turned end for end
 (``end_identity.end_for_end_delta``), whichever lies within the gate, and its stated end
@@ -63,7 +64,8 @@ CHI2_6_999 = 22.46
 class TrackerConfig:
     """The tracker's models and rules (see the module docstring); lengths m, angles rad, time s."""
     gate_nis: float = CHI2_6_999            # a measurement farther than this (Mahalanobis^2) is rejected
-    reset_after: int = 3                    # rejected measurements in a row that start the track again
+    reset_after: int = 3                    # rejected measurements in a row that start a free track again
+    reset_after_held: int = 30              # ... a settled one (1 s at 30 Hz: see the docstring)
     rest_sigma_m: NonNegativeNumber = 0.05e-3           # random walk of a needle at rest, per sqrt(s)
     rest_sigma_rad: NonNegativeNumber = math.radians(0.2)
     slip_sigma_m: NonNegativeNumber = 0.1e-3            # slip in the jaws, per sqrt(s)
@@ -82,10 +84,10 @@ class TrackerConfig:
     max_coast_s: float = 0.5                # a free needle unseen this long is lost
 
     def __post_init__(self):
-        if not (self.gate_nis > 0 and self.reset_after >= 1 and self.grasp_llr > 0
+        if not (self.gate_nis > 0 and min(self.reset_after, self.reset_after_held) >= 1 and self.grasp_llr > 0
                 and 0 <= self.closed_rad < self.open_rad and self.max_coast_s > 0
                 and min(self.grasp_reach_m, self.jaw_length_m) > 0):
-            raise ValueError("tracker: needs gate_nis, grasp_llr > 0, reset_after >= 1, "
+            raise ValueError("tracker: needs gate_nis, grasp_llr > 0, reset_after and reset_after_held >= 1, "
                              "0 <= closed_rad < open_rad, max_coast_s > 0 and positive grasp lengths")
         check_fields(self, "tracker: {name} {why}")
 
@@ -230,7 +232,7 @@ class NeedleTracker:
         self.stamp_ns: Optional[int] = None
         self.last_seen_ns: Optional[int] = None
         self.identity: Optional[tuple] = None      # end_identity.track_identity's state
-        self.rejected = 0
+        self.rejected, self.mode_steps = 0, 0      # rejected in a row; frames in this mode (and holder)
         self.trial: Optional[dict] = None          # the alternative: the needle stayed (_arm_trial)
         self.refused: set = set()                  # jaws whose grasp was undone, until they open
         self._last_jaws: dict = {}
@@ -258,6 +260,7 @@ class NeedleTracker:
                    holder: Optional[str] = None) -> None:
         """Put the state in ``mode`` from a world pose and its covariance (a free needle starts
         with no known velocity: 0, 1 sigma ``free_speed_m_s``, ``free_turn_rad_s``)."""
+        self.mode_steps = 0 if (mode, holder) != (self.mode, self.holder) else self.mode_steps
         self.mode, self.holder = mode, holder
         if mode == "held":
             Tj = jaws[holder].T_world_jaw
@@ -444,6 +447,7 @@ class NeedleTracker:
             event = "release"
         if self.active:
             self.predict(stamp_ns)
+            self.mode_steps += 1
             if self.mode == "free" and measurement is None and \
                     (stamp_ns - self.last_seen_ns) * 1e-9 > self.cfg.max_coast_s:
                 self.reset()
@@ -470,7 +474,8 @@ class NeedleTracker:
                 event = "flip" if flipped else event
             else:
                 self.rejected += 1
-                if self.rejected >= self.cfg.reset_after:
+                settled = self.mode != "free" and self.trial is None and self.mode_steps >= self.cfg.reset_after_held
+                if self.rejected >= (self.cfg.reset_after_held if settled else self.cfg.reset_after):
                     refused = self.refused
                     self.reset()
                     self.refused = refused

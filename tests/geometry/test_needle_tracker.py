@@ -270,3 +270,24 @@ def test_the_bench_prints_its_figures(tmp_path, capsys):
         r = res[run]
         assert r["swaps"] == 0 and r["in_hand"]["wrong_holder"] == 0 and r["position_mm"] < 0.5
     assert "T_jaw_needle from the 10th held frame" in capsys.readouterr().out
+
+
+def test_a_settled_track_outlasts_a_run_of_biased_fits_and_restarts_only_after_reset_after_held():
+    """A needle at rest for a second: the jaws or the tissue hiding part of its arc can bias the
+    fit for many frames in a row; three rejected do not restart the track, ``reset_after_held`` do."""
+    frames = take("pickup", 8)         # grasped at frame 79
+    rng = np.random.default_rng(8)
+    C = stated_covariance(rng)
+    tr = NeedleTracker(NEEDLE)
+    settle = TrackerConfig().reset_after_held + 2
+    assert not any(holds for fr in frames[:settle + 30] for _T, _jaw, holds in fr.instruments.values())
+    for k in range(settle):
+        o = tr.step(k * DT_NS, jaws_of(frames[k]), measure(rng, frames[k].T_world_needle, C))
+    assert o.mode == "rest"
+    events = []
+    for k in range(settle, settle + TrackerConfig().reset_after_held):
+        o = tr.step(k * DT_NS, jaws_of(frames[k]), Measurement(make_T(np.eye(3), [0.004, 0, 0]) @ frames[k].T_world_needle, C))
+        events.append(o.event)
+        if o.event != "restart":
+            assert o.used is False and pose_error(o.T_world_needle, frames[k].T_world_needle)[0] < 0.6e-3
+    assert events.count("restart") == 1 and events[-1] == "restart"
