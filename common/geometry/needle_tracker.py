@@ -17,9 +17,9 @@ the order and convention of ``PoseEstimate.covariance``. The state, by mode:
 A measurement is a ``T_world_needle`` with its 6x6 covariance (world axes). It is gated by its
 Mahalanobis distance to the prediction (``gate_nis``, chi-square with 6 degrees of freedom);
 ``reset_after`` rejected in a row start the track again from the newest one; ``reset_after_held``
-a settled track (at rest or held, its grasp sure, that long in its mode): a needle lying still or
-moving with closed jaws does not jump, but a fit biased by jaws or tissue hiding part of the arc
-can be wrong many frames in a row.
+a settled track (at rest or held, that many frames old): a needle lying still or moving with
+closed jaws does not jump, but a fit biased by jaws or tissue hiding part of the arc can be wrong
+many frames in a row.
 
 Grasp and release come from what the system measures, never from ground truth (``jaw_holds``,
 ``NeedleTracker._modes``): an instrument grasps the needle when its jaws are closed (``jaw_rad``
@@ -232,7 +232,7 @@ class NeedleTracker:
         self.stamp_ns: Optional[int] = None
         self.last_seen_ns: Optional[int] = None
         self.identity: Optional[tuple] = None      # end_identity.track_identity's state
-        self.rejected, self.mode_steps = 0, 0      # rejected in a row; frames in this mode (and holder)
+        self.rejected, self.age = 0, 0             # rejected in a row; frames since the track started
         self.trial: Optional[dict] = None          # the alternative: the needle stayed (_arm_trial)
         self.refused: set = set()                  # jaws whose grasp was undone, until they open
         self._last_jaws: dict = {}
@@ -260,7 +260,6 @@ class NeedleTracker:
                    holder: Optional[str] = None) -> None:
         """Put the state in ``mode`` from a world pose and its covariance (a free needle starts
         with no known velocity: 0, 1 sigma ``free_speed_m_s``, ``free_turn_rad_s``)."""
-        self.mode_steps = 0 if (mode, holder) != (self.mode, self.holder) else self.mode_steps
         self.mode, self.holder = mode, holder
         if mode == "held":
             Tj = jaws[holder].T_world_jaw
@@ -447,7 +446,7 @@ class NeedleTracker:
             event = "release"
         if self.active:
             self.predict(stamp_ns)
-            self.mode_steps += 1
+            self.age += 1
             if self.mode == "free" and measurement is None and \
                     (stamp_ns - self.last_seen_ns) * 1e-9 > self.cfg.max_coast_s:
                 self.reset()
@@ -474,7 +473,7 @@ class NeedleTracker:
                 event = "flip" if flipped else event
             else:
                 self.rejected += 1
-                settled = self.mode != "free" and self.trial is None and self.mode_steps >= self.cfg.reset_after_held
+                settled = self.mode != "free" and self.age >= self.cfg.reset_after_held
                 if self.rejected >= (self.cfg.reset_after_held if settled else self.cfg.reset_after):
                     refused = self.refused
                     self.reset()
