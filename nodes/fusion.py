@@ -54,7 +54,7 @@ class FusionNode(Node):
         use_covariance: bool = True     # weigh the estimates by their covariances (else equally)
         method: str = "multiview"       # the method name of the fused poses
         reset_on_sequence: bool = True  # a new truth sequence label starts the queue again
-        max_wait: int = 30              # frames an estimate waits for its ECM pose, truth or mode (then no_pose.no_ecm_pose)
+        max_wait: int = 30              # frames an estimate waits for its ECM pose (then no_pose.no_ecm_pose), truth or mode
 
     def setup(self):
         p = self.p
