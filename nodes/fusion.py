@@ -16,7 +16,9 @@ measures: ``motion``, optional, the tracker's poses (``tracker/pose``), read onl
 for its frame's mode until the tracker has stated that frame or a later one (it steps frames
 in order; one it skipped had no track); a frame without a track passes alone too
 (``resets.motion_unknown``), as does one whose mode did not come within ``max_wait`` frames
-(``no_motion``). While the tracker says ``rest`` the fusion is the same as without it.
+(``no_motion``). While the tracker says ``rest`` the fusion is the same as without it. A needle
+in the jaws is fused in the jaw frame by the tracker itself: its ``held`` state, ``T_jaw_needle``
+filtered over frames (``tracker/in_hand``).
 
 ``truth`` is read for its ``sequence`` label (a new multi-view group resets the queue) and,
 only where ``motion`` is not wired (a graph without the tracker, the static evaluation), for
@@ -54,7 +56,7 @@ class FusionNode(Node):
         use_covariance: bool = True     # weigh the estimates by their covariances (else equally)
         method: str = "multiview"       # the method name of the fused poses
         reset_on_sequence: bool = True  # a new truth sequence label starts the queue again
-        max_wait: int = 30              # frames an estimate waits for its ECM pose (then no_pose.no_ecm_pose), truth or mode
+        max_wait: int = 30              # frames an estimate waits for its ECM pose (else no_pose.no_ecm_pose), truth, mode
 
     def setup(self):
         p = self.p
