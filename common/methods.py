@@ -67,6 +67,10 @@ POSE_OUTPUTS = {m.name: m.output for m in REGISTRY}
 METHOD_NEEDS = {m.name: (m.fuses,) for m in REGISTRY if m.fuses}
 PAPER_POSE = {m.name: m.paper for m in REGISTRY if m.paper}
 
+TRACK_MODES = ("rest", "held", "free")
+"""The ``tracked`` method's modes, what its poses state (``PoseEstimate.mode``): the needle at
+rest in the world, held in an instrument's jaws, free and moving (docs/tracking.md)."""
+
 
 def final_method(present) -> str | None:
     """The method that leads among ``present`` (names): the first of ``FINAL_ORDER``; a name

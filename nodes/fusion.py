@@ -6,10 +6,25 @@ distance of those to the fused position (m); the covariance when every input car
 inputs' shared model error (``model_sigma_m``, ``model_sigma_rad``) taken out before weighing and
 added back once; ``ambiguous`` when every averaged estimate was; ``end_identity`` voted by the
 estimates, those turned end for end counting against it, a contested tip below 0.95 flagged
-(``end_identity.contested``). ``truth`` is used only for its ``sequence`` label (a new multi-view
-group resets the queue) and ``needle_at_rest``: a frame of a take whose needle moves is no
-multi-view group, its estimate passes alone (``resets.moving_needle``). Command ``reset`` empties the queue. Params: ``needletrack describe
-fusion`` ([docs/nodes.md](../docs/nodes.md)).
+(``end_identity.contested``).
+
+Only views of a needle at rest are fused, and whether it is comes from what the system
+measures: ``motion``, optional, the tracker's poses (``tracker/pose``), read only for their
+``mode`` (``PoseEstimate.mode``, docs/tracking.md). A frame whose needle the tracker says is
+``held`` or ``free`` is fused with no other: the window starts again, the estimate passes alone
+(``resets.needle_moves``), and the next frame at rest starts a new window. An estimate waits
+for its frame's mode until the tracker has stated that frame or a later one (it steps frames
+in order; one it skipped had no track); a frame without a track passes alone too
+(``resets.motion_unknown``), as does one whose mode did not come within ``max_wait`` frames
+(``no_motion``). While the tracker says ``rest`` the fusion is the same as without it. A needle
+in the jaws is fused in the jaw frame by the tracker itself: its ``held`` state, ``T_jaw_needle``
+filtered over frames (``tracker/in_hand``).
+
+``truth`` is read for its ``sequence`` label (a new multi-view group resets the queue) and,
+only where ``motion`` is not wired (a graph without the tracker, the static evaluation), for
+``needle_at_rest``: a frame of a take whose needle moves is no multi-view group, its estimate
+passes alone (``resets.moving_needle``). Command ``reset`` empties the queue. Params:
+``needletrack describe fusion`` ([docs/nodes.md](../docs/nodes.md)).
 """
 from __future__ import annotations
 
@@ -26,9 +41,9 @@ from common.runtime.pairing import SeqCache, SeqJoin
 class FusionNode(Node):
     """Multi-view fusion of the last k estimates, in the current ECM frame."""
 
-    INPUTS = {"pose": PoseEstimate, "ecm": EcmPose, "truth": GroundTruth}
+    INPUTS = {"pose": PoseEstimate, "ecm": EcmPose, "truth": GroundTruth, "motion": PoseEstimate}
     OUTPUTS = ("pose",)
-    KEEP_ALL = ("pose", "ecm", "truth")
+    KEEP_ALL = ("pose", "ecm", "truth", "motion")
 
     @dataclass
     class Params:
@@ -41,7 +56,7 @@ class FusionNode(Node):
         use_covariance: bool = True     # weigh the estimates by their covariances (else equally)
         method: str = "multiview"       # the method name of the fused poses
         reset_on_sequence: bool = True  # a new truth sequence label starts the queue again
-        max_wait: int = 30              # frames an estimate waits for its ECM pose or truth (then no_pose.no_ecm_pose)
+        max_wait: int = 30              # frames an estimate waits for its ECM pose (else no_pose.no_ecm_pose), truth, mode
 
     def setup(self):
         p = self.p
@@ -53,14 +68,21 @@ class FusionNode(Node):
         self.reset_on_sequence = p.reset_on_sequence
         self.ecm_poses = SeqCache()
         self.sequences = SeqCache()
-        self.moving = SeqCache()                              # seqs whose needle moves in its take
-        self.pending = SeqJoin(p.max_wait, in_order=True)    # views waiting for their ECM pose / truth
+        self.moving = SeqCache()                              # seqs whose needle moves in its take (truth)
+        self.modes = SeqCache()                               # seq -> the tracker's mode
+        self.tracked = -1                                     # the newest frame the tracker stated
+        self.after_move = False                               # the last estimate's needle was not at rest
+        self.said_no_mode = False
+        self.pending = SeqJoin(p.max_wait, in_order=True)    # views waiting for their ECM pose / truth / mode
 
     def on_stream_reset(self):
         """A new source stream: the window of views and every per-frame cache start again."""
         self.ecm_poses.clear()
         self.sequences.clear()
         self.moving.clear()
+        self.modes.clear()
+        self.tracked = -1
+        self.after_move = False
         gone = self.pending.reset()
         if gone:
             self.count("no_pose.source_restart", len(gone))
@@ -73,8 +95,19 @@ class FusionNode(Node):
 
     def on_truth(self, msg: GroundTruth):
         self.sequences.put(msg.seq, msg.sequence)
-        if msg.multiview_group is None and msg.sequence is not None:
-            self.moving.put(msg.seq, True)
+        if not self.wired("motion") and msg.multiview_group is None and msg.sequence is not None:
+            self.moving.put(msg.seq, True)                    # the tracker decides where it runs
+        self._drain()
+
+    def on_motion(self, msg: PoseEstimate):
+        if msg.mode is None:                                  # no tracker's: a frame without a track
+            if not self.said_no_mode:
+                self.log.warning("motion: seq %d: a pose without a mode (method %r): the input wants "
+                                 "the tracker's poses (tracker/pose); counted motion.no_mode", msg.seq, msg.method)
+                self.said_no_mode = True
+            self.count("motion.no_mode")
+        self.modes.put(msg.seq, msg.mode)
+        self.tracked = max(self.tracked, msg.seq)
         self._drain()
 
     def on_pose(self, msg: PoseEstimate):
@@ -89,22 +122,37 @@ class FusionNode(Node):
             super().on_command(msg)
 
     # ---------------------------------------------------------------- fusion
-    def _needs(self, msg: PoseEstimate) -> tuple[bool, bool]:
-        """(waiting for the ECM pose, waiting for the truth) of a queued estimate."""
+    def _needs(self, msg: PoseEstimate) -> tuple[bool, bool, bool]:
+        """(waiting for the ECM pose, for the truth, for the tracker's mode) of a queued estimate."""
         ecm = msg.T_world_ecm is None and self.wired("ecm") and msg.seq not in self.ecm_poses
         truth = (self.reset_on_sequence and msg.sequence is None and self.wired("truth")
                  and msg.seq not in self.sequences)
-        return ecm, truth
+        motion = self.wired("motion") and msg.seq not in self.modes and self.tracked < msg.seq
+        return ecm, truth, motion
 
     def _drain(self):
         for msg, _ in self.pending.due(lambda seq, m: not any(self._needs(m))):
-            wait_ecm, wait_truth = self._needs(msg)
+            wait_ecm, wait_truth, wait_motion = self._needs(msg)
             if wait_ecm:
                 self.count("no_pose.no_ecm_pose")
                 continue
             if wait_truth:
                 self.count("no_sequence")
+            if wait_motion:
+                self.count("no_motion")
             self._fuse(msg)
+
+    def _moves(self, seq: int) -> str | None:
+        """Why frame ``seq``'s needle is not taken as at rest (its counter), or None: the
+        tracker's mode where it is wired, else the truth's take of a moving needle."""
+        if self.wired("motion"):
+            mode = self.modes.get(seq)
+            if mode == "rest":
+                return None
+            return "resets.motion_unknown" if mode is None else "resets.needle_moves"
+        if self.reset_on_sequence and self.moving.get(seq):
+            return "resets.moving_needle"
+        return None
 
     def _fuse(self, msg: PoseEstimate):
         T_world_ecm = msg.T_world_ecm
@@ -113,9 +161,12 @@ class FusionNode(Node):
         sequence = msg.sequence
         if sequence is None and self.reset_on_sequence:
             sequence = self.sequences.get(msg.seq)
-        if self.reset_on_sequence and self.moving.get(msg.seq):
-            self.fusion.reset()                               # a moving needle: no views to fuse
-            self.count("resets.moving_needle")
+        moves = self._moves(msg.seq)
+        if moves or self.after_move:
+            self.fusion.reset()               # a moving needle, or the first view at rest after it
+        if moves:
+            self.count(moves)
+        self.after_move = moves is not None
         out = self.fusion.add(msg.T_ecm_needle, T_world_ecm, msg.covariance, seq=msg.seq,
                               sequence=sequence if self.reset_on_sequence else None,
                               common_sigma_m=msg.model_sigma_m or 0.0, ambiguous=bool(msg.ambiguous),

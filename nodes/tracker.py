@@ -25,8 +25,9 @@ Outputs: ``pose``, method ``params.method`` (``tracked``): ``T_ecm_needle`` with
 ``T_world_needle``, ``T_world_ecm`` and the covariance (ECM axes); ``residual`` the
 measurement's Mahalanobis^2 against the prediction (unit ``chi2``; 0 when coasted);
 ``end_identity`` the track's, below 0.95 flagged ``ambiguous`` with the covariance spanning the
-turn. ``in_hand``: while an instrument holds the needle, ``InHandPose`` (``T_jaw_needle`` and its
-covariance in the jaw frame ``<name>_jaw``). Counters: ``rejected`` (gated out), ``turned``
+turn; ``mode`` the track's (``rest``, ``held``, ``free``): what the fusion node reads to fuse
+only views of a needle at rest. ``in_hand``: while an instrument holds the needle,
+``InHandPose`` (``T_jaw_needle`` and its covariance in the jaw frame ``<name>_jaw``). Counters: ``rejected`` (gated out), ``turned``
 (read end for end), ``events.<event>`` (``grasp``, ``handover``, ``release``, ``ungrasp``,
 ``rest``, ``restart``, ``flip``), ``no_covariance`` (a pose without one is no measurement).
 Params: every ``TrackerConfig`` field, ``max_wait``, ``method``: ``needletrack describe tracker``.
@@ -225,7 +226,7 @@ class TrackerNode(Node):
         self.publish("pose", PoseEstimate(
             seq, stamp_ns, self.p.method, T_ecm_needle, out.T_world_needle, T_world_ecm,
             0.0 if out.nis != out.nis else float(out.nis), "chi2", 1, 0.5 * (cov + cov.T),
-            ambiguous=bool(unsure), sequence=sequence, end_identity=out.end_identity))
+            ambiguous=bool(unsure), sequence=sequence, end_identity=out.end_identity, mode=out.mode))
         if out.mode == "held":
             self.publish("in_hand", InHandPose(
                 out.holder, seq, stamp_ns, jaw_frame_id(out.holder), out.T_jaw_needle,

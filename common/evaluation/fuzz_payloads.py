@@ -84,6 +84,8 @@ class CleanStream:
                 out = [m for o, m in node.published if o == "pose"]
                 if out:
                     f[f"{name}/pose"] = out[-1]
+            if "pnp_joint/pose" in f:                 # the tracker's: a needle at rest
+                f["tracker/pose"] = dataclasses.replace(f["pnp_joint/pose"], method="tracked", mode="rest")
             fusion.published.clear()
             fusion.deliver("ecm", f["ecm/pose"])
             fusion.deliver("truth", f["camera/truth"])

@@ -31,6 +31,9 @@ from common.runtime.node import node_class
 from common.runtime.pairing import StereoPairer
 
 SOURCE = "replay"
+LOSSLESS_TRACKER_WAIT = 120
+"""Frames the lossless graph's tracker waits for a refined pose (the queues may hold it back so
+long); its fusions wait twice that for the tracker's mode (the tracker waits on its pose)."""
 
 
 def free_port() -> int:
@@ -73,7 +76,8 @@ def pipeline_graph(dataset: str, *, detector: str = "learned", detector_params: 
     ``refine_params``: more params of the refine node (e.g. ``support_normal_world``).
     ``tracker``: also the tracker node (method ``tracked``: the refined poses over time with the
     instruments' states, docs/tracking.md), for folders of moving takes; also when ``methods``
-    names ``tracked``. ``tracker_params``: its params.
+    names ``tracked``. ``tracker_params``: its params. Where the tracker runs, the fusions take
+    its poses (``motion``): they fuse only the frames whose needle it says is at rest.
     ``rate="paced"``: the replay sends the next frame once both cameras' keypoints of the last
     one are out (closed loop, as fast as the graph goes); the detectors then take every frame.
     """
@@ -133,9 +137,12 @@ def pipeline_graph(dataset: str, *, detector: str = "learned", detector_params: 
     if "triangulation" in wanted:
         nodes.append({"id": "triangulate", "module": "triangulate", "inputs": dict(stereo),
                       "outputs": ["pose", "points"], "env": one})
+    # where the tracker runs, it says which frames' needle is at rest: the fusions fuse only those
+    motion = {"motion": POSE_OUTPUTS["tracked"]} if "tracked" in wanted else {}
+    fusion_wait = {"max_wait": 2 * LOSSLESS_TRACKER_WAIT} if motion and lossless else {}
     if "multiview" in wanted:
-        nodes.append({"id": "fusion", "module": "fusion", "params": {"method": "multiview"},
-                      "inputs": {"pose": "epnp_joint/pose", "ecm": "ecm/pose", "truth": "replay/truth"},
+        nodes.append({"id": "fusion", "module": "fusion", "params": {"method": "multiview", **fusion_wait},
+                      "inputs": {"pose": "epnp_joint/pose", "ecm": "ecm/pose", "truth": "replay/truth", **motion},
                       "outputs": ["pose"], "env": one})
     if "refined" in wanted:
         nodes.append({"id": "refine", "module": "refine", "inputs": dict(stereo),
@@ -143,13 +150,13 @@ def pipeline_graph(dataset: str, *, detector: str = "learned", detector_params: 
                       "outputs": ["pose"], "env": one})
     if "multiview_refined" in wanted:
         nodes.append({"id": "fusion_refined", "module": "fusion",
-                      "params": {"method": "multiview_refined"},
-                      "inputs": {"pose": "refine/pose", "ecm": "ecm/pose", "truth": "replay/truth"},
+                      "params": {"method": "multiview_refined", **fusion_wait},
+                      "inputs": {"pose": "refine/pose", "ecm": "ecm/pose", "truth": "replay/truth", **motion},
                       "outputs": ["pose"], "env": one})
     if "tracked" in wanted:
         # lossless: a frame waits for its refined pose as long as the queues may hold it back
         nodes.append({"id": "tracker", "module": "tracker",
-                      "params": {**({"max_wait": 120} if lossless else {}), **(tracker_params or {})},
+                      "params": {**({"max_wait": LOSSLESS_TRACKER_WAIT} if lossless else {}), **(tracker_params or {})},
                       "inputs": {"pose": "refine/pose", "ecm": "ecm/pose", "instruments": "replay/instruments",
                                  "calib": "replay/calib", "truth": "replay/truth", "eos": "replay/eos"},
                       "outputs": ["pose", "in_hand"], "env": one})

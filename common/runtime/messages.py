@@ -16,6 +16,7 @@ from typing import Literal, Optional
 import numpy as np
 
 from common.frames import CAMERAS  # noqa: F401  (re-exported)
+from common.methods import TRACK_MODES
 from common.runtime.checks import (  # noqa: F401  (re-exported: the messages' API)
     MAX_ARRAY_ELEMENTS,
     MAX_COORD,
@@ -219,6 +220,9 @@ class PoseEstimate(Message):
     ``end_identity``: the probability that the needle's tip is where this pose puts it; the other
     answer is the pose turned end for end (``common.geometry.refine.tip_for_tail``, the same arc).
     Absent: the detectors stated nothing (A was taken as the tip).
+    ``mode``: a tracker's decision at this frame, from what it measures (``TRACK_MODES``):
+    ``rest`` the needle at rest in the world, ``held`` in an instrument's jaws, ``free`` moving on
+    its own; absent: no tracker decided (docs/tracking.md). The fusion fuses only views at rest.
     """
 
     SCHEMA = "needletrack.PoseEstimate"
@@ -239,6 +243,7 @@ class PoseEstimate(Message):
     model_sigma_m: Optional[Number] = None
     model_sigma_rad: Optional[Number] = None
     end_identity: Optional[Number] = None
+    mode: Optional[Literal[TRACK_MODES]] = None
 
     def validate(self):
         err = pose_invariant_error(self)

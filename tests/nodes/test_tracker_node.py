@@ -64,6 +64,9 @@ def test_the_node_tracks_a_handover_and_publishes_the_needle_in_the_jaws():
         assert pose_error(m.T_world_needle, frames[seq].T_world_needle)[0] < 1e-3
         assert np.allclose(T_world_ecm @ m.T_ecm_needle, m.T_world_needle)
     assert {m.frame_id for m in in_hand} == {"psm1_jaw", "psm2_jaw"}
+    # each pose states the track's mode (what the fusion reads): held wherever it is in the jaws
+    assert {poses[m.seq].mode for m in in_hand} == {"held"}
+    assert {m.mode for m in poses.values()} <= {"rest", "held", "free"}
     last = decode(encode(in_hand[-1]), InHandPose)
     fr = frames[last.seq]
     T_jn = inv_T(fr.instruments["psm2"][0]) @ fr.T_world_needle
