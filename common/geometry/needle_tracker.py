@@ -54,10 +54,7 @@ from common.geometry.fusion import covariance_to_frame, without_common
 from common.geometry.needle import NeedleModel
 from common.geometry.refine import _pose_delta as pose_delta
 from common.geometry.transforms import inv_T, make_T, rotvec_to_R, skew, transform_points
-from common.methods import TRACK_MODES
 
-MODES = TRACK_MODES
-"""The modes (``common.methods.TRACK_MODES``: what the tracked poses state, ``PoseEstimate.mode``)."""
 CHI2_6_999 = 22.46
 """Chi-square with 6 degrees of freedom exceeds this in 0.1% of the draws."""
 

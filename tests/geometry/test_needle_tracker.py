@@ -10,7 +10,6 @@ from common.evaluation.metrics import pose_nees
 from common.evaluation.tracker_bench import stated_covariance
 from common.geometry.needle import NeedleModel
 from common.geometry.needle_tracker import (
-    MODES,
     Jaw,
     Measurement,
     NeedleTracker,
@@ -19,6 +18,7 @@ from common.geometry.needle_tracker import (
     retract,
     turned_end_for_end,
 )
+from common.methods import TRACK_MODES as MODES
 from common.geometry.transforms import inv_T, make_T, pose_error, rotvec_to_R
 from common.sim.motion import FPS, script_take
 
