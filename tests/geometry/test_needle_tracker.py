@@ -18,7 +18,6 @@ from common.geometry.needle_tracker import (
     retract,
     turned_end_for_end,
 )
-from common.methods import TRACK_MODES as MODES
 from common.geometry.transforms import inv_T, make_T, pose_error, rotvec_to_R
 from common.sim.motion import FPS, script_take
 
