@@ -40,6 +40,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from common.geometry.arc_support import SUPPORT_PX, arc_seen, best_seen
 from common.geometry.end_identity import settle
 from common.geometry.needle import NeedleModel
 from common.geometry.observations import NoPose
@@ -103,7 +104,8 @@ class RefineNode(StereoPoseNode):
         changed = self.calib is None or msg.cameras != self.calib.cameras or msg.needle != self.calib.needle
         super().on_calib(msg)
         if changed or self.tracker is None:
-            self.tracker = TrackingRefiner(DenseRefiner(self.rig, NeedleModel.from_dict(msg.needle), self.config),
+            self.needle = NeedleModel.from_dict(msg.needle)
+            self.tracker = TrackingRefiner(DenseRefiner(self.rig, self.needle, self.config),
                                            self.model_points, self.min_score, self.outlier_px, self.tracking)
 
     def on_stream_reset(self):
@@ -165,9 +167,11 @@ class RefineNode(StereoPoseNode):
             return
         if res.ambiguous:
             self.count("ambiguous")
+        seen = best_seen(arc_seen(self.rig, self.needle, res.T_ecm_needle, obs, SUPPORT_PX,
+                                  self.config.min_centreline_w, self.config.min_score))
         pose = self.pose_message(left.seq, left.stamp_ns, "refined", res.T_ecm_needle,
                                  res.rms_px, "px", covariance=res.covariance,
-                                 ambiguous=bool(res.ambiguous),
+                                 ambiguous=bool(res.ambiguous), arc_seen=seen,
                                  model_sigma_m=self.config.model_sigma_mm * 1e-3 or None,
                                  model_sigma_rad=math.radians(self.config.model_sigma_deg) or None)
         self._T_world_needle = pose.T_world_needle    # None until the frame's ECM pose is known

@@ -271,15 +271,18 @@ def write_per_frame_csv(path, col: Collected, ev: Evaluation) -> None:
     """One row per frame: seq, sequence, step, camera distance (mm), the keypoints' mean 2D
     (px) and 3D (mm) errors, and each method's position (mm) and orientation (deg) errors:
     empty where the method is not scored on that frame, ``nan`` where it gave no pose; for the
-    methods that flag poses also the flag (1/0), the NEES and the stated end identity."""
+    methods that flag poses also the flag (1/0), the NEES and the stated end identity; for those
+    whose poses state it, the share of the arc seen (``arc_seen``)."""
     import csv
     idx = {m: {s: i for i, s in enumerate(t["seqs"])} for m, t in ev.pose.items()}
     with open(path, "w", newline="") as f:
         w = csv.writer(f)
         flags = [m for m, t in ev.pose.items() if np.isfinite(t["ambiguous"]).any()]
+        seen = [m for m in ev.pose if any(p.arc_seen is not None for p in col.poses.get(m, {}).values())]
         w.writerow(["seq", "sequence", "step", "distance_mm", "kp2d_px", "kp3d_mm"]
                    + [f"{m}_{q}" for m in ev.pose for q in ("mm", "deg")]
-                   + [f"{m}_{q}" for m in flags for q in ("ambiguous", "nees", "end_identity")])
+                   + [f"{m}_{q}" for m in flags for q in ("ambiguous", "nees", "end_identity")]
+                   + [f"{m}_arc_seen" for m in seen])
         for s in ev.seqs:
             gt = col.truths[s]
             T = ev.T_true.get(s)
@@ -300,6 +303,9 @@ def write_per_frame_csv(path, col: Collected, ev: Evaluation) -> None:
                 row += ["", "", ""] if i is None else [
                     "" if not np.isfinite(t["ambiguous"][i]) else int(t["ambiguous"][i]),
                     f"{t['nees'][i]:.3f}", f"{t['end_identity'][i]:.4f}"]
+            for m in seen:
+                p = col.poses[m].get(s)
+                row.append("" if p is None or p.arc_seen is None else f"{p.arc_seen:.3f}")
             w.writerow(row)
 
 

@@ -17,6 +17,9 @@ from common.geometry.camera import StereoRig
 from common.geometry.needle import NeedleModel
 from common.geometry.transforms import transform_points
 
+SUPPORT_PX = 3.0
+"""An arc sample counts as seen within this many pixels of an observation (the detectors'
+centrelines err by about a pixel; a hidden part's projection lies at least a wire's width off)."""
 ARC_SAMPLES = 41
 """Points along the arc (A to E) whose support is counted: 3 degrees apart on a 120-degree arc."""
 
@@ -28,23 +31,25 @@ def arc_seen(rig: StereoRig, needle: NeedleModel, T_ecm_needle: np.ndarray, obse
     observation supports}: a sample of the projected arc counts when an observed centreline
     point (weight above ``min_weight``) or an observed keypoint (scored at least ``min_score``, not
     placed ``on_arc``) lies within
-    ``tol_px`` of it. ``observations``: {camera: ``refine.ArcObservation``}; a camera without one
+    ``tol_px`` of it (or of 3/4 of the centreline points' median spacing, if larger). ``observations``: {camera: ``refine.ArcObservation``}; a camera without one
     is left out. A sample behind the camera or outside its image is unsupported."""
     pts = needle.sample_arc(n)
     out = {}
     for name, obs in observations.items():
-        cam = rig[name]
-        seen = []
+        cam, seen, tol = rig[name], [], tol_px
         if obs.centreline is not None and len(obs.centreline):
             c = np.asarray(obs.centreline, float).reshape(-1, 2)
             w = None if obs.centreline_w is None else np.asarray(obs.centreline_w, float).reshape(-1)
-            seen.append(c if w is None else c[w > min_weight])
+            c = c if w is None else c[w > min_weight]
+            seen.append(c)
+            if len(c) > 2:      # points sparser than the tolerance: half their spacing and a bit
+                tol = max(tol, 0.75 * float(np.median(np.linalg.norm(np.diff(c, axis=0), axis=1))))
         if obs.uv is not None and len(obs.uv):
             uv, sc = np.asarray(obs.uv, float).reshape(-1, 2), np.asarray(obs.scores, float).reshape(-1)
             observed = np.ones(len(uv), bool) if obs.on_arc is None else ~np.asarray(obs.on_arc, bool).reshape(-1)
             seen.append(uv[np.isfinite(uv).all(axis=1) & (sc >= min_score) & observed])
         seen = np.concatenate(seen) if seen else np.zeros((0, 2))
-        out[name] = supported_share(cam, pts, T_ecm_needle, seen, tol_px)
+        out[name] = supported_share(cam, pts, T_ecm_needle, seen, tol)
     return out
 
 

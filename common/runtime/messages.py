@@ -42,6 +42,7 @@ PositivePx = number("must be positive, got {value}", gt=0)
 """A 1-sigma error in pixels: finite and positive."""
 AtLeastOne = number("must be at least 1, got {value}", ge=1)
 Probability = number("must be a probability in [0, 1], got {value}", ge=0, le=1)
+Share = number("must be a share in [0, 1], got {value}", ge=0, le=1)
 NonNegativeNumber = number("must be a finite number >= 0, got {value}", ge=0)
 
 
@@ -223,6 +224,8 @@ class PoseEstimate(Message):
     ``mode``: a tracker's decision at this frame, from what it measures (``TRACK_MODES``):
     ``rest`` the needle at rest in the world, ``held`` in an instrument's jaws, ``free`` moving on
     its own; absent: no tracker decided (docs/tracking.md). The fusion fuses only views at rest.
+    ``arc_seen``: the share of the needle's arc the pose was fitted to, in its better-seen camera
+    (``common.geometry.arc_support``); absent: not measured.
     """
 
     SCHEMA = "needletrack.PoseEstimate"
@@ -244,6 +247,7 @@ class PoseEstimate(Message):
     model_sigma_rad: Optional[Number] = None
     end_identity: Optional[Number] = None
     mode: Optional[Literal[TRACK_MODES]] = None
+    arc_seen: Optional[Share] = None
 
     def validate(self):
         err = pose_invariant_error(self)
