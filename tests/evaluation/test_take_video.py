@@ -32,7 +32,8 @@ def _take(n=12, sequence=0, first=0):
     return col
 
 
-def _read(path):
+def read_video(path):
+    """(frames, frames/s) of a video file, every frame decoded by OpenCV."""
     cap = cv2.VideoCapture(str(path))
     assert cap.isOpened()
     frames = []
@@ -53,10 +54,10 @@ def test_the_video_has_a_frame_per_frame_of_the_longest_take_at_30_hz(tmp_path):
     ev = evaluate(col, ["tracked"])
     path = tmp_path / "tracking.mp4"
     assert write_take_video(path, col, ev, StereoRig.default(), NeedleModel(), None, {}, width=640) == 12
-    frames, fps = _read(path)
+    frames, fps = read_video(path)
     assert len(frames) == 12 and frames[0].shape == (360, 640, 3) and fps == pytest.approx(30.0)
     assert write_take_video(path, col, ev, StereoRig.default(), NeedleModel(), None, {}, width=320, every=2) == 6
-    frames, fps = _read(path)
+    frames, fps = read_video(path)
     assert len(frames) == 6 and frames[0].shape == (180, 320, 3) and fps == pytest.approx(15.0)
 
 

@@ -84,17 +84,9 @@ def test_eval_tracks_a_pickup_take_with_the_oracle(pickup_take, tmp_path):
     assert h["frames"] > 10 and h["posed"] >= 0.9 * h["frames"] and h["position_mm"]["mean"] < 0.1
     assert res["node_counters"]["tracker"].get("events.grasp") == 1
     assert "## Moving takes" in (out / "report.md").read_text()
-    import cv2                                  # the take's video: a frame per frame at 320x240
-    cap = cv2.VideoCapture(str(out / "tracking.mp4"))
-    assert cap.isOpened()
-    shapes = []
-    while True:
-        ok, f = cap.read()
-        if not ok:
-            break
-        shapes.append(f.shape)
-    cap.release()
-    assert len(shapes) == res["frames"] and set(shapes) == {(240, 320, 3)}
+    from test_take_video import read_video      # the take's video: a frame per frame at 320x240
+    frames, fps = read_video(out / "tracking.mp4")
+    assert len(frames) == res["frames"] and {f.shape for f in frames} == {(240, 320, 3)} and fps == pytest.approx(30.0)
 
 
 @pytest.mark.graph
