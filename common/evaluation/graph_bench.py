@@ -416,7 +416,7 @@ def plot(r: dict, samples: dict, path) -> None:
     ax.set_ylabel("share of frames")
     ax.set_xlim(0, max(120.0, min(400.0, max((max(v) for v in samples.values() if v), default=0))))
     ax.legend(fontsize=8, loc="lower right")
-    ax.set_title(f"{r['throughput_hz']:.1f} fused poses/s ({r['final_method']}), rate {r['rate']}")
+    ax.set_title(f"{r['throughput_hz']:.1f} final poses/s ({r['final_method']}), rate {r['rate']}")
     nodes = r["per_node"]
     names = [n for n in nodes if nodes[n]["cpu_ms_per_frame"] is not None]
     cpu = [nodes[n]["cpu_ms_per_frame"] for n in names]
