@@ -6,7 +6,8 @@ drawn on it (``common.viewer.draw.fig1_with_zoom``): the tracked pose's arc in f
 A..E, A the tip; its axes), the other methods' arcs thin, the true arc and keypoints in thin
 green, each instrument's jaw frame (the one the truth says holds the needle ringed), a zoomed
 inset around the needle, and a caption: the frame, its time in the take, the method's error
-(mm / deg), what the tracker says holds the needle (its ``InHandPose``), the share of the arc seen.
+(mm / deg), the track's mode (``PoseEstimate.mode``: rest, held, free) with the jaws that hold
+the needle (the tracker's ``InHandPose``), the share of the arc seen.
 MPEG-4 Part 2 (fourcc ``mp4v``, in every OpenCV build with FFmpeg), ``30 / every`` frames a
 second: the take's own pace when its frames are 30 Hz.
 """
@@ -29,11 +30,12 @@ class VideoError(NeedletrackError, RuntimeError):
     """The video could not be written (no encoder for ``FOURCC``, or the file not writable)."""
 
 
-def _caption(seq: int, t_s: float, method: str, err, holder: Optional[str], seen: Optional[float]) -> str:
+def _caption(seq: int, t_s: float, method: str, err, mode: Optional[str], holder: Optional[str],
+             seen: Optional[float]) -> str:
     pose = "no pose" if err is None or not np.isfinite(err[0]) else \
         f"{err[0] * 1e3:.2f} mm / {np.degrees(err[1]):.1f} deg"
     return "\n".join([f"frame {seq}  {t_s:.2f} s", f"{method}: {pose}",
-                      f"tracker: {'held by ' + holder if holder else 'not held'}",
+                      f"mode: {mode or 'n/a'}" + (f" by {holder}" if holder else ""),
                       f"arc seen: {'n/a' if seen is None else f'{100 * seen:.0f}%'}"])
 
 
@@ -61,9 +63,10 @@ def take_frames(col, ev, rig, needle, load_images: Optional[Callable[[int], dict
             msg = col.poses.get(m, {}).get(seq)
             if msg is not None:
                 poses[m] = PoseToDraw(np.asarray(msg.T_ecm_needle, float), bool(msg.ambiguous))
-        held = col.in_hand.get(seq)
+        held, tracked = col.in_hand.get(seq), col.poses.get(method, {}).get(seq)
         caption = _caption(seq, k * max(1, int(every)) / TAKE_HZ, method, errors.get(seq),
-                           held.name if held is not None else None, visible.get(seq))
+                           tracked.mode if tracked is not None else None, held.name if held is not None else None,
+                           visible.get(seq))
         yield seq, fig1_with_zoom(small, scale, cam, needle, poses, method, None, ev.T_true.get(seq), caption,
                                   instruments=instruments_to_draw(col.instruments.get(seq, {}),
                                                                   true_T_world_ecm(gt, arm)))

@@ -26,7 +26,7 @@ def _take(n=12, sequence=0, first=0):
         if k != 3:
             off = make_T(np.eye(3), [0.0005, 0.0, 0.0])       # 0.5 mm off
             col.add_pose("tracked", PoseEstimate(seq, seq, "tracked", T @ off, T_world_needle=T @ off,
-                                                 T_world_ecm=np.eye(4)), seq)
+                                                 T_world_ecm=np.eye(4), mode="held" if k >= 5 else "rest"), seq)
         if k >= 5:
             col.add_in_hand(InHandPose("psm1", seq, seq, "psm1_jaw", np.eye(4), np.eye(6) * 1e-8), seq)
     return col
@@ -70,7 +70,7 @@ def test_each_frame_draws_the_tracked_arc_where_posed_and_captions_it():
     colour = np.array(method_bgr("tracked"))
     drawn = {s: int(np.all(np.abs(p.astype(int) - colour) <= 8, axis=2).sum()) for s, p in pics.items()}
     assert drawn[3] == 0 and all(drawn[s] > 200 for s in pics if s != 3)
-    # the caption differs where the frame is held (the tracker's InHandPose) and where not posed
+    # the caption differs where the frame is held (the mode, the tracker's InHandPose)
     assert not np.array_equal(pics[0][:90, :300], pics[6][:90, :300])
 
 
