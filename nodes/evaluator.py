@@ -1,6 +1,7 @@
 """Evaluator: collects truth, keypoints, triangulated points and every pose output by frame
 ``seq``; after the source's EndOfStream (plus a drain timeout for outputs still in flight) it
-writes results.json, report.md, error_vs_distance.png and overlays/ into ``params.out`` and
+writes results.json, report.md, error_vs_distance.png and overlays/ (for moving takes also
+tracking.png and tracking.mp4: ``common.evaluation.report.write_outputs``) into ``params.out`` and
 exits 0.
 
 Params: ``out`` (folder, required), ``dataset`` (the folder replayed: named in the results and

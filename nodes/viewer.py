@@ -32,7 +32,6 @@ from common.frames import CAMERAS
 from common.geometry.camera import StereoRig
 from common.geometry.ecm_kinematics import EcmArm
 from common.geometry.needle import NeedleModel
-from common.geometry.transforms import inv_T
 from common.runtime.messages import (
     Calibration,
     CameraImage,
@@ -44,7 +43,7 @@ from common.runtime.messages import (
 )
 from common.runtime.node import Node, NodeError, run
 from common.runtime.pairing import SeqCache
-from common.viewer.draw import InstrumentToDraw, PoseToDraw, decode_small
+from common.viewer.draw import PoseToDraw, decode_small, instruments_to_draw
 from common.viewer.frame import log_frame, pictures
 from common.viewer.http_request import HttpLimits
 from common.viewer.page import PageServer
@@ -227,11 +226,7 @@ class ViewerNode(PoseMethodInputs, Node):
         gt = self.truths.get(seq)
         if T_we is None and gt is not None and gt.T_world_ecm is not None:
             T_we = np.asarray(gt.T_world_ecm, float)
-        if T_we is None:
-            return []
-        T_ew = inv_T(T_we)
-        return [InstrumentToDraw(n, T_ew @ np.asarray(m.T_world_jaw, float), m.holds_needle)
-                for n, m in sorted(self.instruments.get(seq, {}).items())]
+        return instruments_to_draw(self.instruments.get(seq, {}), T_we)
 
     def on_ecm(self, msg: EcmPose):
         T = np.asarray(msg.T_world_ecm, float)

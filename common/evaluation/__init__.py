@@ -2,7 +2,8 @@
 
 ``metrics`` (errors, NEES, which frames count), ``collect`` (a run's messages scored),
 ``results`` (``results.json``), ``timing``, ``results_page`` (``needletrack results``),
-``report`` (tables and figures), ``overlays`` (the frames drawn), ``cli`` (the
+``report`` (tables and figures), ``overlays`` (the frames drawn), ``take_video`` (a
+moving take's video), ``cli`` (the
 ``needletrack eval`` command), ``pipeline_graph`` (the graph an evaluation runs), ``folder_detections`` (the detector run
 cold over a folder's images); the
 ``needletrack bench`` benchmarks: ``graph_bench``, ``transport_bench``, ``sim_bench``,

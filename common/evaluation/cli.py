@@ -6,7 +6,8 @@ detector -> epnp (average, joint) -> triangulate -> ecm -> fusion (-> refine -> 
 evaluator, on a free loopback port; on a folder of moving takes (``needle_at_rest: false``) also
 the tracker (method ``tracked``, its in-hand poses scored: docs/tracking.md#evaluation). Every node queues all its inputs (none keeps only the
 newest, as in a live graph), so every frame is scored whatever the load. The evaluator writes
-OUTDIR (results.json, report.md, error_vs_distance.png, per_frame.csv, overlays/); this command
+OUTDIR (results.json, report.md, error_vs_distance.png, per_frame.csv, overlays/; for moving takes
+tracking.png and tracking.mp4, the longest take's errors and its video); this command
 prints the summary. The graph's log is OUTDIR/graph.log and the graph itself OUTDIR/graph.yaml.
 """
 from __future__ import annotations
@@ -235,7 +236,8 @@ def main(argv=None) -> int:
         if rc:
             return rc
     print_summary(res)
-    print(f"wrote {out}/results.json, report.md, error_vs_distance.png, per_frame.csv, overlays/ "
+    moving = ", tracking.png, tracking.mp4" if (out / "tracking.mp4").is_file() else ""
+    print(f"wrote {out}/results.json, report.md, error_vs_distance.png, per_frame.csv, overlays/{moving} "
           f"({time.monotonic() - t0:.0f} s)")
     if args.rrd:
         if not Path(args.rrd).is_file():

@@ -1,7 +1,9 @@
 """``needletrack bench [graph] [--dataset DIR]``: the live pipeline's speed, end to end.
 
 The tracking graph as deployed, i.e. with newest-only inputs (``common.evaluation.pipeline_graph``:
-replay -> one detector process per camera -> refine -> fusion over refined poses, with ecm),
+replay -> one detector process per camera -> refine -> fusion over refined poses, with ecm; with
+``--tracker``, or on a folder of moving takes (``needle_at_rest: false``), also the tracker beside
+the fusion, whose ``tracked`` poses are then the final ones, docs/tracking.md),
 fed by the replay source looping over a 1920x1080 stereo dataset as fast as the graph goes
 (``--rate max``, the default: closed loop, the replay sends the next frame once both cameras'
 keypoints of the last one are out, ``rate: paced``), or at ``--rate`` Hz (30: the endoscope's). ``--all-methods`` adds the other pose methods
@@ -10,8 +12,8 @@ not on the path to the final pose. After a warm-up it measures for ``--duration`
 
 - frames/s published by the source, stereo frames/s through the last single-frame pose node
   (paired and processed, with or without a pose: with a detector that misses the needle most
-  frames give none) and fused poses/s (end to end);
-- latency from frame publish (``CameraImage.stamp_ns``, wall clock) to the fused pose, p50/p99,
+  frames give none) and final poses/s (end to end: the fusion's, or the tracker's);
+- latency from frame publish (``CameraImage.stamp_ns``, wall clock) to the final pose, p50/p95/p99,
   and to each stage's output (keypoints, each pose method);
 - each node's CPU share and CPU time per published frame (from /proc over the window), its
   handler times (its stats: p50/p99 over the messages whose handler published, i.e. a frame's
@@ -66,6 +68,11 @@ def _parser() -> argparse.ArgumentParser:
                    help="one detector process for both cameras (default: one per camera)")
     p.add_argument("--no-refine", action="store_true",
                    help="leave out the refinement node (then the final pose is multiview over pnp_joint)")
+    p.add_argument("--tracker", action="store_true",
+                   help="also run the tracker (method tracked, then the final pose), as dataflow.yaml does; "
+                        "the default on a folder of moving takes (needle_at_rest: false)")
+    p.add_argument("--tracker-param", action="append", default=[], metavar="KEY=VALUE",
+                   help="a tracker parameter (repeatable), e.g. --tracker-param max_wait=1")
     p.add_argument("--all-methods", action="store_true",
                    help="also run the pose methods not on the path to the final pose (epnp average, "
                         "triangulate, ...), as an evaluation does")
@@ -134,8 +141,9 @@ class Recorder:
 def latency_ms(rows) -> dict:
     lat = [(a - s) / 1e6 for _, s, a in rows]
     if not lat:
-        return {"p50": None, "p99": None, "n": 0}
-    return {"p50": float(np.percentile(lat, 50)), "p99": float(np.percentile(lat, 99)), "n": len(lat)}
+        return {"p50": None, "p95": None, "p99": None, "n": 0}
+    p50, p95, p99 = (float(v) for v in np.percentile(lat, [50, 95, 99]))
+    return {"p50": p50, "p95": p95, "p99": p99, "n": len(lat)}
 
 
 def ensure_dataset(path) -> str:
@@ -195,9 +203,11 @@ def measure(args, dataset: str, log, viewer: bool = False) -> dict:
     det_params = {"weights": str(Path(args.model).resolve())} if args.model else {}
     det_params.update(dict(parse_param(p) for p in getattr(args, "param", [])))
     final = "multiview" if args.no_refine else "multiview_refined"
+    tracker = not args.no_refine and (getattr(args, "tracker", False) or not all(fr.at_rest for fr in ds.frames))
     doc = pipeline_graph(dataset, detector=args.detector, detector_params=det_params, rate=rate, loop=True,
-                         refine=False if args.no_refine else None, split_detector=split,
-                         methods=None if getattr(args, "all_methods", False) else [final],
+                         refine=False if args.no_refine else None, split_detector=split, tracker=tracker,
+                         tracker_params=dict(parse_param(p) for p in getattr(args, "tracker_param", [])) or None,
+                         methods=None if getattr(args, "all_methods", False) else [final, *(["tracked"] * tracker)],
                          name="needletrack-bench", decode=getattr(args, "decode", False))
     poses = pose_inputs(doc)
     viewer_params = None
@@ -205,9 +215,12 @@ def measure(args, dataset: str, log, viewer: bool = False) -> dict:
         vparams = dict(parse_param(p) for p in getattr(args, "viewer_param", []))
         doc["nodes"].append(viewer_node(doc, split, vparams))
         viewer_params = doc["nodes"][-1]["params"]
-    if final not in poses:
+    if tracker and "tracked" in poses:
+        final = "tracked"
+    elif final not in poses:
         final = last_stage(m for m in poses if m in MULTIVIEW_METHODS)
-    frame_node = POSE_OUTPUTS[METHOD_NEEDS[final][0]].split("/")[0]   # pairs stereo keypoints
+    single = METHOD_NEEDS[final][0] if final in METHOD_NEEDS else "refined"    # the tracker filters refined poses
+    frame_node = POSE_OUTPUTS[single].split("/")[0]   # pairs stereo keypoints
     rec = Recorder()
     streams = {"published": ("replay/truth", GroundTruth)}
     for cam, src in keypoint_sources(split).items():
@@ -277,6 +290,12 @@ def measure(args, dataset: str, log, viewer: bool = False) -> dict:
         stages[name] = {**latency_ms(rec.window(name, w0, w1)),
                         "rate_hz": len({r[0] for r in rec.window(name, w0, w1)}) / span}
     out["stages"] = stages
+    if final == "tracked" and "refined" in streams:
+        # the tracker steps a frame once its refined pose is in, or a later frame's (the refine
+        # node posed nothing for it: the tracker learns it only then), or max_wait frames passed
+        refined = {r[0] for r in rec.window("refined", w0, w1)}
+        out["tracked_latency_ms"] = {"measured": latency_ms([r for r in fused if r[0] in refined]),
+                                     "coasted": latency_ms([r for r in fused if r[0] not in refined])}
     if getattr(args, "plot", None):
         out["latency_samples_ms"] = {name: [(a - st) / 1e6 for _, st, a in rec.window(name, w0, w1)]
                                      for name in streams if name != "published"}
@@ -331,11 +350,15 @@ def report(r: dict) -> str:
          f"  frames published      {f(r['published_hz'])} /s",
          f"  frames processed      {f(r['frames_processed_hz'])} /s stereo frames paired and processed by "
          f"{r['frame_node']} (with or without a pose)",
-         f"  end to end            {f(r['throughput_hz'])} /s fused poses ({r['final_method']}); "
+         f"  end to end            {f(r['throughput_hz'])} /s final poses ({r['final_method']}); "
          f"{f(None if r['frames_through'] is None else 100 * r['frames_through'])}% of the published frames"
          f"   [target >= {TARGET_HZ:.0f}; paper 10 Hz on an RTX 3080]",
-         f"  latency               p50 {f(r['latency_ms']['p50'])} ms, p99 {f(r['latency_ms']['p99'])} ms "
-         f"from frame publish to fused pose   [target p50 <= {TARGET_P50_MS:.0f} ms]",
+         f"  latency               p50 {f(r['latency_ms']['p50'])} ms, p95 {f(r['latency_ms'].get('p95'))} ms, "
+         f"p99 {f(r['latency_ms']['p99'])} ms from frame publish to final pose   [target p50 <= {TARGET_P50_MS:.0f} ms]",
+         *([f"  tracked, by frame     p50 {f(t['measured']['p50'])} ms with a refined pose "
+            f"({t['measured']['n']}), {f(t['coasted']['p50'])} ms coasted ({t['coasted']['n']}: "
+            "stepped when a later frame's pose or max_wait frames came)"]
+           if (t := r.get("tracked_latency_ms")) else []),
          "", f"  {'stage output':<22}{'frames/s':>9}{'p50 ms':>9}{'p99 ms':>9}   (latency from frame publish)"]
     for name, s in r["stages"].items():
         L.append(f"  {name:<22}{f(s['rate_hz']):>9}{f(s['p50']):>9}{f(s['p99']):>9}")
@@ -393,7 +416,7 @@ def plot(r: dict, samples: dict, path) -> None:
     ax.set_ylabel("share of frames")
     ax.set_xlim(0, max(120.0, min(400.0, max((max(v) for v in samples.values() if v), default=0))))
     ax.legend(fontsize=8, loc="lower right")
-    ax.set_title(f"{r['throughput_hz']:.1f} fused poses/s ({r['final_method']}), rate {r['rate']}")
+    ax.set_title(f"{r['throughput_hz']:.1f} final poses/s ({r['final_method']}), rate {r['rate']}")
     nodes = r["per_node"]
     names = [n for n in nodes if nodes[n]["cpu_ms_per_frame"] is not None]
     cpu = [nodes[n]["cpu_ms_per_frame"] for n in names]

@@ -72,16 +72,22 @@ def _finite(values) -> np.ndarray:
 
 # ---------------------------------------------------------------- ground truth
 
-def true_T_ecm_needle(gt: GroundTruth, arm=None) -> Optional[np.ndarray]:
-    """The true needle pose in the ECM frame of a frame, or None when the truth lacks it.
+def true_T_world_ecm(gt: GroundTruth, arm=None) -> Optional[np.ndarray]:
+    """The true endoscope pose of a frame: the truth's ``T_world_ecm``, else ``arm`` (an
+    ``EcmArm``) at the truth's joints; None when neither is known."""
+    if gt.T_world_ecm is not None:
+        return np.asarray(gt.T_world_ecm, float)
+    if arm is not None and gt.ecm_joints is not None:
+        return np.asarray(arm.T_world_ecm(gt.ecm_joints), float)
+    return None
 
-    ``T_world_ecm`` comes from the truth, else from ``arm`` (an ``EcmArm``) and the joints.
-    """
+
+def true_T_ecm_needle(gt: GroundTruth, arm=None) -> Optional[np.ndarray]:
+    """The true needle pose in the ECM frame of a frame, or None when the truth lacks it
+    (``T_world_ecm``: ``true_T_world_ecm``)."""
     if gt.T_world_needle is None:
         return None
-    T_world_ecm = gt.T_world_ecm
-    if T_world_ecm is None and arm is not None and gt.ecm_joints is not None:
-        T_world_ecm = arm.T_world_ecm(gt.ecm_joints)
+    T_world_ecm = true_T_world_ecm(gt, arm)
     if T_world_ecm is None:
         return None
     return inv_T(np.asarray(T_world_ecm, float)) @ np.asarray(gt.T_world_needle, float)

@@ -34,7 +34,7 @@ def moving_seqs(truths: dict) -> list:
     return sorted(s for s, gt in truths.items() if gt.needle_at_rest is False)
 
 
-def _errors(table: dict, seqs) -> dict:
+def method_errors(table: dict, seqs) -> dict:
     """{seq: (position m, orientation rad, nees)} of a method's error table (NaN: not posed)."""
     return {s: (p, o, n) for s, p, o, n in zip(table["seqs"], table["position_m"], table["orientation_rad"],
                                               table["nees"]) if s in seqs}
@@ -122,7 +122,7 @@ def moving_summary(ev, truths: dict, instruments: dict, in_hand: dict, visible: 
     for m in methods:
         if m not in ev.pose:
             continue
-        errors = _errors(ev.pose[m], seqs)
+        errors = method_errors(ev.pose[m], seqs)
         seen = [s for s in errors if visible.get(s) is not None and visible[s] >= SEEN]
         out["methods"][m] = {"all": _summary(errors, list(errors)), "seen": _summary(errors, seen),
                              "by_visible": by_visible(errors, visible)}
@@ -166,16 +166,21 @@ def moving_markdown(moving: dict) -> list:
     return L + [""]
 
 
+def shown_take(truths: dict) -> list:
+    """The seqs of the take the figures show (``tracking.png``, ``tracking.mp4``): the longest
+    moving one (the first of equals), in order; empty without a moving take."""
+    takes: dict = {}
+    for s in moving_seqs(truths):
+        takes.setdefault(truths[s].sequence, []).append(s)
+    return max(takes.values(), key=len) if takes else []
+
+
 def plot_take(ev, truths: dict, visible: dict, path, methods=("refined", "tracked")) -> bool:
     """One take's figure: each method's position and orientation error over its frames, and the
-    share of the arc seen. The take: the longest moving one. False (nothing drawn) without one."""
-    seqs = moving_seqs(truths)
-    takes: dict = {}
-    for s in seqs:
-        takes.setdefault(truths[s].sequence, []).append(s)
-    if not takes:
+    share of the arc seen. The take: ``shown_take``. False (nothing drawn) without one."""
+    take = shown_take(truths)
+    if not take:
         return False
-    take = max(takes.values(), key=len)
     import matplotlib
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
@@ -186,7 +191,7 @@ def plot_take(ev, truths: dict, visible: dict, path, methods=("refined", "tracke
     for m in methods:
         if m not in ev.pose:
             continue
-        e = _errors(ev.pose[m], set(take))
+        e = method_errors(ev.pose[m], set(take))
         pos = np.array([e.get(s, (np.nan,) * 3)[0] for s in take]) * 1e3
         rot = np.degrees([e.get(s, (np.nan,) * 3)[1] for s in take])
         a_pos.plot(x, pos, ".-", ms=3, lw=1, color=METHOD_COLOURS.get(m), label=m)

@@ -1,8 +1,9 @@
 """What people look at after an evaluation: ``report.md``, ``error_vs_distance.png``,
 ``nees.png``, ``overlays/``, ``per_frame.csv`` and ``results.json``, written from a
-``common.evaluation.collect.Collected``.
+``common.evaluation.collect.Collected``; for moving takes also ``tracking.png`` and ``tracking.mp4``.
 
-No process, no network. The overlays are drawn in ``common/evaluation/overlays.py``.
+No process, no network. The overlays are drawn in ``common/evaluation/overlays.py``, the
+video in ``common/evaluation/take_video.py``.
 """
 from __future__ import annotations
 
@@ -316,7 +317,8 @@ def write_outputs(outdir, col: Collected, *, dataset: str, detector: str,
                   extra: Optional[dict] = None, methods: Optional[list] = None,
                   visible: Optional[dict] = None) -> dict:
     """Write results.json, report.md, error_vs_distance.png, nees.png (when a method states
-    covariances), tracking.png (moving takes: ``moving.plot_take``) and overlays/ into ``outdir``;
+    covariances), tracking.png and tracking.mp4 (moving takes: ``moving.plot_take``,
+    ``take_video.write_take_video``) and overlays/ into ``outdir``;
     returns the results document. ``load_images`` as in ``write_overlays`` (None: black);
     ``methods`` as in ``evaluate``; ``visible``: {seq: share of the arc seen} for the moving
     takes' figures (``common.evaluation.moving``; key ``moving``, when the run has moving frames)."""
@@ -346,4 +348,10 @@ def write_outputs(outdir, col: Collected, *, dataset: str, detector: str,
     write_per_frame_csv(outdir / "per_frame.csv", col, ev)
     if not (moving is not None and plot_take(ev, col.truths, visible or {}, outdir / "tracking.png")):
         (outdir / "tracking.png").unlink(missing_ok=True)     # a stale one from an earlier run
+    (outdir / "tracking.mp4").unlink(missing_ok=True)
+    if moving is not None:        # last: every other output is written when it cannot be
+        from common.evaluation.take_video import write_take_video
+        from common.geometry.ecm_kinematics import EcmArm
+        write_take_video(outdir / "tracking.mp4", col, ev, rig, needle, load_images, visible,
+                         EcmArm.from_calibration(col.calib.ecm) if col.calib is not None else None)
     return res

@@ -28,7 +28,7 @@ import numpy as np
 from common.evaluation.overlays import TRUTH_BGR, _bgr
 from common.methods import METHOD_COLOURS
 from common.geometry.needle import KEYPOINT_NAMES, NeedleModel
-from common.geometry.transforms import transform_points
+from common.geometry.transforms import inv_T, transform_points
 
 DETECTION_BGR = (0, 220, 255)
 AMBIGUOUS_BGR = (0, 140, 255)
@@ -133,6 +133,16 @@ class InstrumentToDraw:
     holds_needle: Optional[bool] = None
 
 
+def instruments_to_draw(states: dict, T_world_ecm) -> list:
+    """A frame's instruments in the ECM frame: ``states`` {name: ``InstrumentState``} (its
+    ``T_world_jaw``, ``holds_needle``), by name; none without ``T_world_ecm``."""
+    if T_world_ecm is None:
+        return []
+    T_ecm_world = inv_T(np.asarray(T_world_ecm, float))
+    return [InstrumentToDraw(n, T_ecm_world @ np.asarray(m.T_world_jaw, float), m.holds_needle)
+            for n, m in sorted(states.items())]
+
+
 def draw_instruments(out: np.ndarray, scale: float, cam, instruments, offset=(0.0, 0.0), lw: int = 1) -> None:
     """Each instrument's jaw axes and name on ``out`` (in place); the holder ringed."""
     axes = np.vstack([np.zeros(3), np.eye(3) * JAW_AXIS_M])
@@ -163,7 +173,8 @@ def draw_fig1(img: np.ndarray, scale: float, cam, needle: NeedleModel, poses: di
     """Fig. 1 on a copy of ``img`` (``cam``'s full-size image through ``to_picture(scale, offset)``):
     ``poses`` method -> PoseToDraw, ``final`` the method drawn in full (module docstring),
     ``keypoints`` the detector's (5, 2) full-size pixels (NaN rows: not found), ``T_true`` the
-    true ``T_ecm_needle``, ``instruments`` InstrumentToDraw. ``caption`` goes top left."""
+    true ``T_ecm_needle``, ``instruments`` InstrumentToDraw. ``caption`` goes top left (a line per
+    newline)."""
     out = img.copy()
     arc, kps = needle.sample_arc(48), needle.keypoints()
     lw = max(1, int(round(2 * max(1.0, out.shape[1] / 960))))
@@ -198,8 +209,8 @@ def draw_fig1(img: np.ndarray, scale: float, cam, needle: NeedleModel, poses: di
                     cv2.arrowedLine(out, _ipt(o), _ipt(e), c, lw, cv2.LINE_AA, tipLength=0.15)
         if pose.ambiguous:
             _label(out, "AMBIGUOUS", (8, out.shape[0] - 10), AMBIGUOUS_BGR, 0.6)
-    if caption:
-        _label(out, caption, (8, 20), TEXT_BGR, 0.5)
+    for i, line in enumerate(caption.split("\n") if caption else ()):
+        _label(out, line, (8, 20 + 20 * i), TEXT_BGR, 0.5)
     return out
 
 

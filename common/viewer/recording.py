@@ -12,7 +12,7 @@ from typing import Callable, Optional
 
 import numpy as np
 
-from common.evaluation.metrics import true_T_ecm_needle
+from common.evaluation.metrics import true_T_ecm_needle, true_T_world_ecm
 from common.geometry.transforms import pose_error
 from common.methods import in_final_order
 from common.viewer.draw import PoseToDraw, downscale
@@ -71,8 +71,7 @@ def write_rrd(path, col, rig, needle, arm=None, load_images: Optional[Callable[[
     for seq in sorted(col.truths):
         gt = col.truths[seq]
         T_true = true_T_ecm_needle(gt, arm)
-        T_world_ecm = gt.T_world_ecm if gt.T_world_ecm is not None else (
-            arm.T_world_ecm(gt.ecm_joints) if arm is not None and gt.ecm_joints is not None else None)
+        T_world_ecm = true_T_world_ecm(gt, arm)
         if T_world_ecm is not None:
             path_pts.append(np.asarray(T_world_ecm, float)[:3, 3])
         imgs = load_images(seq) if load_images is not None else {}

@@ -1,5 +1,6 @@
 """The moving takes' evaluation (common/evaluation/moving.py): its tables on hand-made frames, and
-``needletrack eval`` with the tracker on a small generated pickup take with the oracle."""
+``needletrack eval`` with the tracker on a small generated pickup take with the oracle (its
+tables, and tracking.mp4 read back)."""
 import json
 from types import SimpleNamespace
 
@@ -54,14 +55,21 @@ def test_the_visible_share_is_the_smaller_cameras_and_bins_count_unposed_frames(
     assert rows[2]["posed"] == 0 and rows[3]["position_mm"]["mean"] == pytest.approx(2.0)
 
 
-@pytest.mark.graph
-def test_eval_tracks_a_pickup_take_with_the_oracle(tmp_path):
+@pytest.fixture(scope="module")
+def pickup_take(tmp_path_factory):
+    """A pickup take, 320x240, every other frame (80 frames)."""
     from common.cli import dataset_main
-    from common.evaluation.cli import main as eval_main
-    ds = tmp_path / "pickup"
+    ds = tmp_path_factory.mktemp("take") / "pickup"
     assert dataset_main(["generate", "--out", str(ds), "--sequences", "1", "--motion", "pickup",
                          "--width", "320", "--height", "240", "--msaa", "0", "--jobs", "1", "--seed", "3400",
                          "--take-every", "2", "--quiet"]) == 0
+    return ds
+
+
+@pytest.mark.graph
+def test_eval_tracks_a_pickup_take_with_the_oracle(pickup_take, tmp_path):
+    from common.evaluation.cli import main as eval_main
+    ds = pickup_take
     out = tmp_path / "out"
     assert eval_main(["--dataset", str(ds), "--detector", "oracle", "--out", str(out), "--quiet",
                       "--timeout", "300"]) == 0
@@ -76,6 +84,28 @@ def test_eval_tracks_a_pickup_take_with_the_oracle(tmp_path):
     assert h["frames"] > 10 and h["posed"] >= 0.9 * h["frames"] and h["position_mm"]["mean"] < 0.1
     assert res["node_counters"]["tracker"].get("events.grasp") == 1
     assert "## Moving takes" in (out / "report.md").read_text()
+    from test_take_video import read_video      # the take's video: a frame per frame at 320x240
+    frames, fps = read_video(out / "tracking.mp4")
+    assert len(frames) == res["frames"] and {f.shape for f in frames} == {(240, 320, 3)} and fps == pytest.approx(30.0)
+
+
+@pytest.mark.graph
+def test_the_live_bench_runs_the_tracker_on_a_moving_take(pickup_take, tmp_path, capsys):
+    """``needletrack bench graph`` on moving takes: the tracker's poses are the final ones; the
+    figures printed, none asserted on time."""
+    from common.evaluation.graph_bench import main as bench_main
+    out = tmp_path / "bench.json"
+    assert bench_main(["graph", "--dataset", str(pickup_take), "--detector", "oracle", "--rate", "30",
+                       "--duration", "3", "--warmup", "1.5", "--json", str(out)]) == 0
+    r = json.loads(out.read_text())
+    assert r["final_method"] == "tracked" and r["frame_node"] == "refine"
+    assert set(r["per_node"]) == {"replay", "detector_left", "detector_right", "ecm", "refine", "fusion_refined",
+                                  "tracker"}
+    assert r["throughput_hz"] > 0 and r["stages"]["tracked"]["rate_hz"] > 0
+    lat = r["latency_ms"]
+    assert lat["n"] > 0 and 0 < lat["p50"] <= lat["p95"] <= lat["p99"]
+    text = capsys.readouterr().out
+    assert "final poses (tracked)" in text and "p95" in text and "tracker" in text
 
 
 def test_the_lag_is_the_shift_that_brings_the_poses_nearest_the_truth():
