@@ -40,7 +40,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from common.geometry.arc_support import SUPPORT_PX, arc_seen, best_seen
+from common.geometry.arc_support import SUPPORT_PX, arc_seen, best_seen, partial_view
+from common.geometry.config import Probability, number_at_least
 from common.geometry.end_identity import settle
 from common.geometry.needle import NeedleModel
 from common.geometry.observations import NoPose
@@ -67,6 +68,10 @@ class _NodeParams(StereoPoseNode.Params):
     outlier_px: float | None = 10.0
     support_normal_world: list[float] | None = None
     tracking: bool = True                 # TrackingConfig.enabled
+    # a pose fitted to less of the arc than this (arc_seen, its better-seen camera) is a partial
+    # view: flagged ambiguous (counted partial_view), its covariance times partial_view_inflation
+    min_arc_seen: Probability = 0.6
+    partial_view_inflation: number_at_least(1.0) = 4.0
 
 
 def _config(cls, p, rename: dict | None = None):
@@ -169,9 +174,12 @@ class RefineNode(StereoPoseNode):
             self.count("ambiguous")
         seen = best_seen(arc_seen(self.rig, self.needle, res.T_ecm_needle, obs, SUPPORT_PX,
                                   self.config.min_centreline_w, self.config.min_score))
+        partial, covariance = partial_view(res.covariance, seen, self.p.min_arc_seen, self.p.partial_view_inflation)
+        if partial:
+            self.count("partial_view")
         pose = self.pose_message(left.seq, left.stamp_ns, "refined", res.T_ecm_needle,
-                                 res.rms_px, "px", covariance=res.covariance,
-                                 ambiguous=bool(res.ambiguous), arc_seen=seen,
+                                 res.rms_px, "px", covariance=covariance,
+                                 ambiguous=bool(res.ambiguous or partial), arc_seen=seen,
                                  model_sigma_m=self.config.model_sigma_mm * 1e-3 or None,
                                  model_sigma_rad=math.radians(self.config.model_sigma_deg) or None)
         self._T_world_needle = pose.T_world_needle    # None until the frame's ECM pose is known

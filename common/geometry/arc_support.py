@@ -72,3 +72,14 @@ def best_seen(shares: Mapping) -> Optional[float]:
     """The larger of the cameras' shares (None: no camera): the two views of a 4 mm baseline see
     nearly the same part; a pose is as well fixed as its better-seen view."""
     return max(shares.values()) if shares else None
+
+
+def partial_view(covariance: Optional[np.ndarray], seen: Optional[float], min_seen: float,
+                 inflation: float) -> tuple[bool, Optional[np.ndarray]]:
+    """What a pose fitted to the share ``seen`` of its arc states: ``(partial, covariance)``.
+    Below ``min_seen`` the pose is a partial view, to be flagged ``ambiguous``, its covariance
+    (6x6, [w, v]; None stays None) times ``inflation``: the part seen may fix it to the
+    residuals' precision and still leave it millimetres and degrees off (the module docstring)."""
+    if seen is None or seen >= min_seen:
+        return False, covariance
+    return True, None if covariance is None else np.asarray(covariance, float) * inflation

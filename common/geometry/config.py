@@ -33,6 +33,11 @@ def at_least(lo: int) -> type:
     return Annotated[int, msgspec.Meta(ge=lo, description=f"must be at least {lo}, got {{value}}")]
 
 
+def number_at_least(lo: float) -> type:
+    """A finite number >= ``lo``."""
+    return Annotated[float, msgspec.Meta(ge=lo, le=_MAX, description=f"must be at least {lo:g}, got {{value}}")]
+
+
 def in_range(lo: float, below: float) -> type:
     """A number in ``[lo, below)``."""
     return Annotated[float, msgspec.Meta(ge=lo, lt=below, description=f"must be in [{lo:g}, {below:g}), got {{value}}")]

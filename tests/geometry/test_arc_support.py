@@ -36,3 +36,12 @@ def test_keypoints_alone_support_only_the_arc_near_them_and_low_weights_do_not_c
     o = observation("left")
     weak = ArcObservation(centreline=o.centreline, centreline_w=np.full(len(o.centreline), 0.01))
     assert arc_seen(RIG, NEEDLE, T, {"left": weak}, 3.0, min_weight=0.05)["left"] == 0.0
+
+
+def test_a_partial_view_is_flagged_and_its_covariance_widened_a_whole_one_is_left_alone():
+    from common.geometry.arc_support import partial_view
+    C = np.diag([1e-4] * 3 + [1e-8] * 3)
+    assert partial_view(C, 0.9, 0.6, 4.0) == (False, C)
+    flag, wide = partial_view(C, 0.4, 0.6, 4.0)
+    assert flag and np.allclose(wide, 4.0 * C)
+    assert partial_view(None, 0.4, 0.6, 4.0) == (True, None) and partial_view(C, None, 0.6, 4.0)[0] is False

@@ -326,3 +326,38 @@ def test_a_needle_at_rest_keeps_its_identity_over_the_endoscopes_moves():
     alone, truth = run(with_ecm=False)
     assert np.degrees(pose_error(alone[2].T_ecm_needle, truth[2])[1]) > 150.0
     assert not alone[2].ambiguous and alone[2].end_identity > 0.95
+
+
+def test_a_pose_fitted_to_part_of_the_arc_is_flagged_a_partial_view_with_a_wider_covariance():
+    """Half the arc hidden (the jaws, the tissue): the pose states how much of the arc it was
+    fitted to, and below ``min_arc_seen`` it is flagged, its covariance widened."""
+    frames = oracle_frames(6, noise_px=0.3, seed=11)
+    node = RefineNode.offline({"tracking": False}, wired=["left", "right", "calib"])
+    node.on_calib(roundtrip(CALIB))
+    hidden = []
+    for T, left, right in frames:
+        cut = []
+        for kp in (left, right):               # the arc past D hidden, the centreline past B
+            n = len(kp.centreline)
+            cut.append(replace(kp, scores=np.where(np.arange(5) >= 4, 0.0, kp.scores),
+                               centreline=kp.centreline[: int(0.3 * n)], centreline_w=kp.centreline_w[: int(0.3 * n)]))
+        hidden.append(cut)
+        node.on_right(roundtrip(cut[1]))
+        node.on_left(roundtrip(cut[0]))
+    out = poses(node)
+    partial = [p for p in out if p.arc_seen < node.p.min_arc_seen]
+    assert len(partial) >= len(out) // 2 and node.counters["partial_view"] == len(partial)
+    for p in out:
+        left, right = hidden[p.seq]
+        ref = library(left, right)
+        assert p.arc_seen < 0.75 and np.allclose(p.T_ecm_needle, ref.T_ecm_needle)
+        if p in partial:
+            assert p.ambiguous is True and np.allclose(p.covariance, 4.0 * ref.covariance)
+        else:
+            assert p.ambiguous == ref.ambiguous and np.allclose(p.covariance, ref.covariance)
+    whole = RefineNode.offline({"tracking": False}, wired=["left", "right", "calib"])
+    whole.on_calib(roundtrip(CALIB))
+    for T, left, right in frames:
+        whole.on_right(roundtrip(right))
+        whole.on_left(roundtrip(left))
+    assert all(p.arc_seen > 0.9 for p in poses(whole)) and "partial_view" not in whole.counters
