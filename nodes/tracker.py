@@ -12,9 +12,10 @@ as their ECM pose is in).
 
 Each frame is stepped once, in ``seq`` order, when its ECM pose, its truth (when wired) and the
 states of the instruments heard from in the last ``max_wait`` frames are in, and either its pose is in, its
-notice that it has none came (``no_pose``: stepped at once), or a later frame's pose came (the
-refine node posed nothing for it): a frame without a pose is predicted by the motion model
-(counted ``coasted``). A frame waits at most ``max_wait`` frames for its pose; one that comes
+notice that it has none came (``no_pose``: stepped at once), or a later frame's pose or notice
+came (the refine node, which handles frames in order, is past it: a frame the detectors or the
+pairing dropped): a frame without a pose is predicted by the motion model (counted
+``coasted``). A frame waits at most ``max_wait`` frames for its pose; one that comes
 later is dropped (``late_pose``). An instrument's state is the
 newest at or before the frame, at most ``max_wait`` frames old (at most ``MAX_INSTRUMENTS``
 names are followed, one quiet for ``max_wait`` frames making room; more are counted
@@ -109,7 +110,7 @@ class TrackerNode(Node):
         self.sequences = SeqCache(2 * self.p.max_wait + 64)
         self.jaws: dict = {}                # name -> SeqCache(seq -> Jaw)
         self.frames = SeqJoin(self.p.max_wait, in_order=True)
-        self.newest_pose = -1
+        self.newest_said = -1               # the newest frame the refine node posed or said it has no pose
         self.stepped = -1                   # the last frame stepped
         self.sequence = None
         self.ended = False                  # the source said EndOfStream: no frame waits any more
@@ -160,7 +161,7 @@ class TrackerNode(Node):
             self.count("late_pose")
             return
         self.poses.put(msg.seq, msg)
-        self.newest_pose = max(self.newest_pose, msg.seq)
+        self.newest_said = max(self.newest_said, msg.seq)
         self.frames.see(msg.seq)
         self._drain()
 
@@ -169,6 +170,7 @@ class TrackerNode(Node):
         if msg.seq <= self.stepped:
             return
         self.posed_none.put(msg.seq, msg.reason)
+        self.newest_said = max(self.newest_said, msg.seq)
         self.frames.see(msg.seq)
         self._drain()
 
@@ -179,7 +181,7 @@ class TrackerNode(Node):
         seq; their states come in order: a later one means this one came)."""
         if self.ended:
             return True
-        pose = seq in self.poses or seq in self.posed_none or self.newest_pose > seq
+        pose = seq in self.poses or seq in self.posed_none or self.newest_said > seq
         truth = not self.wired("truth") or seq in self.sequences
         return pose and truth and all(n >= seq for n in heard if n >= seq - self.p.max_wait)
 

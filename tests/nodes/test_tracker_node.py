@@ -132,8 +132,15 @@ def test_a_frame_the_refine_node_says_has_no_pose_is_stepped_at_once():
     told.on_no_pose(NoPoseNotice(21, 21 * DT_NS, "refined", "poor_fit"))     # stepped already: nothing
     assert told.stepped == 22
     poses = [m for o, m in told.published if o == "pose"]
-    assert [m.seq for m in poses] == list(range(23)) and not [m for o, m in told.published if o == "no_pose"]
     assert pose_error(poses[-1].T_world_needle, frames[22].T_world_needle)[0] < 1e-3
+    # a frame the refine node never saw (the detectors dropped it): a later frame's notice says
+    # the refine node is past it
+    frame_inputs(told, frames, T_world_ecm, 24)
+    assert told.stepped == 22
+    told.on_no_pose(NoPoseNotice(24, 24 * DT_NS, "refined", "too_few_points"))
+    assert told.stepped == 24 and told.counters["coasted"] == 4
+    poses = [m for o, m in told.published if o == "pose"]
+    assert [m.seq for m in poses] == list(range(25)) and not [m for o, m in told.published if o == "no_pose"]
 
 
 def test_a_frame_without_a_track_is_said_on_no_pose():
