@@ -6,7 +6,10 @@ Inputs, outputs and params: ``needletrack describe refine`` (docs/nodes.md). The
 for its frame's ECM pose and gets ``T_world_needle``. ``pose``: method ``refined``, ``residual``
 the RMS (px) over the keypoints and centreline points used, ``covariance`` over [rotation vector
 (rad), translation (m)] in the ECM frame, ``ambiguous`` when competing solutions fit nearly as
-well or the arc is seen edge-on (the covariance then spans them).
+well or the arc is seen edge-on (the covariance then spans them), ``arc_seen`` the share of the
+arc the pose was fitted to (``common.geometry.arc_support``): below ``min_arc_seen`` the pose is
+a partial view (the jaws or the tissue hide the rest), flagged ``ambiguous`` and its covariance
+widened (counted ``partial_view``; docs/tracking.md#partial-views).
 
 Per frame: the minima of the joint stereo PnP on the keypoints, from the IPPE starts and
 stopped early (``common.geometry.pnp.refine_starts``), are the starting poses; ``DenseRefiner.refine``

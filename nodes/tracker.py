@@ -212,7 +212,8 @@ class TrackerNode(Node):
         mirror = (T_world_ecm @ mirror_pose(T_ecm_needle, self.needle),) if pose.ambiguous else ()
         return Measurement(T_world_ecm @ T_ecm_needle,
                            covariance_to_frame(np.asarray(pose.covariance, float), T_world_ecm[:3, :3]),
-                           pose.end_identity, pose.model_sigma_m or 0.0, pose.model_sigma_rad or 0.0, mirror)
+                           pose.end_identity, pose.model_sigma_m or 0.0, pose.model_sigma_rad or 0.0, mirror,
+                           pose.arc_seen)
 
     def _step(self, seq: int):
         self.stepped = seq

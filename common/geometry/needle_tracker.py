@@ -48,12 +48,21 @@ from typing import Optional
 
 import numpy as np
 
-from common.geometry.config import NonNegativeNumber, check_fields
+from common.geometry.config import NonNegativeNumber, Probability, check_fields
 from common.geometry.end_identity import end_for_end_delta, sigmoid, track_identity
+from common.geometry.error_state import (  # noqa: F401  (retract: re-exported)
+    _rot,
+    _sym,
+    constant_velocity,
+    jaw_jacobian,
+    nis,
+    random_walk,
+    retract,
+)
 from common.geometry.fusion import covariance_to_frame, without_common
 from common.geometry.needle import NeedleModel
 from common.geometry.refine import _pose_delta as pose_delta
-from common.geometry.transforms import inv_T, make_T, rotvec_to_R, skew, transform_points
+from common.geometry.transforms import inv_T, transform_points
 
 CHI2_6_999 = 22.46
 """Chi-square with 6 degrees of freedom exceeds this in 0.1% of the draws."""
@@ -65,6 +74,7 @@ class TrackerConfig:
     gate_nis: float = CHI2_6_999            # a measurement farther than this (Mahalanobis^2) is rejected
     reset_after: int = 3                    # rejected measurements in a row that start a free track again
     reset_after_held: int = 30              # ... a settled one (1 s at 30 Hz: see the docstring)
+    start_arc_seen: Probability = 0.6       # a track starts from a pose fitted to this much of its arc
     rest_sigma_m: NonNegativeNumber = 0.05e-3           # random walk of a needle at rest, per sqrt(s)
     rest_sigma_rad: NonNegativeNumber = math.radians(0.2)
     slip_sigma_m: NonNegativeNumber = 0.1e-3            # slip in the jaws, per sqrt(s)
@@ -114,11 +124,17 @@ class Measurement:
     common_sigma_m: float = 0.0
     common_sigma_rad: float = 0.0
     alternatives: tuple = ()
+    arc_seen: Optional[float] = None        # the share of the arc it was fitted to (None: not said)
 
     def own(self) -> "Measurement":
         """The measurement with its covariance less the shared part."""
         C = without_common(self.covariance, self.common_sigma_m, self.common_sigma_rad)
-        return Measurement(self.T_world_needle, C, self.end_identity, alternatives=self.alternatives)
+        return Measurement(self.T_world_needle, C, self.end_identity, alternatives=self.alternatives,
+                           arc_seen=self.arc_seen)
+
+    def starts(self, cfg: "TrackerConfig") -> bool:
+        """Whether a track may start (or restart) from it: fitted to ``start_arc_seen`` of its arc."""
+        return self.arc_seen is None or self.arc_seen >= cfg.start_arc_seen
 
 
 @dataclass(frozen=True)
@@ -145,47 +161,9 @@ class Tracked:
 
 # ---------------------------------------------------------------- small pieces
 
-def retract(T: np.ndarray, d: np.ndarray) -> np.ndarray:
-    """``T`` moved by the error ``d`` = [w, v]: ``R = exp([w]x) R``, ``t = t + v``."""
-    return make_T(rotvec_to_R(d[:3]) @ T[:3, :3], T[:3, 3] + d[3:6])
-
-
 def turned_end_for_end(T: np.ndarray, needle: NeedleModel) -> np.ndarray:
     """The pose read end for end: the half turn of ``end_identity.end_for_end_delta``."""
     return retract(T, end_for_end_delta(T, needle))
-
-
-def jaw_jacobian(T_world_jaw: np.ndarray, T_world_needle: np.ndarray) -> np.ndarray:
-    """d(needle pose error, world) / d(jaw pose error about its pivot, world): a turn of the jaws
-    moves the needle's origin by its lever arm from the pivot."""
-    J = np.eye(6)
-    J[3:, :3] = -skew(T_world_needle[:3, 3] - T_world_jaw[:3, 3])
-    return J
-
-
-def random_walk(sigma_rad: float, sigma_m: float, dt: float) -> np.ndarray:
-    """6x6 process noise of a pose's random walk over ``dt`` s (sigmas per sqrt(s))."""
-    return np.diag([sigma_rad ** 2] * 3 + [sigma_m ** 2] * 3) * max(dt, 0.0)
-
-
-def constant_velocity(dt: float, accel_rad_s2: float, accel_m_s2: float) -> tuple[np.ndarray, np.ndarray]:
-    """(F, Q) 12x12 of the error [w, v, omega, u] over ``dt`` s under white acceleration."""
-    F = np.eye(12)
-    F[:6, 6:] = dt * np.eye(6)
-    q = np.array([accel_rad_s2 ** 2] * 3 + [accel_m_s2 ** 2] * 3)
-    Q = np.zeros((12, 12))
-    Q[:6, :6] = np.diag(q) * dt ** 3 / 3
-    Q[:6, 6:] = Q[6:, :6] = np.diag(q) * dt ** 2 / 2
-    Q[6:, 6:] = np.diag(q) * dt
-    return F, Q
-
-
-def nis(r: np.ndarray, S: np.ndarray) -> float:
-    """Mahalanobis^2 of a residual ``r`` under covariance ``S`` (inf when S is singular)."""
-    try:
-        return float(r @ np.linalg.solve(S, r))
-    except np.linalg.LinAlgError:
-        return float("inf")
 
 
 def jaw_holds(jaw: Jaw, T_world_needle: np.ndarray, needle: NeedleModel, cfg: TrackerConfig,
@@ -198,18 +176,6 @@ def jaw_holds(jaw: Jaw, T_world_needle: np.ndarray, needle: NeedleModel, cfg: Tr
     z = np.clip(p[:, 2], 0.0, cfg.jaw_length_m)
     d = np.sqrt(p[:, 0] ** 2 + p[:, 1] ** 2 + (p[:, 2] - z) ** 2)
     return bool(d.min() <= cfg.grasp_reach_m)
-
-
-def _rot(R: np.ndarray, n: int = 6) -> np.ndarray:
-    """blkdiag(R, R[, ...]) of size n: a [w, v(, ...)] error from one frame's axes to another's."""
-    A = np.zeros((n, n))
-    for i in range(0, n, 3):
-        A[i:i + 3, i:i + 3] = R
-    return A
-
-
-def _sym(P: np.ndarray) -> np.ndarray:
-    return 0.5 * (P + P.T)
 
 
 # ---------------------------------------------------------------- the filter
@@ -457,6 +423,8 @@ class NeedleTracker:
             measurement = measurement.own()
         used, turned, d = None, False, float("nan")
         if not self.active:
+            if not measurement.starts(self.cfg):    # a partial view: no track from it alone
+                return None
             self._start(measurement, jaws)
             self.stamp_ns = self.last_seen_ns = stamp_ns
             used, event = True, "start"
@@ -473,7 +441,8 @@ class NeedleTracker:
             else:
                 self.rejected += 1
                 settled = self.mode != "free" and self.age >= self.cfg.reset_after_held
-                if self.rejected >= (self.cfg.reset_after_held if settled else self.cfg.reset_after):
+                if self.rejected >= (self.cfg.reset_after_held if settled else self.cfg.reset_after) \
+                        and measurement.starts(self.cfg):
                     refused = self.refused
                     self.reset()
                     self.refused = refused

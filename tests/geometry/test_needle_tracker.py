@@ -290,3 +290,17 @@ def test_a_settled_track_outlasts_a_run_of_biased_fits_and_restarts_only_after_r
         if o.event != "restart":
             assert o.used is False and pose_error(o.T_world_needle, frames[k].T_world_needle)[0] < 0.6e-3
     assert events.count("restart") == 1 and events[-1] == "restart"
+
+
+def test_no_track_starts_from_a_partial_view_alone():
+    """A pose fitted to a short part of its arc (the jaws hide the rest) can be tens of degrees
+    off and still fit: the track starts only from one fitted to ``start_arc_seen`` of the arc."""
+    frames = take("pickup", 8)
+    rng = np.random.default_rng(8)
+    C = stated_covariance(rng)
+    tr = NeedleTracker(NEEDLE)
+    for k in range(5):
+        m = measure(rng, frames[k].T_world_needle, C)
+        assert tr.step(k * DT_NS, jaws_of(frames[k]), Measurement(m.T_world_needle, C, arc_seen=0.3)) is None
+    o = tr.step(5 * DT_NS, jaws_of(frames[5]), Measurement(measure(rng, frames[5].T_world_needle, C).T_world_needle, C, arc_seen=0.8))
+    assert o is not None and o.event == "start"
