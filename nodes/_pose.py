@@ -5,6 +5,9 @@ frame into a pose (``epnp``, ``triangulate``): it keeps the latest ``Calibration
 recent ``EcmPose`` messages by ``seq``, pairs left/right keypoints by ``seq`` and calls
 ``on_pair(left, right)``; it counts the stereo frames paired (``pairs``) and why a frame gave no
 pose (``no_pose.<reason>``), and builds the ``PoseEstimate`` with ``T_world_needle`` when the ECM pose of that frame is known.
+A node that declares the output ``no_pose`` publishes there a ``NoPoseNotice`` (its method, the
+reason) for each paired frame it gives no pose, at once: a node waiting on its poses (the
+tracker) need not wait for a later frame to learn that this one has none.
 
 ``publish_pose`` publishes a pose once its frame's ECM pose is in (with ``ecm`` wired): a pose
 computed before the ECM pose arrived waits for it, at most ``max_wait`` frames (param, default
@@ -27,7 +30,7 @@ from common.geometry.camera import StereoRig
 from common.geometry.end_identity import TIP_SURE, Settled, settle, state, turn_observation
 from common.geometry.needle import NeedleModel
 from common.methods import POSE_METHODS
-from common.runtime.messages import Calibration, EcmPose, Keypoints, PoseEstimate
+from common.runtime.messages import Calibration, EcmPose, Keypoints, NoPoseNotice, PoseEstimate
 from common.runtime.node import Node
 from common.runtime.pairing import SeqCache, SeqJoin, StereoPairer
 
@@ -40,6 +43,8 @@ class StereoPoseNode(Node):
 
     INPUTS = {"left": Keypoints, "right": Keypoints, "calib": Calibration, "ecm": EcmPose}
     KEEP_ALL = ("calib", "ecm")
+    pose_method = ""
+    """The method the node's poses state (``PoseEstimate.method``); its ``NoPoseNotice``s say it."""
 
     @dataclass
     class Params:
@@ -99,7 +104,7 @@ class StereoPoseNode(Node):
             return
         self.count("pairs")
         if self.rig is None:
-            self.count("no_pose.no_calibration")
+            self.no_pose("no_calibration", pair[0])
             return
         self.on_pair(*self.settle_end_identity(*pair))
 
@@ -131,9 +136,13 @@ class StereoPoseNode(Node):
                 sc[kp.camera] = np.asarray(kp.scores, dtype=float)
         return uv, sc
 
-    def no_pose(self, reason: str, seq: int, detail: str = "") -> None:
+    def no_pose(self, reason: str, frame: Keypoints, detail: str = "") -> None:
+        """Frame ``frame.seq`` (one of its keypoints) gives no pose: counted ``no_pose.<reason>``,
+        and said on ``no_pose`` where the node declares it."""
         self.count(f"no_pose.{reason}")
-        self.log.debug("seq %d: no pose (%s) %s", seq, reason, detail)
+        self.log.debug("seq %d: no pose (%s) %s", frame.seq, reason, detail)
+        if "no_pose" in self.OUTPUTS:
+            self.publish("no_pose", NoPoseNotice(frame.seq, frame.stamp_ns, self.pose_method, reason))
 
     def publish_pose(self, pose: PoseEstimate, output: str = "pose") -> None:
         """Publish ``pose`` now, or once its frame's ECM pose is in (module docstring), stating its

@@ -1,6 +1,7 @@
 """Pipeline I node: the needle pose from the stereo keypoints by PnP (common/geometry/pnp.py),
 ``method`` joint (``pnp_joint``) or average (``pnp_average``, the paper's); residual the
-reprojection RMS in px. A frame that gives no pose counts ``no_pose.<reason>``. Inputs, outputs
+reprojection RMS in px. A frame that gives no pose counts ``no_pose.<reason>`` and is said on
+``no_pose`` (``NoPoseNotice``, ``nodes/_pose.py``). Inputs, outputs
 and params: ``needletrack describe epnp`` ([docs/nodes.md](../docs/nodes.md)).
 """
 from __future__ import annotations
@@ -21,7 +22,7 @@ class EpnpNode(StereoPoseNode):
     """Pipeline I: PnP per camera (average) or jointly in both cameras -> T_ecm_needle."""
 
     INPUTS = {"left": Keypoints, "right": Keypoints, "calib": Calibration, "ecm": EcmPose}
-    OUTPUTS = ("pose",)
+    OUTPUTS = ("pose", "no_pose")
     KEEP_ALL = StereoPoseNode.KEEP_ALL
 
     @dataclass
@@ -40,6 +41,7 @@ class EpnpNode(StereoPoseNode):
         super().setup()
         method = self.p.method
         self.method = method
+        self.pose_method = METHODS[method]
         # the mean of two camera poses on different branches of the planar ambiguity reprojects
         # badly by construction: the paper's method is published as it is
         self.max_rms_px = self.p.max_rms_px if method == "joint" or "max_rms_px" in self.params else None
@@ -61,12 +63,12 @@ class EpnpNode(StereoPoseNode):
                 res = pnp_average(uv, self.rig, self.model_points, sc, self.min_score,
                                   refine=self.refine, max_rms_px=self.max_rms_px)
         except NoPose as exc:
-            self.no_pose(exc.reason, left.seq, exc.detail)
+            self.no_pose(exc.reason, left, exc.detail)
             return
         extra = {}
         if self.method == "joint":
             extra = {"covariance": res.covariance, "ambiguous": bool(res.ambiguous)}
-        self.publish_pose(self.pose_message(left.seq, left.stamp_ns, METHODS[self.method],
+        self.publish_pose(self.pose_message(left.seq, left.stamp_ns, self.pose_method,
                                                res.T_ecm_needle, res.rms_px, "px", **extra))
 
 

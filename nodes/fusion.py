@@ -14,7 +14,8 @@ measures: ``motion``, optional, the tracker's poses (``tracker/pose``), read onl
 ``held`` or ``free`` is fused with no other: the window starts again, the estimate passes alone
 (``resets.needle_moves``), and the next frame at rest starts a new window. An estimate waits
 for its frame's mode until the tracker has stated that frame or a later one (it steps frames
-in order; one it skipped had no track); a frame without a track passes alone too
+in order; one it skipped had no track) or, with ``untracked`` wired (``tracker/no_pose``), said
+that it has no track for it; a frame without a track passes alone too
 (``resets.motion_unknown``), as does one whose mode did not come within ``max_wait`` frames
 (``no_motion``). While the tracker says ``rest`` the fusion is the same as without it. A needle
 in the jaws is fused in the jaw frame by the tracker itself: its ``held`` state, ``T_jaw_needle``
@@ -33,7 +34,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from common.geometry.fusion import MultiViewFusion
-from common.runtime.messages import EcmPose, GroundTruth, PoseEstimate
+from common.runtime.messages import EcmPose, GroundTruth, NoPoseNotice, PoseEstimate
 from common.runtime.node import Node, run
 from common.runtime.pairing import SeqCache, SeqJoin
 
@@ -41,9 +42,10 @@ from common.runtime.pairing import SeqCache, SeqJoin
 class FusionNode(Node):
     """Multi-view fusion of the last k estimates, in the current ECM frame."""
 
-    INPUTS = {"pose": PoseEstimate, "ecm": EcmPose, "truth": GroundTruth, "motion": PoseEstimate}
+    INPUTS = {"pose": PoseEstimate, "ecm": EcmPose, "truth": GroundTruth, "motion": PoseEstimate,
+              "untracked": NoPoseNotice}
     OUTPUTS = ("pose",)
-    KEEP_ALL = ("pose", "ecm", "truth", "motion")
+    KEEP_ALL = ("pose", "ecm", "truth", "motion", "untracked")
 
     @dataclass
     class Params:
@@ -108,6 +110,11 @@ class FusionNode(Node):
             self.count("motion.no_mode")
         self.modes.put(msg.seq, msg.mode)
         self.tracked = max(self.tracked, msg.seq)
+        self._drain()
+
+    def on_untracked(self, msg: NoPoseNotice):
+        """The tracker has no track at frame ``msg.seq``: its mode is known to be none."""
+        self.modes.put(msg.seq, None)
         self._drain()
 
     def on_pose(self, msg: PoseEstimate):

@@ -33,7 +33,9 @@ e.g. ``[0, 0, 1]`` for the simulator's phantom) lets ``common.geometry.rest_prio
 minima the images leave nearly equal; it needs the ``ecm`` input (a frame whose ECM pose is not
 in yet uses the newest one). A frame that gives no pose is counted as ``no_pose.<reason>`` (the
 PnP's reasons, or the refinement's: ``too_few_points``, ``no_valid_candidate``,
-``bad_centreline``, ``bad_keypoints``, ``high_residual``, ``poor_fit``, ``unsure_keypoints``).
+``bad_centreline``, ``bad_keypoints``, ``high_residual``, ``poor_fit``, ``unsure_keypoints``), and
+said on ``no_pose`` (``NoPoseNotice``, method ``refined``, that reason) at once: the tracker
+steps such a frame without waiting for a later pose.
 """
 from __future__ import annotations
 
@@ -86,8 +88,9 @@ class RefineNode(StereoPoseNode):
     """Keypoints + centrelines of a stereo frame -> refined T_ecm_needle with covariance."""
 
     INPUTS = {"left": Keypoints, "right": Keypoints, "calib": Calibration, "ecm": EcmPose}
-    OUTPUTS = ("pose",)
+    OUTPUTS = ("pose", "no_pose")
     KEEP_ALL = StereoPoseNode.KEEP_ALL
+    pose_method = "refined"
 
     # every RefineConfig and TrackingConfig field is a param of the same name (``tracking`` for
     # TrackingConfig.enabled), beside the node's own
@@ -158,20 +161,20 @@ class RefineNode(StereoPoseNode):
         try:
             res = self.tracker.refine(uv, sc, obs, left.stamp_ns, self.support_normal_ecm(left.seq))
         except NoPose as exc:
-            self.no_pose(exc.reason, left.seq, exc.detail)
+            self.no_pose(exc.reason, left, exc.detail)
             return
         except RefineError as exc:
-            self.no_pose(exc.reason, left.seq, str(exc))
+            self.no_pose(exc.reason, left, str(exc))
             return
         self.count("warm" if self.tracker.last_warm else "cold")
         if self.max_rms_px is not None and not res.rms_px <= self.max_rms_px:
             self.tracker.reset()
-            self.no_pose("high_residual", left.seq, f"RMS {res.rms_px:.2f} px > {self.max_rms_px} px")
+            self.no_pose("high_residual", left, f"RMS {res.rms_px:.2f} px > {self.max_rms_px} px")
             return
         if self.p.max_residual_variance is not None and not res.residual_variance <= self.p.max_residual_variance:
             self.tracker.reset()
-            self.no_pose("poor_fit", left.seq, f"residual variance {res.residual_variance:.2f} > "
-                                               f"{self.p.max_residual_variance} (the images are not the needle model's)")
+            self.no_pose("poor_fit", left, f"residual variance {res.residual_variance:.2f} > "
+                                           f"{self.p.max_residual_variance} (the images are not the needle model's)")
             return
         if res.ambiguous:
             self.count("ambiguous")
@@ -180,7 +183,7 @@ class RefineNode(StereoPoseNode):
         partial, covariance = partial_view(res.covariance, seen, self.p.min_arc_seen, self.p.partial_view_inflation)
         if partial:
             self.count("partial_view")
-        pose = self.pose_message(left.seq, left.stamp_ns, "refined", res.T_ecm_needle,
+        pose = self.pose_message(left.seq, left.stamp_ns, self.pose_method, res.T_ecm_needle,
                                  res.rms_px, "px", covariance=covariance,
                                  ambiguous=bool(res.ambiguous or partial), arc_seen=seen,
                                  model_sigma_m=self.config.model_sigma_mm * 1e-3 or None,

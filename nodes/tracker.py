@@ -4,16 +4,19 @@
 Inputs: ``pose`` (the refine node's ``PoseEstimate``s, with covariance: the measurements),
 ``ecm`` (``EcmPose``: the frame clock and each frame's endoscope pose), ``instruments``
 (``InstrumentState`` per instrument and frame: the jaws' pose and opening; ``holds_needle`` is
-never read), ``calib`` (the needle model) and optionally ``truth``, read only for its
+never read), ``calib`` (the needle model), optionally ``no_pose`` (the refine node's
+``NoPoseNotice``s: the frames it gives no pose) and ``truth``, read only for its
 ``sequence`` label (a new take starts a new track, ``resets.sequence``), and ``eos`` (a finite
 source's ``EndOfStream``: the frames still waiting are stepped at once, and later ones as soon
 as their ECM pose is in).
 
 Each frame is stepped once, in ``seq`` order, when its ECM pose, its truth (when wired) and the
-states of the instruments heard from in the last ``max_wait`` frames are in, and either its pose is in or a later frame's pose
-came (the refine node posed nothing for it): a frame without a pose is
-predicted by the motion model (counted ``coasted``). A frame waits at most ``max_wait`` frames
-for its pose; one that comes later is dropped (``late_pose``). An instrument's state is the
+states of the instruments heard from in the last ``max_wait`` frames are in, and either its pose is in, its
+notice that it has none came (``no_pose``: stepped at once), or a later frame's pose or notice
+came (the refine node, which handles frames in order, is past it: a frame the detectors or the
+pairing dropped): a frame without a pose is predicted by the motion model (counted
+``coasted``). A frame waits at most ``max_wait`` frames for its pose; one that comes
+later is dropped (``late_pose``). An instrument's state is the
 newest at or before the frame, at most ``max_wait`` frames old (at most ``MAX_INSTRUMENTS``
 names are followed, one quiet for ``max_wait`` frames making room; more are counted
 ``instruments.too_many``).
@@ -27,7 +30,10 @@ measurement's Mahalanobis^2 against the prediction (unit ``chi2``; 0 when coaste
 ``end_identity`` the track's, below 0.95 flagged ``ambiguous`` with the covariance spanning the
 turn; ``mode`` the track's (``rest``, ``held``, ``free``): what the fusion node reads to fuse
 only views of a needle at rest. ``in_hand``: while an instrument holds the needle,
-``InHandPose`` (``T_jaw_needle`` and its covariance in the jaw frame ``<name>_jaw``). Counters: ``rejected`` (gated out), ``turned``
+``InHandPose`` (``T_jaw_needle`` and its covariance in the jaw frame ``<name>_jaw``). ``no_pose``:
+a frame stepped without a track (none yet, or lost), ``NoPoseNotice`` (method ``params.method``,
+reason ``no_track``, counted ``no_pose.no_track``): the fusion's ``untracked`` input, so that it
+does not wait for that frame's mode. Counters: ``rejected`` (gated out), ``turned``
 (read end for end), ``events.<event>`` (``grasp``, ``handover``, ``release``, ``ungrasp``,
 ``rest``, ``restart``, ``flip``), ``no_covariance`` (a pose without one is no measurement).
 Params: every ``TrackerConfig`` field, ``max_wait``, ``method``: ``needletrack describe tracker``.
@@ -53,6 +59,7 @@ from common.runtime.messages import (
     GroundTruth,
     InHandPose,
     InstrumentState,
+    NoPoseNotice,
     PoseEstimate,
 )
 from common.runtime.node import Node, NodeError, run
@@ -76,9 +83,9 @@ class TrackerNode(Node):
     """Refined poses + instruments' states -> the tracked pose, and the needle in the jaws."""
 
     INPUTS = {"pose": PoseEstimate, "ecm": EcmPose, "instruments": InstrumentState,
-              "calib": Calibration, "truth": GroundTruth, "eos": EndOfStream}
-    OUTPUTS = ("pose", "in_hand")
-    KEEP_ALL = ("pose", "ecm", "instruments", "calib", "truth", "eos")
+              "calib": Calibration, "truth": GroundTruth, "eos": EndOfStream, "no_pose": NoPoseNotice}
+    OUTPUTS = ("pose", "in_hand", "no_pose")
+    KEEP_ALL = ("pose", "ecm", "instruments", "calib", "truth", "eos", "no_pose")
 
     Params = merge_schemas("TrackerParams", TrackerConfig, _NodeParams)
 
@@ -98,11 +105,12 @@ class TrackerNode(Node):
 
     def _clear(self):
         self.poses = SeqCache(2 * self.p.max_wait + 64)
+        self.posed_none = SeqCache(2 * self.p.max_wait + 64)   # seqs the refine node said it gives no pose
         self.ecm = SeqCache(2 * self.p.max_wait + 64)   # seq -> EcmPose
         self.sequences = SeqCache(2 * self.p.max_wait + 64)
         self.jaws: dict = {}                # name -> SeqCache(seq -> Jaw)
         self.frames = SeqJoin(self.p.max_wait, in_order=True)
-        self.newest_pose = -1
+        self.newest_said = -1               # the newest frame the refine node posed or said it has no pose
         self.stepped = -1                   # the last frame stepped
         self.sequence = None
         self.ended = False                  # the source said EndOfStream: no frame waits any more
@@ -153,7 +161,16 @@ class TrackerNode(Node):
             self.count("late_pose")
             return
         self.poses.put(msg.seq, msg)
-        self.newest_pose = max(self.newest_pose, msg.seq)
+        self.newest_said = max(self.newest_said, msg.seq)
+        self.frames.see(msg.seq)
+        self._drain()
+
+    def on_no_pose(self, msg: NoPoseNotice):
+        """The refine node gives frame ``msg.seq`` no pose: it waits for nothing more of it."""
+        if msg.seq <= self.stepped:
+            return
+        self.posed_none.put(msg.seq, msg.reason)
+        self.newest_said = max(self.newest_said, msg.seq)
         self.frames.see(msg.seq)
         self._drain()
 
@@ -164,7 +181,7 @@ class TrackerNode(Node):
         seq; their states come in order: a later one means this one came)."""
         if self.ended:
             return True
-        pose = seq in self.poses or self.newest_pose > seq
+        pose = seq in self.poses or seq in self.posed_none or self.newest_said > seq
         truth = not self.wired("truth") or seq in self.sequences
         return pose and truth and all(n >= seq for n in heard if n >= seq - self.p.max_wait)
 
@@ -202,6 +219,7 @@ class TrackerNode(Node):
         self.stepped = seq
         ecm = self.ecm.get(seq)
         pose = self.poses.pop(seq, None)
+        self.posed_none.pop(seq, None)
         sequence = self.sequences.get(seq)
         if self.p.reset_on_sequence and sequence is not None and sequence != self.sequence:
             if self.sequence is not None and self.tracker.active:
@@ -211,6 +229,8 @@ class TrackerNode(Node):
         T_world_ecm = np.asarray(ecm.T_world_ecm, float)
         out = self.tracker.step(int(ecm.stamp_ns), self._jaws_at(seq), self._measurement(pose, T_world_ecm))
         if out is None:
+            self.count("no_pose.no_track")
+            self.publish("no_pose", NoPoseNotice(seq, int(ecm.stamp_ns), self.p.method, "no_track"))
             return
         if out.used is False:
             self.count("rejected")

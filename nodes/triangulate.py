@@ -6,7 +6,8 @@ optional: adds ``T_world_ecm``/``T_world_needle``; when wired, a pose waits for 
 pose, at most ``max_wait`` frames, default 30). Outputs: ``pose`` (PoseEstimate, method
 ``triangulation``, residual = registration RMS in m, ``points_ecm`` the triangulated points)
 and ``points`` (Points3D, published for every frame with a valid calibration, NaN rows where a
-keypoint was not triangulated).
+keypoint was not triangulated), and ``no_pose`` (``NoPoseNotice``: a frame without a pose,
+``nodes/_pose.py``).
 
 Params: ``min_score`` (0.5); ``max_rms_m`` (0.05: a registration worse than this, larger than
 the needle itself, means the points are not a needle and no pose is published; with 1 px
@@ -29,8 +30,9 @@ class TriangulateNode(StereoPoseNode):
     """Pipeline II: triangulate A..E, register the needle model onto them -> T_ecm_needle."""
 
     INPUTS = {"left": Keypoints, "right": Keypoints, "calib": Calibration, "ecm": EcmPose}
-    OUTPUTS = ("pose", "points")
+    OUTPUTS = ("pose", "points", "no_pose")
     KEEP_ALL = StereoPoseNode.KEEP_ALL
+    pose_method = "triangulation"
 
     @dataclass
     class Params(StereoPoseNode.Params):
@@ -49,10 +51,10 @@ class TriangulateNode(StereoPoseNode):
         except NoPose as exc:
             res = None
             pts, valid, _ = triangulate_keypoints(uv, self.rig, n, sc, self.min_score)
-            self.no_pose(exc.reason, left.seq, exc.detail)
+            self.no_pose(exc.reason, left, exc.detail)
         self.publish("points", Points3D(left.seq, left.stamp_ns, pts, np.asarray(valid, dtype=bool)))
         if res is not None:
-            self.publish_pose(self.pose_message(left.seq, left.stamp_ns, "triangulation",
+            self.publish_pose(self.pose_message(left.seq, left.stamp_ns, self.pose_method,
                                                    res.T_ecm_needle, res.rms_m, "m",
                                                    points_ecm=res.points_ecm))
 

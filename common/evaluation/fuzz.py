@@ -249,8 +249,9 @@ def live_check(args) -> int:
     stream = CleanStream(seed=args.seed)
     rng, np_rng = random.Random(args.seed), np.random.default_rng(args.seed)
     targets = sorted({src for spec in graph.nodes for src in spec.inputs.values()})
+    # the outputs watched (not no_pose: only a frame without a pose has one)
     outputs = [f"{spec.id}/{o}" for spec in graph.nodes for o in spec.outputs
-               if spec.id != "camera" and o != "points"] + ["camera/truth"]
+               if spec.id != "camera" and o not in ("points", "no_pose")] + ["camera/truth"]
     arrivals: dict = {k: [] for k in outputs}
     log_path = tempfile.mktemp(prefix="fuzz-live-", suffix=".log")
     with open(log_path, "w") as log, GraphRun(doc, log, source="camera") as run:

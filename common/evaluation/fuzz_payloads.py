@@ -16,6 +16,7 @@ from common.runtime.messages import (
     EcmJoints,
     GroundTruth,
     InstrumentState,
+    NoPoseNotice,
     PoseEstimate,
     encode,
 )
@@ -84,7 +85,13 @@ class CleanStream:
                 out = [m for o, m in node.published if o == "pose"]
                 if out:
                     f[f"{name}/pose"] = out[-1]
-            if "pnp_joint/pose" in f:                 # the tracker's: a needle at rest
+            # the refine node's and the tracker's: the joint pose (the tracker's of a needle at rest)
+            # on even frames; on odd ones neither gives a pose and each says so (NoPoseNotice)
+            if i % 2:
+                f["refine/no_pose"] = NoPoseNotice(i, stamp, "refined", "too_few_points")
+                f["tracker/no_pose"] = NoPoseNotice(i, stamp, "tracked", "no_track")
+            elif "pnp_joint/pose" in f:
+                f["refine/pose"] = dataclasses.replace(f["pnp_joint/pose"], method="refined")
                 f["tracker/pose"] = dataclasses.replace(f["pnp_joint/pose"], method="tracked", mode="rest")
             fusion.published.clear()
             fusion.deliver("ecm", f["ecm/pose"])
@@ -95,7 +102,7 @@ class CleanStream:
                 f["fusion/pose"] = fusion.published[-1][1]
             self.frames.append(f)
         self.aliases = {"epnp_average/pose": "pnp_average/pose", "epnp_joint/pose": "pnp_joint/pose",
-                        "triangulate/pose": "triangulation/pose", "refine/pose": "pnp_joint/pose"}
+                        "triangulate/pose": "triangulation/pose"}
 
     def message(self, key: str, seq: int, epoch: Optional[int] = None):
         """The clean message on ``key`` (a graph key) for frame ``seq``; None if there is none."""

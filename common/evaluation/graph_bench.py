@@ -357,7 +357,7 @@ def report(r: dict) -> str:
          f"p99 {f(r['latency_ms']['p99'])} ms from frame publish to final pose   [target p50 <= {TARGET_P50_MS:.0f} ms]",
          *([f"  tracked, by frame     p50 {f(t['measured']['p50'])} ms with a refined pose "
             f"({t['measured']['n']}), {f(t['coasted']['p50'])} ms coasted ({t['coasted']['n']}: "
-            "stepped when a later frame's pose or max_wait frames came)"]
+            "stepped at its no_pose notice, a later frame's pose or notice, or after max_wait frames)"]
            if (t := r.get("tracked_latency_ms")) else []),
          "", f"  {'stage output':<22}{'frames/s':>9}{'p50 ms':>9}{'p99 ms':>9}   (latency from frame publish)"]
     for name, s in r["stages"].items():

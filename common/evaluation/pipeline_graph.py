@@ -138,7 +138,7 @@ def pipeline_graph(dataset: str, *, detector: str = "learned", detector_params: 
         nodes.append({"id": "triangulate", "module": "triangulate", "inputs": dict(stereo),
                       "outputs": ["pose", "points"], "env": one})
     # where the tracker runs, it says which frames' needle is at rest: the fusions fuse only those
-    motion = {"motion": POSE_OUTPUTS["tracked"]} if "tracked" in wanted else {}
+    motion = {"motion": POSE_OUTPUTS["tracked"], "untracked": "tracker/no_pose"} if "tracked" in wanted else {}
     fusion_wait = {"max_wait": 2 * LOSSLESS_TRACKER_WAIT} if motion and lossless else {}
     if "multiview" in wanted:
         nodes.append({"id": "fusion", "module": "fusion", "params": {"method": "multiview", **fusion_wait},
@@ -147,7 +147,7 @@ def pipeline_graph(dataset: str, *, detector: str = "learned", detector_params: 
     if "refined" in wanted:
         nodes.append({"id": "refine", "module": "refine", "inputs": dict(stereo),
                       "params": {"tracking": bool(refine_tracking), **(refine_params or {})},
-                      "outputs": ["pose"], "env": one})
+                      "outputs": ["pose", "no_pose"], "env": one})
     if "multiview_refined" in wanted:
         nodes.append({"id": "fusion_refined", "module": "fusion",
                       "params": {"method": "multiview_refined", **fusion_wait},
@@ -157,9 +157,10 @@ def pipeline_graph(dataset: str, *, detector: str = "learned", detector_params: 
         # lossless: a frame waits for its refined pose as long as the queues may hold it back
         nodes.append({"id": "tracker", "module": "tracker",
                       "params": {**({"max_wait": LOSSLESS_TRACKER_WAIT} if lossless else {}), **(tracker_params or {})},
-                      "inputs": {"pose": "refine/pose", "ecm": "ecm/pose", "instruments": "replay/instruments",
-                                 "calib": "replay/calib", "truth": "replay/truth", "eos": "replay/eos"},
-                      "outputs": ["pose", "in_hand"], "env": one})
+                      "inputs": {"pose": "refine/pose", "no_pose": "refine/no_pose", "ecm": "ecm/pose",
+                                 "instruments": "replay/instruments", "calib": "replay/calib",
+                                 "truth": "replay/truth", "eos": "replay/eos"},
+                      "outputs": ["pose", "in_hand", "no_pose"], "env": one})
     for n in nodes:   # wire only what a module declares (optional inputs come and go)
         info = module_info(n["module"])
         if info and info["inputs"] is not None:

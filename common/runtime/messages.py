@@ -11,8 +11,9 @@ consumers pair them by ``seq`` (see ``common.runtime.pairing``).
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Literal, Optional
+from typing import Annotated, Literal, Optional
 
+import msgspec
 import numpy as np
 
 from common.frames import CAMERAS  # noqa: F401  (re-exported)
@@ -32,7 +33,7 @@ from common.runtime.checks import (  # noqa: F401  (re-exported: the messages' A
     rigid_error,
 )
 from common.runtime.codec import _REGISTRY, Message, decode, encode, encode_parts, register  # noqa: F401
-from common.runtime.schema import Array, ArrayNaN, ByCamera, Bytes, Int64, NonNegative, Number, number
+from common.runtime.schema import Array, ArrayNaN, ByCamera, Bytes, Int64, NonNegative, Number, Says, number
 
 # ---------------------------------------------------------------- the messages
 
@@ -44,6 +45,9 @@ AtLeastOne = number("must be at least 1, got {value}", ge=1)
 Probability = number("must be a probability in [0, 1], got {value}", ge=0, le=1)
 Share = number("must be a share in [0, 1], got {value}", ge=0, le=1)
 NonNegativeNumber = number("must be a finite number >= 0, got {value}", ge=0)
+Word = Annotated[str, msgspec.Meta(pattern=r"^[A-Za-z0-9_.-]{1,64}$"),
+                 Says("must be 1 to 64 letters, digits, '_', '.' or '-', got {value!r}")]
+"""A name a node makes up and a counter carries: a method, a reason."""
 
 
 @register
@@ -253,6 +257,26 @@ class PoseEstimate(Message):
         err = pose_invariant_error(self)
         if err:
             raise MessageError(err)
+
+
+@register
+@dataclass
+class NoPoseNotice(Message):
+    """A pose node's word that frame ``seq`` has no pose of ``method`` (``PoseEstimate.method``):
+    ``reason`` why, as the node counts it (``no_pose.<reason>``, e.g. ``too_few_points``,
+    ``poor_fit``; the tracker's ``no_track``). ``stamp_ns``: the frame's. What waits on the
+    node's poses (the tracker on the refined ones, the fusion on the tracker's mode) goes on at
+    once instead of waiting ``max_wait`` frames for a pose that will not come (docs/tracking.md)."""
+
+    SCHEMA = "needletrack.NoPoseNotice"
+    seq: NonNegative
+    stamp_ns: NonNegative
+    method: Word
+    reason: Word
+    epoch: Optional[NonNegative] = None
+
+    def validate(self):
+        pass
 
 
 @register

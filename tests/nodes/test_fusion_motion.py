@@ -16,6 +16,7 @@ from common.runtime.messages import (
     GroundTruth,
     InstrumentState,
     MessageError,
+    NoPoseNotice,
     PoseEstimate,
     decode,
     encode,
@@ -117,6 +118,30 @@ def test_an_estimate_waits_for_its_mode_and_a_frame_without_a_track_passes_alone
     assert node.counters["resets.motion_unknown"] == 3
 
 
+def test_a_frame_the_tracker_says_it_has_no_track_for_passes_alone_at_once():
+    T_we, T_en = views(5, n=4)
+    node = FusionNode.offline({"max_wait": 30}, wired=WIRED + ["untracked"])
+    for s in range(3):
+        node.deliver("ecm", EcmPose(s, s, T_we[s]))
+        node.deliver("truth", GroundTruth(s, s, sequence=3))
+        node.deliver("pose", PoseEstimate(s, s, "pnp_joint", T_en[s], covariance=C))
+    node.deliver("untracked", wire(NoPoseNotice(0, 0, "tracked", "no_track")))
+    assert [(m.seq, m.n_views) for _, m in node.published] == [(0, 1)]     # no later frame needed
+    assert node.counters["resets.motion_unknown"] == 1 and "no_motion" not in node.counters
+    # said for frame 2 only: frame 1 still waits for its mode, and frame 2 behind it (in order)
+    node.deliver("untracked", wire(NoPoseNotice(2, 2, "tracked", "no_track")))
+    assert [m.seq for _, m in node.published] == [0]
+    node.deliver("motion", wire(PoseEstimate(1, 1, "tracked", T_en[1], covariance=C, mode="rest")))
+    assert [(m.seq, m.n_views) for _, m in node.published] == [(0, 1), (1, 1), (2, 1)]
+    assert node.counters["resets.motion_unknown"] == 2 and "no_motion" not in node.counters
+    # the tracker's own output feeds it: frames before its first measurement have no track
+    tracker = TrackerNode.offline(wired=["pose", "ecm", "no_pose"])
+    for s in range(2):
+        tracker.deliver("ecm", EcmPose(s, s, T_we[s]))
+        tracker.deliver("no_pose", NoPoseNotice(s, s, "refined", "too_few_points"))
+    assert [(o, m.seq, m.reason) for o, m in tracker.published] == [("no_pose", 0, "no_track"), ("no_pose", 1, "no_track")]
+
+
 def test_the_mode_travels_on_the_tracked_pose_and_older_payloads_decode():
     T = make_T(np.eye(3), [0, 0, 0.1])
     for mode in ("rest", "held", "free", None):
@@ -178,8 +203,11 @@ def test_the_evaluation_graph_wires_the_tracker_s_modes_to_the_fusions_where_it_
     by_id = {n["id"]: n for n in pipeline_graph("dataset", detector="oracle", refine=True, tracker=True)["nodes"]}
     for fid in ("fusion", "fusion_refined"):
         assert by_id[fid]["inputs"]["motion"] == "tracker/pose"
+        assert by_id[fid]["inputs"]["untracked"] == "tracker/no_pose"
+    assert by_id["tracker"]["inputs"]["no_pose"] == "refine/no_pose"       # stepped without waiting
+    assert "no_pose" in by_id["refine"]["outputs"] and "no_pose" in by_id["tracker"]["outputs"]
     static = {n["id"]: n for n in pipeline_graph("dataset", detector="oracle", refine=True)["nodes"]}
-    assert all("motion" not in static[fid]["inputs"] for fid in ("fusion", "fusion_refined"))
+    assert all(not {"motion", "untracked"} & set(static[fid]["inputs"]) for fid in ("fusion", "fusion_refined"))
     lossless = {n["id"]: n for n in pipeline_graph("dataset", detector="oracle", refine=True, tracker=True,
                                                     lossless=True)["nodes"]}
     assert lossless["fusion"]["params"]["max_wait"] == 2 * LOSSLESS_TRACKER_WAIT

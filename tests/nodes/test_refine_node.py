@@ -18,6 +18,7 @@ from common.runtime.messages import (
     Calibration,
     EcmPose,
     Keypoints,
+    NoPoseNotice,
     PoseEstimate,
     decode,
     encode,
@@ -63,6 +64,10 @@ def library(left, right, config=RefineConfig(), support_normal=None):
 
 def poses(node):
     return [m for o, m in node.published if o == "pose"]
+
+
+def notices(node):
+    return [m for o, m in node.published if o == "no_pose"]
 
 
 def test_node_matches_the_library_and_adds_the_world_pose():
@@ -185,6 +190,33 @@ def test_node_counts_why_there_is_no_pose_and_never_publishes_one():
     strict.on_right(right)
     assert strict.counters["no_pose.high_residual"] == 1 and poses(strict) == []
     assert poses(node) == []
+    # each frame without a pose is said at once, with the reason it is counted under
+    said = [roundtrip(m) for m in notices(node)]
+    assert [(m.seq, m.method, m.reason) for m in said] == [
+        (0, "refined", "no_calibration"), (1, "refined", "coincident"), (2, "refined", "too_few_points"),
+        (9, "refined", "too_few_points"), (10, "refined", "bad_centreline")]
+    assert [(m.seq, m.reason) for m in notices(strict)] == [(0, "high_residual")]
+
+
+def test_a_notice_goes_out_for_each_frame_without_a_pose_and_never_for_a_posed_one():
+    frames = oracle_frames(8)
+    node = RefineNode.offline({}, wired=["left", "right", "calib"])
+    node.on_calib(CALIB)
+    hidden = {2, 3, 6}                                  # the jaws hide the needle: nothing found
+    for T, left, right in frames:
+        if left.seq in hidden:
+            left, right = (Keypoints.not_found(k.camera, k.seq, k.stamp_ns, "oracle", "hidden") for k in (left, right))
+        node.on_left(left)
+        node.on_right(right)
+        said = {m.seq for m in notices(node)}
+        assert said == {s for s in hidden if s <= left.seq}        # at once, not at a later frame
+    posed = {m.seq for m in poses(node)}
+    assert posed == set(range(8)) - hidden
+    for m in notices(node):
+        back = roundtrip(m)
+        assert isinstance(back, NoPoseNotice) and back.method == "refined" and back.reason == "too_few_points"
+        assert back.stamp_ns == m.seq * 1000
+    assert node.counters["no_pose.too_few_points"] == len(hidden)
 
 
 def test_a_fit_far_worse_than_the_stated_noise_is_not_published():

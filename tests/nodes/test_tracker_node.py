@@ -15,6 +15,7 @@ from common.runtime.messages import (
     GroundTruth,
     InHandPose,
     InstrumentState,
+    NoPoseNotice,
     PoseEstimate,
     decode,
     encode,
@@ -95,6 +96,64 @@ def test_a_late_pose_is_dropped_and_a_new_take_starts_a_new_track():
     assert node.counters["resets.sequence"] == 1
     last = [m for o, m in node.published if o == "pose"][-1]
     assert last.seq == 30 and pose_error(last.T_world_needle, far)[0] < 1e-6
+
+
+def frame_inputs(node, frames, T_world_ecm, k):
+    """Frame ``k``'s truth, instruments' states and ECM pose (no pose)."""
+    node.on_truth(GroundTruth(k, k * DT_NS, sequence=0, needle_at_rest=False))
+    for name, (T, jaw, holds) in frames[k].instruments.items():
+        node.on_instruments(InstrumentState(name, k, k * DT_NS, T, jaw, holds))
+    node.on_ecm(EcmPose(k, k * DT_NS, T_world_ecm))
+
+
+def test_a_frame_the_refine_node_says_has_no_pose_is_stepped_at_once():
+    frames, T_world_ecm = handover()
+    rng = np.random.default_rng(2)
+    told, untold = TrackerNode.offline(), TrackerNode.offline()      # max_wait 5
+    for node in (told, untold):
+        feed(node, frames[:20], T_world_ecm, rng)
+        frame_inputs(node, frames, T_world_ecm, 20)
+    notice = decode(encode(NoPoseNotice(20, 20 * DT_NS, "refined", "too_few_points")), NoPoseNotice)
+    told.on_no_pose(notice)
+    assert told.stepped == 20 and told.counters["coasted"] == 1    # no later frame needed
+    assert untold.stepped == 19                                    # waits for a later pose
+    # a notice may come before the frame's other inputs: stepped as soon as they are in
+    told.on_no_pose(NoPoseNotice(21, 21 * DT_NS, "refined", "poor_fit"))
+    assert told.stepped == 20
+    frame_inputs(told, frames, T_world_ecm, 21)
+    assert told.stepped == 21 and told.counters["coasted"] == 2
+    # a frame without a notice still waits for its pose, and a late one (within max_wait) is used
+    for k in (22, 23):
+        frame_inputs(told, frames, T_world_ecm, k)
+    assert told.stepped == 21
+    T_ecm = inv_T(T_world_ecm) @ frames[22].T_world_needle
+    told.on_pose(PoseEstimate(22, 22 * DT_NS, "refined", T_ecm, covariance=np.eye(6) * 1e-8))
+    assert told.stepped == 22 and told.counters["coasted"] == 2 and "late_pose" not in told.counters
+    told.on_no_pose(NoPoseNotice(21, 21 * DT_NS, "refined", "poor_fit"))     # stepped already: nothing
+    assert told.stepped == 22
+    poses = [m for o, m in told.published if o == "pose"]
+    assert pose_error(poses[-1].T_world_needle, frames[22].T_world_needle)[0] < 1e-3
+    # a frame the refine node never saw (the detectors dropped it): a later frame's notice says
+    # the refine node is past it
+    frame_inputs(told, frames, T_world_ecm, 24)
+    assert told.stepped == 22
+    told.on_no_pose(NoPoseNotice(24, 24 * DT_NS, "refined", "too_few_points"))
+    assert told.stepped == 24 and told.counters["coasted"] == 4
+    poses = [m for o, m in told.published if o == "pose"]
+    assert [m.seq for m in poses] == list(range(25)) and not [m for o, m in told.published if o == "no_pose"]
+
+
+def test_a_frame_without_a_track_is_said_on_no_pose():
+    frames, T_world_ecm = handover()
+    node = TrackerNode.offline()
+    node.on_calib(CALIB)
+    for k in range(3):                                  # nothing posed yet: no track
+        frame_inputs(node, frames, T_world_ecm, k)
+        node.on_no_pose(NoPoseNotice(k, k * DT_NS, "refined", "too_few_points"))
+    said = [decode(encode(m), NoPoseNotice) for o, m in node.published if o == "no_pose"]
+    assert [(m.seq, m.stamp_ns, m.method, m.reason) for m in said] == [
+        (k, k * DT_NS, "tracked", "no_track") for k in range(3)]
+    assert node.counters["no_pose.no_track"] == 3 and not [m for o, m in node.published if o == "pose"]
 
 
 def test_the_node_refuses_what_cannot_work():

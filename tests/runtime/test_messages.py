@@ -17,10 +17,12 @@ from common.runtime.messages import (
     EcmPose,
     EndOfStream,
     GroundTruth,
+    InHandPose,
     InstrumentState,
     Keypoints,
     MessageError,
     NodeStats,
+    NoPoseNotice,
     Points3D,
     PoseEstimate,
     decode,
@@ -49,6 +51,8 @@ def examples():
         PoseEstimate(seq=4, stamp_ns=12, method="pnp_joint", T_ecm_needle=T, T_world_needle=T, residual=0.4,
                      residual_unit="px", n_views=2, covariance=np.eye(6) * 1e-6, ambiguous=False,
                      points_ecm=np.zeros((5, 3)), sequence=1, end_identity=0.8),
+        NoPoseNotice(seq=4, stamp_ns=12, method="refined", reason="too_few_points"),
+        NoPoseNotice(seq=5, stamp_ns=13, method="tracked", reason="no_track", epoch=77),
         Points3D(seq=1, stamp_ns=2, points_ecm=np.full((5, 3), np.nan), valid=np.zeros(5, dtype=bool)),
         GroundTruth(seq=1, stamp_ns=2, sequence=0, step=1, ecm_joints=np.zeros(4), T_world_ecm=T,
                     T_world_needle=T, keypoints={"left": np.zeros((5, 2)), "right": np.ones((5, 2))},
@@ -59,6 +63,7 @@ def examples():
         Command("place_needle", {"distance_m": 0.15, "seed": 3}),
         NodeStats("det", "detector", 42, 1, 2.5, {"in.left": 3, "state": "active"}, {"in.left": 29.9}, 1.0, 2.0),
         EndOfStream(frames=30, stamp_ns=9),
+        InHandPose("psm1", 5, 6, "psm1_jaw", T, np.eye(6) * 1e-8, 0.9),
     ]
 
 
@@ -90,7 +95,24 @@ def test_calibration_round_trips():
 def test_all_message_types_are_registered():
     assert {c.__name__ for c in MESSAGE_TYPES.values()} >= {
         "CameraImage", "EcmJoints", "EcmPose", "Keypoints", "PoseEstimate", "Points3D", "GroundTruth",
-        "Calibration", "Command", "NodeStats", "EndOfStream", "InstrumentState"}
+        "Calibration", "Command", "NodeStats", "EndOfStream", "InstrumentState", "InHandPose", "NoPoseNotice"}
+    # every registered type is in the round trips and the corruption tests below (Calibration: its own)
+    assert {type(m) for m in examples()} | {Calibration} == set(MESSAGE_TYPES.values())
+
+
+@pytest.mark.parametrize("body,text", [
+    ({"seq": 1, "stamp_ns": 2, "method": "", "reason": "poor_fit"},
+     "NoPoseNotice.method: must be 1 to 64 letters, digits"),
+    ({"seq": 1, "stamp_ns": 2, "method": "refined", "reason": "poor fit\n"},
+     "NoPoseNotice.reason: must be 1 to 64 letters, digits"),
+    ({"seq": 1, "stamp_ns": 2, "method": "refined", "reason": "x" * 65}, "NoPoseNotice.reason: must be 1 to 64"),
+    ({"seq": 1, "stamp_ns": 2, "method": "refined", "reason": 3}, "NoPoseNotice.reason: expected string, got int"),
+    ({"seq": -1, "stamp_ns": 2, "method": "refined", "reason": "poor_fit"}, "NoPoseNotice.seq: must not be negative"),
+    ({"seq": 1, "stamp_ns": 2, "method": "refined"}, "NoPoseNotice.reason: missing"),
+])
+def test_a_no_pose_notice_with_bad_fields_is_refused(body, text):
+    with pytest.raises(MessageError, match=text):
+        decode(msgpack.packb({"schema": NoPoseNotice.SCHEMA, "version": 1, "body": body}), NoPoseNotice)
 
 
 @settings(max_examples=60, deadline=None, suppress_health_check=[HealthCheck.too_slow])
