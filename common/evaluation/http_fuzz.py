@@ -200,8 +200,8 @@ SERVER = r"""
 import logging, os, sys
 logging.basicConfig(level=logging.INFO, format="%(asctime)s %(name)s %(levelname)s %(message)s")
 if sys.argv[1] == "node":
-    from nodes.viewer import ViewerNode
-    s = ViewerNode.offline({"port": 0, "rerun": False}, wired=["left", "right", "calib"]).page
+    from common.runtime.node import node_class     # the library never imports nodes/
+    s = node_class("viewer").offline({"port": 0, "rerun": False}, wired=["left", "right", "calib"]).page
 else:
     from common.viewer.page import PageServer
     s = PageServer("127.0.0.1", 0)
