@@ -74,7 +74,7 @@ class TrackerConfig:
     gate_nis: float = CHI2_6_999            # a measurement farther than this (Mahalanobis^2) is rejected
     reset_after: int = 3                    # rejected measurements in a row that start a free track again
     reset_after_held: int = 30              # ... a settled one (1 s at 30 Hz: see the docstring)
-    start_arc_seen: Probability = 0.75      # a track starts from a pose fitted to this much of its arc
+    start_arc_seen: Probability = 0.6       # a track starts from a pose fitted to this much of its arc
     rest_sigma_m: NonNegativeNumber = 0.05e-3           # random walk of a needle at rest, per sqrt(s)
     rest_sigma_rad: NonNegativeNumber = math.radians(0.2)
     slip_sigma_m: NonNegativeNumber = 0.1e-3            # slip in the jaws, per sqrt(s)
@@ -199,7 +199,6 @@ class NeedleTracker:
         self.identity: Optional[tuple] = None      # end_identity.track_identity's state
         self.rejected, self.age = 0, 0             # rejected in a row; frames since the track started
         self.trial: Optional[dict] = None          # the alternative: the needle stayed (_arm_trial)
-        self.unused: list = []                     # the newest measurements in a row not taken in
         self.refused: set = set()                  # jaws whose grasp was undone, until they open
         self._last_jaws: dict = {}
         self.common = np.zeros(6)                  # the shared error's variances, the newest measurement's
@@ -400,18 +399,6 @@ class NeedleTracker:
             return "ungrasp"
         return None
 
-    def _may_start(self, m: Measurement) -> bool:
-        """Whether a track may start (or restart) from ``m``: fitted to ``start_arc_seen`` of its
-        arc, or the newest of ``reset_after`` unused measurements in a row that agree with each
-        other (each within ``gate_nis`` of the one before: partial views that tell one story)."""
-        self.unused = (self.unused + [m])[-self.cfg.reset_after:]
-        if m.starts(self.cfg):
-            return True
-        run = self.unused
-        return len(run) == self.cfg.reset_after and all(
-            nis(pose_delta(b.T_world_needle, a.T_world_needle), a.covariance + b.covariance) < self.cfg.gate_nis
-            for a, b in zip(run, run[1:]))
-
     # -- one frame
     def step(self, stamp_ns: int, jaws: dict, measurement: Optional[Measurement]) -> Optional[Tracked]:
         """The track at ``stamp_ns`` given the instruments' states (``{name: Jaw}``) and the
@@ -436,7 +423,7 @@ class NeedleTracker:
             measurement = measurement.own()
         used, turned, d = None, False, float("nan")
         if not self.active:
-            if not self._may_start(measurement):    # a partial view: no track from it alone
+            if not measurement.starts(self.cfg):    # a partial view: no track from it alone
                 return None
             self._start(measurement, jaws)
             self.stamp_ns = self.last_seen_ns = stamp_ns
@@ -447,7 +434,6 @@ class NeedleTracker:
             read = self._read(measurement, jaws)
             used = read is not None
             if used:
-                self.unused = []
                 turned, flipped, d, r, S, H = read
                 self._correct(r, S, H)
                 self.rejected, self.last_seen_ns = 0, stamp_ns
@@ -455,8 +441,8 @@ class NeedleTracker:
             else:
                 self.rejected += 1
                 settled = self.mode != "free" and self.age >= self.cfg.reset_after_held
-                if self._may_start(measurement) and \
-                        self.rejected >= (self.cfg.reset_after_held if settled else self.cfg.reset_after):
+                if self.rejected >= (self.cfg.reset_after_held if settled else self.cfg.reset_after) \
+                        and measurement.starts(self.cfg):
                     refused = self.refused
                     self.reset()
                     self.refused = refused
