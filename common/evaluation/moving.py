@@ -15,7 +15,7 @@ from typing import Optional
 
 import numpy as np
 
-from common.evaluation.metrics import VISIBLE_BINS, summary, visible_fraction
+from common.evaluation.metrics import SWAP_DEG, VISIBLE_BINS, summary, visible_fraction
 from common.frames import CAMERAS
 from common.geometry.transforms import inv_T, pose_error
 
@@ -91,6 +91,43 @@ def in_hand_table(truths: dict, instruments: dict, in_hand: dict, seqs) -> dict:
             "position_mm": summary(np.array(pos) * 1e3), "orientation_deg": summary(np.degrees(rot))}
 
 
+def holder_events(truths: dict, instruments: dict, seqs) -> list:
+    """``(seq, kind)`` of each change of the needle's holder within a take, per the truth: kind
+    ``grasp`` (none to one), ``handover`` (one to another), ``release`` (one to none)."""
+    out, prev = [], None
+    for s in seqs:
+        holder = next((n for n, m in sorted(instruments.get(s, {}).items()) if m.holds_needle), None)
+        here = (truths[s].sequence, holder)
+        if prev is not None and prev[0] == here[0] and prev[1] != holder:
+            out.append((s, "grasp" if prev[1] is None else "release" if holder is None else "handover"))
+        prev = here
+    return out
+
+
+def identity_through(events: list, errors: dict, seqs, window: int = 15) -> dict:
+    """Whether a method keeps the tip through each holder event: of the ``window`` frames before
+    and after it (same take), the last posed one before is not turned end for end (orientation
+    error under ``SWAP_DEG``) and no posed one after is: ``kept``; right before and turned
+    after: ``lost``; else (not posed, or turned before) ``unscored``. Per kind and in all."""
+    order = sorted(seqs)
+    at = {s: i for i, s in enumerate(order)}
+    out = {k: {"kept": 0, "lost": 0, "unscored": 0} for k in ("grasp", "handover", "release", "all")}
+
+    def turned(s):
+        e = errors.get(s)
+        return None if e is None or not np.isfinite(e[1]) else bool(np.degrees(e[1]) > SWAP_DEG)
+
+    for s, kind in events:
+        i = at[s]
+        before = [turned(q) for q in order[max(0, i - window):i]]
+        after = [turned(q) for q in order[i:i + window]]
+        before, after = [t for t in before if t is not None], [t for t in after if t is not None]
+        verdict = "unscored" if not before or not after or before[-1] else "lost" if any(after) else "kept"
+        out[kind][verdict] += 1
+        out["all"][verdict] += 1
+    return out
+
+
 def lag_frames(poses: dict, truths: dict, seqs, max_lag: int = 8) -> Optional[int]:
     """How many frames a method's world poses lag the truth: the shift ``k`` (0..``max_lag``)
     that makes the pose of frame ``s`` nearest (mean distance) to the truth of frame ``s - k`` of
@@ -126,6 +163,9 @@ def moving_summary(ev, truths: dict, instruments: dict, in_hand: dict, visible: 
         seen = [s for s in errors if visible.get(s) is not None and visible[s] >= SEEN]
         out["methods"][m] = {"all": _summary(errors, list(errors)), "seen": _summary(errors, seen),
                              "by_visible": by_visible(errors, visible)}
+        if instruments:
+            out["methods"][m]["identity"] = identity_through(holder_events(truths, instruments, sorted(seqs)),
+                                                             errors, seqs)
         lag = lag_frames((poses or {}).get(m, {}), truths, sorted(seqs))
         if lag is not None:                  # frames of the take's 30 Hz: 1000 / 30 ms each
             out["methods"][m]["lag_ms"] = lag * 1e3 / 30.0
@@ -157,6 +197,13 @@ def moving_markdown(moving: dict) -> list:
     if lags:
         L += ["", "Lag behind the truth (the shift that brings the poses nearest it, in 30 Hz frames): " +
               ", ".join(f"{m} {v:.0f} ms" for m, v in lags.items()) + "."]
+    ids = {m: d["identity"] for m, d in moving["methods"].items() if d.get("identity")}
+    if ids:
+        L += ["", "The tip through each change of holder (grasp, handover, release; the 15 frames before and "
+              "after): kept / lost / not scored: " + ", ".join(
+                  f"{m} {d['all']['kept']} / {d['all']['lost']} / {d['all']['unscored']}"
+                  f" (handovers {d['handover']['kept']} / {d['handover']['lost']} / {d['handover']['unscored']})"
+                  for m, d in ids.items()) + "."]
     h = moving.get("in_hand")
     if h:
         L += ["", f"The needle in the jaws (`T_jaw_needle`, from the {IN_HAND_FROM}th held frame on): "

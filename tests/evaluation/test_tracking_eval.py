@@ -117,3 +117,19 @@ def test_the_lag_is_the_shift_that_brings_the_poses_nearest_the_truth():
     assert lag_frames({s: SimpleNamespace(T_world_needle=truths[s].T_world_needle) for s in range(40)},
                       truths, range(40)) == 0
     assert lag_frames({}, truths, range(40)) is None
+
+
+def test_the_tip_is_scored_through_each_change_of_holder():
+    from common.evaluation.moving import holder_events, identity_through
+    truths = {s: _truth(s, 0 if s < 60 else 1) for s in range(90)}
+    inst = {s: _inst(s, 10 <= s < 40 or s >= 70) for s in range(90)}
+    events = holder_events(truths, inst, sorted(truths))
+    assert events == [(10, "grasp"), (40, "release"), (70, "grasp")]     # a new take is no event
+    right, turned = (0.001, np.radians(2.0), 1.0), (0.001, np.radians(178.0), 1.0)
+    errors = {s: right for s in range(90)}
+    errors.update({s: turned for s in range(45, 50)})     # turned after the release
+    errors.update({s: (np.nan, np.nan, np.nan) for s in range(60, 85)})   # not posed around the last
+    out = identity_through(events, errors, sorted(truths))
+    assert out["grasp"] == {"kept": 1, "lost": 0, "unscored": 1}
+    assert out["release"] == {"kept": 0, "lost": 1, "unscored": 0}
+    assert out["all"] == {"kept": 1, "lost": 1, "unscored": 1}
