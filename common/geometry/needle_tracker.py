@@ -48,7 +48,7 @@ from typing import Optional
 
 import numpy as np
 
-from common.geometry.config import NonNegativeNumber, Probability, check_fields
+from common.geometry.config import NonNegativeNumber, Probability, check_fields, number_at_least
 from common.geometry.end_identity import end_for_end_delta, sigmoid, track_identity
 from common.geometry.error_state import (  # noqa: F401  (retract: re-exported)
     _rot,
@@ -75,6 +75,7 @@ class TrackerConfig:
     reset_after: int = 3                    # rejected measurements in a row that start a free track again
     reset_after_held: int = 30              # ... a settled one (1 s at 30 Hz: see the docstring)
     start_arc_seen: Probability = 0.6       # a track starts from a pose fitted to this much of its arc
+    corr_frames: number_at_least(1.0) = 5.0  # consecutive frames whose fits' errors move together
     rest_sigma_m: NonNegativeNumber = 0.05e-3           # random walk of a needle at rest, per sqrt(s)
     rest_sigma_rad: NonNegativeNumber = math.radians(0.2)
     slip_sigma_m: NonNegativeNumber = 0.1e-3            # slip in the jaws, per sqrt(s)
@@ -126,9 +127,9 @@ class Measurement:
     alternatives: tuple = ()
     arc_seen: Optional[float] = None        # the share of the arc it was fitted to (None: not said)
 
-    def own(self) -> "Measurement":
-        """The measurement with its covariance less the shared part."""
-        C = without_common(self.covariance, self.common_sigma_m, self.common_sigma_rad)
+    def own(self, corr_frames: float = 1.0) -> "Measurement":
+        """The measurement with its covariance less the shared part, times ``corr_frames``."""
+        C = without_common(self.covariance, self.common_sigma_m, self.common_sigma_rad) * corr_frames
         return Measurement(self.T_world_needle, C, self.end_identity, alternatives=self.alternatives,
                            arc_seen=self.arc_seen)
 
@@ -420,7 +421,7 @@ class NeedleTracker:
             return None
         if measurement is not None:
             self.common = np.array([measurement.common_sigma_rad ** 2] * 3 + [measurement.common_sigma_m ** 2] * 3)
-            measurement = measurement.own()
+            measurement = measurement.own(self.cfg.corr_frames)
         used, turned, d = None, False, float("nan")
         if not self.active:
             if not measurement.starts(self.cfg):    # a partial view: no track from it alone

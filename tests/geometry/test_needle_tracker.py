@@ -304,3 +304,12 @@ def test_no_track_starts_from_a_partial_view_alone():
         assert tr.step(k * DT_NS, jaws_of(frames[k]), Measurement(m.T_world_needle, C, arc_seen=0.3)) is None
     o = tr.step(5 * DT_NS, jaws_of(frames[5]), Measurement(measure(rng, frames[5].T_world_needle, C).T_world_needle, C, arc_seen=0.8))
     assert o is not None and o.event == "start"
+
+
+def test_a_measurement_counts_for_a_fraction_of_a_frame_where_consecutive_fits_err_together():
+    C = np.diag([1e-4] * 3 + [1e-8] * 3)
+    m = Measurement(np.eye(4), C, common_sigma_m=1e-5, common_sigma_rad=1e-3)
+    assert np.allclose(m.own(5.0).covariance, 5.0 * m.own().covariance)
+    assert TrackerConfig().corr_frames == 5.0
+    with pytest.raises(ValueError, match="corr_frames"):
+        TrackerConfig(corr_frames=0.5)
