@@ -153,18 +153,19 @@ def test_a_moving_needle_without_jaws_is_tracked_free():
 
 def test_nees_is_consistent_on_noisy_measurements():
     """The stated covariance is honest where the model is the world's (the scripts' grasps do not
-    slip, their needles at rest do not move): NEES near chi-square(6)'s median 5.35. The default
-    process noise (a real grasp slips) makes it smaller here."""
+    slip, their needles at rest do not move, each frame's measurement errs on its own:
+    ``corr_frames`` 1): NEES near chi-square(6)'s median 5.35. The default process noise (a real
+    grasp slips) makes it smaller here."""
     vals = []
     exact = dict(rest_sigma_m=1e-7, rest_sigma_rad=1e-6, slip_sigma_m=1e-7, slip_sigma_rad=1e-6,
-                 jaw_sigma_m=1e-7, jaw_sigma_rad=1e-6)
+                 jaw_sigma_m=1e-7, jaw_sigma_rad=1e-6, corr_frames=1.0)
     for motion, seed in (("pickup", 5), ("handover", 6), ("throw", 7)):
         frames = take(motion, seed)
         rng = np.random.default_rng(seed)
         C = stated_covariance(rng)
         _, out = run(frames, rng, C, **exact)
         vals.append(nees(frames, out)[5:])
-        _, out = run(frames, rng, C)
+        _, out = run(frames, rng, C, corr_frames=1.0)
         assert 1.0 < np.median(nees(frames, out)) < 9.0
     v = np.concatenate(vals)
     assert 3.0 <= np.median(v) <= 9.0, np.median(v)
@@ -313,3 +314,22 @@ def test_a_measurement_counts_for_a_fraction_of_a_frame_where_consecutive_fits_e
     assert TrackerConfig().corr_frames == 5.0
     with pytest.raises(ValueError, match="corr_frames"):
         TrackerConfig(corr_frames=0.5)
+
+
+def test_fits_that_err_together_over_frames_are_stated_honestly_with_corr_frames():
+    """Consecutive fits of a held needle share their error (the same jaws hide the same part):
+    a bias drawn anew every 10 frames. Counting each as a whole frame's news makes the track
+    too sure; ``corr_frames`` (the default) keeps its NEES near chi-square(6)'s median."""
+    frames = take("handover", 6)
+    C = stated_covariance(np.random.default_rng(6))
+    medians = {}
+    for corr in (1.0, 5.0):
+        rng = np.random.default_rng(60)
+        tr, out = NeedleTracker(NEEDLE, TrackerConfig(corr_frames=corr)), []
+        for k, fr in enumerate(frames):
+            if k % 10 == 0:
+                bias = rng.multivariate_normal(np.zeros(6), C)
+            T = retract(fr.T_world_needle, bias + rng.multivariate_normal(np.zeros(6), 0.2 * C))
+            out.append(tr.step(k * DT_NS, jaws_of(fr), Measurement(T, 1.2 * C)))
+        medians[corr] = float(np.median(nees(frames, out)[20:]))
+    assert medians[5.0] < medians[1.0] and medians[5.0] < 9.0, medians
