@@ -15,11 +15,13 @@ states of the instruments heard from in the last ``max_wait`` frames are in, and
 notice that it has none came (``no_pose``: stepped at once), or a later frame's pose or notice
 came (the refine node, which handles frames in order, is past it: a frame the detectors or the
 pairing dropped): a frame without a pose is predicted by the motion model (counted
-``coasted``). A frame waits at most ``max_wait`` frames for its pose; one that comes
-later is dropped (``late_pose``). An instrument's state is the
-newest at or before the frame, at most ``max_wait`` frames old (at most ``MAX_INSTRUMENTS``
-names are followed, one quiet for ``max_wait`` frames making room; more are counted
-``instruments.too_many``).
+``coasted``). A frame waits at most ``max_wait`` frames (1: until the next frame) for its pose.
+One that comes later, within ``replay`` frames, is filtered in all the same: the filter goes
+back to that frame's state and steps again to the newest (``replayed``); what was published
+meanwhile stays, the next frames carry it. Older ones are dropped (``late_pose``). An
+instrument's state is the newest at or before the frame, at most ``instrument_max_age`` frames
+old (at most ``MAX_INSTRUMENTS`` names are followed, one quiet that long making room; more are
+counted ``instruments.too_many``).
 
 An ``ambiguous`` pose is read with its mirror image (``refine.mirror_pose``) as the alternative
 the track may explain better.
@@ -36,7 +38,8 @@ reason ``no_track``, counted ``no_pose.no_track``): the fusion's ``untracked`` i
 does not wait for that frame's mode. Counters: ``rejected`` (gated out), ``turned``
 (read end for end), ``events.<event>`` (``grasp``, ``handover``, ``release``, ``ungrasp``,
 ``rest``, ``restart``, ``flip``), ``no_covariance`` (a pose without one is no measurement).
-Params: every ``TrackerConfig`` field, ``max_wait``, ``method``: ``needletrack describe tracker``.
+Params: every ``TrackerConfig`` field, ``max_wait``, ``replay``, ``instrument_max_age``, ``method``:
+``needletrack describe tracker``.
 """
 from __future__ import annotations
 
@@ -69,9 +72,21 @@ from common.runtime.params import merge_schemas
 
 @dataclass
 class _NodeParams:
-    max_wait: int = 5                 # frames a frame waits for its pose (then it is predicted)
+    max_wait: int = 1                 # frames a frame waits for its pose (then it is predicted)
+    replay: int = 15                  # frames back a late pose is still filtered in (stepping again)
+    instrument_max_age: int = 5       # frames an instrument's newest state stands for a later frame
     method: str = "tracked"           # the method name of the tracked poses
     reset_on_sequence: bool = True    # a new truth sequence label (a new take) starts a new track
+
+
+@dataclass(frozen=True)
+class _Inputs:
+    """What one frame's step takes: kept to step it again when its pose comes late."""
+    stamp_ns: int
+    T_world_ecm: np.ndarray
+    jaws: dict
+    measurement: Measurement | None
+    sequence: object
 
 
 def jaw_frame_id(name: str) -> str:
@@ -97,8 +112,11 @@ class TrackerNode(Node):
             raise NodeError(str(exc)) from None
         if not self.wired("ecm"):
             raise NodeError("tracker: the ecm input is needed (each frame's endoscope pose, and the frame clock)")
-        if self.p.max_wait < 1:
-            raise NodeError(f"tracker: params.max_wait must be >= 1, got {self.p.max_wait}")
+        for name in ("max_wait", "instrument_max_age"):
+            if getattr(self.p, name) < 1:
+                raise NodeError(f"tracker: params.{name} must be >= 1, got {getattr(self.p, name)}")
+        if self.p.replay < 0:
+            raise NodeError(f"tracker: params.replay must be >= 0, got {self.p.replay}")
         self.needle = NeedleModel()
         self.tracker = NeedleTracker(self.needle, self.config)
         self._clear()
@@ -108,6 +126,7 @@ class TrackerNode(Node):
         self.posed_none = SeqCache(2 * self.p.max_wait + 64)   # seqs the refine node said it gives no pose
         self.ecm = SeqCache(2 * self.p.max_wait + 64)   # seq -> EcmPose
         self.sequences = SeqCache(2 * self.p.max_wait + 64)
+        self.history = SeqCache(self.p.replay + 1)   # seq -> (the state before its step, _Inputs)
         self.jaws: dict = {}                # name -> SeqCache(seq -> Jaw)
         self.frames = SeqJoin(self.p.max_wait, in_order=True)
         self.newest_said = -1               # the newest frame the refine node posed or said it has no pose
@@ -133,12 +152,12 @@ class TrackerNode(Node):
     def on_instruments(self, msg: InstrumentState):
         if msg.name not in self.jaws and len(self.jaws) >= MAX_INSTRUMENTS:
             stalest = min(self.jaws, key=lambda n: max(self.jaws[n], default=-1))
-            if max(self.jaws[stalest], default=-1) >= msg.seq - self.p.max_wait:
+            if max(self.jaws[stalest], default=-1) >= msg.seq - self.p.instrument_max_age:
                 self.count("instruments.too_many")      # a bounded table of live names
                 return
             del self.jaws[stalest]                      # an instrument gone quiet makes room
         # the states of every frame that may still wait for its pose
-        self.jaws.setdefault(msg.name, SeqCache(2 * self.p.max_wait + 64)).put(
+        self.jaws.setdefault(msg.name, SeqCache(2 * max(self.p.max_wait, self.p.instrument_max_age) + 64)).put(
             msg.seq, Jaw(np.asarray(msg.T_world_jaw, float), float(msg.jaw_rad)))
         self._drain()
 
@@ -158,7 +177,7 @@ class TrackerNode(Node):
 
     def on_pose(self, msg: PoseEstimate):
         if msg.seq <= self.stepped:
-            self.count("late_pose")
+            self._late(msg)
             return
         self.poses.put(msg.seq, msg)
         self.newest_said = max(self.newest_said, msg.seq)
@@ -192,11 +211,12 @@ class TrackerNode(Node):
                 self._step(seq)
 
     def _jaws_at(self, seq: int) -> dict:
-        """Each instrument's newest state at or before ``seq``, at most ``max_wait`` frames old."""
+        """Each instrument's newest state at or before ``seq``, at most ``instrument_max_age``
+        frames old."""
         out = {}
         for name, states in self.jaws.items():
             at = max((s for s in states if s <= seq), default=None)
-            if at is not None and seq - at <= self.p.max_wait:
+            if at is not None and seq - at <= self.p.instrument_max_age:
                 out[name] = states[at]
         return out
 
@@ -220,17 +240,15 @@ class TrackerNode(Node):
         ecm = self.ecm.get(seq)
         pose = self.poses.pop(seq, None)
         self.posed_none.pop(seq, None)
-        sequence = self.sequences.get(seq)
-        if self.p.reset_on_sequence and sequence is not None and sequence != self.sequence:
-            if self.sequence is not None and self.tracker.active:
-                self.count("resets.sequence")
-            self.tracker.reset()
-            self.sequence = sequence
         T_world_ecm = np.asarray(ecm.T_world_ecm, float)
-        out = self.tracker.step(int(ecm.stamp_ns), self._jaws_at(seq), self._measurement(pose, T_world_ecm))
+        inputs = _Inputs(int(ecm.stamp_ns), T_world_ecm, self._jaws_at(seq),
+                         self._measurement(pose, T_world_ecm), self.sequences.get(seq))
+        if self.p.replay:
+            self.history.put(seq, (self._state(), inputs))
+        out = self._advance(inputs, count=True)
         if out is None:
             self.count("no_pose.no_track")
-            self.publish("no_pose", NoPoseNotice(seq, int(ecm.stamp_ns), self.p.method, "no_track"))
+            self.publish("no_pose", NoPoseNotice(seq, inputs.stamp_ns, self.p.method, "no_track"))
             return
         if out.used is False:
             self.count("rejected")
@@ -238,7 +256,41 @@ class TrackerNode(Node):
             self.count("turned")
         if out.event:
             self.count(f"events.{out.event.split(':')[0]}")
-        self._publish(seq, int(ecm.stamp_ns), T_world_ecm, out, sequence)
+        self._publish(seq, inputs.stamp_ns, T_world_ecm, out, inputs.sequence)
+
+    def _advance(self, inputs: "_Inputs", count: bool):
+        """The filter stepped over one frame (a new take first starts a new track)."""
+        if self.p.reset_on_sequence and inputs.sequence is not None and inputs.sequence != self.sequence:
+            if count and self.sequence is not None and self.tracker.active:
+                self.count("resets.sequence")
+            self.tracker.reset()
+            self.sequence = inputs.sequence
+        return self.tracker.step(inputs.stamp_ns, inputs.jaws, inputs.measurement)
+
+    def _state(self):
+        return self.tracker.snapshot(), self.sequence
+
+    def _late(self, msg: PoseEstimate):
+        """A pose for a frame already stepped without it (predicted): within ``replay`` frames,
+        the filter goes back to that frame and steps again to the newest with it (``replayed``);
+        the frames published meanwhile stay as they were, the next ones carry it. Older, or for a
+        frame stepped with a pose: dropped (``late_pose``)."""
+        entry = self.history.get(msg.seq)
+        if entry is None or entry[1].measurement is not None:
+            self.count("late_pose")
+            return
+        measurement = self._measurement(msg, entry[1].T_world_ecm)
+        if measurement is None:
+            return
+        (snapshot, self.sequence) = entry[0]
+        self.tracker.restore(snapshot)
+        for seq in [s for s in self.history if s >= msg.seq]:
+            inputs = self.history[seq][1]
+            if seq == msg.seq:
+                inputs = dataclasses.replace(inputs, measurement=measurement)
+            self.history[seq] = (self._state(), inputs)
+            self._advance(inputs, count=False)
+        self.count("replayed")
 
     def _publish(self, seq, stamp_ns, T_world_ecm, out, sequence):
         T_ecm_needle = inv_T(T_world_ecm) @ out.T_world_needle

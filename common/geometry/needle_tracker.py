@@ -42,6 +42,7 @@ truth on its own.
 """
 from __future__ import annotations
 
+import copy
 import math
 from dataclasses import dataclass
 from typing import Optional
@@ -207,6 +208,15 @@ class NeedleTracker:
     @property
     def active(self) -> bool:
         return self.mode is not None
+
+    def snapshot(self) -> dict:
+        """The whole filter state (a copy): ``restore`` it to step again from there, e.g. with a
+        measurement that came after its frame was stepped."""
+        return copy.deepcopy({k: v for k, v in vars(self).items() if k not in ("needle", "cfg")})
+
+    def restore(self, snapshot: dict) -> None:
+        """Back to the state ``snapshot`` took (the snapshot stays usable)."""
+        vars(self).update(copy.deepcopy(snapshot))
 
     # -- the state seen in world
     def world(self, jaws: dict) -> tuple[np.ndarray, np.ndarray]:

@@ -98,6 +98,46 @@ def test_a_late_pose_is_dropped_and_a_new_take_starts_a_new_track():
     assert last.seq == 30 and pose_error(last.T_world_needle, far)[0] < 1e-6
 
 
+def test_a_late_pose_is_filtered_in_by_stepping_again_from_its_frame():
+    """Every pose two frames late, the node waiting one frame for each: each frame is published
+    predicted, each pose filtered in when it comes; the track ends exactly where it ends when
+    every pose is in time."""
+    frames, T_world_ecm = handover()
+    C = np.diag([np.radians(0.5) ** 2] * 3 + [0.2e-3 ** 2] * 2 + [0.6e-3 ** 2])
+    rng = np.random.default_rng(5)
+    poses = [PoseEstimate(k, k * DT_NS, "refined",
+                          retract(inv_T(T_world_ecm) @ fr.T_world_needle, rng.multivariate_normal(np.zeros(6), C)),
+                          covariance=C, end_identity=0.99) for k, fr in enumerate(frames)]
+    in_time, late = TrackerNode.offline({"max_wait": 50}), TrackerNode.offline({"max_wait": 1, "replay": 15})
+    for node in (in_time, late):
+        node.on_calib(CALIB)
+    for k in range(len(frames)):
+        for node in (in_time, late):
+            frame_inputs(node, frames, T_world_ecm, k)
+        in_time.on_pose(poses[k])
+        if k >= 2:
+            late.on_pose(poses[k - 2])
+        assert late.stepped == k - 1                   # stepped when the next frame came, no pose yet
+    for pose in poses[-2:]:
+        late.on_pose(pose)
+    for node in (in_time, late):
+        node.on_eos(EndOfStream(len(frames), 0))
+    assert late.counters["replayed"] == len(frames) - 1 and "late_pose" not in late.counters
+    assert late.counters["events.handover"] == in_time.counters["events.handover"] == 1
+    a, b = in_time.tracker, late.tracker
+    assert (a.mode, a.holder, a.age) == (b.mode, b.holder, b.age)
+    assert np.allclose(a.T, b.T) and np.allclose(a.P, b.P) and np.allclose(a.identity, b.identity)
+    published = {m.seq: m for o, m in late.published if o == "pose"}
+    assert sorted(published) == list(range(2, len(frames)))      # 0 and 1: no track yet, said
+    assert [m.seq for o, m in late.published if o == "no_pose"] == [0, 1]
+    # what was published before its pose came: the track predicted (a held needle follows its jaws)
+    errors = [pose_error(m.T_world_needle, frames[s].T_world_needle)[0] for s, m in published.items() if s > 5]
+    assert np.median(errors) < 1e-3
+    # too late for the window: dropped, counted
+    late.on_pose(poses[len(frames) - 20])
+    assert late.counters["late_pose"] == 1 and late.counters["replayed"] == len(frames) - 1
+
+
 def frame_inputs(node, frames, T_world_ecm, k):
     """Frame ``k``'s truth, instruments' states and ECM pose (no pose)."""
     node.on_truth(GroundTruth(k, k * DT_NS, sequence=0, needle_at_rest=False))
@@ -109,7 +149,7 @@ def frame_inputs(node, frames, T_world_ecm, k):
 def test_a_frame_the_refine_node_says_has_no_pose_is_stepped_at_once():
     frames, T_world_ecm = handover()
     rng = np.random.default_rng(2)
-    told, untold = TrackerNode.offline(), TrackerNode.offline()      # max_wait 5
+    told, untold = (TrackerNode.offline({"max_wait": 5}) for _ in range(2))
     for node in (told, untold):
         feed(node, frames[:20], T_world_ecm, rng)
         frame_inputs(node, frames, T_world_ecm, 20)
