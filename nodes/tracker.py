@@ -126,7 +126,7 @@ class TrackerNode(Node):
         self.posed_none = SeqCache(2 * self.p.max_wait + 64)   # seqs the refine node said it gives no pose
         self.ecm = SeqCache(2 * self.p.max_wait + 64)   # seq -> EcmPose
         self.sequences = SeqCache(2 * self.p.max_wait + 64)
-        self.history = SeqCache(self.p.replay + 1)   # seq -> (the state before its step, _Inputs)
+        self.history = SeqCache(self.p.replay + 1)   # seq -> [the state before its step, _Inputs, counted]
         self.jaws: dict = {}                # name -> SeqCache(seq -> Jaw)
         self.frames = SeqJoin(self.p.max_wait, in_order=True)
         self.newest_said = -1               # the newest frame the refine node posed or said it has no pose
@@ -243,19 +243,15 @@ class TrackerNode(Node):
         T_world_ecm = np.asarray(ecm.T_world_ecm, float)
         inputs = _Inputs(int(ecm.stamp_ns), T_world_ecm, self._jaws_at(seq),
                          self._measurement(pose, T_world_ecm), self.sequences.get(seq))
-        if self.p.replay:
-            self.history.put(seq, (self._state(), inputs))
+        state = self._state() if self.p.replay else None
         out = self._advance(inputs, count=True)
+        counted = self._count_outcome(out, ())
+        if self.p.replay:
+            self.history.put(seq, [state, inputs, counted])
         if out is None:
             self.count("no_pose.no_track")
             self.publish("no_pose", NoPoseNotice(seq, inputs.stamp_ns, self.p.method, "no_track"))
             return
-        if out.used is False:
-            self.count("rejected")
-        if out.turned:
-            self.count("turned")
-        if out.event:
-            self.count(f"events.{out.event.split(':')[0]}")
         self._publish(seq, inputs.stamp_ns, T_world_ecm, out, inputs.sequence)
 
     def _advance(self, inputs: "_Inputs", count: bool):
@@ -266,6 +262,17 @@ class TrackerNode(Node):
             self.tracker.reset()
             self.sequence = inputs.sequence
         return self.tracker.step(inputs.stamp_ns, inputs.jaws, inputs.measurement)
+
+    def _count_outcome(self, out, counted) -> tuple:
+        """Count what the step found (``rejected``, ``turned``, ``events.<event>``) that is not
+        in ``counted`` already (a frame stepped again counts only what is new); returns it."""
+        found = () if out is None else tuple(
+            k for k, yes in (("rejected", out.used is False), ("turned", out.turned),
+                             (f"events.{(out.event or '').split(':')[0]}", bool(out.event))) if yes)
+        for k in found:
+            if k not in counted:
+                self.count(k)
+        return found
 
     def _state(self):
         return self.tracker.snapshot(), self.sequence
@@ -285,11 +292,11 @@ class TrackerNode(Node):
         (snapshot, self.sequence) = entry[0]
         self.tracker.restore(snapshot)
         for seq in [s for s in self.history if s >= msg.seq]:
-            inputs = self.history[seq][1]
+            entry = self.history[seq]
             if seq == msg.seq:
-                inputs = dataclasses.replace(inputs, measurement=measurement)
-            self.history[seq] = (self._state(), inputs)
-            self._advance(inputs, count=False)
+                entry[1] = dataclasses.replace(entry[1], measurement=measurement)
+            entry[0] = self._state()
+            entry[2] = self._count_outcome(self._advance(entry[1], count=False), entry[2])
         self.count("replayed")
 
     def _publish(self, seq, stamp_ns, T_world_ecm, out, sequence):

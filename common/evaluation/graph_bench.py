@@ -252,6 +252,7 @@ def measure(args, dataset: str, log, viewer: bool = False) -> dict:
             pids = {n: st.pid for n, st in rec.stats.items()}
             drops0 = {n: _dropped(st) for n, st in rec.stats.items()}
             pairs0 = _pairs(rec.stats.get(frame_node))
+            late0 = _late_poses(rec.stats.get("tracker"))
         cpu0 = {n: process_cpu_seconds(p) for n, p in pids.items()}
         steal0 = cpu_steal_seconds()
         w1 = w0 + int(args.duration * 1e9)
@@ -296,6 +297,9 @@ def measure(args, dataset: str, log, viewer: bool = False) -> dict:
         refined = {r[0] for r in rec.window("refined", w0, w1)}
         out["tracked_latency_ms"] = {"measured": latency_ms([r for r in fused if r[0] in refined]),
                                      "coasted": latency_ms([r for r in fused if r[0] not in refined])}
+        with rec.lock:
+            late1 = _late_poses(rec.stats.get("tracker"))
+        out["tracked_late_poses"] = {k: late1[k] - late0[k] for k in late1}
     if getattr(args, "plot", None):
         out["latency_samples_ms"] = {name: [(a - st) / 1e6 for _, st, a in rec.window(name, w0, w1)]
                                      for name in streams if name != "published"}
@@ -329,6 +333,12 @@ def _pairs(st):
     return (v if isinstance(v, int) else 0, st.stamp_ns)
 
 
+def _late_poses(st) -> dict:
+    """The tracker's late poses so far: filtered in by stepping again (``replayed``), dropped."""
+    c = st.counters if st is not None else {}
+    return {k: (c.get(k, 0) if isinstance(c.get(k, 0), int) else 0) for k in ("replayed", "late_pose")}
+
+
 def _dropped(st) -> int:
     v = st.counters.get("dropped", 0)
     return v if isinstance(v, int) else 0
@@ -359,6 +369,8 @@ def report(r: dict) -> str:
             f"({t['measured']['n']}), {f(t['coasted']['p50'])} ms coasted ({t['coasted']['n']}: "
             "stepped at its no_pose notice, a later frame's pose or notice, or after max_wait frames)"]
            if (t := r.get("tracked_latency_ms")) else []),
+         *([f"  late refined poses    {lp['replayed']} filtered in after their frame was out (stepping again), "
+            f"{lp['late_pose']} too late, dropped"] if (lp := r.get("tracked_late_poses")) else []),
          "", f"  {'stage output':<22}{'frames/s':>9}{'p50 ms':>9}{'p99 ms':>9}   (latency from frame publish)"]
     for name, s in r["stages"].items():
         L.append(f"  {name:<22}{f(s['rate_hz']):>9}{f(s['p50']):>9}{f(s['p99']):>9}")
