@@ -9,7 +9,9 @@ the RMS (px) over the keypoints and centreline points used, ``covariance`` over 
 well or the arc is seen edge-on (the covariance then spans them), ``arc_seen`` the share of the
 arc the pose was fitted to (``common.geometry.arc_support``): below ``min_arc_seen`` the pose is
 a partial view (the jaws or the tissue hide the rest), flagged ``ambiguous`` and its covariance
-widened (counted ``partial_view``; docs/tracking.md#partial-views).
+widened (counted ``partial_view``); one fitted to an arc with an end no camera saw states its
+tip at most ``end_unseen_p_max`` sure (counted ``end_identity.end_unseen``;
+docs/tracking.md#partial-views).
 
 Per frame: the minima of the joint stereo PnP on the keypoints, from the IPPE starts and
 stopped early (``common.geometry.pnp.refine_starts``), are the starting poses; ``DenseRefiner.refine``
@@ -45,7 +47,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from common.geometry.arc_support import SUPPORT_PX, arc_seen, best_seen, partial_view
+from common.geometry.arc_support import SUPPORT_PX, arc_support, best_seen, ends_seen, partial_view, shares
 from common.geometry.config import Probability, number_at_least
 from common.geometry.end_identity import settle
 from common.geometry.needle import NeedleModel
@@ -77,6 +79,9 @@ class _NodeParams(StereoPoseNode.Params):
     # view: flagged ambiguous (counted partial_view), its covariance times partial_view_inflation
     min_arc_seen: Probability = 0.6
     partial_view_inflation: number_at_least(1.0) = 4.0
+    # a pose fitted to an arc one of whose ends no camera saw states its tip at most this sure
+    # (counted end_identity.end_unseen): its tip was read from one end and a cut (jaws, tissue)
+    end_unseen_p_max: Probability = 0.9
 
 
 def _config(cls, p, rename: dict | None = None):
@@ -178,8 +183,13 @@ class RefineNode(StereoPoseNode):
             return
         if res.ambiguous:
             self.count("ambiguous")
-        seen = best_seen(arc_seen(self.rig, self.needle, res.T_ecm_needle, obs, SUPPORT_PX,
-                                  self.config.min_centreline_w, self.config.min_score))
+        support = arc_support(self.rig, self.needle, res.T_ecm_needle, obs, SUPPORT_PX,
+                              self.config.min_centreline_w, self.config.min_score)
+        seen = best_seen(shares(support))
+        p = self.identity.get(left.seq)
+        if support and not all(ends_seen(support)) and p is not None and p > self.p.end_unseen_p_max:
+            self.count("end_identity.end_unseen")
+            self.identity.put(left.seq, self.p.end_unseen_p_max)
         partial, covariance = partial_view(res.covariance, seen, self.p.min_arc_seen, self.p.partial_view_inflation)
         if partial:
             self.count("partial_view")

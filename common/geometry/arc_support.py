@@ -24,15 +24,20 @@ ARC_SAMPLES = 41
 """Points along the arc (A to E) whose support is counted: 3 degrees apart on a 120-degree arc."""
 
 
-def arc_seen(rig: StereoRig, needle: NeedleModel, T_ecm_needle: np.ndarray, observations: Mapping,
-             tol_px: float, min_weight: float = 0.0, min_score: float = 0.5,
-             n: int = ARC_SAMPLES) -> dict:
-    """{camera: the share (0..1) of the arc at ``T_ecm_needle`` (4x4, m) that the camera's
-    observation supports}: a sample of the projected arc counts when an observed centreline
-    point (weight above ``min_weight``) or an observed keypoint (scored at least ``min_score``, not
-    placed ``on_arc``) lies within
-    ``tol_px`` of it (or of 3/4 of the centreline points' median spacing, if larger). ``observations``: {camera: ``refine.ArcObservation``}; a camera without one
-    is left out. A sample behind the camera or outside its image is unsupported."""
+END_SAMPLES = 3
+"""An end of the arc counts as seen when one of its first (last) this many arc samples is: the
+6 degrees of the arc nearest it."""
+
+
+def arc_support(rig: StereoRig, needle: NeedleModel, T_ecm_needle: np.ndarray, observations: Mapping,
+                tol_px: float, min_weight: float = 0.0, min_score: float = 0.5,
+                n: int = ARC_SAMPLES) -> dict:
+    """{camera: (n,) bool, which samples of the arc (A to E) at ``T_ecm_needle`` (4x4, m) the
+    camera's observation supports}: a sample counts when an observed centreline point (weight
+    above ``min_weight``) or an observed keypoint (scored at least ``min_score``, not placed
+    ``on_arc``) lies within ``tol_px`` of it (or of 3/4 of the centreline points' median spacing,
+    if larger). ``observations``: {camera: ``refine.ArcObservation``}; a camera without one is
+    left out. A sample behind the camera or outside its image is unsupported."""
     pts = needle.sample_arc(n)
     out = {}
     for name, obs in observations.items():
@@ -49,23 +54,46 @@ def arc_seen(rig: StereoRig, needle: NeedleModel, T_ecm_needle: np.ndarray, obse
             observed = np.ones(len(uv), bool) if obs.on_arc is None else ~np.asarray(obs.on_arc, bool).reshape(-1)
             seen.append(uv[np.isfinite(uv).all(axis=1) & (sc >= min_score) & observed])
         seen = np.concatenate(seen) if seen else np.zeros((0, 2))
-        out[name] = supported_share(cam, pts, T_ecm_needle, seen, tol)
+        out[name] = supported(cam, pts, T_ecm_needle, seen, tol)
     return out
 
 
-def supported_share(camera, arc_points: np.ndarray, T_ecm_needle: np.ndarray, seen_uv: np.ndarray,
-                    tol_px: float) -> float:
-    """The share of ``arc_points`` (needle frame, m) that project within ``tol_px`` of some
-    pixel of ``seen_uv`` (N, 2) in ``camera``."""
+def arc_seen(rig: StereoRig, needle: NeedleModel, T_ecm_needle: np.ndarray, observations: Mapping,
+             tol_px: float, min_weight: float = 0.0, min_score: float = 0.5,
+             n: int = ARC_SAMPLES) -> dict:
+    """{camera: the share (0..1) of the arc at ``T_ecm_needle`` that the camera's observation
+    supports} (``arc_support``)."""
+    return shares(arc_support(rig, needle, T_ecm_needle, observations, tol_px, min_weight, min_score, n))
+
+
+def shares(support: Mapping) -> dict:
+    """{camera: the share of the arc supported} of ``arc_support``'s masks."""
+    return {name: float(np.mean(m)) for name, m in support.items()}
+
+
+def ends_seen(support: Mapping, k: int = END_SAMPLES) -> tuple[bool, bool]:
+    """(A's end seen, E's end seen) in some camera, of ``arc_support``'s masks: a pose fitted to
+    an arc one of whose ends no camera saw (under the jaws, in the tissue) has its tip read from
+    one end and a cut, which tells little about which end is the tip."""
+    return (any(bool(m[:k].any()) for m in support.values()),
+            any(bool(m[-k:].any()) for m in support.values()))
+
+
+def supported(camera, arc_points: np.ndarray, T_ecm_needle: np.ndarray, seen_uv: np.ndarray,
+              tol_px: float) -> np.ndarray:
+    """(N,) bool: which of ``arc_points`` (needle frame, m) project within ``tol_px`` of some
+    pixel of ``seen_uv`` (M, 2) in ``camera``."""
+    out = np.zeros(len(arc_points), bool)
     p_cam = transform_points(camera.T_cam_ecm @ T_ecm_needle, arc_points)
     front = p_cam[:, 2] > 1e-6
     if not front.any() or len(seen_uv) == 0:
-        return 0.0
+        return out
     uv = np.full((len(arc_points), 2), np.nan)
     uv[front] = camera.project(p_cam[front])
     ok = front & camera.in_image(np.nan_to_num(uv, nan=-1e9))
-    d2 = ((uv[ok, None, :] - seen_uv[None, :, :]) ** 2).sum(-1).min(axis=1) if ok.any() else np.zeros(0)
-    return float(np.count_nonzero(d2 <= tol_px ** 2) / len(arc_points))
+    if ok.any():
+        out[ok] = ((uv[ok, None, :] - seen_uv[None, :, :]) ** 2).sum(-1).min(axis=1) <= tol_px ** 2
+    return out
 
 
 def best_seen(shares: Mapping) -> Optional[float]:

@@ -45,3 +45,17 @@ def test_a_partial_view_is_flagged_and_its_covariance_widened_a_whole_one_is_lef
     flag, wide = partial_view(C, 0.4, 0.6, 4.0)
     assert flag and np.allclose(wide, 4.0 * C)
     assert partial_view(None, 0.4, 0.6, 4.0) == (True, None) and partial_view(C, None, 0.6, 4.0)[0] is False
+
+
+def test_the_ends_seen_are_those_some_camera_supports():
+    from common.geometry.arc_support import arc_support, ends_seen, shares
+    n = len(project_centreline(RIG["left"], NEEDLE, T))
+    whole = {c: observation(c) for c in ("left", "right")}
+    assert ends_seen(arc_support(RIG, NEEDLE, T, whole, 3.0)) == (True, True)
+    head = {"left": observation("left", slice(0, n // 2)), "right": observation("right", slice(0, n // 3))}
+    support = arc_support(RIG, NEEDLE, T, head, 3.0)
+    assert ends_seen(support) == (True, False)                     # E's end under the jaws
+    assert shares(support) == arc_seen(RIG, NEEDLE, T, head, 3.0)
+    tail = {"left": observation("left", slice(n // 2, None))}
+    assert ends_seen(arc_support(RIG, NEEDLE, T, {**head, **tail}, 3.0)) == (True, True)   # one camera each
+    assert ends_seen({}) == (False, False)

@@ -393,3 +393,30 @@ def test_a_pose_fitted_to_part_of_the_arc_is_flagged_a_partial_view_with_a_wider
         whole.on_right(roundtrip(right))
         whole.on_left(roundtrip(left))
     assert all(p.arc_seen > 0.9 for p in poses(whole)) and "partial_view" not in whole.counters
+
+
+def test_a_pose_whose_arc_shows_one_end_only_states_its_tip_at_most_end_unseen_p_max_sure():
+    """The tail's end hidden (the jaws over it): the detectors' sure tip was read from one end and
+    a cut, so the pose states it at most 0.9 sure, flagged; a whole arc keeps what they state."""
+    frames = oracle_frames(6, noise_px=0.3, seed=11)
+
+    def run(cut_tail):
+        node = RefineNode.offline({"tracking": False}, wired=["left", "right", "calib"])
+        node.on_calib(roundtrip(CALIB))
+        for T, left, right in frames:
+            kps = []
+            for kp in (left, right):
+                n = len(kp.centreline)
+                keep = int(0.7 * n) if cut_tail else n
+                kps.append(replace(kp, end_identity=0.99,
+                                   scores=np.where(np.arange(5) >= 4, 0.0, kp.scores) if cut_tail else kp.scores,
+                                   centreline=kp.centreline[:keep], centreline_w=kp.centreline_w[:keep]))
+            node.on_right(roundtrip(kps[1]))
+            node.on_left(roundtrip(kps[0]))
+        return node
+
+    cut, whole = run(True), run(False)
+    assert len(poses(cut)) == len(poses(whole)) == len(frames)
+    assert cut.counters["end_identity.end_unseen"] == len(frames)
+    assert all(p.end_identity == 0.9 and p.ambiguous for p in poses(cut))
+    assert all(p.end_identity > 0.95 for p in poses(whole)) and "end_identity.end_unseen" not in whole.counters
