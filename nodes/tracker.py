@@ -49,7 +49,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from common.data.instruments import MAX_INSTRUMENTS
-from common.geometry.end_identity import state
+from common.geometry.end_identity import TIP_SURE, state, without_identity_covariance
 from common.geometry.fusion import covariance_to_frame
 from common.geometry.needle import NeedleModel
 from common.geometry.needle_tracker import Jaw, Measurement, NeedleTracker, TrackerConfig
@@ -228,10 +228,14 @@ class TrackerNode(Node):
             self.count("no_covariance")
             return None
         T_ecm_needle = np.asarray(pose.T_ecm_needle, float)
+        covariance = np.asarray(pose.covariance, float)
+        if pose.end_identity is not None and pose.end_identity < TIP_SURE:
+            # the pose's covariance spans its turn end for end; the track reads both ends itself
+            covariance = without_identity_covariance(T_ecm_needle, covariance, self.needle, pose.end_identity)
         # an ambiguous fit: its mirror image fits the images nearly as well (the covariance spans it)
         mirror = (T_world_ecm @ mirror_pose(T_ecm_needle, self.needle),) if pose.ambiguous else ()
         return Measurement(T_world_ecm @ T_ecm_needle,
-                           covariance_to_frame(np.asarray(pose.covariance, float), T_world_ecm[:3, :3]),
+                           covariance_to_frame(covariance, T_world_ecm[:3, :3]),
                            pose.end_identity, pose.model_sigma_m or 0.0, pose.model_sigma_rad or 0.0, mirror,
                            pose.arc_seen)
 

@@ -137,6 +137,17 @@ def end_for_end_delta(T_ecm_needle: np.ndarray, needle: NeedleModel) -> np.ndarr
     return np.concatenate([math.pi * u, np.zeros(3)])
 
 
+def without_identity_covariance(T_ecm_needle: np.ndarray, covariance: np.ndarray, needle: NeedleModel,
+                                p: float) -> np.ndarray:
+    """``identity_covariance`` undone: the covariance of the pose's reading as read, for a
+    consumer that weighs both readings itself (the tracker). Left as it is where taking the turn
+    out would not leave it positive definite (it was not added)."""
+    d = end_for_end_delta(T_ecm_needle, needle)
+    C = np.asarray(covariance, float) - (1.0 - p) * np.outer(d, d)
+    C = 0.5 * (C + C.T)
+    return C if np.linalg.eigvalsh(C)[0] > 0 else np.asarray(covariance, float)
+
+
 def identity_covariance(T_ecm_needle: np.ndarray, covariance: np.ndarray, needle: NeedleModel,
                         p: float) -> np.ndarray:
     """The error's second moment about this pose when it is right with probability ``p`` and

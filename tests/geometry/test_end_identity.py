@@ -194,3 +194,16 @@ def test_sigmoid_inverts_logit_and_does_not_overflow():
     for p in (1e-6, 0.1, 0.5, 0.93, 1 - 1e-6):
         assert sigmoid(logit(p)) == pytest.approx(p, rel=1e-6)
     assert 0.0 < sigmoid(-1e6) < 1e-12 and 1.0 - 1e-12 < sigmoid(1e6) <= 1.0
+
+
+def test_the_turn_term_taken_out_gives_the_reading_covariance_back():
+    from common.geometry.end_identity import identity_covariance, without_identity_covariance
+    from common.geometry.needle import NeedleModel
+    from common.geometry.transforms import make_T, rotvec_to_R
+    needle = NeedleModel()
+    T = make_T(rotvec_to_R([0.3, -0.2, 0.5]), [0.01, 0.0, 0.1])
+    C = np.diag([1e-4, 2e-4, 3e-4, 1e-8, 2e-8, 4e-8])
+    wide = identity_covariance(T, C, needle, 0.9)
+    assert np.allclose(without_identity_covariance(T, wide, needle, 0.9), C, atol=1e-12)
+    # a covariance the turn was never added to is left as it is
+    assert np.array_equal(without_identity_covariance(T, C, needle, 0.9), C)
