@@ -55,6 +55,7 @@ def test_a_dvrk_mcap_with_psm_topics_converts_with_the_instruments_in_world(dvrk
     run_oracle_eval(tmp_path / "conv", tmp_path / "eval")       # exact at 0 px (poses < 1e-4 mm)
 
 
+@pytest.mark.slow                 # the bag's take is rendered first (about 12 s)
 def test_the_rosbag_source_publishes_the_instruments(dvrk_take):
     from common.runtime.messages import InstrumentState, decode, encode
     from nodes.rosbag import RosbagNode
@@ -118,6 +119,7 @@ def test_record_writes_instrument_states_as_a_dvrk_arm_and_plays_them_back():
     assert sorted(load_topic_map(None, tm)["instruments"]) == ["psm1", "psm2"]
 
 
+@pytest.mark.slow                 # the bag's take is rendered first (about 12 s)
 def test_the_ros2_source_publishes_the_instruments(dvrk_take):
     """The live source fed the bag's CDR samples as its Zenoh subscribers would deliver them (its
     session on loopback, connected to nothing): the same InstrumentStates as the bag's."""
@@ -146,6 +148,7 @@ def test_the_ros2_source_publishes_the_instruments(dvrk_take):
         assert np.abs(m.T_world_jaw - src[m.seq].instruments[m.name].T_world_jaw).max() < 1e-9
 
 
+@pytest.mark.slow                 # the bag's take is rendered first (about 12 s)
 def test_an_ambf_bag_in_decimetres_gives_the_instruments_through_the_crtk_wrapper_and_the_base(dvrk_take, tmp_path):
     """The challenge's way: the tip in its base (CRTK, metres) and the base body's state (scene
     units, here decimetres): the preset scales each by its own unit."""

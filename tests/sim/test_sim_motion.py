@@ -138,6 +138,7 @@ def throw_take(tmp_path_factory):
     return out
 
 
+@pytest.mark.slow                 # renders a throw take first (about 7 s)
 def test_generate_motion_writes_a_take_that_check_and_an_independent_reader_accept(throw_take, capsys):
     from common.cli import dataset_main
     from common.data.dataset import Dataset
@@ -197,6 +198,7 @@ def test_jaws_hide_what_they_cover(tmp_path):
     assert seen_through == 0
 
 
+@pytest.mark.slow                 # renders a throw take first (about 7 s)
 def test_arc_visible_is_the_seen_share_of_the_arc_and_agrees_with_the_keypoints(throw_take):
     """``arc_visible`` (needletrack's own field): a share in [0, 1]; all five keypoints hidden
     means less than the whole arc seen, all five seen means more than none of it."""
@@ -216,6 +218,7 @@ def test_arc_visible_is_the_seen_share_of_the_arc_and_agrees_with_the_keypoints(
     assert Dataset(throw_take)[0].arc_visible["left"] == frames[0]["arc_visible"]["left"]
 
 
+@pytest.mark.slow                 # renders a throw take first (about 7 s)
 def test_take_every_keeps_every_kth_frame_of_the_same_take(throw_take, tmp_path):
     from common.cli import dataset_main
     out = tmp_path / "every"
