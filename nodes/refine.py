@@ -49,7 +49,7 @@ import numpy as np
 
 from common.geometry.arc_support import SUPPORT_PX, arc_support, best_seen, ends_seen, partial_view, shares
 from common.geometry.config import Probability, number_at_least
-from common.geometry.end_identity import settle
+from common.geometry.end_identity import settle, with_ends_seen
 from common.geometry.needle import NeedleModel
 from common.geometry.observations import NoPose
 from common.geometry.refine import (
@@ -187,9 +187,10 @@ class RefineNode(StereoPoseNode):
                               self.config.min_centreline_w, self.config.min_score)
         seen = best_seen(shares(support))
         p = self.identity.get(left.seq)
-        if support and not all(ends_seen(support)) and p is not None and p > self.p.end_unseen_p_max:
+        stated = with_ends_seen(p, ends_seen(support), self.p.end_unseen_p_max) if support else p
+        if stated != p:
             self.count("end_identity.end_unseen")
-            self.identity.put(left.seq, self.p.end_unseen_p_max)
+            self.identity.put(left.seq, stated)
         partial, covariance = partial_view(res.covariance, seen, self.p.min_arc_seen, self.p.partial_view_inflation)
         if partial:
             self.count("partial_view")

@@ -335,12 +335,16 @@ def _pairs(st):
 
 def _late_poses(st) -> dict:
     """The tracker's late poses so far: filtered in by stepping again (``replayed``), dropped."""
-    c = st.counters if st is not None else {}
-    return {k: (c.get(k, 0) if isinstance(c.get(k, 0), int) else 0) for k in ("replayed", "late_pose")}
+    return {k: _counter(st, k) for k in ("replayed", "late_pose")}
 
 
 def _dropped(st) -> int:
-    v = st.counters.get("dropped", 0)
+    return _counter(st, "dropped")
+
+
+def _counter(st, name: str) -> int:
+    """A node's counter ``name`` so far from its stats (0: no stats, not counted, not a count)."""
+    v = st.counters.get(name, 0) if st is not None else 0
     return v if isinstance(v, int) else 0
 
 

@@ -137,6 +137,13 @@ def end_for_end_delta(T_ecm_needle: np.ndarray, needle: NeedleModel) -> np.ndarr
     return np.concatenate([math.pi * u, np.zeros(3)])
 
 
+def with_ends_seen(p: float | None, ends: tuple[bool, bool], p_max: float) -> float | None:
+    """The tip probability a pose states when its fitted arc showed ``ends`` (A's end seen, E's
+    end seen; ``arc_support.ends_seen``): at most ``p_max`` with an end unseen, its tip read from
+    one end and a cut (the jaws, the tissue). None stays None."""
+    return p if p is None or all(ends) else min(p, p_max)
+
+
 def without_identity_covariance(T_ecm_needle: np.ndarray, covariance: np.ndarray, needle: NeedleModel,
                                 p: float) -> np.ndarray:
     """``identity_covariance`` undone: the covariance of the pose's reading as read, for a
