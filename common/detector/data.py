@@ -126,9 +126,10 @@ def _arc_through(kp: np.ndarray) -> np.ndarray:
 
 
 def make_record(img: np.ndarray, kp, vis, arc, cfg: ModelConfig, rng: np.random.Generator,
-                frame: int = 0, camera: str = "left") -> ImageRecord:
+                frame: int = 0, camera: str = "left", bbox=None) -> ImageRecord:
     """ImageRecord of one BGR image and its ground truth (kp (5,2) or None, vis (5,),
-    arc (P,2) or None; full-image pixels)."""
+    arc (P,2) or None; full-image pixels). ``bbox`` [x0, y0, x1, y1]: the needle's box when no
+    keypoints give one (a record for distillation only, ``load_records(boxes_only=True)``)."""
     h, w = img.shape[:2]
     ws, hs, _, _ = global_size(cfg, w, h)
     small = cv2.resize(img, (ws, hs), interpolation=cv2.INTER_AREA)
@@ -150,6 +151,9 @@ def make_record(img: np.ndarray, kp, vis, arc, cfg: ModelConfig, rng: np.random.
     if good.sum() >= 2 and vis.sum() >= 2:
         lo, hi = arc[good].min(0), arc[good].max(0)
         box = np.array([(lo[0] + hi[0]) / 2, (lo[1] + hi[1]) / 2, hi[0] - lo[0] + 4, hi[1] - lo[1] + 4])
+    elif bbox is not None and np.isfinite(np.asarray(bbox, float)).all():
+        x0, y0, x1, y1 = (float(v) for v in bbox)
+        box = np.array([(x0 + x1) / 2, (y0 + y1) / 2, x1 - x0 + 4, y1 - y0 + 4])
     else:
         box = np.full(4, np.nan)
     # positive region: enough for the crop jitter and rotation of crop_sample
@@ -188,8 +192,10 @@ def _cut(img, x0, y0, side):
 
 
 def load_records(folder, cfg: ModelConfig, seed: int = 0, max_frames: int | None = None,
-                 progress: bool = True) -> list[ImageRecord]:
-    """All camera images of a dataset folder as ImageRecords (both cameras per frame)."""
+                 progress: bool = True, boxes_only: bool = False) -> list[ImageRecord]:
+    """All camera images of a dataset folder as ImageRecords (both cameras per frame).
+    ``boxes_only``: the images whose frame gives a ``bbox`` for the camera, with that box and no
+    keypoints: inputs for distillation (``train``'s teacher), never targets."""
     from tqdm import tqdm
     folder = Path(folder)
     meta, frames = read_dataset(folder)
@@ -204,11 +210,21 @@ def load_records(folder, cfg: ModelConfig, seed: int = 0, max_frames: int | None
     out = []
     for fr in tqdm(frames, desc=f"reading {folder.name}", unit="frame", disable=not progress):
         for cam in CAMERAS:
+            box = (fr.get("bbox") or {}).get(cam)
+            if boxes_only and box is None:
+                continue
             path = folder / fr[cam]
             img = cv2.imread(str(path), cv2.IMREAD_COLOR)
             if img is None:
                 raise DatasetError(f"{folder / 'frames.jsonl'}:{fr['_line']}: field '{cam}': "
                                    f"cannot read image {path}")
+            if boxes_only:
+                try:
+                    out.append(make_record(img, None, None, None, cfg, rng, int(fr["index"]), cam, bbox=box))
+                except (ValueError, TypeError) as exc:
+                    raise DatasetError(f"{folder / 'frames.jsonl'}:{fr['_line']}: field 'bbox' of {cam}: "
+                                       f"{exc}") from None
+                continue
             kps = (fr.get("keypoints") or {}).get(cam)
             viss = (fr.get("visible") or {}).get(cam)
             if kps is not None and viss is None:

@@ -75,6 +75,9 @@ DEFAULT_TRAIN = {
     "hidden_sigma": 0.0,      # >0: a hidden keypoint's target is a Gaussian this wide (cells), so that
                               # its heatmap is diffuse and its score (peak mass) stays under the gate;
                               # 0: as wide as a seen one's (model.kp_sigma)
+    "distill_weight": 1.0,    # with teacher folders (train(teacher_dirs=...)): the weight of keeping the
+                              # --init weights' presence and proposals there (learning without forgetting)
+    "distill_batch": 8,       # teacher crops and images per step
 }
 
 
@@ -134,6 +137,36 @@ def losses(model: KeypointModel, cb, gb, w: dict, hidden_sigma: float = 0.0) -> 
         # image-level presence on the heatmap's peak (the detector's confidence): MIL-style
         has = (gmask.flatten(1).sum(1) > 0).float()
         out["global_presence"] = F.binary_cross_entropy_with_logits(g[:, 0].flatten(1).amax(1), has)
+    out["total"] = sum(w.get(k, 0.0) * v for k, v in out.items())
+    return out
+
+
+def distillation_losses(model: KeypointModel, teacher: KeypointModel, cb, gb, w: dict) -> dict:
+    """Learning without forgetting (Li & Hoiem 2016), for what decides *whether* a needle is
+    found: the loss terms of matching the frozen ``teacher``'s stage-2 presence on a stage-2
+    batch ``cb`` and its stage-1 heatmap (each cell, and its peak: the image-level confidence)
+    and boxes (where it sees a centre) on a stage-1 batch ``gb``, as soft targets (the batches'
+    own targets are not used). Not the keypoint or centreline heatmaps: where no label was
+    confirmed the teacher's keypoints are often wrong (a tip read at the wrong end), and copying
+    them teaches that back. Weighted by ``w`` (the loss weights) and summed in ``total``."""
+    out = {}
+    if cb is not None:
+        x = cb[0]
+        with torch.no_grad():
+            _, t_p = teacher.crop(x)
+        _, p = model.crop(x)
+        out["presence"] = F.binary_cross_entropy_with_logits(p, torch.sigmoid(t_p))
+    if gb is not None:
+        gx = gb[0]
+        with torch.no_grad():
+            tg = teacher.glob(gx)
+        g = model.glob(gx)
+        t_heat = torch.sigmoid(tg[:, 0])
+        out["global"] = F.binary_cross_entropy_with_logits(g[:, 0], t_heat)
+        m = t_heat[:, None]
+        out["box"] = (F.smooth_l1_loss(g[:, 1:5], tg[:, 1:5], reduction="none", beta=0.1) * m).sum() / m.sum().clamp_min(1) / 4
+        out["global_presence"] = F.binary_cross_entropy_with_logits(g[:, 0].flatten(1).amax(1),
+                                                                    t_heat.flatten(1).amax(1))
     out["total"] = sum(w.get(k, 0.0) * v for k, v in out.items())
     return out
 
@@ -263,9 +296,14 @@ def split(records, fraction: float, seed: int):
 
 # ---------------------------------------------------------------- main
 
-def train(data_dirs, out, config_path=None, log=print, progress=True, init=None) -> dict:
+def train(data_dirs, out, config_path=None, log=print, progress=True, init=None,
+          teacher_dirs=None) -> dict:
     """Train (or resume) into the folder ``out``; returns the last epoch's metrics. ``init``: a
-    weights file to start from (fine-tuning) when ``out`` holds no checkpoint yet."""
+    weights file to start from (fine-tuning) when ``out`` holds no checkpoint yet.
+    ``teacher_dirs`` (with ``init``): folders whose images, at their frames' ``bbox``, are no
+    targets but inputs on which the new weights keep ``init``'s presence and proposals
+    (``distillation_losses``, weight ``train.distill_weight``): a needle the labels do not show
+    is not forgotten."""
     cfg = load_config(config_path)
     tcfg = cfg["train"]
     mcfg = ModelConfig.from_dict(cfg["model"])
@@ -297,6 +335,20 @@ def train(data_dirs, out, config_path=None, log=print, progress=True, init=None)
         except (OSError, RuntimeError, KeyError, AttributeError) as exc:
             raise ValueError(f"--init {init}: cannot load ({exc})") from None
         log(f"starting from the weights of {init}")
+    teacher, t_recs = None, []
+    if teacher_dirs and float(tcfg["distill_weight"]) > 0:
+        if not init:
+            raise ValueError("teacher folders need the weights to keep (--init)")
+        teacher = KeypointModel(mcfg)
+        teacher.load_state_dict(torch.load(init, map_location="cpu", weights_only=True)["state_dict"])
+        teacher.eval()
+        for p_ in teacher.parameters():
+            p_.requires_grad_(False)
+        for i, d in enumerate(teacher_dirs):
+            t_recs += load_records(d, mcfg, seed=seed + 1000 + i, progress=progress, boxes_only=True)
+        log(f"distillation: {len(t_recs)} images on which the weights of {init} are kept")
+        if not t_recs:
+            teacher = None
     hard = []
     at = tcfg["hard_mining_at"]
     # each mining adds the current weights' false proposals to the earlier ones
@@ -373,6 +425,14 @@ def train(data_dirs, out, config_path=None, log=print, progress=True, init=None)
                   if "crop" in stages else None)
             gb = global_batch(tr, gidx, mcfg, aug, rng) if "global" in stages else None
             L = losses(model, cb, gb, w, float(tcfg["hidden_sigma"]))
+            if teacher is not None:
+                tidx = rng.integers(0, len(t_recs), int(tcfg["distill_batch"]))
+                D = distillation_losses(
+                    model, teacher,
+                    crop_batch(t_recs, tidx, mcfg, aug, rng) if "crop" in stages else None,
+                    global_batch(t_recs, tidx, mcfg, aug, rng) if "global" in stages else None, w)
+                L["distill"] = D["total"]
+                L["total"] = L["total"] + float(tcfg["distill_weight"]) * D["total"]
             lr = base_lr * min(1.0, (step_count + 1) / max(1, warm)) * 0.5 * (1 + math.cos(math.pi * frac))
             for g in opt.param_groups:
                 g["lr"] = lr

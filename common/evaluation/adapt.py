@@ -124,8 +124,10 @@ def _train(args, out: Path, report: dict, stamp) -> int:
     if not done.is_file():
         (out / "model.pt").unlink(missing_ok=True)
         try:
+            teacher = out / "labels" / "teacher"
             last = train([str(out / "labels" / "train")], out / "train", args.config,
-                         progress=not args.quiet, init=args.model)
+                         progress=not args.quiet, init=args.model,
+                         teacher_dirs=[str(teacher)] if teacher.is_dir() else None)
         except (DatasetError, ValueError, OSError) as exc:
             print(f"needletrack adapt: training: {exc}", file=sys.stderr)
             return 2

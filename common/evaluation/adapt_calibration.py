@@ -24,8 +24,10 @@ from pathlib import Path
 
 import numpy as np
 
-SCALES = (1.0, 0.8, 0.6, 0.45, 0.3, 0.2, 0.1, 0.0)
-"""The shrink factors ``safe_scale`` tries, largest first; 0 states no preference at all."""
+SCALES = tuple(round(1.0 - 0.025 * i, 3) for i in range(41))
+"""The shrink factors ``safe_scale`` tries, largest first, in steps of 0.025 (a sure share can fall
+from most detections to almost none within 0.2, when the new weights' evidence is strong and
+alike); 0 states no preference at all."""
 MIN_DETECTIONS = 20
 """Fewer held-out detections than this: no fit (the shipped coefficients are kept)."""
 

@@ -12,8 +12,10 @@ fails names the drop reason):
 - ``views_disagree``: fewer than ``min_views`` views, or under ``min_inlier_share`` of the posed
   ones, are the fusion's inliers;
 - ``spread``: the inliers' positions lie farther than ``max_spread_mm`` (RMS) from the fused one;
-- ``uncertain``: the fused covariance's largest position or orientation sigma exceeds
-  ``max_sigma_mm`` / ``max_sigma_deg``;
+- ``uncertain``: the fused covariance, carried into the images, moves a keypoint of one of the
+  group's views by more than ``max_sigma_px`` (1 sigma, the largest axis), or its largest
+  orientation sigma exceeds ``max_sigma_deg``. Pixels, not millimetres, because a label is an
+  image position: a far needle's depth is unsure by millimetres that move no keypoint;
 - ``tip_undecided``: the group's end identity (the mean of its views' log-odds about the fused
   pose, a turned view counting against it: ``common.geometry.fusion``) is below ``TIP_SURE``,
   not stated, or the fused pose is flagged ambiguous;
@@ -44,7 +46,8 @@ from common.data.dataset import Dataset, Frame
 from common.data.writer import DatasetWriter, link_or_copy, staged_folder
 from common.frames import CAMERAS
 from common.geometry.end_identity import TIP_SURE
-from common.geometry.fusion import MultiViewFusion
+from common.geometry.error_state import retract
+from common.geometry.fusion import MultiViewFusion, covariance_to_frame
 from common.geometry.oracle import arc_bbox, true_keypoints
 from common.geometry.transforms import inv_T
 
@@ -59,7 +62,7 @@ class LabelConfig:
     min_views: int = 3
     min_inlier_share: float = 0.6
     max_spread_mm: float = 1.5
-    max_sigma_mm: float = 1.0
+    max_sigma_px: float = 1.5     # the detector's heatmap sigma (kp_sigma): label noise below it
     max_sigma_deg: float = 5.0
     min_tip: float = TIP_SURE
     max_view_px: float = 4.0
@@ -104,6 +107,30 @@ def _sigmas(cov: np.ndarray | None) -> tuple[float, float]:
             float(np.degrees(np.sqrt(max(np.linalg.eigvalsh(cov[:3, :3]).max(), 0.0)))))
 
 
+def keypoint_sigma_px(meta, T_world_ecms, T_world_needle: np.ndarray, cov_world: np.ndarray | None,
+                      step: float = 1e-6) -> float:
+    """The largest 1-sigma (px, the major axis) of any keypoint in any camera of the views at
+    ``T_world_ecms`` when ``T_world_needle`` is unsure by ``cov_world`` ([w, v], world frame:
+    ``common.geometry.error_state.retract``), linearised (central differences of
+    ``project_keypoints``); inf without a covariance."""
+    if cov_world is None:
+        return float("inf")
+    worst = 0.0
+    for T_we in T_world_ecms:
+        cols = []
+        for k in range(6):
+            d = np.zeros(6)
+            d[k] = step
+            plus = project_keypoints(meta, T_we, retract(T_world_needle, d))
+            minus = project_keypoints(meta, T_we, retract(T_world_needle, -d))
+            cols.append(np.concatenate([(plus[c] - minus[c]).ravel() for c in CAMERAS]) / (2 * step))
+        J = np.stack(cols, axis=1)                          # (2 x 5 x cameras, 6)
+        S = J @ cov_world @ J.T
+        for i in range(0, len(S), 2):
+            worst = max(worst, float(np.sqrt(max(np.linalg.eigvalsh(S[i:i + 2, i:i + 2]).max(), 0.0))))
+    return worst
+
+
 def view_error_px(meta, T_world_ecm, T_world_needle, detections: dict) -> float | None:
     """Median distance (px) of a frame's found keypoints, either way round (the better), to the
     projection of ``T_world_needle``; None when no camera found the needle."""
@@ -145,8 +172,14 @@ def judge_group(key: str, frames: list, ds: Dataset, outputs: dict, cfg: LabelCo
     T_world = fused.T_world_needle
     v.T_world_needle = T_world
     sig_mm, sig_deg = _sigmas(fused.covariance)
+    cov_world = None
+    if fused.covariance is not None:
+        R_world_ecm = T_world[:3, :3] @ fused.T_ecm_needle[:3, :3].T
+        cov_world = covariance_to_frame(fused.covariance, R_world_ecm)
+    T_world_ecms = [T for T in (frame_T_world_ecm(ds.frames[i], outputs, ds) for i in frames) if T is not None]
+    sig_px = keypoint_sigma_px(ds.meta, T_world_ecms, T_world, cov_world)
     v.figures.update(inliers=fused.n_views, turned=fused.turned, spread_mm=1e3 * fused.rms_m,
-                     sigma_mm=sig_mm, sigma_deg=sig_deg, tip=fused.end_identity)
+                     sigma_mm=sig_mm, sigma_px=sig_px, sigma_deg=sig_deg, tip=fused.end_identity)
     errs = [view_error_px(ds.meta, fo.pose["T_world_ecm"], T_world, fo.keypoints) for _, fo in posed]
     agree = sum(1 for e in errs if e is not None and e <= cfg.max_view_px)
     v.figures["views_within_px"] = agree
@@ -154,7 +187,7 @@ def judge_group(key: str, frames: list, ds: Dataset, outputs: dict, cfg: LabelCo
         v.reason = "views_disagree"
     elif v.figures["spread_mm"] > cfg.max_spread_mm:
         v.reason = "spread"
-    elif sig_mm > cfg.max_sigma_mm or sig_deg > cfg.max_sigma_deg:
+    elif not (sig_px <= cfg.max_sigma_px and sig_deg <= cfg.max_sigma_deg):
         v.reason = "uncertain"
     elif fused.end_identity is None or fused.end_identity < cfg.min_tip or fused.ambiguous:
         v.reason = "tip_undecided"
@@ -201,8 +234,9 @@ def write_labels(sources: list, out, cfg: LabelConfig = LabelConfig(), progress:
     out = Path(out)
     if (out / LABELS_FILE).is_file():
         return json.loads((out / LABELS_FILE).read_text())
-    verdicts = []
+    verdicts, outputs_of = [], {}
     for folder, outputs in sources:
+        outputs_of[str(folder)] = outputs
         ds = Dataset(str(folder))
         groups = groups_of(ds, outputs)
         for key, frames in tqdm(groups.items(), desc=f"label {Path(folder).name}", unit="group",
@@ -212,7 +246,7 @@ def write_labels(sources: list, out, cfg: LabelConfig = LabelConfig(), progress:
     split = {id(v): ("fit" if cfg.fit_every and len(kept) > 1 and k % cfg.fit_every == cfg.fit_every - 1
                      else "train") for k, (_, _, v) in enumerate(kept)}
     out.mkdir(parents=True, exist_ok=True)
-    for part in ("train", "fit"):
+    for part in ("train", "fit", "teacher"):
         if (out / part).exists():
             shutil.rmtree(out / part)      # an unfinished earlier run's
     rows, meta0 = [], None
@@ -240,6 +274,7 @@ def write_labels(sources: list, out, cfg: LabelConfig = LabelConfig(), progress:
                         w.append(labelled_frame(ds, fr, T_we, v.T_world_needle, w.n_frames, g, paths))
                         rows.append({"part": part, "index": w.n_frames - 1, "folder": str(folder),
                                      "source_index": int(fr.index), "group": v.key})
+    n_teacher = write_teacher_frames([x for x in verdicts if not x[2].kept], outputs_of, out / "teacher")
     counts = Counter(v.reason for _, _, v in verdicts if not v.kept)
     report = {"config": asdict(cfg),
               "groups": len(verdicts), "kept_groups": len(kept),
@@ -247,6 +282,7 @@ def write_labels(sources: list, out, cfg: LabelConfig = LabelConfig(), progress:
               "kept_frames": sum(len(v.frames) for _, _, v in kept),
               "train_frames": sum(1 for r in rows if r["part"] == "train"),
               "fit_frames": sum(1 for r in rows if r["part"] == "fit"),
+              "teacher_images": n_teacher,
               "dropped_groups": {r: counts.get(r, 0) for r in REASONS},
               "dropped_frames": {r: sum(len(v.frames) for _, _, v in verdicts if v.reason == r) for r in REASONS},
               "verdicts": [{"folder": str(f), "group": v.key, "frames": len(v.frames), "kept": v.kept,
@@ -256,6 +292,43 @@ def write_labels(sources: list, out, cfg: LabelConfig = LabelConfig(), progress:
     (out / (LABELS_FILE + ".tmp")).write_text(json.dumps(report, indent=1) + "\n")
     os.replace(out / (LABELS_FILE + ".tmp"), out / LABELS_FILE)
     return report
+
+
+def write_teacher_frames(dropped: list, outputs_of: dict, out) -> int:
+    """The dropped groups' frames as a folder of boxes only (``bbox`` where the shipped detector
+    found the needle, no keypoints, no poses): no labels, the images on which fine-tuning keeps
+    the shipped weights' outputs (``common.detector.train``: ``teacher_dirs``), so that what no
+    confirmed label shows (a needle in the jaws, edge-on, far) is not forgotten. Returns the
+    number of images with a box (none: no folder)."""
+    rows = []
+    for folder, ds, v in dropped:
+        outputs = outputs_of[str(folder)]
+        for i in v.frames:
+            fr = ds.frames[i]
+            fo = outputs.get(fr.index)
+            box = {}
+            for c in CAMERAS:
+                kp = fo.keypoints.get(c) if fo is not None else None
+                b = kp.get("bbox") if kp and kp.get("found") else None
+                box[c] = [float(x) for x in b] if b is not None and np.isfinite(np.asarray(b, float)).all() else None
+            if any(b is not None for b in box.values()):
+                rows.append((ds, fr, box))
+    if not rows:
+        return 0
+    meta0 = rows[0][0].meta
+    with staged_folder(str(out)) as tmp:
+        with DatasetWriter(tmp, meta0) as w:
+            for ds, fr, box in rows:
+                if ds.meta.to_dict() != meta0.to_dict():
+                    continue
+                paths = {}
+                for c in CAMERAS:
+                    src = Path(ds.path) / fr.image(c)
+                    paths[c] = f"images/{c}/{w.n_frames:06d}{src.suffix.lower()}"
+                    link_or_copy(str(src), str(Path(tmp) / paths[c]))
+                w.append(Frame(index=w.n_frames, stamp_ns=fr.stamp_ns, left=paths["left"], right=paths["right"],
+                               bbox=box))
+    return sum(1 for _, _, box in rows for b in box.values() if b is not None)
 
 
 def _num(x):

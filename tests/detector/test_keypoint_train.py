@@ -24,7 +24,7 @@ from common.detector.model import (
     crop_affine,
     crop_side,
 )
-from common.detector.train import DEFAULT_TRAIN, load_config, losses, main, train
+from common.detector.train import DEFAULT_TRAIN, distillation_losses, load_config, losses, main, train
 
 pytestmark = pytest.mark.training
 
@@ -93,6 +93,80 @@ def test_short_training_lowers_the_loss_and_resumes(tiny_data, tmp_path):
     before, after = loss_of(initial), loss_of(trained)
     assert after["total"] < 0.9 * before["total"]
     assert after["kp"] < before["kp"]
+
+
+def _boxes_only(src, dst):
+    """``src``'s frames as a folder of boxes only (no keypoints, no poses), as ``adapt`` writes its
+    teacher folder."""
+    import shutil
+    shutil.copytree(src, dst)
+    lines = []
+    for line in (dst / "frames.jsonl").read_text().splitlines():
+        fr = json.loads(line)
+        lines.append(json.dumps({k: v for k, v in fr.items() if k not in ("keypoints", "visible", "T_world_needle")}))
+    (dst / "frames.jsonl").write_text("\n".join(lines) + "\n")
+    return dst
+
+
+def test_boxes_only_records_are_inputs_without_targets(tiny_data, tmp_path):
+    cfg = ModelConfig.from_dict(TINY_MODEL)
+    with_kp = load_records(tiny_data, cfg, progress=False)
+    boxes = load_records(_boxes_only(tiny_data, tmp_path / "boxes"), cfg, progress=False, boxes_only=True)
+    assert 0 < len(boxes) <= len(with_kp)
+    for r in boxes:
+        assert r.has_needle and not r.vis.any() and np.isnan(r.kp).all() and r.region.size
+    # read as labels, the same folder has no needle: a box alone never becomes a target
+    assert not any(r.has_needle for r in load_records(tmp_path / "boxes", cfg, progress=False))
+
+
+def test_distillation_pulls_the_outputs_towards_the_teachers(tiny_data):
+    cfg = ModelConfig.from_dict(TINY_MODEL)
+    recs = [r for r in load_records(tiny_data, cfg, progress=False) if r.has_needle]
+    torch.manual_seed(1)
+    teacher = KeypointModel(cfg).eval()
+    with torch.no_grad():                    # a teacher sure of a needle everywhere: far from the student
+        teacher.crop.presence.bias += 3.0
+        teacher.glob.head.bias[0] += 2.0
+    torch.manual_seed(2)
+    student = KeypointModel(cfg)
+    rng = np.random.default_rng(4)
+    cb = crop_batch(recs, np.arange(8), cfg, None, rng)
+    gb = global_batch(recs, np.arange(4), cfg, None, rng)
+    w = DEFAULT_TRAIN["loss_weights"]
+
+    def gap():
+        student.eval()
+        with torch.no_grad():
+            (h, p), (th, tp) = student.crop(cb[0]), teacher.crop(cb[0])
+            g, tg = student.glob(gb[0]), teacher.glob(gb[0])
+        return (float((torch.sigmoid(p) - torch.sigmoid(tp)).abs().mean()),
+                float((torch.sigmoid(g[:, 0]) - torch.sigmoid(tg[:, 0])).abs().mean()))
+    before = gap()
+    opt = torch.optim.Adam(student.parameters(), lr=1e-2)
+    for _ in range(80):
+        student.train()
+        D = distillation_losses(student, teacher, cb, gb, w)
+        opt.zero_grad()
+        D["total"].backward()
+        opt.step()
+    assert set(D) == {"presence", "global", "box", "global_presence", "total"}   # no keypoints copied
+    assert all(p.grad is None for p in teacher.parameters())          # the teacher stays as it is
+    after = gap()
+    assert after[0] < 0.5 * before[0] and after[1] < 0.5 * before[1]
+
+
+def test_training_with_a_teacher_folder_needs_the_weights_to_keep(tiny_data, tmp_path):
+    boxes = _boxes_only(tiny_data, tmp_path / "boxes")
+    with pytest.raises(ValueError, match="--init"):
+        train([tiny_data], tmp_path / "a", _config(tmp_path, 1), progress=False, teacher_dirs=[str(boxes)])
+    first = tmp_path / "first"
+    train([tiny_data], first, _config(tmp_path, 1), progress=False)
+    logs = []
+    train([tiny_data], tmp_path / "b", _config(tmp_path, 1), log=logs.append, progress=False,
+          init=str(first / "model.pt"), teacher_dirs=[str(boxes)])
+    assert any("distillation: 18 images" in line for line in logs)
+    metrics = [json.loads(l) for l in (tmp_path / "b" / "metrics.jsonl").read_text().splitlines()]
+    assert metrics[-1]["train"]["distill"] > 0
 
 
 def test_stage1_windows_keep_the_box_on_the_same_pixels():

@@ -14,10 +14,10 @@ from common.data.dataset import Dataset
 from common.data.writer import TRUTH_FIELDS, without_truth
 from common.evaluation.adapt_calibration import safe_scale, sure_share, sure_wrong
 from common.evaluation.adapt_run import FrameOutputs, read_recording, recording_complete
-from common.evaluation.pseudo_labels import LabelConfig, score_against_truth, write_labels
+from common.evaluation.pseudo_labels import LabelConfig, keypoint_sigma_px, score_against_truth, write_labels
 from common.frames import CAMERAS
 from common.geometry.refine import tip_for_tail
-from common.geometry.transforms import inv_T, make_T, rotvec_to_R
+from common.geometry.transforms import inv_T, make_T, rotvec_to_R, transform_points
 
 
 def _generate(path, width, height, sequences=4, steps=4, seed=5):
@@ -69,7 +69,9 @@ def _outputs(truth_ds, plan: dict) -> dict:
                    "end_identity": p(fr.step), "ambiguous": False, "model_sigma_m": 1e-4,
                    "model_sigma_rad": 1e-3}
         for c in CAMERAS:
-            fo.keypoints[c] = {"found": True, "uv": np.asarray(fr.keypoints[c]), "scores": np.ones(5)}
+            uv = np.asarray(fr.keypoints[c])
+            fo.keypoints[c] = {"found": True, "uv": uv, "scores": np.ones(5),
+                               "bbox": [*(uv.min(0) - 2), *(uv.max(0) + 2)]}
         out[fr.index] = fo
     return out
 
@@ -121,6 +123,31 @@ def test_groups_too_few_views_or_too_unsure_are_dropped(small, tmp_path):
     assert by["seq0"]["reason"] == "too_few_poses" and by["seq1"]["reason"] == "uncertain"
     assert rep["kept_groups"] == 2 and rep["fit_frames"] == 4 and rep["train_frames"] == 4
     assert check_dataset(Dataset(str(tmp_path / "l" / "fit")), images=False).ok
+    # the dropped groups' images are kept as boxes only: the teacher's inputs, never labels
+    teacher = Dataset(str(tmp_path / "l" / "teacher"))
+    assert check_dataset(teacher, images=True).ok and len(teacher) == 8 and rep["teacher_images"] == 16
+    assert all(f.keypoints is None and f.T_world_needle is None and f.bbox["left"] is not None
+               for f in teacher.frames)
+
+
+def test_the_label_check_is_in_pixels_a_far_needles_depth_moves_no_keypoint(small):
+    truth, _ = small
+    ds = Dataset(str(truth))
+    fr = ds.frames[0]
+    cam = ds.meta.rig["left"]
+    R_world_cam = fr.T_world_ecm[:3, :3] @ cam.T_ecm_cam[:3, :3]
+    p_cam = transform_points(cam.T_cam_ecm @ inv_T(fr.T_world_ecm) @ fr.T_world_needle, ds.meta.needle.keypoints())
+    sigma = 1e-3                                            # 1 mm along one camera axis
+    def cov_along(axis):
+        d = R_world_cam[:, axis]
+        cov = np.zeros((6, 6))
+        cov[3:, 3:] = sigma ** 2 * np.outer(d, d)
+        return cov
+    lateral = keypoint_sigma_px(ds.meta, [fr.T_world_ecm], fr.T_world_needle, cov_along(0))
+    assert lateral == pytest.approx(cam.K[0, 0] * sigma / p_cam[:, 2].min(), rel=0.05)
+    depth = keypoint_sigma_px(ds.meta, [fr.T_world_ecm], fr.T_world_needle, cov_along(2))
+    assert depth < 0.2 * lateral                            # along the line of sight: little in the image
+    assert keypoint_sigma_px(ds.meta, [fr.T_world_ecm], fr.T_world_needle, None) == float("inf")
 
 
 def test_the_end_identity_is_never_surer_than_the_shipped_weights_allow():
