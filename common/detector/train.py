@@ -326,21 +326,24 @@ def train(data_dirs, out, config_path=None, log=print, progress=True, init=None,
     stages = list(tcfg["stages"])
     if not stages or set(stages) - {"global", "crop"}:
         raise ValueError(f"{config_path}: train.stages must list 'global' and/or 'crop', got {stages}")
-    if init and not (out / "checkpoint.pt").is_file():
+    def load_init(into: KeypointModel) -> None:
         try:
             src = torch.load(init, map_location="cpu", weights_only=True)
             if src.get("config") != mcfg.to_dict():
                 raise ValueError(f"--init {init}: its model config differs from {config_path}")
-            model.load_state_dict(src["state_dict"])
+            into.load_state_dict(src["state_dict"])
         except (OSError, RuntimeError, KeyError, AttributeError) as exc:
             raise ValueError(f"--init {init}: cannot load ({exc})") from None
+
+    if init and not (out / "checkpoint.pt").is_file():
+        load_init(model)
         log(f"starting from the weights of {init}")
     teacher, t_recs = None, []
     if teacher_dirs and float(tcfg["distill_weight"]) > 0:
         if not init:
             raise ValueError("teacher folders need the weights to keep (--init)")
         teacher = KeypointModel(mcfg)
-        teacher.load_state_dict(torch.load(init, map_location="cpu", weights_only=True)["state_dict"])
+        load_init(teacher)
         teacher.eval()
         for p_ in teacher.parameters():
             p_.requires_grad_(False)

@@ -266,11 +266,7 @@ def write_labels(sources: list, out, cfg: LabelConfig = LabelConfig(), progress:
                         T_we = frame_T_world_ecm(fr, {}, ds)
                         if T_we is None:
                             continue
-                        paths = {}
-                        for c in CAMERAS:
-                            src = Path(ds.path) / fr.image(c)
-                            paths[c] = f"images/{c}/{w.n_frames:06d}{src.suffix.lower()}"
-                            link_or_copy(str(src), str(Path(tmp) / paths[c]))
+                        paths = _link_images(ds, fr, tmp, w.n_frames)
                         w.append(labelled_frame(ds, fr, T_we, v.T_world_needle, w.n_frames, g, paths))
                         rows.append({"part": part, "index": w.n_frames - 1, "folder": str(folder),
                                      "source_index": int(fr.index), "group": v.key})
@@ -320,15 +316,23 @@ def write_teacher_frames(dropped: list, outputs_of: dict, out) -> int:
         with DatasetWriter(tmp, meta0) as w:
             for ds, fr, box in rows:
                 if ds.meta.to_dict() != meta0.to_dict():
-                    continue
-                paths = {}
-                for c in CAMERAS:
-                    src = Path(ds.path) / fr.image(c)
-                    paths[c] = f"images/{c}/{w.n_frames:06d}{src.suffix.lower()}"
-                    link_or_copy(str(src), str(Path(tmp) / paths[c]))
+                    raise ValueError(f"{ds.path}: another rig or needle than {rows[0][0].path}; adapt "
+                                     f"folders of one rig together")
+                paths = _link_images(ds, fr, tmp, w.n_frames)
                 w.append(Frame(index=w.n_frames, stamp_ns=fr.stamp_ns, left=paths["left"], right=paths["right"],
                                bbox=box))
     return sum(1 for _, _, box in rows for b in box.values() if b is not None)
+
+
+def _link_images(ds: Dataset, fr: Frame, folder, index: int) -> dict:
+    """Link (or copy) a frame's images into ``folder`` as the ``index``-th frame's; returns their
+    paths there, per camera."""
+    paths = {}
+    for c in CAMERAS:
+        src = Path(ds.path) / fr.image(c)
+        paths[c] = f"images/{c}/{index:06d}{src.suffix.lower()}"
+        link_or_copy(str(src), str(Path(folder) / paths[c]))
+    return paths
 
 
 def _num(x):
