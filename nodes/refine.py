@@ -11,7 +11,9 @@ arc the pose was fitted to (``common.geometry.arc_support``): below ``min_arc_se
 a partial view (the jaws or the tissue hide the rest), flagged ``ambiguous`` and its covariance
 widened (counted ``partial_view``); one fitted to an arc with an end no camera saw states its
 tip at most ``end_unseen_p_max`` sure (counted ``end_identity.end_unseen``;
-docs/tracking.md#partial-views).
+docs/tracking.md#partial-views); one whose keypoints some camera reads end for end (the fit
+rested on a stray keypoint, ``end_identity.reads_as_keypoints``) states at most
+``reading_p_max`` (counted ``end_identity.reading_turned``).
 
 Per frame: the minima of the joint stereo PnP on the keypoints, from the IPPE starts and
 stopped early (``common.geometry.pnp.refine_starts``), are the starting poses; ``DenseRefiner.refine``
@@ -49,7 +51,7 @@ import numpy as np
 
 from common.geometry.arc_support import SUPPORT_PX, arc_support, best_seen, ends_seen, partial_view, shares
 from common.geometry.config import Probability, number_at_least
-from common.geometry.end_identity import settle, with_ends_seen
+from common.geometry.end_identity import reads_as_keypoints, settle, with_ends_seen, with_reading
 from common.geometry.needle import NeedleModel
 from common.geometry.observations import NoPose
 from common.geometry.refine import (
@@ -82,6 +84,9 @@ class _NodeParams(StereoPoseNode.Params):
     # a pose fitted to an arc one of whose ends no camera saw states its tip at most this sure
     # (counted end_identity.end_unseen): its tip was read from one end and a cut (jaws, tissue)
     end_unseen_p_max: Probability = 0.9
+    # a pose whose keypoints some camera reads end for end states its tip at most this sure
+    # (counted end_identity.reading_turned): the stated probability was the keypoints', not its
+    reading_p_max: Probability = 0.5
 
 
 def _config(cls, p, rename: dict | None = None):
@@ -190,6 +195,12 @@ class RefineNode(StereoPoseNode):
         stated = with_ends_seen(p, ends_seen(support), self.p.end_unseen_p_max) if support else p
         if stated != p:
             self.count("end_identity.end_unseen")
+        read = with_reading(stated, reads_as_keypoints(self.rig, self.needle, res.T_ecm_needle, uv, sc),
+                            self.p.reading_p_max)
+        if read != stated:
+            self.count("end_identity.reading_turned")
+            stated = read
+        if stated != p:
             self.identity.put(left.seq, stated)
         partial, covariance = partial_view(res.covariance, seen, self.p.min_arc_seen, self.p.partial_view_inflation)
         if partial:

@@ -12,10 +12,12 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from typing import Mapping
 
 import numpy as np
 
 from common.geometry.needle import NeedleModel
+from common.geometry.transforms import transform_points
 
 CAMERA_CORRELATION = 0.5
 """How much of a second camera's evidence is new: the two views see the same needle, so their
@@ -142,6 +144,52 @@ def with_ends_seen(p: float | None, ends: tuple[bool, bool], p_max: float) -> fl
     end seen; ``arc_support.ends_seen``): at most ``p_max`` with an end unseen, its tip read from
     one end and a cut (the jaws, the tissue). None stays None."""
     return p if p is None or all(ends) else min(p, p_max)
+
+
+READING_MARGIN = 2.0
+"""A camera's keypoints read a pose end for end when its turn reprojects them this many times
+closer (score-weighted mean distance) than the pose does (``reads_as_keypoints``)."""
+READING_MIN_PX = 5.0
+"""... and the pose is off them by more than this (px): nearer, a pose and its turn both fit (a
+far or edge-on needle) and the keypoints tell nothing."""
+
+
+def reads_as_keypoints(rig, needle: NeedleModel, T_ecm_needle: np.ndarray, uv: Mapping,
+                       scores: Mapping, margin: float = READING_MARGIN,
+                       min_px: float = READING_MIN_PX) -> bool | None:
+    """Whether the pose puts its tip where every camera's keypoints put A: False when some
+    camera's keypoints (``uv`` {camera: (5, 2) px}, every finite one weighted by its ``scores``,
+    the low-scored too) reproject the pose turned end for end (A..E as E..A) ``margin`` times
+    closer than the pose itself, and the pose more than ``min_px`` off them; None: no camera
+    has keypoints. The fit may rest on a few keypoints scored above its gate while the others,
+    and the tip probability stated for them, read the needle the other way (one stray E on the
+    tip): the probability is then not the pose's."""
+    model = needle.keypoints()
+    told = False
+    for name, pts in uv.items():
+        pts = None if pts is None else np.asarray(pts, float).reshape(-1, 2)
+        if pts is None or len(pts) != len(model):
+            continue
+        w = np.asarray(scores.get(name, np.ones(len(pts))), float).reshape(-1)
+        ok = np.isfinite(pts).all(axis=1) & (w > 0)
+        if not ok.any():
+            continue
+        cam = rig[name]
+        proj = cam.project(transform_points(cam.T_cam_ecm @ T_ecm_needle, model))
+        d_read = np.linalg.norm(pts - proj, axis=1)[ok]
+        d_turn = np.linalg.norm(pts - proj[::-1], axis=1)[ok]
+        wr = w[ok] / w[ok].sum()
+        told = True
+        if float(wr @ d_read) > max(margin * float(wr @ d_turn), min_px):
+            return False
+    return True if told else None
+
+
+def with_reading(p: float | None, reads: bool | None, p_max: float = 0.5) -> float | None:
+    """The tip probability a pose states when its keypoints ``reads`` it as fitted
+    (``reads_as_keypoints``): at most ``p_max`` when some camera's read it end for end, its
+    evidence split. None stays None."""
+    return p if p is None or reads is not False else min(p, p_max)
 
 
 def without_identity_covariance(T_ecm_needle: np.ndarray, covariance: np.ndarray, needle: NeedleModel,

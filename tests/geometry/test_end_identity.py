@@ -12,12 +12,14 @@ from common.geometry.end_identity import (
     end_for_end_delta,
     identity_covariance,
     logit,
+    reads_as_keypoints,
     settle,
     sigmoid,
     state,
     stereo_end_identity,
     track_identity,
     turn_observation,
+    with_reading,
 )
 from common.geometry.needle import NeedleModel
 from common.geometry.oracle import random_needle_pose, true_keypoints
@@ -207,3 +209,26 @@ def test_the_turn_term_taken_out_gives_the_reading_covariance_back():
     assert np.allclose(without_identity_covariance(T, wide, needle, 0.9), C, atol=1e-12)
     # a covariance the turn was never added to is left as it is
     assert np.array_equal(without_identity_covariance(T, C, needle, 0.9), C)
+
+
+def test_reads_as_keypoints_tells_a_pose_from_its_turn_by_every_cameras_keypoints():
+    """Keypoints as the pose puts them read it; the pose turned end for end reads them the other
+    way; one camera reading it turned is enough; low scores count, weighted; a needle too small
+    in the image to tell the ends apart by 5 px says nothing against the pose."""
+    rng = np.random.default_rng(4)
+    T = random_needle_pose(rng, RIG, MODEL)
+    uv = {c.name: true_keypoints(c, T, MODEL)[0] for c in RIG.cameras}
+    low = {name: np.full(5, 0.2) for name in uv}
+    assert reads_as_keypoints(RIG, MODEL, T, uv, low) is True
+    T_turn = tip_for_tail(T, MODEL)
+    assert reads_as_keypoints(RIG, MODEL, T_turn, uv, low) is False
+    one = {"left": uv["left"], "right": true_keypoints(RIG["right"], T_turn, MODEL)[0]}
+    assert reads_as_keypoints(RIG, MODEL, T_turn, one, low) is False
+    assert reads_as_keypoints(RIG, MODEL, T, one, low) is False
+    assert reads_as_keypoints(RIG, MODEL, T, {}, {}) is None
+    far = T.copy()
+    far[:3, 3] *= 40.0
+    uv_far = {c.name: true_keypoints(c, far, MODEL)[0] for c in RIG.cameras}
+    assert reads_as_keypoints(RIG, MODEL, tip_for_tail(far, MODEL), uv_far, low) is True
+    assert with_reading(0.99, False) == 0.5 and with_reading(0.99, True) == 0.99
+    assert with_reading(None, False) is None and with_reading(0.3, False) == 0.3

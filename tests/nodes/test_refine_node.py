@@ -420,3 +420,25 @@ def test_a_pose_whose_arc_shows_one_end_only_states_its_tip_at_most_end_unseen_p
     assert cut.counters["end_identity.end_unseen"] == len(frames)
     assert all(p.end_identity == 0.9 and p.ambiguous for p in poses(cut))
     assert all(p.end_identity > 0.95 for p in poses(whole)) and "end_identity.end_unseen" not in whole.counters
+
+
+def test_a_pose_whose_keypoints_one_camera_reads_end_for_end_states_no_sure_tip():
+    """The fit rests on the one keypoint scored above the gate, a stray E on the tip (the other
+    keypoints, scored below it, read the needle as it lies): the pose comes out turned, and the
+    detectors' sure tip (0.99) was the keypoints', not the pose's, so it states at most 0.5."""
+    frames = oracle_frames(6, noise_px=0.3, seed=5)
+    node = RefineNode.offline({"tracking": False}, wired=["left", "right", "calib"])
+    node.on_calib(roundtrip(CALIB))
+    for T, left, right in frames:
+        stray = np.array(right.uv, float)
+        stray[4] = stray[0] + 1.0
+        node.on_right(roundtrip(replace(right, uv=stray, scores=np.array([0.3, 0.3, 0.3, 0.3, 0.8]),
+                                        end_identity=0.99)))
+        node.on_left(roundtrip(replace(left, scores=np.full(5, 0.45), end_identity=0.99)))
+    out = {p.seq: p for p in poses(node)}
+    turned = [s for s, p in out.items() if np.degrees(pose_error(p.T_ecm_needle, frames[s][0])[1]) > 150]
+    assert turned, "the stray keypoint should have turned some fits (the case under test)"
+    assert all(out[s].end_identity <= 0.5 and out[s].ambiguous for s in turned)
+    assert node.counters["end_identity.reading_turned"] >= len(turned)
+    right_way = [p for s, p in out.items() if s not in turned]
+    assert all(p.end_identity > 0.95 for p in right_way)
