@@ -51,7 +51,7 @@ import numpy as np
 
 from common.geometry.arc_support import SUPPORT_PX, arc_support, best_seen, ends_seen, partial_view, shares
 from common.geometry.config import Probability, number_at_least
-from common.geometry.end_identity import reads_as_keypoints, settle, with_ends_seen, with_reading
+from common.geometry.end_identity import fitted_tip_probability, reads_as_keypoints, settle
 from common.geometry.needle import NeedleModel
 from common.geometry.observations import NoPose
 from common.geometry.refine import (
@@ -192,14 +192,12 @@ class RefineNode(StereoPoseNode):
                               self.config.min_centreline_w, self.config.min_score)
         seen = best_seen(shares(support))
         p = self.identity.get(left.seq)
-        stated = with_ends_seen(p, ends_seen(support), self.p.end_unseen_p_max) if support else p
-        if stated != p:
-            self.count("end_identity.end_unseen")
-        read = with_reading(stated, reads_as_keypoints(self.rig, self.needle, res.T_ecm_needle, uv, sc),
-                            self.p.reading_p_max)
-        if read != stated:
-            self.count("end_identity.reading_turned")
-            stated = read
+        stated, caps = fitted_tip_probability(
+            p, ends_seen(support) if support else None,
+            reads_as_keypoints(self.rig, self.needle, res.T_ecm_needle, uv, sc),
+            end_unseen_p_max=self.p.end_unseen_p_max, reading_p_max=self.p.reading_p_max)
+        for cap in caps:
+            self.count(f"end_identity.{cap}")
         if stated != p:
             self.identity.put(left.seq, stated)
         partial, covariance = partial_view(res.covariance, seen, self.p.min_arc_seen, self.p.partial_view_inflation)

@@ -192,6 +192,24 @@ def with_reading(p: float | None, reads: bool | None, p_max: float = 0.5) -> flo
     return p if p is None or reads is not False else min(p, p_max)
 
 
+def fitted_tip_probability(p: float | None, ends: tuple[bool, bool] | None, reads: bool | None, *,
+                           end_unseen_p_max: float, reading_p_max: float = 0.5
+                           ) -> tuple[float | None, tuple[str, ...]]:
+    """The tip probability a fitted pose states, from its frame's ``p`` (``settle``): capped at
+    ``end_unseen_p_max`` when its arc showed an end no camera saw (``ends``, ``with_ends_seen``;
+    None: not measured), then at ``reading_p_max`` when some camera's keypoints read the pose end
+    for end (``reads``, ``with_reading``). Returns (p, the caps that lowered it, by name:
+    ``end_unseen``, ``reading_turned``, in that order). None stays None."""
+    caps = []
+    stated = p if ends is None else with_ends_seen(p, ends, end_unseen_p_max)
+    if stated != p:
+        caps.append("end_unseen")
+    read = with_reading(stated, reads, reading_p_max)
+    if read != stated:
+        caps.append("reading_turned")
+    return read, tuple(caps)
+
+
 def without_identity_covariance(T_ecm_needle: np.ndarray, covariance: np.ndarray, needle: NeedleModel,
                                 p: float) -> np.ndarray:
     """``identity_covariance`` undone: the covariance of the pose's reading as read, for a

@@ -12,6 +12,7 @@ from common.geometry.end_identity import (
     end_for_end_delta,
     identity_covariance,
     logit,
+    fitted_tip_probability,
     reads_as_keypoints,
     settle,
     sigmoid,
@@ -232,3 +233,15 @@ def test_reads_as_keypoints_tells_a_pose_from_its_turn_by_every_cameras_keypoint
     assert reads_as_keypoints(RIG, MODEL, tip_for_tail(far, MODEL), uv_far, low) is True
     assert with_reading(0.99, False) == 0.5 and with_reading(0.99, True) == 0.99
     assert with_reading(None, False) is None and with_reading(0.3, False) == 0.3
+
+
+def test_a_fitted_pose_states_its_tip_under_both_caps_and_names_them():
+    """The end-unseen cap, then the keypoints' reading cap, each named where it lowered p."""
+    caps = dict(end_unseen_p_max=0.9, reading_p_max=0.5)
+    assert fitted_tip_probability(0.99, (True, True), True, **caps) == (0.99, ())
+    assert fitted_tip_probability(0.99, (True, False), True, **caps) == (0.9, ("end_unseen",))
+    assert fitted_tip_probability(0.99, None, False, **caps) == (0.5, ("reading_turned",))
+    assert fitted_tip_probability(0.99, (False, True), False, **caps) == (0.5, ("end_unseen", "reading_turned"))
+    # a probability already under a cap is not lowered by it, and nothing stated stays so
+    assert fitted_tip_probability(0.7, (False, True), True, **caps) == (0.7, ())
+    assert fitted_tip_probability(None, (False, False), False, **caps) == (None, ())
