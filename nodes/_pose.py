@@ -45,11 +45,16 @@ class StereoPoseNode(Node):
     KEEP_ALL = ("calib", "ecm")
     pose_method = ""
     """The method the node's poses state (``PoseEstimate.method``); its ``NoPoseNotice``s say it."""
+    SOLVE_WITH_ECM = False
+    """Whether a frame's solution depends on its ECM pose (a prior in world axes, the needle's
+    last world pose): with ``ecm`` wired, a pair then waits for its frame's ECM pose before it is
+    solved (at most ``max_wait`` frames; counted ``solved_without_ecm`` after that), in ``seq``
+    order, so that the pose does not depend on which input a loaded machine delivered first."""
 
     @dataclass
     class Params:
         min_score: float = 0.5     # keypoints scoring lower are not used
-        max_wait: int = 30         # frames a pose waits for its ECM pose
+        max_wait: int = 30         # frames a pose (SOLVE_WITH_ECM: a pair, unsolved) waits for its ECM pose
         min_end_identity: float = TIP_SURE   # a frame whose tip is surer than this is posed as is
 
     def setup(self):
@@ -62,11 +67,13 @@ class StereoPoseNode(Node):
         self.identity = SeqCache()       # seq -> the frame's probability that A is the tip
         self.ecm_poses = SeqCache()
         self.pairer = StereoPairer()
+        self.solving = SeqJoin(self.p.max_wait, in_order=True)   # pairs waiting for their ECM pose
 
     def on_stream_reset(self):
         """A new source stream: pending halves, ECM poses and waiting poses are of the old one."""
         self.pairer.reset()
         self.ecm_poses.clear()
+        self.solving.reset()
         gone = self.waiting.reset()
         if gone:
             self.count("no_pose.source_restart", len(gone))
@@ -82,6 +89,7 @@ class StereoPoseNode(Node):
 
     def on_ecm(self, msg: EcmPose):
         self.ecm_poses.put(msg.seq, np.asarray(msg.T_world_ecm, dtype=float))
+        self._solve_due()
         self._release()
 
     def on_left(self, msg: Keypoints):
@@ -99,10 +107,24 @@ class StereoPoseNode(Node):
         if self.pairer.dropped > dropped:
             self.count("unpaired", self.pairer.dropped - dropped)
         self.waiting.see(msg.seq)
+        self.solving.see(msg.seq)
         self._release()
-        if pair is None:
-            return
-        self.count("pairs")
+        if pair is not None:
+            self.count("pairs")
+            if self.SOLVE_WITH_ECM and self.wired("ecm"):
+                self.solving.hold(pair[0].seq, pair)
+            else:
+                self._solve(pair)
+        self._solve_due()
+
+    def _solve_due(self) -> None:
+        """Solve the held pairs whose ECM pose is in, or that waited ``max_wait`` frames."""
+        for pair, complete in self.solving.due(lambda seq, _: seq in self.ecm_poses):
+            if not complete:
+                self.count("solved_without_ecm")
+            self._solve(pair)
+
+    def _solve(self, pair: tuple[Keypoints, Keypoints]) -> None:
         if self.rig is None:
             self.no_pose("no_calibration", pair[0])
             return

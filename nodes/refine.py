@@ -2,8 +2,9 @@
 an uncertainty (common/geometry/refine.py).
 
 Inputs, outputs and params: ``needletrack describe refine`` (docs/nodes.md). The keypoints'
-``centreline`` is the dense observation; with ``ecm`` a pose waits (at most ``max_wait`` frames)
-for its frame's ECM pose and gets ``T_world_needle``. ``pose``: method ``refined``, ``residual``
+``centreline`` is the dense observation; with ``ecm`` a stereo pair waits (at most ``max_wait``
+frames) for its frame's ECM pose before it is refined (``StereoPoseNode.SOLVE_WITH_ECM``), and its
+pose gets ``T_world_needle``. ``pose``: method ``refined``, ``residual``
 the RMS (px) over the keypoints and centreline points used, ``covariance`` over [rotation vector
 (rad), translation (m)] in the ECM frame, ``ambiguous`` when competing solutions fit nearly as
 well or the arc is seen edge-on (the covariance then spans them), ``arc_seen`` the share of the
@@ -101,6 +102,7 @@ class RefineNode(StereoPoseNode):
     OUTPUTS = ("pose", "no_pose")
     KEEP_ALL = StereoPoseNode.KEEP_ALL
     pose_method = "refined"
+    SOLVE_WITH_ECM = True     # the resting prior's normal and the needle's last world pose
 
     # every RefineConfig and TrackingConfig field is a param of the same name (``tracking`` for
     # TrackingConfig.enabled), beside the node's own

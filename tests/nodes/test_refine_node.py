@@ -442,3 +442,42 @@ def test_a_pose_whose_keypoints_one_camera_reads_end_for_end_states_no_sure_tip(
     assert node.counters["end_identity.reading_turned"] >= len(turned)
     right_way = [p for s, p in out.items() if s not in turned]
     assert all(p.end_identity > 0.95 for p in right_way)
+
+
+def test_a_pair_is_refined_once_its_ecm_pose_is_in_and_in_seq_order():
+    """The resting prior and the needle's last world pose need the frame's ECM pose: a pair
+    whose ECM pose is late waits for it (so a loaded machine gives the same poses as an idle
+    one), later pairs wait behind it, and after max_wait frames without it, it is refined anyway."""
+    frames = oracle_frames(4)
+    node = RefineNode.offline({"tracking": False, "support_normal_world": [0, 0, 1], "max_wait": 2},
+                              wired=["left", "right", "calib", "ecm"])
+    node.on_calib(roundtrip(CALIB))
+    T_world_ecm = ARM.T_world_ecm(Q)
+    (_, l0, r0), (_, l1, r1), (_, l2, r2), (_, l3, r3) = frames
+    node.on_left(l0)
+    node.on_right(r0)
+    node.on_ecm(EcmPose(1, l1.stamp_ns, T_world_ecm))
+    node.on_left(l1)
+    node.on_right(r1)
+    assert not node.published                         # 0 waits for its ECM pose, 1 behind it
+    node.on_ecm(EcmPose(0, l0.stamp_ns, T_world_ecm))
+    assert [p.seq for p in poses(node)] == [0, 1]
+    assert all(p.T_world_needle is not None for p in poses(node))
+    # frame 2's ECM pose never comes: refined after max_wait frames, counted
+    for left, right in ((l2, r2), (l3, r3)):
+        node.on_left(left)
+        node.on_right(right)
+    assert [p.seq for p in poses(node)] == [0, 1]
+    node.on_ecm(EcmPose(3, l3.stamp_ns, T_world_ecm))
+    node.on_left(replace(l3, seq=4))
+    assert [p.seq for p in poses(node)] == [0, 1, 2, 3]
+    assert node.counters["solved_without_ecm"] == 1
+
+
+def test_without_ecm_wired_a_pair_is_refined_at_once():
+    (_, left, right), = oracle_frames(1)
+    node = RefineNode.offline({"tracking": False}, wired=["left", "right", "calib"])
+    node.on_calib(roundtrip(CALIB))
+    node.on_left(left)
+    node.on_right(right)
+    assert [p.seq for p in poses(node)] == [0]
