@@ -80,7 +80,7 @@ def refit(new_weights, shipped_weights, fit_folder, log=print, progress: bool = 
             "and state no familiarity")
         return {"end_identity": "shipped", "familiarity": None}
     det = KeypointDetector(str(new_weights), device="cpu", tracking=False, threads=1, familiarity=False)
-    feats = descriptors(str(fit_folder), det)
+    feats = descriptors(str(fit_folder), det, progress=progress)
     if len(feats) >= MIN_DETECTIONS:
         fam = fit_familiarity(feats, fitted_on=[f"{Path(fit_folder).name} (pseudo-labelled, held out)"])
         save_familiarity(fam, out_fam)
@@ -89,8 +89,9 @@ def refit(new_weights, shipped_weights, fit_folder, log=print, progress: bool = 
         out_fam.unlink(missing_ok=True)
         done["familiarity"] = None
         log(f"warning: {len(feats)} held-out detections: no familiarity fitted")
-    new = collect(str(fit_folder), det)
-    old = collect(str(fit_folder), KeypointDetector(str(shipped_weights), device="cpu", tracking=False, threads=1))
+    new = collect(str(fit_folder), det, progress=progress)
+    old = collect(str(fit_folder), KeypointDetector(str(shipped_weights), device="cpu", tracking=False, threads=1),
+                  progress=progress)
     X, y = new["features"], new["labels"]
     bound = sure_wrong(old["features"], old["labels"], shipped_coef)
     max_sure = sure_share(old["features"], shipped_coef)

@@ -43,7 +43,8 @@ def to_grey(img: np.ndarray) -> np.ndarray:
     return cv2.cvtColor(cv2.cvtColor(img, cv2.COLOR_BGR2GRAY), cv2.COLOR_GRAY2BGR)
 
 
-def collect(folder: str, detector, step: int = 1, hue: tuple | None = None, grey: bool = False) -> dict:
+def collect(folder: str, detector, step: int = 1, hue: tuple | None = None, grey: bool = False,
+            progress: bool = True) -> dict:
     """Features (N, len(FEATURES)), labels (N,) (1: A at the true tip) and the images seen, for
     one folder; ``hue`` (lo, hi): turn each image's hue by a draw from this range (degrees,
     ``turn_hue``; one draw per frame, seeded by the folder's frame order); ``grey``: read the
@@ -60,7 +61,8 @@ def collect(folder: str, detector, step: int = 1, hue: tuple | None = None, grey
             return to_grey(img) if grey else img
         return change
 
-    for fr, cam, kp in cold_detections(folder, detector, step, only=lambda fr: fr.keypoints is not None, look=look):
+    for fr, cam, kp in cold_detections(folder, detector, step, only=lambda fr: fr.keypoints is not None, look=look,
+                                    progress=progress):
         seen += 1
         true = np.asarray(fr.keypoints[cam], float)
         if not kp.found or not np.isfinite(true[[0, 4]]).all():

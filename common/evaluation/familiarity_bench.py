@@ -19,9 +19,10 @@ import numpy as np
 from common.evaluation.folder_detections import cold_detections
 
 
-def descriptors(folder: str, detector, step: int = 1) -> np.ndarray:
+def descriptors(folder: str, detector, step: int = 1, progress: bool = True) -> np.ndarray:
     """The crop descriptors (N, D) of the needles the detector finds in a folder's images."""
-    out = [detector.last_descriptor for _fr, _cam, kp in cold_detections(folder, detector, step) if kp.found]
+    out = [detector.last_descriptor for _fr, _cam, kp in cold_detections(folder, detector, step, progress=progress)
+           if kp.found]
     return np.array(out, float).reshape(len(out), -1)
 
 

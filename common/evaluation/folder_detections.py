@@ -15,7 +15,7 @@ from common.frames import CAMERAS
 
 
 def cold_detections(folder: str, detector, step: int = 1, only: Optional[Callable] = None,
-                    look: Optional[Callable] = None) -> Iterator[tuple]:
+                    look: Optional[Callable] = None, progress: bool = True) -> Iterator[tuple]:
     """``(frame, camera, keypoints)`` for each image of every ``step``-th frame of ``folder`` that
     OpenCV reads (an unreadable one is passed over), left then right, in the folder's order.
 
@@ -23,10 +23,11 @@ def cold_detections(folder: str, detector, step: int = 1, only: Optional[Callabl
     each of that frame's images goes through before detection (BGR in, BGR out), or None (as read).
     ``only(frame)``: False passes over the frame without reading its images. ``detector``'s state
     after each detection (``last_descriptor``, ``last_evidence``) is that image's until the next
-    item is asked for."""
+    item is asked for. ``progress``: a progress bar over the frames."""
     from common.data.dataset import Dataset
     ds = Dataset(folder)
-    for fr in tqdm(ds.frames[::step], desc=Path(folder).name, unit="frame", leave=False):
+    for fr in tqdm(ds.frames[::step], desc=Path(folder).name, unit="frame", leave=False,
+                   disable=not progress):
         change = look(fr) if look is not None else None
         if only is not None and not only(fr):
             continue
