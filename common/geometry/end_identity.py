@@ -163,7 +163,10 @@ def reads_as_keypoints(rig, needle: NeedleModel, T_ecm_needle: np.ndarray, uv: M
     closer than the pose itself, and the pose more than ``min_px`` off them; None: no camera
     has keypoints. The fit may rest on a few keypoints scored above its gate while the others,
     and the tip probability stated for them, read the needle the other way (one stray E on the
-    tip): the probability is then not the pose's."""
+    tip): the probability is then not the pose's. A camera's stated probability is about the end
+    at its A, so a camera whose A alone lies at the pose's tail (``margin`` times nearer it
+    than the pose's tip, more than ``min_px`` from that) reads it turned too: its E may have
+    fallen onto the same end, its B..D off the wire, and the mean over all five tell nothing."""
     model = needle.keypoints()
     told = False
     for name, pts in uv.items():
@@ -176,11 +179,15 @@ def reads_as_keypoints(rig, needle: NeedleModel, T_ecm_needle: np.ndarray, uv: M
             continue
         cam = rig[name]
         proj = cam.project(transform_points(cam.T_cam_ecm @ T_ecm_needle, model))
-        d_read = np.linalg.norm(pts - proj, axis=1)[ok]
-        d_turn = np.linalg.norm(pts - proj[::-1], axis=1)[ok]
+        d_read = np.linalg.norm(pts - proj, axis=1)
+        d_turn = np.linalg.norm(pts - proj[::-1], axis=1)
         wr = w[ok] / w[ok].sum()
         told = True
-        if float(wr @ d_read) > max(margin * float(wr @ d_turn), min_px):
+        if float(wr @ d_read[ok]) > max(margin * float(wr @ d_turn[ok]), min_px):
+            return False
+        # the tip a camera states is the end at its A: an A at the pose's tail reads it turned,
+        # whatever its other keypoints say (E fallen onto A's end, B..D off the wire)
+        if ok[0] and d_read[0] > max(margin * d_turn[0], min_px):
             return False
     return True if told else None
 

@@ -245,3 +245,24 @@ def test_a_fitted_pose_states_its_tip_under_both_caps_and_names_them():
     # a probability already under a cap is not lowered by it, and nothing stated stays so
     assert fitted_tip_probability(0.7, (False, True), True, **caps) == (0.7, ())
     assert fitted_tip_probability(None, (False, False), False, **caps) == (None, ())
+
+
+def test_a_camera_whose_a_lies_at_the_poses_tail_reads_it_turned_whatever_its_e():
+    """A collapsed detection (E fallen onto A's end, B..D strewn along the wire) states its tip
+    at its A: at the pose's tail, it reads the pose turned, though the mean over all five
+    keypoints is even; at the pose's tip, it reads the pose as fitted."""
+    rng = np.random.default_rng(7)
+    T = random_needle_pose(rng, RIG, MODEL)
+    uv = {c.name: true_keypoints(c, T, MODEL)[0] for c in RIG.cameras}
+    collapsed = {}
+    for name, pts in uv.items():
+        pts = pts.copy()
+        pts[4] = pts[0] + np.array([3.0, 1.0])          # E a few px from A, at the tip
+        pts[1:4] = pts[2]                                # B..D on the middle: they read both ways
+        collapsed[name] = pts
+    low = {name: np.full(5, 0.3) for name in uv}
+    assert reads_as_keypoints(RIG, MODEL, T, collapsed, low) is True
+    assert reads_as_keypoints(RIG, MODEL, tip_for_tail(T, MODEL), collapsed, low) is False
+    # one camera's A at the tail is enough
+    one = {"left": collapsed["left"], "right": uv["right"]}
+    assert reads_as_keypoints(RIG, MODEL, tip_for_tail(T, MODEL), one, low) is False
