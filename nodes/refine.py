@@ -13,8 +13,9 @@ a partial view (the jaws or the tissue hide the rest), flagged ``ambiguous`` and
 widened (counted ``partial_view``); one fitted to an arc with an end no camera saw states its
 tip at most ``end_unseen_p_max`` sure (counted ``end_identity.end_unseen``;
 docs/tracking.md#partial-views); one whose keypoints some camera reads end for end (the fit
-rested on a stray keypoint, ``end_identity.reads_as_keypoints``) states at most
-``reading_p_max`` (counted ``end_identity.reading_turned``).
+rested on a stray keypoint, ``end_identity.camera_readings``) states at most the larger of
+``reading_p_max`` and what the cameras' statements, each about the end at its A, give its tip
+(counted ``end_identity.reading_turned``).
 
 Per frame: the minima of the joint stereo PnP on the keypoints, from the IPPE starts and
 stopped early (``common.geometry.pnp.refine_starts``), are the starting poses; ``DenseRefiner.refine``
@@ -52,7 +53,7 @@ import numpy as np
 
 from common.geometry.arc_support import SUPPORT_PX, arc_support, best_seen, ends_seen, partial_view, shares
 from common.geometry.config import Probability, number_at_least
-from common.geometry.end_identity import fitted_tip_probability, reads_as_keypoints, settle
+from common.geometry.end_identity import camera_readings, fitted_tip_probability, read_tip_probability, settle
 from common.geometry.needle import NeedleModel
 from common.geometry.observations import NoPose
 from common.geometry.refine import (
@@ -194,10 +195,11 @@ class RefineNode(StereoPoseNode):
                               self.config.min_centreline_w, self.config.min_score)
         seen = best_seen(shares(support))
         p = self.identity.get(left.seq)
+        readings = camera_readings(self.rig, self.needle, res.T_ecm_needle, uv, sc)
         stated, caps = fitted_tip_probability(
-            p, ends_seen(support) if support else None,
-            reads_as_keypoints(self.rig, self.needle, res.T_ecm_needle, uv, sc),
-            end_unseen_p_max=self.p.end_unseen_p_max, reading_p_max=self.p.reading_p_max)
+            p, ends_seen(support) if support else None, all(readings.values()) if readings else None,
+            end_unseen_p_max=self.p.end_unseen_p_max, reading_p_max=self.p.reading_p_max,
+            p_read=read_tip_probability({k.camera: k.end_identity for k in (left, right) if k.found}, readings))
         for cap in caps:
             self.count(f"end_identity.{cap}")
         if stated != p:

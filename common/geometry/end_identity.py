@@ -154,21 +154,18 @@ READING_MIN_PX = 5.0
 far or edge-on needle) and the keypoints tell nothing."""
 
 
-def reads_as_keypoints(rig, needle: NeedleModel, T_ecm_needle: np.ndarray, uv: Mapping,
-                       scores: Mapping, margin: float = READING_MARGIN,
-                       min_px: float = READING_MIN_PX) -> bool | None:
-    """Whether the pose puts its tip where every camera's keypoints put A: False when some
-    camera's keypoints (``uv`` {camera: (5, 2) px}, every finite one weighted by its ``scores``,
-    the low-scored too) reproject the pose turned end for end (A..E as E..A) ``margin`` times
-    closer than the pose itself, and the pose more than ``min_px`` off them; None: no camera
-    has keypoints. The fit may rest on a few keypoints scored above its gate while the others,
-    and the tip probability stated for them, read the needle the other way (one stray E on the
-    tip): the probability is then not the pose's. A camera's stated probability is about the end
-    at its A, so a camera whose A alone lies at the pose's tail (``margin`` times nearer it
-    than the pose's tip, more than ``min_px`` from that) reads it turned too: its E may have
-    fallen onto the same end, its B..D off the wire, and the mean over all five tell nothing."""
+def camera_readings(rig, needle: NeedleModel, T_ecm_needle: np.ndarray, uv: Mapping, scores: Mapping,
+                    margin: float = READING_MARGIN, min_px: float = READING_MIN_PX) -> dict[str, bool]:
+    """Per camera with keypoints (``uv`` {camera: (5, 2) px}, every finite one weighted by its
+    ``scores``, the low-scored too): whether they read the pose as fitted (True) or turned end
+    for end (False). Turned when the pose turned reprojects them ``margin`` times closer
+    (score-weighted mean distance) than the pose does, the pose more than ``min_px`` off them;
+    or when the camera's A alone does so: a camera's stated probability is about the end at its
+    A, and its E may have fallen onto the same end, its B..D off the wire, so that the mean over
+    all five tells nothing. Nearer than ``min_px`` a pose and its turn both fit (a far or
+    edge-on needle) and the keypoints say nothing against the pose."""
     model = needle.keypoints()
-    told = False
+    out = {}
     for name, pts in uv.items():
         pts = None if pts is None else np.asarray(pts, float).reshape(-1, 2)
         if pts is None or len(pts) != len(model):
@@ -182,36 +179,61 @@ def reads_as_keypoints(rig, needle: NeedleModel, T_ecm_needle: np.ndarray, uv: M
         d_read = np.linalg.norm(pts - proj, axis=1)
         d_turn = np.linalg.norm(pts - proj[::-1], axis=1)
         wr = w[ok] / w[ok].sum()
-        told = True
-        if float(wr @ d_read[ok]) > max(margin * float(wr @ d_turn[ok]), min_px):
-            return False
-        # the tip a camera states is the end at its A: an A at the pose's tail reads it turned,
-        # whatever its other keypoints say (E fallen onto A's end, B..D off the wire)
-        if ok[0] and d_read[0] > max(margin * d_turn[0], min_px):
-            return False
-    return True if told else None
+        turned = float(wr @ d_read[ok]) > max(margin * float(wr @ d_turn[ok]), min_px)
+        turned |= bool(ok[0]) and d_read[0] > max(margin * d_turn[0], min_px)
+        out[name] = not turned
+    return out
 
 
-def with_reading(p: float | None, reads: bool | None, p_max: float = 0.5) -> float | None:
+def reads_as_keypoints(rig, needle: NeedleModel, T_ecm_needle: np.ndarray, uv: Mapping,
+                       scores: Mapping, margin: float = READING_MARGIN,
+                       min_px: float = READING_MIN_PX) -> bool | None:
+    """Whether the pose puts its tip where every camera's keypoints put A (``camera_readings``):
+    False when some camera reads it turned, None when no camera has keypoints. The fit may rest
+    on a few keypoints scored above its gate while the others, and the tip probability stated
+    for them, read the needle the other way (one stray E on the tip): the probability is then
+    not the pose's."""
+    readings = camera_readings(rig, needle, T_ecm_needle, uv, scores, margin, min_px)
+    return all(readings.values()) if readings else None
+
+
+def read_tip_probability(p_by_camera: Mapping[str, float | None], readings: Mapping[str, bool]) -> float | None:
+    """The probability of the pose's tip that the cameras' own statements give (``p_by_camera``,
+    each the probability that its A is the tip), each taken about the end of the pose at its A
+    (``readings``, ``camera_readings``: a camera reading the pose turned speaks of its tail);
+    combined as ``stereo_end_identity``. None when no camera with a reading states one."""
+    ps = {c: p for c, p in p_by_camera.items() if p is not None and c in readings}
+    if not ps:
+        return None
+    return stereo_end_identity(*[p if readings[c] else 1.0 - p for c, p in ps.items()])
+
+
+def with_reading(p: float | None, reads: bool | None, p_max: float = 0.5,
+                 p_read: float | None = None) -> float | None:
     """The tip probability a pose states when its keypoints ``reads`` it as fitted
-    (``reads_as_keypoints``): at most ``p_max`` when some camera's read it end for end, its
-    evidence split. None stays None."""
-    return p if p is None or reads is not False else min(p, p_max)
+    (``reads_as_keypoints``): when some camera's read it end for end, its evidence split, at most
+    the larger of ``p_max`` and ``p_read``, what the cameras' statements give the pose's tip
+    taken each about the end at its A (``read_tip_probability``; None: ``p_max``): a camera
+    that read the pose turned but was itself unsure takes little away. None stays None."""
+    if p is None or reads is not False:
+        return p
+    return min(p, p_max if p_read is None else max(p_max, p_read))
 
 
 def fitted_tip_probability(p: float | None, ends: tuple[bool, bool] | None, reads: bool | None, *,
-                           end_unseen_p_max: float, reading_p_max: float = 0.5
-                           ) -> tuple[float | None, tuple[str, ...]]:
+                           end_unseen_p_max: float, reading_p_max: float = 0.5,
+                           p_read: float | None = None) -> tuple[float | None, tuple[str, ...]]:
     """The tip probability a fitted pose states, from its frame's ``p`` (``settle``): capped at
     ``end_unseen_p_max`` when its arc showed an end no camera saw (``ends``, ``with_ends_seen``;
-    None: not measured), then at ``reading_p_max`` when some camera's keypoints read the pose end
-    for end (``reads``, ``with_reading``). Returns (p, the caps that lowered it, by name:
-    ``end_unseen``, ``reading_turned``, in that order). None stays None."""
+    None: not measured), then, when some camera's keypoints read the pose end for end
+    (``reads``), at the larger of ``reading_p_max`` and ``p_read`` (``with_reading``). Returns
+    (p, the caps that lowered it, by name: ``end_unseen``, ``reading_turned``, in that order).
+    None stays None."""
     caps = []
     stated = p if ends is None else with_ends_seen(p, ends, end_unseen_p_max)
     if stated != p:
         caps.append("end_unseen")
-    read = with_reading(stated, reads, reading_p_max)
+    read = with_reading(stated, reads, reading_p_max, p_read)
     if read != stated:
         caps.append("reading_turned")
     return read, tuple(caps)

@@ -266,3 +266,20 @@ def test_a_camera_whose_a_lies_at_the_poses_tail_reads_it_turned_whatever_its_e(
     # one camera's A at the tail is enough
     one = {"left": collapsed["left"], "right": uv["right"]}
     assert reads_as_keypoints(RIG, MODEL, tip_for_tail(T, MODEL), one, low) is False
+
+
+def test_the_cameras_statements_are_taken_about_the_end_at_their_a():
+    """A camera reading the pose turned speaks of its tail: its probability turns; an unsure one
+    takes little from a sure one, a sure one splits the evidence; the reading cap is at least
+    reading_p_max and never raises a probability."""
+    from common.geometry.end_identity import read_tip_probability
+    assert read_tip_probability({"left": 0.9, "right": 0.9}, {"left": True, "right": True}) > 0.9
+    split = read_tip_probability({"left": 0.93, "right": 0.86}, {"left": False, "right": True})
+    assert split < 0.5
+    mild = read_tip_probability({"left": 0.55, "right": 0.99}, {"left": False, "right": True})
+    assert 0.95 < mild < 0.99
+    assert read_tip_probability({"left": None, "right": 0.8}, {"left": False}) is None
+    caps = dict(end_unseen_p_max=0.9, reading_p_max=0.5)
+    assert fitted_tip_probability(0.99, None, False, p_read=split, **caps) == (0.5, ("reading_turned",))
+    assert fitted_tip_probability(0.99, None, False, p_read=mild, **caps) == (mild, ("reading_turned",))
+    assert fitted_tip_probability(0.9, None, False, p_read=0.97, **caps) == (0.9, ())
