@@ -189,7 +189,7 @@ def test_adapt_runs_the_pipeline_labels_trains_and_resumes(tmp_path):
     (tmp_path / "tiny.yaml").write_text(yaml.safe_dump(cfg))
     out = tmp_path / "out"
     args = ["--data", str(bare), "--out", str(out), "--config", str(tmp_path / "tiny.yaml"),
-            "--support-normal", "0,0,1", "--truth", str(truth), "--quiet"]
+            "--support-normal", "0,0,1", "--truth", str(truth), "--rehearse", "2", "--quiet"]
     rc = main(args)
     rep = json.loads((out / "adapt.json").read_text())
     labels = rep["labels"]
@@ -200,6 +200,12 @@ def test_adapt_runs_the_pipeline_labels_trains_and_resumes(tmp_path):
         return
     assert rc == 0 and (out / "model.pt").is_file() and (out / "end_identity.json").is_file()
     assert rep["labels_score"]["keypoint_px"]["mean"] < 3.0
+    # the built-in scene's frames, with their truth, rendered and trained on beside the labels
+    assert rep["rehearsal"]["frames"] == 2 and len(Dataset(str(out / "rehearsal"))) == 2
+    assert check_dataset(Dataset(str(out / "rehearsal")), images=False).ok
+    import torch
+    meta = torch.load(out / "train" / "model.pt", map_location="cpu", weights_only=True)["meta"]
+    assert meta["data"] == [str(out / "labels" / "train"), str(out / "rehearsal")]
     rec = next((out / "pipeline").glob("*.jsonl"))
     t = os.stat(rec).st_mtime_ns
     assert main(args) == 0                   # resumes: the pipeline's recording is kept
