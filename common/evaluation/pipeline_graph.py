@@ -130,23 +130,26 @@ def pipeline_graph(dataset: str, *, detector: str = "learned", detector_params: 
          "outputs": ["pose"], "env": one},
     ]
     stereo = {**kp, "calib": "replay/calib", "ecm": "ecm/pose"}
+    # lossless: a pose (refine: a pair) waits for its frame's ECM pose as long as the queues may
+    # hold that back (a starved ecm process falls frames behind the keypoints on a loaded machine)
+    pose_wait = {"max_wait": LOSSLESS_TRACKER_WAIT} if lossless else {}
     for method in ("average", "joint"):
         if f"pnp_{method}" in wanted:
-            nodes.append({"id": f"epnp_{method}", "module": "epnp", "params": {"method": method},
+            nodes.append({"id": f"epnp_{method}", "module": "epnp", "params": {"method": method, **pose_wait},
                           "inputs": dict(stereo), "outputs": ["pose"], "env": one})
     if "triangulation" in wanted:
-        nodes.append({"id": "triangulate", "module": "triangulate", "inputs": dict(stereo),
-                      "outputs": ["pose", "points"], "env": one})
+        nodes.append({"id": "triangulate", "module": "triangulate", "params": dict(pose_wait),
+                      "inputs": dict(stereo), "outputs": ["pose", "points"], "env": one})
     # where the tracker runs, it says which frames' needle is at rest: the fusions fuse only those
     motion = {"motion": POSE_OUTPUTS["tracked"], "untracked": "tracker/no_pose"} if "tracked" in wanted else {}
-    fusion_wait = {"max_wait": 2 * LOSSLESS_TRACKER_WAIT} if motion and lossless else {}
+    fusion_wait = {"max_wait": (2 if motion else 1) * LOSSLESS_TRACKER_WAIT} if lossless else {}
     if "multiview" in wanted:
         nodes.append({"id": "fusion", "module": "fusion", "params": {"method": "multiview", **fusion_wait},
                       "inputs": {"pose": "epnp_joint/pose", "ecm": "ecm/pose", "truth": "replay/truth", **motion},
                       "outputs": ["pose"], "env": one})
     if "refined" in wanted:
         nodes.append({"id": "refine", "module": "refine", "inputs": dict(stereo),
-                      "params": {"tracking": bool(refine_tracking), **(refine_params or {})},
+                      "params": {"tracking": bool(refine_tracking), **pose_wait, **(refine_params or {})},
                       "outputs": ["pose", "no_pose"], "env": one})
     if "multiview_refined" in wanted:
         nodes.append({"id": "fusion_refined", "module": "fusion",
