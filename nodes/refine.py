@@ -53,7 +53,7 @@ import numpy as np
 
 from common.geometry.arc_support import SUPPORT_PX, arc_support, best_seen, ends_seen, partial_view, shares
 from common.geometry.config import Probability, number_at_least
-from common.geometry.end_identity import camera_readings, fitted_tip_probability, read_tip_probability, settle
+from common.geometry.end_identity import camera_readings, pose_tip_probability, settle
 from common.geometry.needle import NeedleModel
 from common.geometry.observations import NoPose
 from common.geometry.refine import (
@@ -195,11 +195,11 @@ class RefineNode(StereoPoseNode):
                               self.config.min_centreline_w, self.config.min_score)
         seen = best_seen(shares(support))
         p = self.identity.get(left.seq)
-        readings = camera_readings(self.rig, self.needle, res.T_ecm_needle, uv, sc)
-        stated, caps = fitted_tip_probability(
-            p, ends_seen(support) if support else None, all(readings.values()) if readings else None,
-            end_unseen_p_max=self.p.end_unseen_p_max, reading_p_max=self.p.reading_p_max,
-            p_read=read_tip_probability({k.camera: k.end_identity for k in (left, right) if k.found}, readings))
+        stated, caps = pose_tip_probability(
+            p, ends_seen(support) if support else None,
+            camera_readings(self.rig, self.needle, res.T_ecm_needle, uv, sc),
+            dict(zip(("left", "right"), stated_end_identity(left, right))),
+            end_unseen_p_max=self.p.end_unseen_p_max, reading_p_max=self.p.reading_p_max)
         for cap in caps:
             self.count(f"end_identity.{cap}")
         if stated != p:

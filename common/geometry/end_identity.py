@@ -239,6 +239,18 @@ def fitted_tip_probability(p: float | None, ends: tuple[bool, bool] | None, read
     return read, tuple(caps)
 
 
+def pose_tip_probability(p: float | None, ends: tuple[bool, bool] | None, readings: Mapping[str, bool],
+                         p_by_camera: Mapping[str, float | None], *, end_unseen_p_max: float,
+                         reading_p_max: float = 0.5) -> tuple[float | None, tuple[str, ...]]:
+    """``fitted_tip_probability`` from each camera's reading of the pose (``camera_readings``)
+    and its own statement (``p_by_camera``): turned when some camera reads the pose turned, at
+    most what ``read_tip_probability`` gives then."""
+    reads = all(readings.values()) if readings else None
+    return fitted_tip_probability(p, ends, reads, end_unseen_p_max=end_unseen_p_max,
+                                  reading_p_max=reading_p_max,
+                                  p_read=read_tip_probability(p_by_camera, readings))
+
+
 def without_identity_covariance(T_ecm_needle: np.ndarray, covariance: np.ndarray, needle: NeedleModel,
                                 p: float) -> np.ndarray:
     """``identity_covariance`` undone: the covariance of the pose's reading as read, for a
