@@ -78,6 +78,10 @@ DEFAULT_TRAIN = {
     "distill_weight": 1.0,    # with teacher folders (train(teacher_dirs=...)): the weight of keeping the
                               # --init weights' presence and proposals there (learning without forgetting)
     "distill_batch": 8,       # teacher crops and images per step
+    "distill_keypoints": False,   # also keep the --init weights' keypoint and centreline heatmaps on
+                              # the teacher folders: only where those weights are right (folders of
+                              # the looks they were trained on), so that new data does not wear
+                              # their precision away
 }
 
 
@@ -141,21 +145,29 @@ def losses(model: KeypointModel, cb, gb, w: dict, hidden_sigma: float = 0.0) -> 
     return out
 
 
-def distillation_losses(model: KeypointModel, teacher: KeypointModel, cb, gb, w: dict) -> dict:
+def distillation_losses(model: KeypointModel, teacher: KeypointModel, cb, gb, w: dict,
+                        keypoints: bool = False) -> dict:
     """Learning without forgetting (Li & Hoiem 2016), for what decides *whether* a needle is
     found: the loss terms of matching the frozen ``teacher``'s stage-2 presence on a stage-2
     batch ``cb`` and its stage-1 heatmap (each cell, and its peak: the image-level confidence)
     and boxes (where it sees a centre) on a stage-1 batch ``gb``, as soft targets (the batches'
     own targets are not used). Not the keypoint or centreline heatmaps: where no label was
     confirmed the teacher's keypoints are often wrong (a tip read at the wrong end), and copying
-    them teaches that back. Weighted by ``w`` (the loss weights) and summed in ``total``."""
+    them teaches that back. ``keypoints``: the keypoint heatmaps' softmax and the centreline
+    ridge too, for folders where the teacher is right (the looks it was trained on).
+    Weighted by ``w`` (the loss weights) and summed in ``total``."""
     out = {}
     if cb is not None:
         x = cb[0]
         with torch.no_grad():
-            _, t_p = teacher.crop(x)
-        _, p = model.crop(x)
+            t_heat, t_p = teacher.crop(x)
+        heat, p = model.crop(x)
         out["presence"] = F.binary_cross_entropy_with_logits(p, torch.sigmoid(t_p))
+        if keypoints:
+            n, k = t_heat.shape[0], 5
+            soft = F.softmax(t_heat[:, :k].reshape(n, k, -1), dim=-1).reshape(t_heat[:, :k].shape)
+            out["kp"] = keypoint_loss(heat[:, :k], soft)
+            out["line"] = F.binary_cross_entropy_with_logits(heat[:, 5], torch.sigmoid(t_heat[:, 5]))
     if gb is not None:
         gx = gb[0]
         with torch.no_grad():
@@ -433,7 +445,8 @@ def train(data_dirs, out, config_path=None, log=print, progress=True, init=None,
                 D = distillation_losses(
                     model, teacher,
                     crop_batch(t_recs, tidx, mcfg, aug, rng) if "crop" in stages else None,
-                    global_batch(t_recs, tidx, mcfg, aug, rng) if "global" in stages else None, w)
+                    global_batch(t_recs, tidx, mcfg, aug, rng) if "global" in stages else None, w,
+                    keypoints=bool(tcfg["distill_keypoints"]))
                 L["distill"] = D["total"]
                 L["total"] = L["total"] + float(tcfg["distill_weight"]) * D["total"]
             lr = base_lr * min(1.0, (step_count + 1) / max(1, warm)) * 0.5 * (1 + math.cos(math.pi * frac))
@@ -494,10 +507,13 @@ def main(argv=None) -> int:
     ap.add_argument("--config", default=None, help="training YAML (e.g. models/train.yaml)")
     ap.add_argument("--out", required=True, help="output folder, e.g. models/keypoint")
     ap.add_argument("--init", default=None, help="start from these weights (fine-tuning)")
+    ap.add_argument("--teacher", action="append", default=None,
+                    help="folder on which the --init weights' outputs are kept (learning without "
+                         "forgetting: train.distill_weight, distill_keypoints); repeatable")
     ap.add_argument("--no-progress", action="store_true", help="no progress bar")
     a = ap.parse_args(argv)
     try:
-        train(a.data, a.out, a.config, progress=not a.no_progress, init=a.init)
+        train(a.data, a.out, a.config, progress=not a.no_progress, init=a.init, teacher_dirs=a.teacher)
     except (DatasetError, ValueError, OSError) as exc:
         print(f"needletrack train: error: {exc}", file=sys.stderr)
         return 2

@@ -246,3 +246,20 @@ def test_motion_blur_and_hue_augmentations_keep_the_image_and_move_no_mass():
     assert np.array_equal(turn_hue(turn_hue(red, 120), 240), red)
     g = turn_hue(red, 120)[0, 0]
     assert g[1] > g[0] and g[1] > g[2]                                         # red -> green
+
+
+def test_keypoint_distillation_keeps_the_teachers_heatmaps():
+    torch.manual_seed(0)
+    cfg = ModelConfig(crop=32, crop_widths=(4, 8, 8, 8), global_widths=(4, 8, 8))
+    teacher, student = KeypointModel(cfg).eval(), KeypointModel(cfg).eval()
+    student.load_state_dict(teacher.state_dict())
+    x = torch.rand(2, 3, 32, 32)
+    w = DEFAULT_TRAIN["loss_weights"]
+    assert "kp" not in distillation_losses(student, teacher, (x,), None, w)   # presence only, by default
+    same = distillation_losses(student, teacher, (x,), None, w, keypoints=True)
+    assert same["kp"].item() == pytest.approx(0.0, abs=1e-5)
+    with torch.no_grad():
+        for p in student.crop.parameters():
+            p.add_(0.3 * torch.randn_like(p))
+    moved = distillation_losses(student, teacher, (x,), None, w, keypoints=True)
+    assert float(moved["kp"]) > 1e-3 and float(moved["line"]) > float(same["line"])
