@@ -15,6 +15,7 @@ import math
 import os
 import sys
 import time
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -364,6 +365,8 @@ def train(data_dirs, out, config_path=None, log=print, progress=True, init=None,
         log(f"distillation: {len(t_recs)} images on which the weights of {init} are kept")
         if not t_recs:
             teacher = None
+    # the teacher is kept on its own looks: no hue turn or motion blur it may never have seen
+    t_aug = replace(aug, hue=0.0, motion_blur=0.0)
     hard = []
     at = tcfg["hard_mining_at"]
     # each mining adds the current weights' false proposals to the earlier ones
@@ -444,8 +447,8 @@ def train(data_dirs, out, config_path=None, log=print, progress=True, init=None,
                 tidx = rng.integers(0, len(t_recs), int(tcfg["distill_batch"]))
                 D = distillation_losses(
                     model, teacher,
-                    crop_batch(t_recs, tidx, mcfg, aug, rng) if "crop" in stages else None,
-                    global_batch(t_recs, tidx, mcfg, aug, rng) if "global" in stages else None, w,
+                    crop_batch(t_recs, tidx, mcfg, t_aug, rng) if "crop" in stages else None,
+                    global_batch(t_recs, tidx, mcfg, t_aug, rng) if "global" in stages else None, w,
                     keypoints=bool(tcfg["distill_keypoints"]))
                 L["distill"] = D["total"]
                 L["total"] = L["total"] + float(tcfg["distill_weight"]) * D["total"]
