@@ -3,7 +3,9 @@
 # simulator and train both networks from scratch (models/train.yaml). Stage B: render the looks
 # (the `wide` preset, threadless needles, 640x480 with and without lens distortion, the second
 # renderer's threaded scenes) and
-# train both networks on them from stage A's weights (models/looks.yaml). Familiarity: the
+# train both networks on them from stage A's weights (models/looks.yaml). Stage C: render needles
+# the instruments hold, hand over and drive through tissue, and train both networks on them from
+# stage B's weights, keeping stage B's outputs on needles at rest (models/held.yaml). Familiarity: the
 # training looks' crop descriptors, from six small folders of them that no training stage sees
 # (familiarity.json). End identity: fit the coefficients of P(A is the tip) on those folders and
 # on a look family no training renders (`liver`, also read hue-turned and colourless), so that
@@ -63,8 +65,29 @@ wait "$alt"
 stamp "data: $L done"
 
 needletrack train --init "$OUT/stage_a/model.pt" --data "$L/std" --data "$L/std2" --data "$L/std_none" --data "$L/wide" --data "$L/wide_none" \
-    --data "$L/640" --data "$L/640_none_dist" --data "$L/neg" --data "$L/alt" --config "$HERE/looks.yaml" --out "$OUT"
-stamp "trained: $OUT/model.pt"
+    --data "$L/640" --data "$L/640_none_dist" --data "$L/neg" --data "$L/alt" --config "$HERE/looks.yaml" --out "$OUT/stage_b"
+stamp "stage B trained: $OUT/stage_b/model.pt"
+
+# Stage C: needles the instruments hold, hand over and drive through tissue (every 6th frame of
+# their takes), beside needles at rest of the same looks; stage B's outputs are kept on the
+# folders of needles at rest (--teacher: its keypoint heatmaps too, models/held.yaml)
+H="$DATA/held"
+needletrack dataset generate-alt --out "$H/alt" --sequences 40 --steps 2 --seed 3507 --supersample 2 --quiet &
+alt=$!
+gen --out "$H/move_train" --sequences 40 --motion mixed --take-every 6 --seed 3501 --randomise train --msaa 4
+gen --out "$H/move_wide_none" --sequences 24 --motion mixed --take-every 6 --seed 3502 --randomise wide --thread none --msaa 4
+gen --out "$H/static_train" --sequences 150 --steps 2 --seed 3503 --randomise train --msaa 4
+gen --out "$H/static_wide_none" --sequences 100 --steps 2 --seed 3504 --randomise wide --thread none --msaa 0
+gen --out "$H/move_640" --sequences 16 --motion mixed --take-every 6 --seed 3505 --randomise wide --width 640 --height 480
+gen --out "$H/static_640_none" --sequences 80 --steps 2 --seed 3506 --randomise wide --width 640 --height 480 --thread none
+needletrack dataset generate-negatives --out "$H/neg" --frames 100 --seed 3508 --randomise wide --quiet
+wait "$alt"
+stamp "data: $H done"
+needletrack train --init "$OUT/stage_b/model.pt" --data "$H/move_train" --data "$H/move_wide_none" --data "$H/static_train" \
+    --data "$H/static_wide_none" --data "$H/move_640" --data "$H/static_640_none" --data "$H/alt" --data "$H/neg" \
+    --teacher "$H/static_train" --teacher "$H/static_wide_none" --teacher "$H/static_640_none" --teacher "$H/alt" \
+    --config "$HERE/held.yaml" --out "$OUT"
+stamp "stage C trained: $OUT/model.pt"
 needletrack bench familiarity --weights "$OUT/model.pt" --data "$C/std" --data "$C/test" --data "$C/wide" \
     --data "$C/wide_none" --data "$C/640" --data "$C/640_none" --fit "$OUT/familiarity.json"
 stamp "familiarity fitted: $OUT/familiarity.json"

@@ -27,7 +27,7 @@ from dataclasses import dataclass, replace
 import numpy as np
 
 from common.geometry.camera import StereoRig
-from common.geometry.end_identity import TIP_SURE, Settled, settle, state, turn_observation
+from common.geometry.end_identity import TIP_SURE, Settled, second_view_news, settle, state, turn_observation
 from common.geometry.needle import NeedleModel
 from common.methods import POSE_METHODS
 from common.runtime.messages import Calibration, EcmPose, Keypoints, NoPoseNotice, PoseEstimate
@@ -133,7 +133,7 @@ class StereoPoseNode(Node):
     def settle_end_identity(self, left: Keypoints, right: Keypoints) -> tuple[Keypoints, Keypoints]:
         """The pair as the solvers take it, by ``end_identity.settle``; the frame's probability
         is kept for ``publish_pose``, which states it."""
-        return self.read_as(settle(*stated_end_identity(left, right)), left, right)
+        return self.read_as(settle(*stated_end_identity(left, right), news=stereo_news(left, right)), left, right)
 
     def read_as(self, settled: Settled, left: Keypoints, right: Keypoints) -> tuple[Keypoints, Keypoints]:
         """The pair read as ``settled`` says (turned end for end or not), its probability kept."""
@@ -205,6 +205,12 @@ class StereoPoseNode(Node):
 def stated_end_identity(left: Keypoints, right: Keypoints) -> tuple[float | None, float | None]:
     """Each camera's stated probability that its A is the tip (None: found nothing, or not stated)."""
     return tuple(kp.end_identity if kp.found else None for kp in (left, right))
+
+
+def stereo_news(left: Keypoints, right: Keypoints) -> float:
+    """How much of the second camera's end identity is new (``end_identity.second_view_news``)
+    given the detections' stated unfamiliarity."""
+    return second_view_news(kp.unfamiliarity for kp in (left, right) if kp.found)
 
 
 def turn_keypoints(kp: Keypoints) -> Keypoints:

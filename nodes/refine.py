@@ -10,9 +10,9 @@ the RMS (px) over the keypoints and centreline points used, ``covariance`` over 
 well or the arc is seen edge-on (the covariance then spans them), ``arc_seen`` the share of the
 arc the pose was fitted to (``common.geometry.arc_support``): below ``min_arc_seen`` the pose is
 a partial view (the jaws or the tissue hide the rest), flagged ``ambiguous`` and its covariance
-widened (counted ``partial_view``); one fitted to an arc with an end no camera saw states its
-tip at most ``end_unseen_p_max`` sure (counted ``end_identity.end_unseen``;
-docs/tracking.md#partial-views); one whose keypoints some camera reads end for end (the fit
+widened (counted ``partial_view``), and states its tip at most ``end_unseen_p_max`` sure
+(counted ``end_identity.partial_view``), as does one fitted to an arc with an end no camera saw
+(counted ``end_identity.end_unseen``; docs/tracking.md#partial-views); one whose keypoints some camera reads end for end (the fit
 rested on a stray keypoint, ``end_identity.camera_readings``) states at most the larger of
 ``reading_p_max`` and what the cameras' statements, each about the end at its A, give its tip
 (counted ``end_identity.reading_turned``).
@@ -67,7 +67,7 @@ from common.geometry.transforms import inv_T
 from common.runtime.messages import Calibration, EcmPose, Keypoints
 from common.runtime.node import NodeError, run
 from common.runtime.params import merge_schemas
-from nodes._pose import StereoPoseNode, stated_end_identity, turn_keypoints
+from nodes._pose import StereoPoseNode, stated_end_identity, stereo_news, turn_keypoints
 
 
 @dataclass
@@ -84,7 +84,8 @@ class _NodeParams(StereoPoseNode.Params):
     min_arc_seen: Probability = 0.6
     partial_view_inflation: number_at_least(1.0) = 4.0
     # a pose fitted to an arc one of whose ends no camera saw states its tip at most this sure
-    # (counted end_identity.end_unseen): its tip was read from one end and a cut (jaws, tissue)
+    # (counted end_identity.end_unseen): its tip was read from one end and a cut (jaws, tissue);
+    # so does a partial view (counted end_identity.partial_view): it can be tens of degrees off
     end_unseen_p_max: Probability = 0.9
     # a pose whose keypoints some camera reads end for end states its tip at most this sure
     # (counted end_identity.reading_turned): the stated probability was the keypoints', not its
@@ -144,7 +145,8 @@ class RefineNode(StereoPoseNode):
         with tracking), its probability kept for ``publish_pose``."""
         stated = stated_end_identity(left, right)
         same = self.same_as_track(left, right) if any(p is not None for p in stated) else None
-        settled = settle(*stated, tracking=True, track=self._track, same_as_track=same)
+        settled = settle(*stated, tracking=True, track=self._track, same_as_track=same,
+                         news=stereo_news(left, right))
         self._track = settled.track
         return self.read_as(settled, left, right)
 
@@ -194,19 +196,20 @@ class RefineNode(StereoPoseNode):
         support = arc_support(self.rig, self.needle, res.T_ecm_needle, obs, SUPPORT_PX,
                               self.config.min_centreline_w, self.config.min_score)
         seen = best_seen(shares(support))
+        partial, covariance = partial_view(res.covariance, seen, self.p.min_arc_seen, self.p.partial_view_inflation)
+        if partial:
+            self.count("partial_view")
         p = self.identity.get(left.seq)
         stated, caps = pose_tip_probability(
             p, ends_seen(support) if support else None,
             camera_readings(self.rig, self.needle, res.T_ecm_needle, uv, sc),
             dict(zip(("left", "right"), stated_end_identity(left, right))),
-            end_unseen_p_max=self.p.end_unseen_p_max, reading_p_max=self.p.reading_p_max)
+            end_unseen_p_max=self.p.end_unseen_p_max, reading_p_max=self.p.reading_p_max,
+            partial=partial, news=stereo_news(left, right))
         for cap in caps:
             self.count(f"end_identity.{cap}")
         if stated != p:
             self.identity.put(left.seq, stated)
-        partial, covariance = partial_view(res.covariance, seen, self.p.min_arc_seen, self.p.partial_view_inflation)
-        if partial:
-            self.count("partial_view")
         pose = self.pose_message(left.seq, left.stamp_ns, self.pose_method, res.T_ecm_needle,
                                  res.rms_px, "px", covariance=covariance,
                                  ambiguous=bool(res.ambiguous or partial), arc_seen=seen,

@@ -33,6 +33,7 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
+from common.geometry.end_identity import unfamiliar_octaves
 from common.geometry.observations import curve_normals
 
 END_FRACTION = 0.08      # the tip's taper: its last ~1.8 mm of a 21 mm arc
@@ -69,8 +70,7 @@ class EndEvidence:
         f = np.where(np.isfinite(f), np.clip(f, -LLR_CLIP, LLR_CLIP), 0.0)
         small = (float(np.clip(np.log2(LENGTH_REF_PX / self.length_px), 0.0, 3.0))
                  if np.isfinite(self.length_px) and self.length_px > 0 else 0.0)
-        u = self.unfamiliarity
-        far = float(np.clip(np.log2(u), 0.0, 3.0)) if np.isfinite(u) and u > 0 else 0.0
+        far = unfamiliar_octaves(self.unfamiliarity)
         return np.array([f[0], f[1], 1.0, small, small * f[0], small * f[1], far, far * f[0], far * f[1]])
 
     def p_a_is_tip(self, coef: np.ndarray = COEF) -> float:

@@ -12,7 +12,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
-from typing import Mapping
+from typing import Iterable, Mapping
 
 import numpy as np
 
@@ -73,12 +73,32 @@ def track_identity(p_frame: float, track: tuple[float, float] | None, same_as_tr
     return (z < 0) == same, (abs(z), w)
 
 
-def stereo_end_identity(p_left: float | None, p_right: float | None) -> float | None:
-    """The stereo frame's probability that A is the tip, from each camera's (None: not stated)."""
+def unfamiliar_octaves(unfamiliarity: float | None) -> float:
+    """How unlike the detector's training looks an image is, in octaves of its unfamiliarity
+    (``Keypoints.unfamiliarity``, about 1 on those looks): log2 of it, clipped to [0, 3]; 0 when
+    not stated. The end-identity fit's ``far`` feature (``common.detector.end_identity``)."""
+    u = unfamiliarity
+    return float(min(max(math.log2(u), 0.0), 3.0)) if u is not None and math.isfinite(u) and u > 0 else 0.0
+
+
+def second_view_news(unfamiliarity: Iterable[float | None]) -> float:
+    """How much of a second camera's evidence is new: ``CAMERA_CORRELATION`` where both images
+    are like the training looks, none where one is at least twice as unlike them (an octave),
+    linear in between. On a look the network never saw its errors come from the look, which
+    both views share: two cameras that agree there are no surer than one."""
+    far = max((unfamiliar_octaves(u) for u in unfamiliarity), default=0.0)
+    return CAMERA_CORRELATION * max(0.0, 1.0 - far)
+
+
+def stereo_end_identity(p_left: float | None, p_right: float | None,
+                        news: float = CAMERA_CORRELATION) -> float | None:
+    """The stereo frame's probability that A is the tip, from each camera's (None: not stated):
+    their log-odds averaged and scaled by 1 + ``news`` (``second_view_news``) per camera beyond
+    the first."""
     ps = [p for p in (p_left, p_right) if p is not None and math.isfinite(p)]
     if not ps:
         return None
-    scale = 1.0 + CAMERA_CORRELATION * (len(ps) - 1)
+    scale = 1.0 + news * (len(ps) - 1)
     return sigmoid(scale * sum(logit(p) for p in ps) / len(ps))
 
 
@@ -94,15 +114,17 @@ class Settled:
 
 
 def settle(p_left: float | None, p_right: float | None, *, tracking: bool = False,
-           track: tuple[float, float] | None = None, same_as_track: bool | None = None) -> Settled:
+           track: tuple[float, float] | None = None, same_as_track: bool | None = None,
+           news: float = CAMERA_CORRELATION) -> Settled:
     """The end-identity policy of a stereo frame, from each camera's statement (None: not stated).
 
     Alone (``tracking`` false) the frame is turned when its stereo probability is below 0.5, so
     the pose is always the likelier answer. With ``tracking`` the frame is read against the
     tracked needle (``track_identity``): ``same_as_track`` says whether the frame reads the
     needle the way the track does (None: cannot be told); a frame that states nothing ends the
-    track. The returned ``p`` is what the pose states (``state``)."""
-    p = stereo_end_identity(p_left, p_right)
+    track. ``news``: how much of the second camera's evidence is new (``second_view_news``).
+    The returned ``p`` is what the pose states (``state``)."""
+    p = stereo_end_identity(p_left, p_right, news)
     if p is None:
         return Settled(False, None, None)
     if not tracking:
@@ -197,7 +219,8 @@ def reads_as_keypoints(rig, needle: NeedleModel, T_ecm_needle: np.ndarray, uv: M
     return all(readings.values()) if readings else None
 
 
-def read_tip_probability(p_by_camera: Mapping[str, float | None], readings: Mapping[str, bool]) -> float | None:
+def read_tip_probability(p_by_camera: Mapping[str, float | None], readings: Mapping[str, bool],
+                         news: float = CAMERA_CORRELATION) -> float | None:
     """The probability of the pose's tip that the cameras' own statements give (``p_by_camera``,
     each the probability that its A is the tip), each taken about the end of the pose at its A
     (``readings``, ``camera_readings``: a camera reading the pose turned speaks of its tail);
@@ -205,7 +228,7 @@ def read_tip_probability(p_by_camera: Mapping[str, float | None], readings: Mapp
     ps = {c: p for c, p in p_by_camera.items() if p is not None and c in readings}
     if not ps:
         return None
-    return stereo_end_identity(*[p if readings[c] else 1.0 - p for c, p in ps.items()])
+    return stereo_end_identity(*[p if readings[c] else 1.0 - p for c, p in ps.items()], news=news)
 
 
 def with_reading(p: float | None, reads: bool | None, p_max: float = 0.5,
@@ -222,17 +245,22 @@ def with_reading(p: float | None, reads: bool | None, p_max: float = 0.5,
 
 def fitted_tip_probability(p: float | None, ends: tuple[bool, bool] | None, reads: bool | None, *,
                            end_unseen_p_max: float, reading_p_max: float = 0.5,
-                           p_read: float | None = None) -> tuple[float | None, tuple[str, ...]]:
+                           p_read: float | None = None, partial: bool = False) -> tuple[float | None, tuple[str, ...]]:
     """The tip probability a fitted pose states, from its frame's ``p`` (``settle``): capped at
     ``end_unseen_p_max`` when its arc showed an end no camera saw (``ends``, ``with_ends_seen``;
-    None: not measured), then, when some camera's keypoints read the pose end for end
-    (``reads``), at the larger of ``reading_p_max`` and ``p_read`` (``with_reading``). Returns
-    (p, the caps that lowered it, by name: ``end_unseen``, ``reading_turned``, in that order).
-    None stays None."""
+    None: not measured) or when it is a ``partial`` view (fitted to too little of its arc,
+    ``arc_support.partial_view``: such a pose can be tens of degrees off, and a tip read right
+    in the images is then no sure tip of the pose), then, when some camera's keypoints read the
+    pose end for end (``reads``), at the larger of ``reading_p_max`` and ``p_read``
+    (``with_reading``). Returns (p, the caps that lowered it, by name: ``end_unseen``,
+    ``partial_view``, ``reading_turned``, in that order). None stays None."""
     caps = []
     stated = p if ends is None else with_ends_seen(p, ends, end_unseen_p_max)
     if stated != p:
         caps.append("end_unseen")
+    if partial and stated is not None and stated > end_unseen_p_max:
+        stated = end_unseen_p_max
+        caps.append("partial_view")
     read = with_reading(stated, reads, reading_p_max, p_read)
     if read != stated:
         caps.append("reading_turned")
@@ -241,14 +269,15 @@ def fitted_tip_probability(p: float | None, ends: tuple[bool, bool] | None, read
 
 def pose_tip_probability(p: float | None, ends: tuple[bool, bool] | None, readings: Mapping[str, bool],
                          p_by_camera: Mapping[str, float | None], *, end_unseen_p_max: float,
-                         reading_p_max: float = 0.5) -> tuple[float | None, tuple[str, ...]]:
+                         reading_p_max: float = 0.5, partial: bool = False,
+                         news: float = CAMERA_CORRELATION) -> tuple[float | None, tuple[str, ...]]:
     """``fitted_tip_probability`` from each camera's reading of the pose (``camera_readings``)
     and its own statement (``p_by_camera``): turned when some camera reads the pose turned, at
-    most what ``read_tip_probability`` gives then."""
+    most what ``read_tip_probability`` gives then (with ``news``, ``second_view_news``)."""
     reads = all(readings.values()) if readings else None
     return fitted_tip_probability(p, ends, reads, end_unseen_p_max=end_unseen_p_max,
-                                  reading_p_max=reading_p_max,
-                                  p_read=read_tip_probability(p_by_camera, readings))
+                                  reading_p_max=reading_p_max, partial=partial,
+                                  p_read=read_tip_probability(p_by_camera, readings, news))
 
 
 def without_identity_covariance(T_ecm_needle: np.ndarray, covariance: np.ndarray, needle: NeedleModel,

@@ -14,7 +14,7 @@ pytestmark = pytest.mark.training
 
 ROOT = Path(__file__).resolve().parents[2]
 VALUES = {"DATA": "data/train", "OUT": "models/keypoint", "HERE": "models", "L": "data/train/looks",
-          "C": "data/train/end_identity", "CONFIG": "models/finetune.yaml", "INIT": "models/keypoint/model.pt",
+          "C": "data/train/end_identity", "H": "data/train/held", "CONFIG": "models/finetune.yaml", "INIT": "models/keypoint/model.pt",
           "TEST": "data/test", "data[@]": "--data data/mine", "extra[@]": "--support-normal 0,0,1",
           "fit[@]": "--data data/mine_fit", "grey[@]": "--grey-data data/mine_fit"}
 

@@ -283,3 +283,23 @@ def test_the_cameras_statements_are_taken_about_the_end_at_their_a():
     assert fitted_tip_probability(0.99, None, False, p_read=split, **caps) == (0.5, ("reading_turned",))
     assert fitted_tip_probability(0.99, None, False, p_read=mild, **caps) == (mild, ("reading_turned",))
     assert fitted_tip_probability(0.9, None, False, p_read=0.97, **caps) == (0.9, ())
+
+
+def test_a_partial_view_states_no_sure_tip():
+    from common.geometry.end_identity import fitted_tip_probability
+    p, caps = fitted_tip_probability(0.99, (True, True), True, end_unseen_p_max=0.9, partial=True)
+    assert p == 0.9 and caps == ("partial_view",)
+    p, caps = fitted_tip_probability(0.99, (True, False), True, end_unseen_p_max=0.9, partial=True)
+    assert p == 0.9 and caps == ("end_unseen",)
+    assert fitted_tip_probability(0.99, (True, True), True, end_unseen_p_max=0.9) == (0.99, ())
+
+
+def test_a_second_camera_adds_nothing_on_an_unfamiliar_look():
+    from common.geometry.end_identity import CAMERA_CORRELATION, second_view_news, stereo_end_identity
+    assert second_view_news([1.0, 0.8, None]) == CAMERA_CORRELATION       # like the training looks
+    assert second_view_news([1.0, 2.5]) == 0.0                            # one an octave or more unlike
+    assert second_view_news([2 ** 0.5, 1.0]) == pytest.approx(CAMERA_CORRELATION / 2)
+    sure = stereo_end_identity(0.9, 0.88)
+    alone = stereo_end_identity(0.9, 0.88, news=second_view_news([1.33, 1.32]))
+    assert sure > 0.95 > alone > 0.9          # two agreeing views of an unfamiliar look: not sure
+    assert stereo_end_identity(0.9, 0.9, news=0.0) == pytest.approx(0.9)
