@@ -262,4 +262,4 @@ def test_keypoint_distillation_keeps_the_teachers_heatmaps():
         for p in student.crop.parameters():
             p.add_(0.3 * torch.randn_like(p))
     moved = distillation_losses(student, teacher, (x,), None, w, keypoints=True)
-    assert float(moved["kp"]) > 1e-3 and float(moved["line"]) > float(same["line"])
+    assert moved["kp"].item() > 1e-3 and moved["line"].item() > same["line"].item()
