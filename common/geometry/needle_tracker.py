@@ -39,12 +39,17 @@ Which end is the tip belongs to the track: a measurement is read as it is or tur
 (``end_identity.end_for_end_delta``), whichever lies within the gate, and its stated end
 identity is evidence for or against the track's (``end_identity.track_identity``), never a new
 truth on its own.
+
+A track starts from a measurement fitted to ``start_arc_seen`` of the arc, or from a run of
+``start_run`` partial views (each fitted to ``start_run_arc_seen``) that agree with each other:
+a short part of the arc can fit a pose tens of degrees off, but rarely the same wrong pose many
+frames in a row while the jaws move it (``NeedleTracker._from_partial``).
 """
 from __future__ import annotations
 
 import copy
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import Optional
 
 import numpy as np
@@ -76,6 +81,8 @@ class TrackerConfig:
     reset_after: int = 3                    # rejected measurements in a row that start a free track again
     reset_after_held: int = 30              # ... a settled one (1 s at 30 Hz: see the docstring)
     start_arc_seen: Probability = 0.6       # a track starts from a pose fitted to this much of its arc
+    start_run: int = 10                     # ... or from this many partial views in a row that agree
+    start_run_arc_seen: Probability = 0.45  # ... each fitted to at least this much (start_run 0: never)
     corr_frames: number_at_least(1.0) = 5.0  # consecutive frames whose fits' errors move together
     rest_sigma_m: NonNegativeNumber = 0.05e-3           # random walk of a needle at rest, per sqrt(s)
     rest_sigma_rad: NonNegativeNumber = math.radians(0.2)
@@ -97,7 +104,7 @@ class TrackerConfig:
     def __post_init__(self):
         if not (self.gate_nis > 0 and min(self.reset_after, self.reset_after_held) >= 1 and self.grasp_llr > 0
                 and 0 <= self.closed_rad < self.open_rad and self.max_coast_s > 0
-                and min(self.grasp_reach_m, self.jaw_length_m) > 0):
+                and min(self.grasp_reach_m, self.jaw_length_m) > 0 and self.start_run >= 0):
             raise ValueError("tracker: needs gate_nis, grasp_llr > 0, reset_after and reset_after_held >= 1, "
                              "0 <= closed_rad < open_rad, max_coast_s > 0 and positive grasp lengths")
         check_fields(self, "tracker: {name} {why}")
@@ -204,6 +211,8 @@ class NeedleTracker:
         self.refused: set = set()                  # jaws whose grasp was undone, until they open
         self._last_jaws: dict = {}
         self.common = np.zeros(6)                  # the shared error's variances, the newest measurement's
+        self.candidate: Optional["NeedleTracker"] = None   # a track of partial views only (_from_partial)
+        self.run = 0                               # the partial views in a row it took
 
     @property
     def active(self) -> bool:
@@ -427,15 +436,14 @@ class NeedleTracker:
                     (stamp_ns - self.last_seen_ns) * 1e-9 > self.cfg.max_coast_s:
                 self.reset()
                 return None
-        if measurement is None and not self.active:
-            return None
+        if not self.active and (measurement is None or not measurement.starts(self.cfg)):
+            return self._from_partial(stamp_ns, jaws, measurement)
+        self.candidate, self.run = None, 0
         if measurement is not None:
             self.common = np.array([measurement.common_sigma_rad ** 2] * 3 + [measurement.common_sigma_m ** 2] * 3)
             measurement = measurement.own(self.cfg.corr_frames)
         used, turned, d = None, False, float("nan")
         if not self.active:
-            if not measurement.starts(self.cfg):    # a partial view: no track from it alone
-                return None
             self._start(measurement, jaws)
             self.stamp_ns = self.last_seen_ns = stamp_ns
             used, event = True, "start"
@@ -467,6 +475,32 @@ class NeedleTracker:
         event = self._modes(jaws) or event
         self._last_jaws = dict(jaws)
         return self._output(jaws, used, turned, d, event)
+
+    def _from_partial(self, stamp_ns: int, jaws: dict, m: Optional[Measurement]) -> Optional[Tracked]:
+        """No track, and no measurement that may start one alone: partial views (fitted to at
+        least ``start_run_arc_seen`` of the arc) are tracked apart, unpublished, and become the
+        track once ``start_run`` of them in a row agree (each within the gate of that track's
+        prediction; one that is not starts the run again from it). Frames without a pose are
+        predicted and do not break the run. None until then."""
+        if m is None:
+            if self.candidate is not None and self.candidate.step(stamp_ns, jaws, None) is None:
+                self.candidate, self.run = None, 0
+            return None
+        if self.cfg.start_run <= 0 or m.arc_seen is None or m.arc_seen < self.cfg.start_run_arc_seen:
+            return None
+        if self.candidate is None:
+            self.candidate = NeedleTracker(self.needle, replace(self.cfg, start_arc_seen=0.0, start_run=0))
+        out = self.candidate.step(stamp_ns, jaws, m)
+        if out is None or not out.used or out.event == "restart":
+            self.candidate.reset()
+            out = self.candidate.step(stamp_ns, jaws, m)
+            self.run = 1
+        else:
+            self.run += 1
+        if self.run < self.cfg.start_run:
+            return None
+        self.restore(self.candidate.snapshot())     # its own candidate and run are none
+        return replace(out, event="start")
 
     def _output(self, jaws, used, turned, d, event) -> Tracked:
         Tw, Pw = self.world(jaws)

@@ -307,6 +307,31 @@ def test_no_track_starts_from_a_partial_view_alone():
     assert o is not None and o.event == "start"
 
 
+def test_a_run_of_partial_views_that_agree_starts_the_track():
+    """Partial views fitted to at least ``start_run_arc_seen`` of the arc are tracked apart; the
+    track starts once ``start_run`` of them in a row agree, and one far off starts the run again."""
+    frames = take("pickup", 8)
+    rng = np.random.default_rng(9)
+    C = stated_covariance(rng)
+    tr = NeedleTracker(NEEDLE, TrackerConfig(start_run=10))
+    far = make_T(rotvec_to_R([0.0, 0.0, math.radians(60)]), [0.0, 0.0, 0.0])
+    out = []
+    for k in range(30):
+        T = measure(rng, frames[k].T_world_needle, C).T_world_needle
+        if k == 5:
+            T = T @ far                              # a fit 60 deg off: the run starts again
+        out.append(tr.step(k * DT_NS, jaws_of(frames[k]), None if k == 8 else Measurement(T, C, arc_seen=0.5)))
+    # the run: 0..4, broken at 5 (far) and at 6 (far from 5), then 6..16 less frame 8 (no pose)
+    assert all(o is None for o in out[:16])
+    assert out[16] is not None and out[16].event == "start"
+    assert all(o is not None for o in out[16:])
+    pos, rot = errors(frames[16:], out[16:])
+    assert pos.max() < 2.0 and rot.max() < 5.0
+    lone = NeedleTracker(NEEDLE, TrackerConfig(start_run=10))
+    assert all(lone.step(k * DT_NS, jaws_of(frames[k]), Measurement(
+        measure(rng, frames[k].T_world_needle, C).T_world_needle, C, arc_seen=0.3)) is None for k in range(30))
+
+
 def test_a_measurement_counts_for_a_fraction_of_a_frame_where_consecutive_fits_err_together():
     C = np.diag([1e-4] * 3 + [1e-8] * 3)
     m = Measurement(np.eye(4), C, common_sigma_m=1e-5, common_sigma_rad=1e-3)
