@@ -51,6 +51,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from common.frames import CAMERAS
 from common.geometry.arc_support import SUPPORT_PX, arc_support, best_seen, ends_seen, partial_view, shares
 from common.geometry.config import Probability, number_at_least
 from common.geometry.end_identity import camera_readings, pose_tip_probability, settle
@@ -203,7 +204,7 @@ class RefineNode(StereoPoseNode):
         stated, caps = pose_tip_probability(
             p, ends_seen(support) if support else None,
             camera_readings(self.rig, self.needle, res.T_ecm_needle, uv, sc),
-            dict(zip(("left", "right"), stated_end_identity(left, right))),
+            dict(zip(CAMERAS, stated_end_identity(left, right))),
             end_unseen_p_max=self.p.end_unseen_p_max, reading_p_max=self.p.reading_p_max,
             partial=partial, news=stereo_news(left, right))
         for cap in caps:

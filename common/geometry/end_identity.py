@@ -215,7 +215,12 @@ def reads_as_keypoints(rig, needle: NeedleModel, T_ecm_needle: np.ndarray, uv: M
     on a few keypoints scored above its gate while the others, and the tip probability stated
     for them, read the needle the other way (one stray E on the tip): the probability is then
     not the pose's."""
-    readings = camera_readings(rig, needle, T_ecm_needle, uv, scores, margin, min_px)
+    return read_as_fitted(camera_readings(rig, needle, T_ecm_needle, uv, scores, margin, min_px))
+
+
+def read_as_fitted(readings: Mapping[str, bool]) -> bool | None:
+    """Whether every camera reads the pose as fitted (``camera_readings``); None: no camera has
+    keypoints."""
     return all(readings.values()) if readings else None
 
 
@@ -274,8 +279,7 @@ def pose_tip_probability(p: float | None, ends: tuple[bool, bool] | None, readin
     """``fitted_tip_probability`` from each camera's reading of the pose (``camera_readings``)
     and its own statement (``p_by_camera``): turned when some camera reads the pose turned, at
     most what ``read_tip_probability`` gives then (with ``news``, ``second_view_news``)."""
-    reads = all(readings.values()) if readings else None
-    return fitted_tip_probability(p, ends, reads, end_unseen_p_max=end_unseen_p_max,
+    return fitted_tip_probability(p, ends, read_as_fitted(readings), end_unseen_p_max=end_unseen_p_max,
                                   reading_p_max=reading_p_max, partial=partial,
                                   p_read=read_tip_probability(p_by_camera, readings, news))
 
