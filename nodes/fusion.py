@@ -21,6 +21,9 @@ that it has no track for it; a frame without a track passes alone too
 in the jaws is fused in the jaw frame by the tracker itself: its ``held`` state, ``T_jaw_needle``
 filtered over frames (``tracker/in_hand``).
 
+``calib``, optional, gives the needle's shape, for its end-for-end turn (default: the standard
+needle).
+
 ``truth`` is read for its ``sequence`` label (a new multi-view group resets the queue) and,
 only where ``motion`` is not wired (a graph without the tracker, the static evaluation), for
 ``needle_at_rest``: a frame of a take whose needle moves is no multi-view group, its estimate
@@ -34,7 +37,8 @@ from dataclasses import dataclass
 import numpy as np
 
 from common.geometry.fusion import MultiViewFusion
-from common.runtime.messages import EcmPose, GroundTruth, NoPoseNotice, PoseEstimate
+from common.geometry.needle import NeedleModel
+from common.runtime.messages import Calibration, EcmPose, GroundTruth, NoPoseNotice, PoseEstimate
 from common.runtime.node import Node, run
 from common.runtime.pairing import SeqCache, SeqJoin
 
@@ -43,7 +47,7 @@ class FusionNode(Node):
     """Multi-view fusion of the last k estimates, in the current ECM frame."""
 
     INPUTS = {"pose": PoseEstimate, "ecm": EcmPose, "truth": GroundTruth, "motion": PoseEstimate,
-              "untracked": NoPoseNotice}
+              "untracked": NoPoseNotice, "calib": Calibration}
     OUTPUTS = ("pose",)
     KEEP_ALL = ("pose", "ecm", "truth", "motion", "untracked")
 
@@ -62,10 +66,7 @@ class FusionNode(Node):
 
     def setup(self):
         p = self.p
-        self.fusion = MultiViewFusion(
-            k=p.k, max_dist_m=p.max_dist_mm * 1e-3, max_angle_rad=np.deg2rad(p.max_angle_deg),
-            reset_dist_m=p.reset_dist_mm * 1e-3, reset_angle_rad=np.deg2rad(p.reset_angle_deg),
-            reset_after=p.reset_after, use_covariance=p.use_covariance)
+        self.fusion = self._fusion(NeedleModel())
         self.method = p.method
         self.reset_on_sequence = p.reset_on_sequence
         self.ecm_poses = SeqCache()
@@ -76,6 +77,13 @@ class FusionNode(Node):
         self.after_move = False                               # the last estimate's needle was not at rest
         self.said_no_mode = False
         self.pending = SeqJoin(p.max_wait, in_order=True)    # views waiting for their ECM pose / truth / mode
+
+    def _fusion(self, needle: NeedleModel) -> MultiViewFusion:
+        p = self.p
+        return MultiViewFusion(
+            k=p.k, max_dist_m=p.max_dist_mm * 1e-3, max_angle_rad=np.deg2rad(p.max_angle_deg),
+            reset_dist_m=p.reset_dist_mm * 1e-3, reset_angle_rad=np.deg2rad(p.reset_angle_deg),
+            reset_after=p.reset_after, use_covariance=p.use_covariance, needle=needle)
 
     def on_stream_reset(self):
         """A new source stream: the window of views and every per-frame cache start again."""
@@ -91,6 +99,11 @@ class FusionNode(Node):
         self.fusion.reset()
 
     # ---------------------------------------------------------------- inputs
+    def on_calib(self, msg: Calibration):
+        needle = NeedleModel.from_dict(msg.needle)
+        if needle != self.fusion.needle:      # another needle: another turn end for end; a new window
+            self.fusion = self._fusion(needle)
+
     def on_ecm(self, msg: EcmPose):
         self.ecm_poses.put(msg.seq, np.asarray(msg.T_world_ecm, dtype=float))
         self._drain()

@@ -145,7 +145,8 @@ def pipeline_graph(dataset: str, *, detector: str = "learned", detector_params: 
     fusion_wait = {"max_wait": (2 if motion else 1) * LOSSLESS_TRACKER_WAIT} if lossless else {}
     if "multiview" in wanted:
         nodes.append({"id": "fusion", "module": "fusion", "params": {"method": "multiview", **fusion_wait},
-                      "inputs": {"pose": "epnp_joint/pose", "ecm": "ecm/pose", "truth": "replay/truth", **motion},
+                      "inputs": {"pose": "epnp_joint/pose", "ecm": "ecm/pose", "truth": "replay/truth",
+                                 "calib": "replay/calib", **motion},
                       "outputs": ["pose"], "env": one})
     if "refined" in wanted:
         nodes.append({"id": "refine", "module": "refine", "inputs": dict(stereo),
@@ -154,7 +155,8 @@ def pipeline_graph(dataset: str, *, detector: str = "learned", detector_params: 
     if "multiview_refined" in wanted:
         nodes.append({"id": "fusion_refined", "module": "fusion",
                       "params": {"method": "multiview_refined", **fusion_wait},
-                      "inputs": {"pose": "refine/pose", "ecm": "ecm/pose", "truth": "replay/truth", **motion},
+                      "inputs": {"pose": "refine/pose", "ecm": "ecm/pose", "truth": "replay/truth",
+                                 "calib": "replay/calib", **motion},
                       "outputs": ["pose"], "env": one})
     if "tracked" in wanted:
         # lossless: a frame waits for its refined pose as long as the queues may hold it back

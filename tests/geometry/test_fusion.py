@@ -15,11 +15,13 @@ from common.geometry.fusion import (
     fuse_poses,
     information_mean,
     robust_centre,
+    within_views,
 )
+from common.geometry.end_identity import identity_covariance
 from common.geometry.needle import NeedleModel
 from common.geometry.oracle import Oracle
 from common.geometry.pnp import pnp_joint
-from common.geometry.transforms import R_to_rotvec, make_T, pose_error, rotvec_to_R
+from common.geometry.transforms import R_to_rotvec, inv_T, make_T, pose_error, rotvec_to_R
 
 RIG = StereoRig.default()
 MODEL = NeedleModel()
@@ -286,16 +288,47 @@ def test_the_tip_is_decided_by_the_views_evidence_not_by_their_count():
         out = f.add(jitter(T0, rng, 0.3, 0.3), covariance=cov, end_identity=p)
     # the mean log-odds of the views that stated one
     assert out.end_identity == pytest.approx(1 / (1 + np.exp(-(logit(0.9) + logit(0.7)) / 2)))
-    assert not out.ambiguous and out.turned == 0
+    # below 0.95 the fused pose is an undecided tip, as one view's would be: flagged, spanning the turn
+    d = np.r_[np.pi * (out.T_ecm_needle[:3, :3] @ [0.0, 1.0, 0.0]), np.zeros(3)]
+    assert out.ambiguous and out.turned == 0
+    assert d @ np.linalg.solve(out.covariance, d) < 1.0 / (1.0 - out.end_identity) + 0.5
     # a weaker view turned end for end: not averaged in, but it contests the tip
     out = f.add(T0 @ turn, covariance=cov, end_identity=0.8)
     assert out.n_views == 3 and out.turned == 1 and pose_error(out.T_ecm_needle, T0)[1] < 0.05
     p = 1 / (1 + np.exp(-(logit(0.9) + logit(0.7) - logit(0.8)) / 3))
     assert out.end_identity == pytest.approx(p) and out.ambiguous
-    d = np.r_[np.pi * (T0[:3, :3] @ [0.0, 1.0, 0.0]), np.zeros(3)]   # the turn, about the arc's axis
+    d = np.r_[np.pi * (out.T_ecm_needle[:3, :3] @ [0.0, 1.0, 0.0]), np.zeros(3)]   # its turn, about the arc's axis
     assert d @ np.linalg.solve(out.covariance, d) < 1.0 / (1.0 - p) + 0.5
     # turned views with more evidence than the others: the fused pose is theirs
     out = f.add(T0 @ turn, covariance=cov, end_identity=0.999)
     assert out.turned == 3 and out.n_views == 2
     assert pose_error(out.T_ecm_needle, T0 @ turn)[1] < 1e-6 and out.end_identity < 0.95
     assert MultiViewFusion().add(T0).end_identity is None
+
+
+def test_the_turn_a_view_is_unsure_of_does_not_weigh_its_reading():
+    """A view unsure of its tip states a covariance widened over its turn; the fused pose is
+    weighed as if each view had stated the covariance of its reading alone."""
+    rng = np.random.default_rng(3)
+    T0 = make_T(rotvec_to_R([0.1, 0.2, 0.3]), [0.0, 0.01, -0.2])
+    views = []
+    for _ in range(3):
+        A = rng.normal(size=(6, 6)) * np.r_[[0.02] * 3, [3e-4] * 3][:, None]
+        views.append((jitter(T0, rng, 0.3, 1.0), A @ A.T + np.diag([1e-6] * 6)))
+    sure, unsure = MultiViewFusion(), MultiViewFusion()
+    for T, C in views:
+        a = sure.add(T, covariance=C, end_identity=0.99)
+        b = unsure.add(T, covariance=identity_covariance(T, C, MODEL, 0.9), end_identity=0.9, ambiguous=True)
+    assert pose_error(a.T_ecm_needle, b.T_ecm_needle)[1] < 1e-9
+    assert b.ambiguous and not a.ambiguous
+
+
+def test_a_weighted_rotation_is_held_among_the_views():
+    T_mean = make_T(np.eye(3), [0.0, 0.0, 0.1])
+    Ts = [make_T(rotvec_to_R([0.0, 0.0, s * 0.03]), [0.0, 0.0, 0.1]) for s in (-1, 1)]
+    far = make_T(rotvec_to_R([0.0, 0.0, 0.1]), [0.001, 0.0, 0.1])
+    held = within_views(far, Ts, T_mean)
+    np.testing.assert_allclose(held[:3, :3], np.eye(3), atol=1e-12)
+    np.testing.assert_allclose(held[:3, 3], far[:3, 3])           # the position keeps its weighting
+    near = make_T(rotvec_to_R([0.0, 0.0, 0.02]), [0.001, 0.0, 0.1])
+    np.testing.assert_allclose(within_views(near, Ts, T_mean), near)
