@@ -21,8 +21,9 @@ that it has no track for it; a frame without a track passes alone too
 in the jaws is fused in the jaw frame by the tracker itself: its ``held`` state, ``T_jaw_needle``
 filtered over frames (``tracker/in_hand``).
 
-``calib``, optional, gives the needle's shape, for its end-for-end turn (default: the standard
-needle).
+A view flagged ``ambiguous`` is read either as it is or as its mirror image, whichever the
+group agrees on (``common.geometry.fusion.mirror_consensus``); ``calib``, optional, gives the
+needle's shape for the mirror image and the end-for-end turn (default: the standard needle).
 
 ``truth`` is read for its ``sequence`` label (a new multi-view group resets the queue) and,
 only where ``motion`` is not wired (a graph without the tracker, the static evaluation), for
@@ -101,7 +102,7 @@ class FusionNode(Node):
     # ---------------------------------------------------------------- inputs
     def on_calib(self, msg: Calibration):
         needle = NeedleModel.from_dict(msg.needle)
-        if needle != self.fusion.needle:      # another needle: another turn end for end; a new window
+        if needle != self.fusion.needle:      # another needle: its turn and mirror image; a new window
             self.fusion = self._fusion(needle)
 
     def on_ecm(self, msg: EcmPose):

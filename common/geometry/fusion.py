@@ -28,6 +28,12 @@ counting against it) and, below ``min_end_identity``, is flagged ``ambiguous`` w
 covariance widened over the turn again, by that probability, as the pose nodes do for one
 frame.
 
+A planar arc seen nearly edge-on has a mirror image that fits one view almost as well
+(``common.geometry.refine.mirror_pose``); a pose node flags such a view ``ambiguous``. The
+mirror image moves with the viewpoint and the needle does not, so the group decides: a flagged
+view is read as its mirror image where that is what the others agree on
+(``mirror_consensus``), with its covariance carried along (``refine.mirror_covariance``).
+
 The queue resets when the needle has moved in the world: when the last ``reset_after``
 estimates agree with one another but are all farther than ``reset_dist_m`` or
 ``reset_angle_rad`` from the fused pose of the older ones (a single wild estimate is only an
@@ -43,6 +49,7 @@ import numpy as np
 from common.geometry.end_identity import (TIP_SURE, identity_covariance, logit, sigmoid,
                                           without_identity_covariance)
 from common.geometry.needle import NeedleModel
+from common.geometry.refine import mirror_covariance, mirror_pose
 from common.geometry.transforms import inv_T, make_T, pose_mean, rotvec_to_R
 
 TURNED_RAD = np.deg2rad(150.0)
@@ -96,6 +103,7 @@ class FusedPose:
     common_sigma_rad: float = 0.0
     end_identity: float | None = None
     turned: int = 0
+
 
 
 def without_common(cov: np.ndarray, sigma_m: float, sigma_rad: float = 0.0) -> np.ndarray:
@@ -220,6 +228,31 @@ def within_views(T_weighted: np.ndarray, Ts, T_mean: np.ndarray) -> np.ndarray:
     return T_weighted if er[0, 0] <= dr.max() else make_T(T_mean[:3, :3], T_weighted[:3, 3])
 
 
+def mirror_consensus(Ts, mirrors, max_dist_m: float, max_angle_rad: float) -> np.ndarray:
+    """Which views to read as their mirror image (bool mask): ``mirrors[i]`` is view i's mirror
+    reading (``refine.mirror_pose``, in the same frame as ``Ts``) or None for a view that is sure
+    of its own. The needle is one pose in the world, and a mirror image moves with the viewpoint:
+    of all readings, the group's is the one that the most views have a reading within the gate
+    of (``max_dist_m``, ``max_angle_rad``); among equals, the one that the most views' own
+    readings agree with, then the nearest (``robust_centre``'s truncated distances). A view
+    takes its mirror where that is nearer the group's reading than its own."""
+    alt = [i for i, M in enumerate(mirrors) if M is not None]
+    take = np.zeros(len(Ts), bool)
+    if not alt:
+        return take
+    n = len(Ts)
+    dt, dr = pairwise_errors(list(Ts) + [mirrors[i] for i in alt])
+    D = np.minimum(2.0, np.maximum(dt / max_dist_m, dr / max_angle_rad))
+    near = D[:, :n].copy()
+    for k, i in enumerate(alt):
+        near[:, i] = np.minimum(near[:, i], D[:, n + k])
+    views, own, spread = (near <= 1.0).sum(axis=1), (D[:, :n] <= 1.0).sum(axis=1), near.sum(axis=1)
+    c = min(range(len(D)), key=lambda a: (-views[a], -own[a], spread[a]))
+    for k, i in enumerate(alt):
+        take[i] = D[c, n + k] < D[c, i]
+    return take
+
+
 def _clip_to_gate(C: np.ndarray, gate: np.ndarray) -> np.ndarray:
     """``C`` with its spread in units of ``gate`` (6,) limited to 1 sigma."""
     S = np.diag(1.0 / gate)
@@ -243,7 +276,8 @@ class MultiViewFusion:
         self.reset_after = reset_after
         self.use_covariance = use_covariance
         self.min_end_identity = min_end_identity
-        self.needle = NeedleModel() if needle is None else needle   # its arc's axis: the end-for-end turn
+        self.needle = NeedleModel() if needle is None else needle   # its arc's turn and mirror image
+        self._centroid = self.needle.sample_arc(64).mean(0)
         self.queue: deque[QueuedEstimate] = deque()
         self.sequence: int | None = None
         self.resets = 0
@@ -301,19 +335,28 @@ class MultiViewFusion:
         agree = bool(np.all((dt <= self.max_dist_m) & (dr <= self.max_angle_rad)))
         return far and agree
 
-    def _reading(self, e: QueuedEstimate, T_now_i: np.ndarray):
-        """View ``e``'s reading in the current ECM frame (``T_now_i``: its ECM frame there):
-        (pose, covariance to weigh it by, covariance as stated)."""
-        weigh = None if e.covariance is None else without_common(self._as_read(e), e.common_sigma_m,
-                                                                  e.common_sigma_rad)
+    def _readings(self, e: QueuedEstimate, T_now_i: np.ndarray, mirrored: bool):
+        """View ``e``'s reading in the current ECM frame (``T_now_i``: its ECM frame there), or
+        its mirror image: (pose, covariance to weigh it by, covariance as stated)."""
+        T, given = e.T_ecm_needle, e.covariance
+        weigh = None if given is None else without_common(self._as_read(e), e.common_sigma_m, e.common_sigma_rad)
+        if mirrored:
+            def mirror(C):
+                return None if C is None else mirror_covariance(e.T_ecm_needle, C, self.needle, _centroid=self._centroid)
+            T, given, weigh = mirror_pose(T, self.needle, _centroid=self._centroid), mirror(given), mirror(weigh)
         R = T_now_i[:3, :3]
-        return (T_now_i @ e.T_ecm_needle,
-                *(None if C is None else covariance_to_frame(C, R) for C in (weigh, e.covariance)))
+        return (T_now_i @ T, None if weigh is None else covariance_to_frame(weigh, R),
+                None if given is None else covariance_to_frame(given, R))
 
     def _fuse(self, T_world_ecm_now, reset: bool) -> FusedPose:
         T_now_world = inv_T(T_world_ecm_now)
         frames = [T_now_world @ e.T_world_ecm for e in self.queue]
-        Ts, covs, given = (list(x) for x in zip(*(self._reading(e, F) for e, F in zip(self.queue, frames))))
+        readings = [self._readings(e, F, False) for e, F in zip(self.queue, frames)]
+        mirrors = [self._readings(e, F, True) if e.ambiguous else None for e, F in zip(self.queue, frames)]
+        take = mirror_consensus([r[0] for r in readings], [None if m is None else m[0] for m in mirrors],
+                                self.max_dist_m, self.max_angle_rad)
+        readings = [m if t else r for r, m, t in zip(readings, mirrors, take)]
+        Ts, covs, given = (list(x) for x in zip(*readings))
         T, inl, cov = fuse_poses(Ts, covs if self.use_covariance else None,
                                  self.max_dist_m, self.max_angle_rad)
         z = np.array([0.0 if e.end_identity is None else logit(e.end_identity) for e in self.queue])

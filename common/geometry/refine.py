@@ -52,6 +52,7 @@ from common.geometry.arc_problem import RefineError, _orthonormalise, _Problem, 
 from common.geometry.transforms import (
     R_to_rotvec,
     make_T,
+    skew,
     transform_points,
 )
 
@@ -221,6 +222,24 @@ def mirror_pose(T_ecm_needle: np.ndarray, needle: NeedleModel, eye_ecm=np.zeros(
     v = v / np.linalg.norm(v)
     Mref = np.eye(3) - 2.0 * np.outer(v, v)
     return make_T(Mref @ R @ np.diag([1.0, 1.0, -1.0]), m + Mref @ (t - m))
+
+
+def mirror_covariance(T_ecm_needle: np.ndarray, covariance: np.ndarray, needle: NeedleModel,
+                      eye_ecm=np.zeros(3), _centroid=None) -> np.ndarray:
+    """A [w, v] covariance (ECM frame) at ``T_ecm_needle`` carried to its ``mirror_pose``, to first
+    order with the line of sight held: the mirror's rotation increment is ``-M w`` (``M`` the
+    reflection) and its origin moves by ``v - (I - M) [R c]x w`` (``c`` the arc's centroid)."""
+    R, t = T_ecm_needle[:3, :3], T_ecm_needle[:3, 3]
+    c = needle.sample_arc(64).mean(0) if _centroid is None else _centroid
+    Rc = R @ c
+    v = Rc + t - eye_ecm
+    v = v / np.linalg.norm(v)
+    M = np.eye(3) - 2.0 * np.outer(v, v)
+    J = np.zeros((6, 6))
+    J[:3, :3] = -M
+    J[3:, :3] = -(np.eye(3) - M) @ skew(Rc)
+    J[3:, 3:] = np.eye(3)
+    return J @ np.asarray(covariance, float) @ J.T
 
 
 def _pose_delta(T, T_ref):

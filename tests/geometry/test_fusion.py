@@ -14,10 +14,12 @@ from common.geometry.fusion import (
     covariance_to_frame,
     fuse_poses,
     information_mean,
+    mirror_consensus,
     robust_centre,
     within_views,
 )
 from common.geometry.end_identity import identity_covariance
+from common.geometry.refine import mirror_covariance, mirror_pose
 from common.geometry.needle import NeedleModel
 from common.geometry.oracle import Oracle
 from common.geometry.pnp import pnp_joint
@@ -304,6 +306,62 @@ def test_the_tip_is_decided_by_the_views_evidence_not_by_their_count():
     assert out.turned == 3 and out.n_views == 2
     assert pose_error(out.T_ecm_needle, T0 @ turn)[1] < 1e-6 and out.end_identity < 0.95
     assert MultiViewFusion().add(T0).end_identity is None
+
+
+def _delta(T, T_ref):
+    """[rotation vector of R R_ref^T, t - t_ref] (ECM frame)."""
+    return np.r_[R_to_rotvec(T[:3, :3] @ T_ref[:3, :3].T), T[:3, 3] - T_ref[:3, 3]]
+
+
+def test_mirror_covariance_is_the_mirror_images_first_order():
+    """Far from the eye (the line of sight held), a small [w, v] step of a pose moves its mirror
+    image as ``mirror_covariance``'s Jacobian says: compared by finite differences."""
+    T = make_T(rotvec_to_R([0.4, -0.3, 0.2]), [0.01, -0.02, 5.0])
+    M = mirror_pose(T, MODEL)
+    eps, J = 1e-6, np.zeros((6, 6))
+    for k in range(6):
+        d = np.zeros(6)
+        d[k] = eps
+        Tk = make_T(rotvec_to_R(d[:3]) @ T[:3, :3], T[:3, 3] + d[3:])
+        J[:, k] = _delta(mirror_pose(Tk, MODEL), M) / eps
+    S = np.diag([0.05] * 3 + [1e-3] * 3) @ np.random.default_rng(0).normal(size=(6, 6))   # 3 deg, 1 mm
+    C = S @ S.T
+    got, want = mirror_covariance(T, C, MODEL), J @ C @ J.T
+    sd = np.sqrt(np.diag(want))
+    assert np.abs(got - want).max() > 0 and np.all(np.abs(got - want) < 0.02 * np.outer(sd, sd))
+
+
+def test_a_group_reads_a_view_unsure_of_the_mirror_image_as_the_other_views_show_it():
+    """A still needle seen from five endoscope poses: two views flagged ambiguous read its
+    mirror image (which moves with the viewpoint, the needle does not). The group takes their
+    mirror readings where the others agree: all five fused, the pose right and decided."""
+    rng = np.random.default_rng(7)
+    T_world_needle = make_T(rotvec_to_R([1.2, 0.3, -0.4]), [0.0, 0.0, 0.0])
+    cov = np.diag([np.deg2rad(2.0) ** 2] * 3 + [0.5e-3 ** 2] * 3)
+    f = MultiViewFusion()
+    for i, (a, mirrored) in enumerate(zip((-0.4, -0.2, 0.0, 0.2, 0.4), (False, True, False, True, False))):
+        T_world_ecm = make_T(rotvec_to_R([0.0, a, 0.0]), rotvec_to_R([0.0, a, 0.0]) @ [0.0, 0.0, -0.12])
+        T = inv_T(T_world_ecm) @ T_world_needle
+        T = jitter(mirror_pose(T, MODEL) if mirrored else T, rng, 0.2, 0.5)
+        out = f.add(T, T_world_ecm, cov, seq=i, ambiguous=mirrored or i == 4)
+    assert out.n_views == 5 and not out.ambiguous
+    dt, dr = pose_error(out.T_world_needle, T_world_needle)
+    assert dt < 0.5e-3 and dr < np.deg2rad(1.5)
+    # without the mirror readings the two are outliers: what the group gained
+    Ts = [np.asarray(e.T_world_needle) for e in f.queue]
+    assert (pose_error(Ts[1], T_world_needle)[1] > np.deg2rad(20)
+            and pose_error(Ts[3], T_world_needle)[1] > np.deg2rad(20))
+
+
+def test_mirror_consensus_counts_views_then_their_own_readings():
+    """Every view unsure and the viewpoint nearly still: the mirror images agree as well as the
+    readings do, and the readings the views gave themselves win."""
+    T = make_T(rotvec_to_R([1.2, 0.3, -0.4]), [0.0, 0.0, 0.1])
+    M = mirror_pose(T, MODEL)
+    assert pose_error(M, T)[1] > np.deg2rad(20)
+    take = mirror_consensus([T, T, M], [M, M, T], 0.005, np.deg2rad(15))
+    assert take.tolist() == [False, False, True]
+    assert not mirror_consensus([T, M], [None, None], 0.005, np.deg2rad(15)).any()
 
 
 def test_the_turn_a_view_is_unsure_of_does_not_weigh_its_reading():
