@@ -119,27 +119,3 @@ def ellipse_residual(pts: np.ndarray, iterations: int = 3, floor_px: float = 0.3
         if it < iterations:
             keep = d <= max(3.0 * float(np.median(d[keep])), floor_px)
     return float(np.median(d[keep])), float(keep.mean())
-
-
-def ellipse_run_residual(pts: np.ndarray, min_share: float, max_px: float, steps: int = 10) -> tuple[float, float]:
-    """``ellipse_residual`` of a run of consecutive stations (``pts`` (N, 2) px in order along
-    the curve) holding at least ``min_share`` of them: (median distance, px; share of all the
-    stations on that ellipse) of the run with the largest such share among those within
-    ``max_px``, else of the nearest one. A jaw over a held needle bends the stations along its
-    edge, a stretch at one end or in the middle, and pulls one ellipse through all of them away
-    from the rest; the needle's own stretch still lies on one. Runs start and end on a grid of
-    ``steps`` along the curve."""
-    pts = np.asarray(pts, float).reshape(-1, 2)
-    pts = pts[np.isfinite(pts).all(axis=1)]
-    n = len(pts)
-    runs = []
-    edges = np.unique(np.round(np.linspace(0, n, steps + 1)).astype(int))
-    for i in edges:
-        for j in edges[edges > i]:
-            if j - i >= max(6, min_share * n):
-                med, share = ellipse_residual(pts[i:j])
-                runs.append((med, share * (j - i) / n))
-    if not runs:
-        return float("inf"), 0.0
-    within = [r for r in runs if r[0] <= max_px]
-    return max(within, key=lambda r: r[1]) if within else min(runs)

@@ -29,7 +29,6 @@ from common.detector.centreline_subpixel import (
     CENTRELINE_CORR_POINTS,
     CENTRELINE_SIGMA_PX,
     ellipse_residual,
-    ellipse_run_residual,
     refine_centreline,
 )
 from common.detector.arc_fit import (
@@ -297,16 +296,11 @@ class KeypointDetector:
             return 0.5
         return self.last_evidence.p_a_is_tip(self.end_coef)
 
-    def _not_an_ellipse(self, res, undistort=None, tracked: bool = False) -> str | None:
+    def _not_an_ellipse(self, res, undistort=None) -> str | None:
         """Why the sub-pixel centreline is not the image of a circle (None if it is, or when it
         cannot be judged: no sub-pixel centreline, or fewer than MIN_ELLIPSE_POINTS stations).
         ``undistort`` (observed pixels -> ideal pinhole pixels) first takes out the lens
-        distortion, under which a circle's image is no ellipse. ``tracked``: the needle of the
-        previous frame, found again in its box; then a run of at least MIN_ELLIPSE_SHARE of
-        the stations on one ellipse is enough (``ellipse_run_residual``: a jaw over a held
-        needle bends the rest). A needle is first found whole: the decoy this check is for, a
-        pale thread bent smoothly, passes the run test twice as often as the whole one (53 and
-        27 of 400 images of the pale thread alone, test look)."""
+        distortion, under which a circle's image is no ellipse."""
         if not (self.max_ellipse_px > 0 and res.get("centreline_sigma") is not None):
             return None
         pts = res["centreline"][res["centreline_w"] > 0]
@@ -318,10 +312,6 @@ class KeypointDetector:
         med, share = ellipse_residual(pts)
         if med <= self.max_ellipse_px and share >= MIN_ELLIPSE_SHARE:
             return None
-        if tracked:
-            med, share = ellipse_run_residual(pts, MIN_ELLIPSE_SHARE, self.max_ellipse_px)
-            if med <= self.max_ellipse_px and share >= MIN_ELLIPSE_SHARE:
-                return None
         return (f"centreline is not an ellipse arc (median {med:.2f} px from its best ellipse over "
                 f"{share:.0%} of it; max_ellipse_px {self.max_ellipse_px:g})")
 
@@ -383,7 +373,7 @@ class KeypointDetector:
                                        f"no needle: keypoints collapsed ({extent:.1f} px apart "
                                        f"< min_extent_px {self.min_extent_px:g})", conf)
         self._finish(res, img)
-        not_ellipse = self._not_an_ellipse(res, undistort, tracked=self.last_mode == "tracking")
+        not_ellipse = self._not_an_ellipse(res, undistort)
         if not_ellipse:
             self.reset(camera)
             return Keypoints.not_found(camera, seq, stamp_ns, self.name, f"no needle: {not_ellipse}", conf)

@@ -4,7 +4,6 @@ import numpy as np
 from common.detector.centreline_subpixel import (
     TRIM,
     ellipse_residual,
-    ellipse_run_residual,
     refine_centreline,
 )
 
@@ -96,24 +95,3 @@ def test_a_projected_circle_is_an_ellipse_and_a_bent_thread_is_not():
     med, share = ellipse_residual(np.vstack([arm1, arm2[1:]]) + rng.normal(0, 0.07, (43, 2)))
     assert med > 0.25 or share < 0.5
     assert ellipse_residual(arc[:5]) == (float("inf"), 0.0)
-
-
-def test_a_run_of_the_stations_on_one_ellipse_is_found_when_a_jaw_bends_the_others():
-    """Two fifths of the stations run on along a jaw's wavy edge, off the needle's tangent: one
-    ellipse through all of them fits none well, the run of the needle's own stations lies on one."""
-    rng = np.random.default_rng(4)
-    t = np.linspace(0.2, 2.3, 50)
-    pts = ellipse_arc(t) + rng.normal(0, 0.07, (50, 2))
-    d = (pts[29] - pts[28]) / np.linalg.norm(pts[29] - pts[28])
-    step = np.linalg.norm(ellipse_arc(t[1:2]) - ellipse_arc(t[:1]))
-    i = np.arange(1, 21)
-    pts[30:] = (pts[29] + np.outer(i * step, d) + np.outer(np.sin(i / 3.0), [-d[1], d[0]])
-                + rng.normal(0, 0.07, (20, 2)))
-    med, share = ellipse_residual(pts)
-    assert med > 0.25
-    med, share = ellipse_run_residual(pts, 0.5, 0.25)
-    assert med < 0.15 and 0.55 <= share <= 0.8
-    # the whole curve on one ellipse: the run is all of it
-    med, share = ellipse_run_residual(ellipse_arc(t) + rng.normal(0, 0.07, (50, 2)), 0.5, 0.25)
-    assert med < 0.15 and share > 0.9
-    assert ellipse_run_residual(pts[:5], 0.5, 0.25) == (float("inf"), 0.0)
