@@ -12,13 +12,14 @@ fails names the drop reason):
 - ``views_disagree``: fewer than ``min_views`` views, or under ``min_inlier_share`` of the posed
   ones, are the fusion's inliers;
 - ``spread``: the inliers' positions lie farther than ``max_spread_mm`` (RMS) from the fused one;
+- ``tip_undecided``: the group's end identity (the mean of its views' log-odds about the fused
+  pose, a turned view counting against it: ``common.geometry.fusion``) is below ``TIP_SURE``,
+  not stated, or the fused pose is flagged ambiguous (a fused pose below ``TIP_SURE`` states a
+  covariance spanning its turn, so this comes before ``uncertain``);
 - ``uncertain``: the fused covariance, carried into the images, moves a keypoint of one of the
   group's views by more than ``max_sigma_px`` (1 sigma, the largest axis), or its largest
   orientation sigma exceeds ``max_sigma_deg``. Pixels, not millimetres, because a label is an
   image position: a far needle's depth is unsure by millimetres that move no keypoint;
-- ``tip_undecided``: the group's end identity (the mean of its views' log-odds about the fused
-  pose, a turned view counting against it: ``common.geometry.fusion``) is below ``TIP_SURE``,
-  not stated, or the fused pose is flagged ambiguous;
 - ``reprojection``: fewer than ``min_views`` views' detections (either way round) lie within
   ``max_view_px`` (median over the found keypoints) of the fused pose's projection.
 
@@ -51,7 +52,7 @@ from common.geometry.fusion import MultiViewFusion, covariance_to_frame
 from common.geometry.oracle import arc_bbox, true_keypoints
 from common.geometry.transforms import inv_T
 
-REASONS = ("too_few_poses", "views_disagree", "spread", "uncertain", "tip_undecided", "reprojection")
+REASONS = ("too_few_poses", "views_disagree", "spread", "tip_undecided", "uncertain", "reprojection")
 LABELS_FILE = "labels.json"
 
 
@@ -187,10 +188,10 @@ def judge_group(key: str, frames: list, ds: Dataset, outputs: dict, cfg: LabelCo
         v.reason = "views_disagree"
     elif v.figures["spread_mm"] > cfg.max_spread_mm:
         v.reason = "spread"
+    elif fused.end_identity is None or fused.end_identity < cfg.min_tip or fused.ambiguous:
+        v.reason = "tip_undecided"          # (before "uncertain": its covariance spans the turn)
     elif not (sig_px <= cfg.max_sigma_px and sig_deg <= cfg.max_sigma_deg):
         v.reason = "uncertain"
-    elif fused.end_identity is None or fused.end_identity < cfg.min_tip or fused.ambiguous:
-        v.reason = "tip_undecided"
     elif agree < cfg.min_views:
         v.reason = "reprojection"
     else:
