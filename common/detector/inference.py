@@ -41,6 +41,7 @@ from common.detector.arc_fit import (
     refine_along_arc,
     unseen_on_arc_scores,
 )
+from common.detector.cut_ends import cut_end_scores
 from common.detector.end_identity import EndEvidence, network_evidence, polyline_length, shape_evidence
 from common.detector.model import (
     CropWithFeatures,
@@ -377,6 +378,8 @@ class KeypointDetector:
         if not_ellipse:
             self.reset(camera)
             return Keypoints.not_found(camera, seq, stamp_ns, self.name, f"no needle: {not_ellipse}", conf)
+        # an end where something covers the wire is a cut, not the needle's end (cut_ends)
+        res["scores"] = cut_end_scores(img, res["uv"], res["scores"], res["centreline"], res.get("on_arc"))
         self.last_evidence = self._end_evidence(res, img)
         self.last_descriptor = res["feat"]
         self._track[camera] = self._box_of({"uv": res["uv"]})   # as _moved compares it
