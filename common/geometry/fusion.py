@@ -134,12 +134,16 @@ def pairwise_errors(Ts, Us=None):
     return dt, np.arccos(np.clip((tr - 1.0) / 2.0, -1.0, 1.0))
 
 
-def robust_centre(Ts, max_dist_m: float, max_angle_rad: float) -> int:
-    """Index of the medoid: the pose with the smallest sum of truncated normalised distances
-    ``min(2, max(dt / max_dist_m, dr / max_angle_rad))`` to all the others."""
+def gate_distances(Ts, max_dist_m: float, max_angle_rad: float):
+    """Pairwise distances between poses in units of the inlier gate, truncated at 2:
+    ``min(2, max(dt / max_dist_m, dr / max_angle_rad))`` (<= 1: within the gate)."""
     dt, dr = pairwise_errors(Ts)
-    D = np.minimum(2.0, np.maximum(dt / max_dist_m, dr / max_angle_rad))
-    return int(np.argmin(D.sum(axis=1)))
+    return np.minimum(2.0, np.maximum(dt / max_dist_m, dr / max_angle_rad))
+
+
+def robust_centre(Ts, max_dist_m: float, max_angle_rad: float) -> int:
+    """Index of the medoid: the pose with the smallest sum of ``gate_distances`` to all the others."""
+    return int(np.argmin(gate_distances(Ts, max_dist_m, max_angle_rad).sum(axis=1)))
 
 
 def _log_so3_many(R: np.ndarray) -> np.ndarray:
@@ -193,10 +197,9 @@ def fuse_poses(Ts, covariances=None, max_dist_m: float = 0.005,
     Ts = [np.asarray(T, dtype=float) for T in Ts]
     if not Ts:
         raise ValueError("fuse_poses: no poses")
-    dt, dr = pairwise_errors(Ts)
-    D = np.minimum(2.0, np.maximum(dt / max_dist_m, dr / max_angle_rad))
-    c = int(np.argmin(D.sum(axis=1)))                       # the medoid (robust_centre)
-    inl = (dt[c] <= max_dist_m) & (dr[c] <= max_angle_rad)
+    c = robust_centre(Ts, max_dist_m, max_angle_rad)
+    dt, dr = pairwise_errors(Ts, [Ts[c]])
+    inl = (dt[:, 0] <= max_dist_m) & (dr[:, 0] <= max_angle_rad)
     sel = [T for T, ok in zip(Ts, inl) if ok]
     T = pose_mean(sel)
     cov = None
@@ -234,15 +237,14 @@ def mirror_consensus(Ts, mirrors, max_dist_m: float, max_angle_rad: float) -> np
     of its own. The needle is one pose in the world, and a mirror image moves with the viewpoint:
     of all readings, the group's is the one that the most views have a reading within the gate
     of (``max_dist_m``, ``max_angle_rad``); among equals, the one that the most views' own
-    readings agree with, then the nearest (``robust_centre``'s truncated distances). A view
+    readings agree with, then the nearest (``gate_distances``). A view
     takes its mirror where that is nearer the group's reading than its own."""
     alt = [i for i, M in enumerate(mirrors) if M is not None]
     take = np.zeros(len(Ts), bool)
     if not alt:
         return take
     n = len(Ts)
-    dt, dr = pairwise_errors(list(Ts) + [mirrors[i] for i in alt])
-    D = np.minimum(2.0, np.maximum(dt / max_dist_m, dr / max_angle_rad))
+    D = gate_distances(list(Ts) + [mirrors[i] for i in alt], max_dist_m, max_angle_rad)
     near = D[:, :n].copy()
     for k, i in enumerate(alt):
         near[:, i] = np.minimum(near[:, i], D[:, n + k])
@@ -335,7 +337,7 @@ class MultiViewFusion:
         agree = bool(np.all((dt <= self.max_dist_m) & (dr <= self.max_angle_rad)))
         return far and agree
 
-    def _readings(self, e: QueuedEstimate, T_now_i: np.ndarray, mirrored: bool):
+    def _reading(self, e: QueuedEstimate, T_now_i: np.ndarray, mirrored: bool):
         """View ``e``'s reading in the current ECM frame (``T_now_i``: its ECM frame there), or
         its mirror image: (pose, covariance to weigh it by, covariance as stated)."""
         T, given = e.T_ecm_needle, e.covariance
@@ -343,20 +345,23 @@ class MultiViewFusion:
         if mirrored:
             def mirror(C):
                 return None if C is None else mirror_covariance(e.T_ecm_needle, C, self.needle, _centroid=self._centroid)
-            T, given, weigh = mirror_pose(T, self.needle, _centroid=self._centroid), mirror(given), mirror(weigh)
+            T, given, weigh = self._mirror(e), mirror(given), mirror(weigh)
         R = T_now_i[:3, :3]
         return (T_now_i @ T, None if weigh is None else covariance_to_frame(weigh, R),
                 None if given is None else covariance_to_frame(given, R))
 
+    def _mirror(self, e: QueuedEstimate) -> np.ndarray:
+        """``e``'s mirror image in its own ECM frame (``refine.mirror_pose``)."""
+        return mirror_pose(e.T_ecm_needle, self.needle, _centroid=self._centroid)
+
     def _fuse(self, T_world_ecm_now, reset: bool) -> FusedPose:
         T_now_world = inv_T(T_world_ecm_now)
         frames = [T_now_world @ e.T_world_ecm for e in self.queue]
-        readings = [self._readings(e, F, False) for e, F in zip(self.queue, frames)]
-        mirrors = [self._readings(e, F, True) if e.ambiguous else None for e, F in zip(self.queue, frames)]
-        take = mirror_consensus([r[0] for r in readings], [None if m is None else m[0] for m in mirrors],
+        mirrors = [F @ self._mirror(e) if e.ambiguous else None for e, F in zip(self.queue, frames)]
+        take = mirror_consensus([F @ e.T_ecm_needle for e, F in zip(self.queue, frames)], mirrors,
                                 self.max_dist_m, self.max_angle_rad)
-        readings = [m if t else r for r, m, t in zip(readings, mirrors, take)]
-        Ts, covs, given = (list(x) for x in zip(*readings))
+        Ts, covs, given = (list(x) for x in zip(*(self._reading(e, F, t)
+                                                  for e, F, t in zip(self.queue, frames, take))))
         T, inl, cov = fuse_poses(Ts, covs if self.use_covariance else None,
                                  self.max_dist_m, self.max_angle_rad)
         z = np.array([0.0 if e.end_identity is None else logit(e.end_identity) for e in self.queue])
