@@ -88,6 +88,12 @@ def _share(v) -> float:
     return x
 
 
+def _arc_samples(v) -> np.ndarray:
+    if not isinstance(v, (list, tuple)) or len(v) < 2 or not all(isinstance(b, bool) for b in v):
+        raise _Bad(f"expected a list of at least 2 booleans, got {v!r}"[:120])
+    return np.array(v, dtype=bool)
+
+
 def _flag(v) -> bool:
     if not isinstance(v, bool):
         raise _Bad(f"expected true or false, got {v!r}"[:120])
@@ -117,7 +123,8 @@ class Frame:
 
     ``keypoints[c]`` (5, 2) px, ``visible[c]`` (5,) bool, ``bbox[c]`` [x0, y0, x1, y1] or None,
     ``instruments`` {name: ``common.data.instruments.InstrumentPose``}, ``arc_visible[c]`` the share
-    of the arc seen (needletrack's own field, docs/datasets.md), ``needle_at_rest`` False
+    of the arc seen and ``arc_seen[c]`` (N,) bool whether each of N points equally spaced along
+    the arc from A to E is seen (needletrack's own fields, docs/datasets.md), ``needle_at_rest`` False
     when the needle moves during its sequence (then the sequence is a take, not a multi-view
     group: ``multiview_group``). Optional fields are None when the file leaves them out or null.
     Each field of the file is declared once, here, with the parser of its value (``_line``).
@@ -138,6 +145,7 @@ class Frame:
     needle_at_rest: Optional[bool] = _line(_flag, None)
     instruments: Optional[dict] = _line(parse_instruments, None)
     arc_visible: Optional[dict] = _line(lambda v: _per_camera(v, _share), None, extension=True)
+    arc_seen: Optional[dict] = _line(lambda v: _per_camera(v, _arc_samples), None, extension=True)
     line: Optional[int] = field(default=None, compare=False)      # the line of frames.jsonl it was read from
 
     def image(self, camera: str) -> str:
@@ -183,6 +191,8 @@ class Frame:
             d["instruments"] = instruments_json(self.instruments)
         if self.arc_visible is not None:
             d["arc_visible"] = {c: float(self.arc_visible[c]) for c in CAMERAS}
+        if self.arc_seen is not None:
+            d["arc_seen"] = {c: [bool(b) for b in self.arc_seen[c]] for c in CAMERAS}
         return d
 
 

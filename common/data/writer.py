@@ -117,7 +117,7 @@ def link_or_copy(src: str, dst: str) -> None:
         shutil.copy2(src, dst)
 
 
-TRUTH_FIELDS = ("T_world_needle", "keypoints", "visible", "bbox")
+TRUTH_FIELDS = ("T_world_needle", "keypoints", "visible", "bbox", "arc_visible", "arc_seen")
 """The frame fields that come from the needle's true pose: a recording has none of them."""
 
 

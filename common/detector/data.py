@@ -126,10 +126,14 @@ def _arc_through(kp: np.ndarray) -> np.ndarray:
 
 
 def make_record(img: np.ndarray, kp, vis, arc, cfg: ModelConfig, rng: np.random.Generator,
-                frame: int = 0, camera: str = "left", bbox=None) -> ImageRecord:
+                frame: int = 0, camera: str = "left", bbox=None, arc_seen=None) -> ImageRecord:
     """ImageRecord of one BGR image and its ground truth (kp (5,2) or None, vis (5,),
-    arc (P,2) or None; full-image pixels). ``bbox`` [x0, y0, x1, y1]: the needle's box when no
-    keypoints give one (a record for distillation only, ``load_records(boxes_only=True)``)."""
+    arc (P,2) or None; full-image pixels). ``arc_seen`` (N,) bool: which of N points equally
+    spaced along the arc the render shows (the dataset's ``arc_seen``); without it an arc point
+    counts as seen when its nearest keypoint is. The needle is there (a box, a positive) when
+    ``PRESENT_ARC_SHARE`` of the arc is seen (without ``arc_seen``: two keypoints). ``bbox``
+    [x0, y0, x1, y1]: the needle's box when no keypoints give one (a record for distillation
+    only, ``load_records(boxes_only=True)``)."""
     h, w = img.shape[:2]
     ws, hs, _, _ = global_size(cfg, w, h)
     small = cv2.resize(img, (ws, hs), interpolation=cv2.INTER_AREA)
@@ -141,14 +145,17 @@ def make_record(img: np.ndarray, kp, vis, arc, cfg: ModelConfig, rng: np.random.
         arc = _arc_through(kp)
     if arc is not None:
         arc = np.asarray(arc, float).copy()
-        # an arc sample is visible when it lies in the image and its nearest keypoint is visible
-        near = np.clip(np.round(np.linspace(0, 4, len(arc))).astype(int), 0, 4)
-        ok = inside(arc) & vis[near]
-        arc[~ok] = np.nan
+        if arc_seen is not None:
+            seen = np.asarray(arc_seen, bool).reshape(-1)
+            seen = seen[np.round(np.linspace(0, len(seen) - 1, len(arc))).astype(int)]
+        else:   # an arc sample is seen when its nearest keypoint is
+            seen = vis[np.clip(np.round(np.linspace(0, 4, len(arc))).astype(int), 0, 4)]
+        arc[~(inside(arc) & seen)] = np.nan
     else:
         arc = np.full((ARC_SAMPLES, 2), np.nan)
     good = np.isfinite(arc).all(1)
-    if good.sum() >= 2 and vis.sum() >= 2:
+    present = vis.sum() >= 2 if arc_seen is None else _arc_present(good)
+    if good.sum() >= 2 and present:
         lo, hi = arc[good].min(0), arc[good].max(0)
         box = np.array([(lo[0] + hi[0]) / 2, (lo[1] + hi[1]) / 2, hi[0] - lo[0] + 4, hi[1] - lo[1] + 4])
     elif bbox is not None and np.isfinite(np.asarray(bbox, float)).all():
@@ -179,6 +186,18 @@ def make_record(img: np.ndarray, kp, vis, arc, cfg: ModelConfig, rng: np.random.
     neg, neg_origin = _cut(img, nx0, ny0, nside)
     return ImageRecord(small, region, origin, neg, neg_origin, kp, vis, arc.astype(np.float32),
                        box, (w, h), frame, camera)
+
+
+PRESENT_ARC_SHARE = 0.1
+"""The share of the arc that must be seen for a needle to be there (a positive sample): less is
+"no needle" (issue 34: under 10% seen, "no needle" or only unsure keypoints)."""
+
+
+def _arc_present(seen: np.ndarray) -> bool:
+    """Whether the seen arc samples (bool, over the whole arc) make a needle: PRESENT_ARC_SHARE
+    of them, and at least two."""
+    n = int(np.count_nonzero(seen))
+    return n >= 2 and n >= PRESENT_ARC_SHARE * len(seen)
 
 
 def _cut(img, x0, y0, side):
@@ -230,8 +249,9 @@ def load_records(folder, cfg: ModelConfig, seed: int = 0, max_frames: int | None
             if kps is not None and viss is None:
                 viss = [True] * 5
             arc = _arc_pixels(rig, needle, cam, fr)
+            seen = (fr.get("arc_seen") or {}).get(cam)
             try:
-                out.append(make_record(img, kps, viss, arc, cfg, rng, int(fr["index"]), cam))
+                out.append(make_record(img, kps, viss, arc, cfg, rng, int(fr["index"]), cam, arc_seen=seen))
             except (ValueError, TypeError) as exc:
                 raise DatasetError(f"{folder / 'frames.jsonl'}:{fr['_line']}: field 'keypoints'/"
                                    f"'visible' of {cam}: {exc}") from None
@@ -408,8 +428,13 @@ def crop_sample(rec: ImageRecord, cfg: ModelConfig, aug: AugConfig | None, rng: 
     good = np.isfinite(rec.arc).all(1)
     arc_cells = None
     if good.sum() >= 2:
-        arc_cells = (apply_affine(M, rec.arc[good]) - (s - 1) / 2.0) / s
-    presence = 1.0 if (valid >= 1.0).sum() >= 2 else 0.0
+        # the unseen samples stay NaN: the centreline target breaks there (centreline_target)
+        arc_cells = (apply_affine(M, np.nan_to_num(rec.arc, nan=0.0)) - (s - 1) / 2.0) / s
+        arc_cells[~good] = np.nan
+    in_crop_arc = good.copy()
+    if arc_cells is not None:
+        in_crop_arc &= (arc_cells >= -0.5).all(1) & (arc_cells <= c / s - 0.5).all(1)
+    presence = 1.0 if (valid >= 1.0).sum() >= 2 or _arc_present(in_crop_arc) else 0.0
     return img, kp_cells.astype(np.float32), valid.astype(np.float32), arc_cells, presence
 
 

@@ -277,18 +277,25 @@ def keypoint_loss(logits: torch.Tensor, targets: torch.Tensor) -> torch.Tensor:
 def centreline_target(polys_cells: list, m: int, sigma: float) -> torch.Tensor:
     """(N, m, m) ridge targets exp(-d^2 / 2 sigma^2), d = distance (cells) to each polyline.
 
-    ``polys_cells``: per sample an (P, 2) float array of the visible projected arc in cell
-    coordinates, or None for no needle. Computed with OpenCV's distance transform on a 2x
-    supersampled raster of the polyline."""
+    ``polys_cells``: per sample an (P, 2) float array of the projected arc in cell coordinates,
+    NaN rows where it is not seen (the ridge breaks there: no chord across a jaw), or None for no
+    needle. Computed with OpenCV's distance transform on a 2x supersampled raster of the
+    polyline's seen runs."""
     import cv2
     ss = 2
     out = np.zeros((len(polys_cells), m, m), np.float32)
     for i, poly in enumerate(polys_cells):
-        if poly is None or len(poly) < 2:
+        if poly is None:
+            continue
+        poly = np.asarray(poly, float)
+        ok = np.isfinite(poly).all(1)
+        runs = [r for r in np.split(np.arange(len(poly)), np.flatnonzero(np.diff(ok.astype(int))) + 1)
+                if ok[r[0]] and len(r) >= 2]
+        if not runs:
             continue
         canvas = np.full((m * ss, m * ss), 255, np.uint8)
-        pts = np.round((np.asarray(poly) + 0.5) * ss - 0.5).astype(np.int32)
-        cv2.polylines(canvas, [pts.reshape(-1, 1, 2)], False, 0, 1, cv2.LINE_8)
+        pts = [np.round((poly[r] + 0.5) * ss - 0.5).astype(np.int32).reshape(-1, 1, 2) for r in runs]
+        cv2.polylines(canvas, pts, False, 0, 1, cv2.LINE_8)
         d = cv2.distanceTransform(canvas, cv2.DIST_L2, 5) / ss
         d = cv2.resize(d, (m, m), interpolation=cv2.INTER_AREA)
         out[i] = np.exp(-0.5 * (d / sigma) ** 2)

@@ -280,6 +280,7 @@ def prepare_records(data_dirs, out: Path, mcfg: ModelConfig, seed: int, progress
         return [str(Path(d).resolve()), f.stat().st_size if f.is_file() else -1,
                 f.stat().st_mtime_ns if f.is_file() else -1]
     key = json.dumps({"data": [stamp(d) for d in data_dirs], "downscale": mcfg.global_downscale, "stage1_scale": "width",
+                      "targets": "arc_seen",
                       "seed": seed})
     cache_dir = Path(tempfile.gettempdir()) / "needletrack-keypoint-cache"
     cache_dir.mkdir(parents=True, exist_ok=True)

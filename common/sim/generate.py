@@ -92,7 +92,7 @@ def render_sequence(renderer, cfg: GenerateConfig, sequence: int) -> list[tuple[
         fields = {"sequence": sequence, "step": step, "ecm_joints": np.asarray(q, float),
                   "T_world_ecm": T_world_ecm, "T_world_needle": plan.spec.T_world_needle,
                   "keypoints": gt["keypoints"], "visible": gt["visible"], "bbox": gt["bbox"],
-                  "arc_visible": gt["arc_visible"]}
+                  "arc_visible": gt["arc_visible"], "arc_seen": gt["arc_seen"]}
         out.append((images, fields, quality))
     return out
 

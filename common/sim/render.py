@@ -270,29 +270,30 @@ def _seen(uv: np.ndarray, z: np.ndarray, inside: np.ndarray, render, wire_radius
 
 def frame_ground_truth(rig: StereoRig, needle, T_world_needle, T_world_ecm, renders,
                        wire_radius_m: float) -> dict:
-    """keypoints / visible / bbox per camera from the exact projection and the renders, and
-    ``arc_visible``: the share of ``ARC_VISIBLE_SAMPLES`` points along the arc that are seen."""
+    """keypoints / visible / bbox per camera from the exact projection and the renders,
+    ``arc_seen``: whether each of ``ARC_VISIBLE_SAMPLES`` points along the arc (A..E, equally
+    spaced) is seen, and ``arc_visible``: their seen share."""
     p_cam = needle_keypoints_cam(rig, needle, T_world_needle, T_world_ecm)
     T_ecm_needle = inv_T(T_world_ecm) @ T_world_needle
     arc_ecm = transform_points(T_ecm_needle, needle.sample_arc(ARC_VISIBLE_SAMPLES))
-    kps, vis, boxes, arc_vis = {}, {}, {}, {}
+    kps, vis, boxes, arc_vis, arc_seen = {}, {}, {}, {}, {}
     for c in CAMERAS:
         cam = rig[c]
         uv = cam.project(p_cam[c])
         inside = cam.in_image(uv) & (p_cam[c][:, 2] > 0)
         r = renders.get(c)
         v = np.zeros(5, bool)
-        arc_vis[c] = 0.0
+        arc_seen[c] = np.zeros(ARC_VISIBLE_SAMPLES, bool)
         if r is not None:
             v = _seen(uv, p_cam[c][:, 2], inside, r, wire_radius_m)
             a_cam = transform_points(cam.T_cam_ecm, arc_ecm)
             a_uv = cam.project(a_cam)
             a_in = cam.in_image(a_uv) & (a_cam[:, 2] > 0)
-            arc_vis[c] = float(_seen(a_uv, a_cam[:, 2], a_in, r, wire_radius_m).mean())
+            arc_seen[c] = _seen(a_uv, a_cam[:, 2], a_in, r, wire_radius_m)
             ys, xs = np.nonzero(r.label == LABELS["needle"])
             boxes[c] = (None if len(xs) == 0 else
                         [float(xs.min()) - 0.5, float(ys.min()) - 0.5, float(xs.max()) + 0.5, float(ys.max()) + 0.5])
         else:
             boxes[c] = None
-        kps[c], vis[c] = uv, v
-    return {"keypoints": kps, "visible": vis, "bbox": boxes, "arc_visible": arc_vis}
+        kps[c], vis[c], arc_vis[c] = uv, v, float(arc_seen[c].mean())
+    return {"keypoints": kps, "visible": vis, "bbox": boxes, "arc_visible": arc_vis, "arc_seen": arc_seen}

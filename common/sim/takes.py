@@ -108,5 +108,5 @@ def render_take(renderer, plan: TakePlan, arm: EcmArm, degrade=None, every: int 
             images = degrade(images)
         yield images, {"step": step, "ecm_joints": np.asarray(q, float), "T_world_ecm": T_world_ecm,
                        "T_world_needle": fr.T_world_needle, "keypoints": gt["keypoints"], "visible": gt["visible"],
-                       "bbox": gt["bbox"], "arc_visible": gt["arc_visible"], "needle_at_rest": False,
+                       "bbox": gt["bbox"], "arc_visible": gt["arc_visible"], "arc_seen": gt["arc_seen"], "needle_at_rest": False,
                        "instruments": frame_instruments(fr)}

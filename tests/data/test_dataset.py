@@ -350,6 +350,11 @@ def test_the_docs_page_is_the_spec_and_lists_what_the_reader_parses():
     assert fr.arc_visible == {"left": 0.25, "right": 1.0} and fr.to_json()["arc_visible"] == fr.arc_visible
     with pytest.raises(DatasetError, match=r"frames.jsonl:3: arc_visible: right: expected a share in \[0, 1\], got 1\.5"):
         parse_frame({**GOOD, "arc_visible": {"left": 0.25, "right": 1.5}}, 3)
+    seen = {"left": [True, False, True], "right": [False, False, True]}
+    fr = parse_frame({**GOOD, "arc_seen": seen})
+    assert fr.arc_seen["left"].tolist() == seen["left"] and fr.to_json()["arc_seen"] == seen
+    with pytest.raises(DatasetError, match=r"frames.jsonl:4: arc_seen: left: expected a list of at least 2 booleans"):
+        parse_frame({**GOOD, "arc_seen": {"left": [1, 0], "right": [True, True]}}, 4)
 
 
 def test_a_generation_of_takes_of_their_own_lengths_resumes_after_the_last_whole_take(tmp_path):

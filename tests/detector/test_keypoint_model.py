@@ -52,6 +52,16 @@ def test_centreline_target_peaks_on_the_polyline():
     assert float(t[1].max()) == 0.0
 
 
+def test_centreline_target_breaks_where_the_arc_is_unseen():
+    # a jaw over the middle: the seen runs get a ridge, the chord across the gap none
+    poly = np.array([[4.0, 10.0], [8.0, 10.0], [np.nan, np.nan], [np.nan, np.nan], [20.0, 10.0], [26.0, 10.0]])
+    t = centreline_target([poly], 32, 1.0)[0]
+    assert float(t[10, 6]) > 0.9 and float(t[10, 23]) > 0.9
+    assert float(t[10, 14]) < 1e-3
+    lone = np.array([[4.0, 10.0], [np.nan, np.nan], [20.0, 10.0]])   # no run of two points
+    assert float(centreline_target([lone], 32, 1.0)[0].max()) == 0.0
+
+
 def test_crop_affine_round_trip_and_centre():
     M = crop_affine(500.0, 300.0, 100.0, 128, angle_rad=0.7, flip=True)
     p = np.array([[500.0, 300.0], [480.5, 333.25]])

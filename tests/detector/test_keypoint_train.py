@@ -14,6 +14,7 @@ from common.detector.data import (
     _global_window,
     crop_sample,
     load_records,
+    make_record,
     read_dataset,
 )
 from common.detector.synthetic import write_synthetic_dataset
@@ -57,6 +58,32 @@ def test_records_hold_consistent_ground_truth(tiny_data):
         assert np.allclose(kp_cells, apply_affine(M, r.kp), atol=1e-4)   # out_stride 1
     neg = crop_sample(recs[-1], cfg, AugConfig(), rng)
     assert neg[4] == 0.0 and not np.any(neg[2])
+
+
+def test_the_rendered_arc_visibility_sets_presence_box_and_centreline():
+    """A jaw over the arc: only E of the keypoints is seen, but 40% of the arc (the dataset's
+    ``arc_seen``) is; a positive whose box and centreline are that seen stretch. Under 10% seen
+    is "no needle". Without ``arc_seen``, a needle with one keypoint seen is no positive."""
+    cfg = ModelConfig.from_dict(TINY_MODEL)
+    rng = np.random.default_rng(0)
+    img = np.full((240, 320, 3), 90, np.uint8)
+    t = np.linspace(0, 4, 96)
+    arc = np.stack([100 + 30 * t, 120 + 4 * (t - 2) ** 2], 1)
+    kp = arc[[0, 24, 48, 71, 95]]
+    vis = [False, False, False, False, True]
+    seen = np.zeros(49, bool)
+    seen[29:] = True                                   # C..E's side, 20 of 49 points
+    r = make_record(img, kp, vis, arc, cfg, rng, arc_seen=seen)
+    assert r.has_needle
+    x0, x1 = r.box[0] - r.box[2] / 2, r.box[0] + r.box[2] / 2
+    assert x0 == pytest.approx(arc[np.isfinite(r.arc).all(1), 0].min() - 2) and x1 == pytest.approx(222, abs=0.5)
+    assert np.isnan(r.arc[:50]).all() and np.isfinite(r.arc[-38:]).all()
+    sample = crop_sample(r, cfg, None, rng)
+    assert sample[4] == 1.0 and np.isnan(sample[3]).any(axis=1).sum() == np.isnan(r.arc).any(axis=1).sum()
+    few = np.zeros(49, bool)
+    few[-3:] = True                                    # 6% of the arc
+    assert not make_record(img, kp, vis, arc, cfg, rng, arc_seen=few).has_needle
+    assert not make_record(img, kp, vis, arc, cfg, rng).has_needle
 
 
 def test_short_training_lowers_the_loss_and_resumes(tiny_data, tmp_path):

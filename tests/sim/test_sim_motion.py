@@ -200,7 +200,7 @@ def test_jaws_hide_what_they_cover(tmp_path):
 
 @pytest.mark.slow                 # renders a throw take first (about 7 s)
 def test_arc_visible_is_the_seen_share_of_the_arc_and_agrees_with_the_keypoints(throw_take):
-    """``arc_visible`` (needletrack's own field): a share in [0, 1]; all five keypoints hidden
+    """``arc_visible`` (needletrack's own field): a share in [0, 1], that of ``arc_seen``'s points; all five keypoints hidden
     means less than the whole arc seen, all five seen means more than none of it."""
     from common.data.dataset import Dataset
     frames = [json.loads(ln) for ln in (throw_take / "frames.jsonl").read_text().splitlines() if ln.strip()]
@@ -209,6 +209,7 @@ def test_arc_visible_is_the_seen_share_of_the_arc_and_agrees_with_the_keypoints(
         for cam in ("left", "right"):
             a, v = f["arc_visible"][cam], f["visible"][cam]
             assert 0.0 <= a <= 1.0
+            assert len(f["arc_seen"][cam]) == 49 and a == pytest.approx(np.mean(f["arc_seen"][cam]))
             if not any(v):
                 assert a < 1.0
             if all(v):
