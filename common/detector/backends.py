@@ -53,8 +53,7 @@ class LearnedParams:
     centreline: bool = True
     subpixel: bool = True
     min_extent_px: float = 10.0
-    max_ellipse_px: float = 1.0                   # a detection's centreline: no ellipse farther is "no needle"
-    track_ellipse_px: float = 0.25                # a tracked crop's reading: farther, the needle is found anew, cold
+    max_ellipse_px: float = 0.25
     arc_bcd: bool = True
     along_arc: bool = False
     proposals: int = 3

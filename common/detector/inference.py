@@ -63,13 +63,8 @@ from common.runtime.messages import CameraImage, Keypoints, MessageError
 # 10 px at 40 cm with this endoscope (f ~ 790 px): keypoints closer together are a collapse.
 MIN_EXTENT_PX = 10.0
 # The perspective image of the needle's circle is an ellipse: the sub-pixel centreline of a
-# needle at rest lies within 0.1 px of one (median; standard test set), a held needle's (jaws
-# beside the wire, motion blur) 0.14 / 0.39 / 0.84 px (quartiles, read right), a pale thread's
-# 0.05-0.73 px, a bent thread's up to 2.7 px. A detection must lie within MAX_ELLIPSE_PX; a
-# reading of the tracked crop within TRACK_ELLIPSE_PX, else the needle is searched for anew, cold
-# (a wrong reading of the old crop is thrown out, not kept frame after frame).
-MAX_ELLIPSE_PX = 1.0
-TRACK_ELLIPSE_PX = 0.25
+# needle lies within 0.1 px of one (median; standard test set), a bent thread 0.3-2.7 px.
+MAX_ELLIPSE_PX = 0.25
 MIN_ELLIPSE_SHARE = 0.5      # of the centreline points on that ellipse (a jaw may bend the rest)
 MIN_ELLIPSE_POINTS = 8       # fewer (a needle mostly hidden) are not judged
 # The keypoints' 1-sigma error per image axis as a stereo fit should take it (stated in every
@@ -127,8 +122,7 @@ class KeypointDetector:
                  centreline: bool = True, arc_bcd: bool = True, along_arc: bool = False,
                  proposal_threshold: float = 0.2, proposals: int = 3, subpixel: bool = True,
                  min_extent_px: float = MIN_EXTENT_PX, max_ellipse_px: float = MAX_ELLIPSE_PX,
-                 track_ellipse_px: float = TRACK_ELLIPSE_PX, ridge_ends: bool = True,
-                 familiarity: bool = True):
+                 ridge_ends: bool = True, familiarity: bool = True):
         self.device = pick_device(device)
         if threads:
             torch.set_num_threads(int(threads))
@@ -148,7 +142,6 @@ class KeypointDetector:
         self.subpixel = bool(subpixel)
         self.min_extent_px = float(min_extent_px)
         self.max_ellipse_px = float(max_ellipse_px)
-        self.track_ellipse_px = float(track_ellipse_px)
         self.ridge_ends = bool(ridge_ends)
         self._track: dict[str, tuple] = {}
         self.last_mode = ""
@@ -304,14 +297,12 @@ class KeypointDetector:
             return 0.5
         return self.last_evidence.p_a_is_tip(self.end_coef)
 
-    def _not_an_ellipse(self, res, undistort=None, max_px: float | None = None) -> str | None:
-        """Why the sub-pixel centreline is not the image of a circle within ``max_px``
-        (``max_ellipse_px`` by default; None if it is, or when it cannot be judged: no sub-pixel
-        centreline, or fewer than MIN_ELLIPSE_POINTS stations). ``undistort`` (observed pixels
-        -> ideal pinhole pixels) first takes out the lens distortion, under which a circle's
-        image is no ellipse."""
-        max_px = self.max_ellipse_px if max_px is None else max_px
-        if not (max_px > 0 and res.get("centreline_sigma") is not None):
+    def _not_an_ellipse(self, res, undistort=None) -> str | None:
+        """Why the sub-pixel centreline is not the image of a circle (None if it is, or when it
+        cannot be judged: no sub-pixel centreline, or fewer than MIN_ELLIPSE_POINTS stations).
+        ``undistort`` (observed pixels -> ideal pinhole pixels) first takes out the lens
+        distortion, under which a circle's image is no ellipse."""
+        if not (self.max_ellipse_px > 0 and res.get("centreline_sigma") is not None):
             return None
         pts = res["centreline"][res["centreline_w"] > 0]
         pts = pts[np.isfinite(pts).all(axis=1)]
@@ -320,22 +311,10 @@ class KeypointDetector:
         if len(pts) < MIN_ELLIPSE_POINTS:
             return None
         med, share = ellipse_residual(pts)
-        if med <= max_px and share >= MIN_ELLIPSE_SHARE:
+        if med <= self.max_ellipse_px and share >= MIN_ELLIPSE_SHARE:
             return None
         return (f"centreline is not an ellipse arc (median {med:.2f} px from its best ellipse over "
-                f"{share:.0%} of it; max {max_px:g} px)")
-
-    def _reading_problem(self, res, img: np.ndarray, undistort, max_ellipse_px: float) -> str | None:
-        """Finish a reading in place (B..D on the arc, the centreline) and say why it is no needle:
-        keypoints collapsed, or a centreline that is no ellipse within ``max_ellipse_px``; None
-        if it is one."""
-        self._place_bcd(res)
-        extent = float(np.linalg.norm(res["uv"][:, None] - res["uv"][None], axis=2).max())
-        if not extent >= self.min_extent_px:
-            # a needle within ~40 cm spans >= 10 px in any view: the points collapsed on one spot
-            return f"keypoints collapsed ({extent:.1f} px apart < min_extent_px {self.min_extent_px:g})"
-        self._finish(res, img)
-        return self._not_an_ellipse(res, undistort, max_ellipse_px)
+                f"{share:.0%} of it; max_ellipse_px {self.max_ellipse_px:g})")
 
     # ------------------------------------------------------------ public
     @torch.inference_mode()
@@ -358,10 +337,8 @@ class KeypointDetector:
             self.last_mode = "tracking"
             conf = res["presence"]
             # a needle that moved in the image is cut by the old crop and its keypoints go wrong
-            # (the crop still shows enough needle to score high), and a reading off the old
-            # crop's needle is no ellipse within track_ellipse_px: then find it anew, cold
-            if (conf < self.threshold or _moved(box, self._box_of({"uv": res["uv"]}))
-                    or self._reading_problem(res, img, undistort, self.track_ellipse_px)):
+            # (the crop still shows enough needle to score high): then find it anew, cold
+            if conf < self.threshold or _moved(box, self._box_of({"uv": res["uv"]})):
                 res = None
         if res is None:
             self.last_mode = "cold"
@@ -388,10 +365,19 @@ class KeypointDetector:
                 return Keypoints.not_found(camera, seq, stamp_ns, self.name,
                                            f"no needle: confidence {conf:.2f} < {self.threshold:.2f} "
                                            f"(proposal {c1:.2f})", conf)
-            problem = self._reading_problem(res, img, undistort, self.max_ellipse_px)
-            if problem:
-                self.reset(camera)
-                return Keypoints.not_found(camera, seq, stamp_ns, self.name, f"no needle: {problem}", conf)
+        self._place_bcd(res)
+        extent = float(np.linalg.norm(res["uv"][:, None] - res["uv"][None], axis=2).max())
+        if not extent >= self.min_extent_px:
+            # a needle within ~40 cm spans >= 10 px in any view: the points collapsed on one spot
+            self.reset(camera)
+            return Keypoints.not_found(camera, seq, stamp_ns, self.name,
+                                       f"no needle: keypoints collapsed ({extent:.1f} px apart "
+                                       f"< min_extent_px {self.min_extent_px:g})", conf)
+        self._finish(res, img)
+        not_ellipse = self._not_an_ellipse(res, undistort)
+        if not_ellipse:
+            self.reset(camera)
+            return Keypoints.not_found(camera, seq, stamp_ns, self.name, f"no needle: {not_ellipse}", conf)
         # an end where something covers the wire is a cut, not the needle's end (cut_ends)
         res["scores"] = cut_end_scores(img, res["uv"], res["scores"], res["centreline"], res.get("on_arc"))
         self.last_evidence = self._end_evidence(res, img)

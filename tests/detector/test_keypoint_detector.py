@@ -90,20 +90,6 @@ def test_a_centreline_off_an_ellipse_is_no_needle(rendered):
     assert KeypointDetector(device="cpu", max_ellipse_px=0).detect(images["left"], "left").found
 
 
-def test_a_tracked_reading_off_an_ellipse_is_found_anew_cold_in_the_same_frame(rendered):
-    """The tracked crop's reading must lie within track_ellipse_px of an ellipse; else the
-    needle is searched for anew, cold, and judged against max_ellipse_px."""
-    images, _ = rendered
-    det = KeypointDetector(device="cpu", tracking=True, track_ellipse_px=1e-4)   # no reading is that exact
-    assert det.detect(images["left"], "left").found and det.last_mode == "cold"
-    again = det.detect(images["left"], "left")
-    assert again.found and det.last_mode == "cold"
-    loose = KeypointDetector(device="cpu", tracking=True)
-    loose.detect(images["left"], "left")
-    assert loose.detect(images["left"], "left").found and loose.last_mode == "tracking"
-    assert np.abs(again.uv - loose.detect(images["left"], "left").uv).max() < 2.0
-
-
 def test_collapsed_keypoints_are_no_needle(rendered):
     images, _ = rendered
     det = KeypointDetector(device="cpu", min_extent_px=5000)
