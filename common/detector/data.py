@@ -146,7 +146,9 @@ def make_record(img: np.ndarray, kp, vis, arc, cfg: ModelConfig, rng: np.random.
     if arc is not None:
         arc = np.asarray(arc, float).copy()
         if arc_seen is not None:
-            seen = np.asarray(arc_seen, bool).reshape(-1)
+            seen = np.asarray(arc_seen)
+            if seen.dtype != bool or seen.ndim != 1 or len(seen) < 2:
+                raise ValueError(f"arc_seen: expected a list of at least 2 booleans, got {arc_seen!r}"[:120])
             seen = seen[np.round(np.linspace(0, len(seen) - 1, len(arc))).astype(int)]
         else:   # an arc sample is seen when its nearest keypoint is
             seen = vis[np.clip(np.round(np.linspace(0, 4, len(arc))).astype(int), 0, 4)]
@@ -254,7 +256,7 @@ def load_records(folder, cfg: ModelConfig, seed: int = 0, max_frames: int | None
                 out.append(make_record(img, kps, viss, arc, cfg, rng, int(fr["index"]), cam, arc_seen=seen))
             except (ValueError, TypeError) as exc:
                 raise DatasetError(f"{folder / 'frames.jsonl'}:{fr['_line']}: field 'keypoints'/"
-                                   f"'visible' of {cam}: {exc}") from None
+                                   f"'visible'/'arc_seen' of {cam}: {exc}") from None
     return out
 
 

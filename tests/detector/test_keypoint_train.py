@@ -84,6 +84,8 @@ def test_the_rendered_arc_visibility_sets_presence_box_and_centreline():
     few[-3:] = True                                    # 6% of the arc
     assert not make_record(img, kp, vis, arc, cfg, rng, arc_seen=few).has_needle
     assert not make_record(img, kp, vis, arc, cfg, rng).has_needle
+    with pytest.raises(ValueError, match="arc_seen: expected a list of at least 2 booleans"):
+        make_record(img, kp, vis, arc, cfg, rng, arc_seen=[1, 0, 1])
 
 
 def test_short_training_lowers_the_loss_and_resumes(tiny_data, tmp_path):
