@@ -337,31 +337,31 @@ class MultiViewFusion:
         agree = bool(np.all((dt <= self.max_dist_m) & (dr <= self.max_angle_rad)))
         return far and agree
 
-    def _reading(self, e: QueuedEstimate, T_now_i: np.ndarray, mirrored: bool):
-        """View ``e``'s reading in the current ECM frame (``T_now_i``: its ECM frame there), or
-        its mirror image: (pose, covariance to weigh it by, covariance as stated)."""
+    def _reading(self, e: QueuedEstimate, T_now_i: np.ndarray, mirror: np.ndarray | None = None):
+        """View ``e``'s reading in the current ECM frame (``T_now_i``: its ECM frame there), or,
+        given ``mirror`` (its mirror image in its own ECM frame), that: (pose, covariance to
+        weigh it by, covariance as stated)."""
         T, given = e.T_ecm_needle, e.covariance
         weigh = None if given is None else without_common(self._as_read(e), e.common_sigma_m, e.common_sigma_rad)
-        if mirrored:
-            def mirror(C):
+        if mirror is not None:
+            def mirrored(C):
                 return None if C is None else mirror_covariance(e.T_ecm_needle, C, self.needle, _centroid=self._centroid)
-            T, given, weigh = self._mirror(e), mirror(given), mirror(weigh)
+            T, given, weigh = mirror, mirrored(given), mirrored(weigh)
         R = T_now_i[:3, :3]
         return (T_now_i @ T, None if weigh is None else covariance_to_frame(weigh, R),
                 None if given is None else covariance_to_frame(given, R))
 
-    def _mirror(self, e: QueuedEstimate) -> np.ndarray:
-        """``e``'s mirror image in its own ECM frame (``refine.mirror_pose``)."""
-        return mirror_pose(e.T_ecm_needle, self.needle, _centroid=self._centroid)
-
     def _fuse(self, T_world_ecm_now, reset: bool) -> FusedPose:
         T_now_world = inv_T(T_world_ecm_now)
         frames = [T_now_world @ e.T_world_ecm for e in self.queue]
-        mirrors = [F @ self._mirror(e) if e.ambiguous else None for e, F in zip(self.queue, frames)]
-        take = mirror_consensus([F @ e.T_ecm_needle for e, F in zip(self.queue, frames)], mirrors,
+        # an ambiguous view's mirror image (refine.mirror_pose), in its own ECM frame
+        own = [mirror_pose(e.T_ecm_needle, self.needle, _centroid=self._centroid) if e.ambiguous else None
+               for e in self.queue]
+        take = mirror_consensus([F @ e.T_ecm_needle for e, F in zip(self.queue, frames)],
+                                [None if M is None else F @ M for M, F in zip(own, frames)],
                                 self.max_dist_m, self.max_angle_rad)
-        Ts, covs, given = (list(x) for x in zip(*(self._reading(e, F, t)
-                                                  for e, F, t in zip(self.queue, frames, take))))
+        Ts, covs, given = (list(x) for x in zip(*(self._reading(e, F, M if t else None)
+                                                  for e, F, M, t in zip(self.queue, frames, own, take))))
         T, inl, cov = fuse_poses(Ts, covs if self.use_covariance else None,
                                  self.max_dist_m, self.max_angle_rad)
         z = np.array([0.0 if e.end_identity is None else logit(e.end_identity) for e in self.queue])
