@@ -20,7 +20,7 @@ def scene(rng, jaw=False, thread=False):
     cover = np.clip(HALF_WIDTH + 0.5 - d, 0.0, 1.0)[..., None]
     img = img * (1 - cover) + WIRE * cover
     e = CENTRE + RADIUS * np.array([np.cos(A1), np.sin(A1)])
-    t = np.array([np.sin(A1), -np.cos(A1)])                                # out of the wire at E
+    t = np.array([-np.sin(A1), np.cos(A1)])                                # out of the wire at E
     if jaw:
         c = e + 14.0 * t
         img[(np.abs(xx - c[0]) < 14) & (np.abs(yy - c[1]) < 14)] = JAW
@@ -42,6 +42,23 @@ def test_an_end_on_tissue_is_not_covered_and_one_under_a_jaw_is():
     assert beyond_end_covered(img, e, centreline()) < 0.2
     img, e = scene(rng, jaw=True)
     assert beyond_end_covered(img, e, centreline()) > 0.8
+
+
+def test_an_end_in_the_jaws_is_covered_though_the_jaws_lie_beside_it_too():
+    """A grasp: the jaws lie over the wire from a cut on, and beside the wire just before the cut,
+    so the image beside the end is no tissue; the tissue is then the one beside the whole wire."""
+    rng = np.random.default_rng(4)
+    img, _ = scene(rng)
+    cut = A1 - 0.3                                                       # the cut, 36 px before E
+    c = CENTRE + RADIUS * np.array([np.cos(cut), np.sin(cut)])
+    t = np.array([-np.sin(cut), np.cos(cut)])                            # out of the seen wire
+    yy, xx = np.mgrid[0:600, 0:600].astype(float)
+    s = (xx - c[0]) * t[0] + (yy - c[1]) * t[1]
+    off = -(xx - c[0]) * t[1] + (yy - c[1]) * t[0]
+    img[(s > -14) & (s < 30) & (np.abs(off) < 20)] = JAW.astype(np.uint8)
+    a = np.linspace(A0, cut, 50)
+    seen = CENTRE + RADIUS * np.stack([np.cos(a), np.sin(a)], 1)
+    assert beyond_end_covered(img, c, seen) > 0.8
 
 
 def test_a_thread_leaving_the_tail_does_not_cover_it():

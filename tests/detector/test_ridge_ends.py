@@ -87,12 +87,14 @@ def test_the_detector_moves_collapsed_ends_and_states_no_end_identity():
     assert det._p_a_is_tip({"ends_from_ridge": True}) == 0.5
 
 
-def test_a_point_the_arc_places_over_a_stretch_with_no_ridge_keeps_its_own_score():
+def test_a_point_the_arc_places_over_a_stretch_with_no_ridge_is_not_stated_sure():
     from common.detector.arc_fit import RIDGE_SEEN, ridge_seen, unseen_on_arc_scores
     line = np.full((32, 32), -8.0)
     line[10, 2:20] = 6.0                                   # a ridge along row 10, x 2..19
-    pts = np.array([[5.0, 10.0], [18.4, 10.6], [26.0, 10.0], [np.nan, 1.0]])
+    pts = np.array([[5.0, 10.0], [18.4, 10.4], [26.0, 10.0], [np.nan, 1.0], [12.0, 11.0]])
     seen = ridge_seen(line, pts)
     assert seen[0] > 0.99 and seen[1] > 0.99 and seen[2] < RIDGE_SEEN and seen[3] == 0.0
-    sc = unseen_on_arc_scores(np.full(4, 0.9), np.array([0.2, 0.2, 0.2, 0.1]), line, pts)
-    assert sc.tolist() == [0.9, 0.9, 0.2, 0.1]
+    assert seen[4] > 0.99 and ridge_seen(line, pts[4:], radius=0)[0] < RIDGE_SEEN   # beside the ridge
+    own = np.array([0.2, 0.2, 0.9, 0.1, 0.9])             # the heatmaps place hidden points surely too
+    sc = unseen_on_arc_scores(np.full(5, 0.9), own, line, pts)
+    assert sc[:2].tolist() == [0.9, 0.9] and np.all(sc[2:] < RIDGE_SEEN)
