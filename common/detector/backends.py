@@ -54,6 +54,7 @@ class LearnedParams:
     subpixel: bool = True
     min_extent_px: float = 10.0
     max_ellipse_px: float = 0.25
+    keypoints_only_ellipse_px: float = 1.5        # beyond max_ellipse_px: keypoints, no centreline
     arc_bcd: bool = True
     along_arc: bool = False
     proposals: int = 3

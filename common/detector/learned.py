@@ -18,6 +18,7 @@ class LearnedBackend(KeypointBackend):
     ``refine`` (true), ``centreline`` (true), ``subpixel`` (true: the centreline refined in the
     full-resolution image), ``min_extent_px`` (10: keypoints closer together are "no needle"),
     ``max_ellipse_px`` (0.25: a sub-pixel centreline farther from one ellipse is "no needle"; 0: off),
+    ``keypoints_only_ellipse_px`` (1.5: up to this far, the keypoints are stated without the centreline),
     ``arc_bcd`` (true), ``along_arc`` (false), ``proposals`` (stage-1 proposals tried, 3),
     ``proposal_threshold`` (0.2), ``ridge_ends`` (true: A and E from the centreline's ends when their heatmaps collapse on one)."""
 
@@ -32,7 +33,8 @@ class LearnedBackend(KeypointBackend):
                 p.weights, device=p.device, threshold=p.threshold, tracking=p.tracking, threads=p.threads,
                 refine=p.refine, centreline=p.centreline, arc_bcd=p.arc_bcd, along_arc=p.along_arc,
                 proposals=p.proposals, proposal_threshold=p.proposal_threshold, subpixel=p.subpixel,
-                min_extent_px=p.min_extent_px, max_ellipse_px=p.max_ellipse_px, ridge_ends=p.ridge_ends)
+                min_extent_px=p.min_extent_px, max_ellipse_px=p.max_ellipse_px,
+                keypoints_only_ellipse_px=p.keypoints_only_ellipse_px, ridge_ends=p.ridge_ends)
         except (ModelFileError, ValueError, TypeError) as exc:
             raise BackendError(f"learned backend: {exc}") from exc
 

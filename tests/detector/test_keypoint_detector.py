@@ -84,10 +84,23 @@ def test_centreline_is_sub_pixel_in_the_full_resolution_image(rendered_frames):
 
 def test_a_centreline_off_an_ellipse_is_no_needle(rendered):
     images, _ = rendered
-    strict = KeypointDetector(device="cpu", max_ellipse_px=1e-4)   # no centreline is that exact
+    # no centreline is that exact
+    strict = KeypointDetector(device="cpu", max_ellipse_px=1e-4, keypoints_only_ellipse_px=1e-4)
     kp = strict.detect(images["left"], "left")
     assert not kp.found and "not an ellipse arc" in kp.reason and np.isnan(kp.uv).all()
     assert KeypointDetector(device="cpu", max_ellipse_px=0).detect(images["left"], "left").found
+
+
+def test_a_centreline_near_an_ellipse_gives_the_keypoints_alone_and_no_track(rendered):
+    images, _ = rendered
+    exact = KeypointDetector(device="cpu")
+    full = exact.detect(images["left"], "left")
+    assert full.found and full.centreline is not None and "left" in exact._track
+    near = KeypointDetector(device="cpu", max_ellipse_px=1e-4)      # within 1.5 px, not 1e-4
+    kp = near.detect(images["left"], "left")
+    assert kp.found and kp.centreline is None and kp.centreline_sigma_px is None
+    np.testing.assert_allclose(kp.uv, full.uv)
+    assert not near._track                                           # the next frame is found cold
 
 
 def test_collapsed_keypoints_are_no_needle(rendered):
