@@ -14,7 +14,9 @@ image beside the end is the jaw, and past the end the same jaw. Then (fewer than
 the tissue is taken from beside the whole wire.
 
 A thread leaving the tail is thin, a fraction of the samples; the tip in tissue shows tissue
-past it, so this does not see that cut. Pixels: integer coordinates are pixel centres.
+past it, so this does not see that cut. What does: a real tip narrows over a few pixels, a wire
+cut by the tissue's surface ends at its full width (``blunt_tip_scores``). Pixels: integer
+coordinates are pixel centres.
 """
 from __future__ import annotations
 
@@ -127,4 +129,23 @@ def cut_end_scores(image: np.ndarray, uv: np.ndarray, scores: np.ndarray, centre
     if cut and on_arc is not None:
         placed = np.asarray(on_arc, bool)
         out[placed] = np.minimum(out[placed], min(out[0], out[4]))
+    return out
+
+
+TIP_RISE_PX = 2.5
+"""The wire's mass rises to its plateau over at least this many pixels at a real tip
+(``common.detector.end_identity.shape_evidence``'s rise at A). Held needles, 4 moving takes: of
+the detections whose one sure keypoint is A, A 8 px or more off (the tip in tissue, read at the
+entry) rises within it in 71 of 95, A within 3 px in 27 of 281."""
+
+
+def blunt_tip_scores(scores: np.ndarray, rise_a: float, gate: float = 0.5) -> np.ndarray:
+    """``scores`` (5,) with A's no surer than ``gate * rise_a / TIP_RISE_PX`` when A is the only
+    keypoint at or above ``gate`` (the pose nodes' default ``min_score``) and the wire reaches its
+    full mass within ``TIP_RISE_PX`` of A (``rise_a``, px; NaN: not measured, no change): a lone
+    tip that does not taper is where the tissue's surface cuts the wire, not the tip."""
+    out = np.asarray(scores, float).copy()
+    if not np.isfinite(rise_a) or rise_a >= TIP_RISE_PX or out[0] < gate or (out[1:] >= gate).any():
+        return out
+    out[0] = min(out[0], gate * max(float(rise_a), 0.0) / TIP_RISE_PX)
     return out

@@ -41,7 +41,7 @@ from common.detector.arc_fit import (
     refine_along_arc,
     unseen_on_arc_scores,
 )
-from common.detector.cut_ends import cut_end_scores
+from common.detector.cut_ends import blunt_tip_scores, cut_end_scores
 from common.detector.end_identity import EndEvidence, network_evidence, polyline_length, shape_evidence
 from common.detector.model import (
     CropWithFeatures,
@@ -392,6 +392,7 @@ class KeypointDetector:
         # an end where something covers the wire is a cut, not the needle's end (cut_ends)
         res["scores"] = cut_end_scores(img, res["uv"], res["scores"], res["centreline"], res.get("on_arc"))
         self.last_evidence = self._end_evidence(res, img)
+        res["scores"] = blunt_tip_scores(res["scores"], self.last_evidence.r_a)
         self.last_descriptor = res["feat"]
         cx, cy, bw, bh = self._box_of(res)
         if keypoints_only:

@@ -78,3 +78,14 @@ def test_a_cut_end_and_the_points_placed_through_it_lose_their_score():
     free, _ = scene(np.random.default_rng(3))                            # both ends on tissue
     assert np.array_equal(cut_end_scores(free, uv, scores, cl, on_arc=[False, True, True, True, False]), scores)
     assert np.isnan(beyond_end_covered(img, e, cl[:4]))                  # too short to judge
+
+
+def test_a_lone_sure_tip_that_does_not_taper_is_not_sure():
+    from common.detector.cut_ends import TIP_RISE_PX, blunt_tip_scores
+    lone = np.array([0.8, 0.3, 0.2, 0.2, 0.4])
+    out = blunt_tip_scores(lone, 1.0)                                    # full width within 1 px
+    assert out[0] < 0.5 and np.array_equal(out[1:], lone[1:])
+    assert np.array_equal(blunt_tip_scores(lone, TIP_RISE_PX + 1.0), lone)   # it narrows: a tip
+    assert np.array_equal(blunt_tip_scores(lone, float("nan")), lone)        # not measured
+    confirmed = np.array([0.8, 0.7, 0.2, 0.2, 0.4])                      # another sure point
+    assert np.array_equal(blunt_tip_scores(confirmed, 1.0), confirmed)
