@@ -175,7 +175,8 @@ class RefineNode(StereoPoseNode):
         if not any(o.centreline is not None and len(o.centreline) for o in obs.values()):
             self.count("keypoints_only")
         try:
-            res = self.tracker.refine(uv, sc, obs, left.stamp_ns, self.support_normal_ecm(left.seq))
+            res = self.tracker.refine(uv, sc, obs, left.stamp_ns, self.support_normal_ecm(left.seq),
+                                      expected=self.expected_T_ecm_needle(left.seq))
         except NoPose as exc:
             self.no_pose(exc.reason, left, exc.detail)
             return

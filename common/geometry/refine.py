@@ -130,6 +130,11 @@ class RefineConfig:
     distinct_deg: PositiveNumber = 2.0
     edge_on_deg: float = 10.0       # arc plane within this angle of the line of sight -> ambiguous
     edge_on_chi2: PositiveNumber = 100.0     # and then competitors costing < this many variances more count
+    # Of an ambiguous frame's minima (within ambiguity_chi2, edge_on_chi2 edge-on), the one alone
+    # within these of the needle's expected pose (its last pose seen from this frame's endoscope
+    # pose: the other views of a multi-view group, the previous frame of a video) is the pose
+    expected_mm: PositiveNumber = 3.0
+    expected_deg: PositiveNumber = 10.0
     min_depth_m: float = 1e-3       # every point must be this far in front of both cameras
     max_depth_m: PositiveNumber = 2.0        # and the needle nearer than this (a PnP start may run off)
     min_sigma_ratio: PositiveNumber = 0.25   # the covariance assumes at least this fraction of the sigmas
@@ -296,8 +301,11 @@ class DenseRefiner:
 
     def refine(self, observations: Mapping[str, ArcObservation],
                candidates: Sequence[np.ndarray], mirrors: bool | None = None,
-               support_normal: np.ndarray | None = None) -> RefineResult:
-        """See ``refine_pose``; ``mirrors`` overrides ``config.add_mirrors`` for this call."""
+               support_normal: np.ndarray | None = None,
+               expected: np.ndarray | None = None) -> RefineResult:
+        """See ``refine_pose``; ``mirrors`` overrides ``config.add_mirrors`` for this call;
+        ``expected`` (4x4 ``T_ecm_needle`` or None) picks between near-equal minima
+        (``RefineConfig.expected_mm``)."""
         cfg, st = self.config, self._static
         cands = [np.asarray(T, float) for T in candidates
                  if T is not None and np.shape(T) == (4, 4) and np.all(np.isfinite(T))]
@@ -325,7 +333,7 @@ class DenseRefiner:
         s = _lm(prob, s.take(keep), cfg, cfg.max_iter - cfg.coarse_iter)
         log_prior = None if support_normal is None else resting_log_prior(
             s.R, support_normal, cfg.rest_prior, math.radians(cfg.rest_sigma_deg))
-        return _result(prob, s, cfg, log_prior)
+        return _result(prob, s, cfg, log_prior, expected)
 
 
 def refine_pose(rig: StereoRig, needle: NeedleModel, observations: Mapping[str, ArcObservation],
@@ -372,9 +380,27 @@ def _residual_variance(prob: _Problem, r, wr, cfg: RefineConfig) -> float:
     return max(float((wr * r ** 2).sum() / max(prob.n_res - 6, 1)), cfg.min_sigma_ratio ** 2)
 
 
-def _result(prob: _Problem, s, cfg: RefineConfig, log_prior=None) -> RefineResult:
+def _expected_minimum(prob: _Problem, s, order: np.ndarray, s2: float, cfg: RefineConfig,
+                      expected: np.ndarray) -> int:
+    """Position in ``order`` of the one minimum near-equal to the best (within ambiguity_chi2
+    residual variances, edge_on_chi2 when the best is seen edge-on) that lies within
+    expected_mm / expected_deg of ``expected``; 0 (the best) when none or several distinct ones do."""
+    b = order[0]
+    full = cfg.edge_on_chi2 if _view_angle_deg(prob, make_T(s.R[b], s.t[b])) < cfg.edge_on_deg else cfg.ambiguity_chi2
+    hits = [i for i, j in enumerate(order) if abs(s.cost[j] - s.cost[b]) / s2 < full
+            and _near_any(make_T(s.R[j], s.t[j]), [expected], cfg.expected_mm, cfg.expected_deg)]
+    if not hits:
+        return 0
+    first = make_T(s.R[order[hits[0]]], s.t[order[hits[0]]])
+    same = all(_near_any(make_T(s.R[order[i]], s.t[order[i]]), [first], cfg.distinct_mm, cfg.distinct_deg)
+               for i in hits)
+    return hits[0] if same else 0
+
+
+def _result(prob: _Problem, s, cfg: RefineConfig, log_prior=None, expected=None) -> RefineResult:
     """The best minimum: the lowest cost, or with ``log_prior`` (K,) the lowest cost in residual
-    variances less twice the log prior. Competitors, the ambiguity and the covariance's
+    variances less twice the log prior; then, with ``expected`` (4x4), the near-equal minimum
+    alone near it (``_expected_minimum``). Competitors, the ambiguity and the covariance's
     inflation are judged on the costs alone."""
     order = np.argsort(s.cost)
     order = order[np.isfinite(s.cost[order])]
@@ -383,6 +409,13 @@ def _result(prob: _Problem, s, cfg: RefineConfig, log_prior=None) -> RefineResul
     _, wr = prob.robust(r)
     s2 = _residual_variance(prob, r, wr, cfg)
     k = 0 if log_prior is None else int(np.argmin(s.cost[order] / s2 - 2.0 * np.asarray(log_prior)[order]))
+    if k:
+        order = np.concatenate([order[k:k + 1], np.delete(order, k)])
+        b = order[0]
+        r = s.r[b]
+        _, wr = prob.robust(r)
+        s2 = _residual_variance(prob, r, wr, cfg)
+    k = 0 if expected is None else _expected_minimum(prob, s, order, s2, cfg, np.asarray(expected, float))
     if k:
         order = np.concatenate([order[k:k + 1], np.delete(order, k)])
         b = order[0]

@@ -99,10 +99,11 @@ class TrackingRefiner:
 
     def refine(self, uv: Mapping[str, np.ndarray], scores: Mapping[str, np.ndarray],
                observations: Mapping[str, ArcObservation], stamp_ns: int,
-               support_normal: Optional[np.ndarray] = None) -> RefineResult:
+               support_normal: Optional[np.ndarray] = None,
+               expected: Optional[np.ndarray] = None) -> RefineResult:
         """The refined pose of one stereo frame (keypoints ``uv``/``scores`` per camera for the
         PnP starts, ``observations`` for the fit) taken at ``stamp_ns`` (ns); ``support_normal``
-        as in ``DenseRefiner.refine``."""
+        and ``expected`` as in ``DenseRefiner.refine``."""
         cfg = self.config
         res = None
         if (cfg.enabled and self._prev is not None and self._warm_run < cfg.cold_every
@@ -115,13 +116,13 @@ class TrackingRefiner:
                 if unsure:    # the cold path's competitors: mirrors and the end-for-end turns
                     starts = [T for T, _ in prev.candidates]
                     starts += [tip_for_tail(T, self.refiner.needle) for T in starts]
-                    res = self.refiner.refine(observations, starts, support_normal=support_normal)
+                    res = self.refiner.refine(observations, starts, support_normal=support_normal, expected=expected)
                 elif near:
                     res = self.refiner.refine(observations, [T for T, _ in prev.candidates],
-                                              support_normal=support_normal)
+                                              support_normal=support_normal, expected=expected)
                 else:   # cheaper than the candidates and mirrors (needletrack bench refine times both)
                     res = self.refiner.refine(observations, [prev.T_ecm_needle], mirrors=False,
-                                              support_normal=support_normal)
+                                              support_normal=support_normal, expected=expected)
             except ValueError:
                 res = None
             if res is not None and not res.rms_px <= cfg.max_rms_growth * self._cold_rms + cfg.rms_slack_px:
@@ -131,7 +132,7 @@ class TrackingRefiner:
         self.last_warm = res is not None
         if res is None:
             self._prev = None                      # a cold frame that raises leaves no start behind
-            res = self._cold(uv, scores, observations, support_normal)
+            res = self._cold(uv, scores, observations, support_normal, expected)
             self._cold_rms, self._warm_run = res.rms_px, 0
         else:
             self._warm_run += 1
@@ -150,7 +151,7 @@ class TrackingRefiner:
         """Whether ``T_ecm_needle`` reprojects the usable keypoints within ``max_start_px``."""
         return self._reprojects(uv, scores, T_ecm_needle)
 
-    def _cold(self, uv, scores, observations, support_normal) -> RefineResult:
+    def _cold(self, uv, scores, observations, support_normal, expected=None) -> RefineResult:
         """A frame refined from the PnP's minima, or from unsure keypoints (module docstring)."""
         rig, cfg = self.refiner.rig, self.config
         try:
@@ -159,14 +160,14 @@ class TrackingRefiner:
             if not (cfg.unsure_starts and exc.reason == "too_few_points"):
                 raise
             starts = unsure_starts(uv, rig, self.model_points, scores, outlier_px=self.outlier_px)
-            res = self.refiner.refine(observations, starts, support_normal=support_normal)
+            res = self.refiner.refine(observations, starts, support_normal=support_normal, expected=expected)
             if not self._sure_enough(res):
                 why = (", ".join(res.reasons) if res.ambiguous
                        else f"RMS {res.rms_px:.2f} px > unsure_max_rms_px {cfg.unsure_max_rms_px:g}")
                 raise NoPose("unsure_keypoints", f"fewer than {MIN_POINTS} sure keypoints and the fit "
                              f"without them is not sure ({why})") from None
             return res
-        return self.refiner.refine(observations, starts, support_normal=support_normal)
+        return self.refiner.refine(observations, starts, support_normal=support_normal, expected=expected)
 
     def _sure_enough(self, res: RefineResult) -> bool:
         """Whether a fit without 4 sure keypoints may stand: unambiguous, within the RMS bound."""

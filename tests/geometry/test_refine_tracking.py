@@ -102,9 +102,9 @@ def test_a_warm_frame_leaves_out_the_mirror_only_when_it_was_far_worse(refiner):
     calls = []
     real = refiner.refine
 
-    def spy(obs, cands, mirrors=None, support_normal=None):
+    def spy(obs, cands, mirrors=None, support_normal=None, expected=None):
         calls.append((len(cands), mirrors))
-        return real(obs, cands, mirrors, support_normal)
+        return real(obs, cands, mirrors, support_normal, expected)
 
     refiner.refine = spy
     frames = video(3, seed=4)

@@ -94,3 +94,40 @@ def test_prior_does_not_overrule_clear_images():
         assert np.allclose(out.T_ecm_needle, res.T_ecm_needle)
         checked += 1
     assert checked >= 3
+
+
+def test_the_expected_pose_picks_between_near_equal_minima_only():
+    """The needle's expected pose (its pose in the other views of a multi-view group, or the
+    previous frame) chooses the near-equal minimum near it; the view stays ambiguous."""
+    frames = _ambiguous_frames(2, seed=21)
+    assert len(frames) == 2
+    for obs, starts, res in frames:
+        (T_a, _), (T_b, _) = res.candidates[:2]
+        for want in (T_a, T_b):
+            moved = want.copy()
+            moved[:3, 3] += 1e-3                                      # 1 mm off, within expected_mm
+            out = REFINER.refine(obs, starts, expected=moved)
+            assert errors_mm_deg(out.T_ecm_needle, want)[1] < 0.5
+            assert out.ambiguous and "competing_candidates" in out.reasons
+        far = T_a.copy()
+        far[:3, 3] += 0.05                                            # 50 mm off: near neither
+        out = REFINER.refine(obs, starts, expected=far)
+        assert np.allclose(out.T_ecm_needle, res.T_ecm_needle)
+
+
+def test_the_expected_pose_does_not_overrule_clear_images():
+    rng = np.random.default_rng(5)
+    checked = 0
+    for _ in range(20):
+        T = random_pose(rng)
+        obs = observe(T, rng, kp_px=0.5, curve_px=0.25)
+        starts = joint_candidates(obs)[1]
+        res = REFINER.refine(obs, starts)
+        # edge-on, a competitor within edge_on_chi2 is near-equal (the covariance spans it)
+        clear = REFINER.config.edge_on_chi2 if "edge_on" in res.reasons else 50.0
+        if len(res.candidates) < 2 or res.competitor_chi2 < clear:
+            continue
+        out = REFINER.refine(obs, starts, expected=res.candidates[1][0])
+        assert np.allclose(out.T_ecm_needle, res.T_ecm_needle)
+        checked += 1
+    assert checked >= 3
