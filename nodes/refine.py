@@ -125,6 +125,7 @@ class RefineNode(StereoPoseNode):
         self.tracker: TrackingRefiner | None = None
         self._track: tuple[float, float] | None = None   # the tracked needle's end identity (track_identity)
         self._T_world_needle: np.ndarray | None = None    # the tracked needle's last pose in world
+        self._T_world_needle_sure: np.ndarray | None = None   # ... its last one not flagged
 
     def on_calib(self, msg: Calibration):
         changed = self.calib is None or msg.cameras != self.calib.cameras or msg.needle != self.calib.needle
@@ -139,7 +140,7 @@ class RefineNode(StereoPoseNode):
         if self.tracker is not None:
             self.tracker.reset()          # the last pose is of the old stream
         self._track = None
-        self._T_world_needle = None
+        self._T_world_needle = self._T_world_needle_sure = None
 
     def settle_end_identity(self, left: Keypoints, right: Keypoints) -> tuple[Keypoints, Keypoints]:
         """The frame's end identity read against the tracked needle's (``end_identity.settle``
@@ -176,7 +177,7 @@ class RefineNode(StereoPoseNode):
             self.count("keypoints_only")
         try:
             res = self.tracker.refine(uv, sc, obs, left.stamp_ns, self.support_normal_ecm(left.seq),
-                                      expected=self.expected_T_ecm_needle(left.seq))
+                                      expected=self.expected_T_ecm_needle(left.seq, sure=True))
         except NoPose as exc:
             self.no_pose(exc.reason, left, exc.detail)
             return
@@ -218,15 +219,19 @@ class RefineNode(StereoPoseNode):
                                  model_sigma_m=self.config.model_sigma_mm * 1e-3 or None,
                                  model_sigma_rad=math.radians(self.config.model_sigma_deg) or None)
         self._T_world_needle = pose.T_world_needle    # None until the frame's ECM pose is known
+        if not pose.ambiguous and pose.T_world_needle is not None:
+            self._T_world_needle_sure = pose.T_world_needle
         self.publish_pose(pose)
 
-    def expected_T_ecm_needle(self, seq: int) -> np.ndarray | None:
+    def expected_T_ecm_needle(self, seq: int, sure: bool = False) -> np.ndarray | None:
         """Where the tracked needle is in frame ``seq``'s ECM frame if it has not moved: its last
-        world pose seen from this frame's endoscope pose (None: either is unknown)."""
+        world pose (``sure``: its last one not flagged ``ambiguous``, which may pick between an
+        ambiguous frame's minima) seen from this frame's endoscope pose (None: either is unknown)."""
         T_world_ecm = self.ecm_poses.get(seq)
-        if self._T_world_needle is None or T_world_ecm is None:
+        T_world_needle = self._T_world_needle_sure if sure else self._T_world_needle
+        if T_world_needle is None or T_world_ecm is None:
             return None
-        return inv_T(T_world_ecm) @ self._T_world_needle
+        return inv_T(T_world_ecm) @ T_world_needle
 
     def support_normal_ecm(self, seq: int):
         """The support surface's normal in frame ``seq``'s ECM frame (None: not configured, or
