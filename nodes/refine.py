@@ -219,9 +219,9 @@ class RefineNode(StereoPoseNode):
                                  model_sigma_m=self.config.model_sigma_mm * 1e-3 or None,
                                  model_sigma_rad=math.radians(self.config.model_sigma_deg) or None)
         self._T_world_needle = pose.T_world_needle    # None until the frame's ECM pose is known
+        self.publish_pose(pose)                       # (which flags an unsure tip)
         if not pose.ambiguous and pose.T_world_needle is not None:
             self._T_world_needle_sure = pose.T_world_needle
-        self.publish_pose(pose)
 
     def expected_T_ecm_needle(self, seq: int, sure: bool = False) -> np.ndarray | None:
         """Where the tracked needle is in frame ``seq``'s ECM frame if it has not moved: its last
