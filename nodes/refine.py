@@ -64,7 +64,7 @@ from common.geometry.refine import (
     RefineError,
 )
 from common.geometry.refine_tracking import TrackingConfig, TrackingRefiner
-from common.geometry.transforms import inv_T
+from common.geometry.transforms import inv_T, pose_error
 from common.runtime.messages import Calibration, EcmPose, Keypoints
 from common.runtime.node import NodeError, run
 from common.runtime.params import merge_schemas
@@ -125,7 +125,7 @@ class RefineNode(StereoPoseNode):
         self.tracker: TrackingRefiner | None = None
         self._track: tuple[float, float] | None = None   # the tracked needle's end identity (track_identity)
         self._T_world_needle: np.ndarray | None = None    # the tracked needle's last pose in world
-        self._T_world_needle_sure: np.ndarray | None = None   # ... its last one not flagged
+        self._T_world_needle_before: np.ndarray | None = None   # ... the one before it
 
     def on_calib(self, msg: Calibration):
         changed = self.calib is None or msg.cameras != self.calib.cameras or msg.needle != self.calib.needle
@@ -140,7 +140,7 @@ class RefineNode(StereoPoseNode):
         if self.tracker is not None:
             self.tracker.reset()          # the last pose is of the old stream
         self._track = None
-        self._T_world_needle = self._T_world_needle_sure = None
+        self._T_world_needle = self._T_world_needle_before = None
 
     def settle_end_identity(self, left: Keypoints, right: Keypoints) -> tuple[Keypoints, Keypoints]:
         """The frame's end identity read against the tracked needle's (``end_identity.settle``
@@ -177,7 +177,7 @@ class RefineNode(StereoPoseNode):
             self.count("keypoints_only")
         try:
             res = self.tracker.refine(uv, sc, obs, left.stamp_ns, self.support_normal_ecm(left.seq),
-                                      expected=self.expected_T_ecm_needle(left.seq, sure=True))
+                                      expected=self.expected_T_ecm_needle(left.seq, confirmed=True))
         except NoPose as exc:
             self.no_pose(exc.reason, left, exc.detail)
             return
@@ -218,20 +218,26 @@ class RefineNode(StereoPoseNode):
                                  ambiguous=bool(res.ambiguous or partial), arc_seen=seen,
                                  model_sigma_m=self.config.model_sigma_mm * 1e-3 or None,
                                  model_sigma_rad=math.radians(self.config.model_sigma_deg) or None)
+        self._T_world_needle_before = self._T_world_needle
         self._T_world_needle = pose.T_world_needle    # None until the frame's ECM pose is known
-        self.publish_pose(pose)                       # (which flags an unsure tip)
-        if not pose.ambiguous and pose.T_world_needle is not None:
-            self._T_world_needle_sure = pose.T_world_needle
+        self.publish_pose(pose)
 
-    def expected_T_ecm_needle(self, seq: int, sure: bool = False) -> np.ndarray | None:
+    def expected_T_ecm_needle(self, seq: int, confirmed: bool = False) -> np.ndarray | None:
         """Where the tracked needle is in frame ``seq``'s ECM frame if it has not moved: its last
-        world pose (``sure``: its last one not flagged ``ambiguous``, which may pick between an
-        ambiguous frame's minima) seen from this frame's endoscope pose (None: either is unknown)."""
+        world pose seen from this frame's endoscope pose (None: either is unknown). ``confirmed``
+        (what picks between an ambiguous frame's minima): only when the pose before the last
+        agrees with it within ``expected_mm`` / ``expected_deg``, so that one wrong pose is not
+        carried on."""
         T_world_ecm = self.ecm_poses.get(seq)
-        T_world_needle = self._T_world_needle_sure if sure else self._T_world_needle
-        if T_world_needle is None or T_world_ecm is None:
+        if self._T_world_needle is None or T_world_ecm is None:
             return None
-        return inv_T(T_world_ecm) @ T_world_needle
+        if confirmed:
+            if self._T_world_needle_before is None:
+                return None
+            dt, dr = pose_error(self._T_world_needle, self._T_world_needle_before)
+            if not (dt * 1e3 <= self.config.expected_mm and math.degrees(dr) <= self.config.expected_deg):
+                return None
+        return inv_T(T_world_ecm) @ self._T_world_needle
 
     def support_normal_ecm(self, seq: int):
         """The support surface's normal in frame ``seq``'s ECM frame (None: not configured, or
