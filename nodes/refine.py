@@ -126,6 +126,7 @@ class RefineNode(StereoPoseNode):
         self._track: tuple[float, float] | None = None   # the tracked needle's end identity (track_identity)
         self._T_world_needle: np.ndarray | None = None    # the tracked needle's last pose in world
         self._T_world_needle_before: np.ndarray | None = None   # ... the one before it
+        self._last_flagged = True                                 # whether the last pose was flagged
 
     def on_calib(self, msg: Calibration):
         changed = self.calib is None or msg.cameras != self.calib.cameras or msg.needle != self.calib.needle
@@ -141,6 +142,7 @@ class RefineNode(StereoPoseNode):
             self.tracker.reset()          # the last pose is of the old stream
         self._track = None
         self._T_world_needle = self._T_world_needle_before = None
+        self._last_flagged = True
 
     def settle_end_identity(self, left: Keypoints, right: Keypoints) -> tuple[Keypoints, Keypoints]:
         """The frame's end identity read against the tracked needle's (``end_identity.settle``
@@ -220,19 +222,20 @@ class RefineNode(StereoPoseNode):
                                  model_sigma_rad=math.radians(self.config.model_sigma_deg) or None)
         self._T_world_needle_before = self._T_world_needle
         self._T_world_needle = pose.T_world_needle    # None until the frame's ECM pose is known
-        self.publish_pose(pose)
+        self.publish_pose(pose)                       # (which flags an unsure tip)
+        self._last_flagged = pose.ambiguous
 
     def expected_T_ecm_needle(self, seq: int, confirmed: bool = False) -> np.ndarray | None:
         """Where the tracked needle is in frame ``seq``'s ECM frame if it has not moved: its last
         world pose seen from this frame's endoscope pose (None: either is unknown). ``confirmed``
-        (what picks between an ambiguous frame's minima): only when the pose before the last
-        agrees with it within ``expected_mm`` / ``expected_deg``, so that one wrong pose is not
-        carried on."""
+        (what picks between an ambiguous frame's minima): only when the last pose was not flagged
+        and the one before agrees with it within ``expected_mm`` / ``expected_deg``, so that a
+        wrong pose, or two flagged ones read alike, are not carried on."""
         T_world_ecm = self.ecm_poses.get(seq)
         if self._T_world_needle is None or T_world_ecm is None:
             return None
         if confirmed:
-            if self._T_world_needle_before is None:
+            if self._last_flagged or self._T_world_needle_before is None:
                 return None
             dt, dr = pose_error(self._T_world_needle, self._T_world_needle_before)
             if not (dt * 1e3 <= self.config.expected_mm and math.degrees(dr) <= self.config.expected_deg):
