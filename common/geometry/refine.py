@@ -134,7 +134,7 @@ class RefineConfig:
     # within these of the needle's expected pose (its last pose seen from this frame's endoscope
     # pose: the other views of a multi-view group, the previous frame of a video) is the pose
     expected_mm: PositiveNumber = 3.0
-    expected_deg: PositiveNumber = 10.0
+    expected_deg: PositiveNumber = 10.0      # (and two poses in a row this close confirm the expected one)
     min_depth_m: float = 1e-3       # every point must be this far in front of both cameras
     max_depth_m: PositiveNumber = 2.0        # and the needle nearer than this (a PnP start may run off)
     min_sigma_ratio: PositiveNumber = 0.25   # the covariance assumes at least this fraction of the sigmas
