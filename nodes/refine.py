@@ -62,9 +62,10 @@ from common.geometry.refine import (
     DenseRefiner,
     RefineConfig,
     RefineError,
+    near_expected,
 )
 from common.geometry.refine_tracking import TrackingConfig, TrackingRefiner
-from common.geometry.transforms import inv_T, pose_error
+from common.geometry.transforms import inv_T
 from common.runtime.messages import Calibration, EcmPose, Keypoints
 from common.runtime.node import NodeError, run
 from common.runtime.params import merge_schemas
@@ -237,8 +238,7 @@ class RefineNode(StereoPoseNode):
         if confirmed:
             if self._last_flagged or self._T_world_needle_before is None:
                 return None
-            dt, dr = pose_error(self._T_world_needle, self._T_world_needle_before)
-            if not (dt * 1e3 <= self.config.expected_mm and math.degrees(dr) <= self.config.expected_deg):
+            if not near_expected(self._T_world_needle, self._T_world_needle_before, self.config):
                 return None
         return inv_T(T_world_ecm) @ self._T_world_needle
 

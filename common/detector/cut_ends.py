@@ -56,10 +56,12 @@ def _tangent(end_uv: np.ndarray, centreline: np.ndarray) -> np.ndarray | None:
     return t / n if n > 1e-6 else None
 
 
-def beyond_end_covered(image: np.ndarray, end_uv, centreline, wire_px: float = WIRE_PX) -> float:
+def beyond_end_covered(image: np.ndarray, end_uv, centreline, wire_px: float = WIRE_PX,
+                       wire_samples: np.ndarray | None = None) -> float:
     """Share (0..1) of the samples just past an end keypoint ``end_uv`` (px), along the wire's
     tangent, that are unlike the tissue beside the wire; NaN when it cannot be judged (too short
-    a centreline, samples off the image). ``image`` BGR, ``centreline`` (N, 2) px."""
+    a centreline, samples off the image). ``image`` BGR, ``centreline`` (N, 2) px;
+    ``wire_samples``: ``beside_wire``'s colours when already taken (one set serves both ends)."""
     end_uv = np.asarray(end_uv, float)
     t = _tangent(end_uv, np.asarray(centreline, float).reshape(-1, 2))
     if t is None:
@@ -78,7 +80,7 @@ def beyond_end_covered(image: np.ndarray, end_uv, centreline, wire_px: float = W
     if len(side) < 2 or not len(ahead):
         return float("nan")
     tissue, spread = _reference(side)
-    wire = _beside_wire(image, centreline, 3.0 * wire_px)
+    wire = beside_wire(image, centreline, 3.0 * wire_px) if wire_samples is None else wire_samples
     if len(wire) >= 2:
         w_tissue, w_spread = _reference(wire)
         if np.count_nonzero(np.abs(side - w_tissue).max(axis=1) <= UNLIKE * w_spread) < LOCAL_TISSUE_MIN:
@@ -93,7 +95,7 @@ def _reference(samples: np.ndarray) -> tuple[np.ndarray, float]:
     return tissue, max(float(np.median(np.abs(samples - tissue).max(axis=1))), 10.0)
 
 
-def _beside_wire(image: np.ndarray, centreline, offset_px: float) -> np.ndarray:
+def beside_wire(image: np.ndarray, centreline, offset_px: float) -> np.ndarray:
     """Colours (N, 3) at ``offset_px`` to each side of the wire at ``WIRE_STATIONS`` stations along
     the centreline (N, 2) px, across its local direction; those off the image left out."""
     pts = np.asarray(centreline, float).reshape(-1, 2)
@@ -121,8 +123,9 @@ def cut_end_scores(image: np.ndarray, uv: np.ndarray, scores: np.ndarray, centre
     if centreline is None:
         return out
     cut = False
+    wire = beside_wire(image, centreline, 3.0 * WIRE_PX)
     for end in (0, 4):
-        covered = beyond_end_covered(image, uv[end], centreline)
+        covered = beyond_end_covered(image, uv[end], centreline, wire_samples=wire)
         if covered >= COVERED:
             out[end] *= 1.0 - covered
             cut = True

@@ -380,6 +380,11 @@ def _residual_variance(prob: _Problem, r, wr, cfg: RefineConfig) -> float:
     return max(float((wr * r ** 2).sum() / max(prob.n_res - 6, 1)), cfg.min_sigma_ratio ** 2)
 
 
+def near_expected(T_ecm_needle: np.ndarray, expected: np.ndarray, cfg: RefineConfig) -> bool:
+    """Whether a pose lies within ``expected_mm`` / ``expected_deg`` of an expected one (4x4 each)."""
+    return _near_any(T_ecm_needle, [expected], cfg.expected_mm, cfg.expected_deg)
+
+
 def _expected_minimum(prob: _Problem, s, order: np.ndarray, s2: float, cfg: RefineConfig,
                       expected: np.ndarray) -> int:
     """Position in ``order`` of the one minimum near-equal to the best (within ambiguity_chi2
@@ -388,7 +393,7 @@ def _expected_minimum(prob: _Problem, s, order: np.ndarray, s2: float, cfg: Refi
     b = order[0]
     full = cfg.edge_on_chi2 if _view_angle_deg(prob, make_T(s.R[b], s.t[b])) < cfg.edge_on_deg else cfg.ambiguity_chi2
     hits = [i for i, j in enumerate(order) if abs(s.cost[j] - s.cost[b]) / s2 < full
-            and _near_any(make_T(s.R[j], s.t[j]), [expected], cfg.expected_mm, cfg.expected_deg)]
+            and near_expected(make_T(s.R[j], s.t[j]), expected, cfg)]
     if not hits:
         return 0
     first = make_T(s.R[order[hits[0]]], s.t[order[hits[0]]])
@@ -397,31 +402,30 @@ def _expected_minimum(prob: _Problem, s, order: np.ndarray, s2: float, cfg: Refi
     return hits[0] if same else 0
 
 
+def _promote(prob: _Problem, s, order: np.ndarray, k: int, cfg: RefineConfig):
+    """``order`` with its ``k``-th minimum first, and that minimum's index, residuals, robust
+    weights and residual variance: (order, b, r, wr, s2)."""
+    if k:
+        order = np.concatenate([order[k:k + 1], np.delete(order, k)])
+    b = order[0]
+    r = s.r[b]
+    _, wr = prob.robust(r)
+    return order, b, r, wr, _residual_variance(prob, r, wr, cfg)
+
+
 def _result(prob: _Problem, s, cfg: RefineConfig, log_prior=None, expected=None) -> RefineResult:
     """The best minimum: the lowest cost, or with ``log_prior`` (K,) the lowest cost in residual
     variances less twice the log prior; then, with ``expected`` (4x4), the near-equal minimum
     alone near it (``_expected_minimum``). Competitors, the ambiguity and the covariance's
     inflation are judged on the costs alone."""
     order = np.argsort(s.cost)
-    order = order[np.isfinite(s.cost[order])]
-    b = order[0]
-    r = s.r[b]
-    _, wr = prob.robust(r)
-    s2 = _residual_variance(prob, r, wr, cfg)
+    order, b, r, wr, s2 = _promote(prob, s, order[np.isfinite(s.cost[order])], 0, cfg)
     k = 0 if log_prior is None else int(np.argmin(s.cost[order] / s2 - 2.0 * np.asarray(log_prior)[order]))
     if k:
-        order = np.concatenate([order[k:k + 1], np.delete(order, k)])
-        b = order[0]
-        r = s.r[b]
-        _, wr = prob.robust(r)
-        s2 = _residual_variance(prob, r, wr, cfg)
+        order, b, r, wr, s2 = _promote(prob, s, order, k, cfg)
     k = 0 if expected is None else _expected_minimum(prob, s, order, s2, cfg, np.asarray(expected, float))
     if k:
-        order = np.concatenate([order[k:k + 1], np.delete(order, k)])
-        b = order[0]
-        r = s.r[b]
-        _, wr = prob.robust(r)
-        s2 = _residual_variance(prob, r, wr, cfg)
+        order, b, r, wr, s2 = _promote(prob, s, order, k, cfg)
     T0 = make_T(s.R[b], s.t[b])
     J = s.J[b]
     n_res = prob.n_res

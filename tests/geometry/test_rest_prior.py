@@ -79,16 +79,22 @@ def test_prior_picks_between_near_equal_minima_and_leaves_them_ambiguous():
         assert res.competitor_chi2 < gain    # this frame's mirror is within the prior's reach
 
 
-def test_prior_does_not_overrule_clear_images():
-    rng = np.random.default_rng(5)
-    checked = 0
-    for _ in range(20):
+def _clear_frames(clear_chi2, seed=5, n=20):
+    """Of ``n`` low-noise frames, those with a competitor costing at least ``clear_chi2(res)``
+    residual variances more than the best: (obs, starts, res)."""
+    rng = np.random.default_rng(seed)
+    for _ in range(n):
         T = random_pose(rng)
         obs = observe(T, rng, kp_px=0.5, curve_px=0.25)
         starts = joint_candidates(obs)[1]
         res = REFINER.refine(obs, starts)
-        if len(res.candidates) < 2 or res.competitor_chi2 < 50.0:
-            continue
+        if len(res.candidates) >= 2 and res.competitor_chi2 >= clear_chi2(res):
+            yield obs, starts, res
+
+
+def test_prior_does_not_overrule_clear_images():
+    checked = 0
+    for obs, starts, res in _clear_frames(lambda res: 50.0):
         T_other = res.candidates[1][0]
         out = REFINER.refine(obs, starts, support_normal=T_other[:3, 2])
         assert np.allclose(out.T_ecm_needle, res.T_ecm_needle)
@@ -116,17 +122,10 @@ def test_the_expected_pose_picks_between_near_equal_minima_only():
 
 
 def test_the_expected_pose_does_not_overrule_clear_images():
-    rng = np.random.default_rng(5)
     checked = 0
-    for _ in range(20):
-        T = random_pose(rng)
-        obs = observe(T, rng, kp_px=0.5, curve_px=0.25)
-        starts = joint_candidates(obs)[1]
-        res = REFINER.refine(obs, starts)
-        # edge-on, a competitor within edge_on_chi2 is near-equal (the covariance spans it)
-        clear = REFINER.config.edge_on_chi2 if "edge_on" in res.reasons else 50.0
-        if len(res.candidates) < 2 or res.competitor_chi2 < clear:
-            continue
+    # edge-on, a competitor within edge_on_chi2 is near-equal (the covariance spans it)
+    clear = lambda res: REFINER.config.edge_on_chi2 if "edge_on" in res.reasons else 50.0  # noqa: E731
+    for obs, starts, res in _clear_frames(clear):
         out = REFINER.refine(obs, starts, expected=res.candidates[1][0])
         assert np.allclose(out.T_ecm_needle, res.T_ecm_needle)
         checked += 1
