@@ -12,7 +12,9 @@ the render shows, docs/datasets.md), else the share of visible keypoints. Per bi
 - keypoint error over the visible keypoints of found images (mean, median px), and over those it
   vouches for (score >= the pose nodes' ``min_score`` gate);
 - ``hidden_sure``: hidden keypoints (not ``visible``) placed with a score at or above the gate,
-  as a share of the hidden keypoints of found images. A hidden point must never be sure;
+  as a share of the hidden keypoints of found images. A hidden point must never be sure; over
+  all bins, ``hidden_sure_by_keypoint`` says which points they are and how far from the truth
+  they were placed (within ``PLACED_RIGHT_PX``, or ``PLACED_WRONG_PX`` or more);
 - ``no_sure_points``: the share of images with no needle stated or no keypoint at or above the
   gate (what a frame with under 10% seen must give).
 """
@@ -28,6 +30,13 @@ from common.data.dataset import Dataset, DatasetError
 from common.evaluation.detector_bench import SURE_SCORE, make_detector
 from common.evaluation.metrics import VISIBLE_BINS, visible_fraction
 from common.frames import CAMERAS
+from common.geometry.needle import KEYPOINT_NAMES
+
+PLACED_RIGHT_PX = 3.0
+"""A hidden keypoint stated sure within this distance of the truth is placed right (px)."""
+PLACED_WRONG_PX = 8.0
+"""... and this far or farther, placed wrong (px): the tip read at the tissue's surface, an end
+at a jaw's edge."""
 
 
 def image_record(k, kp: np.ndarray, vis: np.ndarray, fraction: float, gate: float = SURE_SCORE) -> dict:
@@ -40,6 +49,7 @@ def image_record(k, kp: np.ndarray, vis: np.ndarray, fraction: float, gate: floa
     return {"fraction": float(fraction), "found": bool(k.found),
             "err_visible": err[vis].tolist(), "err_sure": err[vis & sure].tolist(),
             "hidden": int((~vis).sum()) if k.found else 0, "hidden_sure": int((~vis & sure).sum()),
+            "hidden_sure_points": [[int(i), float(err[i])] for i in np.flatnonzero(~vis & sure)],
             "any_sure": bool(sure.any())}
 
 
@@ -62,6 +72,20 @@ def summarise(records: list[dict], bins=VISIBLE_BINS) -> list[dict]:
                         "hidden_sure": float(sum(r["hidden_sure"] for r in rs) / hidden) if hidden else 0.0,
                         "no_sure_points": float(np.mean([not r["any_sure"] for r in rs]))})
         out.append(row)
+    return out
+
+
+def hidden_sure_by_keypoint(records: list[dict]) -> dict:
+    """Over all images: per keypoint (A..E), how many hidden points were stated sure, and of
+    them how many placed within ``PLACED_RIGHT_PX`` of the truth and ``PLACED_WRONG_PX`` or
+    more from it."""
+    out = {name: {"n": 0, "placed_right": 0, "placed_wrong": 0} for name in KEYPOINT_NAMES}
+    for r in records:
+        for i, e in r.get("hidden_sure_points", []):
+            row = out[KEYPOINT_NAMES[i]]
+            row["n"] += 1
+            row["placed_right"] += int(e < PLACED_RIGHT_PX)
+            row["placed_wrong"] += int(e >= PLACED_WRONG_PX)
     return out
 
 
@@ -89,7 +113,8 @@ def run(data, weights=None, takes: int | None = None, threads=None, device="auto
     return {"data": str(data), "weights": str(weights or "shipped"), "takes": len(seqs), "frames": len(frames),
             "images": len(records), "gate": SURE_SCORE,
             "found_where_30pct_seen": float(np.mean([r["found"] for r in seen30])) if seen30 else None,
-            "bins": summarise(records), "per_image": records}
+            "bins": summarise(records), "hidden_sure_by_keypoint": hidden_sure_by_keypoint(records),
+            "per_image": records}
 
 
 def format_report(r: dict) -> str:
@@ -105,6 +130,11 @@ def format_report(r: dict) -> str:
         lines.append(f"| {b['bin']} | {b['images']} | {b['found']:.1%} | {f(b['kp_error_mean_px'], '.2f')} / "
                      f"{f(b['kp_error_median_px'], '.2f')} | {f(b['kp_error_sure_mean_px'], '.2f')} | "
                      f"{b['hidden_sure']:.1%} of {b['hidden_keypoints']} | {b['no_sure_points']:.1%} |")
+    by = r.get("hidden_sure_by_keypoint")
+    if by:
+        lines.append(f"hidden keypoints stated sure, all bins (placed within {PLACED_RIGHT_PX:g} px / "
+                     f"{PLACED_WRONG_PX:g} px or more from the truth): "
+                     + ", ".join(f"{k} {v['n']} ({v['placed_right']} / {v['placed_wrong']})" for k, v in by.items()))
     return "\n".join(lines)
 
 

@@ -4,7 +4,7 @@ import json
 import numpy as np
 import pytest
 
-from common.evaluation.held_bench import image_record, summarise, visible_fraction
+from common.evaluation.held_bench import format_report, hidden_sure_by_keypoint, image_record, summarise, visible_fraction
 from common.runtime.messages import Keypoints
 
 
@@ -32,6 +32,24 @@ def test_records_count_hidden_points_stated_sure_and_errors_of_seen_points_only(
     assert mid["hidden_sure"] == 0.5 and rows[1]["images"] == 0
 
 
+def test_hidden_points_stated_sure_are_told_apart_by_keypoint_and_by_how_far_off_they_were_placed():
+    truth = np.arange(10, dtype=float).reshape(5, 2)
+    hidden_a = np.array([False, True, True, True, True])
+    tip_at_entry = image_record(_kp(truth + [[20, 0], [0, 0], [0, 0], [0, 0], [0, 0]], [0.8] * 5), truth, hidden_a, 0.7)
+    c_under_jaw = image_record(_kp(truth + [[0, 0], [0, 0], [1, 1], [0, 0], [0, 0]], [0.9] * 5), truth,
+                               np.array([True, True, False, True, True]), 0.8)
+    unsure = image_record(_kp(truth + 50, [0.2] * 5), truth, np.zeros(5, bool), 0.2)
+    assert tip_at_entry["hidden_sure_points"] == [[0, 20.0]] and unsure["hidden_sure_points"] == []
+    by = hidden_sure_by_keypoint([tip_at_entry, c_under_jaw, unsure])
+    assert by["A"] == {"n": 1, "placed_right": 0, "placed_wrong": 1}
+    assert by["C"] == {"n": 1, "placed_right": 1, "placed_wrong": 0}
+    assert by["B"]["n"] == by["D"]["n"] == by["E"]["n"] == 0
+    records = [tip_at_entry, c_under_jaw, unsure]
+    text = format_report({"data": "d", "takes": 1, "frames": 3, "images": 3, "weights": "w",
+                          "found_where_30pct_seen": 1.0, "bins": summarise(records), "hidden_sure_by_keypoint": by})
+    assert "A 1 (0 / 1), B 0 (0 / 0), C 1 (1 / 0)" in text
+
+
 def test_visible_fraction_prefers_arc_visible_and_falls_back_to_the_keypoints():
     from common.data.dataset import parse_frame
     base = {"index": 0, "stamp_ns": 0, "left": "a.png", "right": "a.png"}
@@ -57,6 +75,8 @@ def test_the_bench_runs_a_generated_take_and_writes_its_figures(tmp_path, capsys
     n = len((out / "frames.jsonl").read_text().splitlines())
     assert r["frames"] == n and r["images"] == 2 * n == sum(b["images"] for b in r["bins"])
     assert (tmp_path / "r.png").stat().st_size > 5000
+    assert set(r["hidden_sure_by_keypoint"]) == set("ABCDE")
+    assert sum(v["n"] for v in r["hidden_sure_by_keypoint"].values()) == sum(p["hidden_sure"] for p in r["per_image"])
     # a folder of needles at rest has no take to run on
     still = tmp_path / "still"
     assert dataset_main(["generate", "--out", str(still), "--sequences", "1", "--width", "160", "--height", "120",
