@@ -384,8 +384,14 @@ def crop_from(region: np.ndarray, origin: np.ndarray, M_img_to_crop: np.ndarray,
     return cv2.warpAffine(region, M, (crop, crop), flags=cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
 
 
+OCCLUDED_WEIGHT = 0.3
+"""A hidden keypoint's weight in the keypoint loss (a seen one's: 1), in [0, 1): it is still learnt
+from the arc's shape, and the loss tells it from a seen one by the weight under 1
+(``train.losses``' ``hidden_sigma``). The training configuration's ``train.occluded_weight``."""
+
+
 def crop_sample(rec: ImageRecord, cfg: ModelConfig, aug: AugConfig | None, rng: np.random.Generator,
-                negative: bool | None = None, occluded_weight: float = 0.3):
+                negative: bool | None = None, occluded_weight: float = OCCLUDED_WEIGHT):
     """One stage-2 training sample: (crop uint8 HxWx3, kp_cells (5,2), kp_weight (5,),
     arc_cells (P,2) or None, presence 0/1). With ``aug`` None: the ground-truth box, no jitter."""
     c = cfg.crop

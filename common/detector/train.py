@@ -25,6 +25,7 @@ import yaml
 
 from common.detector.batches import crop_batch, global_batch, mine_hard_negatives
 from common.detector.data import (
+    OCCLUDED_WEIGHT,
     AugConfig,
     DatasetError,
     crop_from,
@@ -73,6 +74,7 @@ DEFAULT_TRAIN = {
     "hard_mining_at": 0.0,    # when to mine: fraction(s) of the schedule (0 = before the first step)
     "hard_mining_images": 0,  # mine on at most this many images (a seeded random subset); 0 = all
     "hard_prob": 0.2,         # fraction of stage-2 samples drawn from the mined hard negatives
+    "occluded_weight": OCCLUDED_WEIGHT,   # a hidden keypoint's weight in the keypoint loss, in [0, 1)
     "hidden_sigma": 0.0,      # >0: a hidden keypoint's target is a Gaussian this wide (cells), so that
                               # its heatmap is diffuse and its score (peak mass) stays under the gate;
                               # 0: as wide as a seen one's (model.kp_sigma)
@@ -111,6 +113,10 @@ def load_config(path: str | None) -> dict:
         lw.update(t.pop("loss_weights", {}) or {})
         cfg["train"].update(t)
         cfg["train"]["loss_weights"] = lw
+    occ = cfg["train"]["occluded_weight"]
+    if isinstance(occ, bool) or not isinstance(occ, (int, float)) or not 0.0 <= occ < 1.0:
+        raise ValueError(f"{path or 'config'}: train: occluded_weight must be in [0, 1) (a seen keypoint weighs 1), "
+                         f"got {cfg['train']['occluded_weight']!r}")
     try:
         ModelConfig.from_dict(cfg["model"])
         AugConfig.from_dict(cfg["augment"])
@@ -440,7 +446,7 @@ def train(data_dirs, out, config_path=None, log=print, progress=True, init=None,
                 t0 += time.time() - t_mine   # mining is not training time
             idx = order[step * int(tcfg["batch"]):(step + 1) * int(tcfg["batch"])]
             gidx = rng.integers(0, len(tr), int(tcfg["global_batch"]))
-            cb = (crop_batch(tr, idx, mcfg, aug, rng, hard, float(tcfg["hard_prob"]))
+            cb = (crop_batch(tr, idx, mcfg, aug, rng, hard, float(tcfg["hard_prob"]), float(tcfg["occluded_weight"]))
                   if "crop" in stages else None)
             gb = global_batch(tr, gidx, mcfg, aug, rng) if "global" in stages else None
             L = losses(model, cb, gb, w, float(tcfg["hidden_sigma"]))

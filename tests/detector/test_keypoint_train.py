@@ -217,6 +217,24 @@ def test_stage1_windows_keep_the_box_on_the_same_pixels():
     assert 10 < seen < 40
 
 
+def test_a_hidden_keypoint_weighs_occluded_weight_in_the_loss():
+    """``train.occluded_weight`` (default ``OCCLUDED_WEIGHT``): the weight of a hidden keypoint in
+    the crop's targets, under a seen one's 1; no weight outside the crop."""
+    from common.detector.data import OCCLUDED_WEIGHT
+    cfg = ModelConfig.from_dict(TINY_MODEL)
+    img = np.full((240, 320, 3), 90, np.uint8)
+    t = np.linspace(0, 4, 96)
+    arc = np.stack([100 + 30 * t, 120 + 4 * (t - 2) ** 2], 1)
+    r = make_record(img, arc[[0, 24, 48, 71, 95]], [True, True, True, False, False], arc, cfg,
+                    np.random.default_rng(0))
+    for w in (OCCLUDED_WEIGHT, 0.9, 0.0):
+        valid = crop_batch([r] * 6, np.arange(6), cfg, None, np.random.default_rng(1), occluded_weight=w)[2].numpy()
+        assert set(np.unique(valid[:, :3])) <= {0.0, 1.0} and (valid[:, :3] == 1.0).any()
+        hidden = valid[:, 3:]
+        assert np.all(np.isclose(hidden, 0.0) | np.isclose(hidden, w)) and np.isclose(hidden, w).any()
+    assert DEFAULT_TRAIN["occluded_weight"] == OCCLUDED_WEIGHT == 0.3
+
+
 def test_config_errors_name_the_file_and_field(tmp_path):
     p = tmp_path / "bad.yaml"
     p.write_text("train: {epoks: 3}\n")
@@ -228,6 +246,12 @@ def test_config_errors_name_the_file_and_field(tmp_path):
     p.write_text("seed: [unclosed\n")
     with pytest.raises(ValueError, match="bad.yaml"):
         load_config(str(p))
+    for w in ("1.0", "heavy", "-0.1"):      # a hidden point weighs less than a seen one
+        p.write_text(f"train: {{occluded_weight: {w}}}\n")
+        with pytest.raises(ValueError, match=r"bad.yaml: train: occluded_weight must be in \[0, 1\)"):
+            load_config(str(p))
+    p.write_text("train: {occluded_weight: 0.9}\n")
+    assert load_config(str(p))["train"]["occluded_weight"] == 0.9
 
 
 def test_broken_data_folders_are_rejected_with_file_and_line(tiny_data, tmp_path, capsys):
