@@ -1,7 +1,7 @@
 """``needletrack bench held``: the keypoint detector on moving takes, by how much of the needle is seen.
 
     needletrack bench held --data data/moving [--weights PATH] [--takes N] [--json OUT.json]
-        [--picture OUT.png]
+        [--picture OUT.png] [--hidden-sure-picture OUT.png]
 
 Every frame of each take (``needle_at_rest: false``), both cameras, run as the live detector
 runs: in tracking mode (the previous frame's box reused), reset at the start of each take. Each
@@ -14,7 +14,9 @@ the render shows, docs/datasets.md), else the share of visible keypoints. Per bi
 - ``hidden_sure``: hidden keypoints (not ``visible``) placed with a score at or above the gate,
   as a share of the hidden keypoints of found images. A hidden point must never be sure; over
   all bins, ``hidden_sure_by_keypoint`` says which points they are and how far from the truth
-  they were placed (within ``PLACED_RIGHT_PX``, or ``PLACED_WRONG_PX`` or more);
+  they were placed (within ``PLACED_RIGHT_PX``, or ``PLACED_WRONG_PX`` or more), and
+  ``--hidden-sure-picture`` shows up to ``GALLERY_PER_KEYPOINT`` of them per keypoint, each from
+  another take;
 - ``no_sure_points``: the share of images with no needle stated or no keypoint at or above the
   gate (what a frame with under 10% seen must give).
 """
@@ -37,6 +39,9 @@ PLACED_RIGHT_PX = 3.0
 PLACED_WRONG_PX = 8.0
 """... and this far or farther, placed wrong (px): the tip read at the tissue's surface, an end
 at a jaw's edge."""
+GALLERY_PER_KEYPOINT = 2
+"""Hidden points stated sure shown per keypoint by ``--hidden-sure-picture``."""
+TRUTH_BGR, SURE_BGR, UNSURE_BGR, RING_BGR = (60, 200, 60), (40, 40, 230), (230, 120, 40), (0, 230, 255)
 
 
 def image_record(k, kp: np.ndarray, vis: np.ndarray, fraction: float, gate: float = SURE_SCORE) -> dict:
@@ -75,6 +80,29 @@ def summarise(records: list[dict], bins=VISIBLE_BINS) -> list[dict]:
     return out
 
 
+def hidden_sure_crop(image: np.ndarray, k, kp: np.ndarray, vis: np.ndarray, i: int, side: int = 240) -> np.ndarray:
+    """A ``side`` x ``side`` BGR picture of the needle in ``image`` around hidden keypoint ``i``
+    that detection ``k`` states sure: the truth in green (seen points filled, hidden ones as
+    rings), the detection's keypoints filled, red where sure and blue where not, point ``i``
+    ringed in yellow."""
+    import cv2
+    pts = np.concatenate([kp, np.asarray(k.uv, float)])
+    pts = pts[np.isfinite(pts).all(axis=1)]
+    lo, hi = pts.min(0), pts.max(0)
+    half = max(float((hi - lo).max()) * 0.6, 40.0)
+    cx, cy = (lo + hi) / 2
+    scale = side / (2 * half)
+    M = np.array([[scale, 0, side / 2 - scale * cx], [0, scale, side / 2 - scale * cy]])
+    out = cv2.warpAffine(image, M, (side, side), flags=cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT)
+    to = lambda p: tuple(int(round(v)) for v in M[:, :2] @ p + M[:, 2])
+    for j in range(5):
+        cv2.circle(out, to(kp[j]), 5, TRUTH_BGR, -1 if vis[j] else 1, cv2.LINE_AA)
+    for j, (p, sc) in enumerate(zip(np.asarray(k.uv, float), np.asarray(k.scores, float))):
+        cv2.circle(out, to(p), 3, SURE_BGR if sc >= SURE_SCORE else UNSURE_BGR, -1, cv2.LINE_AA)
+    cv2.circle(out, to(np.asarray(k.uv, float)[i]), 9, RING_BGR, 1, cv2.LINE_AA)
+    return out
+
+
 def hidden_sure_by_keypoint(records: list[dict]) -> dict:
     """Over all images: per keypoint (A..E), how many hidden points were stated sure, and of
     them how many placed within ``PLACED_RIGHT_PX`` of the truth and ``PLACED_WRONG_PX`` or
@@ -89,7 +117,10 @@ def hidden_sure_by_keypoint(records: list[dict]) -> dict:
     return out
 
 
-def run(data, weights=None, takes: int | None = None, threads=None, device="auto", progress=True) -> dict:
+def run(data, weights=None, takes: int | None = None, threads=None, device="auto", progress=True,
+        gallery_too: bool = False) -> dict:
+    """The bench's figures (module docstring); ``gallery_too``: also ``gallery``, per keypoint
+    the pictures (``hidden_sure_crop``) of up to ``GALLERY_PER_KEYPOINT`` hidden points stated sure."""
     from tqdm import tqdm
     ds = Dataset(str(data))
     moving = [f for f in ds if not f.at_rest and f.keypoints is not None and f.visible is not None]
@@ -99,6 +130,7 @@ def run(data, weights=None, takes: int | None = None, threads=None, device="auto
     frames = [f for f in moving if f.sequence in set(seqs)]
     det = make_detector("learned", weights, threads, device)
     records, last_seq = [], None
+    gallery = {name: [] for name in KEYPOINT_NAMES}
     for f in tqdm(frames, desc="bench held", unit="frame", disable=not progress):
         if f.sequence != last_seq:
             det.reset()
@@ -109,12 +141,19 @@ def run(data, weights=None, takes: int | None = None, threads=None, device="auto
                                visible_fraction(f, cam))
             rec.update({"frame": f.index, "camera": cam, "sequence": f.sequence})
             records.append(rec)
+            for i, e in rec["hidden_sure_points"] if gallery_too else ():
+                shown = gallery[KEYPOINT_NAMES[i]]
+                if len(shown) < GALLERY_PER_KEYPOINT and f.sequence not in {g["sequence"] for g in shown}:
+                    shown.append({"sequence": f.sequence, "frame": f.index, "camera": cam, "error_px": e,
+                                  "score": float(k.scores[i]),
+                                  "crop": hidden_sure_crop(ds.image(f, cam), k, np.asarray(f.keypoints[cam], float),
+                                                           np.asarray(f.visible[cam], bool), i)})
     seen30 = [r for r in records if r["fraction"] >= 0.3]
     return {"data": str(data), "weights": str(weights or "shipped"), "takes": len(seqs), "frames": len(frames),
             "images": len(records), "gate": SURE_SCORE,
             "found_where_30pct_seen": float(np.mean([r["found"] for r in seen30])) if seen30 else None,
             "bins": summarise(records), "hidden_sure_by_keypoint": hidden_sure_by_keypoint(records),
-            "per_image": records}
+            "per_image": records, **({"gallery": gallery} if gallery_too else {})}
 
 
 def format_report(r: dict) -> str:
@@ -164,6 +203,33 @@ def save_picture(path, r: dict) -> None:
     plt.close(fig)
 
 
+def save_hidden_sure_picture(path, r: dict) -> None:
+    """The hidden keypoints stated sure of ``r["gallery"]`` (``run(gallery_too=True)``), a row per
+    keypoint, as a PNG."""
+    import matplotlib
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    g = r["gallery"]
+    fig, axes = plt.subplots(len(KEYPOINT_NAMES), GALLERY_PER_KEYPOINT, figsize=(2.6 * GALLERY_PER_KEYPOINT, 13.5),
+                             dpi=100, squeeze=False)
+    for row, name in zip(axes, KEYPOINT_NAMES):
+        for j, ax in enumerate(row):
+            ax.set_xticks([])
+            ax.set_yticks([])
+            if j < len(g[name]):
+                s = g[name][j]
+                ax.imshow(s["crop"][..., ::-1])
+                ax.set_title(f"{name} hidden, {s['score']:.2f}, {s['error_px']:.0f} px off\n"
+                             f"take {s['sequence']} frame {s['frame']} {s['camera']}", fontsize=7)
+            else:
+                ax.text(0.5, 0.5, f"no hidden {name}\nstated sure", ha="center", va="center", fontsize=8)
+    fig.suptitle("hidden keypoints stated sure (ringed): truth green (hollow: hidden),\n"
+                 "detection red (sure) / blue (unsure)", fontsize=8)
+    fig.tight_layout()
+    fig.savefig(path)
+    plt.close(fig)
+
+
 def main(argv=None) -> int:
     p = argparse.ArgumentParser(prog="needletrack bench held", description=__doc__.split("\n\n")[0])
     p.add_argument("--data", required=True, help="a dataset folder of moving takes (dataset generate --motion ...)")
@@ -173,15 +239,20 @@ def main(argv=None) -> int:
     p.add_argument("--device", default="auto")
     p.add_argument("--json", default=None, help="write the figures (and per-image records) here")
     p.add_argument("--picture", default=None, help="write found share and error against visible fraction (PNG)")
+    p.add_argument("--hidden-sure-picture", default=None,
+                   help="write pictures of hidden keypoints stated sure, per keypoint (PNG)")
     p.add_argument("--quiet", action="store_true")
     a = p.parse_args(argv)
     try:
-        r = run(a.data, a.weights, a.takes, a.threads, a.device, not a.quiet)
+        r = run(a.data, a.weights, a.takes, a.threads, a.device, not a.quiet, bool(a.hidden_sure_picture))
     except (DatasetError, OSError, ValueError) as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 1
     print(format_report(r))
+    if a.hidden_sure_picture:
+        save_hidden_sure_picture(a.hidden_sure_picture, r)
     if a.json:
+        r.pop("gallery", None)
         with open(a.json, "w") as fh:
             json.dump(r, fh, indent=1)
     if a.picture:

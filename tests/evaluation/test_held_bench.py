@@ -4,7 +4,16 @@ import json
 import numpy as np
 import pytest
 
-from common.evaluation.held_bench import format_report, hidden_sure_by_keypoint, image_record, summarise, visible_fraction
+from common.evaluation.held_bench import (
+    RING_BGR,
+    format_report,
+    hidden_sure_by_keypoint,
+    hidden_sure_crop,
+    image_record,
+    save_hidden_sure_picture,
+    summarise,
+    visible_fraction,
+)
 from common.runtime.messages import Keypoints
 
 
@@ -50,6 +59,25 @@ def test_hidden_points_stated_sure_are_told_apart_by_keypoint_and_by_how_far_off
     assert "A 1 (0 / 1), B 0 (0 / 0), C 1 (1 / 0)" in text
 
 
+def test_a_hidden_point_stated_sure_is_pictured_ringed_in_its_needles_crop(tmp_path):
+    image = np.full((480, 640, 3), 120, np.uint8)
+    truth = np.array([[300.0, 200], [320, 210], [340, 215], [360, 210], [380, 200]])
+    k = _kp(truth + [[25, 0], [0, 0], [0, 0], [0, 0], [0, 0]], [0.8, 0.9, 0.2, 0.9, 0.9])
+    crop = hidden_sure_crop(image, k, truth, np.array([False, True, True, True, True]), 0, side=200)
+    assert crop.shape == (200, 200, 3)
+    ring = (np.abs(crop.astype(int) - RING_BGR) < 60).all(axis=2)
+    ys, xs = np.nonzero(ring)
+    # the ring is round A as detected (25 px right of the truth's A); the crop spans the truth and
+    # the detection (x 300..380, y 200..215) with a margin: 0.6 x 80 px each side of their middle
+    scale = 200 / (2 * 0.6 * 80)
+    assert ring.sum() > 20
+    assert abs(xs.mean() - (100 + scale * (325 - 340))) < 1.5 and abs(ys.mean() - (100 + scale * (200 - 207.5))) < 1.5
+    gallery = {n: [] for n in "ABCDE"}
+    gallery["A"].append({"sequence": 0, "frame": 3, "camera": "left", "error_px": 25.0, "score": 0.8, "crop": crop})
+    save_hidden_sure_picture(tmp_path / "g.png", {"gallery": gallery})
+    assert (tmp_path / "g.png").stat().st_size > 5000
+
+
 def test_visible_fraction_prefers_arc_visible_and_falls_back_to_the_keypoints():
     from common.data.dataset import parse_frame
     base = {"index": 0, "stamp_ns": 0, "left": "a.png", "right": "a.png"}
@@ -68,13 +96,14 @@ def test_the_bench_runs_a_generated_take_and_writes_its_figures(tmp_path, capsys
                          "--height", "240", "--msaa", "0", "--seed", "5", "--randomise", "test", "--jobs", "1",
                          "--take-every", "8", "--quiet"]) == 0
     assert bench_main(["held", "--data", str(out), "--quiet", "--json", str(tmp_path / "r.json"),
-                       "--picture", str(tmp_path / "r.png")]) == 0
+                       "--picture", str(tmp_path / "r.png"), "--hidden-sure-picture", str(tmp_path / "h.png")]) == 0
     text = capsys.readouterr().out
     assert "found where >= 30% of the arc is seen" in text and "| 60-100% |" in text
     r = json.loads((tmp_path / "r.json").read_text())
     n = len((out / "frames.jsonl").read_text().splitlines())
     assert r["frames"] == n and r["images"] == 2 * n == sum(b["images"] for b in r["bins"])
-    assert (tmp_path / "r.png").stat().st_size > 5000
+    assert (tmp_path / "r.png").stat().st_size > 5000 and (tmp_path / "h.png").stat().st_size > 5000
+    assert "gallery" not in r
     assert set(r["hidden_sure_by_keypoint"]) == set("ABCDE")
     assert sum(v["n"] for v in r["hidden_sure_by_keypoint"].values()) == sum(p["hidden_sure"] for p in r["per_image"])
     # a folder of needles at rest has no take to run on
