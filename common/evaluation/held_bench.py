@@ -31,6 +31,7 @@ import numpy as np
 from common.data.dataset import Dataset, DatasetError
 from common.evaluation.detector_bench import SURE_SCORE, make_detector
 from common.evaluation.metrics import VISIBLE_BINS, visible_fraction
+from common.evaluation.overlays import TRUTH_BGR
 from common.frames import CAMERAS
 from common.geometry.needle import KEYPOINT_NAMES
 
@@ -41,7 +42,7 @@ PLACED_WRONG_PX = 8.0
 at a jaw's edge."""
 GALLERY_PER_KEYPOINT = 2
 """Hidden points stated sure shown per keypoint by ``--hidden-sure-picture``."""
-TRUTH_BGR, SURE_BGR, UNSURE_BGR, RING_BGR = (60, 200, 60), (40, 40, 230), (230, 120, 40), (0, 230, 255)
+SURE_BGR, UNSURE_BGR, RING_BGR = (40, 40, 230), (230, 120, 40), (0, 230, 255)
 
 
 def image_record(k, kp: np.ndarray, vis: np.ndarray, fraction: float, gate: float = SURE_SCORE) -> dict:
