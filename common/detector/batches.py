@@ -21,9 +21,8 @@ from common.detector.model import (
 
 def crop_batch(records, idx, cfg: ModelConfig, aug, rng, hard=None, hard_prob: float = 0.0,
                occluded_weight: float = OCCLUDED_WEIGHT):
-    items = [hard_sample(hard[rng.integers(len(hard))], cfg, aug, rng)
-             if hard and rng.random() < hard_prob else crop_sample(records[i], cfg, aug, rng, occluded_weight=occluded_weight)
-             for i in idx]
+    items = [hard_sample(hard[rng.integers(len(hard))], cfg, aug, rng) if hard and rng.random() < hard_prob
+             else crop_sample(records[i], cfg, aug, rng, occluded_weight=occluded_weight) for i in idx]
     x = torch.from_numpy(np.stack([it[0] for it in items])).permute(0, 3, 1, 2).contiguous()
     kpc = torch.from_numpy(np.stack([it[1] for it in items]))
     valid = torch.from_numpy(np.stack([it[2] for it in items]))

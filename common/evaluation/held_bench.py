@@ -96,7 +96,7 @@ def hidden_sure_crop(image: np.ndarray, k, kp: np.ndarray, vis: np.ndarray, i: i
     M = np.array([[scale, 0, side / 2 - scale * cx], [0, scale, side / 2 - scale * cy]])
     out = cv2.warpAffine(image, M, (side, side), flags=cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT)
     to = lambda p: tuple(int(round(v)) for v in M[:, :2] @ p + M[:, 2])
-    for j in range(5):
+    for j in np.flatnonzero(np.isfinite(kp).all(axis=1)):
         cv2.circle(out, to(kp[j]), 5, TRUTH_BGR, -1 if vis[j] else 1, cv2.LINE_AA)
     for j, (p, sc) in enumerate(zip(np.asarray(k.uv, float), np.asarray(k.scores, float))):
         cv2.circle(out, to(p), 3, SURE_BGR if sc >= SURE_SCORE else UNSURE_BGR, -1, cv2.LINE_AA)
