@@ -87,7 +87,8 @@ def hidden_sure_crop(image: np.ndarray, k, kp: np.ndarray, vis: np.ndarray, i: i
     rings), the detection's keypoints filled, red where sure and blue where not, point ``i``
     ringed in yellow."""
     import cv2
-    pts = np.concatenate([kp, np.asarray(k.uv, float)])
+    uv = np.asarray(k.uv, float)
+    pts = np.concatenate([kp, uv])
     pts = pts[np.isfinite(pts).all(axis=1)]
     lo, hi = pts.min(0), pts.max(0)
     half = max(float((hi - lo).max()) * 0.6, 40.0)
@@ -98,9 +99,9 @@ def hidden_sure_crop(image: np.ndarray, k, kp: np.ndarray, vis: np.ndarray, i: i
     to = lambda p: tuple(int(round(v)) for v in M[:, :2] @ p + M[:, 2])
     for j in np.flatnonzero(np.isfinite(kp).all(axis=1)):
         cv2.circle(out, to(kp[j]), 5, TRUTH_BGR, -1 if vis[j] else 1, cv2.LINE_AA)
-    for j, (p, sc) in enumerate(zip(np.asarray(k.uv, float), np.asarray(k.scores, float))):
+    for p, sc in zip(uv, np.asarray(k.scores, float)):
         cv2.circle(out, to(p), 3, SURE_BGR if sc >= SURE_SCORE else UNSURE_BGR, -1, cv2.LINE_AA)
-    cv2.circle(out, to(np.asarray(k.uv, float)[i]), 9, RING_BGR, 1, cv2.LINE_AA)
+    cv2.circle(out, to(uv[i]), 9, RING_BGR, 1, cv2.LINE_AA)
     return out
 
 
