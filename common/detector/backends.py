@@ -60,6 +60,9 @@ class LearnedParams:
     proposals: int = 3
     proposal_threshold: float = 0.2
     ridge_ends: bool = True                       # A, E from the centreline's ends when they collapse
+    # a cold frame where no proposal passes is searched again with its hues turned by these
+    # (degrees); null: the detector's RETRY_HUES_DEG (120, 240), []: not searched again
+    retry_hues: list[float] | None = None
 
 
 @dataclass

@@ -349,10 +349,11 @@ def motion_blur(img: np.ndarray, length_px: float, angle_rad: float) -> np.ndarr
 
 
 def turn_hue(img: np.ndarray, angle_deg: float) -> np.ndarray:
-    """The BGR uint8 image with its hue turned by ``angle_deg`` (OpenCV's 180-step hue circle)."""
-    hsv = cv2.cvtColor(img, cv2.COLOR_BGR2HSV)
-    hsv[..., 0] = ((hsv[..., 0].astype(np.int32) + int(round(angle_deg / 2.0))) % 180).astype(np.uint8)
-    return cv2.cvtColor(hsv, cv2.COLOR_HSV2BGR)
+    """The BGR uint8 image with every colour's hue turned by ``angle_deg`` (saturation and value
+    kept, so a white wire stays white; OpenCV's 256-step full hue circle)."""
+    hsv = cv2.cvtColor(img, cv2.COLOR_BGR2HSV_FULL)
+    hsv[..., 0] = ((hsv[..., 0].astype(np.int32) + int(round(angle_deg * 256 / 360))) % 256).astype(np.uint8)
+    return cv2.cvtColor(hsv, cv2.COLOR_HSV2BGR_FULL)
 
 
 def photometric(img: np.ndarray, aug: AugConfig, rng: np.random.Generator) -> np.ndarray:

@@ -20,7 +20,8 @@ class LearnedBackend(KeypointBackend):
     ``max_ellipse_px`` (0.25: a sub-pixel centreline farther from one ellipse is "no needle"; 0: off),
     ``keypoints_only_ellipse_px`` (1.5: up to this far, the keypoints are stated without the centreline),
     ``arc_bcd`` (true), ``along_arc`` (false), ``proposals`` (stage-1 proposals tried, 3),
-    ``proposal_threshold`` (0.2), ``ridge_ends`` (true: A and E from the centreline's ends when their heatmaps collapse on one)."""
+    ``proposal_threshold`` (0.2), ``ridge_ends`` (true: A and E from the centreline's ends when their heatmaps collapse on one),
+    ``retry_hues`` (null: ``RETRY_HUES_DEG``; a cold frame where nothing passes is searched again with its hues turned)."""
 
     name = "learned"
     needs_image = True
@@ -34,7 +35,8 @@ class LearnedBackend(KeypointBackend):
                 refine=p.refine, centreline=p.centreline, arc_bcd=p.arc_bcd, along_arc=p.along_arc,
                 proposals=p.proposals, proposal_threshold=p.proposal_threshold, subpixel=p.subpixel,
                 min_extent_px=p.min_extent_px, max_ellipse_px=p.max_ellipse_px,
-                keypoints_only_ellipse_px=p.keypoints_only_ellipse_px, ridge_ends=p.ridge_ends)
+                keypoints_only_ellipse_px=p.keypoints_only_ellipse_px, ridge_ends=p.ridge_ends,
+                retry_hues=p.retry_hues)
         except (ModelFileError, ValueError, TypeError) as exc:
             raise BackendError(f"learned backend: {exc}") from exc
 

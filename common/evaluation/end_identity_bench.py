@@ -21,6 +21,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 
+from common.detector.data import turn_hue
 from common.detector.end_identity import FEATURES
 from common.evaluation.folder_detections import cold_detections
 from common.geometry.end_identity import TIP_SURE as SURE
@@ -28,14 +29,6 @@ from common.geometry.end_identity import TIP_SURE as SURE
 MIN_FIT_ERRORS = 5      # fewer detections read end for end (or as said) than this: warn at --fit
 FOLDER_WEIGHT = 1000.0  # at --fit every folder weighs as this many detections, however many it has
 FIT_L2 = 1.0            # the fit's L2 penalty on the coefficients, against FOLDER_WEIGHT per folder
-
-
-def turn_hue(img: np.ndarray, degrees: float) -> np.ndarray:
-    """A BGR image with every colour's hue turned by ``degrees`` (saturation and value kept):
-    a look no training stage renders, from a folder of one it does."""
-    hsv = cv2.cvtColor(img, cv2.COLOR_BGR2HSV_FULL)
-    hsv[..., 0] = ((hsv[..., 0].astype(np.int32) + int(round(degrees * 256 / 360))) % 256).astype(np.uint8)
-    return cv2.cvtColor(hsv, cv2.COLOR_HSV2BGR_FULL)
 
 
 def to_grey(img: np.ndarray) -> np.ndarray:
