@@ -123,6 +123,43 @@ def test_tracking_reuses_the_box_and_gives_the_same_answer(rendered):
     assert not c.found and "no needle" in c.reason and np.isnan(c.uv).all()
 
 
+
+def test_a_cold_frame_found_nowhere_is_searched_again_with_its_hues_turned(rendered):
+    """A look the networks read only turned: the frame's hues turned by -120 deg, and stage 2
+    made to pass only on crops turned by +120 (which gives the rendered look back). The frame is
+    found on that retry with the keypoints of the rendered look, and the camera's tracking frames keep
+    the turn; without retries it is not found."""
+    from common.detector.data import turn_hue
+    images, _ = rendered
+    image = turn_hue(images["left"], -120.0)
+    det = KeypointDetector(device="cpu", retry_hues=(240.0, 120.0))
+    real, calls = det._stage2, []
+
+    def only_turned_back(img, box, ridge=False, hue_deg=0.0):
+        calls.append(hue_deg)
+        res = real(img, box, ridge, hue_deg)
+        if hue_deg != 120.0:
+            res["presence"] = 0.0
+        return res
+
+    det._stage2 = only_turned_back
+    kp = det.detect(image, "left")
+    assert kp.found and det.last_mode == "cold" and {0.0, 120.0, 240.0} <= set(calls)
+    as_rendered = KeypointDetector(device="cpu").detect(images["left"], "left")
+    assert np.linalg.norm(kp.uv - as_rendered.uv, axis=1).max() < 1.0    # read as the render is
+    calls.clear()
+    assert det.detect(image, "left").found and det.last_mode == "tracking" and calls == [120.0]
+    det.reset("left")
+    assert det._hue == {}
+
+    off = KeypointDetector(device="cpu", retry_hues=())
+    real_off, off_calls = off._stage2, []
+    off._stage2 = lambda img, box, ridge=False, hue_deg=0.0: (
+        off_calls.append(hue_deg) or {**real_off(img, box, ridge, hue_deg), "presence": 0.0})
+    kp = off.detect(image, "left")
+    assert not kp.found and "confidence" in kp.reason and set(off_calls) == {0.0}
+
+
 def test_needle_free_image_is_no_needle(detector):
     rng = np.random.default_rng(0)
     img = np.clip(rng.normal(150, 20, (1080, 1920, 3)), 0, 255).astype(np.uint8)
