@@ -8,7 +8,7 @@ import torch
 
 from common.detector.backends import BackendError, load_backend
 from common.detector.arc_fit import decode_centreline
-from common.detector.inference import KEYPOINT_SIGMA_PX, KeypointDetector
+from common.detector.inference import KEYPOINT_SIGMA_PX, RETRY_PRESENCE, KeypointDetector
 from common.detector.weights import DEFAULT_WEIGHTS, ModelFileError, load_model
 from common.detector.model import KeypointModel, ModelConfig
 from common.detector.train import save_model
@@ -151,6 +151,13 @@ def test_a_cold_frame_found_nowhere_is_searched_again_with_its_hues_turned(rende
     assert det.detect(image, "left").found and det.last_mode == "tracking" and calls == [120.0]
     det.reset("left")
     assert det._hue == {}
+
+    # a needle found only turned must be surer than the detection threshold
+    unsure = KeypointDetector(device="cpu", retry_hues=(120.0,))
+    real_unsure = unsure._stage2
+    unsure._stage2 = lambda img, box, ridge=False, hue_deg=0.0: {
+        **real_unsure(img, box, ridge, hue_deg), "presence": 0.0 if hue_deg != 120.0 else RETRY_PRESENCE - 0.05}
+    assert not unsure.detect(image, "left").found
 
     off = KeypointDetector(device="cpu", retry_hues=())
     real_off, off_calls = off._stage2, []
