@@ -90,11 +90,16 @@ RETRY_HUES_DEG = (120.0, 240.0)
 the image is: the whole circle in thirds. Of all the turns' proposals the one with the highest
 presence is kept, if it reaches ``RETRY_PRESENCE``. Every third image of the silicone pads (held
 out): found 68 -> 96 of 100; of the `wide` set: 92 -> 97."""
+RETRY_EVERY = 5
+"""After a cold frame where neither the image nor its turns gave a needle, only every this many-th
+cold frame of that camera is searched turned: the turns triple a needle-free frame's cost (19 ->
+61 ms on the test look's needle-free renders; 28 ms with this)."""
 RETRY_PRESENCE = 0.8
 """The presence a needle found only with the image's hues turned must reach (above the detection
 threshold): on 80 needle-free renders of the train and test looks the turned searches' best
-presences were at most 0.79 but one (0.90); at the threshold (0.5) 9 of 20 such images gave a
-needle, against 2 as they are."""
+presences were under it in all but one image, and the turns added no false detection (12 of 80
+as they are, the thread or an instrument taken for the needle); at the detection threshold
+(0.5), 9 of 20 such images gave a needle, against 2 as they are."""
 log = logging.getLogger("needletrack.keypoint_detector")
 
 
@@ -171,6 +176,7 @@ class KeypointDetector:
         self.retry_hues = tuple(float(h) % 360.0 for h in (RETRY_HUES_DEG if retry_hues is None else retry_hues))
         self._track: dict[str, tuple] = {}
         self._hue: dict[str, float] = {}    # the hue turn each tracked camera's needle was found at
+        self._retry_wait: dict[str, int] = {}   # cold frames each camera searches unturned (_retry)
         self.last_mode = ""
         self.end_coef = load_end_coefficients(self.weights)
         self.familiarity = load_familiarity(self.weights) if familiarity else None
@@ -183,10 +189,12 @@ class KeypointDetector:
         self.last_descriptor: np.ndarray | None = None   # the last detection's (CropNet.forward_features)
 
     def reset(self, camera: str | None = None) -> None:
-        """Forget the tracking box (of one camera, or all)."""
+        """Forget the tracking box (of one camera, or all; all: also when the hues were last turned
+        in vain, ``RETRY_EVERY``)."""
         if camera is None:
             self._track.clear()
             self._hue.clear()
+            self._retry_wait.clear()
         else:
             self._track.pop(camera, None)
             self._hue.pop(camera, None)
@@ -233,6 +241,25 @@ class KeypointDetector:
         if on_arc is not None:
             res["on_arc"], res["ends_from_ridge"] = on_arc, True
         return res
+
+    def _retry(self, img: np.ndarray, camera: str, best):
+        """A cold frame that ``best`` (``_search``'s, or None) did not find searched with its hues
+        turned (``retry_hues``): the turned result with the highest presence if it reaches
+        ``RETRY_PRESENCE``, else ``best``. After a frame where the turns found nothing either, the
+        camera's next ``RETRY_EVERY - 1`` cold frames are not turned (a needle out of view)."""
+        wait = self._retry_wait.get(camera, 0)
+        if wait > 0:
+            self._retry_wait[camera] = wait - 1
+            return best
+        turned = None
+        for hue in self.retry_hues:
+            r = self._search(img, hue, first=False)
+            if r is not None and r[0]["presence"] >= max(self.threshold, RETRY_PRESENCE) \
+                    and (turned is None or r[0]["presence"] > turned[0]["presence"]):
+                turned = r
+        if turned is None:
+            self._retry_wait[camera] = RETRY_EVERY - 1
+        return best if turned is None else turned
 
     def _search(self, img: np.ndarray, hue_deg: float, first: bool):
         """Stage 2 on each of stage 1's proposals, the image's hues turned by ``hue_deg``: (the
@@ -399,11 +426,7 @@ class KeypointDetector:
             # on the re-centred crop decides, against the detection threshold
             best = self._search(img, 0.0, first=True)
             if best is None or best[0]["presence"] < self.threshold:
-                for hue in self.retry_hues:     # a look the networks read better turned
-                    r = self._search(img, hue, first=False)
-                    if r is not None and r[0]["presence"] >= max(self.threshold, RETRY_PRESENCE) \
-                            and (best is None or r[0]["presence"] > best[0]["presence"]):
-                        best = r
+                best = self._retry(img, camera, best)
             if best is None:
                 self.reset(camera)
                 return Keypoints.not_found(camera, seq, stamp_ns, self.name,

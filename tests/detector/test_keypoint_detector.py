@@ -8,7 +8,7 @@ import torch
 
 from common.detector.backends import BackendError, load_backend
 from common.detector.arc_fit import decode_centreline
-from common.detector.inference import KEYPOINT_SIGMA_PX, RETRY_PRESENCE, KeypointDetector
+from common.detector.inference import KEYPOINT_SIGMA_PX, RETRY_EVERY, RETRY_PRESENCE, KeypointDetector
 from common.detector.weights import DEFAULT_WEIGHTS, ModelFileError, load_model
 from common.detector.model import KeypointModel, ModelConfig
 from common.detector.train import save_model
@@ -165,6 +165,24 @@ def test_a_cold_frame_found_nowhere_is_searched_again_with_its_hues_turned(rende
         off_calls.append(hue_deg) or {**real_off(img, box, ridge, hue_deg), "presence": 0.0})
     kp = off.detect(image, "left")
     assert not kp.found and "confidence" in kp.reason and set(off_calls) == {0.0}
+
+
+def test_after_turns_found_nothing_the_next_cold_frames_are_searched_as_they_are(rendered):
+    images, _ = rendered
+    det = KeypointDetector(device="cpu", retry_hues=(120.0, 240.0))
+    real, calls = det._stage2, []
+    det._stage2 = lambda img, box, ridge=False, hue_deg=0.0: (
+        calls.append(hue_deg) or {**real(img, box, ridge, hue_deg), "presence": 0.0})
+    turned = []
+    for _ in range(2 * RETRY_EVERY):
+        calls.clear()
+        assert not det.detect(images["left"], "left").found
+        turned.append(any(calls))
+    assert turned == ([True] + [False] * (RETRY_EVERY - 1)) * 2
+    det.reset()
+    calls.clear()
+    det.detect(images["left"], "left")
+    assert any(calls)
 
 
 def test_needle_free_image_is_no_needle(detector):
