@@ -96,10 +96,10 @@ cold frame of that camera is searched turned: the turns triple a needle-free fra
 61 ms on the test look's needle-free renders; 28 ms with this)."""
 RETRY_PRESENCE = 0.8
 """The presence a needle found only with the image's hues turned must reach (above the detection
-threshold): on 80 needle-free renders of the train and test looks the turned searches' best
-presences were under it in all but one image, and the turns added no false detection (12 of 80
-as they are, the thread or an instrument taken for the needle); at the detection threshold
-(0.5), 9 of 20 such images gave a needle, against 2 as they are."""
+threshold): on 80 needle-free renders of the test look (``needletrack bench detector
+--make-negatives 40``) the turned searches' best presences were under it in all but one image,
+and the turns added no false detection (12 of 80 as they are); at the detection threshold (0.5),
+9 of the first 20 gave a needle, against 2 as they are."""
 log = logging.getLogger("needletrack.keypoint_detector")
 
 
