@@ -24,7 +24,8 @@ the first calibration wait for it, within the same ``max_wait`` frames (a detect
 running graph hears the source's beacon within a second); when the image input keeps only the
 newest message, so does the wait (the older image is dropped and counted ``superseded``); after
 that they count ``no_calibration``. A corrupt image gives ``Keypoints.not_found`` and counts
-``bad_image``.
+``bad_image``. What a backend notes of a detection is counted and said once (``last_notes``:
+the learned backend's ``found_turned``, a needle found only with the image's hues turned).
 """
 from __future__ import annotations
 
@@ -81,6 +82,7 @@ class DetectorNode(Node):
         except ValueError:
             raise NodeError(f"params.stride must be 'auto' or a power of two, got {stride!r}") from None
         self.clock = time.perf_counter
+        self._noted: set[str] = set()        # the backend's notes said so far (last_notes)
         try:
             self.backend = load_backend(self.backend_name, params)
         except BackendError as exc:
@@ -182,6 +184,11 @@ class DetectorNode(Node):
         kp = self.backend.detect(image, camera, self.truths.get(seq), self.calib, seq=seq, stamp_ns=stamp_ns)
         if not kp.found:
             self.count("not_found")
+        for name, sentence in self.backend.last_notes().items():
+            if name not in self._noted:               # said once, counted every time
+                self._noted.add(name)
+                self.log.info("camera %s seq %d: %s", camera, seq, sentence)
+            self.count(name)
         self.publish(camera, kp)
 
 

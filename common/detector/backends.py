@@ -115,6 +115,11 @@ class KeypointBackend:
     def reset(self) -> None:
         """A new source stream: forget any state carried from frame to frame (none here)."""
 
+    def last_notes(self) -> dict[str, str]:
+        """What the last ``detect`` did that the node should count and say once: {counter name:
+        the sentence to log the first time} (none here)."""
+        return {}
+
     def detect_stereo(self, images: dict, truth: Optional[GroundTruth], calib: Calibration, *,
                       seq: int = 0, stamp_ns: int = 0) -> dict[str, Keypoints]:
         """``{camera: Keypoints}`` for the cameras in ``images`` (camera -> image or None)."""

@@ -178,6 +178,7 @@ class KeypointDetector:
         self._hue: dict[str, float] = {}    # the hue turn each tracked camera's needle was found at
         self._retry_wait: dict[str, int] = {}   # cold frames each camera searches unturned (_retry)
         self.last_mode = ""
+        self.last_turn = 0.0    # the hue turn (deg) the last detection was found at; 0: as it is
         self.end_coef = load_end_coefficients(self.weights)
         self.familiarity = load_familiarity(self.weights) if familiarity else None
         size = 2 * sum(self.cfg.crop_widths[1:])
@@ -404,6 +405,7 @@ class KeypointDetector:
         "no needle" with a reason when the image is unusable or the confidence is below the
         threshold. ``undistort`` (pixels -> ideal pinhole pixels, for a camera with distortion)
         is used where the detector's checks assume a pinhole (the ellipse test)."""
+        self.last_turn = 0.0
         problem = image_problem(image)
         if problem:
             self.reset(camera)
@@ -463,6 +465,7 @@ class KeypointDetector:
         else:
             self._track[camera] = self._box_of({"uv": res["uv"]})   # as _moved compares it
             self._hue[camera] = res["hue"]
+        self.last_turn = res["hue"]
         far = self.last_evidence.unfamiliarity
         return Keypoints(camera, seq, stamp_ns, True, res["uv"].astype(np.float64),
                          res["scores"].astype(np.float64), float(conf),

@@ -46,6 +46,15 @@ class LearnedBackend(KeypointBackend):
     def reset(self) -> None:
         self.detector.reset()
 
+    def last_notes(self) -> dict[str, str]:
+        turn = self.detector.last_turn
+        if not turn:
+            return {}
+        return {"found_turned": f"the needle was found only with the image's hues turned ({turn:g} deg): "
+                                f"a look unlike the training renders (tissue of another colour); its "
+                                f"keypoints and tip are less sure there, `needletrack adapt` fits the "
+                                f"detector to such a scene (docs/adapt.md)"}
+
 
 def _undistorter(calib, camera: str):
     """pixels -> ideal pixels of ``camera`` from a Calibration, or None without distortion."""

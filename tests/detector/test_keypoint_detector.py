@@ -167,6 +167,33 @@ def test_a_cold_frame_found_nowhere_is_searched_again_with_its_hues_turned(rende
     assert not kp.found and "confidence" in kp.reason and set(off_calls) == {0.0}
 
 
+def test_the_detector_node_counts_and_says_once_a_needle_found_only_turned(rendered, caplog):
+    from common.detector.data import turn_hue
+    from common.geometry.camera import StereoRig
+    from common.geometry.needle import NeedleModel
+    from common.runtime.messages import Calibration
+    from nodes.detector import DetectorNode
+    images, _ = rendered
+    calib = Calibration(0, np.array([1920, 1080]), StereoRig.default().to_dict(), NeedleModel().to_dict())
+    node = DetectorNode.offline({"backend": "learned", "device": "cpu", "threads": 1, "retry_hues": [240, 120],
+                                 "tracking": False}, wired=["left", "calib"])
+    node.on_calib(calib)
+    det = node.backend.detector
+    real = det._stage2
+    det._stage2 = lambda img, box, ridge=False, hue_deg=0.0: {
+        **real(img, box, ridge, hue_deg), **({} if hue_deg == 120.0 else {"presence": 0.0})}
+    frame = CameraImage.from_bgr("left", 1, 10, turn_hue(images["left"], -120.0), "png")
+    with caplog.at_level(logging.INFO):
+        node.on_left(frame)
+        node.on_left(frame)
+    assert all(kp.found for _, kp in node.published) and len(node.published) == 2
+    assert node.counters["found_turned"] == 2
+    assert sum("hues turned (120 deg)" in r.getMessage() for r in caplog.records) == 1
+    det._stage2 = real
+    node.on_left(CameraImage.from_bgr("left", 2, 20, images["left"], "png"))
+    assert node.counters["found_turned"] == 2 and det.last_turn == 0.0
+
+
 def test_after_turns_found_nothing_the_next_cold_frames_are_searched_as_they_are(rendered):
     images, _ = rendered
     det = KeypointDetector(device="cpu", retry_hues=(120.0, 240.0))
