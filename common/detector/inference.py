@@ -58,7 +58,7 @@ from common.detector.model import (
     invert_affine,
 )
 from common.detector.familiarity import FamiliarityFileError, familiarity_path, load_familiarity
-from common.detector.data import turn_hue
+from common.detector.data import global_input, turn_hue
 from common.detector.ridge_ends import ends_on_ridge
 from common.detector.weights import DEFAULT_WEIGHTS, load_end_coefficients, load_model, pick_device
 from common.runtime.messages import CameraImage, Keypoints, MessageError
@@ -92,8 +92,8 @@ presence is kept, if it reaches ``RETRY_PRESENCE``. Every third image of the sil
 out): found 68 -> 96 of 100; of the `wide` set: 92 -> 97."""
 RETRY_EVERY = 5
 """After a cold frame where neither the image nor its turns gave a needle, only every this many-th
-cold frame of that camera is searched turned: the turns triple a needle-free frame's cost (19 ->
-61 ms on the test look's needle-free renders; 28 ms with this)."""
+cold frame of that camera that nothing passes as it is is searched turned: the turns triple a
+needle-free frame's cost (19 -> 61 ms on the test look's needle-free renders; 28 ms with this)."""
 RETRY_PRESENCE = 0.8
 """The presence a needle found only with the image's hues turned must reach (above the detection
 threshold): on 80 needle-free renders of the test look (``needletrack bench detector
@@ -208,7 +208,6 @@ class KeypointDetector:
     @torch.inference_mode()
     def _stage1(self, img: np.ndarray, hue_deg: float = 0.0):
         """Stage 1's proposals on the image, its hues turned by ``hue_deg`` first."""
-        from common.detector.data import global_input
         h, w = img.shape[:2]
         ws, hs, ds, box_scale = global_size(self.cfg, w, h)
         small = cv2.resize(img, (ws, hs), interpolation=cv2.INTER_AREA)
@@ -247,7 +246,8 @@ class KeypointDetector:
         """A cold frame that ``best`` (``_search``'s, or None) did not find searched with its hues
         turned (``retry_hues``): the turned result with the highest presence if it reaches
         ``RETRY_PRESENCE``, else ``best``. After a frame where the turns found nothing either, the
-        camera's next ``RETRY_EVERY - 1`` cold frames are not turned (a needle out of view)."""
+        camera's next ``RETRY_EVERY - 1`` cold frames that nothing passes as they are are not
+        turned (a needle out of view)."""
         wait = self._retry_wait.get(camera, 0)
         if wait > 0:
             self._retry_wait[camera] = wait - 1
