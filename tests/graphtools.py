@@ -260,6 +260,18 @@ class RunningGraph:
     def log(self) -> str:
         return self.log_path.read_text(errors="replace") if self.log_path.exists() else ""
 
+    def wait_log(self, text: str, timeout: float = 30.0) -> str:
+        """Wait until ``text`` is in the launcher's log (a node's line reaches it through the
+        launcher's relay of its output, a moment after the event it tells); returns the log."""
+        deadline = time.monotonic() + timeout
+        while time.monotonic() < deadline:
+            log = self.log()
+            if text in log:
+                return log
+            time.sleep(0.1)
+        raise AssertionError(f"{text!r} not in the launcher's log after {timeout:g} s\n"
+                             f"--- launcher log ---\n{self.log()[-4000:]}")
+
     # ---------------------------------------------------------------- commands
     def cli(self, *args, timeout: float = 60) -> subprocess.CompletedProcess:
         """``needletrack CMD ARGS -g <this graph>``: e.g. ``g.cli("ps")``."""

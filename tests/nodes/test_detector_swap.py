@@ -111,7 +111,7 @@ def test_a_failed_backend_swap_leaves_the_running_backend_in_place_for_good(run_
     pid = g.pids()["detector"]
     res = g.swap("detector", backend="learned", weights=str(tmp_path / "missing.pt"), unset=["noise_px"], timeout=90)
     assert res.returncode == 1 and "before taking over" in res.stderr, res.stdout + res.stderr
-    assert "missing.pt" in g.log()                       # the node said which file it could not load
+    g.wait_log("missing.pt")                             # the node said which file it could not load
     assert g.pids()["detector"] == pid
     msgs = g.collect("detector/left", 3, timeout=20, expect=Keypoints)
     assert {m.detector for m in msgs} == {"oracle"}
