@@ -56,6 +56,7 @@ from common.detector.model import (
     decode_heatmaps,
     global_size,
     invert_affine,
+    visibility_logits,
 )
 from common.detector.familiarity import FamiliarityFileError, familiarity_path, load_familiarity
 from common.detector.data import global_input, turn_hue
@@ -181,7 +182,7 @@ class KeypointDetector:
         self.last_turn = 0.0    # the hue turn (deg) the last detection was found at; 0: as it is
         self.end_coef = load_end_coefficients(self.weights)
         self.familiarity = load_familiarity(self.weights) if familiarity else None
-        size = 2 * sum(self.cfg.crop_widths[1:])
+        size = self.cfg.descriptor_size
         if self.familiarity is not None and self.familiarity.mean.size != size:
             raise FamiliarityFileError(f"{familiarity_path(self.weights)}: a reference of {self.familiarity.mean.size} "
                                        f"features, these weights' descriptor has {size}: refit it with "
@@ -240,6 +241,8 @@ class KeypointDetector:
                "feat": feat[0].float().cpu().numpy(), "hue": hue_deg}
         if on_arc is not None:
             res["on_arc"], res["ends_from_ridge"] = on_arc, True
+        if self.cfg.visibility:
+            res["visibility"] = torch.sigmoid(visibility_logits(heat))[0].numpy().astype(np.float64)
         return res
 
     def _retry(self, img: np.ndarray, camera: str, best):
@@ -457,6 +460,9 @@ class KeypointDetector:
         res["scores"] = cut_end_scores(img, res["uv"], res["scores"], res["centreline"], res.get("on_arc"))
         self.last_evidence = self._end_evidence(res, img)
         res["scores"] = blunt_tip_scores(res["scores"], self.last_evidence.r_a)
+        visibility = res.get("visibility")
+        if visibility is not None:   # a point the network sees hidden is never stated sure
+            res["scores"] = np.minimum(res["scores"], visibility)
         self.last_descriptor = res["feat"]
         cx, cy, bw, bh = self._box_of(res)
         if keypoints_only:
@@ -474,7 +480,7 @@ class KeypointDetector:
                          centreline_sigma_px=res["centreline_sigma"], on_arc=res.get("on_arc"),
                          centreline_corr_points=None if res["centreline_sigma"] is None else CENTRELINE_CORR_POINTS,
                          keypoint_sigma_px=KEYPOINT_SIGMA_PX, end_identity=self._p_a_is_tip(res),
-                         unfamiliarity=far if np.isfinite(far) else None)
+                         unfamiliarity=far if np.isfinite(far) else None, visibility=visibility)
 
     def detect_message(self, msg: CameraImage) -> Keypoints:
         """Keypoints of a ``CameraImage``; corrupt or inconsistent image data -> "no needle"."""

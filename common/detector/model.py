@@ -46,6 +46,11 @@ class ModelConfig:
     crop_margin: float = 1.45      # crop side = crop_margin * max(box w, h) + crop_pad px
     crop_pad: float = 12.0
     crop_min: float = 56.0         # smallest crop side, px
+    backbone: str = ""             # "": both networks from scratch; "efficientnet_lite0": stage 2's encoder
+                                   # is that ImageNet-pretrained trunk (``common.detector.backbone``)
+    backbone_cut: int = 16         # the stage-2 trunk's deepest stride (8 or 16)
+    global_backbone: bool = False  # stage 1 on the same pretrained trunk, cut at stride 8
+    visibility: bool = False       # 5 more heatmap channels: per-keypoint visibility logits (``visibility_logits``)
 
     def to_dict(self) -> dict:
         d = asdict(self)
@@ -64,6 +69,19 @@ class ModelConfig:
     def heat(self) -> int:
         """Heatmap side in cells."""
         return self.crop // self.out_stride
+
+    @property
+    def heat_channels(self) -> int:
+        """Stage 2's heatmap channels: A..E, the centreline, and A..E's visibility if ``visibility``."""
+        return N_KP + 1 + (N_KP if self.visibility else 0)
+
+    @property
+    def descriptor_size(self) -> int:
+        """Length of stage 2's crop descriptor (``CropNet.forward_features``)."""
+        if self.backbone:
+            from common.detector.backbone import LEVELS
+            return 2 * (LEVELS[4] + LEVELS[8] + LEVELS[self.backbone_cut])
+        return 2 * sum(self.crop_widths[1:])
 
 
 def cbr(cin: int, cout: int, stride: int = 1, dilation: int = 1) -> nn.Sequential:
@@ -107,7 +125,7 @@ class CropNet(nn.Module):
     """Stage 2 on the crop: heatmaps (N, 6, m, m) = 5 keypoint logits + centreline logit,
     and the presence logit (N,)."""
 
-    def __init__(self, widths=(16, 32, 48, 80), out_stride: int = 1):
+    def __init__(self, widths=(16, 32, 48, 80), out_stride: int = 1, n_out: int = N_KP + 1):
         super().__init__()
         w0, w1, w2, w3 = widths
         self.out_stride = out_stride
@@ -121,13 +139,7 @@ class CropNet(nn.Module):
         self.d2 = cbr(w1, w1)
         self.l2 = nn.Conv2d(w1, w0, 1)
         self.d1 = cbr(w0, w0)
-        n_out = N_KP + 1
-        if out_stride == 1:   # sub-cell structure learned by a pixel shuffle back to crop res
-            self.head = nn.Sequential(nn.Conv2d(w0, n_out * 4, 1), nn.PixelShuffle(2))
-        elif out_stride == 2:
-            self.head = nn.Conv2d(w0, n_out, 3, padding=1)
-        else:
-            raise ValueError(f"out_stride must be 1 or 2, got {out_stride}")
+        self.head = heatmap_head(w0, n_out, out_stride)
         self.presence = nn.Linear(2 * w3, 1)
 
     def forward(self, x: torch.Tensor):
@@ -153,6 +165,80 @@ class CropNet(nn.Module):
         return self.head(u), pres, feat
 
 
+def heatmap_head(cin: int, n_out: int, out_stride: int) -> nn.Module:
+    """Stride-2 features -> ``n_out`` heatmaps at crop resolution (``out_stride`` 1: a pixel shuffle
+    learns the sub-cell structure) or at stride 2."""
+    if out_stride == 1:
+        return nn.Sequential(nn.Conv2d(cin, n_out * 4, 1), nn.PixelShuffle(2))
+    if out_stride == 2:
+        return nn.Conv2d(cin, n_out, 3, padding=1)
+    raise ValueError(f"out_stride must be 1 or 2, got {out_stride}")
+
+
+class PretrainedCropNet(nn.Module):
+    """Stage 2 on EfficientNet-Lite0's ImageNet-pretrained trunk (``common.detector.backbone``) cut at
+    stride ``cut``, with a U-Net decoder over its stride 8, 4 and 2 features; the same outputs as
+    ``CropNet`` (heatmaps, presence logit, descriptor)."""
+
+    def __init__(self, out_stride: int = 1, n_out: int = N_KP + 1, cut: int = 16):
+        super().__init__()
+        from common.detector.backbone import LEVELS, EfficientLiteTrunk
+        if cut not in (8, 16):
+            raise ValueError(f"backbone_cut must be 8 or 16, got {cut}")
+        self.out_stride, self.cut = out_stride, cut
+        self.trunk = EfficientLiteTrunk(cut)
+        w0, w1, w2, w3 = LEVELS[2], LEVELS[4], LEVELS[8], LEVELS[cut]
+        self.l4 = nn.Conv2d(w3, w2, 1) if cut == 16 else None
+        self.d3 = cbr(w2, w2)
+        self.l3 = nn.Conv2d(w2, w1, 1)
+        self.d2 = cbr(w1, w1)
+        self.l2 = nn.Conv2d(w1, w0, 1)
+        self.d1 = cbr(w0, w0)
+        self.head = heatmap_head(w0, n_out, out_stride)
+        self.presence = nn.Linear(2 * w3, 1)
+
+    def forward(self, x: torch.Tensor):
+        heat, pres, _ = self.forward_features(x)
+        return heat, pres
+
+    def forward_features(self, x: torch.Tensor):
+        """As ``CropNet.forward_features``: the descriptor is the spatial mean and standard deviation of
+        the stride 4 and 8 features and the deepest features' mean and max."""
+        from common.detector.backbone import normalise
+        f = self.trunk(normalise(x))
+        a, b, c, d = f[2], f[4], f[8], f[self.cut]
+        deep = torch.cat([d.mean((2, 3)), d.amax((2, 3))], 1)
+        pres = self.presence(deep)[:, 0]
+        feat = torch.cat([b.mean((2, 3)), b.std((2, 3)), c.mean((2, 3)), c.std((2, 3)), deep], 1)
+        u = c if self.l4 is None else c + F.interpolate(self.l4(d), scale_factor=2.0, mode="nearest")
+        u = self.d3(u)
+        u = self.d2(F.interpolate(self.l3(u), scale_factor=2.0, mode="nearest") + b)
+        u = self.d1(F.interpolate(self.l2(u), scale_factor=2.0, mode="nearest") + a)
+        return self.head(u), pres, feat
+
+
+class PretrainedGlobalNet(nn.Module):
+    """Stage 1 on EfficientNet-Lite0's pretrained trunk cut at stride 8: its stride-8 features, up-sampled
+    onto the stride-4 ones, give ``GlobalNet``'s output (N, 5, H/4, W/4)."""
+
+    def __init__(self):
+        super().__init__()
+        from common.detector.backbone import LEVELS, EfficientLiteTrunk
+        self.trunk = EfficientLiteTrunk(8)
+        self.lat = nn.Conv2d(LEVELS[4], LEVELS[8], 1)
+        self.fuse = cbr(LEVELS[8], LEVELS[8])
+        self.head = nn.Conv2d(LEVELS[8], 5, 1)
+        nn.init.constant_(self.head.bias, 0.0)
+        with torch.no_grad():
+            self.head.bias[0] = -4.0   # start with "no needle anywhere"
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        from common.detector.backbone import normalise
+        f = self.trunk(normalise(x))
+        b, c = f[4], f[8]
+        return self.head(self.fuse(F.interpolate(c, size=b.shape[-2:], mode="nearest") + self.lat(b)))
+
+
 class CropWithFeatures(nn.Module):
     """A ``CropNet`` that also returns its descriptor (``CropNet.forward_features``), for tracing."""
 
@@ -172,8 +258,25 @@ class KeypointModel(nn.Module):
         self.cfg = cfg or ModelConfig()
         if self.cfg.crop % 16:
             raise ValueError(f"crop must be a multiple of 16, got {self.cfg.crop}")
-        self.glob = GlobalNet(self.cfg.global_widths)
-        self.crop = CropNet(self.cfg.crop_widths, self.cfg.out_stride)
+        c = self.cfg
+        if c.backbone not in ("", "efficientnet_lite0"):
+            raise ValueError(f"backbone must be '' or 'efficientnet_lite0', got {c.backbone!r}")
+        if c.global_backbone and not c.backbone:
+            raise ValueError("global_backbone needs backbone: efficientnet_lite0")
+        self.glob = PretrainedGlobalNet() if c.global_backbone else GlobalNet(c.global_widths)
+        self.crop = (PretrainedCropNet(c.out_stride, c.heat_channels, c.backbone_cut) if c.backbone
+                     else CropNet(c.crop_widths, c.out_stride, c.heat_channels))
+
+    def load_pretrained(self) -> dict:
+        """ImageNet weights into the pretrained trunks (training from scratch starts here); returns the
+        provenance to store in the weights file's meta. A no-op returning {} without a backbone."""
+        if not self.cfg.backbone:
+            return {}
+        from common.detector.backbone import load_imagenet
+        info = load_imagenet(self.crop.trunk)
+        if self.cfg.global_backbone:
+            load_imagenet(self.glob.trunk)
+        return info
 
 
 # ---------------------------------------------------------------- inference-time fusion
@@ -311,6 +414,16 @@ def focal_heatmap_loss(logits: torch.Tensor, target: torch.Tensor, alpha: float 
     pos_loss = -(torch.log(p) * (1 - p) ** alpha * pos).sum()
     neg_loss = -(torch.log(1 - p) * p ** alpha * (1 - target) ** beta * neg).sum()
     return (pos_loss + neg_loss) / pos.sum().clamp_min(1.0)
+
+
+def visibility_logits(heat: torch.Tensor) -> torch.Tensor:
+    """Per-keypoint visibility logits (N, 5) from stage 2's heatmaps (N, 11, m, m): each keypoint's
+    visibility map (channels 6..10) averaged under its own heatmap's softmax (channels 0..4), so the
+    statement is about the place the keypoint is read at. The softmax is not differentiated through:
+    the visibility loss does not move the keypoints."""
+    n, m = heat.shape[0], heat.shape[-1]
+    p = F.softmax(heat[:, :N_KP].detach().reshape(n, N_KP, m * m), dim=-1)
+    return (p * heat[:, N_KP + 1:2 * N_KP + 1].reshape(n, N_KP, m * m)).sum(-1)
 
 
 # ---------------------------------------------------------------- decoding

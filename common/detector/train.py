@@ -47,10 +47,9 @@ from common.detector.model import (
     global_size,
     invert_affine,
     keypoint_loss,
+    visibility_logits,
 )
-
-MODEL_FORMAT = "needletrack-keypoint-detector"
-MODEL_VERSION = 1
+from common.detector.weights import MODEL_FORMAT, MODEL_VERSION
 
 DEFAULT_TRAIN = {
     "epochs": 20,
@@ -67,7 +66,8 @@ DEFAULT_TRAIN = {
     "threads": 2,
     "time_budget_min": 0,     # the cosine schedule ends at this training time if it comes first; 0 = none
     "loss_weights": {"kp": 1.0, "line": 4.0, "presence": 0.3, "global": 1.0, "box": 1.0,
-                     "global_presence": 1.0},
+                     "global_presence": 1.0, "visibility": 0.5},
+    "backbone_lr": 1.0,       # the pretrained trunks' learning rate, as a fraction of lr (model.backbone)
     "stages": ["global", "crop"],   # which networks to train (the other keeps its weights)
     "hard_negatives": 0,      # >0: mine up to this many stage-1 false proposals per image
                               # (instrument jaws, thread...) with the weights of that moment
@@ -139,6 +139,11 @@ def losses(model: KeypointModel, cb, gb, w: dict, hidden_sigma: float = 0.0) -> 
         out["kp"] = keypoint_loss(heat[:, :5], gaussian_targets(kpc, valid, cfg.heat, sigma))
         out["line"] = F.binary_cross_entropy_with_logits(heat[:, 5], line)
         out["presence"] = F.binary_cross_entropy_with_logits(p, pres)
+        if cfg.visibility:   # seen (weight 1) or hidden (under 1); no statement where no target
+            m = (valid > 0).float()
+            bce = F.binary_cross_entropy_with_logits(visibility_logits(heat), (valid >= 1).float(),
+                                                     reduction="none")
+            out["visibility"] = (bce * m).sum() / m.sum().clamp_min(1.0)
     if gb is not None:
         gx, gheat, greg, gmask = gb
         g = model.glob(gx)
@@ -316,6 +321,15 @@ def split(records, fraction: float, seed: int):
 
 # ---------------------------------------------------------------- main
 
+def parameter_groups(model: KeypointModel, backbone_lr: float) -> list[dict]:
+    """Optimiser groups: the pretrained trunks' parameters at ``backbone_lr`` x the learning rate
+    (``lr_scale``), the rest at 1 x."""
+    trunk = {id(p) for name, p in model.named_parameters() if ".trunk." in f".{name}"}
+    own = [p for p in model.parameters() if id(p) not in trunk]
+    pre = [p for p in model.parameters() if id(p) in trunk]
+    return [g for g in ({"params": own, "lr_scale": 1.0}, {"params": pre, "lr_scale": backbone_lr}) if g["params"]]
+
+
 def train(data_dirs, out, config_path=None, log=print, progress=True, init=None,
           teacher_dirs=None) -> dict:
     """Train (or resume) into the folder ``out``; returns the last epoch's metrics. ``init``: a
@@ -349,7 +363,7 @@ def train(data_dirs, out, config_path=None, log=print, progress=True, init=None,
     def load_init(into: KeypointModel) -> None:
         try:
             src = torch.load(init, map_location="cpu", weights_only=True)
-            if src.get("config") != mcfg.to_dict():
+            if ModelConfig.from_dict(dict(src.get("config") or {})) != mcfg:
                 raise ValueError(f"--init {init}: its model config differs from {config_path}")
             into.load_state_dict(src["state_dict"])
         except (OSError, RuntimeError, KeyError, AttributeError) as exc:
@@ -358,6 +372,9 @@ def train(data_dirs, out, config_path=None, log=print, progress=True, init=None,
     if init and not (out / "checkpoint.pt").is_file():
         load_init(model)
         log(f"starting from the weights of {init}")
+    elif not (out / "checkpoint.pt").is_file() and mcfg.backbone:
+        model.load_pretrained()
+        log(f"starting from the ImageNet weights of {mcfg.backbone} (common.detector.backbone)")
     teacher, t_recs = None, []
     if teacher_dirs and float(tcfg["distill_weight"]) > 0:
         if not init:
@@ -387,11 +404,12 @@ def train(data_dirs, out, config_path=None, log=print, progress=True, init=None,
         return found
     steps_per_epoch = int(tcfg["steps_per_epoch"]) or max(1, len(tr) // int(tcfg["batch"]))
     total = steps_per_epoch * int(tcfg["epochs"])
+    groups = parameter_groups(model, float(tcfg["backbone_lr"]))
     if tcfg["optimizer"] == "sgd":
-        opt = torch.optim.SGD(model.parameters(), lr=tcfg["lr"], momentum=tcfg["momentum"],
+        opt = torch.optim.SGD(groups, lr=tcfg["lr"], momentum=tcfg["momentum"],
                               weight_decay=tcfg["weight_decay"])
     elif tcfg["optimizer"] == "adamw":
-        opt = torch.optim.AdamW(model.parameters(), lr=tcfg["lr"], weight_decay=tcfg["weight_decay"])
+        opt = torch.optim.AdamW(groups, lr=tcfg["lr"], weight_decay=tcfg["weight_decay"])
     else:
         raise ValueError(f"{config_path}: train.optimizer must be adamw or sgd, got {tcfg['optimizer']!r}")
     warm = int(tcfg["warmup_steps"])
@@ -408,7 +426,7 @@ def train(data_dirs, out, config_path=None, log=print, progress=True, init=None,
     ckpt_path = out / "checkpoint.pt"
     if ckpt_path.is_file():
         ck = torch.load(ckpt_path, map_location="cpu", weights_only=True)
-        if ck.get("config") != mcfg.to_dict():
+        if ModelConfig.from_dict(dict(ck.get("config") or {})) != mcfg:
             raise ValueError(f"{ckpt_path}: was trained with another model config; "
                              f"delete it or use another --out")
         model.load_state_dict(ck["state_dict"])
@@ -461,7 +479,7 @@ def train(data_dirs, out, config_path=None, log=print, progress=True, init=None,
                 L["total"] = L["total"] + float(tcfg["distill_weight"]) * D["total"]
             lr = base_lr * min(1.0, (step_count + 1) / max(1, warm)) * 0.5 * (1 + math.cos(math.pi * frac))
             for g in opt.param_groups:
-                g["lr"] = lr
+                g["lr"] = lr * g["lr_scale"]
             opt.zero_grad(set_to_none=True)
             L["total"].backward()
             torch.nn.utils.clip_grad_norm_(model.parameters(), 5.0)
@@ -492,6 +510,9 @@ def train(data_dirs, out, config_path=None, log=print, progress=True, init=None,
         log(msg)
         meta = {"epoch": epoch + 1, "val": val, "train_seconds": round(elapsed, 1),
                 "data": [str(d) for d in data_dirs], "seed": seed}
+        if mcfg.backbone:   # the pretrained weights' provenance and licence travel with the file
+            from common.detector.backbone import provenance
+            meta["backbone"] = provenance()
         scored = checked or not va
         if scored and score <= best or not (out / "model.pt").is_file():
             if scored:   # a first model saved without validation sets no bar for the next

@@ -179,7 +179,9 @@ class Keypoints(Message):
     the consumer's default). ``end_identity`` optionally states the probability that A is the
     needle's tip as said (0.5: the image cannot tell the tip from the tail; absent: A is taken as
     said). ``unfamiliarity`` optionally states how unlike the detector's training looks the
-    image is (about 1: familiar; larger: less so; ``common.detector.familiarity``).
+    image is (about 1: familiar; larger: less so; ``common.detector.familiarity``). ``visibility``
+    (5,) optionally states the probability that each keypoint is seen (not inside tissue, not behind
+    an instrument); a detector that states it caps each score at it.
     """
 
     SCHEMA = "needletrack.Keypoints"
@@ -202,6 +204,7 @@ class Keypoints(Message):
     end_identity: Optional[Probability] = None
     epoch: Optional[NonNegative] = None
     unfamiliarity: Optional[NonNegativeNumber] = None
+    visibility: Optional[Array[5]] = None
 
     def validate(self):
         pass
