@@ -28,7 +28,7 @@ from typing import Optional
 import cv2
 import numpy as np
 
-from common.evaluation.overlays import TRUTH_BGR, _bgr
+from common.evaluation.overlays import TRUTH_BGR, _bgr, crop_box
 from common.methods import METHOD_COLOURS
 from common.geometry.needle import KEYPOINT_NAMES, NeedleModel
 from common.geometry.transforms import inv_T, transform_points
@@ -225,7 +225,6 @@ def fig1_with_zoom(img: np.ndarray, scale: float, cam, needle: NeedleModel, pose
     pose's arc, else the truth, else the detections) drawn at the zoomed resolution; its box is
     outlined on the picture. Same arguments as ``draw_fig1``; ``zoom_frac``: the inset's width
     over the picture's."""
-    from common.evaluation.overlays import _crop_box
     out = draw_fig1(img, scale, cam, needle, poses, final, keypoints, T_true, caption, instruments=instruments)
     arc = needle.sample_arc(24)
     pose = poses.get(final) if final else None
@@ -241,7 +240,7 @@ def fig1_with_zoom(img: np.ndarray, scale: float, cam, needle: NeedleModel, pose
     pts = pts[np.all(np.isfinite(pts), axis=1)]
     if not len(pts) or not ((pts[:, 0] > 0) & (pts[:, 0] < w) & (pts[:, 1] > 0) & (pts[:, 1] < h)).any():
         return out
-    x0, y0, x1, y1 = _crop_box([pts], w, h, min_size=24, margin=0.35)
+    x0, y0, x1, y1 = crop_box([pts], w, h, min_size=24, margin=0.35)
     side = int(w * zoom_frac)
     z = side / max(x1 - x0, y1 - y0)
     if z <= 1.2:
@@ -287,14 +286,13 @@ def draw_detection(img: np.ndarray, kp, caption: str = "", max_width: int = 1280
     (``score_bgr``) and labelled, the centreline, and, in the top right corner, a zoomed crop
     of the needle (from the full-size image; ``zoom_frac`` of the picture's width). Not found:
     "no needle" and the reason. ``caption`` goes top left (a line per newline)."""
-    from common.evaluation.overlays import _crop_box
     out, scale = downscale(img, max_width, max_height)
     out = out.copy()
     h, w = img.shape[:2]
     found = bool(kp.found) and np.isfinite(np.asarray(kp.uv, float)).any()
     if found:
         _draw_detected(out, kp, scale, radius=max(3, int(round(4 * out.shape[1] / 960))))
-        x0, y0, x1, y1 = _crop_box([np.asarray(kp.uv, float)], w, h, min_size=24, margin=0.35)
+        x0, y0, x1, y1 = crop_box([np.asarray(kp.uv, float)], w, h, min_size=24, margin=0.35)
         side = int(out.shape[1] * zoom_frac)
         z = side / max(x1 - x0, y1 - y0)
         if z > 1.2 * scale:
