@@ -187,12 +187,17 @@ def _video_images(src: Source, every: int, most: Optional[int], names, split: bo
         i = kept = 0
         while most is None or kept < most:
             if i % every:
-                if not cap.grab():
-                    break
+                ok, img = cap.grab(), None
             else:
                 ok, img = cap.read()
-                if not ok or img is None:
-                    break
+            if not ok or (img is None and not i % every):
+                if i < src.frames - max(2, src.frames // 50):
+                    # the container states more frames: a truncated or damaged file
+                    yield InputImage(src.path, i, None, names(f"{stem}_{i:06d}"), None,
+                                     f"{src.path}: frame {i} cannot be decoded (the video states "
+                                     f"{src.frames} frames): truncated or damaged; its last frames are passed over")
+                break
+            if not i % every:
                 yield from _images_of(img, None, src.path, i, f"{stem}_{i:06d}", names, split, stream=src.path)
                 kept += 1
             i += 1

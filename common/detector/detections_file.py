@@ -23,13 +23,13 @@ class DetectionsFileError(NeedletrackError, ValueError):
 
 
 class KeypointRecord(msgspec.Struct, forbid_unknown_fields=True):
-    """One keypoint: ``u``, ``v`` pixels, ``score`` in [0, 1] (the detector's own), ``on_arc``
-    true where the detector placed it on its fitted arc instead of seeing it itself (null: not
-    stated)."""
+    """One keypoint: ``u``, ``v`` pixels (null: a point the detector did not place), ``score`` in
+    [0, 1] (the detector's own), ``on_arc`` true where the detector placed it on its fitted arc
+    instead of seeing it itself (null: not stated)."""
 
-    u: float
-    v: float
-    score: float
+    u: Optional[float]
+    v: Optional[float]
+    score: Optional[float]
     on_arc: Optional[bool] = None
 
 

@@ -128,6 +128,24 @@ def test_video_frames_in_order(dataset, video, tmp_path, capsys, extra, frames):
         assert (tmp_path / "overlays" / f"{r['name']}.png").is_file()
 
 
+def test_a_truncated_video_is_reported_after_its_readable_frames(tmp_path, capsys):
+    path = tmp_path / "clip.avi"
+    w = cv2.VideoWriter(str(path), cv2.VideoWriter_fourcc(*"MJPG"), 10, (320, 240))
+    rng = np.random.default_rng(0)
+    for _ in range(20):
+        w.write(rng.integers(0, 255, (240, 320, 3), dtype=np.uint8))
+    w.release()
+    data = path.read_bytes()
+    path.write_bytes(data[:len(data) // 2])
+    rc, out, err = run([path, "--out", tmp_path / "out", "--no-overlays"], capsys)
+    assert rc == 0
+    recs = lines(tmp_path / "out")
+    assert 5 <= len(recs) <= 15 and [r["frame"] for r in recs] == list(range(len(recs)))
+    assert all(r["error"] is None for r in recs[:-1])
+    assert "truncated or damaged" in recs[-1]["error"] and "clip.avi" in recs[-1]["error"]
+    assert "clip.avi" in err and "1 unreadable" in out
+
+
 def test_side_by_side_stereo_is_split(dataset, tmp_path, capsys):
     path = tmp_path / "sbs.png"
     cv2.imwrite(str(path), np.hstack([dataset.image(2, "left"), dataset.image(2, "right")]))
