@@ -23,6 +23,7 @@ COMMANDS = {
     "certs": ("common.runtime.certs:certs_main", "make a test CA and a TLS graph's certificates"),
     "bench": ("common.cli:bench_main", "benchmarks: transport, sim, detector, graph, refine, geometry"),
     "dataset": ("common.cli:dataset_main", "make, check, convert and look at dataset folders"),
+    "detect": ("common.evaluation.detect_files:main", "the detector on your own images, videos or folders: JSON lines and overlays"),
     "train": ("common.detector.train:main", "train the keypoint detector"),
     "eval": ("common.evaluation.cli:main", "evaluate pose pipelines"),
     "adapt": ("common.evaluation.adapt:main", "fit the detector to a scene from recordings without ground truth"),

@@ -56,7 +56,10 @@ def select_overlay_frames(ev: Evaluation, k_worst: int = 3) -> list[tuple[int, s
     return sorted(chosen.items(), key=lambda kv: kv[0])
 
 
-def _crop_box(uv_list, w, h, min_size=40, margin=0.2):
+def crop_box(uv_list, w, h, min_size=40, margin=0.2):
+    """(x0, y0, x1, y1) px of a square crop of a ``w x h`` image around the finite points of
+    ``uv_list`` (arrays (N, 2) or None): their extent (at least ``min_size``) widened by
+    ``margin`` on each side, clipped to the image; the whole image when there is no point."""
     pts = np.concatenate([u for u in uv_list if u is not None and len(u)], axis=0)
     pts = pts[np.all(np.isfinite(pts), axis=1)]
     if not len(pts):
@@ -96,7 +99,7 @@ def draw_overlay(images: dict, rig, needle: NeedleModel, T_true, estimates: dict
         true_arc, true_kp = proj(T_true, arc), proj(T_true, kps)
         est = {m: proj(T, arc) for m, T in estimates.items() if T is not None}
         det = detections.get(cam_name)
-        x0, y0, x1, y1 = _crop_box([true_arc, true_kp, det], w, h)
+        x0, y0, x1, y1 = crop_box([true_arc, true_kp, det], w, h)
         scale = panel_px / max(x1 - x0, y1 - y0)
         crop = cv2.resize(np.ascontiguousarray(img[y0:y1, x0:x1]),
                           (max(1, int((x1 - x0) * scale)), max(1, int((y1 - y0) * scale))),

@@ -16,6 +16,9 @@ What ``draw_fig1`` draws on one camera's image:
 - each instrument's jaw frame (``InstrumentToDraw``): its axes (x red, y green, z blue, 5 mm)
   at the jaws' pivot, labelled with its name; the one that holds the needle ringed and labelled
   "holds".
+
+``draw_detection`` draws a detector's ``Keypoints`` message alone on its image (no pose, no
+truth; ``needletrack detect``'s overlays): A..E coloured by score, the centreline, a zoomed inset.
 """
 from __future__ import annotations
 
@@ -25,7 +28,7 @@ from typing import Optional
 import cv2
 import numpy as np
 
-from common.evaluation.overlays import TRUTH_BGR, _bgr
+from common.evaluation.overlays import TRUTH_BGR, _bgr, crop_box
 from common.methods import METHOD_COLOURS
 from common.geometry.needle import KEYPOINT_NAMES, NeedleModel
 from common.geometry.transforms import inv_T, transform_points
@@ -222,7 +225,6 @@ def fig1_with_zoom(img: np.ndarray, scale: float, cam, needle: NeedleModel, pose
     pose's arc, else the truth, else the detections) drawn at the zoomed resolution; its box is
     outlined on the picture. Same arguments as ``draw_fig1``; ``zoom_frac``: the inset's width
     over the picture's."""
-    from common.evaluation.overlays import _crop_box
     out = draw_fig1(img, scale, cam, needle, poses, final, keypoints, T_true, caption, instruments=instruments)
     arc = needle.sample_arc(24)
     pose = poses.get(final) if final else None
@@ -238,7 +240,7 @@ def fig1_with_zoom(img: np.ndarray, scale: float, cam, needle: NeedleModel, pose
     pts = pts[np.all(np.isfinite(pts), axis=1)]
     if not len(pts) or not ((pts[:, 0] > 0) & (pts[:, 0] < w) & (pts[:, 1] > 0) & (pts[:, 1] < h)).any():
         return out
-    x0, y0, x1, y1 = _crop_box([pts], w, h, min_size=24, margin=0.35)
+    x0, y0, x1, y1 = crop_box([pts], w, h, min_size=24, margin=0.35)
     side = int(w * zoom_frac)
     z = side / max(x1 - x0, y1 - y0)
     if z <= 1.2:
@@ -253,6 +255,64 @@ def fig1_with_zoom(img: np.ndarray, scale: float, cam, needle: NeedleModel, pose
     cv2.rectangle(out, (x0, y0), (x1, y1), TEXT_BGR, 1)
     out[2:2 + ih, w - 2 - iw:w - 2] = inset[:ih, :iw]
     cv2.rectangle(out, (w - 3 - iw, 1), (w - 1, 2 + ih), TEXT_BGR, 1)
+    return out
+
+
+def score_bgr(score: float) -> tuple:
+    """A detector's score in [0, 1] as a colour: red (0) through yellow (0.5) to green (1), BGR."""
+    s = float(np.clip(score if np.isfinite(score) else 0.0, 0.0, 1.0))
+    return 0, int(round(220 * min(1.0, 2 * s))), int(round(230 * min(1.0, 2 * (1 - s))))
+
+
+def _draw_detected(out: np.ndarray, kp, scale: float, offset=(0.0, 0.0), radius: int = 5) -> None:
+    """A found ``Keypoints`` message on ``out`` (a picture, ``to_picture(scale, offset)``): its
+    centreline (thin, ``DETECTION_BGR``) and A..E as discs coloured by score, labelled."""
+    if kp.centreline is not None:
+        line = np.asarray(kp.centreline, float)
+        if kp.centreline_w is not None:
+            line = line[np.asarray(kp.centreline_w, float) > 0]
+        _polyline(out, to_picture(line, scale, offset), DETECTION_BGR, 1)
+    for name, p, s in zip(KEYPOINT_NAMES, to_picture(np.asarray(kp.uv, float), scale, offset), kp.scores, strict=True):
+        if np.all(np.isfinite(p)) and (np.abs(p) < 1e5).all():
+            cv2.circle(out, _ipt(p), radius + 1, (0, 0, 0), -1, cv2.LINE_AA)
+            cv2.circle(out, _ipt(p), radius, score_bgr(s), -1, cv2.LINE_AA)
+            _label(out, name, (_ipt(p)[0] + radius + 3, _ipt(p)[1] - radius - 3), score_bgr(s), 0.5)
+
+
+def draw_detection(img: np.ndarray, kp, caption: str = "", max_width: int = 1280, max_height: int = 1024,
+                   zoom_frac: float = 0.4) -> np.ndarray:
+    """One camera image (BGR, full size) with a detector's ``Keypoints`` message drawn on it,
+    shrunk to fit ``max_width x max_height``: the keypoints A..E coloured by score
+    (``score_bgr``) and labelled, the centreline, and, in the top right corner, a zoomed crop
+    of the needle (from the full-size image; ``zoom_frac`` of the picture's width). Not found:
+    "no needle" and the reason. ``caption`` goes top left (a line per newline)."""
+    out, scale = downscale(img, max_width, max_height)
+    out = out.copy()
+    h, w = img.shape[:2]
+    found = bool(kp.found) and np.isfinite(np.asarray(kp.uv, float)).any()
+    if found:
+        _draw_detected(out, kp, scale, radius=max(3, int(round(4 * out.shape[1] / 960))))
+        x0, y0, x1, y1 = crop_box([np.asarray(kp.uv, float)], w, h, min_size=24, margin=0.35)
+        side = int(out.shape[1] * zoom_frac)
+        z = side / max(x1 - x0, y1 - y0)
+        if z > 1.2 * scale:
+            crop = cv2.resize(np.ascontiguousarray(img[y0:y1, x0:x1]),
+                              (max(1, int(round((x1 - x0) * z))), max(1, int(round((y1 - y0) * z)))),
+                              interpolation=cv2.INTER_CUBIC if z > 1 else cv2.INTER_AREA)
+            _draw_detected(crop, kp, z, (x0 * z, y0 * z), radius=6)
+            _label(crop, f"x{z / scale:.1f}", (6, crop.shape[0] - 8), TEXT_BGR, 0.5)
+            ow = out.shape[1]
+            ih, iw = min(crop.shape[0], out.shape[0] - 4), min(crop.shape[1], ow - 4)
+            b = to_picture(np.array([[x0, y0], [x1, y1]], float) - 0.5, scale)
+            cv2.rectangle(out, _ipt(b[0]), _ipt(b[1]), TEXT_BGR, 1)
+            out[2:2 + ih, ow - 2 - iw:ow - 2] = crop[:ih, :iw]
+            cv2.rectangle(out, (ow - 3 - iw, 1), (ow - 1, 2 + ih), TEXT_BGR, 1)
+    else:
+        _label(out, "no needle", (8, out.shape[0] // 2), AMBIGUOUS_BGR, 1.2)
+        if kp.reason:
+            _label(out, kp.reason[:110], (8, out.shape[0] // 2 + 28), TEXT_BGR, 0.5)
+    for i, line in enumerate(caption.split("\n") if caption else ()):
+        _label(out, line, (8, 22 + 22 * i), TEXT_BGR, 0.55)
     return out
 
 
