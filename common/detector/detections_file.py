@@ -25,12 +25,14 @@ class DetectionsFileError(NeedletrackError, ValueError):
 class KeypointRecord(msgspec.Struct, forbid_unknown_fields=True):
     """One keypoint: ``u``, ``v`` pixels (null: a point the detector did not place), ``score`` in
     [0, 1] (the detector's own), ``on_arc`` true where the detector placed it on its fitted arc
-    instead of seeing it itself (null: not stated)."""
+    instead of seeing it itself (null: not stated), ``visible`` the probability that the point is
+    seen, not inside tissue or behind an instrument (null: not stated; the score is capped at it)."""
 
     u: Optional[float]
     v: Optional[float]
     score: Optional[float]
     on_arc: Optional[bool] = None
+    visible: Optional[float] = None
 
 
 class DetectionRecord(msgspec.Struct, forbid_unknown_fields=True):
@@ -74,8 +76,10 @@ def detection_record(kp, *, source: str, frame: Optional[int], camera: Optional[
     keypoints = None
     if kp.found:
         on_arc = None if kp.on_arc is None else np.asarray(kp.on_arc, bool)
+        seen = getattr(kp, "visibility", None)
         keypoints = {n: KeypointRecord(_num(uv[0], 3), _num(uv[1], 3), _num(s, 4),
-                                       None if on_arc is None else bool(on_arc[k]))
+                                       None if on_arc is None else bool(on_arc[k]),
+                                       None if seen is None else _num(seen[k], 4))
                      for k, (n, uv, s) in enumerate(zip(KEYPOINT_NAMES, kp.uv, kp.scores, strict=True))}
     return DetectionRecord(
         source=str(source), frame=frame, camera=camera, name=name, width=int(size[0]), height=int(size[1]),
