@@ -94,19 +94,37 @@ def block_specs(cut: int) -> list[tuple]:
 
 class EfficientLiteTrunk(nn.Module):
     """EfficientNet-Lite0 up to output stride ``cut`` (4, 8, 16 or 32). ``forward`` returns a dict
-    stride -> features, the last block's at each stride (``LEVELS``' channels)."""
+    stride -> features, the last block's at each stride (``LEVELS``' channels). The stem and the
+    first ``frozen`` blocks keep their pretrained weights and batch-norm statistics (no gradient,
+    always in eval mode): generic edges at high resolution, where training costs the most."""
 
-    def __init__(self, cut: int = 16):
+    def __init__(self, cut: int = 16, frozen: int = 0):
         super().__init__()
         if cut not in (4, 8, 16, 32):
             raise ValueError(f"backbone cut must be 4, 8, 16 or 32, got {cut}")
-        self.cut = cut
+        self.cut, self.frozen = cut, int(frozen)
         self._conv_stem = nn.Conv2d(3, STEM_CHANNELS, 3, 2, 1, bias=False)
         self._bn0 = _bn(STEM_CHANNELS)
         specs = block_specs(cut)
         self._blocks = nn.ModuleList(MBConv(cin, cout, e, k, s) for cin, cout, e, k, s, _ in specs)
         self._strides = [st for *_, st in specs]
         self.act = nn.ReLU6(inplace=True)
+        if not 0 <= self.frozen <= len(specs):
+            raise ValueError(f"backbone: frozen must be 0..{len(specs)} blocks, got {frozen}")
+        for p in self.frozen_parameters():
+            p.requires_grad_(False)
+
+    def _frozen_modules(self) -> list:
+        return [self._conv_stem, self._bn0, *self._blocks[:self.frozen]] if self.frozen else []
+
+    def frozen_parameters(self):
+        return [p for m in self._frozen_modules() for p in m.parameters()]
+
+    def train(self, mode: bool = True):
+        super().train(mode)
+        for m in self._frozen_modules():
+            m.train(False)
+        return self
 
     def forward(self, x: torch.Tensor) -> dict:
         x = self.act(self._bn0(self._conv_stem(x)))

@@ -49,6 +49,7 @@ class ModelConfig:
     backbone: str = ""             # "": both networks from scratch; "efficientnet_lite0": stage 2's encoder
                                    # is that ImageNet-pretrained trunk (``common.detector.backbone``)
     backbone_cut: int = 16         # the stage-2 trunk's deepest stride (8 or 16)
+    backbone_frozen: int = 0       # the trunks' stem and first blocks kept as pretrained (3: all at strides 2, 4)
     global_backbone: bool = False  # stage 1 on the same pretrained trunk, cut at stride 8
     visibility: bool = False       # 5 more heatmap channels: per-keypoint visibility logits (``visibility_logits``)
 
@@ -180,13 +181,13 @@ class PretrainedCropNet(nn.Module):
     stride ``cut``, with a U-Net decoder over its stride 8, 4 and 2 features; the same outputs as
     ``CropNet`` (heatmaps, presence logit, descriptor)."""
 
-    def __init__(self, out_stride: int = 1, n_out: int = N_KP + 1, cut: int = 16):
+    def __init__(self, out_stride: int = 1, n_out: int = N_KP + 1, cut: int = 16, frozen: int = 0):
         super().__init__()
         from common.detector.backbone import LEVELS, EfficientLiteTrunk
         if cut not in (8, 16):
             raise ValueError(f"backbone_cut must be 8 or 16, got {cut}")
         self.out_stride, self.cut = out_stride, cut
-        self.trunk = EfficientLiteTrunk(cut)
+        self.trunk = EfficientLiteTrunk(cut, frozen)
         w0, w1, w2, w3 = LEVELS[2], LEVELS[4], LEVELS[8], LEVELS[cut]
         self.l4 = nn.Conv2d(w3, w2, 1) if cut == 16 else None
         self.d3 = cbr(w2, w2)
@@ -221,10 +222,10 @@ class PretrainedGlobalNet(nn.Module):
     """Stage 1 on EfficientNet-Lite0's pretrained trunk cut at stride 8: its stride-8 features, up-sampled
     onto the stride-4 ones, give ``GlobalNet``'s output (N, 5, H/4, W/4)."""
 
-    def __init__(self):
+    def __init__(self, frozen: int = 0):
         super().__init__()
         from common.detector.backbone import LEVELS, EfficientLiteTrunk
-        self.trunk = EfficientLiteTrunk(8)
+        self.trunk = EfficientLiteTrunk(8, frozen)
         self.lat = nn.Conv2d(LEVELS[4], LEVELS[8], 1)
         self.fuse = cbr(LEVELS[8], LEVELS[8])
         self.head = nn.Conv2d(LEVELS[8], 5, 1)
@@ -263,8 +264,8 @@ class KeypointModel(nn.Module):
             raise ValueError(f"backbone must be '' or 'efficientnet_lite0', got {c.backbone!r}")
         if c.global_backbone and not c.backbone:
             raise ValueError("global_backbone needs backbone: efficientnet_lite0")
-        self.glob = PretrainedGlobalNet() if c.global_backbone else GlobalNet(c.global_widths)
-        self.crop = (PretrainedCropNet(c.out_stride, c.heat_channels, c.backbone_cut) if c.backbone
+        self.glob = PretrainedGlobalNet(c.backbone_frozen) if c.global_backbone else GlobalNet(c.global_widths)
+        self.crop = (PretrainedCropNet(c.out_stride, c.heat_channels, c.backbone_cut, c.backbone_frozen) if c.backbone
                      else CropNet(c.crop_widths, c.out_stride, c.heat_channels))
 
     def load_pretrained(self) -> dict:

@@ -324,9 +324,10 @@ def split(records, fraction: float, seed: int):
 def parameter_groups(model: KeypointModel, backbone_lr: float) -> list[dict]:
     """Optimiser groups: the pretrained trunks' parameters at ``backbone_lr`` x the learning rate
     (``lr_scale``), the rest at 1 x."""
-    trunk = {id(p) for name, p in model.named_parameters() if ".trunk." in f".{name}"}
-    own = [p for p in model.parameters() if id(p) not in trunk]
-    pre = [p for p in model.parameters() if id(p) in trunk]
+    params = [(name, p) for name, p in model.named_parameters() if p.requires_grad]   # not the frozen blocks
+    trunk = {id(p) for name, p in params if ".trunk." in f".{name}"}
+    own = [p for _, p in params if id(p) not in trunk]
+    pre = [p for _, p in params if id(p) in trunk]
     return [g for g in ({"params": own, "lr_scale": 1.0}, {"params": pre, "lr_scale": backbone_lr}) if g["params"]]
 
 

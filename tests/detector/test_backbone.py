@@ -52,14 +52,18 @@ def test_trunk_levels_and_cuts():
         assert all(t.shape[-1] == 64 // s for s, t in f.items())
     with pytest.raises(ValueError, match="cut"):
         EfficientLiteTrunk(12)
+    frozen = EfficientLiteTrunk(16, frozen=3).train()
+    assert not frozen._bn0.training and not frozen._blocks[2]._bn1.training and frozen._blocks[3]._bn1.training
+    assert {id(p) for p in frozen.frozen_parameters()} == {id(p) for p in frozen.parameters() if not p.requires_grad}
+    assert len(frozen.frozen_parameters()) == 3 + sum(1 for b in frozen._blocks[:3] for _ in b.parameters())
     with pytest.raises(ValueError, match="global_backbone"):
         KeypointModel(ModelConfig(global_backbone=True))
 
 
 def test_the_trunks_train_at_their_own_learning_rate():
-    model = KeypointModel(ModelConfig(backbone="efficientnet_lite0", global_backbone=True, crop=64))
+    model = KeypointModel(ModelConfig(backbone="efficientnet_lite0", global_backbone=True, crop=64, backbone_frozen=3))
     groups = parameter_groups(model, 0.25)
-    trunk = {id(p) for p in [*model.crop.trunk.parameters(), *model.glob.trunk.parameters()]}
+    trunk = {id(p) for p in [*model.crop.trunk.parameters(), *model.glob.trunk.parameters()] if p.requires_grad}
     assert [g["lr_scale"] for g in groups] == [1.0, 0.25]
     assert {id(p) for p in groups[1]["params"]} == trunk
     assert not trunk & {id(p) for p in groups[0]["params"]}
