@@ -111,6 +111,25 @@ def _arc_pixels(rig: StereoRig, needle: NeedleModel, cam: str, fr: dict) -> np.n
     return rig[cam].project(p)
 
 
+JAW_CENTRE_M = 0.005   # the jaws' middle, along their z from the pivot (the dataset's T_world_jaw)
+
+
+def jaw_pixels(rig: StereoRig, cam: str, fr: dict) -> np.ndarray:
+    """(n, 2) pixels of the middle of each instrument's jaws in camera ``cam`` (in front of it),
+    from the frame's true jaw poses where it has them (``T_world_jaw_truth``: a reported pose may
+    be millimetres off), else the reported ones; (0, 2) without instruments or an endoscope pose."""
+    if fr.get("T_world_ecm") is None or not fr.get("instruments"):
+        return np.zeros((0, 2))
+    T_cam_world = inv_T(rig[cam].T_ecm_cam) @ inv_T(np.asarray(fr["T_world_ecm"], float))
+    pts = []
+    for inst in fr["instruments"].values():
+        T = inst.get("T_world_jaw_truth") or inst.get("T_world_jaw") if isinstance(inst, dict) else None
+        if T is not None:
+            pts.append(transform_points(T_cam_world @ np.asarray(T, float), np.array([[0.0, 0.0, JAW_CENTRE_M]]))[0])
+    pts = np.asarray([p for p in pts if p[2] > 1e-3]).reshape(-1, 3)
+    return rig[cam].project(pts) if len(pts) else np.zeros((0, 2))
+
+
 def _arc_through(kp: np.ndarray) -> np.ndarray:
     """Arc samples through the 5 keypoints (Catmull-Rom), when no pose is given."""
     t = np.linspace(0, 4, ARC_SAMPLES)
@@ -126,14 +145,17 @@ def _arc_through(kp: np.ndarray) -> np.ndarray:
 
 
 def make_record(img: np.ndarray, kp, vis, arc, cfg: ModelConfig, rng: np.random.Generator,
-                frame: int = 0, camera: str = "left", bbox=None, arc_seen=None) -> ImageRecord:
+                frame: int = 0, camera: str = "left", bbox=None, arc_seen=None, jaws=None,
+                jaw_share: float = 0.0) -> ImageRecord:
     """ImageRecord of one BGR image and its ground truth (kp (5,2) or None, vis (5,),
     arc (P,2) or None; full-image pixels). ``arc_seen`` (N,) bool: which of N points equally
     spaced along the arc the render shows (the dataset's ``arc_seen``); without it an arc point
     counts as seen when its nearest keypoint is. The needle is there (a box, a positive) when
     ``PRESENT_ARC_SHARE`` of the arc is seen (without ``arc_seen``: two keypoints). ``bbox``
     [x0, y0, x1, y1]: the needle's box when no keypoints give one (a record for distillation
-    only, ``load_records(boxes_only=True)``)."""
+    only, ``load_records(boxes_only=True)``). ``jaws`` (n, 2): pixels of the instruments' jaws
+    (``jaw_pixels``); in ``jaw_share`` of the records that have one away from the needle, the
+    negative region is centred on it (a hard negative: a jaw must not pass for a needle)."""
     h, w = img.shape[:2]
     ws, hs, _, _ = global_size(cfg, w, h)
     small = cv2.resize(img, (ws, hs), interpolation=cv2.INTER_AREA)
@@ -172,19 +194,33 @@ def make_record(img: np.ndarray, kp, vis, arc, cfg: ModelConfig, rng: np.random.
     else:
         side, x0, y0 = 0, 0, 0
     region, origin = _cut(img, x0, y0, side)
-    # negative region: a random square away from the needle's box
+    # negative region: a random square away from the needle's box (or one on a jaw, jaw_share)
     nside = int(rng.uniform(96, 320))
-    for _ in range(20):
-        nx0 = int(rng.integers(-nside // 4, max(1, w - 3 * nside // 4)))
-        ny0 = int(rng.integers(-nside // 4, max(1, h - 3 * nside // 4)))
+
+    def far(nx0, ny0):
         if not np.isfinite(box).all():
-            break
+            return True
         far_x = nx0 > box[0] + box[2] / 2 + 8 or nx0 + nside < box[0] - box[2] / 2 - 8
         far_y = ny0 > box[1] + box[3] / 2 + 8 or ny0 + nside < box[1] - box[3] / 2 - 8
-        if far_x or far_y:
-            break
+        return far_x or far_y
+    on_jaw = None
+    if jaw_share > 0 and jaws is not None and len(jaws) and rng.random() < jaw_share:
+        inside_jaws = [j for j in np.asarray(jaws, float).reshape(-1, 2) if inside(j[None])[0]]
+        if inside_jaws:
+            j = inside_jaws[int(rng.integers(len(inside_jaws)))]
+            nside = int(rng.uniform(96, 160))   # small: crop_sample's negative crops centre within it
+            jx0, jy0 = int(round(j[0] - nside / 2)), int(round(j[1] - nside / 2))
+            on_jaw = (jx0, jy0) if far(jx0, jy0) else None
+    if on_jaw is not None:
+        nx0, ny0 = on_jaw
     else:
-        nside = 0
+        for _ in range(20):
+            nx0 = int(rng.integers(-nside // 4, max(1, w - 3 * nside // 4)))
+            ny0 = int(rng.integers(-nside // 4, max(1, h - 3 * nside // 4)))
+            if far(nx0, ny0):
+                break
+        else:
+            nside = 0
     neg, neg_origin = _cut(img, nx0, ny0, nside)
     return ImageRecord(small, region, origin, neg, neg_origin, kp, vis, arc.astype(np.float32),
                        box, (w, h), frame, camera)
@@ -213,8 +249,9 @@ def _cut(img, x0, y0, side):
 
 
 def load_records(folder, cfg: ModelConfig, seed: int = 0, max_frames: int | None = None,
-                 progress: bool = True, boxes_only: bool = False) -> list[ImageRecord]:
-    """All camera images of a dataset folder as ImageRecords (both cameras per frame).
+                 progress: bool = True, boxes_only: bool = False, jaw_share: float = 0.0) -> list[ImageRecord]:
+    """All camera images of a dataset folder as ImageRecords (both cameras per frame);
+    ``jaw_share``: of the negative regions, the share centred on an instrument's jaws (``make_record``).
     ``boxes_only``: the images whose frame gives a ``bbox`` for the camera, with that box and no
     keypoints: inputs for distillation (``train``'s teacher), never targets."""
     from tqdm import tqdm
@@ -253,7 +290,9 @@ def load_records(folder, cfg: ModelConfig, seed: int = 0, max_frames: int | None
             arc = _arc_pixels(rig, needle, cam, fr)
             seen = (fr.get("arc_seen") or {}).get(cam)
             try:
-                out.append(make_record(img, kps, viss, arc, cfg, rng, int(fr["index"]), cam, arc_seen=seen))
+                jaws = jaw_pixels(rig, cam, fr) if jaw_share > 0 else None
+                out.append(make_record(img, kps, viss, arc, cfg, rng, int(fr["index"]), cam, arc_seen=seen,
+                                       jaws=jaws, jaw_share=jaw_share))
             except (ValueError, TypeError) as exc:
                 raise DatasetError(f"{folder / 'frames.jsonl'}:{fr['_line']}: field 'keypoints'/"
                                    f"'visible'/'arc_seen' of {cam}: {exc}") from None

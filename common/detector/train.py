@@ -74,6 +74,7 @@ DEFAULT_TRAIN = {
     "hard_mining_at": 0.0,    # when to mine: fraction(s) of the schedule (0 = before the first step)
     "hard_mining_images": 0,  # mine on at most this many images (a seeded random subset); 0 = all
     "hard_prob": 0.2,         # fraction of stage-2 samples drawn from the mined hard negatives
+    "jaw_negatives": 0.0,     # share of the images' needle-free regions centred on an instrument's jaws
     "occluded_weight": OCCLUDED_WEIGHT,   # a hidden keypoint's weight in the keypoint loss, in [0, 1)
     "hidden_sigma": 0.0,      # >0: a hidden keypoint's target is a Gaussian this wide (cells), so that
                               # its heatmap is diffuse and its score (peak mass) stays under the gate;
@@ -281,7 +282,8 @@ def plot_curves(metrics: list[dict], path) -> None:
     plt.close(fig)
 
 
-def prepare_records(data_dirs, out: Path, mcfg: ModelConfig, seed: int, progress: bool = True):
+def prepare_records(data_dirs, out: Path, mcfg: ModelConfig, seed: int, progress: bool = True,
+                    jaw_share: float = 0.0):
     """Records of all data folders, cached (outside the repository, in the temp folder) under a
     key made of the folders, their frames.jsonl size and time, the downscale and the seed."""
     import hashlib
@@ -292,7 +294,7 @@ def prepare_records(data_dirs, out: Path, mcfg: ModelConfig, seed: int, progress
                 f.stat().st_mtime_ns if f.is_file() else -1]
     key = json.dumps({"data": [stamp(d) for d in data_dirs], "downscale": mcfg.global_downscale, "stage1_scale": "width",
                       "targets": "arc_seen",
-                      "seed": seed})
+                      "seed": seed, **({"jaw_share": jaw_share} if jaw_share else {})})
     cache_dir = Path(tempfile.gettempdir()) / "needletrack-keypoint-cache"
     cache_dir.mkdir(parents=True, exist_ok=True)
     h = hashlib.sha1(key.encode()).hexdigest()[:16]
@@ -301,7 +303,7 @@ def prepare_records(data_dirs, out: Path, mcfg: ModelConfig, seed: int, progress
         return load_cached(cache)
     records = []
     for i, d in enumerate(data_dirs):
-        records += load_records(d, mcfg, seed=seed + i, progress=progress)
+        records += load_records(d, mcfg, seed=seed + i, progress=progress, jaw_share=jaw_share)
     save_records(cache, records)
     key_path.write_text(key)
     return records
@@ -349,7 +351,7 @@ def train(data_dirs, out, config_path=None, log=print, progress=True, init=None,
     torch.set_num_threads(max(1, int(tcfg["threads"])))
     (out / "train.yaml").write_text(yaml.safe_dump(cfg, sort_keys=False))
 
-    records = prepare_records(data_dirs, out, mcfg, seed, progress)
+    records = prepare_records(data_dirs, out, mcfg, seed, progress, float(tcfg["jaw_negatives"]))
     tr, va = split(records, float(tcfg["val_fraction"]), seed)
     pos = [i for i, r in enumerate(tr) if r.has_needle]
     if not pos:

@@ -316,3 +316,39 @@ def test_keypoint_distillation_keeps_the_teachers_heatmaps():
             p.add_(0.3 * torch.randn_like(p))
     moved = distillation_losses(student, teacher, (x,), None, w, keypoints=True)
     assert moved["kp"].item() > 1e-3 and moved["line"].item() > same["line"].item()
+
+
+def test_negative_regions_are_centred_on_the_jaws_in_their_share():
+    """``jaw_share`` 1: a needle-free region is a square around the instrument's jaws (away from the
+    needle); 0: random, as before (the same draws)."""
+    cfg = ModelConfig.from_dict(TINY_MODEL)
+    img = np.random.default_rng(1).integers(0, 255, (480, 640, 3), dtype=np.uint8)
+    kp = np.array([[100, 100], [110, 95], [120, 92], [130, 95], [140, 100]], float)
+    jaw = np.array([[450.0, 300.0]])
+    for seed in range(5):
+        r = make_record(img, kp, [True] * 5, None, cfg, np.random.default_rng(seed), jaws=jaw, jaw_share=1.0)
+        side = r.neg.shape[0]
+        assert 96 <= side < 160 and np.allclose(r.neg_origin + side / 2, jaw[0], atol=1)
+        plain = make_record(img, kp, [True] * 5, None, cfg, np.random.default_rng(seed))
+        again = make_record(img, kp, [True] * 5, None, cfg, np.random.default_rng(seed), jaws=jaw, jaw_share=0.0)
+        assert np.array_equal(plain.neg_origin, again.neg_origin)
+    near = make_record(img, kp, [True] * 5, None, cfg, np.random.default_rng(0), jaws=kp[2:3], jaw_share=1.0)
+    assert not np.allclose(near.neg_origin + near.neg.shape[0] / 2, kp[2], atol=1)   # on the needle: not used
+
+
+def test_jaw_pixels_project_the_true_jaws_where_the_frame_has_them():
+    from common.detector.data import JAW_CENTRE_M, jaw_pixels
+    from common.geometry.camera import StereoRig
+    from common.geometry.transforms import inv_T
+    rig = StereoRig.default(640, 480)
+    T_jaw = np.eye(4)
+    T_jaw[:3, 3] = rig.left.T_ecm_cam[:3, :3] @ [0.01, 0.0, 0.1 - JAW_CENTRE_M] + rig.left.T_ecm_cam[:3, 3]
+    T_jaw[:3, :3] = rig.left.T_ecm_cam[:3, :3]        # jaw z along the camera's axis
+    off = T_jaw.copy()
+    off[:3, 3] += 0.02                                 # the reported pose, 2 cm off
+    fr = {"T_world_ecm": np.eye(4).tolist(),
+          "instruments": {"psm1": {"T_world_jaw": off.tolist(), "T_world_jaw_truth": T_jaw.tolist()}}}
+    uv = jaw_pixels(rig, "left", fr)
+    want = rig.left.project((inv_T(rig.left.T_ecm_cam) @ np.r_[T_jaw[:3, 3] + T_jaw[:3, 2] * JAW_CENTRE_M, 1])[None, :3])
+    assert uv.shape == (1, 2) and np.allclose(uv, want)
+    assert jaw_pixels(rig, "left", {"T_world_ecm": np.eye(4).tolist()}).shape == (0, 2)
