@@ -1,4 +1,4 @@
-"""The documented training scripts (models/train_from_scratch.sh, models/finetune.sh) call
+"""The documented training scripts (models/train_from_scratch.sh, train_real.sh, finetune.sh) call
 ``needletrack`` with options its commands accept: every call is parsed by the command's own
 argument parser (nothing runs), so a renamed option fails here, not 90 minutes into a run."""
 import argparse
@@ -14,7 +14,7 @@ pytestmark = pytest.mark.training
 
 ROOT = Path(__file__).resolve().parents[2]
 VALUES = {"DATA": "data/train", "OUT": "models/keypoint", "HERE": "models", "L": "data/train/looks",
-          "C": "data/train/end_identity", "H": "data/train/held", "CONFIG": "models/finetune.yaml", "INIT": "models/keypoint/model.pt",
+          "C": "data/train/end_identity", "H": "data/train/held", "R": "data/train/random", "STAGE": "all", "CONFIG": "models/finetune.yaml", "INIT": "models/keypoint/model.pt",
           "TEST": "data/test", "data[@]": "--data data/mine", "extra[@]": "--support-normal 0,0,1",
           "fit[@]": "--data data/mine_fit", "grey[@]": "--grey-data data/mine_fit"}
 
@@ -39,7 +39,7 @@ def calls(script: Path) -> list[list[str]]:
     return out
 
 
-@pytest.mark.parametrize("script", ["train_from_scratch.sh", "finetune.sh"])
+@pytest.mark.parametrize("script", ["train_from_scratch.sh", "train_real.sh", "finetune.sh"])
 def test_every_needletrack_call_in_the_script_parses(script, monkeypatch):
     parse = argparse.ArgumentParser.parse_args
 
