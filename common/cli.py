@@ -28,6 +28,7 @@ COMMANDS = {
     "adapt": ("common.evaluation.adapt:main", "fit the detector to a scene from recordings without ground truth"),
     "results": ("common.evaluation.results_page:main", "evaluate the documented sets and write docs/results.md"),
     "record": ("common.ros.record:record_main", "record a running graph to MCAP with ROS 2 schemas"),
+    "label": ("common.label.server:main", "label a dataset folder's frames by hand in the browser (docs/label.md)"),
     "view": ("common.viewer.cli:main", "open a recording (.rrd) in Rerun's web viewer on 127.0.0.1"),
 }
 

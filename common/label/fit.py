@@ -44,7 +44,11 @@ MIN_SNAPPED = 8               # wire centreline points a camera's image must giv
 
 
 class LabelError(NeedletrackError, ValueError):
-    """Clicks that cannot be read or cannot give a label; the text says what and where."""
+    """Clicks that cannot give a label; the text says what is missing."""
+
+
+class LabelInputError(LabelError):
+    """Input that cannot be read (a malformed click, field or index); the text names it."""
 
 
 @dataclass
@@ -74,11 +78,11 @@ def _point(v, where: str, size) -> Optional[np.ndarray]:
         return None
     if not (isinstance(v, (list, tuple)) and len(v) == 2 and all(isinstance(x, (int, float))
                                                                   and not isinstance(x, bool) for x in v)):
-        raise LabelError(f"{where}: expected [u, v] pixels, got {v!r}"[:160])
+        raise LabelInputError(f"{where}: expected [u, v] pixels, got {v!r}"[:160])
     p = np.array(v, float)
     w, h = size
     if not (np.all(np.isfinite(p)) and -0.5 <= p[0] <= w - 0.5 and -0.5 <= p[1] <= h - 0.5):
-        raise LabelError(f"{where}: {p.tolist()} lies outside the {w}x{h} image")
+        raise LabelInputError(f"{where}: {p.tolist()} lies outside the {w}x{h} image")
     return p
 
 
@@ -86,27 +90,27 @@ def clicks_from_json(obj, image_size) -> dict:
     """``{camera: CameraClicks}`` from ``{"left": {...}, "right": {...}}`` (``CameraClicks.to_json``'s
     form; a camera or a key may be left out); LabelError naming the field."""
     if not isinstance(obj, dict):
-        raise LabelError(f"clicks: expected {{\"left\": ..., \"right\": ...}}, got {type(obj).__name__}")
+        raise LabelInputError(f"clicks: expected {{\"left\": ..., \"right\": ...}}, got {type(obj).__name__}")
     extra = set(obj) - set(CAMERAS)
     if extra:
-        raise LabelError(f"clicks: unknown camera {sorted(extra)[0]!r}"[:120])
+        raise LabelInputError(f"clicks: unknown camera {sorted(extra)[0]!r}"[:120])
     out = {}
     for cam in CAMERAS:
         c = obj.get(cam) or {}
         if not isinstance(c, dict):
-            raise LabelError(f"clicks.{cam}: expected an object, got {type(c).__name__}")
+            raise LabelInputError(f"clicks.{cam}: expected an object, got {type(c).__name__}")
         bad = set(c) - {"tip", "tail", "wire", "hidden", "unseen"}
         if bad:
-            raise LabelError(f"clicks.{cam}: unknown field {sorted(bad)[0]!r}"[:120])
+            raise LabelInputError(f"clicks.{cam}: unknown field {sorted(bad)[0]!r}"[:120])
         wire = c.get("wire") or []
         if not isinstance(wire, list) or len(wire) > MAX_WIRE_CLICKS:
-            raise LabelError(f"clicks.{cam}.wire: expected a list of at most {MAX_WIRE_CLICKS} points")
+            raise LabelInputError(f"clicks.{cam}.wire: expected a list of at most {MAX_WIRE_CLICKS} points")
         hidden = c.get("hidden", [False] * 5)
         if not (isinstance(hidden, list) and len(hidden) == 5 and all(isinstance(b, bool) for b in hidden)):
-            raise LabelError(f"clicks.{cam}.hidden: expected 5 booleans (A..E), got {hidden!r}"[:160])
+            raise LabelInputError(f"clicks.{cam}.hidden: expected 5 booleans (A..E), got {hidden!r}"[:160])
         unseen = c.get("unseen", False)
         if not isinstance(unseen, bool):
-            raise LabelError(f"clicks.{cam}.unseen: expected true or false, got {unseen!r}"[:120])
+            raise LabelInputError(f"clicks.{cam}.unseen: expected true or false, got {unseen!r}"[:120])
         pts = [_point(p, f"clicks.{cam}.wire[{i}]", image_size) for i, p in enumerate(wire)]
         out[cam] = CameraClicks(_point(c.get("tip"), f"clicks.{cam}.tip", image_size),
                                 _point(c.get("tail"), f"clicks.{cam}.tail", image_size),

@@ -60,6 +60,7 @@ MAY_IMPORT = {
     "detector": {"geometry", "data", "runtime"},
     "ros": {"geometry", "data", "runtime"},
     "viewer": {"geometry", "runtime", "evaluation"},
+    "label": {"geometry", "runtime", "data", "detector", "viewer"},
     "evaluation": {"geometry", "runtime", "data", "sim", "detector", "ros", "viewer", "cli"},
     "cli": {"data"},
 }
