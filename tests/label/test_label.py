@@ -1,0 +1,268 @@
+"""``needletrack label`` without a browser: the fit through clicks, the labels in the folder
+(atomic, resumable, never over a render's truth), the order of the frames, and the page's server
+refusing requests that are not its own page's (Host, Origin) or malformed, changing nothing."""
+import json
+import socket
+
+import cv2
+import numpy as np
+import pytest
+
+from common.data.check import check_frame
+from common.data.dataset import Dataset, Frame
+from common.data.meta import DatasetMeta
+from common.data.writer import DatasetWriter
+from common.detector.backends import KeypointBackend, register_backend
+from common.geometry.camera import StereoRig
+from common.geometry.needle import NeedleModel
+from common.geometry.oracle import true_keypoints
+from common.geometry.transforms import inv_T, make_T, pose_error, rotvec_to_R, transform_points
+from common.label.fit import CameraClicks, LabelError, LabelFitter, LabelInputError, clicks_from_json
+from common.label.proposals import detect_folder, doubt, label_order
+from common.label.server import LabelApp, proposals_for
+from common.label.store import SESSION_FILE, LabelStore
+from common.runtime.messages import Keypoints
+from common.viewer.http_server import HttpServer
+
+W, H = 960, 540
+RIG = StereoRig.default(W, H)
+NEEDLE = NeedleModel()
+# 8 cm in front of the cameras (which look along -z of the ECM frame), tilted about 50 degrees
+T_NEEDLE = make_T(rotvec_to_R([2.4, 0.5, 0.3]), [0.004, -0.002, -0.08])
+
+
+WIRE_DEG = (45, 70, 90, 110, 135)
+
+
+def _clicks(T=T_NEEDLE, noise=None, cams=("left", "right"), wire_deg=WIRE_DEG):
+    out = {}
+    for c in cams:
+        cam = RIG[c]
+        uv, _ = true_keypoints(cam, T, NEEDLE)
+        wire = cam.project(transform_points(cam.T_cam_ecm @ T, NEEDLE.arc_points(np.deg2rad(wire_deg))))
+        d = (lambda: np.zeros(2)) if noise is None else noise
+        out[c] = CameraClicks(uv[0] + d(), uv[4] + d(), np.array([p + d() for p in wire]))
+    return out
+
+
+def test_exact_clicks_give_the_keypoints_and_the_pose():
+    fit = LabelFitter(RIG, NEEDLE).fit(_clicks())
+    for c in ("left", "right"):
+        uv, _ = true_keypoints(RIG[c], T_NEEDLE, NEEDLE)
+        assert np.abs(fit.keypoints[c] - uv).max() < 0.05
+        assert fit.visible[c].all() and fit.bbox[c] is not None
+    dt, dr = pose_error(fit.T_ecm_needle, T_NEEDLE)
+    assert dt < 2e-4 and np.rad2deg(dr) < 0.5
+    assert fit.stereo and fit.pose_known and fit.snapped == 0
+    assert fit.covariance.shape == (6, 6) and all(s.shape == (5,) for s in fit.sigma_px.values())
+    # two wire points a camera: the projections as sure, but the arc's mirror image fits about as
+    # well at 1 px of stated click noise: the pose is not claimed (the images' wire decides it)
+    few = LabelFitter(RIG, NEEDLE).fit(_clicks(wire_deg=(70, 110)))
+    assert few.ambiguous and not few.pose_known and few.alternatives
+    assert max(np.abs(few.keypoints[c] - true_keypoints(RIG[c], T_NEEDLE, NEEDLE)[0]).max() for c in ("left", "right")) < 0.05
+
+
+def test_one_camera_labels_that_camera_and_writes_no_pose():
+    clicks = _clicks(cams=("left",))
+    clicks["right"] = CameraClicks(unseen=True)
+    fit = LabelFitter(RIG, NEEDLE).fit(clicks)
+    uv, _ = true_keypoints(RIG["left"], T_NEEDLE, NEEDLE)
+    assert np.abs(fit.keypoints["left"] - uv).max() < 0.3
+    assert not fit.stereo and not fit.pose_known and fit.cameras == ("left",)
+    assert not fit.visible["right"].any() and fit.bbox["right"] is None
+
+
+def test_a_hidden_keypoint_is_not_visible_and_missing_clicks_are_said():
+    clicks = _clicks()
+    clicks["left"].hidden[2] = True
+    fit = LabelFitter(RIG, NEEDLE).fit(clicks)
+    assert fit.visible["left"].tolist() == [True, True, False, True, True] and fit.visible["right"].all()
+    with pytest.raises(LabelError, match="no clicks"):
+        LabelFitter(RIG, NEEDLE).fit({"left": CameraClicks(), "right": CameraClicks()})
+    only_wire = {c: CameraClicks(wire=k.wire) for c, k in _clicks().items()}
+    with pytest.raises(LabelError, match="tip and the tail"):
+        LabelFitter(RIG, NEEDLE).fit(only_wire)
+    # with a prior pose (a proposal, the previous label) the wire alone is enough to start
+    near = make_T(T_NEEDLE[:3, :3], T_NEEDLE[:3, 3] + [0.001, 0.0, 0.0])
+    tip_tail = {c: CameraClicks(k.tip, k.tail, k.wire) for c, k in _clicks().items()}
+    assert LabelFitter(RIG, NEEDLE).fit(tip_tail, priors=[near]).pose_known
+
+
+def test_clicks_are_read_strictly():
+    good = {"left": {"tip": [10, 20], "tail": [30.5, 40], "wire": [[20, 25]], "hidden": [False] * 5}}
+    c = clicks_from_json(good, (W, H))
+    assert c["left"].count == 3 and c["right"].count == 0
+    for bad, msg in [({"left": {"tip": [5000, 1]}}, "outside the 960x540 image"),
+                     ({"left": {"tip": "here"}}, r"clicks.left.tip: expected \[u, v\]"),
+                     ({"middle": {}}, "unknown camera 'middle'"),
+                     ({"left": {"hidden": [True]}}, "expected 5 booleans"),
+                     ({"left": {"wire": [[1, 2]] * 40}}, "at most 32 points"),
+                     ({"left": {"tip": [float("nan"), 1]}}, "outside"),
+                     ({"left": {"colour": 1}}, "unknown field 'colour'")]:
+        with pytest.raises(LabelInputError, match=msg):
+            clicks_from_json(bad, (W, H))
+
+
+# ------------------------------------------------------------------ the folder
+
+def _folder(path, n=3, truth_at=()):
+    """A folder of ``n`` frames (plain images), the endoscope at the world's origin turned a
+    little; frames in ``truth_at`` carry a render's ground truth."""
+    meta = DatasetMeta((W, H), RIG, NEEDLE)
+    img = np.full((H, W, 3), 90, np.uint8)
+    with DatasetWriter(str(path), meta) as w:
+        for i in range(n):
+            T_world_ecm = make_T(rotvec_to_R([0.0, 0.02 * i, 0.0]), [0.001 * i, 0.0, 0.0])
+            paths = w.write_images(i, {"left": img, "right": img})
+            fr = Frame(index=i, stamp_ns=i * 1000, left=paths["left"], right=paths["right"], sequence=0,
+                       step=i, T_world_ecm=T_world_ecm)
+            if i in truth_at:
+                fr.T_world_needle = T_world_ecm @ T_NEEDLE
+                fr.keypoints = {c: true_keypoints(RIG[c], T_NEEDLE, NEEDLE)[0] for c in ("left", "right")}
+            w.append(fr)
+    return path
+
+
+def test_a_label_is_saved_as_the_contracts_truth_and_read_back(tmp_path):
+    folder = _folder(tmp_path / "ds")
+    store = LabelStore(str(folder))
+    fit = LabelFitter(RIG, NEEDLE).fit(_clicks())
+    store.save(0, fit, _clicks(), click_sigma_px=1.0, start="none", edits=8)
+    store.save(1, None, {"left": CameraClicks(), "right": CameraClicks()}, click_sigma_px=1.0)
+    ds = Dataset(str(folder))
+    fr = ds[0]
+    assert fr.label["by"] == "needletrack label" and fr.label["fit"] == "stereo" and fr.label["edits"] == 8
+    errs, reproj, _ = check_frame(ds.meta, fr, tol_px=1e-3)       # keypoints = the pose's projections
+    assert errs == [] and reproj < 1e-3
+    dt, dr = pose_error(inv_T(fr.T_world_ecm) @ fr.T_world_needle, T_NEEDLE)
+    assert dt < 2e-4 and np.rad2deg(dr) < 0.5
+    assert fr.visible["left"].all() and fr.bbox["left"] is not None
+    assert ds[1].keypoints is None and not ds[1].visible["left"].any() and ds[1].bbox == {"left": None, "right": None}
+    assert ds[1].label["no_needle"] and ds[2].label is None
+    again = LabelStore(str(folder))
+    assert [again.status(i) for i in range(3)] == ["labelled", "no_needle", "unlabelled"]
+    assert not [p for p in folder.iterdir() if p.name.startswith(".")]           # no temporary left
+    # the next frame of the take starts from this label, seen from its own endoscope pose
+    prior = again.prior_pose(2)
+    T2 = inv_T(ds[2].T_world_ecm) @ fr.T_world_needle
+    assert np.allclose(prior, T2, atol=1e-9)
+
+
+def test_a_renders_truth_is_never_overwritten_and_a_changed_file_is_not_clobbered(tmp_path):
+    folder = _folder(tmp_path / "ds", truth_at=(1,))
+    store = LabelStore(str(folder))
+    before = (folder / "frames.jsonl").read_bytes()
+    fit = LabelFitter(RIG, NEEDLE).fit(_clicks())
+    assert store.status(1) == "truth"
+    with pytest.raises(LabelError, match="not made by needletrack label"):
+        store.save(1, fit, _clicks(), click_sigma_px=1.0)
+    with (folder / "frames.jsonl").open("a") as f:      # someone else writes the file meanwhile
+        f.write("")
+    import os
+    os.utime(folder / "frames.jsonl", ns=(1, 1))
+    with pytest.raises(LabelError, match="changed on disk"):
+        store.save(0, fit, _clicks(), click_sigma_px=1.0)
+    assert (folder / "frames.jsonl").read_bytes() == before
+
+
+def test_frames_the_detector_is_least_sure_of_come_first():
+    sure = {c: {"found": True, "confidence": 0.99, "end_identity": 0.99} for c in ("left", "right")}
+    unsure_tip = {c: {"found": True, "confidence": 0.99, "end_identity": 0.55} for c in ("left", "right")}
+    none_sure = {c: {"found": False, "confidence": 0.01, "end_identity": None} for c in ("left", "right")}
+    maybe = {"left": {"found": False, "confidence": 0.45, "end_identity": None}, "right": sure["right"]}
+    props = [sure, unsure_tip, none_sure, maybe, None]
+    assert doubt(sure) < 0.05 and doubt(none_sure) < 0.05 and doubt(None) == 1.0
+    assert label_order(props, 5) == [4, 1, 3, 0, 2]
+    assert label_order(None, 3) == [0, 1, 2]
+
+
+class FixedBackend(KeypointBackend):
+    """A backend proposing the true keypoints of T_NEEDLE in every frame (for the tests)."""
+
+    name = "label-test-fixed"
+
+    def detect(self, image, camera, truth, calib, *, seq=0, stamp_ns=0):
+        uv, _ = true_keypoints(RIG[camera], T_NEEDLE, NEEDLE)
+        return Keypoints(camera, seq, stamp_ns, True, uv, np.ones(5), 0.9 if seq else 0.6, detector=self.name)
+
+
+def test_proposals_come_through_the_backend_api_and_are_kept(tmp_path):
+    register_backend("label-test-fixed", "test_label:FixedBackend")
+    store = LabelStore(str(_folder(tmp_path / "ds")))
+    props = proposals_for(store, "label-test-fixed", {}, progress=False)
+    assert len(props) == 3 and props[0]["left"]["found"] and props[0]["left"]["confidence"] == 0.6
+    assert json.loads((tmp_path / "ds" / SESSION_FILE).read_text())["proposals"]["frames"] == props
+    assert proposals_for(LabelStore(str(tmp_path / "ds")), "label-test-fixed", {}, progress=False) == props
+    app = LabelApp(store, props)
+    assert app.order[0] == 0                                    # the least sure
+    fr = app.frame(1)
+    assert fr["start"] == "proposal" and fr["fit"]["stereo"]
+    uv, _ = true_keypoints(RIG["left"], T_NEEDLE, NEEDLE)
+    assert np.abs(np.array(fr["fit"]["keypoints"]["left"]) - uv).max() < 0.05   # a right proposal: one key
+    assert detect_folder(store.ds, "label-test-fixed", {}, progress=False)[2]["right"]["uv"] == props[2]["right"]["uv"]
+
+
+# ------------------------------------------------------------------ the page's server
+
+def _exchange(port, raw: bytes) -> tuple:
+    with socket.create_connection(("127.0.0.1", port), timeout=30) as s:
+        s.sendall(raw)
+        data = b""
+        while chunk := s.recv(65536):
+            data += chunk
+    head, _, body = data.partition(b"\r\n\r\n")
+    return int(head.split()[1]), body
+
+
+def _post(port, path, body, host=None, origin="same", ctype="application/json"):
+    host = host or f"127.0.0.1:{port}"
+    origin = f"http://127.0.0.1:{port}" if origin == "same" else origin
+    data = body if isinstance(body, bytes) else json.dumps(body).encode()
+    head = (f"POST {path} HTTP/1.1\r\nHost: {host}\r\nContent-Type: {ctype}\r\nContent-Length: {len(data)}\r\n"
+            + (f"Origin: {origin}\r\n" if origin else "") + "Connection: close\r\n\r\n")
+    return _exchange(port, head.encode() + data)
+
+
+@pytest.fixture
+def label_server(tmp_path):
+    folder = _folder(tmp_path / "ds")
+    store = LabelStore(str(folder))
+    app = LabelApp(store, None)
+    server = HttpServer("127.0.0.1", 0, app.handle, name="label page", methods=("GET", "HEAD", "POST"),
+                        blocking=True)
+    yield server, folder
+    server.close()
+
+
+def test_the_page_refuses_other_sites_and_bad_requests_and_changes_nothing(label_server):
+    server, folder = label_server
+    port = server.port
+    clicks = {c: k.to_json() for c, k in _clicks().items()}
+    good = {"frame": 0, "clicks": clicks}
+    before = (folder / "frames.jsonl").read_bytes()
+    refused = [
+        (_post(port, "/api/save", good, host="rebind.attacker.test"), 403),            # DNS rebinding
+        (_post(port, "/api/save", good, origin="http://evil.example"), 403),           # another site's page
+        (_post(port, "/api/save", good, origin=f"http://localhost:{port}"), 403),      # not the Host's origin
+        (_post(port, "/api/save", good, origin=None), 403),                             # no Origin on a change
+        (_post(port, "/api/save", good, ctype="text/plain"), 415),                     # a form's body
+        (_post(port, "/api/save", b"{not json"), 400),
+        (_post(port, "/api/save", {"frame": 99, "clicks": clicks}), 400),
+        (_post(port, "/api/save", {"frame": 0, "clicks": {"left": {"tip": [1e6, 0]}}}), 400),
+        (_post(port, "/api/save", {"frame": 0, "clicks": {"left": {"tip": [10, 10]}}}), 422),   # right unclicked
+        (_post(port, "/api/save", b"x" * 70000), 413),
+    ]
+    for (status, body), want in refused:
+        assert status == want, (status, body[:200])
+    assert (folder / "frames.jsonl").read_bytes() == before and not (folder / SESSION_FILE).exists()
+    status, body = _exchange(port, f"GET /api/session HTTP/1.1\r\nHost: evil.example:{port}\r\nConnection: close\r\n\r\n".encode())
+    assert status == 403
+    status, body = _exchange(port, (f"GET /api/session HTTP/1.1\r\nHost: localhost:{port}\r\nOrigin: http://evil.example\r\n"
+                                    "Connection: close\r\n\r\n").encode())
+    assert status == 403
+    status, body = _post(port, "/api/save", good)
+    assert status == 200 and json.loads(body) == {"ok": True, "status": "labelled"}
+    assert Dataset(str(folder))[0].label is not None
+    assert json.loads((folder / SESSION_FILE).read_text())["position"] == 1
+    status, body = _exchange(port, f"GET /image?i=0&camera=left HTTP/1.1\r\nHost: localhost:{port}\r\nConnection: close\r\n\r\n".encode())
+    assert status == 200 and cv2.imdecode(np.frombuffer(body, np.uint8), cv2.IMREAD_COLOR).shape == (H, W, 3)
