@@ -117,8 +117,9 @@ def link_or_copy(src: str, dst: str) -> None:
         shutil.copy2(src, dst)
 
 
-TRUTH_FIELDS = ("T_world_needle", "keypoints", "visible", "bbox", "arc_visible", "arc_seen")
-"""The frame fields that come from the needle's true pose: a recording has none of them."""
+TRUTH_FIELDS = ("T_world_needle", "keypoints", "visible", "bbox", "arc_visible", "arc_seen", "label")
+"""The frame fields that come from the needle's true pose, or a hand label's record of it
+(``label``): a recording has none of them."""
 
 
 def without_truth(src: str, out: str) -> int:

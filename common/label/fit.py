@@ -41,6 +41,8 @@ MAX_WIRE_CLICKS = 32          # wire points per camera
 CHORD_TURNS_DEG = tuple(range(0, 360, 30))
 CHORD_DEPTHS = (1.0, 0.6)     # the chord's depth as its image length says, and nearer (foreshortened)
 MIN_SNAPPED = 8               # wire centreline points a camera's image must give to be fitted
+POSE_SIGMA_MM = 1.0           # a pose is written as truth only when stated this sure (largest 1-sigma
+POSE_SIGMA_DEG = 2.0          # axis of its position and of its orientation) and not ambiguous
 
 
 class LabelError(NeedletrackError, ValueError):
@@ -147,7 +149,9 @@ class LabelFit:
     axis, ``covariance`` (6, 6), ``ambiguous`` (the images leave another pose nearly as good:
     ``alternatives``, the other poses, best first), ``rms_px`` the clicks' RMS distance to the
     fitted arc, ``snapped`` the wire's centreline points found in the images and fitted (0: the
-    clicks alone). ``pose_known``: the pose may be written as truth (stereo, not ambiguous)."""
+    clicks alone). ``pose_sigma_mm``, ``pose_sigma_deg``: the covariance's largest 1-sigma axis
+    of position and orientation. ``pose_known``: the pose may be written as truth (stereo, not
+    ambiguous, stated within ``POSE_SIGMA_MM`` and ``POSE_SIGMA_DEG``)."""
 
     T_ecm_needle: np.ndarray
     stereo: bool
@@ -164,8 +168,17 @@ class LabelFit:
     snapped: int = 0
 
     @property
+    def pose_sigma_mm(self) -> float:
+        return 1e3 * math.sqrt(max(float(np.linalg.eigvalsh(self.covariance[3:, 3:]).max()), 0.0))
+
+    @property
+    def pose_sigma_deg(self) -> float:
+        return math.degrees(math.sqrt(max(float(np.linalg.eigvalsh(self.covariance[:3, :3]).max()), 0.0)))
+
+    @property
     def pose_known(self) -> bool:
-        return self.stereo and not self.ambiguous
+        return (self.stereo and not self.ambiguous and self.pose_sigma_mm <= POSE_SIGMA_MM
+                and self.pose_sigma_deg <= POSE_SIGMA_DEG)
 
     def arc(self, rig: StereoRig, needle: NeedleModel, n: int = 48) -> dict:
         """{camera: (m, 2) px} the fitted arc from A to E (points in front of the camera)."""

@@ -81,6 +81,7 @@ class LabelApp:
                 "sigma_max_px": float(max(np.nanmax(fit.sigma_px[c][fit.visible[c]]) if fit.visible[c].any() else 0.0
                                           for c in CAMERAS)),
                 "T_ecm_needle": fit.T_ecm_needle.tolist(),
+                "pose_sigma_mm": fit.pose_sigma_mm, "pose_sigma_deg": fit.pose_sigma_deg,
                 "pose": f"t [{t[0]:.1f} {t[1]:.1f} {t[2]:.1f}] mm (ECM)"}
 
     def _frame_index(self, v) -> int:

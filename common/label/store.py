@@ -81,7 +81,8 @@ class LabelStore:
         lab = self.label(i)
         if lab is not None:
             return "no_needle" if lab.get("no_needle") else "labelled"
-        return "truth" if any(self.lines[i].get(k) is not None for k in TRUTH_FIELDS) else "unlabelled"
+        return "truth" if any(self.lines[i].get(k) is not None for k in TRUTH_FIELDS if k != LABEL_FIELD) \
+            else "unlabelled"
 
     def T_world_ecm(self, i: int) -> Optional[np.ndarray]:
         """The frame's endoscope pose: its ``T_world_ecm``, else the arm's kinematics of its joints."""
@@ -105,7 +106,7 @@ class LabelStore:
             raise LabelError(f"frame {i} (frames.jsonl:{self.ds.frames[i].line}) holds ground truth not made by "
                              f"{LABELLED_BY} (a render's?); it is not overwritten: label a copy without it "
                              "(needletrack dataset strip-truth SRC OUT)")
-        line = {k: v for k, v in self.lines[i].items() if k not in TRUTH_FIELDS and k != LABEL_FIELD}
+        line = {k: v for k, v in self.lines[i].items() if k not in TRUTH_FIELDS}
         lab = {"by": LABELLED_BY, "stamp": round(time.time(), 3), "no_needle": fit is None,
                "clicks": {c: clicks[c].to_json() for c in CAMERAS if c in clicks},
                "click_sigma_px": float(click_sigma_px), "start": start, "edits": int(edits)}
@@ -122,6 +123,7 @@ class LabelStore:
             lab.update({"fit": "stereo" if fit.stereo else fit.cameras[0], "snapped": int(fit.snapped),
                         "keypoint_sigma_px": {c: _r(fit.sigma_px[c], 3) for c in CAMERAS},
                         "T_ecm_needle": fit.T_ecm_needle.tolist(), "covariance": fit.covariance.tolist(),
+                        "pose_sigma_mm": round(fit.pose_sigma_mm, 4), "pose_sigma_deg": round(fit.pose_sigma_deg, 4),
                         "ambiguous": bool(fit.ambiguous), "rms_px": round(float(fit.rms_px), 3)})
         line[LABEL_FIELD] = lab
         parse_frame(line, self.ds.frames[i].line)          # never write a line the reader refuses

@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import argparse
 import base64
+import contextlib
 import json
 import os
 import shutil
@@ -54,6 +55,7 @@ class Chromium:
         if exe is None:
             raise RuntimeError("chromium not found (apt-get install -y chromium)")
         self._profile = tempfile.mkdtemp(prefix="needletrack-chromium-")
+        self._stack = contextlib.ExitStack()
         cmd = [exe, *FLAGS, *(WEBGL_FLAGS if self.webgl else []), f"--user-data-dir={self._profile}",
                f"--window-size={self.size[0]},{self.size[1]}", "--remote-debugging-port=0", "about:blank"]
         self._proc = subprocess.Popen(cmd, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
@@ -68,7 +70,8 @@ class Chromium:
             import urllib.request
             with urllib.request.urlopen(f"http://127.0.0.1:{port}/json/list", timeout=10) as r:
                 page = next(t for t in json.load(r) if t.get("type") == "page")
-            self._ws = connect(page["webSocketDebuggerUrl"], max_size=None, open_timeout=self.timeout_s)
+            self._ws = self._stack.enter_context(connect(page["webSocketDebuggerUrl"], max_size=None,
+                                                         open_timeout=self.timeout_s))
             self.call("Emulation.setDeviceMetricsOverride", width=self.size[0], height=self.size[1],
                       deviceScaleFactor=1, mobile=False)
         except BaseException:
@@ -80,9 +83,7 @@ class Chromium:
         self._stop()
 
     def _stop(self):
-        ws = getattr(self, "_ws", None)
-        if ws is not None:
-            ws.close()
+        self._stack.close()
         self._proc.terminate()
         try:
             self._proc.wait(10)
