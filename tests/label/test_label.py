@@ -266,3 +266,16 @@ def test_the_page_refuses_other_sites_and_bad_requests_and_changes_nothing(label
     assert json.loads((folder / SESSION_FILE).read_text())["position"] == 1
     status, body = _exchange(port, f"GET /image?i=0&camera=left HTTP/1.1\r\nHost: localhost:{port}\r\nConnection: close\r\n\r\n".encode())
     assert status == 200 and cv2.imdecode(np.frombuffer(body, np.uint8), cv2.IMREAD_COLOR).shape == (H, W, 3)
+
+
+def test_the_command_prints_its_url_and_says_what_is_wrong_with_a_folder(tmp_path):
+    from graphtools import cli
+    folder = _folder(tmp_path / "ds")
+    p = cli("label", folder, "--detector", "none", "--port", "0", "--duration", "0.5")
+    assert p.returncode == 0, p.stderr
+    assert "label: http://127.0.0.1:" in p.stdout and "(3 frames, 3 to label" in p.stdout
+    (tmp_path / "bad").mkdir()
+    p = cli("label", tmp_path / "bad", "--detector", "none")
+    assert p.returncode == 1 and "dataset.yaml: file missing" in p.stderr and "Traceback" not in p.stderr
+    p = cli("label", folder, "--detector", "no-such-backend", "--port", "0")
+    assert p.returncode == 1 and "no-such-backend" in p.stderr and "Traceback" not in p.stderr

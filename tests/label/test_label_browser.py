@@ -25,12 +25,12 @@ CAMS = ("left", "right")
 
 @pytest.fixture(scope="module")
 def rendered(tmp_path_factory):
-    """One needle at rest seen from two endoscope poses, 960x540 (the needle 12.7 cm away spans
+    """One needle at rest seen from three endoscope poses, 960x540 (the needle 12.7 cm away spans
     about 50 px: the smaller renders of the other tests' fixtures leave a pose to 1 mm / 2 deg
     out of reach of any click), and a copy without its truth to label."""
     from common.cli import dataset_main
     root = tmp_path_factory.mktemp("label")
-    assert dataset_main(["generate", "--out", str(root / "truth"), "--sequences", "1", "--steps", "2",
+    assert dataset_main(["generate", "--out", str(root / "truth"), "--sequences", "1", "--steps", "3",
                          "--width", "960", "--height", "540", "--seed", "3", "--randomise", "none",
                          "--jobs", "1", "--quiet"]) == 0
     assert dataset_main(["strip-truth", str(root / "truth"), "--out", str(root / "work")]) == 0
@@ -43,7 +43,7 @@ def _offset(r, deg):
 
 def _click_image(b, cam, uv):
     x, y = b.evaluate(f"label.toScreen('{cam}', {float(uv[0])!r}, {float(uv[1])!r})")
-    b.click(x, y)
+    b.click(round(x), round(y))                 # a mouse is at whole CSS pixels
 
 
 def _idle(b):
@@ -61,15 +61,21 @@ def test_clicks_in_the_browser_give_the_truth_within_a_pixel_and_the_pose(render
             b.navigate(server.url)
             _idle(b)
             assert b.evaluate("label.S.frame.index") == 0 and b.evaluate("label.S.frame.start") == "none"
+            x, y = np.round(b.evaluate("label.toScreen('left', 480, 270)"))   # the wheel zooms about the pointer
+            s0, under = b.evaluate("label.S.views.left.s"), b.evaluate(f"label.toImage('left', {x}, {y})")
+            b.wheel(x, y, -100)
+            b.wait_for(f"label.S.views.left.s > {s0} * 1.2", 10)
+            assert np.allclose(b.evaluate(f"label.toImage('left', {x}, {y})"), under, atol=1e-6)
             T = truth[0].T_ecm_needle
             for k, cam in enumerate(CAMS):
                 c = rig[cam]
                 uv = truth[0].keypoints[cam]
                 b.evaluate(f"label.setView('{cam}', 4, {float(uv[:, 0].mean())!r}, {float(uv[:, 1].mean())!r})")
                 wire = c.project(transform_points(c.T_cam_ecm @ T, needle.arc_points(np.deg2rad([70, 110]))))
-                # tip and tail 1 px off, the wire points 2 px off, in directions of no pattern
+                # tip and tail 1 px off, the wire points 2 px off, in directions of no pattern (aimed
+                # a little nearer: the page takes a click at a whole CSS pixel, 1/4 image px here)
                 for p, (r, deg) in zip([uv[0], uv[4], wire[0], wire[1]],
-                                       [(1.0, 40 + 90 * k), (1.0, 250 - 60 * k), (2.0, 120 + 45 * k), (2.0, 300 - 70 * k)]):
+                                       [(0.8, 40 + 90 * k), (0.8, 250 - 60 * k), (1.8, 120 + 45 * k), (1.8, 300 - 70 * k)]):
                     _click_image(b, cam, p + _offset(r, deg))
             _idle(b)
             # a stray click, taken back with undo
@@ -90,15 +96,36 @@ def test_clicks_in_the_browser_give_the_truth_within_a_pixel_and_the_pose(render
             _idle(b)
             assert b.evaluate("label.S.frame.start") == "previous"   # the needle at rest, seen anew
             b.key("Enter")                                          # a right start costs one key
-            b.wait_for("label.S.session.statuses[1] === 'labelled'", 30)
+            b.wait_for("label.S.session.statuses[1] === 'labelled' && label.S.frame.index === 2", 30)
+            _idle(b)
+            b.key("0")                                              # no needle (the keys' test)
+            b.wait_for("label.S.session.statuses[2] === 'no_needle'", 30)
+            _idle(b)
+            b.key("p")
+            b.wait_for("label.S.frame.index === 1 && label.S.frame.start === 'saved'", 30)
+            b.key("ArrowLeft")
+            b.wait_for("label.S.frame.index === 0", 30)
+            b.key("n")
+            b.wait_for("label.S.frame.index === 1", 30)
+            _idle(b)
     finally:
         server.close()
 
     labelled = Dataset(str(work))
+    arc = {c: rig[c].project(transform_points(rig[c].T_cam_ecm @ truth[0].T_ecm_needle, needle.sample_arc(2000)))
+           for c in CAMS}
     for i in range(2):
         fr, true = labelled[i], truth[i]
         assert fr.label["start"] == ("none" if i == 0 else "previous") and fr.label["edits"] == (0 if i else 10)
         err = {cam: np.linalg.norm(fr.keypoints[cam] - true.keypoints[cam], axis=1) for cam in CAMS}
+        if i == 0:                  # the clicks as the page took them (whole CSS pixels at 4x zoom)
+            ends = [np.linalg.norm(np.array(fr.label["clicks"][c][k]) - true.keypoints[c][j])
+                    for c in CAMS for k, j in (("tip", 0), ("tail", 4))]
+            off_wire = [float(np.min(np.linalg.norm(arc[c] - np.array(p), axis=1)))
+                        for c in CAMS for p in fr.label["clicks"][c]["wire"]]
+            print(f"clicks: tip and tail {max(ends):.2f} px from the truth at most, wire points "
+                  f"{max(off_wire):.2f} px from the true arc at most")
+            assert max(ends) <= 1.0 and max(off_wire) <= 2.0
         assert fr.T_world_needle is not None, fr.label
         dt, dr = pose_error(inv_T(fr.T_world_ecm) @ fr.T_world_needle, true.T_ecm_needle)
         print(f"frame {i}: keypoints off by {max(e.max() for e in err.values()):.2f} px at most "
@@ -108,6 +135,7 @@ def test_clicks_in_the_browser_give_the_truth_within_a_pixel_and_the_pose(render
             assert err[cam].max() < 1.0, (i, cam, err[cam])
             assert fr.visible[cam].all()
         assert dt < 1e-3 and np.rad2deg(dr) < 2.0, (i, dt, np.rad2deg(dr))
+    assert labelled[2].label["no_needle"] and labelled[2].keypoints is None
     store = LabelStore(str(work))                                  # reopened: where the user stopped
-    assert [store.status(i) for i in range(2)] == ["labelled", "labelled"]
+    assert [store.status(i) for i in range(3)] == ["labelled", "labelled", "no_needle"]
     assert store.session["position"] == 1
