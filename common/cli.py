@@ -40,6 +40,7 @@ BENCHES = {
     "held": ("common.evaluation.held_bench:main", "the detector on moving takes, by the share of the needle seen"),
     "tracker": ("common.evaluation.tracker_bench:main", "the needle tracker on the motion scripts' takes (no rendering)"),
     "graph": ("common.evaluation.graph_bench:main", "the full graph end to end"),
+    "label": ("common.evaluation.label_bench:main", "hand labels (needletrack label) by simulated clicks on a folder with truth"),
     "refine": ("common.evaluation.refine_bench:main", "dense pose refinement speed and accuracy (synthetic)"),
     "end-identity": ("common.evaluation.end_identity_bench:main", "tip vs tail: the detector's end identity on dataset folders"),
     "familiarity": ("common.evaluation.familiarity_bench:main", "how unlike the training looks each folder's images are (--fit: the reference)"),

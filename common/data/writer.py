@@ -1,5 +1,6 @@
 """Writing needle dataset folders (``docs/dataset.md``): ``DatasetWriter``, a folder staged and
-moved into place, a copy without the ground truth, and resuming a generation cut short."""
+moved into place, a file replaced atomically, a copy without the ground truth, and resuming a
+generation cut short."""
 from __future__ import annotations
 
 import json
@@ -105,6 +106,29 @@ def staged_folder(out: str):
     except BaseException:
         shutil.rmtree(tmp, ignore_errors=True)
         raise
+
+
+def write_atomic(path: str, data: bytes) -> None:
+    """Write the file ``path`` whole or not at all: a temporary file beside it (``.NAME.tmp-PID``),
+    flushed to disk, then renamed over it, and the folder's entry flushed: a kill leaves the old
+    file or the new one."""
+    folder = os.path.dirname(os.path.abspath(path))
+    tmp = os.path.join(folder, f".{os.path.basename(path)}.tmp-{os.getpid()}")
+    try:
+        with open(tmp, "wb") as f:
+            f.write(data)
+            f.flush()
+            os.fsync(f.fileno())
+        os.replace(tmp, path)
+    except BaseException:
+        if os.path.exists(tmp):
+            os.remove(tmp)
+        raise
+    fd = os.open(folder, os.O_RDONLY)
+    try:
+        os.fsync(fd)
+    finally:
+        os.close(fd)
 
 
 def link_or_copy(src: str, dst: str) -> None:

@@ -8,9 +8,10 @@ the tip and tail are keypoints A and E, the wire points are centreline points (e
 projected model arc through it, wherever along the arc it lies), every click with the stated
 click noise ``sigma_px``. With both cameras clicked the pose is the stereo fit; with one camera
 it is that camera's fit (its projection in that camera is sure, its depth is not: no pose is
-written then). Starting poses: the chord from tip to tail turned about itself in steps of 30
-degrees in each camera with both ends clicked, plus any prior poses given (a detector's
-proposal, the previous frame's label); the refinement adds each start's mirror image.
+written then). Starting poses: the chord from tip to tail (or, with an end hidden, from the
+other end to the farthest wire point) turned about itself in steps of 30 degrees in each
+clicked camera, plus any prior poses given (a detector's proposal, the previous frame's label);
+the refinement adds each start's mirror image.
 
 Poses are ``T_ecm_needle`` (m, rad); covariances over ``[rotation vector, translation]`` in the
 ECM frame, as ``common.geometry.refine.RefineResult``.
@@ -30,7 +31,7 @@ from common.detector.centreline_subpixel import (
     CENTRELINE_SIGMA_PX,
     refine_centreline,
 )
-from common.geometry.camera import StereoRig
+from common.geometry.camera import StereoRig, undistort_pixels
 from common.geometry.needle import NeedleModel
 from common.geometry.oracle import true_keypoints
 from common.geometry.refine import ArcObservation, DenseRefiner, RefineConfig, RefineError
@@ -147,8 +148,8 @@ class LabelFit:
     unseen), ``bbox`` {camera: [x0, y0, x1, y1] or None} (the projected arc's seen part, widened
     by the wire's radius), ``sigma_px`` {camera: (5,)} each keypoint's stated 1-sigma error per
     axis, ``covariance`` (6, 6), ``ambiguous`` (the images leave another pose nearly as good:
-    ``alternatives``, the other poses, best first), ``rms_px`` the clicks' RMS distance to the
-    fitted arc, ``snapped`` the wire's centreline points found in the images and fitted (0: the
+    ``alternatives``, the other poses, best first), ``rms_px`` the fit's RMS residual (the clicks
+    and the snapped wire points, px), ``snapped`` the wire's centreline points found in the images and fitted (0: the
     clicks alone). ``pose_sigma_mm``, ``pose_sigma_deg``: the covariance's largest 1-sigma axis
     of position and orientation. ``pose_known``: the pose may be written as truth (stereo, not
     ambiguous, stated within ``POSE_SIGMA_MM`` and ``POSE_SIGMA_DEG``)."""
@@ -189,20 +190,22 @@ class LabelFit:
         return out
 
 
-def chord_starts(uv_tip, uv_tail, camera, needle: NeedleModel, turns_deg=CHORD_TURNS_DEG,
+def chord_starts(uv_p, uv_q, camera, needle: NeedleModel, angles_rad=None, turns_deg=CHORD_TURNS_DEG,
                  depths=CHORD_DEPTHS) -> list:
-    """Starting poses ``T_ecm_needle`` from one camera's tip and tail pixels: the needle's chord
-    from A to E placed at the depth at which its true length spans the pixels (and nearer, by
-    ``depths``: a chord seen obliquely looks shorter), its plane turned about the chord by each of
-    ``turns_deg``."""
+    """Starting poses ``T_ecm_needle`` from two pixels of the needle in one camera, at the arc
+    angles ``angles_rad`` (default: the tip A and the tail E): the chord between those two
+    points of the arc placed at the depth at which its true length spans the pixels (and nearer,
+    by ``depths``: a chord seen obliquely looks shorter), the arc's plane turned about the chord
+    by each of ``turns_deg``."""
     K = camera.K
     a = needle.keypoint_angles_rad
-    A, E = needle.arc_points([a[0], a[-1]])
+    A, E = needle.arc_points([a[0], a[-1]] if angles_rad is None else angles_rad)
     chord_m = float(np.linalg.norm(E - A))
-    rays = [np.linalg.solve(K, np.array([p[0], p[1], 1.0])) for p in (uv_tip, uv_tail)]
+    ends = undistort_pixels(K, camera.dist, np.array([uv_p, uv_q], float))
+    rays = [np.linalg.solve(K, np.array([p[0], p[1], 1.0])) for p in ends]
     rays = [r / r[2] for r in rays]
-    span_px = float(np.linalg.norm(np.asarray(uv_tail, float) - np.asarray(uv_tip, float)))
-    if span_px < 1.0:
+    span_px = float(np.linalg.norm(ends[1] - ends[0]))
+    if span_px < 1.0 or chord_m < 1e-9:
         return []
     z0 = K[0, 0] * chord_m / span_px
     d_n = (E - A) / chord_m                       # needle frame: chord, towards the centre, normal
@@ -226,6 +229,20 @@ def chord_starts(uv_tip, uv_tail, camera, needle: NeedleModel, turns_deg=CHORD_T
     return out
 
 
+def click_starts(c: CameraClicks, camera, needle: NeedleModel) -> list:
+    """Starting poses from one camera's clicks: the chord from the tip to the tail; with one end
+    hidden, the chord from that end to the wire point farthest from it, that point taken at each
+    of the keypoint angles B, C and D in turn (the hidden part of the arc is unknown)."""
+    a = needle.keypoint_angles_rad
+    if c.tip is not None and c.tail is not None:
+        return chord_starts(c.tip, c.tail, camera, needle)
+    end, at = (c.tip, a[0]) if c.tip is not None else (c.tail, a[-1])
+    if end is None or not len(c.wire):
+        return []
+    far = c.wire[int(np.argmax(np.linalg.norm(c.wire - end, axis=1)))]
+    return [T for k in (1, 2, 3) for T in chord_starts(end, far, camera, needle, [at, a[k]])]
+
+
 def _keypoint_sigma(cam, T, cov, needle: NeedleModel, eps: float = 1e-6) -> np.ndarray:
     """(5,) 1-sigma per image axis of each keypoint's projection, from the pose covariance over
     [w, v] (``R = exp(w) R0``, ``t = t0 + v``, ECM frame), to first order."""
@@ -245,13 +262,9 @@ def _keypoint_sigma(cam, T, cov, needle: NeedleModel, eps: float = 1e-6) -> np.n
 
 def _seen_bbox(cam, T, needle: NeedleModel, hidden: np.ndarray):
     """The projected arc's box where it is seen: arc samples whose nearest keypoint (in angle) is
-    not hidden, inside the image, widened by the wire's projected radius; None when none."""
-    n = 64
-    a0, a1 = needle.arc_span_rad
-    ang = np.linspace(a0, a1, n)
-    nearest = np.abs(ang[:, None] - needle.keypoint_angles_rad[None]).argmin(axis=1)
-    keep = ~np.asarray(hidden, bool)[nearest]
-    p = transform_points(cam.T_cam_ecm @ T, needle.arc_points(ang[keep]))
+    not hidden (``seen_angles``), inside the image, widened by the wire's projected radius; None
+    when none."""
+    p = transform_points(cam.T_cam_ecm @ T, needle.arc_points(seen_angles(needle, hidden, 64)))
     p = p[p[:, 2] > 1e-6]
     if len(p) == 0:
         return None
@@ -267,22 +280,39 @@ def _seen_bbox(cam, T, needle: NeedleModel, hidden: np.ndarray):
             float(np.clip(hi[0], -0.5, w - 0.5)), float(np.clip(hi[1], -0.5, h - 0.5))]
 
 
+def seen_angles(needle: NeedleModel, hidden, n: int) -> np.ndarray:
+    """``n`` arc angles evenly from A to E, less those whose nearest keypoint (in angle) is marked
+    ``hidden`` (5,): the part of the arc the user says is seen."""
+    a0, a1 = needle.arc_span_rad
+    ang = np.linspace(a0, a1, n)
+    nearest = np.abs(ang[:, None] - needle.keypoint_angles_rad[None]).argmin(axis=1)
+    return ang[~np.asarray(hidden, bool)[nearest]]
+
+
 def snap_to_wire(image: np.ndarray, camera, T_ecm_needle: np.ndarray, needle: NeedleModel,
-                 spacing_px: float = 1.0) -> np.ndarray:
+                 hidden=np.zeros(5, bool), spacing_px: float = 1.0) -> np.ndarray:
     """The wire's centreline in ``image`` (BGR) near a pose's projected arc: stations about
-    ``spacing_px`` apart along the arc from A to E, each moved onto the wire's centre across the
-    curve (``common.detector.centreline_subpixel.refine_centreline``: the whiteness profile's
-    centroid between the wire's edges); stations where the profile is not one wire's (hidden,
-    glare, an instrument) and the two at each end are left out. (n, 2) px, maybe n = 0."""
+    ``spacing_px`` apart along the arc's seen part (``seen_angles``: not near a keypoint marked
+    ``hidden``, where an instrument's jaw or tissue lies over it), each moved onto the wire's
+    centre across the curve (``common.detector.centreline_subpixel.refine_centreline``: the
+    whiteness profile's centroid between the wire's edges); stations where the profile is not
+    one wire's (hidden, glare, an instrument) and the two at each end of a run are left out.
+    (n, 2) px, maybe n = 0."""
     a0, a1 = needle.arc_span_rad
     p = transform_points(camera.T_cam_ecm @ T_ecm_needle, needle.arc_points(np.linspace(a0, a1, 64)))
     if np.any(p[:, 2] <= 1e-6):
         return np.zeros((0, 2))
     length = needle.radius_m * (a1 - a0) * camera.K[0, 0] / float(p[:, 2].min())
-    n = int(np.clip(length / spacing_px, 8, 2000))
-    p = transform_points(camera.T_cam_ecm @ T_ecm_needle, needle.arc_points(np.linspace(a0, a1, n)))
-    pts, w = refine_centreline(image, camera.project(p), np.ones(n))
-    return pts[(w > 0) & camera.in_image(pts)]
+    ang = seen_angles(needle, hidden, int(np.clip(length / spacing_px, 8, 2000)))
+    step = (a1 - a0) / max(int(np.clip(length / spacing_px, 8, 2000)) - 1, 1)
+    out = []
+    for run in np.split(ang, np.flatnonzero(np.diff(ang) > 1.5 * step) + 1):
+        if len(run) < 8:
+            continue
+        p = transform_points(camera.T_cam_ecm @ T_ecm_needle, needle.arc_points(run))
+        pts, w = refine_centreline(image, camera.project(p), np.ones(len(run)))
+        out.append(pts[(w > 0) & camera.in_image(pts)])
+    return np.concatenate(out) if out else np.zeros((0, 2))
 
 
 class LabelFitter:
@@ -311,19 +341,18 @@ class LabelFitter:
                              "that shows the needle (or mark the frame no needle)")
         starts = [np.asarray(T, float) for T in priors if T is not None]
         for cam in seen:
-            c = clicks[cam]
-            if c.tip is not None and c.tail is not None:
-                starts += chord_starts(c.tip, c.tail, self.rig[cam], self.needle)
+            starts += click_starts(clicks[cam], self.rig[cam], self.needle)
         if not starts:
-            raise LabelError("click the tip and the tail in one camera at least: without them (or a "
-                             "proposal to start from) the arc has no start")
+            raise LabelError("click the tip or the tail and a point on the wire in one camera at least: "
+                             "without them (or a proposal to start from) the arc has no start")
         res = self._refine(self._observations(clicks, seen), starts)
         cands = [T for T, _ in res.candidates]
         choice = int(choice) % len(cands)
         snapped = 0
         if images and snap:
             for _ in range(2):
-                lines = {cam: snap_to_wire(images[cam], self.rig[cam], cands[choice], self.needle)
+                lines = {cam: snap_to_wire(images[cam], self.rig[cam], cands[choice], self.needle,
+                                           clicks[cam].hidden)
                          for cam in seen if images.get(cam) is not None}
                 lines = {cam: p for cam, p in lines.items() if len(p) >= MIN_SNAPPED}
                 if not lines:

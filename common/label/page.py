@@ -112,7 +112,7 @@ function status() {
     (S.frame.doubt !== null ? ` · detector doubt ${S.frame.doubt.toFixed(2)}` : '');
   const f = S.fit;
   $('fit').innerHTML = S.err ? `<span class="err">${S.err}</span>` : !f ? '' :
-    `fit: ${f.stereo ? 'stereo' : 'one camera (' + f.cameras.join(',') + ')'} · clicks rms ${f.rms_px.toFixed(2)} px` +
+    `fit: ${f.stereo ? 'stereo' : 'one camera (' + f.cameras.join(',') + ')'} · fit rms ${f.rms_px.toFixed(2)} px` +
     ` · wire points snapped ${f.snapped} · keypoint sigma ${f.sigma_max_px.toFixed(2)} px` +
     ` · pose ${f.pose} ± ${f.pose_sigma_mm.toFixed(2)} mm, ${f.pose_sigma_deg.toFixed(1)} deg` +
     (f.pose_known ? ' <b>(written)</b>' : ' (not written: ' + (!f.stereo ? 'one camera' : f.ambiguous ? 'ambiguous' : 'not sure enough') + ')') +

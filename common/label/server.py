@@ -220,8 +220,16 @@ class LabelApp:
             raise LabelInputError(f"start: expected saved, proposal, previous or none, got {start!r}"[:120])
         if isinstance(edits, bool) or not isinstance(edits, int) or edits < 0:
             raise LabelInputError(f"edits: expected a count, got {edits!r}"[:120])
-        clicks = self._clicks(data)
         choice, snap = self._flags(data)
+        self.save(i, self._clicks(data), no_needle, choice, snap, start, edits)
+        return _json({"ok": True, "status": self.store.status(i)})
+
+    def save(self, i: int, clicks: dict, no_needle: bool = False, choice: int = 0, snap: bool = True,
+             start: str = "none", edits: int = 0) -> Optional[LabelFit]:
+        """Fit frame ``i``'s clicks ({camera: CameraClicks}) and write the label (``no_needle``:
+        the frame shows none), then move the session past it: what the page's accept does.
+        Returns the fit (None for no needle); LabelError (nothing written) when the clicks cannot
+        give a label or a camera is neither clicked nor marked not seen."""
         fit = None
         if not no_needle:
             missing = [c for c in CAMERAS if not clicks[c].unseen and clicks[c].count == 0]
@@ -230,9 +238,8 @@ class LabelApp:
                                  "seen there (key v), or mark the frame no needle (key 0)")
             fit = self.fit(i, clicks, choice, snap)
         self.store.save(i, fit, clicks, click_sigma_px=self.fitter.sigma_px, start=start, edits=edits)
-        pos = self.order.index(i)
-        self.store.save_session(position=min(pos + 1, len(self.order) - 1))
-        return _json({"ok": True, "status": self.store.status(i)})
+        self.store.save_session(position=min(self.order.index(i) + 1, len(self.order) - 1))
+        return fit
 
     def post_position(self, data: dict) -> Answer:
         i = self._frame_index(data.get("frame"))

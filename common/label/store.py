@@ -18,7 +18,7 @@ from typing import Optional
 import numpy as np
 
 from common.data.dataset import FRAMES_FILE, Dataset, parse_frame
-from common.data.writer import TRUTH_FIELDS
+from common.data.writer import TRUTH_FIELDS, write_atomic
 from common.frames import CAMERAS
 from common.geometry.transforms import inv_T
 from common.label.fit import LabelError, LabelFit
@@ -26,23 +26,6 @@ from common.label.fit import LabelError, LabelFit
 SESSION_FILE = "label-session.json"
 LABEL_FIELD = "label"
 LABELLED_BY = "needletrack label"
-
-
-def write_atomic(path: str, data: bytes) -> None:
-    """Write ``path`` whole or not at all: a temporary file in the same folder, flushed to disk,
-    then renamed over it (and the folder's entry flushed)."""
-    folder = os.path.dirname(os.path.abspath(path))
-    tmp = os.path.join(folder, f".{os.path.basename(path)}.tmp-{os.getpid()}")
-    with open(tmp, "wb") as f:
-        f.write(data)
-        f.flush()
-        os.fsync(f.fileno())
-    os.replace(tmp, path)
-    fd = os.open(folder, os.O_RDONLY)
-    try:
-        os.fsync(fd)
-    finally:
-        os.close(fd)
 
 
 def _r(a, nd: int = 4):

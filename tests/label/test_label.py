@@ -80,12 +80,41 @@ def test_a_hidden_keypoint_is_not_visible_and_missing_clicks_are_said():
     with pytest.raises(LabelError, match="no clicks"):
         LabelFitter(RIG, NEEDLE).fit({"left": CameraClicks(), "right": CameraClicks()})
     only_wire = {c: CameraClicks(wire=k.wire) for c, k in _clicks().items()}
-    with pytest.raises(LabelError, match="tip and the tail"):
+    with pytest.raises(LabelError, match="tip or the tail and a point on the wire"):
         LabelFitter(RIG, NEEDLE).fit(only_wire)
     # with a prior pose (a proposal, the previous label) the wire alone is enough to start
     near = make_T(T_NEEDLE[:3, :3], T_NEEDLE[:3, 3] + [0.001, 0.0, 0.0])
     tip_tail = {c: CameraClicks(k.tip, k.tail, k.wire) for c, k in _clicks().items()}
     assert LabelFitter(RIG, NEEDLE).fit(tip_tail, priors=[near]).pose_known
+
+
+def test_with_the_tail_hidden_the_tip_and_the_seen_wire_give_the_arc():
+    """An instrument's jaws over D and E: the user clicks the tip and the wire up to C."""
+    clicks = _clicks(wire_deg=(45, 60, 75, 90))
+    for k in clicks.values():
+        k.tail, k.hidden = None, np.array([False, False, False, True, True])
+    fit = LabelFitter(RIG, NEEDLE).fit(clicks)
+    for c in ("left", "right"):
+        uv, _ = true_keypoints(RIG[c], T_NEEDLE, NEEDLE)
+        assert np.abs(fit.keypoints[c] - uv).max() < 0.05
+        assert fit.visible[c].tolist() == [True, True, True, False, False]
+    assert pose_error(fit.T_ecm_needle, T_NEEDLE)[0] < 2e-4
+
+
+def test_a_camera_with_lens_distortion_is_fitted_in_its_own_pixels():
+    import dataclasses
+    dist = np.array([-0.2, 0.05, 0.001, -0.001, 0.0])
+    rig = StereoRig(*(dataclasses.replace(c, dist=dist) for c in RIG.cameras))
+    clicks = {}
+    for c in ("left", "right"):
+        cam = rig[c]
+        uv, _ = true_keypoints(cam, T_NEEDLE, NEEDLE)             # distorted pixels, as the image shows
+        wire = cam.project(transform_points(cam.T_cam_ecm @ T_NEEDLE, NEEDLE.arc_points(np.deg2rad(WIRE_DEG))))
+        clicks[c] = CameraClicks(uv[0], uv[4], wire)
+    fit = LabelFitter(rig, NEEDLE).fit(clicks)
+    for c in ("left", "right"):
+        assert np.abs(fit.keypoints[c] - true_keypoints(rig[c], T_NEEDLE, NEEDLE)[0]).max() < 0.05
+    assert pose_error(fit.T_ecm_needle, T_NEEDLE)[0] < 2e-4
 
 
 def test_clicks_are_read_strictly():
@@ -279,3 +308,23 @@ def test_the_command_prints_its_url_and_says_what_is_wrong_with_a_folder(tmp_pat
     assert p.returncode == 1 and "dataset.yaml: file missing" in p.stderr and "Traceback" not in p.stderr
     p = cli("label", folder, "--detector", "no-such-backend", "--port", "0")
     assert p.returncode == 1 and "no-such-backend" in p.stderr and "Traceback" not in p.stderr
+
+
+def test_simulated_clicks_label_a_folder_through_the_pages_path(tmp_path):
+    from common.evaluation.label_bench import run
+    from common.label.simulate import simulated_clicks
+    rng = np.random.default_rng(0)
+    clicks = simulated_clicks(RIG, NEEDLE, T_NEEDLE, rng, end_px=1.0, wire_px=2.0, wire=3)
+    for c in ("left", "right"):
+        uv, _ = true_keypoints(RIG[c], T_NEEDLE, NEEDLE)
+        assert np.linalg.norm(clicks[c].tip - uv[0]) <= 1.0 and np.linalg.norm(clicks[c].tail - uv[4]) <= 1.0
+        assert len(clicks[c].wire) == 3 and not clicks[c].hidden.any()
+    hidden = simulated_clicks(RIG, NEEDLE, T_NEEDLE, rng, visible={"left": [False] * 5, "right": [True] * 4 + [False]})
+    assert hidden["left"].unseen and hidden["right"].tail is None and hidden["right"].hidden.tolist() == [False] * 4 + [True]
+    away = make_T(np.eye(3), [0.0, 0.0, 0.5])                       # behind the cameras
+    assert simulated_clicks(RIG, NEEDLE, away, rng) is None
+    folder = _folder(tmp_path / "ds", truth_at=(0, 1, 2))
+    r = run(str(folder), end_px=0.0, wire_px=0.0, wire=5, progress=False)
+    assert r["frames"] == 3 and not r["failed"] and r["clicks_per_frame"] == 14.0
+    assert r["keypoint_px"]["max"] < 0.05 and r["posed_share"] == 1.0 and r["pose_mm"]["max"] < 0.2
+    assert (folder / "frames.jsonl").exists() and Dataset(str(folder))[0].label is None   # the folder untouched

@@ -7,7 +7,6 @@ The screenshot is also written to docs/label.png when NEEDLETRACK_DOCS_SHOT=1.
 """
 import os
 import shutil
-import time
 from pathlib import Path
 
 import numpy as np

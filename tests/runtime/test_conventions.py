@@ -61,7 +61,7 @@ MAY_IMPORT = {
     "ros": {"geometry", "data", "runtime"},
     "viewer": {"geometry", "runtime", "evaluation"},
     "label": {"geometry", "runtime", "data", "detector", "viewer"},
-    "evaluation": {"geometry", "runtime", "data", "sim", "detector", "ros", "viewer", "cli"},
+    "evaluation": {"geometry", "runtime", "data", "sim", "detector", "ros", "viewer", "label", "cli"},
     "cli": {"data"},
 }
 
