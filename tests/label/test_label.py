@@ -328,3 +328,25 @@ def test_simulated_clicks_label_a_folder_through_the_pages_path(tmp_path):
     assert r["frames"] == 3 and not r["failed"] and r["clicks_per_frame"] == 14.0
     assert r["keypoint_px"]["max"] < 0.05 and r["posed_share"] == 1.0 and r["pose_mm"]["max"] < 0.2
     assert (folder / "frames.jsonl").exists() and Dataset(str(folder))[0].label is None   # the folder untouched
+
+
+def test_a_write_cut_short_leaves_the_folder_as_it_was(tmp_path, monkeypatch):
+    import os
+
+    from common.data import writer
+    folder = _folder(tmp_path / "ds")
+    store = LabelStore(str(folder))
+    fit = LabelFitter(RIG, NEEDLE).fit(_clicks())
+    store.save(0, fit, _clicks(), click_sigma_px=1.0)
+    before = (folder / "frames.jsonl").read_bytes()
+
+    def killed(src, dst):
+        raise KeyboardInterrupt("killed while writing")
+    monkeypatch.setattr(writer.os, "replace", killed)
+    with pytest.raises(KeyboardInterrupt):
+        store.save(1, fit, _clicks(), click_sigma_px=1.0)
+    monkeypatch.setattr(writer.os, "replace", os.replace)
+    assert (folder / "frames.jsonl").read_bytes() == before
+    assert sorted(p.name for p in folder.iterdir()) == ["dataset.yaml", "frames.jsonl", "images"]
+    again = LabelStore(str(folder))
+    assert [again.status(i) for i in range(3)] == ["labelled", "unlabelled", "unlabelled"]
