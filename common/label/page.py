@@ -36,7 +36,6 @@ const CAMS = ['left', 'right'], KP = 'ABCDE';
 const S = {session: null, frame: null, pos: 0, clicks: null, hist: [], edits: 0, choice: 0, snap: true,
            fit: null, err: null, force: null, views: {}, imgs: {}, pointer: null, busy: 0, seq: 0};
 const $ = id => document.getElementById(id);
-const emptyCam = () => ({tip: null, tail: null, wire: [], hidden: [false, false, false, false, false], unseen: false});
 const clone = o => JSON.parse(JSON.stringify(o));
 
 async function api(path, body) {
@@ -165,7 +164,6 @@ function nearestClick(cam, x, y, within) {
   test(k.tip, 'tip'); test(k.tail, 'tail'); k.wire.forEach((p, j) => test(p, 'wire', j));
   return best;
 }
-function getClick(cam, h) { const k = S.clicks[cam]; return h.kind === 'wire' ? k.wire[h.j] : k[h.kind]; }
 function setClick(cam, h, p) { const k = S.clicks[cam]; if (h.kind === 'wire') k.wire[h.j] = p; else k[h.kind] = p; }
 function inside(p) { const [w, h] = S.session.image_size; return p[0] >= -0.5 && p[1] >= -0.5 && p[0] <= w - 0.5 && p[1] <= h - 0.5; }
 function setup(cam) {

@@ -134,9 +134,10 @@ def test_clicks_are_read_strictly():
 
 # ------------------------------------------------------------------ the folder
 
-def _folder(path, n=3, truth_at=()):
+def _folder(path, n=3, truth_at=(), endoscope=True):
     """A folder of ``n`` frames (plain images), the endoscope at the world's origin turned a
-    little; frames in ``truth_at`` carry a render's ground truth."""
+    little (``endoscope`` False: its pose not recorded); frames in ``truth_at`` carry a render's
+    ground truth."""
     meta = DatasetMeta((W, H), RIG, NEEDLE)
     img = np.full((H, W, 3), 90, np.uint8)
     with DatasetWriter(str(path), meta) as w:
@@ -144,7 +145,7 @@ def _folder(path, n=3, truth_at=()):
             T_world_ecm = make_T(rotvec_to_R([0.0, 0.02 * i, 0.0]), [0.001 * i, 0.0, 0.0])
             paths = w.write_images(i, {"left": img, "right": img})
             fr = Frame(index=i, stamp_ns=i * 1000, left=paths["left"], right=paths["right"], sequence=0,
-                       step=i, T_world_ecm=T_world_ecm)
+                       step=i, T_world_ecm=T_world_ecm if endoscope else None)
             if i in truth_at:
                 fr.T_world_needle = T_world_ecm @ T_NEEDLE
                 fr.keypoints = {c: true_keypoints(RIG[c], T_NEEDLE, NEEDLE)[0] for c in ("left", "right")}
@@ -175,6 +176,16 @@ def test_a_label_is_saved_as_the_contracts_truth_and_read_back(tmp_path):
     prior = again.prior_pose(2)
     T2 = inv_T(ds[2].T_world_ecm) @ fr.T_world_needle
     assert np.allclose(prior, T2, atol=1e-9)
+
+
+def test_without_the_endoscopes_pose_the_pose_stays_in_the_label(tmp_path):
+    folder = _folder(tmp_path / "ds", endoscope=False)
+    store = LabelStore(str(folder))
+    store.save(0, LabelFitter(RIG, NEEDLE).fit(_clicks()), _clicks(), click_sigma_px=1.0)
+    fr = Dataset(str(folder))[0]
+    assert fr.T_world_needle is None and fr.keypoints is not None
+    assert np.allclose(fr.label["T_ecm_needle"], LabelStore(str(folder)).label_pose(0))
+    assert pose_error(np.array(fr.label["T_ecm_needle"]), T_NEEDLE)[0] < 2e-4
 
 
 def test_a_renders_truth_is_never_overwritten_and_a_changed_file_is_not_clobbered(tmp_path):
