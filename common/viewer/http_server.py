@@ -16,8 +16,9 @@ clients, every input is bounded (``HttpLimits``):
   itself, which no other site can take); the port is not checked (an SSH tunnel changes it).
   Another name: 403. HTTP/1.1 without ``Host``: 400;
 - an ``Origin`` must be the page's own (``http://`` + the request's ``Host``): another site's
-  page in the same browser gets 403; a POST must state its ``Origin`` and send
-  ``application/json`` (403, 415);
+  page in the same browser gets 403, as does what a browser says another page fetches
+  (``Sec-Fetch-Site`` not ``same-origin``, other than a navigation to it); a POST must state its
+  ``Origin`` and send ``application/json`` (403, 415);
 - a listen backlog of ``backlog`` (a burst of connections waits, it is not refused).
 
 Refused requests, resets, timeouts and server errors are counted (``counters``, and the
@@ -280,11 +281,18 @@ class HttpServer:
 
     def _check_origin(self, req: Request, host: Optional[str]) -> None:
         """A request that states an ``Origin`` must come from this server's own page: exactly
-        ``http://`` and the request's own ``Host``. One that changes something (a method other than
+        ``http://`` and the request's own ``Host``; one a browser marks as fetched by another
+        page (``Sec-Fetch-Site`` other than ``same-origin``, not a navigation: an image or a
+        script of another site's page) is refused too. One that changes something (a method other than
         GET and HEAD) must state it and send JSON: another site's page cannot then make the browser
         send it (a form cannot send JSON; a script's cross-site JSON needs a preflight, refused)."""
         origins = req.get("origin")
         changes = req.method not in ("GET", "HEAD")
+        site = (req.get("sec-fetch-site") or [""])[0].strip().lower()
+        mode = (req.get("sec-fetch-mode") or [""])[0].strip().lower()
+        if site not in ("", "same-origin", "none") and mode != "navigate":
+            raise HttpRefusal(403, f"a {site[:20]} request from another page (only this {self.name}'s own "
+                                   "page may fetch from it)")
         if len(origins) > 1:
             raise HttpRefusal(400, "expected at most one Origin header")
         if origins:
