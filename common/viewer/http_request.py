@@ -35,11 +35,12 @@ WILDCARD_HOSTS = ("", "0.0.0.0", "::")
 
 
 class HttpRefusal(Exception):
-    """A request the server answers with ``status`` (and ``reason``), then closes."""
+    """A request the server answers with ``status`` (and ``reason``), then closes; ``kind``
+    names its counter (``http_<kind>``; None: the status's)."""
 
-    def __init__(self, status: int, reason: str):
+    def __init__(self, status: int, reason: str, kind: Optional[str] = None):
         super().__init__(f"{status} {reason}")
-        self.status, self.reason = status, reason
+        self.status, self.reason, self.kind = status, reason, kind
 
 
 @dataclass

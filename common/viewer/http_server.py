@@ -21,7 +21,8 @@ clients, every input is bounded (``HttpLimits``):
   ``Origin`` and send ``application/json`` (403, 415);
 - a listen backlog of ``backlog`` (a burst of connections waits, it is not refused).
 
-Refused requests, resets, timeouts and server errors are counted (``counters``, and the
+Refused requests (``http_bad_host``, ``http_bad_origin``, ``http_too_large``,
+``http_bad_requests``), resets, timeouts and server errors are counted (``counters``, and the
 ``count`` callback: a node's stats, ``http_*``) and logged once a second per kind with the
 number left out; no traceback. Binding a non-loopback address logs a warning.
 """
@@ -238,7 +239,7 @@ class HttpServer:
                 return await self._answer_and_close(reader, writer, http_response(
                     408, "text/plain", b"request head not complete in time\n", close=True))
             except HttpRefusal as r:
-                kind = {403: "bad_host", 414: "too_large", 431: "too_large"}.get(r.status, "bad_requests")
+                kind = r.kind or {403: "bad_host", 414: "too_large", 431: "too_large"}.get(r.status, "bad_requests")
                 self._note(kind, f"{peer}: {r.status} {r.reason}")
                 return await self._answer_and_close(reader, writer, http_response(
                     r.status, "text/plain", f"{r.status} {r.reason}\n".encode(), close=True,
@@ -292,14 +293,15 @@ class HttpServer:
         mode = (req.get("sec-fetch-mode") or [""])[0].strip().lower()
         if site not in ("", "same-origin", "none") and mode != "navigate":
             raise HttpRefusal(403, f"a {site[:20]} request from another page (only this {self.name}'s own "
-                                   "page may fetch from it)")
+                                   "page may fetch from it)", "bad_origin")
         if len(origins) > 1:
             raise HttpRefusal(400, "expected at most one Origin header")
         if origins:
             if host is None or origins[0].strip().lower() != f"http://{host.strip().lower()}":
-                raise HttpRefusal(403, f"Origin {origins[0][:80]!r} is not this {self.name}'s")
+                raise HttpRefusal(403, f"Origin {origins[0][:80]!r} is not this {self.name}'s", "bad_origin")
         elif changes:
-            raise HttpRefusal(403, f"a {req.method[:20]} must state its Origin (this {self.name}'s own page)")
+            raise HttpRefusal(403, f"a {req.method[:20]} must state its Origin (this {self.name}'s own page)",
+                              "bad_origin")
         if changes:
             ctype = (req.get("content-type") or [""])[0].split(";", 1)[0].strip().lower()
             if ctype != "application/json":

@@ -306,6 +306,7 @@ def test_the_page_refuses_other_sites_and_bad_requests_and_changes_nothing(label
     status, body = _exchange(port, (f"GET / HTTP/1.1\r\nHost: 127.0.0.1:{port}\r\nSec-Fetch-Site: cross-site\r\n"
                                     "Sec-Fetch-Mode: navigate\r\nConnection: close\r\n\r\n").encode())
     assert status == 200                                      # a link to the page opens it
+    assert server.counters["http_bad_host"] == 2 and server.counters["http_bad_origin"] == 5
     status, body = _post(port, "/api/save", good)
     assert status == 200 and json.loads(body) == {"ok": True, "status": "labelled"}
     assert Dataset(str(folder))[0].label is not None

@@ -138,3 +138,47 @@ def test_clicks_in_the_browser_give_the_truth_within_a_pixel_and_the_pose(render
     store = LabelStore(str(work))                                  # reopened: where the user stopped
     assert [store.status(i) for i in range(3)] == ["labelled", "labelled", "no_needle"]
     assert store.session["position"] == 1
+
+
+EVIL = """<!doctype html><html><body><script>
+window.tries = {};
+const L = 'http://127.0.0.1:@PORT@/';
+const body = JSON.stringify({frame: 0, no_needle: true, clicks: {}});
+(async () => {
+  // a form-like POST (no preflight) and a JSON POST (preflighted) from another origin
+  try { await fetch(L + 'api/save', {method: 'POST', mode: 'no-cors', body, headers: {'Content-Type': 'text/plain'}});
+        window.tries.plain = 'sent'; } catch (e) { window.tries.plain = 'error'; }
+  try { const r = await fetch(L + 'api/save', {method: 'POST', body, headers: {'Content-Type': 'application/json'}});
+        window.tries.json = r.status; } catch (e) { window.tries.json = 'blocked'; }
+  try { const r = await fetch(L + 'api/session'); window.tries.read = await r.text(); } catch (e) { window.tries.read = 'blocked'; }
+  const img = new Image();
+  img.onload = () => { window.tries.img = 'loaded'; }; img.onerror = () => { window.tries.img = 'refused'; };
+  img.src = L + 'image?i=0&camera=left';
+})();
+</script></body></html>"""
+
+
+@pytest.mark.browser
+def test_another_sites_page_in_the_same_browser_changes_and_reads_nothing(rendered, tmp_path):
+    """A page of another origin (here another port of 127.0.0.1) open in the browser tries to
+    save a label, read the session and show an endoscope image: all refused, nothing written."""
+    from common.data.writer import without_truth
+    from common.viewer.http_server import Answer, HttpServer
+    truth, _ = rendered
+    work = tmp_path / "work"
+    without_truth(truth.path, str(work))
+    before = (work / "frames.jsonl").read_bytes()
+    server, app = serve(str(work), port=0, detector="none", progress=False)
+    evil = HttpServer("127.0.0.1", 0, lambda req, body: Answer(
+        200, "text/html", EVIL.replace("@PORT@", str(server.port)).encode()), name="other site")
+    try:
+        with Chromium(size=(800, 600)) as b:
+            b.navigate(evil.url)
+            tries = b.wait_for("window.tries && Object.keys(window.tries).length === 4 && window.tries", 30)
+        assert tries["json"] == "blocked" and tries["read"] == "blocked" and tries["img"] == "refused", tries
+        assert (work / "frames.jsonl").read_bytes() == before and not (work / "label-session.json").exists()
+        assert server.counters["http_bad_origin"] >= 2                 # the POST and the image: 403
+        assert app.store.status(0) == "unlabelled"
+    finally:
+        evil.close()
+        server.close()
