@@ -1,7 +1,8 @@
 """The labelling page (HTML and JavaScript, no library): both cameras on canvases with zoom
 (wheel) and pan (right or middle drag, or shift + drag); a click places the tip, then the tail,
 then points on the wire; the server fits the arc after every change and the page draws it with
-A..E. Keys are listed on the page (``KEYS``). ``window.label`` exposes the view's pixel mapping
+A..E. A frame opens zoomed on the needle where its start says where it is. Keys are listed on
+the page (``KEYS``). ``window.label`` exposes the view's pixel mapping
 for the browser tests."""
 
 KEYS = [("Enter / Space", "accept: save this frame's label and go to the next"),
@@ -13,7 +14,8 @@ KEYS = [("Enter / Space", "accept: save this frame's label and go to the next"),
         ("v", "camera under the pointer: needle not seen there / seen"),
         ("Delete", "remove the click nearest the pointer"),
         ("m", "the fit's other solution, where the images leave two"),
-        ("s", "snap the arc to the wire in the images: on / off"), ("r", "reset the zoom")]
+        ("s", "snap the arc to the wire in the images: on / off"),
+        ("r", "the whole image; again: back to the needle")]
 
 PAGE = r"""<!doctype html>
 <html><head><meta charset="utf-8"><title>needletrack label</title>
@@ -65,6 +67,17 @@ function toImage(cam, x, y) {
 function zoomAt(cam, x, y, f) {
   const V = S.views[cam], r = $(cam).getBoundingClientRect(), px = x - r.left, py = y - r.top;
   V.ox = px - (px - V.ox) * f; V.oy = py - (py - V.oy) * f; V.s *= f; draw(cam);
+}
+function autoZoom(cam) {  // the needle a third of the canvas wide, where a fit or clicks say where it is
+  fitView(cam);
+  const k = S.clicks && S.clicks[cam], pts = [];
+  if (S.fit && S.fit.arc[cam].length) pts.push(...S.fit.arc[cam]);
+  else if (k) [k.tip, k.tail, ...k.wire].forEach(p => { if (p) pts.push(p); });
+  if (pts.length < 2) return;
+  const us = pts.map(p => p[0]), vs = pts.map(p => p[1]), c = $(cam);
+  const ext = Math.max(Math.max(...us) - Math.min(...us), Math.max(...vs) - Math.min(...vs), 4);
+  const scale = Math.min(Math.max(c.width / 3 / ext, S.views[cam].s), 8);
+  setView(cam, scale, (Math.max(...us) + Math.min(...us)) / 2, (Math.max(...vs) + Math.min(...vs)) / 2);
 }
 function setView(cam, scale, u, v) {  // zoom so that one image px is `scale` canvas px, (u, v) centred
   const c = $(cam), V = S.views[cam];
@@ -132,7 +145,7 @@ async function go(pos) {
   S.frame = fr; S.imgs = {left: L, right: R}; S.clicks = fr.clicks; S.hist = []; S.edits = 0; S.choice = 0;
   S.fit = fr.fit; S.err = fr.error; say(fr.note || '');
   api('api/position', {frame: i}).catch(() => {});
-  status(); drawAll();
+  CAMS.forEach(autoZoom); status(); drawAll();
 }
 async function refit() {
   const my = ++S.seq; S.busy++;
@@ -214,7 +227,7 @@ document.addEventListener('keydown', e => {
     if (h) change(() => { const c = S.clicks[P.cam]; if (h.kind === 'wire') c.wire.splice(h.j, 1); else c[h.kind] = null; }); }
   else if (k === 'm') { if (S.fit && S.fit.alternatives) { S.choice++; refit(); } else say('no other solution'); }
   else if (k === 's') { S.snap = !S.snap; refit(); }
-  else if (k === 'r') { CAMS.forEach(fitView); drawAll(); }
+  else if (k === 'r') { S.whole = !S.whole; CAMS.forEach(S.whole ? fitView : autoZoom); drawAll(); }
 });
 window.addEventListener('resize', () => { CAMS.forEach(fitView); drawAll(); });
 
