@@ -9,7 +9,10 @@ clicks, the wire snapped in the images, the label written to frames.jsonl) from 
 and scored against the truth. Prints: the keypoints' error (visible ones: mean, median, max,
 the share within 1 px), the poses written (the share of frames) and their error (median, max,
 the share within 1 mm and 2 deg), how honest their stated covariance is (NEES median, chi-square(6)'s
-is 5.35), the fit's time per frame and the clicks per frame. ``--json`` writes the figures.
+is 5.35), the fit's time per frame and the clicks per frame. ``--detector NAME``: frames the
+backend finds in both cameras are accepted as it proposes them (one key, the page's start), the
+others clicked; how many of those proposals were right (every keypoint within 1 px) is counted.
+``--json`` writes the figures.
 """
 from __future__ import annotations
 
@@ -22,9 +25,12 @@ from pathlib import Path
 
 
 def run(dataset: str, end_px: float = 1.0, wire_px: float = 2.0, wire: int = 2, seed: int = 0,
-        max_frames: int = 0, snap: bool = True, progress: bool = True) -> dict:
+        max_frames: int = 0, snap: bool = True, progress: bool = True, detector: str = "none",
+        params: dict | None = None) -> dict:
     """The figures (see the module docstring) of ``dataset``'s frames (the first ``max_frames``;
-    0: all) labelled by simulated clicks."""
+    0: all) labelled by simulated clicks; with a ``detector`` (a backend's name), each frame whose
+    proposal finds the needle in both cameras is accepted as proposed instead (one key), and
+    the share of those within 1 px of the truth is counted."""
     import numpy as np
     from tqdm import tqdm
 
@@ -32,7 +38,8 @@ def run(dataset: str, end_px: float = 1.0, wire_px: float = 2.0, wire: int = 2, 
     from common.data.writer import without_truth
     from common.frames import CAMERAS
     from common.geometry.transforms import R_to_rotvec, inv_T, pose_error
-    from common.label.fit import CameraClicks, LabelError
+    from common.label.fit import CameraClicks, LabelError, clicks_from_keypoints
+    from common.label.proposals import detect_folder
     from common.label.server import LabelApp
     from common.label.simulate import simulated_clicks
     from common.label.store import LabelStore
@@ -47,31 +54,43 @@ def run(dataset: str, end_px: float = 1.0, wire_px: float = 2.0, wire: int = 2, 
     with tempfile.TemporaryDirectory(prefix="label-bench-") as tmp:
         work = Path(tmp) / "work"
         without_truth(truth.path, str(work))
-        app = LabelApp(LabelStore(str(work)), None)
-        times, clicks_n, failed = [], [], []
+        store = LabelStore(str(work))
+        props = None if detector == "none" else detect_folder(store.ds, detector, dict(params or {}), progress)
+        app = LabelApp(store, props)
+        times, clicks_n, failed, accepted = [], [], [], set()
         for fr in tqdm(frames, desc="labelling", unit="frame", disable=not progress):
-            clicks = simulated_clicks(truth.rig, truth.needle, fr.T_ecm_needle, rng, end_px, wire_px, wire,
-                                      fr.visible)
+            prop = props[fr.index] if props else None
+            start = "none"
+            if prop and all(prop[c]["found"] for c in CAMERAS):
+                clicks, start = clicks_from_keypoints({c: prop[c]["uv"] for c in CAMERAS}), "proposal"
+                accepted.add(fr.index)
+            else:
+                clicks = simulated_clicks(truth.rig, truth.needle, fr.T_ecm_needle, rng, end_px, wire_px, wire,
+                                          fr.visible)
             t0 = time.perf_counter()
             try:
                 if clicks is None:
                     app.save(fr.index, {c: CameraClicks(unseen=True) for c in CAMERAS}, no_needle=True)
                 else:
-                    app.save(fr.index, clicks, snap=snap)
+                    app.save(fr.index, clicks, snap=snap, start=start)
             except LabelError as exc:
                 failed.append(f"frame {fr.index}: {exc}")
                 continue
             times.append(time.perf_counter() - t0)
-            clicks_n.append(0 if clicks is None else sum(k.count for k in clicks.values()))
+            clicks_n.append(0 if clicks is None or start == "proposal" else sum(k.count for k in clicks.values()))
         labelled = Dataset(str(work))
-    kp_err, pose_err, nees, posed = [], [], [], 0
+    kp_err, pose_err, nees, posed, right = [], [], [], 0, 0
     for fr in frames:
         lab = labelled[fr.index]
         if lab.label is None or lab.keypoints is None:
             continue
+        worst = 0.0
         for c in CAMERAS:
             seen = lab.visible[c] & (fr.visible[c] if fr.visible is not None else True)
-            kp_err += np.linalg.norm(lab.keypoints[c] - fr.keypoints[c], axis=1)[seen].tolist()
+            e = np.linalg.norm(lab.keypoints[c] - fr.keypoints[c], axis=1)[seen]
+            kp_err += e.tolist()
+            worst = max(worst, float(e.max(initial=0.0)))
+        right += fr.index in accepted and worst < 1.0
         if lab.T_world_needle is not None:
             posed += 1
             T = inv_T(lab.T_world_ecm) @ lab.T_world_needle
@@ -95,6 +114,7 @@ def run(dataset: str, end_px: float = 1.0, wire_px: float = 2.0, wire: int = 2, 
         "nees_median": q(np.array(nees), np.median),
         "fit_ms": {"median": q(np.array(times) * 1e3, np.median), "max": q(np.array(times) * 1e3, np.max)},
         "clicks_per_frame": q(np.array(clicks_n), np.mean),
+        "detector": detector, "proposals_accepted": len(accepted), "proposals_within_1px": right,
     }
 
 
@@ -107,11 +127,17 @@ def main(argv=None) -> int:
     p.add_argument("--wire", type=int, default=2, help="wire clicks per camera (default 2)")
     p.add_argument("--no-snap", action="store_true", help="fit the clicks alone (the page's key s)")
     p.add_argument("--max-frames", type=int, default=0, help="label only the first N frames")
+    p.add_argument("--detector", default="none",
+                   help="accept this backend's proposals as they are where it finds the needle in both "
+                        "cameras (one key), and count those within 1 px of the truth (default none)")
+    p.add_argument("--detector-param", action="append", default=[], metavar="KEY=VALUE")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--json", help="also write the figures here")
     p.add_argument("--quiet", action="store_true")
     a = p.parse_args(argv)
-    r = run(a.dataset, a.end_px, a.wire_px, a.wire, a.seed, a.max_frames, not a.no_snap, not a.quiet)
+    from common.runtime.graph import parse_param
+    r = run(a.dataset, a.end_px, a.wire_px, a.wire, a.seed, a.max_frames, not a.no_snap, not a.quiet,
+            a.detector, dict(parse_param(t) for t in a.detector_param))
     k, pm, pd = r["keypoint_px"], r["pose_mm"], r["pose_deg"]
     print(f"label bench ({r['dataset']}, {r['frames']} frames; clicks: tip and tail within {a.end_px:g} px, "
           f"{a.wire} wire points within {a.wire_px:g} px, snap {'on' if r['snap'] else 'off'}):")
@@ -122,6 +148,9 @@ def main(argv=None) -> int:
           f"{100 * r['pose_within_1mm_2deg']:.0f}%; NEES median {r['nees_median']:.1f} (chi-square(6): 5.35)")
     print(f"  fit and save: {r['fit_ms']['median']:.0f} ms a frame (median), {r['fit_ms']['max']:.0f} max; "
           f"{r['clicks_per_frame']:.1f} clicks a frame")
+    if a.detector != "none":
+        print(f"  {a.detector}'s proposals accepted with one key: {r['proposals_accepted']} frames, "
+              f"{r['proposals_within_1px']} of them with every keypoint within 1 px of the truth")
     for f in r["failed"]:
         print(f"  not labelled: {f}")
     if a.json:

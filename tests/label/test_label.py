@@ -346,6 +346,9 @@ def test_simulated_clicks_label_a_folder_through_the_pages_path(tmp_path):
     assert r["frames"] == 3 and not r["failed"] and r["clicks_per_frame"] == 14.0
     assert r["keypoint_px"]["max"] < 0.05 and r["posed_share"] == 1.0 and r["pose_mm"]["max"] < 0.2
     assert (folder / "frames.jsonl").exists() and Dataset(str(folder))[0].label is None   # the folder untouched
+    register_backend("label-test-fixed", "test_label:FixedBackend")
+    r = run(str(folder), detector="label-test-fixed", progress=False)
+    assert r["proposals_accepted"] == 3 and r["proposals_within_1px"] == 3 and r["clicks_per_frame"] == 0
 
 
 def test_a_write_cut_short_leaves_the_folder_as_it_was(tmp_path, monkeypatch):

@@ -46,7 +46,7 @@ def _idle(b):
 
 
 @pytest.mark.browser
-def test_clicks_in_the_browser_give_the_truth_within_a_pixel_and_the_pose(rendered, tmp_path):
+def test_clicks_in_the_browser_give_the_truth_within_a_pixel_and_the_pose(rendered):
     assert find_chromium() is not None, "needs Debian's chromium: apt-get install -y chromium"
     truth, work = rendered
     rig, needle = truth.rig, truth.needle
