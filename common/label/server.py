@@ -21,10 +21,12 @@ from typing import Optional
 
 import numpy as np
 
+from common.data.dataset import DatasetError
 from common.frames import CAMERAS
 from common.geometry.oracle import true_keypoints
 from common.label.fit import (
     CLICK_SIGMA_PX,
+    CameraClicks,
     LabelError,
     LabelFit,
     LabelInputError,
@@ -110,7 +112,7 @@ class LabelApp:
                 uv[c] = k if inside.all() else None
             clicks = clicks_from_keypoints(uv)
             return {c: clicks[c].to_json() for c in CAMERAS}, "previous"
-        return {c: clicks_from_json({}, (1, 1))[c].to_json() for c in CAMERAS}, "none"
+        return {c: CameraClicks().to_json() for c in CAMERAS}, "none"
 
     # ------------------------------------------------------------ routes
     def handle(self, req: Request, body: bytes) -> Answer:
@@ -139,7 +141,7 @@ class LabelApp:
                     "/api/position": self.post_position}[url.path](data)
         except LabelInputError as exc:
             return _error(400, str(exc))
-        except LabelError as exc:
+        except (LabelError, DatasetError) as exc:         # clicks that give no label; an unreadable image
             return _error(422, str(exc))
 
     @staticmethod
@@ -294,7 +296,6 @@ def main(argv=None) -> int:
     p.add_argument("--duration", type=float, help="stop after this many seconds")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
     a = p.parse_args(argv)
-    from common.data.dataset import DatasetError
     from common.detector.backends import BackendError
     from common.runtime.graph import parse_param
     try:

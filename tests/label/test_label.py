@@ -371,3 +371,15 @@ def test_a_write_cut_short_leaves_the_folder_as_it_was(tmp_path, monkeypatch):
     assert sorted(p.name for p in folder.iterdir()) == ["dataset.yaml", "frames.jsonl", "images"]
     again = LabelStore(str(folder))
     assert [again.status(i) for i in range(3)] == ["labelled", "unlabelled", "unlabelled"]
+
+
+def test_an_unreadable_image_is_said_and_the_page_goes_on(tmp_path):
+    folder = _folder(tmp_path / "ds")
+    (folder / "images" / "left" / "000001.jpg").write_bytes(b"not a jpeg")
+    app = LabelApp(LabelStore(str(folder)), None)
+    from common.viewer.http_request import Request
+    post = lambda body: app.handle(Request("POST", "/api/fit", (1, 1), {}), json.dumps(body).encode())
+    a = post({"frame": 1, "clicks": {c: k.to_json() for c, k in _clicks().items()}})
+    assert a.status == 422 and b"images/left/000001.jpg: not a readable PNG or JPEG image" in a.body
+    a = post({"frame": 0, "clicks": {c: k.to_json() for c, k in _clicks().items()}})
+    assert a.status == 200 and json.loads(a.body)["fit"]["stereo"]
