@@ -134,13 +134,15 @@ function status() {
 // ---------------------------------------------------------------- frames
 async function loadImage(i, cam) {
   return new Promise((done, fail) => { const im = new Image();
-    im.onload = () => done(im); im.onerror = () => fail(new Error('image ' + cam)); im.src = `image?i=${i}&camera=${cam}`; });
+    im.onload = () => done(im); im.onerror = () => fail(new Error(`the ${cam} image cannot be shown`)); im.src = `image?i=${i}&camera=${cam}`; });
 }
 async function go(pos) {
   const s = S.session; if (!s.order.length) return;
   S.pos = Math.max(0, Math.min(s.order.length - 1, pos));
   const i = s.order[S.pos], my = ++S.seq;
-  const [fr, L, R] = await Promise.all([api(`api/frame?i=${i}`), loadImage(i, 'left'), loadImage(i, 'right')]);
+  let fr, L, R;
+  try { [fr, L, R] = await Promise.all([api(`api/frame?i=${i}`), loadImage(i, 'left'), loadImage(i, 'right')]); }
+  catch (e) { say(`frame ${i}: ${e.message || e}`, true); return; }
   if (my !== S.seq) return;
   S.frame = fr; S.imgs = {left: L, right: R}; S.clicks = fr.clicks; S.hist = []; S.edits = 0; S.choice = 0;
   S.fit = fr.fit; S.err = fr.error; say(fr.note || '');
