@@ -1,4 +1,4 @@
-"""HTTP/1.1 request heads for the viewer's page server (``common/viewer/page.py``): the bounds on
+"""HTTP/1.1 request heads for the loopback pages' server (``common/viewer/http_server.py``): the bounds on
 what a client may send (``HttpLimits``), parsing a head (``parse_head``, or ``HttpRefusal`` with
 the status to answer), the ``Host`` check against DNS rebinding (``host_name``, ``HostCheck``:
 ``localhost``, the bound host, allowed names, address literals) and a response's bytes
