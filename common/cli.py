@@ -29,6 +29,7 @@ COMMANDS = {
     "adapt": ("common.evaluation.adapt:main", "fit the detector to a scene from recordings without ground truth"),
     "results": ("common.evaluation.results_page:main", "evaluate the documented sets and write docs/results.md"),
     "record": ("common.ros.record:record_main", "record a running graph to MCAP with ROS 2 schemas"),
+    "label": ("common.label.server:main", "label a dataset folder's frames by hand in the browser (docs/label.md)"),
     "view": ("common.viewer.cli:main", "open a recording (.rrd) in Rerun's web viewer on 127.0.0.1"),
 }
 
@@ -40,6 +41,7 @@ BENCHES = {
     "held": ("common.evaluation.held_bench:main", "the detector on moving takes, by the share of the needle seen"),
     "tracker": ("common.evaluation.tracker_bench:main", "the needle tracker on the motion scripts' takes (no rendering)"),
     "graph": ("common.evaluation.graph_bench:main", "the full graph end to end"),
+    "label": ("common.evaluation.label_bench:main", "hand labels (needletrack label) by simulated clicks on a folder with truth"),
     "refine": ("common.evaluation.refine_bench:main", "dense pose refinement speed and accuracy (synthetic)"),
     "end-identity": ("common.evaluation.end_identity_bench:main", "tip vs tail: the detector's end identity on dataset folders"),
     "familiarity": ("common.evaluation.familiarity_bench:main", "how unlike the training looks each folder's images are (--fit: the reference)"),

@@ -107,6 +107,22 @@ def _count(v) -> int:
     return n
 
 
+def _hand_label(v) -> dict:
+    """needletrack's ``label`` field (docs/datasets.md): the frame was labelled by hand."""
+    if not isinstance(v, dict):
+        raise _Bad(f"expected an object, got {type(v).__name__}")
+    if not isinstance(v.get("no_needle"), bool):
+        raise _Bad(f"no_needle: expected true or false, got {v.get('no_needle')!r}"[:120])
+    for key, parse in (("T_ecm_needle", _rigid), ("covariance", lambda x: _matrix(x, 6, 6)),
+                       ("keypoint_sigma_px", lambda x: _per_camera(x, _vector, 5))):
+        if v.get(key) is not None:
+            try:
+                parse(v[key])
+            except _Bad as exc:
+                raise _Bad(f"{key}: {exc}") from None
+    return dict(v)
+
+
 _NO_DEFAULT = object()
 
 
@@ -124,7 +140,8 @@ class Frame:
     ``keypoints[c]`` (5, 2) px, ``visible[c]`` (5,) bool, ``bbox[c]`` [x0, y0, x1, y1] or None,
     ``instruments`` {name: ``common.data.instruments.InstrumentPose``}, ``arc_visible[c]`` the share
     of the arc seen and ``arc_seen[c]`` (N,) bool whether each of N points equally spaced along
-    the arc from A to E is seen (needletrack's own fields, docs/datasets.md), ``needle_at_rest`` False
+    the arc from A to E is seen, ``label`` a hand label's record (needletrack's own fields,
+    docs/datasets.md), ``needle_at_rest`` False
     when the needle moves during its sequence (then the sequence is a take, not a multi-view
     group: ``multiview_group``). Optional fields are None when the file leaves them out or null.
     Each field of the file is declared once, here, with the parser of its value (``_line``).
@@ -146,6 +163,7 @@ class Frame:
     instruments: Optional[dict] = _line(parse_instruments, None)
     arc_visible: Optional[dict] = _line(lambda v: _per_camera(v, _share), None, extension=True)
     arc_seen: Optional[dict] = _line(lambda v: _per_camera(v, _arc_samples), None, extension=True)
+    label: Optional[dict] = _line(_hand_label, None, extension=True)
     line: Optional[int] = field(default=None, compare=False)      # the line of frames.jsonl it was read from
 
     def image(self, camera: str) -> str:
@@ -193,6 +211,8 @@ class Frame:
             d["arc_visible"] = {c: float(self.arc_visible[c]) for c in CAMERAS}
         if self.arc_seen is not None:
             d["arc_seen"] = {c: [bool(b) for b in self.arc_seen[c]] for c in CAMERAS}
+        if self.label is not None:
+            d["label"] = self.label
         return d
 
 

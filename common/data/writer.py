@@ -1,5 +1,6 @@
 """Writing needle dataset folders (``docs/dataset.md``): ``DatasetWriter``, a folder staged and
-moved into place, a copy without the ground truth, and resuming a generation cut short."""
+moved into place, a file replaced atomically, a copy without the ground truth, and resuming a
+generation cut short."""
 from __future__ import annotations
 
 import json
@@ -107,6 +108,29 @@ def staged_folder(out: str):
         raise
 
 
+def write_atomic(path: str, data: bytes) -> None:
+    """Write the file ``path`` whole or not at all: a temporary file beside it (``.NAME.tmp-PID``),
+    flushed to disk, then renamed over it, and the folder's entry flushed: a kill leaves the old
+    file or the new one."""
+    folder = os.path.dirname(os.path.abspath(path))
+    tmp = os.path.join(folder, f".{os.path.basename(path)}.tmp-{os.getpid()}")
+    try:
+        with open(tmp, "wb") as f:
+            f.write(data)
+            f.flush()
+            os.fsync(f.fileno())
+        os.replace(tmp, path)
+    except BaseException:
+        if os.path.exists(tmp):
+            os.remove(tmp)
+        raise
+    fd = os.open(folder, os.O_RDONLY)
+    try:
+        os.fsync(fd)
+    finally:
+        os.close(fd)
+
+
 def link_or_copy(src: str, dst: str) -> None:
     """Put the file ``src`` at ``dst`` (folders made): a hard link when both lie on one file
     system, else a copy."""
@@ -117,8 +141,9 @@ def link_or_copy(src: str, dst: str) -> None:
         shutil.copy2(src, dst)
 
 
-TRUTH_FIELDS = ("T_world_needle", "keypoints", "visible", "bbox", "arc_visible", "arc_seen")
-"""The frame fields that come from the needle's true pose: a recording has none of them."""
+TRUTH_FIELDS = ("T_world_needle", "keypoints", "visible", "bbox", "arc_visible", "arc_seen", "label")
+"""The frame fields that come from the needle's true pose, or a hand label's record of it
+(``label``): a recording has none of them."""
 
 
 def without_truth(src: str, out: str) -> int:

@@ -1,7 +1,8 @@
-"""HTTP/1.1 request heads for the viewer's page server (``common/viewer/page.py``): the bounds on
+"""HTTP/1.1 request heads for the loopback pages' server (``common/viewer/http_server.py``): the bounds on
 what a client may send (``HttpLimits``), parsing a head (``parse_head``, or ``HttpRefusal`` with
 the status to answer), the ``Host`` check against DNS rebinding (``host_name``, ``HostCheck``:
-``localhost``, the bound host, allowed names, address literals) and a response's bytes.
+``localhost``, the bound host, allowed names, address literals) and a response's bytes
+(``http_response``).
 Standard library only.
 """
 from __future__ import annotations
@@ -23,6 +24,7 @@ class HttpLimits:
     max_connections: int = 64         # served at once (then a short wait, then 503)
     timeout_s: float = 10.0           # to send a request head, to take an answer; keep-alive idle
     backlog: int = 1024               # listen queue (the kernel caps it at net.core.somaxconn)
+    max_body: int = 65536             # a POST's body, bytes, where a server takes one (413 beyond)
 
 
 _TOKEN = re.compile(rb"[!#$%&'*+\-.^_`|~0-9A-Za-z]+")
@@ -33,11 +35,12 @@ WILDCARD_HOSTS = ("", "0.0.0.0", "::")
 
 
 class HttpRefusal(Exception):
-    """A request the server answers with ``status`` (and ``reason``), then closes."""
+    """A request the server answers with ``status`` (and ``reason``), then closes; ``kind``
+    names its counter (``http_<kind>``; None: the status's)."""
 
-    def __init__(self, status: int, reason: str):
+    def __init__(self, status: int, reason: str, kind: Optional[str] = None):
         super().__init__(f"{status} {reason}")
-        self.status, self.reason = status, reason
+        self.status, self.reason, self.kind = status, reason, kind
 
 
 @dataclass
@@ -134,7 +137,7 @@ class HostCheck:
         return self.any or name in self.names or is_address(name)
 
 
-def _response(status: int, ctype: str, body: bytes, head_only: bool = False, close: bool = False,
+def http_response(status: int, ctype: str, body: bytes, head_only: bool = False, close: bool = False,
               extra: tuple = ()) -> bytes:
     lines = [f"HTTP/1.1 {status} {HTTPStatus(status).phrase}", f"Content-Type: {ctype}",
              f"Content-Length: {len(body)}", "Cache-Control: no-store", "X-Content-Type-Options: nosniff",

@@ -60,7 +60,8 @@ MAY_IMPORT = {
     "detector": {"geometry", "data", "runtime"},
     "ros": {"geometry", "data", "runtime"},
     "viewer": {"geometry", "runtime", "evaluation"},
-    "evaluation": {"geometry", "runtime", "data", "sim", "detector", "ros", "viewer", "cli"},
+    "label": {"geometry", "runtime", "data", "detector", "viewer"},
+    "evaluation": {"geometry", "runtime", "data", "sim", "detector", "ros", "viewer", "label", "cli"},
     "cli": {"data"},
 }
 
