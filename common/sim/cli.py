@@ -7,7 +7,7 @@ import argparse
 
 from common.geometry.ecm_kinematics import MULTIVIEW_STEP_RAD
 
-PRESET_NAMES = ["none", "test", "train", "wide", "silicone", "liver"]   # common.sim.randomise.PRESETS (not imported: fast start)
+PRESET_NAMES = ["none", "test", "train", "wide", "silicone", "liver", "random", "unseen"]   # common.sim.randomise.PRESETS (not imported: fast start)
 
 STANDARD_TEST_SET = ("needletrack dataset generate --out data/test --sequences 30 --steps 5 "
                      "--seed 1000 --randomise test")

@@ -87,7 +87,7 @@ def render_sequence(renderer, cfg: GenerateConfig, sequence: int) -> list[tuple[
         gt = renderer.ground_truth(T_world_ecm, renders)
         # JPEG artefacts come from the file's own compression when writing JPEG
         images = degrade_stereo({c: r.bgr for c, r in renders.items()}, rng, preset,
-                                jpeg=cfg.image_format != "jpg")
+                                jpeg=cfg.image_format != "jpg", avoid=gt["keypoints"])
         quality = min(cfg.jpeg_quality, jpeg_quality(rng, preset))
         fields = {"sequence": sequence, "step": step, "ecm_joints": np.asarray(q, float),
                   "T_world_ecm": T_world_ecm, "T_world_needle": plan.spec.T_world_needle,
@@ -104,7 +104,8 @@ def _render_take(renderer, cfg: GenerateConfig, sequence: int, meta, preset, tex
     rng = np.random.default_rng(plan.image_seed)
     out = []
     for images, fields in render_take(renderer, plan, meta.arm,
-                                      lambda im: degrade_stereo(im, rng, preset, jpeg=cfg.image_format != "jpg"),
+                                      lambda im, kp: degrade_stereo(im, rng, preset, jpeg=cfg.image_format != "jpg",
+                                                                        avoid=kp),
                                       every=cfg.take_every):
         out.append((images, {"sequence": sequence, **fields}, min(cfg.jpeg_quality, jpeg_quality(rng, preset))))
     return out

@@ -94,8 +94,8 @@ def take_spec(plan: TakePlan, frame) -> SceneSpec:
 
 def render_take(renderer, plan: TakePlan, arm: EcmArm, degrade=None, every: int = 1):
     """Render a take: yields (BGR images by camera, frame fields) per frame, or per ``every``-th
-    frame (``step`` stays the frame's index in the 30 Hz take); ``degrade`` (images -> images)
-    applies the sensor model."""
+    frame (``step`` stays the frame's index in the 30 Hz take); ``degrade`` (images, keypoints by
+    camera -> images) applies the sensor model."""
     for step, (fr, q) in enumerate(zip(plan.script.frames, plan.joints)):
         if step % every:
             continue
@@ -105,7 +105,7 @@ def render_take(renderer, plan: TakePlan, arm: EcmArm, degrade=None, every: int 
         gt = renderer.ground_truth(T_world_ecm, renders)
         images = {c: r.bgr for c, r in renders.items()}
         if degrade is not None:
-            images = degrade(images)
+            images = degrade(images, gt["keypoints"])
         yield images, {"step": step, "ecm_joints": np.asarray(q, float), "T_world_ecm": T_world_ecm,
                        "T_world_needle": fr.T_world_needle, "keypoints": gt["keypoints"], "visible": gt["visible"],
                        "bbox": gt["bbox"], "arc_visible": gt["arc_visible"], "arc_seen": gt["arc_seen"], "needle_at_rest": False,
