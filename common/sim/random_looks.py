@@ -167,7 +167,7 @@ def sample_look(rng: np.random.Generator, a: Appearance, pool_name: str) -> Appe
 def extra_instruments(rng: np.random.Generator, inst: list, T_world_needle: np.ndarray, needle, rig,
                       T_world_ecm: np.ndarray, p_near: float, p_more: float = 0.35) -> list:
     """Up to ``LOOK_INSTRUMENTS`` instruments: a third and a fourth beside the needle with
-    probability ``p_more`` each, either one near the camera (2-7 cm in front of it, coming in from
+    probability ``p_more`` each, either one near the camera (1.5-6 cm in front of it, coming in from
     the image's side) with probability ``p_near``. A near one keeps its tip's pixel off the
     needle's image, so that it covers the needle only where its shaft passes."""
     out = list(inst)
@@ -193,7 +193,7 @@ def extra_instruments(rng: np.random.Generator, inst: list, T_world_needle: np.n
 
 
 def _near_camera(rng: np.random.Generator, cam, T_world_cam: np.ndarray, uv_needle: np.ndarray) -> Instrument:
-    """An instrument whose jaws are 2-7 cm in front of the camera, its shaft leaving the image sideways."""
+    """An instrument whose jaws are 1.5-6 cm in front of the camera, its shaft leaving the image sideways."""
     w, h = cam.width, cam.height
     lo, hi = uv_needle.min(axis=0), uv_needle.max(axis=0)
     for _ in range(20):
@@ -202,7 +202,7 @@ def _near_camera(rng: np.random.Generator, cam, T_world_cam: np.ndarray, uv_need
         v = rng.uniform(0.1, 0.9) * h
         if not (lo[0] - 0.1 * w < u < hi[0] + 0.1 * w and lo[1] - 0.1 * h < v < hi[1] + 0.1 * h):
             break
-    depth = rng.uniform(0.02, 0.07)
+    depth = rng.uniform(0.015, 0.06)
     p_cam = depth * np.linalg.solve(cam.K, [u, v, 1.0])
     d_cam = np.array([side, rng.uniform(-0.3, 0.3), -rng.uniform(0.2, 0.8)])   # out sideways, back towards the scope
     tip = transform_points(T_world_cam, p_cam[None])[0]
