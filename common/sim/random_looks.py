@@ -162,6 +162,15 @@ def sample_look(rng: np.random.Generator, a: Appearance, pool_name: str) -> Appe
         thread_length_m=float(rng.uniform(0.004, 0.09)), ambient=float(rng.uniform(0.05, 0.35)))
 
 
+def with_graspers(rng: np.random.Generator, a: Appearance, pool_name: str, slots: int) -> Appearance:
+    """The look with its first ``slots`` instruments of kinds that can hold the needle (a take's
+    instruments pass it between them)."""
+    kinds = [k for k in POOLS[pool_name]["instruments"] if k in GRASPING]
+    looks = tuple(replace(il, kind=str(rng.choice(kinds))) if i < slots and il.kind not in GRASPING else il
+                  for i, il in enumerate(a.look.instruments))
+    return replace(a, look=replace(a.look, instruments=looks))
+
+
 # ---------------------------------------------------------------- more instruments, nearer the camera
 
 def extra_instruments(rng: np.random.Generator, inst: list, T_world_needle: np.ndarray, needle, rig,

@@ -18,6 +18,7 @@ from common.geometry.ecm_kinematics import EcmArm
 from common.geometry.needle import NeedleModel
 from common.geometry.transforms import transform_points
 from common.sim.motion import FPS, INSTRUMENTS, MOTIONS, ScriptedTake, script_take
+from common.sim.random_looks import with_graspers
 from common.sim.randomise import Preset, aim_joints, sample_appearance
 from common.sim.scene import Instrument, SceneSpec
 
@@ -50,6 +51,8 @@ def plan_take(seed: int, take: int, motion: str, preset: Preset, rig: StereoRig,
     """Deterministic plan of take ``take``; ``thread=False`` the same take with no thread drawn."""
     rng = np.random.default_rng([seed, take, 34])
     ap = sample_appearance(rng, preset)
+    if preset.pool:                      # the random looks: both instruments can hold the needle
+        ap = with_graspers(rng, ap, preset.pool, len(INSTRUMENTS))
     if not thread:
         ap = replace(ap, thread_visible=False)
     script = script_take(take_motion(motion, take), rng, needle, ap.wire_diameter_m / 2)
