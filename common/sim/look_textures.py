@@ -221,7 +221,8 @@ def look_texture(t: TextureLook, size: int) -> np.ndarray:
         col = _palette_lut(t.palette)[(grey * 255).astype(np.uint8)]
     if t.relief > 0:
         g = cv2.GaussianBlur(grey, (0, 0), 1.5)
-        shade = 1.0 + t.relief * 2.5 * (cv2.Sobel(g, cv2.CV_32F, 1, 0, ksize=3) + cv2.Sobel(g, cv2.CV_32F, 0, 1, ksize=3))
+        slope = cv2.Sobel(g, cv2.CV_32F, 1, 0, ksize=3) + cv2.Sobel(g, cv2.CV_32F, 0, 1, ksize=3)
+        shade = 1.0 + t.relief * 2.5 * slope   # lit from the top left: an emboss
         col = col * np.clip(shade, 0.4, 1.6)[..., None]
     img = (np.clip(col, 0, 1) * 255).astype(np.uint8)
     if t.stains > 0:
