@@ -15,7 +15,7 @@ from common.sim import random_looks
 from common.sim.generate import generate_needle_free, needle_free_scene, scene_meta
 from common.sim.image_effects import draw_effects, look_effects
 from common.sim.instrument_kinds import GRASPING, KINDS, kind_parts
-from common.sim.look_textures import PATTERNS, PHOTOS, TextureLook, look_texture
+from common.sim.look_textures import PATTERNS, PHOTOS, TextureLook, look_texture, photos_available
 from common.sim.random_looks import POOLS
 from common.sim.randomise import PRESETS, degrade_stereo, get_preset, plan_sequence
 from common.sim.render import LABELS, SceneRenderer
@@ -85,7 +85,9 @@ def test_each_preset_uses_only_its_pool(preset, pool):
         kinds |= k
     allowed = set(POOLS[pool]["patterns"]) | set(POOLS[pool]["photos"])
     assert textures <= allowed and kinds <= set(POOLS[pool]["instruments"])
-    assert len(textures) >= 6 and kinds == set(POOLS[pool]["instruments"])
+    assert set(POOLS[pool]["patterns"]) <= textures and kinds == set(POOLS[pool]["instruments"])
+    if photos_available():
+        assert textures & set(POOLS[pool]["photos"])
 
 
 def test_random_looks_are_seeded_and_vary():
