@@ -236,7 +236,8 @@ def generate_needle_free(folder, n_frames: int, seed: int = 777, preset: str = "
     decoy a detector most easily takes for a needle.
 
     Presets of the random looks (``random``, ``unseen``) make hard negatives: every instrument
-    kind of their pool, jaws near the camera in most frames (``p_near`` 0.6), specular streaks in
+    kind of their pool, jaws near the camera in most frames (``p_near`` 0.6; anywhere in the
+    image, its centre too, where the needle would be), specular streaks in
     most (``p_streaks`` 0.8), threads without a needle, folds, cuts and stains on the pad; their
     frames also carry ``instruments`` (``psm1``..``psm4``: jaw frames and openings), so that a
     trainer can centre crops on the jaws."""
@@ -253,7 +254,7 @@ def generate_needle_free(folder, n_frames: int, seed: int = 777, preset: str = "
     meta = scene_meta(width, height, f"needle-free frames, preset {preset}, seed {seed}")
     pre = get_preset(preset)
     if pre.pool:
-        pre = replace(pre, p_near=0.6, p_streaks=0.8)
+        pre = replace(pre, p_near=0.6, p_streaks=0.8, near_over_needle=True)
     renderer = SceneRenderer()
     with DatasetWriter(str(folder), meta, "jpg", 95) as writer:
         for i in tqdm(range(n_frames), desc="needle-free frames", unit="frame", disable=not progress):

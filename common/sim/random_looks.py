@@ -174,11 +174,13 @@ def with_graspers(rng: np.random.Generator, a: Appearance, pool_name: str, slots
 # ---------------------------------------------------------------- more instruments, nearer the camera
 
 def extra_instruments(rng: np.random.Generator, inst: list, T_world_needle: np.ndarray, needle, rig,
-                      T_world_ecm: np.ndarray, p_near: float, p_more: float = 0.35) -> list:
+                      T_world_ecm: np.ndarray, p_near: float, p_more: float = 0.35,
+                      over_needle: bool = False) -> list:
     """Up to ``LOOK_INSTRUMENTS`` instruments: a third and a fourth beside the needle with
-    probability ``p_more`` each, either one near the camera (1.5-6 cm in front of it, coming in from
+    probability ``p_more`` each, either one near the camera (1.2-5 cm in front of it, coming in from
     the image's side) with probability ``p_near``. A near one keeps its tip's pixel off the
-    needle's image, so that it covers the needle only where its shaft passes."""
+    needle's image, so that it covers the needle only where its shaft passes, unless
+    ``over_needle`` (needle-free frames: its jaws may lie anywhere, the image's centre too)."""
     out = list(inst)
     cam = rig["left"]
     T_world_cam = T_world_ecm @ cam.T_ecm_cam
@@ -186,7 +188,7 @@ def extra_instruments(rng: np.random.Generator, inst: list, T_world_needle: np.n
     uv_needle = cam.project(transform_points(np.linalg.inv(T_world_cam), needle.sample_arc(12)))
     while len(out) < LOOK_INSTRUMENTS:
         if rng.random() < p_near:
-            out.append(_near_camera(rng, cam, T_world_cam, uv_needle))
+            out.append(_near_camera(rng, cam, T_world_cam, None if over_needle else uv_needle))
         elif rng.random() < p_more:
             side = 1.0 if rng.random() < 0.5 else -1.0
             ang = rng.uniform(0, 2 * np.pi)
@@ -201,17 +203,20 @@ def extra_instruments(rng: np.random.Generator, inst: list, T_world_needle: np.n
     return out
 
 
-def _near_camera(rng: np.random.Generator, cam, T_world_cam: np.ndarray, uv_needle: np.ndarray) -> Instrument:
-    """An instrument whose jaws are 1.5-6 cm in front of the camera, its shaft leaving the image sideways."""
+def _near_camera(rng: np.random.Generator, cam, T_world_cam: np.ndarray, uv_needle: np.ndarray | None) -> Instrument:
+    """An instrument whose jaws are 1.2-5 cm in front of the camera, its shaft leaving the image
+    sideways; its tip's pixel off ``uv_needle``'s box (when given)."""
     w, h = cam.width, cam.height
-    lo, hi = uv_needle.min(axis=0), uv_needle.max(axis=0)
     for _ in range(20):
         side = 1.0 if rng.random() < 0.5 else -1.0
-        u = w / 2 + side * rng.uniform(0.1, 0.45) * w
+        u = w / 2 + side * rng.uniform(0.0 if uv_needle is None else 0.1, 0.45) * w
         v = rng.uniform(0.1, 0.9) * h
+        if uv_needle is None:
+            break
+        lo, hi = uv_needle.min(axis=0), uv_needle.max(axis=0)
         if not (lo[0] - 0.1 * w < u < hi[0] + 0.1 * w and lo[1] - 0.1 * h < v < hi[1] + 0.1 * h):
             break
-    depth = rng.uniform(0.015, 0.06)
+    depth = rng.uniform(0.012, 0.05)
     p_cam = depth * np.linalg.solve(cam.K, [u, v, 1.0])
     d_cam = np.array([side, rng.uniform(-0.3, 0.3), -rng.uniform(0.2, 0.8)])   # out sideways, back towards the scope
     tip = transform_points(T_world_cam, p_cam[None])[0]

@@ -91,6 +91,7 @@ class Preset:
     pool: str = ""                # the random looks of this pool of common.sim.random_looks.POOLS (drawn last)
     p_near: float = 0.0           # random looks: probability of each extra instrument near the camera
     p_streaks: float = 0.0        # random looks: probability of specular streaks in a frame
+    near_over_needle: bool = False  # random looks: near jaws may lie where the needle is (needle-free frames)
 
 
 PRESETS = {
@@ -372,7 +373,8 @@ def plan_sequence(seed: int, sequence: int, steps: int, preset: Preset, rig: Ste
             continue
         inst = sample_instruments(rng, T, needle, held, preset)
         if preset.pool:
-            inst = extra_instruments(rng, inst, T, needle, rig, arm.T_world_ecm(q0), preset.p_near)
+            inst = extra_instruments(rng, inst, T, needle, rig, arm.T_world_ecm(q0), preset.p_near,
+                                     over_needle=preset.near_over_needle)
         if not thread:
             ap = replace(ap, thread_visible=False)
         spec = SceneSpec(rig=rig, needle=needle, T_world_needle=T, appearance=ap, instruments=inst,

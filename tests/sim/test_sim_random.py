@@ -165,7 +165,7 @@ def test_photographs_become_textures():
 
 
 def test_hard_negatives_have_no_needle_and_every_instrument_kind(tmp_path):
-    pre = replace(PRESETS["random"], p_near=0.6, p_streaks=0.8)
+    pre = replace(PRESETS["random"], p_near=0.6, p_streaks=0.8, near_over_needle=True)
     kinds, near = set(), 0
     small = StereoRig.default(320, 180)
     r = SceneRenderer(full_segmentation=True)
