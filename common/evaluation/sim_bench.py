@@ -13,6 +13,8 @@ import shutil
 import tempfile
 import time
 
+from common.sim.cli import PRESET_NAMES
+
 
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(prog="needletrack bench sim", description=__doc__)
@@ -21,7 +23,7 @@ def main(argv=None) -> int:
     ap.add_argument("--height", type=int, default=1080)
     ap.add_argument("--jobs", type=int, default=2, help="processes for the end-to-end run (default 2)")
     ap.add_argument("--steps", type=int, default=5, help="endoscope poses per needle pose (default 5)")
-    ap.add_argument("--randomise", default="test", choices=["none", "test", "train"])
+    ap.add_argument("--randomise", default="test", choices=PRESET_NAMES)
     ap.add_argument("--format", default="jpg", choices=["jpg", "png"])
     ap.add_argument("--msaa", type=int, default=4, help="anti-aliasing samples (default 4; 0 = off)")
     ap.add_argument("--skip-breakdown", action="store_true")

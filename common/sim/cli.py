@@ -7,7 +7,7 @@ import argparse
 
 from common.geometry.ecm_kinematics import MULTIVIEW_STEP_RAD
 
-PRESET_NAMES = ["none", "test", "train", "wide", "silicone", "liver"]   # common.sim.randomise.PRESETS (not imported: fast start)
+PRESET_NAMES = ["none", "test", "train", "wide", "silicone", "liver", "random", "unseen"]   # common.sim.randomise.PRESETS (not imported: fast start)
 
 STANDARD_TEST_SET = ("needletrack dataset generate --out data/test --sequences 30 --steps 5 "
                      "--seed 1000 --randomise test")
@@ -66,12 +66,16 @@ def add_parsers(sub) -> dict:
     n = sub.add_parser("generate-negatives", help="render needle-free frames of the built-in scene",
                        description="Frames with the needle moved out of sight (instruments, thread, tissue "
                                    "stay), no keypoint visible: negatives for training the detector and for "
-                                   "measuring its false detections.")
+                                   "measuring its false detections. With --randomise random (or unseen): hard "
+                                   "negatives, jaws of every instrument kind, some near the camera, threads "
+                                   "without a needle, specular streaks, folds, cuts and stains.")
     n.add_argument("--out", required=True, help="output folder")
     n.add_argument("--frames", type=int, required=True, help="number of stereo frames")
     n.add_argument("--seed", type=int, default=777)
     n.add_argument("--randomise", default="train", choices=PRESET_NAMES,
                    help="randomisation preset (default train)")
+    n.add_argument("--width", type=int, default=1920)
+    n.add_argument("--height", type=int, default=1080)
     n.add_argument("--pale-thread", type=float, default=None, metavar="SHARE",
                    help="share of frames with the undyed, needle-pale thread (default: the preset's 1 in 5)")
     n.add_argument("--quiet", action="store_true", help="no progress bar")
@@ -110,5 +114,6 @@ def _generate_alt(args) -> int:
 
 def _generate_negatives(args) -> int:
     from common.sim.generate import generate_needle_free
-    generate_needle_free(args.out, args.frames, args.seed, args.randomise, not args.quiet, args.pale_thread)
+    generate_needle_free(args.out, args.frames, args.seed, args.randomise, not args.quiet, args.pale_thread,
+                         args.width, args.height)
     return 0

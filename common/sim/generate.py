@@ -87,7 +87,7 @@ def render_sequence(renderer, cfg: GenerateConfig, sequence: int) -> list[tuple[
         gt = renderer.ground_truth(T_world_ecm, renders)
         # JPEG artefacts come from the file's own compression when writing JPEG
         images = degrade_stereo({c: r.bgr for c, r in renders.items()}, rng, preset,
-                                jpeg=cfg.image_format != "jpg")
+                                jpeg=cfg.image_format != "jpg", avoid=gt["keypoints"])
         quality = min(cfg.jpeg_quality, jpeg_quality(rng, preset))
         fields = {"sequence": sequence, "step": step, "ecm_joints": np.asarray(q, float),
                   "T_world_ecm": T_world_ecm, "T_world_needle": plan.spec.T_world_needle,
@@ -104,7 +104,8 @@ def _render_take(renderer, cfg: GenerateConfig, sequence: int, meta, preset, tex
     rng = np.random.default_rng(plan.image_seed)
     out = []
     for images, fields in render_take(renderer, plan, meta.arm,
-                                      lambda im: degrade_stereo(im, rng, preset, jpeg=cfg.image_format != "jpg"),
+                                      lambda im, kp: degrade_stereo(im, rng, preset, jpeg=cfg.image_format != "jpg",
+                                                                        avoid=kp),
                                       every=cfg.take_every):
         out.append((images, {"sequence": sequence, **fields}, min(cfg.jpeg_quality, jpeg_quality(rng, preset))))
     return out
@@ -205,52 +206,70 @@ def _consume(results, writer, bar) -> None:
             bar.update(1)
 
 
+def needle_free_scene(seed: int, frame: int, preset, meta, pale_thread: float | None = None):
+    """(scene, T_world_ecm) of needle-free frame ``frame``: sequence ``frame`` of a run seeded
+    ``seed`` under ``preset`` (a ``Preset``), its needle moved out of sight (the thread stays)."""
+    from dataclasses import replace
+
+    from common.sim.randomise import PALE_THREAD_RGB, THREAD_RGBS, plan_sequence
+    plan = plan_sequence(seed, frame, 1, preset, meta.rig, meta.needle, meta.arm, 2048)
+    T_hidden = plan.spec.T_world_needle.copy()
+    T_hidden[:3, 3] = [0.0, 0.0, -5.0]
+    spec = replace(plan.spec, T_world_needle=T_hidden)
+    if pale_thread is not None:
+        rng = np.random.default_rng([seed, frame, 1])
+        dyed = [c for c in THREAD_RGBS if c != PALE_THREAD_RGB]
+        rgb = PALE_THREAD_RGB if rng.random() < pale_thread else dyed[rng.integers(len(dyed))]
+        spec = replace(spec, appearance=replace(spec.appearance, thread_rgb=rgb))
+    return spec, meta.arm.T_world_ecm(plan.joints[0])
+
+
 def generate_needle_free(folder, n_frames: int, seed: int = 777, preset: str = "test",
-                         progress: bool = True, pale_thread: float | None = None) -> Path:
+                         progress: bool = True, pale_thread: float | None = None,
+                         width: int = 1920, height: int = 1080) -> Path:
     """Render ``n_frames`` stereo frames of the built-in scene with the needle moved out of sight
     (instruments, thread and tissue stay) as a dataset folder whose frames see no keypoint:
     negatives for training the detector and for measuring its false detections.
 
     ``pale_thread``: share of frames whose thread takes the palette's pale, needle-like colour
     (default: the preset's draw, 1 in 5) — a lone pale thread curled on the tissue is the
-    decoy a detector most easily takes for a needle."""
+    decoy a detector most easily takes for a needle.
+
+    Presets of the random looks (``random``, ``unseen``) make hard negatives: every instrument
+    kind of their pool, jaws near the camera in most frames (``p_near`` 0.6; anywhere in the
+    image, its centre too, where the needle would be), specular streaks in
+    most (``p_streaks`` 0.8), threads without a needle, folds, cuts and stains on the pad; their
+    frames also carry ``instruments`` (``psm1``..``psm4``: jaw frames and openings), so that a
+    trainer can centre crops on the jaws."""
     from dataclasses import replace
 
     from tqdm import tqdm
 
     from common.data.dataset import Frame
+    from common.data.instruments import InstrumentPose
     from common.data.writer import DatasetWriter
-    from common.sim.randomise import (
-        PALE_THREAD_RGB,
-        THREAD_RGBS,
-        degrade_stereo,
-        get_preset,
-        plan_sequence,
-    )
+    from common.sim.randomise import degrade_stereo, get_preset
     from common.sim.render import SceneRenderer
     folder = Path(folder)
-    meta = scene_meta(1920, 1080, f"needle-free frames, preset {preset}, seed {seed}")
+    meta = scene_meta(width, height, f"needle-free frames, preset {preset}, seed {seed}")
     pre = get_preset(preset)
+    if pre.pool:
+        pre = replace(pre, p_near=0.6, p_streaks=0.8, near_over_needle=True)
     renderer = SceneRenderer()
     with DatasetWriter(str(folder), meta, "jpg", 95) as writer:
         for i in tqdm(range(n_frames), desc="needle-free frames", unit="frame", disable=not progress):
-            plan = plan_sequence(seed, i, 1, pre, meta.rig, meta.needle, meta.arm, 2048)
-            T_hidden = plan.spec.T_world_needle.copy()
-            T_hidden[:3, 3] = [0.0, 0.0, -5.0]
-            spec = replace(plan.spec, T_world_needle=T_hidden)
-            if pale_thread is not None:
-                rng = np.random.default_rng([seed, i, 1])
-                dyed = [c for c in THREAD_RGBS if c != PALE_THREAD_RGB]
-                rgb = PALE_THREAD_RGB if rng.random() < pale_thread else dyed[rng.integers(len(dyed))]
-                spec = replace(spec, appearance=replace(spec.appearance, thread_rgb=rgb))
+            spec, T_world_ecm = needle_free_scene(seed, i, pre, meta, pale_thread)
             renderer.load(spec)
-            T_world_ecm = meta.arm.T_world_ecm(plan.joints[0])
             renders = renderer.render(T_world_ecm)
             rng = np.random.default_rng([seed, i])
             images = degrade_stereo({c: r.bgr for c, r in renders.items()}, rng, pre)
             paths = writer.write_images(i, images)
+            extra = {}
+            if pre.pool:
+                extra["instruments"] = {f"psm{k + 1}": InstrumentPose(ins.T_world_jaw, float(ins.jaw_open))
+                                        for k, ins in enumerate(spec.instruments)}
             writer.append(Frame(index=i, stamp_ns=int(i * 33_333_333), left=paths["left"], right=paths["right"],
                                 T_world_ecm=T_world_ecm,
                                 visible={c: np.zeros(5, bool) for c in ("left", "right")},
-                                bbox={c: None for c in ("left", "right")}))
+                                bbox={c: None for c in ("left", "right")}, **extra))
     return folder

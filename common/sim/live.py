@@ -170,7 +170,8 @@ class LiveSim:
             instruments = scene_instruments(self.plan.spec.instruments)
         renders = self.renderer.render(T_world_ecm)
         truth = self.renderer.ground_truth(T_world_ecm, renders)
-        images = degrade_stereo({c: r.bgr for c, r in renders.items()}, self._img_rng, self.preset)
+        images = degrade_stereo({c: r.bgr for c, r in renders.items()}, self._img_rng, self.preset,
+                                avoid=truth["keypoints"])
         self.frame_in_sequence += 1
         return SimFrame(images, q, T_world_ecm, T_world_needle, truth, self.sequence, step, instruments, at_rest)
 

@@ -18,6 +18,18 @@ its stated end identity generalise:
 - ``liver``: ``train`` on dark, glossy brown tissue under a warm light; the end identity's
   calibration family (fitted on, never trained on, never reported as held out).
 
+- ``random``: ``train``'s poses and occlusions in looks where none is special
+  (``common.sim.random_looks``): procedural and photographic textures recoloured over the whole
+  hue circle, 1-4 lights of any colour temperature, needles from bright steel to dark coated,
+  threads of any colour or none, instruments of five kinds and any finish, a third and fourth
+  instrument (some near the camera), blood-like stains and cuts on the pad, and the image
+  effects of ``common.sim.image_effects`` (haze, glare, streaks, defocus and motion blur,
+  vignetting, white balance) before a harsher sensor model. Its draws come after ``train``'s,
+  inside its own code paths, so the other presets draw what they always drew.
+- ``unseen`` (a family of ``FAMILIES``): ``random`` with the held-out pool of textures,
+  photographs and instrument kinds (``common.sim.random_looks.POOLS``) that ``random`` never
+  uses: for measuring honestly how the detector generalises.
+
 Image rotation (the paper's other augmentation) changes the camera model, so it is not baked
 into data that claims a pinhole ``K``; trainers apply ``rotate_with_keypoints`` on the fly.
 """
@@ -32,6 +44,8 @@ from common.geometry.camera import StereoRig
 from common.geometry.ecm_kinematics import MULTIVIEW_STEP_RAD, REVOLUTE_JOINTS, EcmArm
 from common.geometry.needle import NeedleModel
 from common.geometry.transforms import inv_T, make_T, rotvec_to_R, transform_points
+from common.sim.image_effects import look_effects
+from common.sim.random_looks import extra_instruments, sample_look
 from common.sim.scene import Appearance, Instrument, SceneSpec
 from common.sim.scene_meshes import PHANTOM_SIZE, phantom_height
 
@@ -74,6 +88,10 @@ class Preset:
     p_shadows: float = 0.0        # probability of cast shadows (they make a frame ~3x slower to render)
     looks: bool = False           # the ``wide`` looks (drawn after the others: other presets keep their draws)
     family: str = ""              # a look family of FAMILIES (drawn last)
+    pool: str = ""                # the random looks of this pool of common.sim.random_looks.POOLS (drawn last)
+    p_near: float = 0.0           # random looks: probability of each extra instrument near the camera
+    p_streaks: float = 0.0        # random looks: probability of specular streaks in a frame
+    near_over_needle: bool = False  # random looks: near jaws may lie where the needle is (needle-free frames)
 
 
 PRESETS = {
@@ -84,6 +102,10 @@ PRESETS = {
 PRESETS["wide"] = replace(PRESETS["train"], name="wide", looks=True)
 PRESETS["silicone"] = replace(PRESETS["test"], name="silicone", family="silicone")
 PRESETS["liver"] = replace(PRESETS["train"], name="liver", family="liver")
+PRESETS["random"] = replace(PRESETS["train"], name="random", noise_sigma=(0, 8.0), jpeg_quality=(35, 100),
+                            brightness=0.35, contrast=0.35, p_shadows=0.15, pool="train", p_near=0.15,
+                            p_streaks=0.3)
+PRESETS["unseen"] = replace(PRESETS["random"], name="unseen", family="unseen", pool="unseen")
 
 FAMILIES = {
     # tissue colours (RGB 0..1) and the light's colour of each family outside training
@@ -91,6 +113,8 @@ FAMILIES = {
                  "light": (1.0, 0.97, 0.92), "specular": (0.2, 0.5)},
     "liver": {"tissue": ((0.30, 0.14, 0.08), (0.40, 0.20, 0.10), (0.25, 0.15, 0.12)),
               "light": (1.0, 0.84, 0.62), "specular": (0.6, 0.9)},
+    # the random looks' held-out pool of textures, photographs and instrument kinds
+    "unseen": {"pool": "unseen"},
 }
 
 # tissue colours of the ``wide`` preset (RGB 0..1): pale pink, salmon, red, dark red, magenta,
@@ -137,6 +161,8 @@ def sample_appearance(rng: np.random.Generator, preset: Preset) -> Appearance:
         ambient=jit(0.12, 0.08, 0.02, 0.3),
         shadows=shadows,
     )
+    if preset.pool:
+        return sample_look(rng, a, preset.pool)
     a = sample_looks(rng, a) if preset.looks else a
     return sample_family(rng, a, preset.family) if preset.family else a
 
@@ -346,6 +372,9 @@ def plan_sequence(seed: int, sequence: int, steps: int, preset: Preset, rig: Ste
         if q0 is None:
             continue
         inst = sample_instruments(rng, T, needle, held, preset)
+        if preset.pool:
+            inst = extra_instruments(rng, inst, T, needle, rig, arm.T_world_ecm(q0), preset.p_near,
+                                     over_needle=preset.near_over_needle)
         if not thread:
             ap = replace(ap, thread_visible=False)
         spec = SceneSpec(rig=rig, needle=needle, T_world_needle=T, appearance=ap, instruments=inst,
@@ -415,8 +444,13 @@ def jpeg_quality(rng: np.random.Generator, preset: Preset) -> int:
     return 100 if lo >= 100 else int(rng.integers(lo, hi + 1))
 
 
-def degrade_stereo(images: dict, rng: np.random.Generator, preset: Preset, jpeg: bool = True) -> dict:
-    """Degrade both images of a frame alike (one gain/contrast), with independent noise."""
+def degrade_stereo(images: dict, rng: np.random.Generator, preset: Preset, jpeg: bool = True,
+                   avoid: dict | None = None) -> dict:
+    """Degrade both images of a frame alike (one gain/contrast), with independent noise; the
+    random looks' presets first apply their image effects, whose glare keeps off the pixels of
+    ``avoid`` (camera -> (N, 2), e.g. the keypoints)."""
+    if preset.pool:
+        images = look_effects(images, rng, avoid, preset.p_streaks)
     gain = 1.0 + rng.uniform(-preset.brightness, preset.brightness)
     contrast = 1.0 + rng.uniform(-preset.contrast, preset.contrast)
     return {c: degrade(img, rng, preset, gain, contrast, jpeg) for c, img in images.items()}

@@ -26,6 +26,16 @@ from common.sim.scene_meshes import (
     sweep_tube,
     thread_path,
 )
+from common.sim.scene_looks import (
+    LOOK_INSTRUMENTS,
+    TABLE_SIZE,
+    Look,
+    LookWriter,
+    instruments_mjcf,
+    lights_mjcf,
+    look_textures,
+    materials_mjcf,
+)
 from common.sim.scene_textures import TEXTURE_VARIANTS, cached_texture
 
 
@@ -57,6 +67,7 @@ class Appearance:
     ambient: float = 0.12
     shadows: bool = False  # cast shadows: about 3x the rendering time on the CPU
     texture_seed: int = 0
+    look: Look | None = None  # a ``random`` look (common.sim.scene_looks): textures, lights, instrument kinds
 
 
 JAW_PIVOT_M = 0.0045
@@ -164,7 +175,7 @@ def structure_key(spec: SceneSpec) -> tuple:
     rig = spec.rig
     return (rig.left.width, rig.left.height, float(rig.left.K[1, 1]),
             tuple(rig.left.T_ecm_cam[:3, 3]), tuple(rig.right.T_ecm_cam[:3, 3]),
-            len(spec.markers), spec.texture_size, spec.needle, int(spec.msaa))
+            len(spec.markers), spec.texture_size, spec.needle, int(spec.msaa), spec.appearance.look is not None)
 
 
 def build_mjcf(spec: SceneSpec) -> str:
@@ -181,8 +192,9 @@ def build_mjcf(spec: SceneSpec) -> str:
     pv, puv, pf = phantom_mesh()
     sx, sy = PHANTOM_SIZE
     ts = spec.texture_size
+    look = spec.appearance.look is not None
     inst = []
-    for i in range(MAX_INSTRUMENTS):
+    for i in range(0 if look else MAX_INSTRUMENTS):
         inst.append(f"""
     <body name="instrument{i}" mocap="true" pos="{_fmt(_HIDDEN)}">
       <geom name="instrument{i}_shaft" type="cylinder" fromto="0 0 0.011 0 0 0.25" size="0.0042" material="shaft"/>
@@ -194,6 +206,8 @@ def build_mjcf(spec: SceneSpec) -> str:
     markers = [f"""
     <geom name="marker{i}" type="sphere" pos="0 0 -5" size="0.001" rgba="0.1 0.9 0.2 1"/>"""
                for i in range(len(spec.markers))]
+    if look:
+        inst = [instruments_mjcf(_fmt(_HIDDEN))]
     cams = "\n".join(f'      <camera name="{c.name}" pos="{_fmt(c.T_ecm_cam[:3, 3])}" fovy="{fovy_deg:.12g}"/>'
                      for c in rig.cameras)
     return f"""<mujoco model="needletrack_suturing">
@@ -207,14 +221,14 @@ def build_mjcf(spec: SceneSpec) -> str:
   </visual>
   <asset>
     <texture name="tissue" type="2d" builtin="flat" rgb1="1 1 1" width="{ts}" height="{ts}"/>
-    <texture name="table" type="2d" builtin="flat" rgb1="1 1 1" width="256" height="256"/>
+    <texture name="table" type="2d" builtin="flat" rgb1="1 1 1" width="{TABLE_SIZE if look else 256}" height="{TABLE_SIZE if look else 256}"/>
     <material name="tissue" texture="tissue"/>
     <material name="tissue_side"/>
-    <material name="table" texture="table" texrepeat="4 4" specular="0.05"/>
+    <material name="table" texture="table" texrepeat="{'3 3' if look else '4 4'}" specular="0.05"/>
     <material name="needle"/>
     <material name="thread"/>
     <material name="shaft" rgba="0.08 0.08 0.09 1" specular="0.5" shininess="0.6"/>
-    <material name="jaw" rgba="0.62 0.63 0.66 1" specular="0.8" shininess="0.8"/>
+    <material name="jaw" rgba="0.62 0.63 0.66 1" specular="0.8" shininess="0.8"/>{materials_mjcf() if look else ''}
     {_mesh_xml("needle", nv, nn, nf)}
     {_mesh_xml("thread", tv, tn, tf)}
     {_mesh_xml("phantom", pv, np.tile([0.0, 0.0, 1.0], (len(pv), 1)), pf, puv)}
@@ -230,7 +244,7 @@ def build_mjcf(spec: SceneSpec) -> str:
     <body name="ecm" mocap="true" pos="0 0 0.3">
 {cams}
       <light name="scope_light" pos="0 0.004 0" dir="0 0 -1" castshadow="true" cutoff="70" exponent="2"/>
-      <light name="scope_fill" pos="0 -0.004 0" dir="0 0 -1" specular="0 0 0" castshadow="false" cutoff="80" exponent="1"/>
+      <light name="scope_fill" pos="0 -0.004 0" dir="0 0 -1" specular="0 0 0" castshadow="false" cutoff="80" exponent="1"/>{lights_mjcf() if look else ''}
     </body>{''.join(inst)}{''.join(markers)}
   </worldbody>
 </mujoco>
@@ -254,10 +268,13 @@ class SceneModel:
         self.tex = {n: ids(T, n) for n in ("tissue", "table")}
         self.mat = {n: ids(MAT, n) for n in ("tissue", "tissue_side", "table", "needle", "thread")}
         self.light = {n: ids(L, n) for n in ("scope_light", "scope_fill")}
+        looks = spec.appearance.look is not None
+        self.n_instruments = LOOK_INSTRUMENTS if looks else MAX_INSTRUMENTS
+        self.looks = LookWriter(mujoco, m) if looks else None
         self.mocap = {n: int(m.body_mocapid[ids(B, n)]) for n in
-                      ["needle", "ecm"] + [f"instrument{i}" for i in range(MAX_INSTRUMENTS)]}
+                      ["needle", "ecm"] + [f"instrument{i}" for i in range(self.n_instruments)]}
         self.jaws = [(ids(B, f"instrument{i}_jawbody0"), ids(B, f"instrument{i}_jawbody1"))
-                     for i in range(MAX_INSTRUMENTS)]
+                     for i in range(self.n_instruments)]
         self.markers = [ids(G, f"marker{i}") for i in range(len(spec.markers))]
         # needle and thread vertices are written in their body frames: undo the compiler's
         # re-centring of those meshes
@@ -292,6 +309,16 @@ class SceneModel:
         self._tex_state[name] = state
         return True
 
+    def _write_look_textures(self, look: Look, size: int) -> list:
+        """The pad's and background's textures of a look (made only when the look's change)."""
+        if self._tex_state.get("tissue") == look.tissue and self._tex_state.get("table") == look.table:
+            return []
+        tissue, table = look_textures(look, size)
+        self._write_texture("tissue", tissue, look.tissue)
+        self._write_texture("table", table, look.table)
+        self._side_rgb = tissue[::16, ::16].reshape(-1, 3).mean(axis=0) / 255.0 * 0.7
+        return [self.tex["tissue"], self.tex["table"]]
+
     def apply(self, spec: SceneSpec) -> tuple[list, list]:
         """Write the scene's varying parts; returns (mesh ids, texture ids) to re-upload."""
         if structure_key(spec) != self.key:
@@ -310,12 +337,15 @@ class SceneModel:
             tv, tn, _ = sweep_tube(path, np.full(len(path), ap.thread_diameter_m / 2), 8)
             self._write_mesh("thread", tv, tn, tstate)
             meshes.append(self.mesh["thread"])
-        if self._write_texture("tissue", cached_texture("tissue", ap.texture_seed, spec.texture_size),
-                               ("tissue", ap.texture_seed % TEXTURE_VARIANTS)):
-            textures.append(self.tex["tissue"])
-        if self._write_texture("table", cached_texture("table", ap.texture_seed + 7, 256),
-                               ("table", (ap.texture_seed + 7) % TEXTURE_VARIANTS)):
-            textures.append(self.tex["table"])
+        if ap.look is not None:
+            textures += self._write_look_textures(ap.look, spec.texture_size)
+        else:
+            if self._write_texture("tissue", cached_texture("tissue", ap.texture_seed, spec.texture_size),
+                                   ("tissue", ap.texture_seed % TEXTURE_VARIANTS)):
+                textures.append(self.tex["tissue"])
+            if self._write_texture("table", cached_texture("table", ap.texture_seed + 7, 256),
+                                   ("table", (ap.texture_seed + 7) % TEXTURE_VARIANTS)):
+                textures.append(self.tex["table"])
         mat = self.mat
         m.mat_rgba[mat["tissue"]] = [*ap.tissue_rgb, 1]
         m.mat_specular[mat["tissue"]] = ap.tissue_specular
@@ -339,6 +369,10 @@ class SceneModel:
         m.light_pos[fill], m.light_pos0[fill] = -lo, -lo
         m.light_diffuse[fill] = rgb * 0.35
         m.vis.headlight.ambient[:] = ap.ambient
+        if ap.look is not None:
+            m.mat_rgba[mat["tissue_side"]] = [*self._side_rgb, 1]
+            self.looks.lights(ap.look.lights, ap.shadows)
+            self.looks.instruments(ap.look.instruments)
         for i, (j0, j1) in enumerate(self.jaws):
             ja = spec.instruments[i].jaw_open / 2 if i < len(spec.instruments) else 0.3
             m.body_quat[j0] = [np.cos(ja / 2), np.sin(ja / 2), 0, 0]
@@ -352,7 +386,7 @@ class SceneModel:
     def set_poses(self, data, spec: SceneSpec) -> None:
         """Mocap poses of the needle and the instruments (the ECM is set per frame)."""
         self.set_mocap(data, "needle", spec.T_world_needle)
-        for i in range(MAX_INSTRUMENTS):
+        for i in range(self.n_instruments):
             name = f"instrument{i}"
             if i < len(spec.instruments):
                 ins = spec.instruments[i]

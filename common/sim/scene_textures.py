@@ -9,7 +9,7 @@ import numpy as np
 from common.sim.scene_meshes import PHANTOM_SIZE
 
 
-def _noise(rng, shape, scale):
+def value_noise(rng, shape, scale):
     """Smooth value noise in [0, 1] of the given shape, feature size ~ ``scale`` pixels."""
     h, w = shape
     small = rng.random((max(2, int(h / scale)) + 1, max(2, int(w / scale)) + 1)).astype(np.float32)
@@ -23,8 +23,8 @@ def tissue_texture(seed: int, size: int = 1024, vessels: int = 6) -> np.ndarray:
     Row 0 lies along the pad's +y edge, column 0 along its -x edge.
     """
     rng = np.random.default_rng(seed)
-    n = (0.45 * _noise(rng, (size, size), 160 * size / 1024) + 0.3 * _noise(rng, (size, size), 40 * size / 1024)
-         + 0.25 * _noise(rng, (size, size), 8 * size / 1024))
+    n = (0.45 * value_noise(rng, (size, size), 160 * size / 1024) + 0.3 * value_noise(rng, (size, size), 40 * size / 1024)
+         + 0.25 * value_noise(rng, (size, size), 8 * size / 1024))
     fib = cv2.GaussianBlur(rng.random((size, size)).astype(np.float32), (0, 0), sigmaX=9 * size / 1024,
                            sigmaY=1.2 * size / 1024)
     fib = (fib - fib.mean()) / (fib.std() + 1e-6)
@@ -58,7 +58,7 @@ def tissue_texture(seed: int, size: int = 1024, vessels: int = 6) -> np.ndarray:
 def table_texture(seed: int, size: int = 256) -> np.ndarray:
     """Drape-like background texture (RGB uint8, near white: tinted by the material)."""
     rng = np.random.default_rng(seed)
-    n = 0.7 + 0.3 * _noise(rng, (size, size), 30) + 0.1 * (rng.random((size, size)) - 0.5)
+    n = 0.7 + 0.3 * value_noise(rng, (size, size), 30) + 0.1 * (rng.random((size, size)) - 0.5)
     return (np.clip(np.repeat(n[..., None], 3, axis=2), 0, 1) * 255).astype(np.uint8)
 
 

@@ -18,6 +18,7 @@ from common.geometry.ecm_kinematics import EcmArm
 from common.geometry.needle import NeedleModel
 from common.geometry.transforms import transform_points
 from common.sim.motion import FPS, INSTRUMENTS, MOTIONS, ScriptedTake, script_take
+from common.sim.random_looks import with_graspers
 from common.sim.randomise import Preset, aim_joints, sample_appearance
 from common.sim.scene import Instrument, SceneSpec
 
@@ -50,6 +51,8 @@ def plan_take(seed: int, take: int, motion: str, preset: Preset, rig: StereoRig,
     """Deterministic plan of take ``take``; ``thread=False`` the same take with no thread drawn."""
     rng = np.random.default_rng([seed, take, 34])
     ap = sample_appearance(rng, preset)
+    if preset.pool:                      # the random looks: both instruments can hold the needle
+        ap = with_graspers(rng, ap, preset.pool, len(INSTRUMENTS))
     if not thread:
         ap = replace(ap, thread_visible=False)
     script = script_take(take_motion(motion, take), rng, needle, ap.wire_diameter_m / 2)
@@ -94,8 +97,8 @@ def take_spec(plan: TakePlan, frame) -> SceneSpec:
 
 def render_take(renderer, plan: TakePlan, arm: EcmArm, degrade=None, every: int = 1):
     """Render a take: yields (BGR images by camera, frame fields) per frame, or per ``every``-th
-    frame (``step`` stays the frame's index in the 30 Hz take); ``degrade`` (images -> images)
-    applies the sensor model."""
+    frame (``step`` stays the frame's index in the 30 Hz take); ``degrade`` (images, keypoints by
+    camera -> images) applies the sensor model."""
     for step, (fr, q) in enumerate(zip(plan.script.frames, plan.joints)):
         if step % every:
             continue
@@ -105,7 +108,7 @@ def render_take(renderer, plan: TakePlan, arm: EcmArm, degrade=None, every: int 
         gt = renderer.ground_truth(T_world_ecm, renders)
         images = {c: r.bgr for c, r in renders.items()}
         if degrade is not None:
-            images = degrade(images)
+            images = degrade(images, gt["keypoints"])
         yield images, {"step": step, "ecm_joints": np.asarray(q, float), "T_world_ecm": T_world_ecm,
                        "T_world_needle": fr.T_world_needle, "keypoints": gt["keypoints"], "visible": gt["visible"],
                        "bbox": gt["bbox"], "arc_visible": gt["arc_visible"], "arc_seen": gt["arc_seen"], "needle_at_rest": False,

@@ -228,7 +228,9 @@ def test_aim_joints_points_the_scope_at_the_target():
 
 
 FIRST_RENDERER = ("common.sim.scene", "common.sim.scene_meshes", "common.sim.scene_textures", "common.sim.render",
-                  "common.sim.randomise", "common.sim.generate", "common.sim.live")
+                  "common.sim.randomise", "common.sim.generate", "common.sim.live", "common.sim.scene_looks",
+                  "common.sim.look_textures", "common.sim.instrument_kinds", "common.sim.random_looks",
+                  "common.sim.image_effects")
 
 
 def test_renderer_shares_no_code_with_the_first():
