@@ -81,8 +81,9 @@ def check_frame(meta: DatasetMeta, fr: Frame, tol_px: float = 0.1, tol_fk_m: flo
 
 def check_take(first: Frame, prev: Optional[Frame], fr: Frame) -> list:
     """A frame against its sequence: all of it at rest or all of it moving; at rest, the
-    first frame's ``T_world_needle``; moving, the needle rigid in the jaws of an instrument that
-    holds it in this frame and the one before (``holds_needle``)."""
+    first frame's ``T_world_needle``; moving, the needle rigid in the true jaws of an instrument
+    that holds it in this frame and the one before (``holds_needle``; ``T_world_jaw_truth`` where
+    given: a reported jaw pose carries the arm's error, and a real recording's moves)."""
     where = f"{FRAMES_FILE}:{fr.line}"
     if fr.at_rest != first.at_rest:
         return [f"{where}: needle_at_rest: {fr.needle_at_rest} in sequence {fr.sequence}, whose first frame "
@@ -100,7 +101,8 @@ def check_take(first: Frame, prev: Optional[Frame], fr: Frame) -> list:
         before = (prev.instruments or {}).get(name)
         if not (inst.holds_needle and before is not None and before.holds_needle):
             continue
-        dt, da = pose_error(T_jaw_needle(before, prev.T_world_needle), T_jaw_needle(inst, fr.T_world_needle))
+        dt, da = pose_error(T_jaw_needle(before, prev.T_world_needle, truth=True),
+                            T_jaw_needle(inst, fr.T_world_needle, truth=True))
         if dt > GRASP_TOL_M or da > GRASP_TOL_RAD:
             errs.append(f"{where}: instruments.{name}: holds_needle in this frame and the one before (line "
                         f"{prev.line}), but the needle moved {dt * 1000:.4f} mm / {np.rad2deg(da):.4f} deg in its jaws")

@@ -2,9 +2,11 @@
 
 ``InstrumentPose``: one instrument's jaw frame ``T_world_jaw`` (4x4, m; origin at the jaws'
 pivot, z along the closed jaws towards their tips, y the axis they open about), its opening
-``jaw_rad`` (0 closed) and, as optional ground truth, ``holds_needle``. ``parse_instruments``
-validates the frames.jsonl field (a ``_Bad`` names the instrument and its field);
-``T_jaw_needle`` is the grasp, constant while the jaws hold the needle.
+``jaw_rad`` (0 closed), both as the robot reports them, and, as optional ground truth,
+``holds_needle`` and the true ``T_world_jaw_truth`` and ``jaw_rad_truth`` (absent: the reported
+ones are exact). ``parse_instruments`` validates the frames.jsonl field (a ``_Bad`` names the
+instrument and its field); ``T_jaw_needle`` is the grasp, constant while the jaws hold the needle
+(in the true jaw frame; a reported one moves with the arm's kinematic error).
 """
 from __future__ import annotations
 
@@ -32,11 +34,22 @@ class InstrumentPose:
     T_world_jaw: np.ndarray
     jaw_rad: float
     holds_needle: Optional[bool] = None
+    T_world_jaw_truth: Optional[np.ndarray] = None
+    jaw_rad_truth: Optional[float] = None
+
+    @property
+    def T_world_jaw_true(self) -> np.ndarray:
+        """The true jaw pose: ``T_world_jaw_truth`` where given, else the reported one (then exact)."""
+        return self.T_world_jaw if self.T_world_jaw_truth is None else self.T_world_jaw_truth
 
     def to_json(self) -> dict:
         d = {"T_world_jaw": np.asarray(self.T_world_jaw, dtype=float).tolist(), "jaw_rad": float(self.jaw_rad)}
         if self.holds_needle is not None:
             d["holds_needle"] = bool(self.holds_needle)
+        if self.T_world_jaw_truth is not None:
+            d["T_world_jaw_truth"] = np.asarray(self.T_world_jaw_truth, dtype=float).tolist()
+        if self.jaw_rad_truth is not None:
+            d["jaw_rad_truth"] = float(self.jaw_rad_truth)
         return d
 
 
@@ -50,16 +63,28 @@ def parse_instrument(v) -> InstrumentPose:
         T = _rigid(v["T_world_jaw"])
     except _Bad as exc:
         raise _Bad(str(exc), "T_world_jaw") from None
-    try:
-        jaw = _num(v["jaw_rad"])
-    except _Bad as exc:
-        raise _Bad(str(exc), "jaw_rad") from None
-    if not 0.0 <= jaw <= MAX_JAW_RAD:
-        raise _Bad(f"must be an opening angle in [0, pi] rad, got {jaw:g}", "jaw_rad")
+    jaw = _opening(v["jaw_rad"], "jaw_rad")
     holds = v.get("holds_needle")
     if holds is not None and not isinstance(holds, bool):
         raise _Bad(f"expected true or false, got {holds!r}"[:120], "holds_needle")
-    return InstrumentPose(T, jaw, holds)
+    T_truth = None
+    if v.get("T_world_jaw_truth") is not None:
+        try:
+            T_truth = _rigid(v["T_world_jaw_truth"])
+        except _Bad as exc:
+            raise _Bad(str(exc), "T_world_jaw_truth") from None
+    jaw_truth = None if v.get("jaw_rad_truth") is None else _opening(v["jaw_rad_truth"], "jaw_rad_truth")
+    return InstrumentPose(T, jaw, holds, T_truth, jaw_truth)
+
+
+def _opening(value, field: str) -> float:
+    try:
+        jaw = _num(value)
+    except _Bad as exc:
+        raise _Bad(str(exc), field) from None
+    if not 0.0 <= jaw <= MAX_JAW_RAD:
+        raise _Bad(f"must be an opening angle in [0, pi] rad, got {jaw:g}", field)
+    return jaw
 
 
 def parse_instruments(v) -> dict:
@@ -94,7 +119,9 @@ def holder(instruments: Optional[dict]) -> Optional[str]:
     return None
 
 
-def T_jaw_needle(inst: InstrumentPose, T_world_needle: np.ndarray) -> np.ndarray:
-    """The needle's pose in the jaw frame: constant while the jaws hold it."""
-    return inv_T(np.asarray(inst.T_world_jaw, float)) @ np.asarray(T_world_needle, float)
+def T_jaw_needle(inst: InstrumentPose, T_world_needle: np.ndarray, truth: bool = False) -> np.ndarray:
+    """The needle's pose in the reported jaw frame (``truth``: in the true one, constant while the
+    jaws hold it; the reported one carries the arm's error)."""
+    T_world_jaw = inst.T_world_jaw_true if truth else inst.T_world_jaw
+    return inv_T(np.asarray(T_world_jaw, float)) @ np.asarray(T_world_needle, float)
 

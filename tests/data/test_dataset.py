@@ -341,8 +341,9 @@ def test_the_docs_page_is_the_spec_and_lists_what_the_reader_parses():
         if spec.is_file():
             assert spec.read_text() == text, f"docs/dataset.md differs from {spec}"
     fields = _doc_fields(text, "## frames.jsonl")
-    assert {"instruments", "needle_at_rest", "T_world_jaw", "jaw_rad", "holds_needle"} <= fields
-    assert fields - {"T_world_jaw", "jaw_rad", "holds_needle"} == _FRAME_FIELDS
+    inst_fields = {"T_world_jaw", "jaw_rad", "holds_needle", "T_world_jaw_truth", "jaw_rad_truth"}
+    assert {"instruments", "needle_at_rest"} | inst_fields <= fields
+    assert fields - inst_fields == _FRAME_FIELDS
     assert not EXTENSION_FIELDS & fields                                 # ours, documented in datasets.md
     ours = (root / "docs" / "datasets.md").read_text()
     assert all(f"`{f}`" in ours for f in EXTENSION_FIELDS)
@@ -366,3 +367,35 @@ def test_a_generation_of_takes_of_their_own_lengths_resumes_after_the_last_whole
     (tmp_path / "frames.jsonl").write_text("\n".join(lines) + "\n" + '{"index": 5, "sta')   # torn in take 1
     assert resume_generation(str(tmp_path), "gen.json", cfg, 3, 1, "gen", lengths=[3, 5, 2]) == (True, 1)
     assert len((tmp_path / "frames.jsonl").read_text().splitlines()) == 3
+
+
+def test_reported_jaws_with_an_arms_error_pass_when_the_truth_is_rigid(tmp_path):
+    """A take whose reported jaw poses carry an arm's error (2 mm / 2 deg, changing per frame) beside
+    the true ones (``T_world_jaw_truth``) loads and checks: the needle is rigid in the true jaws.
+    A needle that slips in the true jaws is still found."""
+    from common.data.dataset import parse_frame
+    meta = _meta()
+    frames = _moving(meta)
+    rng = np.random.default_rng(3)
+    for fr in frames:
+        for inst in fr.instruments.values():
+            inst.T_world_jaw_truth = np.array(inst.T_world_jaw, float)
+            inst.jaw_rad_truth = inst.jaw_rad
+            inst.T_world_jaw = inst.T_world_jaw_truth @ make_T(rotvec_to_R(rng.normal(0, 0.02, 3)),
+                                                               rng.normal(0, 0.002, 3))
+    _write_frames(tmp_path / "err", meta, frames)
+    ds = Dataset(tmp_path / "err")
+    assert check_dataset(ds).ok, check_dataset(ds).errors
+    inst = ds[2].instruments["psm1"]
+    assert np.allclose(inst.T_world_jaw_true, frames[2].instruments["psm1"].T_world_jaw_truth)
+    assert not np.allclose(inst.T_world_jaw, inst.T_world_jaw_true)
+    slip = _moving(meta, slip=1e-4)
+    for fr in slip:
+        for inst in fr.instruments.values():
+            inst.T_world_jaw_truth = np.array(inst.T_world_jaw, float)
+    _write_frames(tmp_path / "slip", meta, slip)
+    errs = check_dataset(Dataset(tmp_path / "slip")).errors
+    assert len(errs) == 1 and "0.1000 mm" in errs[0]
+    with pytest.raises(DatasetError, match=r"instruments.psm1.jaw_rad_truth: must be an opening angle"):
+        parse_frame({**GOOD, "instruments": {"psm1": {"T_world_jaw": np.eye(4).tolist(), "jaw_rad": 0.1,
+                                                        "jaw_rad_truth": -1}}}, 2)
