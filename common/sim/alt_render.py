@@ -23,8 +23,8 @@ visible when the needle's surface there is seen (``common.sim.visibility``, the 
 renderer's rule): inside the image, in front of the camera, not inside the tissue deeper than the
 needle's radius there, and its pixel shows the needle or nothing nearer than the needle's surface
 there (the z-buffer against the keypoint's depth minus that radius, 0 at the sharp tip, and a
-pixel's footprint); ``bbox`` is the box of the needle's pixels (pixel centres covered by the
-needle), edges included.
+pixel's footprint), on a stretch of the arc that shows in the image; ``bbox`` is the box of the
+needle's pixels (pixel centres covered by the needle), edges included.
 """
 from __future__ import annotations
 
@@ -41,7 +41,7 @@ from common.geometry.transforms import inv_T, transform_points
 from common.sim.alt_meshes import LABELS, NeedleShape
 from common.sim.alt_raster import NEAR_M, rasterise
 from common.sim.alt_tissue import Tissue
-from common.sim.visibility import seen_in_render
+from common.sim.visibility import LENGTH_SAMPLES, arc_angles, visible_along_arc
 
 SUPERSAMPLE = 3            # samples per pixel side in the needle's region
 
@@ -293,23 +293,30 @@ class AltRenderer:
         """keypoints / visible / bbox per camera (the spec's fields) from the exact projection
         of the needle model's A..E and the renders' z-buffers and labels."""
         needle = scene.needle
-        a0 = needle.arc_span_rad[0]
-        radii = scene.needle_shape.radius_at(needle, needle.radius_m * np.abs(needle.keypoint_angles_rad - a0))
-        p_world = transform_points(scene.T_world_needle, needle.keypoints())
+        a0, a1 = needle.arc_span_rad
+        T_ecm_needle = inv_T(T_world_ecm) @ scene.T_world_needle
+        coarse = []
+        for c in CAMERAS:
+            p = transform_points(self.rig[c].T_cam_ecm @ T_ecm_needle, needle.sample_arc(LENGTH_SAMPLES))
+            coarse.append(np.where(p[:, 2:] > 0, self.rig[c].project(p), np.nan))
+        angles, at = arc_angles((a0, a1), coarse, needle.keypoint_angles_rad)
+        radii = scene.needle_shape.radius_at(needle, needle.radius_m * np.abs(angles - a0))
+        p_needle = needle.arc_points(angles)
+        p_world = transform_points(scene.T_world_needle, p_needle)
         buried = p_world[:, 2] < scene.tissue.height(p_world[:, 0], p_world[:, 1]) - radii
-        p_ecm = transform_points(inv_T(T_world_ecm), p_world)
         kps, vis, boxes = {}, {}, {}
         for c in CAMERAS:
             cam = self.rig[c]
-            p = transform_points(cam.T_cam_ecm, p_ecm)
+            p = transform_points(cam.T_cam_ecm @ T_ecm_needle, p_needle)
             uv = cam.project(p)
             inside = cam.in_image(uv) & (p[:, 2] > 0)
             r = renders[c]
-            v = seen_in_render(uv, p[:, 2], radii, inside, buried, r.label, LABELS["needle"], r.depth, cam.K[0, 0])
+            seen = visible_along_arc(uv, p[:, 2], radii, inside, buried, r.label, LABELS["needle"], r.depth,
+                                     cam.K[0, 0])
             ys, xs = np.nonzero(r.label == LABELS["needle"])
             boxes[c] = None if len(xs) == 0 else [float(xs.min()) - 0.5, float(ys.min()) - 0.5,
                                                   float(xs.max()) + 0.5, float(ys.max()) + 0.5]
-            kps[c], vis[c] = uv, v
+            kps[c], vis[c] = uv[at], seen[at]
         return {"keypoints": kps, "visible": vis, "bbox": boxes}
 
 

@@ -9,7 +9,8 @@ also reads the depth buffer. Ground truth follows ``docs/dataset.md``:
   the image, not inside the tissue deeper than the wire's radius there (``under_phantom``), and
   the pixel holding the projection shows the needle itself or nothing nearer than the needle's
   surface there (from the segmentation and depth render; the sharp tip is thinner than a pixel,
-  so its pixel may show what lies behind it, never what lies in front);
+  so its pixel may show what lies behind it, never what lies in front), on a stretch of the arc
+  that shows in the image (a tip out of the tissue or past a jaw by less than a pixel is not seen);
 - ``bbox``: [x0, y0, x1, y1] of the needle's visible pixels, pixel edges included
   (a single pixel (u, v) gives [u-0.5, v-0.5, u+0.5, v+0.5]); None when none are seen.
 """
@@ -31,7 +32,7 @@ from common.geometry.camera import StereoRig  # noqa: E402
 from common.geometry.transforms import inv_T, transform_points  # noqa: E402
 from common.sim.scene import Appearance, SceneModel, SceneSpec, structure_key  # noqa: E402
 from common.sim.scene_meshes import needle_radii, under_phantom  # noqa: E402
-from common.sim.visibility import seen_in_render  # noqa: E402
+from common.sim.visibility import arc_angles, visible_along_arc  # noqa: E402
 
 LABELS = {"other": 0, "needle": 1, "thread": 2, "instrument": 3}
 
@@ -258,30 +259,37 @@ def frame_ground_truth(rig: StereoRig, needle, T_world_needle, T_world_ecm, rend
                        appearance: Appearance) -> dict:
     """keypoints / visible / bbox per camera from the exact projection and the renders,
     ``arc_seen``: whether each of ``ARC_VISIBLE_SAMPLES`` points along the arc (A..E, equally
-    spaced) is seen, and ``arc_visible``: their seen share. The needle's shape (its radius along
-    the arc) is the one ``appearance`` draws."""
+    spaced) is seen, and ``arc_visible``: their seen share. Seen: ``common.sim.visibility``, for
+    the needle's shape (its radius along the arc) that ``appearance`` draws."""
     a0, a1 = needle.arc_span_rad
-    angles = np.concatenate([needle.keypoint_angles_rad, np.linspace(a0, a1, ARC_VISIBLE_SAMPLES)])
+    T_ecm_needle = inv_T(T_world_ecm) @ T_world_needle
+    coarse = []
+    for c in CAMERAS:
+        p = transform_points(rig[c].T_cam_ecm @ T_ecm_needle, needle.sample_arc(ARC_VISIBLE_SAMPLES))
+        coarse.append(np.where(p[:, 2:] > 0, rig[c].project(p), np.nan))
+    wanted = np.concatenate([needle.keypoint_angles_rad, np.linspace(a0, a1, ARC_VISIBLE_SAMPLES)])
+    angles, at = arc_angles((a0, a1), coarse, wanted)
     radii = needle_radii(needle, needle.radius_m * np.abs(angles - a0), appearance.wire_diameter_m,
                          appearance.tip_length_m, appearance.tip_exponent, appearance.swage_scale)
-    p_world = transform_points(T_world_needle, needle.arc_points(angles))
-    buried = under_phantom(p_world, radii)
-    p_ecm = transform_points(inv_T(T_world_ecm), p_world)
+    p_needle = needle.arc_points(angles)
+    buried = under_phantom(transform_points(T_world_needle, p_needle), radii)
     kps, vis, boxes, arc_vis, arc_seen = {}, {}, {}, {}, {}
     for c in CAMERAS:
         cam = rig[c]
-        p = transform_points(cam.T_cam_ecm, p_ecm)
+        p = transform_points(cam.T_cam_ecm @ T_ecm_needle, p_needle)
         uv = cam.project(p)
-        inside = cam.in_image(uv) & (p[:, 2] > 0)
+        kps[c] = uv[at[:5]]
         r = renders.get(c)
         seen = np.zeros(len(angles), bool)
         boxes[c] = None
         if r is not None:
-            seen = seen_in_render(uv, p[:, 2], radii, inside, buried, r.label, LABELS["needle"], r.depth, cam.K[0, 0])
+            inside = cam.in_image(uv) & (p[:, 2] > 0)
+            seen = visible_along_arc(uv, p[:, 2], radii, inside, buried, r.label, LABELS["needle"], r.depth,
+                                     cam.K[0, 0])
             ys, xs = np.nonzero(r.label == LABELS["needle"])
             if len(xs):
                 boxes[c] = [float(xs.min()) - 0.5, float(ys.min()) - 0.5, float(xs.max()) + 0.5, float(ys.max()) + 0.5]
-        kps[c], vis[c] = uv[:5], seen[:5]
-        arc_seen[c] = seen[5:]
+        vis[c] = seen[at[:5]]
+        arc_seen[c] = seen[at[5:]]
         arc_vis[c] = float(arc_seen[c].mean())
     return {"keypoints": kps, "visible": vis, "bbox": boxes, "arc_visible": arc_vis, "arc_seen": arc_seen}

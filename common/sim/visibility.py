@@ -2,23 +2,56 @@
 (``common.sim.render``, ``common.sim.alt_render``).
 
 A point of the needle's centreline (a keypoint, or a sample of ``arc_seen``) is seen by a camera
-when the needle's surface at that body point is in the image:
+when the needle's surface at that body point shows in the image:
 - it projects inside the image, in front of the camera;
 - it is not inside the tissue deeper than the wire's radius there (``buried``: a solid's surface
   lies between it and every camera);
 - the pixel holding its projection shows the needle, or nothing nearer than the needle's own
-  surface there: the keypoint's depth minus the wire's radius at that point (0 at the sharp tip A,
+  surface there: the point's depth minus the wire's radius at that point (0 at the sharp tip A,
   which is thinner than a pixel, so its pixel may show what lies behind it) minus one pixel's
-  footprint at that depth (the pixel's centre is up to half a pixel from the exact projection).
+  footprint at that depth (the pixel's centre is up to half a pixel from the exact projection);
+- the stretch of the arc it lies on, unhidden, shows in the image: walking along the centreline
+  (points ``ARC_STEP_PX`` apart) from the point, past points seen as above, some point's pixel
+  or one next to it shows the needle. A tip poking out of the tissue by less than a pixel, or
+  past a jaw's edge, is thinner than a pixel all the way to where it is hidden, and is not seen;
+  a long fine taper in clear view is seen up to its point.
 """
 from __future__ import annotations
 
 import numpy as np
 
+ARC_STEP_PX = 0.5
+"""Most image distance (px) between the centreline points that ``arc_angles`` samples."""
+MAX_ARC_POINTS = 8192
+LENGTH_SAMPLES = 49
+"""Points equally spaced over the arc whose projections measure its length in the image."""
+
+
+def arc_angles(arc_span_rad: tuple, coarse_uv: list, wanted_rad: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Angles (rad, ascending from A's to E's) along the arc, no more than ``ARC_STEP_PX`` apart
+    in any camera, and the ``wanted_rad`` angles among them: (angles, index of each wanted angle).
+    ``coarse_uv``: per camera, the projections (n, 2) px of n >= 2 points equally spaced over the
+    arc (NaN where a point is behind the camera), which tell how long the arc is in the image."""
+    longest = 0.0
+    n = 2
+    for uv in coarse_uv:
+        uv = np.asarray(uv, float)
+        n = len(uv)
+        step = np.linalg.norm(np.diff(uv, axis=0), axis=1)
+        step = step[np.isfinite(step)]
+        longest = max(longest, float(step.sum()) if len(step) else 0.0)
+    count = int(np.clip(np.ceil(longest / ARC_STEP_PX), n - 1, MAX_ARC_POINTS))
+    a0, a1 = sorted(arc_span_rad)
+    wanted = np.asarray(wanted_rad, float)
+    angles = np.unique(np.concatenate([np.linspace(a0, a1, count + 1), wanted]))
+    return angles, np.searchsorted(angles, wanted)
+
 
 def seen_in_render(uv: np.ndarray, z: np.ndarray, radius_m: np.ndarray, inside: np.ndarray, buried: np.ndarray,
-                   label: np.ndarray, needle_label: int, depth: np.ndarray, focal_px: float) -> np.ndarray:
-    """(N,) bool: which centreline points are seen (see the module docstring).
+                   label: np.ndarray, needle_label: int, depth: np.ndarray, focal_px: float) -> tuple:
+    """Which centreline points nothing hides (the first three conditions of the module docstring),
+    and which of those have the needle in their pixel or one of its 8 neighbours (a swage seen
+    end on shows around the thread leaving it): ((N,) bool, (N,) bool).
 
     ``uv`` (N, 2) their projections (px, (0, 0) the centre of the top-left pixel), ``z`` (N,) their
     depths along the optical axis (m), ``radius_m`` (N,) the wire's radius there (m), ``inside``
@@ -30,5 +63,27 @@ def seen_in_render(uv: np.ndarray, z: np.ndarray, radius_m: np.ndarray, inside: 
     v = np.clip(np.round(np.nan_to_num(uv[:, 1])).astype(int), 0, h - 1)
     z = np.asarray(z, float)
     surface = z - np.asarray(radius_m, float) - np.abs(z) / float(focal_px)
-    shown = (label[v, u] == needle_label) | (depth[v, u] >= surface)
-    return np.asarray(inside, bool) & ~np.asarray(buried, bool) & shown
+    on_needle = label[v, u] == needle_label
+    unhidden = np.asarray(inside, bool) & ~np.asarray(buried, bool) & (on_needle | (depth[v, u] >= surface))
+    near_needle = on_needle.copy()
+    for dv in (-1, 0, 1):
+        for du in (-1, 0, 1):
+            near_needle |= label[np.clip(v + dv, 0, h - 1), np.clip(u + du, 0, w - 1)] == needle_label
+    return unhidden, unhidden & near_needle
+
+
+def shown_along_arc(unhidden: np.ndarray, on_needle: np.ndarray) -> np.ndarray:
+    """(N,) bool: the points (in order along the arc, ``arc_angles``) that nothing hides and whose
+    unhidden stretch of the arc holds a point next to the needle's pixels (``seen_in_render``)."""
+    unhidden = np.asarray(unhidden, bool)
+    run = np.cumsum(~unhidden)                       # points of one unhidden stretch share a number
+    shows = np.bincount(run[unhidden & on_needle], minlength=run.max() + 1) > 0
+    return unhidden & shows[run]
+
+
+def visible_along_arc(uv: np.ndarray, z: np.ndarray, radius_m: np.ndarray, inside: np.ndarray, buried: np.ndarray,
+                      label: np.ndarray, needle_label: int, depth: np.ndarray, focal_px: float) -> np.ndarray:
+    """(N,) bool: which centreline points, in order along the arc no more than ``ARC_STEP_PX``
+    apart (``arc_angles``), the render shows (the module docstring); arguments as
+    ``seen_in_render``."""
+    return shown_along_arc(*seen_in_render(uv, z, radius_m, inside, buried, label, needle_label, depth, focal_px))

@@ -16,7 +16,7 @@ from common.sim.render import LABELS, SceneRenderer
 from common.sim.scene import Appearance, SceneSpec
 from common.sim.scene_meshes import PHANTOM_SIZE, phantom_height, phantom_surface, under_phantom
 from common.sim.takes import plan_take, render_take, take_spec
-from common.sim.visibility import seen_in_render
+from common.sim.visibility import ARC_STEP_PX, arc_angles, seen_in_render, shown_along_arc
 
 NEEDLE = NeedleModel()
 BBOX_SLACK_PX = 2.0
@@ -43,11 +43,37 @@ def test_the_rule_hides_what_lies_in_front_of_the_wire_surface_and_what_the_tiss
     radius = np.array([0.0, 0.0004, 0.0004, 0.0004, 0.0004, 0.0004])
     inside = np.array([True] * 5 + [False])
     buried = np.array([False] * 4 + [True, False])
-    seen = seen_in_render(uv, z, radius, inside, buried, label, LABELS["needle"], depth, focal_px=1000.0)
-    assert seen.tolist() == [False, True, False, True, False, False]
+    unhidden, on_needle = seen_in_render(uv, z, radius, inside, buried, label, LABELS["needle"], depth, 1000.0)
+    assert unhidden.tolist() == [False, True, False, True, False, False]
+    assert on_needle.tolist() == [False, False, False, True, False, False]
     # a pixel's footprint (here 0.1 mm) of slack for the pixel centre's offset from the projection
     depth[1, 0] = 0.09995
-    assert seen_in_render(uv[:1], z[:1], radius[:1], inside[:1], buried[:1], label, LABELS["needle"], depth, 1000.0)[0]
+    assert seen_in_render(uv[:1], z[:1], radius[:1], inside[:1], buried[:1], label, LABELS["needle"], depth,
+                          1000.0)[0][0]
+
+
+def test_a_point_is_shown_only_on_a_stretch_of_the_arc_that_shows_the_needle():
+    """Points in order along the arc: unhidden stretches [0, 3) (one pixel of it shows the needle),
+    [4, 6) (none does: a sliver of tip past a jaw's edge) and [7, 8) (its pixel shows the needle)."""
+    unhidden = np.array([1, 1, 1, 0, 1, 1, 0, 1], bool)
+    on_needle = np.array([0, 0, 1, 0, 0, 0, 0, 1], bool)
+    assert shown_along_arc(unhidden, on_needle).tolist() == [True, True, True, False, False, False, False, True]
+    assert not shown_along_arc(unhidden, np.zeros(8, bool)).any()
+
+
+def test_arc_angles_sample_the_arc_finely_enough_in_the_image_and_keep_the_wanted_ones():
+    span = NEEDLE.arc_span_rad
+    wanted = NEEDLE.keypoint_angles_rad
+    line = np.stack([np.linspace(0.0, 300.0, 49), np.zeros(49)], 1)        # the arc 300 px long in one camera
+    far = line / 10.0                                                      # 30 px in the other
+    angles, at = arc_angles(span, [far, line], wanted)
+    assert np.all(np.diff(angles) > 0)
+    assert angles[0] == pytest.approx(min(span)) and angles[-1] == pytest.approx(max(span))
+    assert np.allclose(angles[at], wanted)
+    assert len(angles) >= 300.0 / ARC_STEP_PX
+    behind = far.copy()
+    behind[:20] = np.nan                                                   # partly behind the camera
+    assert len(arc_angles(span, [behind], wanted)[0]) < len(angles)
 
 
 def test_under_phantom_is_the_pad_below_its_drawn_surface():
@@ -59,7 +85,8 @@ def test_under_phantom_is_the_pad_below_its_drawn_surface():
     assert under_phantom(pts).tolist() == [True, False, True, False, False]
     assert under_phantom(pts, np.array([0.0003, 0.0, 0.0003, 0.0, 0.0])).tolist() == [False, False, True, False, False]
     # the rim is drawn rounded down to the pad's sides
-    assert phantom_surface(PHANTOM_SIZE[0] / 2 - 0.0005, 0.0) < phantom_height(PHANTOM_SIZE[0] / 2 - 0.0005, 0.0) - 0.003
+    x_rim = PHANTOM_SIZE[0] / 2 - 0.0005
+    assert phantom_surface(x_rim, 0.0) < phantom_height(x_rim, 0.0) - 0.003
 
 
 # ---------------------------------------------------------------- the built-in renderer
