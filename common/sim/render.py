@@ -271,6 +271,7 @@ def frame_ground_truth(rig: StereoRig, needle, T_world_needle, T_world_ecm, rend
     angles, at = arc_angles((a0, a1), coarse, wanted)
     radii = needle_radii(needle, needle.radius_m * np.abs(angles - a0), appearance.wire_diameter_m,
                          appearance.tip_length_m, appearance.tip_exponent, appearance.swage_scale)
+    arc_m = needle.radius_m * (angles - angles[0])
     p_needle = needle.arc_points(angles)
     buried = under_phantom(transform_points(T_world_needle, p_needle), radii)
     kps, vis, boxes, arc_vis, arc_seen = {}, {}, {}, {}, {}
@@ -284,7 +285,7 @@ def frame_ground_truth(rig: StereoRig, needle, T_world_needle, T_world_ecm, rend
         boxes[c] = None
         if r is not None:
             inside = cam.in_image(uv) & (p[:, 2] > 0)
-            seen = visible_along_arc(uv, p[:, 2], radii, inside, buried, r.label, LABELS["needle"], r.depth,
+            seen = visible_along_arc(uv, p[:, 2], arc_m, radii, inside, buried, r.label, LABELS["needle"], r.depth,
                                      cam.K[0, 0])
             ys, xs = np.nonzero(r.label == LABELS["needle"])
             if len(xs):

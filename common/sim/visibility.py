@@ -7,9 +7,10 @@ when the needle's surface at that body point shows in the image:
 - it is not inside the tissue deeper than the wire's radius there (``buried``: a solid's surface
   lies between it and every camera);
 - the pixel holding its projection shows the needle, or nothing nearer than the needle's own
-  surface there: the point's depth minus the wire's radius at that point (0 at the sharp tip A,
-  which is thinner than a pixel, so its pixel may show what lies behind it) minus one pixel's
-  footprint at that depth (the pixel's centre is up to half a pixel from the exact projection);
+  surface there: the point's depth minus the wire's largest radius within a pixel's footprint
+  along the arc (at the sharp tip A nearly 0: the tip is thinner than a pixel, so its pixel may
+  show what lies behind it) minus that footprint (the pixel's centre is up to half a pixel from
+  the exact projection);
 - the stretch of the arc it lies on, unhidden, shows in the image: walking along the centreline
   (points ``ARC_STEP_PX`` apart) from the point, past points seen as above, some point's pixel
   or one next to it shows the needle. A tip poking out of the tissue by less than a pixel, or
@@ -47,22 +48,25 @@ def arc_angles(arc_span_rad: tuple, coarse_uv: list, wanted_rad: np.ndarray) -> 
     return angles, np.searchsorted(angles, wanted)
 
 
-def seen_in_render(uv: np.ndarray, z: np.ndarray, radius_m: np.ndarray, inside: np.ndarray, buried: np.ndarray,
-                   label: np.ndarray, needle_label: int, depth: np.ndarray, focal_px: float) -> tuple:
+def seen_in_render(uv: np.ndarray, z: np.ndarray, arc_m: np.ndarray, radius_m: np.ndarray, inside: np.ndarray,
+                   buried: np.ndarray, label: np.ndarray, needle_label: int, depth: np.ndarray,
+                   focal_px: float) -> tuple:
     """Which centreline points nothing hides (the first three conditions of the module docstring),
     and which of those have the needle in their pixel or one of its 8 neighbours (a swage seen
     end on shows around the thread leaving it): ((N,) bool, (N,) bool).
 
     ``uv`` (N, 2) their projections (px, (0, 0) the centre of the top-left pixel), ``z`` (N,) their
-    depths along the optical axis (m), ``radius_m`` (N,) the wire's radius there (m), ``inside``
-    (N,) in the image and in front of the camera, ``buried`` (N,) inside the tissue deeper than
-    that radius; ``label`` (h, w) the render's labels (``needle_label`` on the needle), ``depth``
-    (h, w) its depth along the optical axis (m, inf where nothing), ``focal_px`` the focal length."""
+    depths along the optical axis (m), ``arc_m`` (N,) their distances along the arc from A
+    (ascending, m), ``radius_m`` (N,) the wire's radius there (m), ``inside`` (N,) in the image
+    and in front of the camera, ``buried`` (N,) inside the tissue deeper than that radius;
+    ``label`` (h, w) the render's labels (``needle_label`` on the needle), ``depth`` (h, w) its
+    depth along the optical axis (m, inf where nothing), ``focal_px`` the focal length."""
     h, w = label.shape
     u = np.clip(np.round(np.nan_to_num(uv[:, 0])).astype(int), 0, w - 1)
     v = np.clip(np.round(np.nan_to_num(uv[:, 1])).astype(int), 0, h - 1)
     z = np.asarray(z, float)
-    surface = z - np.asarray(radius_m, float) - np.abs(z) / float(focal_px)
+    footprint = np.abs(z) / float(focal_px)
+    surface = z - window_max(np.asarray(arc_m, float), np.asarray(radius_m, float), footprint) - footprint
     on_needle = label[v, u] == needle_label
     unhidden = np.asarray(inside, bool) & ~np.asarray(buried, bool) & (on_needle | (depth[v, u] >= surface))
     near_needle = on_needle.copy()
@@ -70,6 +74,15 @@ def seen_in_render(uv: np.ndarray, z: np.ndarray, radius_m: np.ndarray, inside: 
         for du in (-1, 0, 1):
             near_needle |= label[np.clip(v + dv, 0, h - 1), np.clip(u + du, 0, w - 1)] == needle_label
     return unhidden, unhidden & near_needle
+
+
+def window_max(x: np.ndarray, values: np.ndarray, half_width: np.ndarray) -> np.ndarray:
+    """(N,) the largest of ``values`` over the points whose ``x`` (ascending) lies within
+    ``half_width`` (N,) of each point's."""
+    lo = np.searchsorted(x, x - half_width, side="left")
+    hi = np.searchsorted(x, x + half_width, side="right")
+    padded = np.append(values, -np.inf)               # reduceat's ends must index the array
+    return np.maximum.reduceat(padded, np.ravel(np.stack([lo, hi], 1)))[::2]
 
 
 def shown_along_arc(unhidden: np.ndarray, on_needle: np.ndarray) -> np.ndarray:
@@ -81,9 +94,11 @@ def shown_along_arc(unhidden: np.ndarray, on_needle: np.ndarray) -> np.ndarray:
     return unhidden & shows[run]
 
 
-def visible_along_arc(uv: np.ndarray, z: np.ndarray, radius_m: np.ndarray, inside: np.ndarray, buried: np.ndarray,
-                      label: np.ndarray, needle_label: int, depth: np.ndarray, focal_px: float) -> np.ndarray:
+def visible_along_arc(uv: np.ndarray, z: np.ndarray, arc_m: np.ndarray, radius_m: np.ndarray, inside: np.ndarray,
+                      buried: np.ndarray, label: np.ndarray, needle_label: int, depth: np.ndarray,
+                      focal_px: float) -> np.ndarray:
     """(N,) bool: which centreline points, in order along the arc no more than ``ARC_STEP_PX``
     apart (``arc_angles``), the render shows (the module docstring); arguments as
     ``seen_in_render``."""
-    return shown_along_arc(*seen_in_render(uv, z, radius_m, inside, buried, label, needle_label, depth, focal_px))
+    return shown_along_arc(*seen_in_render(uv, z, arc_m, radius_m, inside, buried, label, needle_label, depth,
+                                           focal_px))

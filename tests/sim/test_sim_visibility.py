@@ -16,7 +16,7 @@ from common.sim.render import LABELS, SceneRenderer
 from common.sim.scene import Appearance, SceneSpec
 from common.sim.scene_meshes import PHANTOM_SIZE, phantom_height, phantom_surface, under_phantom
 from common.sim.takes import plan_take, render_take, take_spec
-from common.sim.visibility import ARC_STEP_PX, arc_angles, seen_in_render, shown_along_arc
+from common.sim.visibility import ARC_STEP_PX, arc_angles, seen_in_render, shown_along_arc, window_max
 
 NEEDLE = NeedleModel()
 BBOX_SLACK_PX = 2.0
@@ -43,13 +43,21 @@ def test_the_rule_hides_what_lies_in_front_of_the_wire_surface_and_what_the_tiss
     radius = np.array([0.0, 0.0004, 0.0004, 0.0004, 0.0004, 0.0004])
     inside = np.array([True] * 5 + [False])
     buried = np.array([False] * 4 + [True, False])
-    unhidden, on_needle = seen_in_render(uv, z, radius, inside, buried, label, LABELS["needle"], depth, 1000.0)
+    apart = np.arange(6) * 0.01                    # 1 cm apart along the arc: no point within another's pixel
+    unhidden, on_needle = seen_in_render(uv, z, apart, radius, inside, buried, label, LABELS["needle"], depth, 1000.0)
     assert unhidden.tolist() == [False, True, False, True, False, False]
     assert on_needle.tolist() == [False, False, False, True, False, False]
     # a pixel's footprint (here 0.1 mm) of slack for the pixel centre's offset from the projection
     depth[1, 0] = 0.09995
-    assert seen_in_render(uv[:1], z[:1], radius[:1], inside[:1], buried[:1], label, LABELS["needle"], depth,
+    assert seen_in_render(uv[:1], z[:1], apart[:1], radius[:1], inside[:1], buried[:1], label, LABELS["needle"],
+                          depth, 1000.0)[0][0]
+    # the pixel may show any of the wire within its footprint along the arc: a thicker part 0.05 mm on
+    depth[1, 0] = 0.0998
+    near = np.array([0.0, 0.00005])
+    assert seen_in_render(uv[:2], z[:2], near, radius[:2], inside[:2], buried[:2], label, LABELS["needle"], depth,
                           1000.0)[0][0]
+    assert window_max(np.arange(5.0), np.array([0, 5, 1, 0, 2.0]), np.array([0.5, 0.5, 1, 1, 0.1])).tolist() == \
+        [0, 5, 5, 2, 2]
 
 
 def test_a_point_is_shown_only_on_a_stretch_of_the_arc_that_shows_the_needle():
