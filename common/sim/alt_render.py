@@ -302,6 +302,7 @@ class AltRenderer:
         angles, at = arc_angles((a0, a1), coarse, needle.keypoint_angles_rad)
         radii = scene.needle_shape.radius_at(needle, needle.radius_m * np.abs(angles - a0))
         arc_m = needle.radius_m * (angles - angles[0])
+        at_thread = needle.radius_m * np.abs(angles - a1) <= scene.needle_shape.swage_length_m
         p_needle = needle.arc_points(angles)
         p_world = transform_points(scene.T_world_needle, p_needle)
         buried = p_world[:, 2] < scene.tissue.height(p_world[:, 0], p_world[:, 1]) - radii
@@ -313,7 +314,7 @@ class AltRenderer:
             inside = cam.in_image(uv) & (p[:, 2] > 0)
             r = renders[c]
             seen = visible_along_arc(uv, p[:, 2], arc_m, radii, inside, buried, r.label, LABELS["needle"], r.depth,
-                                     cam.K[0, 0])
+                                     cam.K[0, 0], LABELS["thread"], at_thread)
             ys, xs = np.nonzero(r.label == LABELS["needle"])
             boxes[c] = None if len(xs) == 0 else [float(xs.min()) - 0.5, float(ys.min()) - 0.5,
                                                   float(xs.max()) + 0.5, float(ys.max()) + 0.5]

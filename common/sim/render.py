@@ -7,10 +7,11 @@ also reads the depth buffer. Ground truth follows ``docs/dataset.md``:
 - ``keypoints``: exact pinhole projections of A..E (pixel (0, 0) = centre of the top-left pixel);
 - ``visible``: the needle's surface at the keypoint is seen (``common.sim.visibility``): inside
   the image, not inside the tissue deeper than the wire's radius there (``under_phantom``), and
-  the pixel holding the projection shows the needle itself or nothing nearer than the needle's
-  surface there (from the segmentation and depth render; the sharp tip is thinner than a pixel,
-  so its pixel may show what lies behind it, never what lies in front), on a stretch of the arc
-  that shows in the image (a tip out of the tissue or past a jaw by less than a pixel is not seen);
+  the pixel holding the projection shows the needle itself (on the swage, the thread leaving it)
+  or nothing nearer than the needle's surface there (from the segmentation and depth render; the
+  sharp tip is thinner than a pixel, so its pixel may show what lies behind it, never what lies
+  in front), on a stretch of the arc that shows in the image (a tip out of the tissue or past a
+  jaw by less than a pixel is not seen);
 - ``bbox``: [x0, y0, x1, y1] of the needle's visible pixels, pixel edges included
   (a single pixel (u, v) gives [u-0.5, v-0.5, u+0.5, v+0.5]); None when none are seen.
 """
@@ -31,7 +32,7 @@ from common.frames import CAMERAS
 from common.geometry.camera import StereoRig  # noqa: E402
 from common.geometry.transforms import inv_T, transform_points  # noqa: E402
 from common.sim.scene import Appearance, SceneModel, SceneSpec, structure_key  # noqa: E402
-from common.sim.scene_meshes import needle_radii, under_phantom  # noqa: E402
+from common.sim.scene_meshes import SWAGE_LENGTH_M, needle_radii, under_phantom  # noqa: E402
 from common.sim.visibility import arc_angles, visible_along_arc  # noqa: E402
 
 LABELS = {"other": 0, "needle": 1, "thread": 2, "instrument": 3}
@@ -272,6 +273,7 @@ def frame_ground_truth(rig: StereoRig, needle, T_world_needle, T_world_ecm, rend
     radii = needle_radii(needle, needle.radius_m * np.abs(angles - a0), appearance.wire_diameter_m,
                          appearance.tip_length_m, appearance.tip_exponent, appearance.swage_scale)
     arc_m = needle.radius_m * (angles - angles[0])
+    at_thread = needle.radius_m * np.abs(angles - a1) <= SWAGE_LENGTH_M
     p_needle = needle.arc_points(angles)
     buried = under_phantom(transform_points(T_world_needle, p_needle), radii)
     kps, vis, boxes, arc_vis, arc_seen = {}, {}, {}, {}, {}
@@ -286,7 +288,7 @@ def frame_ground_truth(rig: StereoRig, needle, T_world_needle, T_world_ecm, rend
         if r is not None:
             inside = cam.in_image(uv) & (p[:, 2] > 0)
             seen = visible_along_arc(uv, p[:, 2], arc_m, radii, inside, buried, r.label, LABELS["needle"], r.depth,
-                                     cam.K[0, 0])
+                                     cam.K[0, 0], LABELS["thread"], at_thread)
             ys, xs = np.nonzero(r.label == LABELS["needle"])
             if len(xs):
                 boxes[c] = [float(xs.min()) - 0.5, float(ys.min()) - 0.5, float(xs.max()) + 0.5, float(ys.max()) + 0.5]

@@ -6,11 +6,11 @@ when the needle's surface at that body point shows in the image:
 - it projects inside the image, in front of the camera;
 - it is not inside the tissue deeper than the wire's radius there (``buried``: a solid's surface
   lies between it and every camera);
-- the pixel holding its projection shows the needle, or nothing nearer than the needle's own
-  surface there: the point's depth minus the wire's largest radius within a pixel's footprint
-  along the arc (at the sharp tip A nearly 0: the tip is thinner than a pixel, so its pixel may
-  show what lies behind it) minus that footprint (the pixel's centre is up to half a pixel from
-  the exact projection);
+- the pixel holding its projection shows the needle (or, on the swage, the thread leaving it),
+  or nothing nearer than the needle's own surface there: the point's depth minus the wire's
+  largest radius within a pixel's footprint along the arc (at the sharp tip A nearly 0: the tip
+  is thinner than a pixel, so its pixel may show what lies behind it) minus that footprint (the
+  pixel's centre is up to half a pixel from the exact projection);
 - the stretch of the arc it lies on, unhidden, shows in the image: walking along the centreline
   (points ``ARC_STEP_PX`` apart) from the point, past points seen as above, some point's pixel
   or one next to it shows the needle. A tip poking out of the tissue by less than a pixel, or
@@ -49,18 +49,21 @@ def arc_angles(arc_span_rad: tuple, coarse_uv: list, wanted_rad: np.ndarray) -> 
 
 
 def seen_in_render(uv: np.ndarray, z: np.ndarray, arc_m: np.ndarray, radius_m: np.ndarray, inside: np.ndarray,
-                   buried: np.ndarray, label: np.ndarray, needle_label: int, depth: np.ndarray,
-                   focal_px: float) -> tuple:
+                   buried: np.ndarray, label: np.ndarray, needle_label: int, depth: np.ndarray, focal_px: float,
+                   thread_label: int | None = None, at_thread: np.ndarray | None = None) -> tuple:
     """Which centreline points nothing hides (the first three conditions of the module docstring),
-    and which of those have the needle in their pixel or one of its 8 neighbours (a swage seen
-    end on shows around the thread leaving it): ((N,) bool, (N,) bool).
+    and which of those have the needle in their pixel or one of its 8 neighbours: ((N,) bool,
+    (N,) bool).
 
     ``uv`` (N, 2) their projections (px, (0, 0) the centre of the top-left pixel), ``z`` (N,) their
-    depths along the optical axis (m), ``arc_m`` (N,) their distances along the arc from A
+    depths along the optical axis (m), ``arc_m`` (N,) their distances along the arc from one end
     (ascending, m), ``radius_m`` (N,) the wire's radius there (m), ``inside`` (N,) in the image
     and in front of the camera, ``buried`` (N,) inside the tissue deeper than that radius;
     ``label`` (h, w) the render's labels (``needle_label`` on the needle), ``depth`` (h, w) its
-    depth along the optical axis (m, inf where nothing), ``focal_px`` the focal length."""
+    depth along the optical axis (m, inf where nothing), ``focal_px`` the focal length.
+    ``at_thread`` (N,): the points where the thread leaves the needle (the swage), which a pixel of
+    the thread (``thread_label``) does not hide: the swage's end shows around the thread that
+    comes out of it towards the camera."""
     h, w = label.shape
     u = np.clip(np.round(np.nan_to_num(uv[:, 0])).astype(int), 0, w - 1)
     v = np.clip(np.round(np.nan_to_num(uv[:, 1])).astype(int), 0, h - 1)
@@ -68,7 +71,10 @@ def seen_in_render(uv: np.ndarray, z: np.ndarray, arc_m: np.ndarray, radius_m: n
     footprint = np.abs(z) / float(focal_px)
     surface = z - window_max(np.asarray(arc_m, float), np.asarray(radius_m, float), footprint) - footprint
     on_needle = label[v, u] == needle_label
-    unhidden = np.asarray(inside, bool) & ~np.asarray(buried, bool) & (on_needle | (depth[v, u] >= surface))
+    shown = on_needle | (depth[v, u] >= surface)
+    if thread_label is not None and at_thread is not None:
+        shown |= np.asarray(at_thread, bool) & (label[v, u] == thread_label)
+    unhidden = np.asarray(inside, bool) & ~np.asarray(buried, bool) & shown
     near_needle = on_needle.copy()
     for dv in (-1, 0, 1):
         for du in (-1, 0, 1):
@@ -95,10 +101,10 @@ def shown_along_arc(unhidden: np.ndarray, on_needle: np.ndarray) -> np.ndarray:
 
 
 def visible_along_arc(uv: np.ndarray, z: np.ndarray, arc_m: np.ndarray, radius_m: np.ndarray, inside: np.ndarray,
-                      buried: np.ndarray, label: np.ndarray, needle_label: int, depth: np.ndarray,
-                      focal_px: float) -> np.ndarray:
+                      buried: np.ndarray, label: np.ndarray, needle_label: int, depth: np.ndarray, focal_px: float,
+                      thread_label: int | None = None, at_thread: np.ndarray | None = None) -> np.ndarray:
     """(N,) bool: which centreline points, in order along the arc no more than ``ARC_STEP_PX``
     apart (``arc_angles``), the render shows (the module docstring); arguments as
     ``seen_in_render``."""
     return shown_along_arc(*seen_in_render(uv, z, arc_m, radius_m, inside, buried, label, needle_label, depth,
-                                           focal_px))
+                                           focal_px, thread_label, at_thread))

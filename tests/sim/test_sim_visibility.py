@@ -56,6 +56,13 @@ def test_the_rule_hides_what_lies_in_front_of_the_wire_surface_and_what_the_tiss
     near = np.array([0.0, 0.00005])
     assert seen_in_render(uv[:2], z[:2], near, radius[:2], inside[:2], buried[:2], label, LABELS["needle"], depth,
                           1000.0)[0][0]
+    # the thread leaving the swage towards the camera does not hide the swage's end; elsewhere it does
+    label[1, 1] = LABELS["thread"]
+    depth[1, 1] = 0.099
+    for at_thread, expect in ((np.array([False, True]), True), (np.array([False, False]), False)):
+        got = seen_in_render(uv[:2], z[:2], apart[:2], radius[:2], inside[:2], buried[:2], label, LABELS["needle"],
+                             depth, 1000.0, LABELS["thread"], at_thread)[0][1]
+        assert got == expect
     assert window_max(np.arange(5.0), np.array([0, 5, 1, 0, 2.0]), np.array([0.5, 0.5, 1, 1, 0.1])).tolist() == \
         [0, 5, 5, 2, 2]
 
