@@ -24,12 +24,13 @@ import numpy as np
 ARC_STEP_PX = 0.5
 """Most image distance (px) between the centreline points that ``arc_angles`` samples."""
 MAX_ARC_POINTS = 8192
+"""Most centreline points ``arc_angles`` samples (an arc 4096 px long in the image)."""
 LENGTH_SAMPLES = 49
 """Points equally spaced over the arc whose projections measure its length in the image."""
 
 
 def arc_angles(arc_span_rad: tuple, coarse_uv: list, wanted_rad: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Angles (rad, ascending from A's to E's) along the arc, no more than ``ARC_STEP_PX`` apart
+    """Angles (rad, ascending) over the arc's span, no more than ``ARC_STEP_PX`` apart
     in any camera, and the ``wanted_rad`` angles among them: (angles, index of each wanted angle).
     ``coarse_uv``: per camera, the projections (n, 2) px of n >= 2 points equally spaced over the
     arc (NaN where a point is behind the camera), which tell how long the arc is in the image."""
