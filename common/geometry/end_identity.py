@@ -16,6 +16,7 @@ from typing import Iterable, Mapping
 
 import numpy as np
 
+from common.frames import CAMERAS
 from common.geometry.needle import NeedleModel
 from common.geometry.transforms import transform_points
 
@@ -229,11 +230,15 @@ def read_tip_probability(p_by_camera: Mapping[str, float | None], readings: Mapp
     """The probability of the pose's tip that the cameras' own statements give (``p_by_camera``,
     each the probability that its A is the tip), each taken about the end of the pose at its A
     (``readings``, ``camera_readings``: a camera reading the pose turned speaks of its tail);
-    combined as ``stereo_end_identity``. None when no camera with a reading states one."""
-    ps = {c: p for c, p in p_by_camera.items() if p is not None and c in readings}
-    if not ps:
+    combined as ``stereo_end_identity`` (one camera alone: its own statement). None when no
+    camera with a reading states one."""
+    unknown = sorted(set(p_by_camera) - set(CAMERAS))
+    if unknown:
+        raise ValueError(f"read_tip_probability: cameras must be among {CAMERAS}, got {unknown}")
+    read = {c: (p if readings[c] else 1.0 - p) for c, p in p_by_camera.items() if p is not None and c in readings}
+    if not read:
         return None
-    return stereo_end_identity(*[p if readings[c] else 1.0 - p for c, p in ps.items()], news=news)
+    return stereo_end_identity(read.get("left"), read.get("right"), news=news)
 
 
 def with_reading(p: float | None, reads: bool | None, p_max: float = 0.5,

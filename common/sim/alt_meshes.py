@@ -125,6 +125,32 @@ class NeedleShape:
         corner = np.sqrt(2.0 ** max(1.0 - 2.0 / self.power, 0.0))
         return 0.5 * self.wire_diameter_m * (1 + self.flattening / 2) * self.swage_scale * corner
 
+    def thickness(self, s, arc_length_m: float) -> np.ndarray:
+        """The cross-section's scale (1: the wire's) at ``s`` (m) along the arc from the tip A, on an
+        arc ``arc_length_m`` long: 0 at A, the taper, the swage, the dome or chamfer ending at E."""
+        s = np.asarray(s, dtype=float)
+        lt, ls, L = self.tip_length_m, self.swage_length_m, arc_length_m
+        rd = 0.5 * self.wire_diameter_m * (1 + self.flattening / 2) * self.swage_scale   # dome / chamfer extent
+        g = np.ones_like(s)
+        tip = s < lt
+        g[tip] = (np.maximum(s[tip], 0.0) / lt) ** self.tip_exponent
+        u = L - s                                                      # distance from E
+        ramp = np.clip((ls - u) / 0.0003, 0.0, 1.0)
+        g *= 1.0 + (self.swage_scale - 1.0) * ramp * ramp * (3 - 2 * ramp)
+        end = u < rd
+        if self.tail == "dome":
+            g[end] *= np.sqrt(np.clip(1.0 - ((rd - u[end]) / rd) ** 2, 0.0, 1.0))
+        else:
+            g[end] *= 0.55 + 0.45 * u[end] / rd
+        return g
+
+    def radius_at(self, needle: NeedleModel, s) -> np.ndarray:
+        """Largest distance (m) of the surface from the arc at ``s`` (m) along it from the tip A
+        (``max_radius_m`` where the swage is thickest)."""
+        a0, a1 = needle.arc_span_rad
+        g = self.thickness(s, needle.radius_m * abs(a1 - a0))
+        return self.max_radius_m / self.swage_scale * g
+
 
 def needle_mesh(needle: NeedleModel, shape: NeedleShape, material: Material) -> Mesh:
     """The needle in the needle frame: its centreline is the model's arc, the sharp tip exactly
@@ -134,22 +160,12 @@ def needle_mesh(needle: NeedleModel, shape: NeedleShape, material: Material) -> 
     r = 0.5 * shape.wire_diameter_m
     a0, a1 = needle.arc_span_rad
     L = needle.radius_m * abs(a1 - a0)
-    lt, ls = shape.tip_length_m, shape.swage_length_m
+    lt = shape.tip_length_m
     rd = r * (1 + shape.flattening / 2) * shape.swage_scale      # dome / chamfer extent
     s = np.unique(np.concatenate([np.linspace(0, L, shape.n_arc), np.linspace(0, lt, 12),
                                   L - rd * (1 - np.cos(np.linspace(0, np.pi / 2, 8)))]))
     s = np.clip(s, 0.0, L)
-    g = np.ones_like(s)
-    tip = s < lt
-    g[tip] = (s[tip] / lt) ** shape.tip_exponent
-    u = L - s                                                      # distance from E
-    ramp = np.clip((ls - u) / 0.0003, 0.0, 1.0)
-    g *= 1.0 + (shape.swage_scale - 1.0) * ramp * ramp * (3 - 2 * ramp)
-    end = u < rd
-    if shape.tail == "dome":
-        g[end] *= np.sqrt(np.clip(1.0 - ((rd - u[end]) / rd) ** 2, 0.0, 1.0))
-    else:
-        g[end] *= 0.55 + 0.45 * u[end] / rd
+    g = shape.thickness(s, L)
     ang = a0 + np.sign(a1 - a0) * s / needle.radius_m
     P = needle.arc_points(ang)
     Nr = np.stack([np.cos(ang), np.sin(ang), np.zeros_like(ang)], -1)   # radial, in the arc's plane

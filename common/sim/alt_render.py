@@ -19,9 +19,12 @@ How it draws, per camera (OpenCV pinhole, pixel (0, 0) the centre of the top-lef
 - optics blur and sensor noise last.
 
 Ground truth: keypoints are the pinhole projections of the needle model's A..E; a keypoint is
-visible when it is inside the image, in front of the camera and not occluded (the z-buffer at
-its pixel is not nearer than the keypoint minus 1.5 wire radii, or the pixel shows the needle);
-``bbox`` is the box of the needle's pixels (pixel centres covered by the needle), edges included.
+visible when the needle's surface there is seen (``common.sim.visibility``, the built-in
+renderer's rule): inside the image, in front of the camera, not inside the tissue deeper than the
+needle's radius there, and its pixel shows the needle or nothing nearer than the needle's surface
+there (the z-buffer against the keypoint's depth minus that radius, 0 at the sharp tip, and a
+pixel's footprint), on a stretch of the arc that shows in the image; ``bbox`` is the box of the
+needle's pixels (pixel centres covered by the needle), edges included.
 """
 from __future__ import annotations
 
@@ -38,6 +41,7 @@ from common.geometry.transforms import inv_T, transform_points
 from common.sim.alt_meshes import LABELS, NeedleShape
 from common.sim.alt_raster import NEAR_M, rasterise
 from common.sim.alt_tissue import Tissue
+from common.sim.visibility import LENGTH_SAMPLES, arc_angles, visible_along_arc
 
 SUPERSAMPLE = 3            # samples per pixel side in the needle's region
 
@@ -288,25 +292,33 @@ class AltRenderer:
     def ground_truth(self, scene: AltScene, T_world_ecm: np.ndarray, renders: dict) -> dict:
         """keypoints / visible / bbox per camera (the spec's fields) from the exact projection
         of the needle model's A..E and the renders' z-buffers and labels."""
+        needle = scene.needle
+        a0, a1 = needle.arc_span_rad
         T_ecm_needle = inv_T(T_world_ecm) @ scene.T_world_needle
-        p_ecm = transform_points(T_ecm_needle, scene.needle.keypoints())
-        tol = 1.5 * scene.needle_shape.max_radius_m
+        coarse = []
+        for c in CAMERAS:
+            p = transform_points(self.rig[c].T_cam_ecm @ T_ecm_needle, needle.sample_arc(LENGTH_SAMPLES))
+            coarse.append(np.where(p[:, 2:] > 0, self.rig[c].project(p), np.nan))
+        angles, at = arc_angles((a0, a1), coarse, needle.keypoint_angles_rad)
+        radii = scene.needle_shape.radius_at(needle, needle.radius_m * np.abs(angles - a0))
+        arc_m = needle.radius_m * (angles - angles[0])
+        at_thread = needle.radius_m * np.abs(angles - a1) <= scene.needle_shape.swage_length_m
+        p_needle = needle.arc_points(angles)
+        p_world = transform_points(scene.T_world_needle, p_needle)
+        buried = p_world[:, 2] < scene.tissue.height(p_world[:, 0], p_world[:, 1]) - radii
         kps, vis, boxes = {}, {}, {}
         for c in CAMERAS:
             cam = self.rig[c]
-            p = transform_points(cam.T_cam_ecm, p_ecm)
+            p = transform_points(cam.T_cam_ecm @ T_ecm_needle, p_needle)
             uv = cam.project(p)
             inside = cam.in_image(uv) & (p[:, 2] > 0)
             r = renders[c]
-            v = np.zeros(5, bool)
-            for k in np.flatnonzero(inside):
-                u0 = min(max(int(round(uv[k, 0])), 0), cam.width - 1)
-                v0 = min(max(int(round(uv[k, 1])), 0), cam.height - 1)
-                v[k] = bool(r.label[v0, u0] == LABELS["needle"] or r.depth[v0, u0] >= p[k, 2] - tol)
+            seen = visible_along_arc(uv, p[:, 2], arc_m, radii, inside, buried, r.label, LABELS["needle"], r.depth,
+                                     cam.K[0, 0], LABELS["thread"], at_thread)
             ys, xs = np.nonzero(r.label == LABELS["needle"])
             boxes[c] = None if len(xs) == 0 else [float(xs.min()) - 0.5, float(ys.min()) - 0.5,
                                                   float(xs.max()) + 0.5, float(ys.max()) + 0.5]
-            kps[c], vis[c] = uv, v
+            kps[c], vis[c] = uv[at], seen[at]
         return {"keypoints": kps, "visible": vis, "bbox": boxes}
 
 

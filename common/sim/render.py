@@ -5,9 +5,13 @@ context. Per camera there are two passes: the lit colour image, and a segmentati
 also reads the depth buffer. Ground truth follows ``docs/dataset.md``:
 
 - ``keypoints``: exact pinhole projections of A..E (pixel (0, 0) = centre of the top-left pixel);
-- ``visible``: inside the image and not occluded: the pixel holding the projection shows the
-  needle itself, or nothing nearer than the keypoint minus a wire diameter (from the segmentation
-  and depth render; the sharp tip is thinner than a pixel, so its pixel may show what lies behind);
+- ``visible``: the needle's surface at the keypoint is seen (``common.sim.visibility``): inside
+  the image, not inside the tissue deeper than the wire's radius there (``under_phantom``), and
+  the pixel holding the projection shows the needle itself (on the swage, the thread leaving it)
+  or nothing nearer than the needle's surface there (from the segmentation and depth render; the
+  sharp tip is thinner than a pixel, so its pixel may show what lies behind it, never what lies
+  in front), on a stretch of the arc that shows in the image (a tip out of the tissue or past a
+  jaw by less than a pixel is not seen);
 - ``bbox``: [x0, y0, x1, y1] of the needle's visible pixels, pixel edges included
   (a single pixel (u, v) gives [u-0.5, v-0.5, u+0.5, v+0.5]); None when none are seen.
 """
@@ -27,7 +31,9 @@ import numpy as np  # noqa: E402
 from common.frames import CAMERAS
 from common.geometry.camera import StereoRig  # noqa: E402
 from common.geometry.transforms import inv_T, transform_points  # noqa: E402
-from common.sim.scene import SceneModel, SceneSpec, structure_key  # noqa: E402
+from common.sim.scene import Appearance, SceneModel, SceneSpec, structure_key  # noqa: E402
+from common.sim.scene_meshes import SWAGE_LENGTH_M, needle_radii, under_phantom  # noqa: E402
+from common.sim.visibility import arc_angles, visible_along_arc  # noqa: E402
 
 LABELS = {"other": 0, "needle": 1, "thread": 2, "instrument": 3}
 
@@ -233,8 +239,7 @@ class SceneRenderer:
     def ground_truth(self, T_world_ecm: np.ndarray, renders: dict[str, CameraRender]) -> dict:
         """The spec's ``keypoints``, ``visible`` and ``bbox`` for both cameras."""
         return frame_ground_truth(self.spec.rig, self.spec.needle, self._T_world_needle,
-                                  np.asarray(T_world_ecm, float), renders,
-                                  self.spec.appearance.wire_diameter_m / 2)
+                                  np.asarray(T_world_ecm, float), renders, self.spec.appearance)
 
 
 def _linear_depth(zbuf: np.ndarray, near: float, far: float) -> np.ndarray:
@@ -247,53 +252,47 @@ def _linear_depth(zbuf: np.ndarray, near: float, far: float) -> np.ndarray:
     return (d / (zbuf.astype(np.float64) + c)).astype(np.float32)
 
 
-def needle_keypoints_cam(rig: StereoRig, needle, T_world_needle, T_world_ecm) -> dict[str, np.ndarray]:
-    """(5, 3) keypoints A..E in each camera frame (m)."""
-    T_ecm_needle = inv_T(T_world_ecm) @ T_world_needle
-    p_ecm = transform_points(T_ecm_needle, needle.keypoints())
-    return {c: transform_points(rig[c].T_cam_ecm, p_ecm) for c in CAMERAS}
-
-
 ARC_VISIBLE_SAMPLES = 49
 """Points along the arc (A..E, equally spaced) whose visibility gives ``arc_visible``."""
 
 
-def _seen(uv: np.ndarray, z: np.ndarray, inside: np.ndarray, render, wire_radius_m: float) -> np.ndarray:
-    """(N,) bool: projected points (uv px, camera depth z m) shown by the render: their pixel holds
-    the needle, or nothing in front of them closer than two wire radii."""
-    h, w = render.label.shape
-    u = np.clip(np.round(np.nan_to_num(uv[:, 0])).astype(int), 0, w - 1)
-    v = np.clip(np.round(np.nan_to_num(uv[:, 1])).astype(int), 0, h - 1)
-    shown = (render.label[v, u] == LABELS["needle"]) | (render.depth[v, u] > z - 2 * wire_radius_m)
-    return np.asarray(inside, bool) & shown
-
-
 def frame_ground_truth(rig: StereoRig, needle, T_world_needle, T_world_ecm, renders,
-                       wire_radius_m: float) -> dict:
+                       appearance: Appearance) -> dict:
     """keypoints / visible / bbox per camera from the exact projection and the renders,
     ``arc_seen``: whether each of ``ARC_VISIBLE_SAMPLES`` points along the arc (A..E, equally
-    spaced) is seen, and ``arc_visible``: their seen share."""
-    p_cam = needle_keypoints_cam(rig, needle, T_world_needle, T_world_ecm)
+    spaced) is seen, and ``arc_visible``: their seen share. Seen: ``common.sim.visibility``, for
+    the needle's shape (its radius along the arc) that ``appearance`` draws."""
+    a0, a1 = needle.arc_span_rad
     T_ecm_needle = inv_T(T_world_ecm) @ T_world_needle
-    arc_ecm = transform_points(T_ecm_needle, needle.sample_arc(ARC_VISIBLE_SAMPLES))
+    coarse = []
+    for c in CAMERAS:
+        p = transform_points(rig[c].T_cam_ecm @ T_ecm_needle, needle.sample_arc(ARC_VISIBLE_SAMPLES))
+        coarse.append(np.where(p[:, 2:] > 0, rig[c].project(p), np.nan))
+    wanted = np.concatenate([needle.keypoint_angles_rad, np.linspace(a0, a1, ARC_VISIBLE_SAMPLES)])
+    angles, at = arc_angles((a0, a1), coarse, wanted)
+    radii = needle_radii(needle, needle.radius_m * np.abs(angles - a0), appearance.wire_diameter_m,
+                         appearance.tip_length_m, appearance.tip_exponent, appearance.swage_scale)
+    arc_m = needle.radius_m * (angles - angles[0])
+    at_thread = needle.radius_m * np.abs(angles - a1) <= SWAGE_LENGTH_M
+    p_needle = needle.arc_points(angles)
+    buried = under_phantom(transform_points(T_world_needle, p_needle), radii)
     kps, vis, boxes, arc_vis, arc_seen = {}, {}, {}, {}, {}
     for c in CAMERAS:
         cam = rig[c]
-        uv = cam.project(p_cam[c])
-        inside = cam.in_image(uv) & (p_cam[c][:, 2] > 0)
+        p = transform_points(cam.T_cam_ecm @ T_ecm_needle, p_needle)
+        uv = cam.project(p)
+        kps[c] = uv[at[:5]]
         r = renders.get(c)
-        v = np.zeros(5, bool)
-        arc_seen[c] = np.zeros(ARC_VISIBLE_SAMPLES, bool)
+        seen = np.zeros(len(angles), bool)
+        boxes[c] = None
         if r is not None:
-            v = _seen(uv, p_cam[c][:, 2], inside, r, wire_radius_m)
-            a_cam = transform_points(cam.T_cam_ecm, arc_ecm)
-            a_uv = cam.project(a_cam)
-            a_in = cam.in_image(a_uv) & (a_cam[:, 2] > 0)
-            arc_seen[c] = _seen(a_uv, a_cam[:, 2], a_in, r, wire_radius_m)
+            inside = cam.in_image(uv) & (p[:, 2] > 0)
+            seen = visible_along_arc(uv, p[:, 2], arc_m, radii, inside, buried, r.label, LABELS["needle"], r.depth,
+                                     cam.K[0, 0], LABELS["thread"], at_thread)
             ys, xs = np.nonzero(r.label == LABELS["needle"])
-            boxes[c] = (None if len(xs) == 0 else
-                        [float(xs.min()) - 0.5, float(ys.min()) - 0.5, float(xs.max()) + 0.5, float(ys.max()) + 0.5])
-        else:
-            boxes[c] = None
-        kps[c], vis[c], arc_vis[c] = uv, v, float(arc_seen[c].mean())
+            if len(xs):
+                boxes[c] = [float(xs.min()) - 0.5, float(ys.min()) - 0.5, float(xs.max()) + 0.5, float(ys.max()) + 0.5]
+        vis[c] = seen[at[:5]]
+        arc_seen[c] = seen[at[5:]]
+        arc_vis[c] = float(arc_seen[c].mean())
     return {"keypoints": kps, "visible": vis, "bbox": boxes, "arc_visible": arc_vis, "arc_seen": arc_seen}

@@ -97,7 +97,6 @@ def needle_mesh(needle: NeedleModel, wire_diameter_m: float | None = None, tip_l
     ``tip_exponent``: < 1 a convex, blunter taper); the tail at E is a blunt swage ``swage_scale``
     x thicker over its last 1.5 mm, closed by a flat cap exactly at E.
     """
-    rw = 0.5 * (wire_diameter_m or needle.wire_diameter_m)
     a0, a1 = needle.arc_span_rad
     arc_len = needle.radius_m * abs(a1 - a0)
     s = np.linspace(0.0, 1.0, n_arc) ** 1.0
@@ -105,12 +104,28 @@ def needle_mesh(needle: NeedleModel, wire_diameter_m: float | None = None, tip_l
     s = np.unique(np.concatenate([s, np.linspace(0, min(1.0, 2 * tip_length_m / arc_len), 30)]))
     ang = a0 + s * (a1 - a0)
     pts = needle.arc_points(ang)
-    dist = s * arc_len
-    radii = np.full(len(s), rw)
-    tip = dist < tip_length_m
-    radii[tip] = rw * (dist[tip] / tip_length_m) ** tip_exponent
-    radii[dist > arc_len - 0.0015] = rw * swage_scale
+    radii = needle_radii(needle, s * arc_len, wire_diameter_m, tip_length_m, tip_exponent, swage_scale)
     return sweep_tube(pts, radii, n_ring, cap_start=False, cap_end=True)
+
+
+SWAGE_LENGTH_M = 0.0015
+"""Length of the built-in needle's swage, the thicker end of the wire at E (m)."""
+
+
+def needle_radii(needle: NeedleModel, dist_m, wire_diameter_m: float | None = None, tip_length_m: float = 0.0018,
+                 tip_exponent: float = 0.75, swage_scale: float = 1.08) -> np.ndarray:
+    """Radius (m) of the built-in needle's wire (``needle_mesh``) at ``dist_m`` (m) along the arc
+    from the tip A: 0 at A, ``(dist / tip_length) ** tip_exponent`` of the wire's radius along the
+    taper, ``swage_scale`` x the wire's radius over the last ``SWAGE_LENGTH_M`` before E."""
+    rw = 0.5 * (wire_diameter_m or needle.wire_diameter_m)
+    a0, a1 = needle.arc_span_rad
+    arc_len = needle.radius_m * abs(a1 - a0)
+    dist = np.asarray(dist_m, dtype=float)
+    radii = np.full(dist.shape, rw)
+    tip = dist < tip_length_m
+    radii[tip] = rw * (np.maximum(dist[tip], 0.0) / tip_length_m) ** tip_exponent
+    radii[dist > arc_len - SWAGE_LENGTH_M] = rw * swage_scale
+    return radii
 
 
 def smooth_polyline(ctrl: np.ndarray, step: float, n_points: int = 0) -> np.ndarray:
@@ -161,16 +176,32 @@ def thread_path(T_world_needle: np.ndarray, needle: NeedleModel, rng: np.random.
     return path
 
 
+def phantom_surface(x, y) -> np.ndarray:
+    """Height (m, world z) of the phantom's top surface as its mesh draws it: ``phantom_height``
+    with the rim rounded down to the pad's sides over its outer 3 mm; -inf outside the pad."""
+    sx, sy = PHANTOM_SIZE
+    x = np.asarray(x, dtype=float)
+    y = np.asarray(y, dtype=float)
+    edge = np.minimum.reduce([x + sx / 2, sx / 2 - x, y + sy / 2, sy / 2 - y])
+    z = phantom_height(x, y)
+    z = np.where(edge < 0.003, z - (0.003 - edge) * 1.5, z)
+    return np.where(edge >= 0.0, z, -np.inf)
+
+
+def under_phantom(points_world: np.ndarray, depth_m=0.0) -> np.ndarray:
+    """(N,) bool: which world points (N, 3) lie inside the phantom pad more than ``depth_m`` (m,
+    scalar or (N,)) under its top surface (the pad is solid down to the table)."""
+    p = np.asarray(points_world, dtype=float).reshape(-1, 3)
+    return (p[:, 2] < phantom_surface(p[:, 0], p[:, 1]) - depth_m) & (p[:, 2] > 0.0)
+
+
 def phantom_mesh(nx: int = 97, ny: int = 81):
     """The phantom's top surface (world frame) with texture coordinates: (verts, texcoords, faces)."""
     sx, sy = PHANTOM_SIZE
     xs = np.linspace(-sx / 2, sx / 2, nx)
     ys = np.linspace(-sy / 2, sy / 2, ny)
     X, Y = np.meshgrid(xs, ys)
-    Z = phantom_height(X, Y)
-    # round the rim down to the pad's sides
-    edge = np.minimum.reduce([X + sx / 2, sx / 2 - X, Y + sy / 2, sy / 2 - Y])
-    Z = np.where(edge < 0.003, Z - (0.003 - edge) * 1.5, Z)
+    Z = phantom_surface(X, Y)
     verts = np.stack([X, Y, Z], -1).reshape(-1, 3)
     uv = np.stack([(X + sx / 2) / sx, 1.0 - (Y + sy / 2) / sy], -1).reshape(-1, 2)
     idx = np.arange(nx * ny).reshape(ny, nx)

@@ -285,6 +285,22 @@ def test_the_cameras_statements_are_taken_about_the_end_at_their_a():
     assert fitted_tip_probability(0.9, None, False, p_read=0.97, **caps) == (0.9, ())
 
 
+def test_one_cameras_reading_gives_that_cameras_statement():
+    """Issue 56: with one camera's keypoints only (the other blocked, or its detector lost the
+    needle), the pose's tip probability is that camera's statement taken about the end at its A,
+    whichever camera it is; a camera name outside the rig is refused."""
+    from common.geometry.end_identity import pose_tip_probability, read_tip_probability
+    assert read_tip_probability({"left": 0.8}, {"left": True}) == pytest.approx(0.8)
+    assert read_tip_probability({"right": 0.8}, {"right": False}) == pytest.approx(0.2)
+    assert read_tip_probability({"left": None, "right": 0.7}, {"left": True, "right": True}) == pytest.approx(0.7)
+    assert read_tip_probability({"left": 0.9, "right": 0.6}, {"left": False}) == pytest.approx(0.1)
+    p, caps = pose_tip_probability(0.95, None, {"right": False}, {"left": None, "right": 0.9},
+                                   end_unseen_p_max=0.9, reading_p_max=0.5)
+    assert p == 0.5 and caps == ("reading_turned",)
+    with pytest.raises(ValueError, match="centre"):
+        read_tip_probability({"centre": 0.8}, {"centre": True})
+
+
 def test_a_partial_view_states_no_sure_tip():
     from common.geometry.end_identity import fitted_tip_probability
     p, caps = fitted_tip_probability(0.99, (True, True), True, end_unseen_p_max=0.9, partial=True)

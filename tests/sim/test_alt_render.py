@@ -204,6 +204,27 @@ def test_an_occluder_hides_a_keypoint():
         assert renders[cam].label[v, u] == LABELS["instrument"]
 
 
+def test_a_tip_dipped_into_the_tissue_is_hidden_the_rest_seen():
+    """The needle tilted about B so that its sharp tip A lies 0.2 mm inside the (flat) tissue, less
+    than the 1.5 wire radii the rule used to let through: A hidden in both cameras, B..E seen."""
+    rig = StereoRig.default(640, 360)
+    renderer = AltRenderer(rig)
+    needle = NeedleModel()
+    T0 = make_T(np.eye(3), [0, 0, 0.0006])
+    A0, B = transform_points(T0, needle.keypoints()[:2])
+    v = A0 - B
+    tilt = np.arcsin(0.0008 / np.linalg.norm(v[:2]))                 # A from 0.6 mm above to 0.2 mm under
+    R = rotvec_to_R(np.cross([0.0, 0.0, 1.0], v) / np.linalg.norm(v[:2]) * tilt)
+    T_world_needle = make_T(R, B - R @ B) @ T0
+    P = transform_points(T_world_needle, needle.keypoints())
+    assert P[0, 2] == pytest.approx(-0.0002, abs=1e-9) and np.all(P[1:, 2] >= 0.0006 - 1e-12)
+    for T_world_ecm in (_looking_down(0.12), _looking_down(0.1, roll=1.0)):
+        scene = _scene(T_world_needle)
+        gt = renderer.ground_truth(scene, T_world_ecm, renderer.render(scene, T_world_ecm))
+        for cam in ("left", "right"):
+            assert gt["visible"][cam].tolist() == [False, True, True, True, True], cam
+
+
 def test_one_renderer_follows_each_scene_it_is_given():
     rig = StereoRig.default(320, 180)
     T_world_ecm = _looking_down(0.12)
