@@ -122,19 +122,16 @@ class GlobalNet(nn.Module):
         return self.head(f)
 
 
-class CropNet(nn.Module):
-    """Stage 2 on the crop: heatmaps (N, 6, m, m) = 5 keypoint logits + centreline logit,
-    and the presence logit (N,)."""
+class UNetCropHeads(nn.Module):
+    """What both stage-2 networks put on their encoder's features at strides 2, 4, 8 and the deepest
+    (16, or 8 when the encoder stops there): a U-Net decoder to the heatmaps, the presence logit on
+    the deepest features' mean and max, and the crop's descriptor. Its layers are attributes of the
+    network itself (the weights files' keys: ``d3``, ``l4``, ``head``, ``presence`` ...)."""
 
-    def __init__(self, widths=(16, 32, 48, 80), out_stride: int = 1, n_out: int = N_KP + 1):
-        super().__init__()
-        w0, w1, w2, w3 = widths
+    def build_heads(self, w0: int, w1: int, w2: int, w3: int, n_out: int, out_stride: int,
+                    deepest_stride: int = 16) -> None:
         self.out_stride = out_stride
-        self.e1 = nn.Sequential(cbr(3, w0, 2), cbr(w0, w0))                      # /2
-        self.e2 = nn.Sequential(cbr(w0, w1, 2), cbr(w1, w1))                     # /4
-        self.e3 = nn.Sequential(cbr(w1, w2, 2), cbr(w2, w2))                     # /8
-        self.e4 = nn.Sequential(cbr(w2, w3, 2), cbr(w3, w3, dilation=2))         # /16
-        self.l4 = nn.Conv2d(w3, w2, 1)
+        self.l4 = nn.Conv2d(w3, w2, 1) if deepest_stride == 16 else None
         self.d3 = cbr(w2, w2)
         self.l3 = nn.Conv2d(w2, w1, 1)
         self.d2 = cbr(w1, w1)
@@ -143,27 +140,44 @@ class CropNet(nn.Module):
         self.head = heatmap_head(w0, n_out, out_stride)
         self.presence = nn.Linear(2 * w3, 1)
 
+    def heads(self, a, b, c, d):
+        """(heatmaps, presence logit, descriptor) from the features at strides 2, 4, 8 and the
+        deepest. The descriptor (``common.detector.familiarity``): the spatial mean and standard
+        deviation of the stride 4 and 8 features (the look: colour, light, texture) and the deepest
+        features' mean and max (what the presence head reads)."""
+        deep = torch.cat([d.mean((2, 3)), d.amax((2, 3))], 1)
+        pres = self.presence(deep)[:, 0]
+        feat = torch.cat([b.mean((2, 3)), b.std((2, 3)), c.mean((2, 3)), c.std((2, 3)), deep], 1)
+        u = c if self.l4 is None else c + F.interpolate(self.l4(d), scale_factor=2.0, mode="nearest")
+        u = self.d3(u)
+        u = self.d2(F.interpolate(self.l3(u), scale_factor=2.0, mode="nearest") + b)
+        u = self.d1(F.interpolate(self.l2(u), scale_factor=2.0, mode="nearest") + a)
+        return self.head(u), pres, feat
+
     def forward(self, x: torch.Tensor):
         heat, pres, _ = self.forward_features(x)
         return heat, pres
 
+
+class CropNet(UNetCropHeads):
+    """Stage 2 on the crop: heatmaps (N, 6, m, m) = 5 keypoint logits + centreline logit,
+    and the presence logit (N,)."""
+
+    def __init__(self, widths=(16, 32, 48, 80), out_stride: int = 1, n_out: int = N_KP + 1):
+        super().__init__()
+        w0, w1, w2, w3 = widths
+        self.e1 = nn.Sequential(cbr(3, w0, 2), cbr(w0, w0))                      # /2
+        self.e2 = nn.Sequential(cbr(w0, w1, 2), cbr(w1, w1))                     # /4
+        self.e3 = nn.Sequential(cbr(w1, w2, 2), cbr(w2, w2))                     # /8
+        self.e4 = nn.Sequential(cbr(w2, w3, 2), cbr(w3, w3, dilation=2))         # /16
+        self.build_heads(w0, w1, w2, w3, n_out, out_stride)
+
     def forward_features(self, x: torch.Tensor):
-        """(heatmaps, presence logit, the crop's descriptor (N, 2 (w1 + w2 + w3)): the spatial
-        mean and standard deviation of the /4 and /8 encoder features (the look: colour, light,
-        texture) and the deepest features' mean and max (what the presence head reads);
-        ``common.detector.familiarity``)."""
-        x = _normalise(x)
-        a = self.e1(x)
+        """(heatmaps, presence logit, the crop's descriptor (N, 2 (w1 + w2 + w3)); ``UNetCropHeads.heads``)."""
+        a = self.e1(_normalise(x))
         b = self.e2(a)
         c = self.e3(b)
-        d = self.e4(c)
-        deep = torch.cat([d.mean((2, 3)), d.amax((2, 3))], 1)
-        pres = self.presence(deep)[:, 0]
-        feat = torch.cat([b.mean((2, 3)), b.std((2, 3)), c.mean((2, 3)), c.std((2, 3)), deep], 1)
-        u = self.d3(F.interpolate(self.l4(d), scale_factor=2.0, mode="nearest") + c)
-        u = self.d2(F.interpolate(self.l3(u), scale_factor=2.0, mode="nearest") + b)
-        u = self.d1(F.interpolate(self.l2(u), scale_factor=2.0, mode="nearest") + a)
-        return self.head(u), pres, feat
+        return self.heads(a, b, c, self.e4(c))
 
 
 def heatmap_head(cin: int, n_out: int, out_stride: int) -> nn.Module:
@@ -176,7 +190,7 @@ def heatmap_head(cin: int, n_out: int, out_stride: int) -> nn.Module:
     raise ValueError(f"out_stride must be 1 or 2, got {out_stride}")
 
 
-class PretrainedCropNet(nn.Module):
+class PretrainedCropNet(UNetCropHeads):
     """Stage 2 on EfficientNet-Lite0's ImageNet-pretrained trunk (``common.detector.backbone``) cut at
     stride ``cut``, with a U-Net decoder over its stride 8, 4 and 2 features; the same outputs as
     ``CropNet`` (heatmaps, presence logit, descriptor)."""
@@ -186,36 +200,15 @@ class PretrainedCropNet(nn.Module):
         from common.detector.backbone import LEVELS, EfficientLiteTrunk
         if cut not in (8, 16):
             raise ValueError(f"backbone_cut must be 8 or 16, got {cut}")
-        self.out_stride, self.cut = out_stride, cut
+        self.cut = cut
         self.trunk = EfficientLiteTrunk(cut, frozen)
-        w0, w1, w2, w3 = LEVELS[2], LEVELS[4], LEVELS[8], LEVELS[cut]
-        self.l4 = nn.Conv2d(w3, w2, 1) if cut == 16 else None
-        self.d3 = cbr(w2, w2)
-        self.l3 = nn.Conv2d(w2, w1, 1)
-        self.d2 = cbr(w1, w1)
-        self.l2 = nn.Conv2d(w1, w0, 1)
-        self.d1 = cbr(w0, w0)
-        self.head = heatmap_head(w0, n_out, out_stride)
-        self.presence = nn.Linear(2 * w3, 1)
-
-    def forward(self, x: torch.Tensor):
-        heat, pres, _ = self.forward_features(x)
-        return heat, pres
+        self.build_heads(LEVELS[2], LEVELS[4], LEVELS[8], LEVELS[cut], n_out, out_stride, cut)
 
     def forward_features(self, x: torch.Tensor):
-        """As ``CropNet.forward_features``: the descriptor is the spatial mean and standard deviation of
-        the stride 4 and 8 features and the deepest features' mean and max."""
+        """(heatmaps, presence logit, descriptor; ``UNetCropHeads.heads``) on the trunk's features."""
         from common.detector.backbone import normalise
         f = self.trunk(normalise(x))
-        a, b, c, d = f[2], f[4], f[8], f[self.cut]
-        deep = torch.cat([d.mean((2, 3)), d.amax((2, 3))], 1)
-        pres = self.presence(deep)[:, 0]
-        feat = torch.cat([b.mean((2, 3)), b.std((2, 3)), c.mean((2, 3)), c.std((2, 3)), deep], 1)
-        u = c if self.l4 is None else c + F.interpolate(self.l4(d), scale_factor=2.0, mode="nearest")
-        u = self.d3(u)
-        u = self.d2(F.interpolate(self.l3(u), scale_factor=2.0, mode="nearest") + b)
-        u = self.d1(F.interpolate(self.l2(u), scale_factor=2.0, mode="nearest") + a)
-        return self.head(u), pres, feat
+        return self.heads(f[2], f[4], f[8], f[self.cut])
 
 
 class PretrainedGlobalNet(nn.Module):
