@@ -10,7 +10,7 @@ from typing import Optional
 
 import numpy as np
 
-from common.methods import METHOD_COLOURS
+from common import palette
 from common.geometry.transforms import pose_error
 
 SERIES = ("pos_err_mm", "rot_err_deg", "rate_hz", "latency_ms", "confidence")
@@ -77,7 +77,7 @@ class ViewerState:
         """The page's ``state.json``: head line, per-method rows, series (t relative to ``now``)."""
         for m, row in self.methods.items():
             row["rate_hz"] = round(self.rates[m].rate(now), 1)
-        colours = dict(METHOD_COLOURS, left="#ffdc00", right="#ff8c00")
+        colours = palette.page_colours()
         series = {name: {k: [[round(t - now, 2), v] for t, v in d] for k, d in lines.items() if d}
                   for name, lines in self.series.items()}
         return {"head": self.head, "methods": dict(sorted(self.methods.items())),
