@@ -12,7 +12,7 @@ What ``draw_fig1`` draws on one camera's image:
 - the needle's axes at its origin (x red, y green, z blue, one radius long);
 - every other method's arc (thin, its colour);
 - the detector's keypoints (yellow circles);
-- the ground truth's arc and keypoints (green crosses, thin, over the estimates) when known;
+- the ground truth's arc and keypoints (green crosses) when known;
 - each instrument's jaw frame (``InstrumentToDraw``): its axes (x red, y green, z blue, 5 mm)
   at the jaws' pivot, labelled with its name; the one that holds the needle ringed and labelled
   "holds".
@@ -183,6 +183,11 @@ def draw_fig1(img: np.ndarray, scale: float, cam, needle: NeedleModel, poses: di
     arc, kps = needle.sample_arc(48), needle.keypoints()
     lw = max(1, int(round(2 * max(1.0, out.shape[1] / 960))))
     draw_instruments(out, scale, cam, instruments, offset, max(1, lw // 2))
+    if T_true is not None:
+        _polyline(out, project(cam, T_true, arc, scale, offset), TRUTH_BGR, 1)
+        for p in project(cam, T_true, kps, scale, offset):
+            if np.all(np.isfinite(p)):
+                cv2.drawMarker(out, _ipt(p), TRUTH_BGR, cv2.MARKER_CROSS, 10, 1)
     for m, pose in poses.items():
         if m != final and pose is not None:
             _polyline(out, project(cam, pose.T_ecm_needle, arc, scale, offset), method_bgr(m), lw,
@@ -208,11 +213,6 @@ def draw_fig1(img: np.ndarray, scale: float, cam, needle: NeedleModel, poses: di
                     cv2.arrowedLine(out, _ipt(o), _ipt(e), c, lw, cv2.LINE_AA, tipLength=0.15)
         if pose.ambiguous:
             _label(out, "AMBIGUOUS", (8, out.shape[0] - 10), AMBIGUOUS_BGR, 0.6)
-    if T_true is not None:
-        _polyline(out, project(cam, T_true, arc, scale, offset), TRUTH_BGR, 1)
-        for p in project(cam, T_true, kps, scale, offset):
-            if np.all(np.isfinite(p)):
-                cv2.drawMarker(out, _ipt(p), TRUTH_BGR, cv2.MARKER_CROSS, 10, 1)
     for i, line in enumerate(caption.split("\n") if caption else ()):
         _label(out, line, (8, 20 + 20 * i), TEXT_BGR, 0.5)
     return out

@@ -30,8 +30,9 @@ PAGE = """<!doctype html>
             background:#000; min-height:100px}
  .lower {flex:1 1 0; min-height:180px; display:flex; gap:8px}
  .side {flex:0 0 auto; display:flex; flex-direction:column; gap:6px; overflow:hidden}
- table {border-collapse:collapse} td,th {padding:1px 8px; text-align:right}
- .legend {padding:6px 8px; display:flex; flex-direction:column; gap:3px; overflow:hidden}
+ table {border-collapse:collapse} td,th {padding:1px 8px; text-align:right} td.note {text-align:left; max-width:10em}
+ .legend {padding:2px 8px; display:flex; flex-wrap:wrap; gap:3px 16px; max-width:600px}
+ #plot_confidence {grid-column:span 2}
  .legend span {white-space:nowrap} .legend i {display:inline-block; width:18px; height:3px; margin:0 5px 3px 0;
                vertical-align:middle}
  .plots {flex:1 1 0; min-width:0; display:grid; grid-template-columns:repeat(3, minmax(0, 1fr));
@@ -43,7 +44,7 @@ PAGE = """<!doctype html>
 <div>needletrack · <span id="head">waiting for frames…</span> · <a id="rr" href="#">3D view (Rerun)</a></div>
 <div class="cams"><img id="left" src="left.jpg" alt="left camera"><img id="right" src="right.jpg" alt="right camera"></div>
 <div class="lower">
- <div class="side"><table id="tab"></table></div>
+ <div class="side"><table id="tab"></table><div class="legend" id="legend"></div></div>
  <div class="plots" id="plots"></div>
 </div>
 <script>
@@ -51,11 +52,11 @@ const POLL = @POLL_MS@, RR = @RERUN_URL@;
 if (RR) document.getElementById('rr').href = RR; else document.getElementById('rr').remove();
 // series key, title, unit, y scale: log (errors span decades), lin (from 0), unit (0 to 1)
 const PLOTS = [["pos_err_mm", "position error", "mm", "log"], ["rot_err_deg", "orientation error", "deg", "log"],
-               ["rate_hz", "pose rate", "Hz", "lin"], ["latency_ms", "latency, frame to viewer", "ms", "lin"],
+               ["rate_hz", "pose rate", "Hz", "lin"], ["latency_ms", "latency", "ms", "lin"],
                ["confidence", "detector confidence", "", "unit"]];
 const plotsEl = document.getElementById('plots');
 for (const [k] of PLOTS) { const d = document.createElement('div'); d.className = 'plot'; d.id = 'plot_' + k; plotsEl.appendChild(d); }
-const legendEl = document.createElement('div'); legendEl.className = 'plot legend'; legendEl.id = 'legend'; plotsEl.appendChild(legendEl);
+const legendEl = document.getElementById('legend');
 function niceStep(span, n) {
   const raw = span / n, p = Math.pow(10, Math.floor(Math.log10(raw))), f = raw / p;
   return (f < 1.5 ? 1 : f < 3.5 ? 2 : f < 7.5 ? 5 : 10) * p;
@@ -105,10 +106,10 @@ function legend(st) {
   const methods = new Set(Object.keys(st.methods || {})), cams = new Set();
   for (const k in (st.series || {})) for (const n in st.series[k]) (k === 'confidence' ? cams : methods).add(n);
   const item = (n, text) => `<span><i style="background:${st.colours[n] || '#fff'}"></i>${text}</span>`;
-  let h = '<span class="title">legend</span>';
+  let h = '';
   h += [...methods].sort((a, b) => (b === st.final) - (a === st.final) || a.localeCompare(b))
     .map(n => item(n, n + (n === st.final ? ' (final, thick)' : ''))).join('');
-  h += [...cams].sort().map(n => item(n, n + ' camera (detector confidence)')).join('');
+  h += [...cams].sort().map(n => item(n, n + ' camera (confidence)')).join('');
   if (st.colours.truth) h += item('truth', 'truth (on the pictures)');
   legendEl.innerHTML = h;
 }
@@ -118,7 +119,7 @@ async function tick() {
     document.getElementById('head').textContent = st.head || '';
     const rows = Object.entries(st.methods || {});
     let h = '<tr><th style="text-align:left">method</th><th>seq</th><th>x,y,z (mm)</th><th>err mm</th><th>err deg</th><th>poses/s</th><th>latency ms</th><th></th></tr>';
-    for (const [m, r] of rows) h += `<tr style="color:${st.colours[m] || '#fff'}"><td style="text-align:left">${m}</td><td>${r.seq}</td><td>${r.t_mm}</td><td>${r.pos_err_mm ?? '—'}</td><td>${r.rot_err_deg ?? '—'}</td><td>${r.rate_hz}</td><td>${r.latency_ms}</td><td>${r.ambiguous ? 'ambiguous' + (r.tip_p != null ? ` (tip p ${r.tip_p})` : '') : ''}</td></tr>`;
+    for (const [m, r] of rows) h += `<tr style="color:${st.colours[m] || '#fff'}"><td style="text-align:left">${m}</td><td>${r.seq}</td><td>${r.t_mm}</td><td>${r.pos_err_mm ?? '—'}</td><td>${r.rot_err_deg ?? '—'}</td><td>${r.rate_hz}</td><td>${r.latency_ms}</td><td class="note">${r.ambiguous ? 'ambiguous' + (r.tip_p != null ? ` (tip p ${r.tip_p})` : '') : ''}</td></tr>`;
     document.getElementById('tab').innerHTML = h;
     if (st.colours) {
       legend(st);

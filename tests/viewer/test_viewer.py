@@ -107,11 +107,7 @@ def test_fig1_draws_the_final_arc_truth_detections_and_ambiguity():
     assert _count(truth_only, TRUTH_BGR) > 20
     amb = draw_fig1(img, 0.5, cam, NEEDLE, {"refined": PoseToDraw(T_NEEDLE, ambiguous=True)}, "refined")
     assert _count(amb, AMBIGUOUS_BGR, 10) > 30                # the AMBIGUOUS label
-    solid = draw_fig1(img, 0.5, cam, NEEDLE, {"refined": PoseToDraw(T_NEEDLE)}, "refined")
-    assert _count(amb, method_bgr("refined")) < _count(solid, method_bgr("refined"))   # dashed
-    # the truth, thin, is drawn over the estimates: seen even where the final pose is exact
-    on_arc = np.round(project(cam, T_NEEDLE, NEEDLE.sample_arc(48), 0.5)).astype(int)
-    assert sum(_count(pic[y:y + 1, x:x + 1], TRUTH_BGR) for x, y in on_arc) > 24
+    assert _count(amb, method_bgr("refined")) < _count(pic, method_bgr("refined"))   # dashed
 
 
 def test_fig1_draws_each_instruments_jaw_frame_and_rings_the_holder():
