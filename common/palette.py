@@ -18,10 +18,12 @@ AMBIGUOUS = "#ff8c00"             # the AMBIGUOUS label (orange)
 HOLDER = "#c0ff00"                # the instrument that holds the needle: ring and label (chartreuse)
 TEXT = "#ffffff"                  # captions, labels, the zoomed inset's frame
 AXES = ("#e62828", "#3cc83c", "#2878e6")   # a frame's x, y, z axes (red, green, blue)
-CAMERA_LINES = {"left": "#ffdc00", "right": "#ff8c00"}   # per-camera plot lines (detector confidence)
+CAMERA_LINES = {"left": "#ffdc00", "right": "#e0e0e0"}   # per-camera plot lines (detector confidence)
 UNKNOWN = "#ffffff"               # a method not in the registry
-DISTINCT_FROM_METHODS = {"truth": TRUTH, "detection": DETECTION, "holder": HOLDER}
-"""What is drawn beside the methods' arcs on the same picture, and must not be mistaken for one."""
+DISTINCT_FROM_METHODS = {"truth": TRUTH, "detection": DETECTION, "holder": HOLDER,
+                         **{f"{c} camera": v for c, v in CAMERA_LINES.items()}}
+"""What is drawn beside the methods' arcs on the same picture, or listed with them in the page's
+legend, and must not be mistaken for one."""
 
 
 def method(name: str) -> str:

@@ -65,7 +65,7 @@ function fmt(v) { return Math.abs(v) >= 100 || v === 0 ? v.toFixed(0) : String(+
 function plot(el, series, [key, title, unit, scale], colours, keep) {
   const W = Math.max(160, el.clientWidth), H = Math.max(80, el.clientHeight);
   const L = 48, R = 12, T = 20, B = 32, pw = W - L - R, ph = H - T - B;
-  let s = `<svg width="${W}" height="${H}"><text class="title" x="${L}" y="14">${title}${unit ? ' (' + unit + ')' : ''}</text>`;
+  let s = `<svg width="${W}" height="${H}"><text class="title" x="6" y="14">${title}${unit ? ' (' + unit + ')' : ''}</text>`;
   const names = Object.keys(series || {});
   let lo = Infinity, hi = -Infinity;
   for (const n of names) for (const [t, v] of series[n]) if (scale !== 'log' || v > 0) { lo = Math.min(lo, v); hi = Math.max(hi, v); }
