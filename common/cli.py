@@ -31,6 +31,7 @@ COMMANDS = {
     "record": ("common.ros.record:record_main", "record a running graph to MCAP with ROS 2 schemas"),
     "label": ("common.label.server:main", "label a dataset folder's frames by hand in the browser (docs/label.md)"),
     "view": ("common.viewer.cli:main", "open a recording (.rrd) in Rerun's web viewer on 127.0.0.1"),
+    "screenshot": ("common.viewer.shot:main", "launch a graph briefly and screenshot its viewer's page (docs/launch.png)"),
 }
 
 BENCHES = {

@@ -16,7 +16,7 @@ class PoseMethod:
     """One way to estimate ``T_ecm_needle``.
 
     ``output``: the node output that publishes it in the graphs ``needletrack eval`` runs
-    (``node/output``); ``colour``: matplotlib hex colour in figures and the viewer; ``rank``:
+    (``node/output``); ``colour``: its hex colour in figures and the viewer (``common.palette``: the rest); ``rank``:
     lower leads (the final output is the first present); ``fuses``: the single-frame method a
     multi-view method fuses (None: a single-frame method); ``always_reported``: in every
     ``results.json`` (the paper's Table III and ``pnp_joint``), else only when produced;
@@ -48,7 +48,7 @@ REGISTRY = (
     PoseMethod("refined", "refine/pose", "#17becf", 1, label="dense arc fit, with a covariance"),
     PoseMethod("multiview_refined", "fusion_refined/pose", "#8c564b", 2, fuses="refined",
                label="fusion of refined poses"),
-    PoseMethod("tracked", "tracker/pose", "#2ca02c", 0,
+    PoseMethod("tracked", "tracker/pose", "#ff00ff", 0,
                label="refined poses filtered over time: at rest, in the jaws, free"),
 )
 BY_NAME = {m.name: m for m in REGISTRY}

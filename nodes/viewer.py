@@ -118,6 +118,7 @@ class ViewerNode(PoseMethodInputs, Node):
         self.rig = self.needle = self.arm = None
         self.calib_key = None
         self.state = ViewerState()
+        self.state.final = self.final
         self.rec = self.web = None
         rerun_url = None
         if p.rerun:

@@ -1,6 +1,6 @@
 """An evaluation's overlays (``overlays/`` of ``common/evaluation/report.py``): per chosen frame
 (``select_overlay_frames``: the worst, a typical and the best), a crop of the left and right
-images around the needle: the true arc and keypoints in green (``TRUTH_BGR``), each method's
+images around the needle: the true arc and keypoints in green (``common.palette``), each method's
 estimated arc in its colour, and the detector's keypoints as circles. Pixels as OpenCV's, BGR.
 """
 from __future__ import annotations
@@ -14,15 +14,11 @@ from common.evaluation.collect import Collected, Evaluation
 from common.frames import CAMERAS
 from common.geometry.needle import KEYPOINT_NAMES, NeedleModel
 from common.geometry.transforms import transform_points
-from common.methods import FINAL_ORDER, METHOD_COLOURS, MULTIVIEW_METHODS
+from common import palette
+from common.methods import FINAL_ORDER, MULTIVIEW_METHODS
 
-TRUTH_BGR = (60, 200, 60)
-
-
-def _bgr(hex_colour: str) -> tuple:
-    h = hex_colour.lstrip("#")
-    r, g, b = (int(h[i:i + 2], 16) for i in (0, 2, 4))
-    return (b, g, r)
+TRUTH_BGR = palette.bgr(palette.TRUTH)
+DETECTION_BGR = palette.bgr(palette.DETECTION)
 
 
 def select_overlay_frames(ev: Evaluation, k_worst: int = 3) -> list[tuple[int, str]]:
@@ -122,20 +118,20 @@ def draw_overlay(images: dict, rig, needle: NeedleModel, T_true, estimates: dict
                 cv2.drawMarker(canvas, tuple(int(c) for c in to_px(p)), TRUTH_BGR,
                                cv2.MARKER_CROSS, 14, 2)
         for m, uv in est.items():
-            polyline(uv, _bgr(METHOD_COLOURS.get(m, "#ffffff")), 1)
+            polyline(uv, palette.bgr(palette.method(m)), 1)
         if det is not None:
             for name, p in zip(KEYPOINT_NAMES, np.asarray(det, float).reshape(5, 2)):
                 if np.all(np.isfinite(p)):
                     q = tuple(int(c) for c in to_px(p))
-                    cv2.circle(canvas, q, 6, (0, 220, 255), 1, cv2.LINE_AA)
+                    cv2.circle(canvas, q, 6, DETECTION_BGR, 1, cv2.LINE_AA)
                     cv2.putText(canvas, name, (q[0] + 7, q[1] - 7), cv2.FONT_HERSHEY_SIMPLEX, 0.45,
-                                (0, 220, 255), 1, cv2.LINE_AA)
+                                DETECTION_BGR, 1, cv2.LINE_AA)
         cv2.putText(canvas, cam_name, (8, 20), cv2.FONT_HERSHEY_SIMPLEX, 0.6, (255, 255, 255), 1,
                     cv2.LINE_AA)
         panels.append(canvas)
     body = np.concatenate([panels[0], np.full((panel_px, 4, 3), 255, np.uint8), panels[1]], axis=1)
-    rows = [("truth (arc, + keypoints)", TRUTH_BGR), ("detector keypoints (o)", (0, 220, 255))]
-    rows += [(m, _bgr(METHOD_COLOURS.get(m, "#ffffff"))) for m in estimates]
+    rows = [("truth (arc, + keypoints)", TRUTH_BGR), ("detector keypoints (o)", DETECTION_BGR)]
+    rows += [(m, palette.bgr(palette.method(m))) for m in estimates]
     head = title.split("\n")
     legend = np.zeros((12 + 20 * len(head) + 20 * ((len(rows) + 2) // 3), body.shape[1], 3), np.uint8)
     for i, line in enumerate(head):

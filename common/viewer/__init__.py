@@ -1,3 +1,4 @@
 """The live viewer: drawing (``draw``), numbers (``state``), the plain page
 (``page``; its HTTP request heads ``http_request``), Rerun logging (``rerun_log``, needs the ``viewer`` extra), a headless-Chromium
-screenshot (``browser``) and ``needletrack view`` (``cli``). The node is ``nodes/viewer.py``."""
+screenshot (``browser``), ``needletrack screenshot`` (``shot``) and ``needletrack view`` (``cli``). Colours:
+``common.palette``. The node is ``nodes/viewer.py``."""

@@ -28,20 +28,21 @@ from typing import Optional
 import cv2
 import numpy as np
 
-from common.evaluation.overlays import TRUTH_BGR, _bgr, crop_box
-from common.methods import METHOD_COLOURS
+from common import palette
+from common.evaluation.overlays import crop_box
 from common.geometry.needle import KEYPOINT_NAMES, NeedleModel
 from common.geometry.transforms import inv_T, transform_points
 
-DETECTION_BGR = (0, 220, 255)
-AMBIGUOUS_BGR = (0, 140, 255)
-AXIS_BGR = ((40, 40, 230), (60, 200, 60), (230, 120, 40))     # x red, y green, z blue
-TEXT_BGR = (255, 255, 255)
+TRUTH_BGR = palette.bgr(palette.TRUTH)
+DETECTION_BGR = palette.bgr(palette.DETECTION)
+AMBIGUOUS_BGR = palette.bgr(palette.AMBIGUOUS)
+AXIS_BGR = tuple(palette.bgr(c) for c in palette.AXES)     # x red, y green, z blue
+TEXT_BGR = palette.bgr(palette.TEXT)
 
 
 def method_bgr(method: str) -> tuple:
     """A method's colour (as in the evaluation's figures), BGR."""
-    return _bgr(METHOD_COLOURS.get(method, "#ffffff"))
+    return palette.bgr(palette.method(method))
 
 
 def fit_size(width: int, height: int, max_width: int, max_height: int) -> tuple[int, int]:
@@ -125,7 +126,7 @@ def _label(img, text, org, colour, size=0.45) -> None:
 
 
 JAW_AXIS_M = 0.005
-HOLDER_BGR = (255, 0, 255)
+HOLDER_BGR = palette.bgr(palette.HOLDER)
 
 
 @dataclass

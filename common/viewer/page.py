@@ -1,7 +1,9 @@
 """The viewer's own web page: the Fig. 1 picture, the numbers and small plots, served on a
 loopback port (no WebGL: it renders in any browser, headless included).
 
-- ``/``: the page; it polls the two below (``poll_ms``) and draws the plots as SVG;
+- ``/``: the page; it polls the two below (``poll_ms``) and draws the plots as SVG: the last
+  ``keep_s`` seconds of each series with axes, ticks and units (errors on a log scale), a legend
+  of the lines, laid out to fill the window's height;
 - ``/left.jpg``, ``/right.jpg``: each camera's newest picture (JPEG; 503 before the first);
 - ``/state.json``: the newest numbers and the time series (``ViewerState.to_json``).
 
@@ -20,31 +22,96 @@ from common.viewer.http_server import Answer, HttpServer
 PAGE = """<!doctype html>
 <html><head><meta charset="utf-8"><title>needletrack viewer</title>
 <style>
- body {background:#111; color:#ddd; font:13px monospace; margin:8px}
- .cams {display:flex; gap:4px} .cams img {width:50%; max-width:960px; background:#000; min-height:100px}
- table {border-collapse:collapse; margin:6px 0} td,th {padding:1px 8px; text-align:right}
- .plots {display:flex; flex-wrap:wrap; gap:8px} .plot {background:#1b1b1b; padding:4px}
+ html, body {height:100%} * {box-sizing:border-box}
+ body {background:#111; color:#ddd; font:13px monospace; margin:0; padding:6px 8px;
+       display:flex; flex-direction:column; gap:4px}
+ .cams {display:flex; gap:4px; flex:0 1 auto; min-height:0; max-height:58vh}
+ .cams img {width:50%; max-width:960px; max-height:58vh; object-fit:contain; object-position:left top;
+            background:#000; min-height:100px}
+ .lower {flex:1 1 0; min-height:180px; display:flex; gap:8px}
+ .side {flex:0 0 auto; display:flex; flex-direction:column; gap:6px; overflow:hidden}
+ table {border-collapse:collapse} td,th {padding:1px 8px; text-align:right} td.note {text-align:left; max-width:10em}
+ .legend {padding:2px 8px; display:flex; flex-wrap:wrap; gap:3px 16px; max-width:600px}
+ #plot_confidence {grid-column:span 2}
+ .legend span {white-space:nowrap} .legend i {display:inline-block; width:18px; height:3px; margin:0 5px 3px 0;
+               vertical-align:middle}
+ .plots {flex:1 1 0; min-width:0; display:grid; grid-template-columns:repeat(3, minmax(0, 1fr));
+         grid-template-rows:repeat(2, minmax(0, 1fr)); gap:6px}
+ .plot {background:#1b1b1b; min-height:0; min-width:0; overflow:hidden} .plot svg {display:block}
+ svg text {font:11px monospace; fill:#aaa} svg .title {fill:#ddd; font-size:12px}
  a {color:#7cf}
 </style></head><body>
 <div>needletrack · <span id="head">waiting for frames…</span> · <a id="rr" href="#">3D view (Rerun)</a></div>
 <div class="cams"><img id="left" src="left.jpg" alt="left camera"><img id="right" src="right.jpg" alt="right camera"></div>
-<table id="tab"></table>
-<div class="plots" id="plots"></div>
+<div class="lower">
+ <div class="side"><table id="tab"></table><div class="legend" id="legend"></div></div>
+ <div class="plots" id="plots"></div>
+</div>
 <script>
 const POLL = @POLL_MS@, RR = @RERUN_URL@;
 if (RR) document.getElementById('rr').href = RR; else document.getElementById('rr').remove();
-const PLOTS = [["pos_err_mm","position error (mm)"],["rot_err_deg","orientation error (deg)"],
-               ["rate_hz","poses/s"],["latency_ms","latency (ms)"],["confidence","detector confidence"]];
-function plot(series, title, colours) {
-  const W = 300, H = 110, names = Object.keys(series);
-  let t0 = Infinity, t1 = -Infinity, v1 = 1e-9;
-  for (const n of names) for (const [t, v] of series[n]) { t0 = Math.min(t0, t); t1 = Math.max(t1, t); v1 = Math.max(v1, v); }
-  let s = `<svg width="${W}" height="${H}"><text x="4" y="12" fill="#ccc">${title} (max ${v1.toPrecision(3)})</text>`;
+// series key, title, unit, y scale: log (errors span decades), lin (from 0), unit (0 to 1)
+const PLOTS = [["pos_err_mm", "position error", "mm", "log"], ["rot_err_deg", "orientation error", "deg", "log"],
+               ["rate_hz", "pose rate", "Hz", "lin"], ["latency_ms", "latency", "ms", "lin"],
+               ["confidence", "detector confidence", "", "unit"]];
+const plotsEl = document.getElementById('plots');
+for (const [k] of PLOTS) { const d = document.createElement('div'); d.className = 'plot'; d.id = 'plot_' + k; plotsEl.appendChild(d); }
+const legendEl = document.getElementById('legend');
+function niceStep(span, n) {
+  const raw = span / n, p = Math.pow(10, Math.floor(Math.log10(raw))), f = raw / p;
+  return (f < 1.5 ? 1 : f < 3.5 ? 2 : f < 7.5 ? 5 : 10) * p;
+}
+function fmt(v) { return Math.abs(v) >= 100 || v === 0 ? v.toFixed(0) : String(+v.toPrecision(3)); }
+function plot(el, series, [key, title, unit, scale], colours, keep) {
+  const W = Math.max(160, el.clientWidth), H = Math.max(80, el.clientHeight);
+  const L = 48, R = 12, T = 20, B = 32, pw = W - L - R, ph = H - T - B;
+  let s = `<svg width="${W}" height="${H}"><text class="title" x="6" y="14">${title}${unit ? ' (' + unit + ')' : ''}</text>`;
+  const names = Object.keys(series || {});
+  let lo = Infinity, hi = -Infinity;
+  for (const n of names) for (const [t, v] of series[n]) if (scale !== 'log' || v > 0) { lo = Math.min(lo, v); hi = Math.max(hi, v); }
+  let ticks = [], y;
+  if (scale === 'log') {
+    const floor = 0.01, a = Math.floor(Math.log10(Math.max(Math.min(lo, hi), floor))), b = Math.max(a + 1, Math.ceil(Math.log10(Math.max(hi, floor))));
+    for (let k = a; k <= b; k++) ticks.push(Math.pow(10, k));
+    y = v => T + ph * (1 - (Math.log10(Math.max(v, Math.pow(10, a))) - a) / (b - a));
+  } else {
+    let top = scale === 'unit' ? 1 : Math.max(hi > -Infinity ? hi : 1, 1e-9);
+    const step = niceStep(top, 4); top = Math.ceil(top / step - 1e-9) * step;
+    for (let i = 0; i * step <= top * (1 + 1e-9); i++) ticks.push(i * step);
+    y = v => T + ph * (1 - Math.min(v, top) / top);
+  }
+  const x = t => L + pw * (Math.max(t, -keep) + keep) / keep;
+  for (const v of ticks) {
+    const yy = y(v).toFixed(1);
+    s += `<line x1="${L}" x2="${L + pw}" y1="${yy}" y2="${yy}" stroke="#333"/><line x1="${L - 4}" x2="${L}" y1="${yy}" y2="${yy}" stroke="#888"/>` +
+         `<text x="${L - 6}" y="${+yy + 4}" text-anchor="end">${fmt(v)}</text>`;
+  }
+  const xs = niceStep(keep, 6);
+  for (let t = -keep; t <= 1e-9; t += xs) {
+    const xx = x(t).toFixed(1);
+    s += `<line x1="${xx}" x2="${xx}" y1="${T + ph}" y2="${T + ph + 4}" stroke="#888"/>` +
+         `<text x="${xx}" y="${T + ph + 16}" text-anchor="middle">${fmt(t)}</text>`;
+  }
+  s += `<text x="${L + pw / 2}" y="${H - 3}" text-anchor="middle">time (s)</text>`;
+  s += `<path d="M${L},${T} V${T + ph} H${L + pw}" fill="none" stroke="#888"/>`;
+  if (!names.length) s += `<text x="${L + pw / 2}" y="${T + ph / 2}" text-anchor="middle">no data yet</text>`;
   for (const n of names) {
-    const pts = series[n].map(([t, v]) => `${(4 + (W - 8) * (t - t0) / Math.max(t1 - t0, 1e-9)).toFixed(1)},${(H - 4 - (H - 24) * v / v1).toFixed(1)}`).join(' ');
+    const pts = series[n].filter(([t]) => t >= -keep).map(([t, v]) => `${x(t).toFixed(1)},${y(v).toFixed(1)}`).join(' ');
     s += `<polyline fill="none" stroke="${colours[n] || '#fff'}" stroke-width="1.5" points="${pts}"/>`;
   }
-  return `<div class="plot">${s}</svg></div>`;
+  el.innerHTML = s + '</svg>';
+}
+function legend(st) {
+  // the methods (the final first), then each camera's line, then the truth drawn on the pictures
+  const methods = new Set(Object.keys(st.methods || {})), cams = new Set();
+  for (const k in (st.series || {})) for (const n in st.series[k]) (k === 'confidence' ? cams : methods).add(n);
+  const item = (n, text) => `<span><i style="background:${st.colours[n] || '#fff'}"></i>${text}</span>`;
+  let h = '';
+  h += [...methods].sort((a, b) => (b === st.final) - (a === st.final) || a.localeCompare(b))
+    .map(n => item(n, n + (n === st.final ? ' (final, thick)' : ''))).join('');
+  h += [...cams].sort().map(n => item(n, n + ' camera (confidence)')).join('');
+  if (st.colours.truth) h += item('truth', 'truth (on the pictures)');
+  legendEl.innerHTML = h;
 }
 async function tick() {
   try {
@@ -52,10 +119,12 @@ async function tick() {
     document.getElementById('head').textContent = st.head || '';
     const rows = Object.entries(st.methods || {});
     let h = '<tr><th style="text-align:left">method</th><th>seq</th><th>x,y,z (mm)</th><th>err mm</th><th>err deg</th><th>poses/s</th><th>latency ms</th><th></th></tr>';
-    for (const [m, r] of rows) h += `<tr style="color:${st.colours[m] || '#fff'}"><td style="text-align:left">${m}</td><td>${r.seq}</td><td>${r.t_mm}</td><td>${r.pos_err_mm ?? '—'}</td><td>${r.rot_err_deg ?? '—'}</td><td>${r.rate_hz}</td><td>${r.latency_ms}</td><td>${r.ambiguous ? 'ambiguous' + (r.tip_p != null ? ` (tip p ${r.tip_p})` : '') : ''}</td></tr>`;
+    for (const [m, r] of rows) h += `<tr style="color:${st.colours[m] || '#fff'}"><td style="text-align:left">${m}</td><td>${r.seq}</td><td>${r.t_mm}</td><td>${r.pos_err_mm ?? '—'}</td><td>${r.rot_err_deg ?? '—'}</td><td>${r.rate_hz}</td><td>${r.latency_ms}</td><td class="note">${r.ambiguous ? 'ambiguous' + (r.tip_p != null ? ` (tip p ${r.tip_p})` : '') : ''}</td></tr>`;
     document.getElementById('tab').innerHTML = h;
-    document.getElementById('plots').innerHTML = PLOTS.filter(([k]) => st.series && st.series[k] && Object.keys(st.series[k]).length)
-      .map(([k, title]) => plot(st.series[k], title, st.colours)).join('');
+    if (st.colours) {
+      legend(st);
+      for (const spec of PLOTS) plot(document.getElementById('plot_' + spec[0]), (st.series || {})[spec[0]], spec, st.colours, st.keep_s || 30);
+    }
   } catch (e) {}
   const t = Date.now();
   await Promise.all(['left', 'right'].map(cam => new Promise(done => {

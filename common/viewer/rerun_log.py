@@ -22,12 +22,7 @@ import numpy as np
 
 from common.frames import CAMERAS
 from common.geometry.transforms import transform_points
-from common.viewer.draw import TRUTH_BGR, method_bgr
-
-
-
-def _rgb(bgr) -> list:
-    return [int(bgr[2]), int(bgr[1]), int(bgr[0])]
+from common import palette
 
 
 def blueprint():
@@ -105,9 +100,9 @@ def log_ecm(rec, T_world_ecm: np.ndarray, path_world: Optional[np.ndarray] = Non
 def log_needle(rec, name: str, arc_needle: np.ndarray, T_ecm_needle: np.ndarray,
                ambiguous: bool = False) -> None:
     """The needle's arc (needle-frame points, m) at ``T_ecm_needle`` as ``world/ecm/needle/<name>``
-    (``truth``: green; a method: its colour; ambiguous poses thinner)."""
+    (``truth``: green; a method: its colour, ``common.palette``; ambiguous poses thinner)."""
     import rerun as rr
-    colour = _rgb(TRUTH_BGR) if name == "truth" else _rgb(method_bgr(name))
+    colour = list(palette.rgb(palette.TRUTH if name == "truth" else palette.method(name)))
     pts = transform_points(np.asarray(T_ecm_needle, float), arc_needle)
     rec.log(f"world/ecm/needle/{name}",
             rr.LineStrips3D([pts], colors=[colour], radii=[0.0002 if ambiguous else 0.0004]))
@@ -123,6 +118,6 @@ def log_scalar(rec, series: str, line: str, value: float) -> None:
     key = (rec.get_recording_id(), path)
     if key not in _STYLED:
         _STYLED.add(key)
-        colour = {"left": [255, 220, 0], "right": [255, 140, 0]}.get(line) or _rgb(method_bgr(line))
+        colour = list(palette.rgb(palette.line(line)))
         rec.log(path, rr.SeriesLines(colors=[colour], names=[line]), static=True)
     rec.log(path, rr.Scalars(float(value)))

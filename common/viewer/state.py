@@ -10,7 +10,7 @@ from typing import Optional
 
 import numpy as np
 
-from common.methods import METHOD_COLOURS
+from common import palette
 from common.geometry.transforms import pose_error
 
 SERIES = ("pos_err_mm", "rot_err_deg", "rate_hz", "latency_ms", "confidence")
@@ -43,6 +43,7 @@ class ViewerState:
         self.rates: dict = collections.defaultdict(RateMeter)
         self.series: dict = {k: collections.defaultdict(collections.deque) for k in SERIES}
         self.head = ""
+        self.final: Optional[str] = None      # the method drawn in full (the legend marks it)
 
     def add_point(self, name: str, key: str, t: float, value: float) -> None:
         """Append ``value`` at time ``t`` to series ``name`` line ``key`` (thinned to
@@ -74,11 +75,12 @@ class ViewerState:
         return row
 
     def to_json(self, now: float) -> dict:
-        """The page's ``state.json``: head line, per-method rows, series (t relative to ``now``)."""
+        """The page's ``state.json``: head line, the final method, per-method rows, series (t in s
+        relative to ``now``, over the last ``keep_s``), the colours (``common.palette``)."""
         for m, row in self.methods.items():
             row["rate_hz"] = round(self.rates[m].rate(now), 1)
-        colours = dict(METHOD_COLOURS, left="#ffdc00", right="#ff8c00")
+        colours = palette.page_colours()
         series = {name: {k: [[round(t - now, 2), v] for t, v in d] for k, d in lines.items() if d}
                   for name, lines in self.series.items()}
-        return {"head": self.head, "methods": dict(sorted(self.methods.items())),
-                "series": series, "colours": colours}
+        return {"head": self.head, "final": self.final, "methods": dict(sorted(self.methods.items())),
+                "series": series, "keep_s": self.keep_s, "colours": colours}

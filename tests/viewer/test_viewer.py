@@ -144,7 +144,7 @@ def test_state_rows_errors_rates_and_series():
     assert row["pos_err_mm"] == pytest.approx(1.0, abs=1e-6) and row["rot_err_deg"] == pytest.approx(0, abs=1e-6)
     assert row["rate_hz"] == pytest.approx(10.5, abs=1.0)
     js = st.to_json(now=2.0)
-    assert set(js) == {"head", "methods", "series", "colours"}
+    assert set(js) == {"head", "final", "methods", "series", "keep_s", "colours"} and js["keep_s"] == 5.0
     pts = js["series"]["pos_err_mm"]["refined"]
     assert 8 <= len(pts) <= 11 and pts[-1][0] <= 0                 # thinned to every 0.2 s
     st.add_pose("pnp_joint", 30, T_off, None, 5.0, True, t=3.0, end_identity=0.6234)

@@ -134,3 +134,51 @@ def test_bench_viewer_prints_what_the_viewer_costs(tiny_dataset, tmp_path, capsy
     assert "the viewer's cost (pictures 960x540 at 10 Hz)" in text and "viewer CPU" in text
     r = json.loads(out.read_text())
     assert "viewer" in r["with_viewer"]["per_node"] and "viewer" not in r["per_node"]
+
+
+def test_screenshot_reads_the_viewers_url_and_the_monitors_line():
+    """``needletrack screenshot``'s reading of the launcher's output, and its refusals."""
+    import io
+
+    from common.viewer.shot import LaunchOutput, final_posed
+    sink = io.StringIO()
+    out = LaunchOutput(sink, "viewer", {"monitor"})
+    out.write("[viewer] INFO up\n[other] viewer: http://127.0.0.1:1/\n")
+    assert out.url is None and not out.url_seen.is_set()
+    out.write("[viewer] viewer: http://127.0.0.1:9091/\n[monitor] seq    42 6/6 tracked  t=[1 2 3]mm\n")
+    assert out.url == "http://127.0.0.1:9091/" and out.url_seen.is_set()
+    assert out.monitor_line == "seq    42 6/6 tracked  t=[1 2 3]mm" and "[viewer] INFO up" in sink.getvalue()
+    assert final_posed({"final": "tracked", "methods": {"tracked": {"pos_err_mm": 0.2}}})
+    assert not final_posed({"final": "tracked", "methods": {"tracked": {"pos_err_mm": None}}})
+    assert not final_posed({})
+
+
+def test_screenshot_refuses_a_graph_without_a_viewer(tmp_path, capsys):
+    from common.viewer.shot import main as shot_main
+    g = tmp_path / "g.yaml"
+    g.write_text("graph: g\nnodes:\n  - {id: a, module: counter}\n")
+    if find_chromium() is None:
+        assert shot_main([str(g), "--out", str(tmp_path / "x.png")]) == 2
+        assert "apt-get install -y chromium" in capsys.readouterr().err
+        return
+    assert shot_main([str(g), "--out", str(tmp_path / "x.png")]) == 2
+    assert "no viewer node" in capsys.readouterr().err and not (tmp_path / "x.png").exists()
+
+
+@pytest.mark.browser
+def test_needletrack_screenshot_launches_a_graph_and_shoots_its_page(free_port, tmp_path):
+    """The command that makes docs/launch.png, on a small graph: the PNG shows the final
+    method's arc, and the graph is stopped afterwards."""
+    assert find_chromium() is not None, "needs Debian's chromium: apt-get install -y chromium"
+    from graphtools import cli, prepare_graph
+    from graphtools import free_port as another_port
+    graph = _graph(free_port, another_port(), tmp_path / "s.rrd")
+    graph["nodes"][-1]["params"].pop("save")
+    path = prepare_graph(graph, tmp_path)          # a free Zenoh port, a unique graph name
+    out = tmp_path / "shot.png"
+    res = cli("screenshot", path, "--out", out, "--size", "1300x700", "--settle", "2", "--timeout", "120",
+              timeout=240)
+    assert res.returncode == 0, res.stdout[-3000:] + res.stderr[-3000:]
+    assert "final: pnp_joint" in res.stdout and "[launcher] stopped" in res.stdout
+    rgb = cv2.cvtColor(cv2.imread(str(out)), cv2.COLOR_BGR2RGB)
+    assert rgb.shape == (700, 1300, 3) and _near(rgb[30:360], method_bgr(FINAL)) > 150
