@@ -12,10 +12,10 @@ when the needle's surface at that body point shows in the image:
   is thinner than a pixel, so its pixel may show what lies behind it) minus that footprint (the
   pixel's centre is up to half a pixel from the exact projection);
 - the stretch of the arc it lies on, unhidden, shows in the image: walking along the centreline
-  (points ``ARC_STEP_PX`` apart) from the point, past points seen as above, some point's pixel
-  or one next to it shows the needle. A tip poking out of the tissue by less than a pixel, or
-  past a jaw's edge, is thinner than a pixel all the way to where it is hidden, and is not seen;
-  a long fine taper in clear view is seen up to its point.
+  (points ``ARC_STEP_PX`` apart) from the point, past points seen as above, a pixel within
+  ``NEAR_PX`` of some point's shows the needle. A sliver of tip out of the tissue or past a jaw's
+  edge, thinner than a pixel all the way to where it is hidden, is not seen; a long fine taper
+  in clear view is seen up to its point.
 """
 from __future__ import annotations
 
@@ -25,6 +25,9 @@ ARC_STEP_PX = 0.5
 """Most image distance (px) between the centreline points that ``arc_angles`` samples."""
 MAX_ARC_POINTS = 8192
 """Most centreline points ``arc_angles`` samples (an arc 4096 px long in the image)."""
+NEAR_PX = 2
+"""A stretch of the arc shows when a pixel this close (rows and columns) to one of its points shows
+the needle (a swage seen end on shows around the thread leaving it, a pixel or two away)."""
 LENGTH_SAMPLES = 49
 """Points equally spaced over the arc whose projections measure its length in the image."""
 
@@ -53,8 +56,7 @@ def seen_in_render(uv: np.ndarray, z: np.ndarray, arc_m: np.ndarray, radius_m: n
                    buried: np.ndarray, label: np.ndarray, needle_label: int, depth: np.ndarray, focal_px: float,
                    thread_label: int | None = None, at_thread: np.ndarray | None = None) -> tuple:
     """Which centreline points nothing hides (the first three conditions of the module docstring),
-    and which of those have the needle in their pixel or one of its 8 neighbours: ((N,) bool,
-    (N,) bool).
+    and which of those have the needle within ``NEAR_PX`` of their pixel: ((N,) bool, (N,) bool).
 
     ``uv`` (N, 2) their projections (px, (0, 0) the centre of the top-left pixel), ``z`` (N,) their
     depths along the optical axis (m), ``arc_m`` (N,) their distances along the arc from one end
@@ -77,8 +79,8 @@ def seen_in_render(uv: np.ndarray, z: np.ndarray, arc_m: np.ndarray, radius_m: n
         shown |= np.asarray(at_thread, bool) & (label[v, u] == thread_label)
     unhidden = np.asarray(inside, bool) & ~np.asarray(buried, bool) & shown
     near_needle = on_needle.copy()
-    for dv in (-1, 0, 1):
-        for du in (-1, 0, 1):
+    for dv in range(-NEAR_PX, NEAR_PX + 1):
+        for du in range(-NEAR_PX, NEAR_PX + 1):
             near_needle |= label[np.clip(v + dv, 0, h - 1), np.clip(u + du, 0, w - 1)] == needle_label
     return unhidden, unhidden & near_needle
 
