@@ -37,6 +37,10 @@ MINUTES = 8.0
 """Training time (minutes) by default: with the rendering, the fits and the report, a fine-tune
 of 30 labelled stereo frames within 15 minutes on a 2-core CPU (docs/adapt.md)."""
 
+CHECKPOINT_STEPS = 25
+"""At most this many steps between checkpoints (an epoch): a kill loses at most these (about two
+minutes on a loaded 2-core CPU)."""
+
 
 def _parser() -> argparse.ArgumentParser:
     from common.detector.weights import DEFAULT_WEIGHTS
@@ -102,7 +106,8 @@ def prepare_labels(label_dirs: list[str], out: Path, hold_out: float, seed: int)
 
 def write_config(config: str, init: str, minutes: float, out: Path) -> Path:
     """OUT/finetune.yaml: ``config`` with the ``init`` weights' model section, ``time_budget_min``
-    ``minutes`` and no validation split (the held-out labels are scored instead)."""
+    ``minutes``, no validation split (the held-out labels are scored instead) and epochs of at
+    most ``CHECKPOINT_STEPS`` steps (the same number of steps in all)."""
     import torch
 
     from common.detector.model import ModelConfig
@@ -114,6 +119,10 @@ def write_config(config: str, init: str, minutes: float, out: Path) -> Path:
     cfg["model"] = ModelConfig.from_dict(dict(blob["config"])).to_dict()
     cfg["train"]["time_budget_min"] = float(minutes)
     cfg["train"]["val_fraction"] = 0.0
+    t = cfg["train"]
+    if int(t["steps_per_epoch"]) > CHECKPOINT_STEPS:     # the same schedule, a checkpoint more often
+        total = int(t["steps_per_epoch"]) * int(t["epochs"])
+        t["steps_per_epoch"], t["epochs"] = CHECKPOINT_STEPS, -(-total // CHECKPOINT_STEPS)
     path = out / "finetune.yaml"
     path.write_text(yaml.safe_dump(cfg, sort_keys=False))
     return path

@@ -230,6 +230,7 @@ def write_report(out_dir, held: list[str], before_w: str, after_w: str, label_fo
     """Score ``before_w`` and ``after_w`` on the ``held`` folders, draw the worst, list the frames
     to label next; writes ``out_dir``/report.json, report.md and the pictures; returns the report.
     ``cache``: a JSON file keeping the before-weights' scores between runs."""
+    from common.data.dataset import Dataset
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
     if cache is not None and cache.is_file():
@@ -241,7 +242,7 @@ def write_report(out_dir, held: list[str], before_w: str, after_w: str, label_fo
     after = score_weights(held, after_w, progress)
     report = {"out": str(out_dir), "weights": {"before": str(before_w), "after": str(after_w)},
               "held_out": [str(h) for h in held],
-              "held_out_frames": len({(s.folder, s.index) for s in after}), "held_out_images": len(after),
+              "held_out_frames": sum(len(Dataset(h)) for h in held), "held_out_images": len(after),
               "before": summary(before), "after": summary(after),
               "worst": worst_pictures(before, after, (before_w, after_w), out_dir),
               "label_next": label_next(label_folders, after_w, progress=progress)}
