@@ -111,15 +111,17 @@ def summary(scores: list[ImageScore]) -> dict:
 
 
 def _with_label(img: np.ndarray, fr, camera: str) -> np.ndarray:
-    """``img`` with the label's keypoints as green rings (hollow where hidden: a thinner ring)."""
+    """``img`` with the label's keypoints as small green rings (drawn on the full-size image, so
+    the picture's zoomed crop shows them sharp; a broken ring where marked hidden)."""
     out = img.copy()
     if fr.keypoints is None:
         return out
-    r = max(4, int(round(img.shape[1] / 240)))
     vis = np.ones(5, bool) if fr.visible is None else np.asarray(fr.visible[camera], bool)
     for p, v in zip(np.asarray(fr.keypoints[camera], float), vis):
         if np.isfinite(p).all():
-            cv2.circle(out, (int(round(p[0])), int(round(p[1]))), r, LABEL_BGR, 2 if v else 1, cv2.LINE_AA)
+            c = (int(round(p[0])), int(round(p[1])))
+            for a in range(0, 360, 360 if v else 60):
+                cv2.ellipse(out, c, (3, 3), 0, a, a + (360 if v else 30), LABEL_BGR, 1, cv2.LINE_AA)
     return out
 
 
