@@ -138,10 +138,9 @@ def main(argv=None) -> int:
     return 0
 
 
-def rehearsal_folder(out: Path, frames: int, progress: bool, size: tuple | None = None) -> Path | None:
+def rehearsal_folder(out: Path, frames: int, progress: bool) -> Path | None:
     """OUT/rehearsal: ``frames`` stereo frames of the built-in scene's train look (pairs of
-    endoscope poses), rendered with their truth (resumed by ``generate``), ``size`` (width,
-    height) pixels (default the generator's); None for 0. The
+    endoscope poses), rendered with their truth (resumed by ``generate``); None for 0. The
     labels show only the needles geometry confirmed (at rest, well seen); trained on alone, the
     network forgets the rest (held in the jaws, edge-on, far), which these frames show with
     exact labels (rehearsal, or experience replay)."""
@@ -149,9 +148,8 @@ def rehearsal_folder(out: Path, frames: int, progress: bool, size: tuple | None 
         return None
     from common.sim.generate import GenerateConfig, generate
     folder = out / "rehearsal"
-    wh = {} if size is None else {"width": int(size[0]), "height": int(size[1])}
     generate(str(folder), GenerateConfig(sequences=max(1, frames // 2), steps=2, seed=REHEARSAL_SEED,
-                                         randomise="train", **wh), progress=progress)
+                                         randomise="train"), progress=progress)
     return folder
 
 

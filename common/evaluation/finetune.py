@@ -5,8 +5,9 @@ user's footage from frames labelled by hand (``needletrack label``; docs/adapt.m
    frames are negatives, keypoints marked hidden hidden targets; whole takes held out
    (``--hold-out``, OUT/labels/heldout-NN), the rest to train on (OUT/labels/train-NN);
 2. rehearsal: ``--rehearse N`` stereo frames of the built-in scene with their truth
-   (OUT/rehearsal, ``adapt.rehearsal_folder``), trained on beside the labels so that the
-   standard set is not forgotten;
+   (OUT/rehearsal, ``adapt.rehearsal_folder``), trained on beside the labels, and on which the
+   init weights' outputs are kept (``train``'s teacher folders, ``distill_keypoints``: learning
+   without forgetting), so that the standard set is not forgotten;
 3. fine-tuning (``common.detector.train.train`` with ``--init``: OUT/train, OUT/model.pt) under
    ``--config`` (models/finetune.yaml) whose ``model`` section is the init weights' own, so any
    network the trainer builds (``ModelConfig``, a pretrained backbone's too) is fine-tuned as it is;
@@ -104,10 +105,11 @@ def prepare_labels(label_dirs: list[str], out: Path, hold_out: float, seed: int)
     return split
 
 
-def write_config(config: str, init: str, minutes: float, out: Path) -> Path:
+def write_config(config: str, init: str, minutes: float, out: Path, keep_keypoints: bool = False) -> Path:
     """OUT/finetune.yaml: ``config`` with the ``init`` weights' model section, ``time_budget_min``
     ``minutes``, no validation split (the held-out labels are scored instead) and epochs of at
-    most ``CHECKPOINT_STEPS`` steps (the same number of steps in all)."""
+    most ``CHECKPOINT_STEPS`` steps (the same number of steps in all); ``keep_keypoints``: the
+    init weights' keypoint heatmaps kept on the rehearsal frames too (``distill_keypoints``)."""
     import torch
 
     from common.detector.model import ModelConfig
@@ -120,6 +122,8 @@ def write_config(config: str, init: str, minutes: float, out: Path) -> Path:
     cfg["train"]["time_budget_min"] = float(minutes)
     cfg["train"]["val_fraction"] = 0.0
     t = cfg["train"]
+    if keep_keypoints:
+        t["distill_keypoints"] = True
     if int(t["steps_per_epoch"]) > CHECKPOINT_STEPS:     # the same schedule, a checkpoint more often
         total = int(t["steps_per_epoch"]) * int(t["epochs"])
         t["steps_per_epoch"], t["epochs"] = CHECKPOINT_STEPS, -(-total // CHECKPOINT_STEPS)
@@ -145,10 +149,11 @@ def main(argv=None) -> int:
         err(f"--minutes must be > 0 and --rehearse >= 0, got {args.minutes:g} and {args.rehearse}")
         return 2
     try:
-        sizes = {tuple(Dataset(d).meta.image_size) for d in args.labels}
+        for d in args.labels:
+            Dataset(d)
         out.mkdir(parents=True, exist_ok=True)
         split = prepare_labels(args.labels, out, args.hold_out, args.seed)
-        config = write_config(args.config, args.init, args.minutes, out)
+        config = write_config(args.config, args.init, args.minutes, out, keep_keypoints=args.rehearse > 0)
     except (LabelsError, DatasetError, ModelFileError, ValueError, OSError) as exc:
         err(str(exc))
         return 2
@@ -158,12 +163,13 @@ def main(argv=None) -> int:
     if not split["train"]:
         err("every labelled frame is held out: label more takes or lower --hold-out")
         return 2
-    rehearsal = rehearsal_folder(out, args.rehearse, progress, sorted(sizes)[0] if len(sizes) == 1 else None)
+    rehearsal = rehearsal_folder(out, args.rehearse, progress)
     if rehearsal is not None:
         print(f"{stamp()} rehearsal: {args.rehearse} stereo frames of the built-in scene in {rehearsal}")
     data = [s["folder"] for s in split["train"]] + ([str(rehearsal)] if rehearsal is not None else [])
     try:
-        last = fine_tune(out, data, str(config), args.init, progress)
+        last = fine_tune(out, data, str(config), args.init, progress,
+                         teacher_dirs=[str(rehearsal)] if rehearsal is not None else None)
     except (DatasetError, ValueError, OSError) as exc:
         err(f"training: {exc}")
         return 2
