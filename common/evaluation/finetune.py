@@ -69,7 +69,8 @@ def _parser() -> argparse.ArgumentParser:
 
 
 def _fingerprint(frames) -> str:
-    return hashlib.sha1(json.dumps([[f.folder, f.index, f.kind] for f in frames]).encode()).hexdigest()[:16]
+    """The labels a fine-tune started from: which frames, what each is, when each was saved."""
+    return hashlib.sha1(json.dumps([[f.folder, f.index, f.kind, f.stamp] for f in frames]).encode()).hexdigest()[:16]
 
 
 def prepare_labels(label_dirs: list[str], out: Path, hold_out: float, seed: int) -> dict:

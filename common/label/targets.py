@@ -39,13 +39,15 @@ class LabelsError(NeedletrackError, ValueError):
 @dataclass(frozen=True)
 class LabelledFrame:
     """One frame of ``folder`` (its ``index``) and what its hand label makes of it (``kind``, the
-    module docstring); ``hidden``: keypoints marked hidden in cameras that show the needle."""
+    module docstring); ``hidden``: keypoints marked hidden in cameras that show the needle;
+    ``stamp``: when the label was saved (0 without one)."""
 
     folder: str
     index: int
     kind: str
     sequence: Optional[int] = None
     hidden: int = 0
+    stamp: float = 0.0
 
 
 def _camera_stated(clicks: Optional[dict]) -> bool:
@@ -72,7 +74,9 @@ def read_labels(folder: str) -> list[LabelledFrame]:
                              if not (clicks.get(c) or {}).get("unseen"))
         else:
             kind = status
-        out.append(LabelledFrame(where, i, kind, fr.sequence, hidden))
+        stamp = (store.label(i) or {}).get("stamp", 0.0)
+        out.append(LabelledFrame(where, i, kind, fr.sequence, hidden,
+                                 float(stamp) if isinstance(stamp, (int, float)) else 0.0))
     return out
 
 

@@ -130,3 +130,18 @@ def test_a_folder_without_labels_is_refused_clearly(tmp_path, capsys):
     assert not (tmp_path / "out" / "train").exists()
     assert main(["--labels", str(tmp_path / "nowhere"), "--out", str(tmp_path / "out2"), "--quiet"]) == 2
     assert "nowhere" in capsys.readouterr().err
+
+
+def test_a_fine_tune_keeps_its_split_and_refuses_changed_labels(tmp_path):
+    from common.evaluation.finetune import prepare_labels
+    folder = _labelled(tmp_path / "ds")
+    out = tmp_path / "out"
+    first = prepare_labels([str(folder)], out, 0.25, 0)
+    held = [f for s in first["heldout"] for f in s["frames"]]
+    train = [f for s in first["train"] for f in s["frames"]]
+    assert sorted(held + train) == [0, 1, 2, 4] and held and train
+    assert Dataset(first["train"][0]["folder"]) and len(Dataset(first["heldout"][0]["folder"])) == len(held)
+    assert prepare_labels([str(folder)], out, 0.25, 0) == first          # a rerun resumes with the same split
+    LabelStore(str(folder)).save(5, LabelFitter(RIG, NEEDLE).fit(_clicks()), _clicks(), click_sigma_px=1.0)
+    with pytest.raises(ValueError, match="labels changed"):
+        prepare_labels([str(folder)], out, 0.25, 0)
