@@ -27,6 +27,7 @@ COMMANDS = {
     "train": ("common.detector.train:main", "train the keypoint detector"),
     "eval": ("common.evaluation.cli:main", "evaluate pose pipelines"),
     "adapt": ("common.evaluation.adapt:main", "fit the detector to a scene from recordings without ground truth"),
+    "finetune": ("common.evaluation.finetune:main", "fine-tune the detector on frames labelled by hand (needletrack label), with a before/after report"),
     "results": ("common.evaluation.results_page:main", "evaluate the documented sets and write docs/results.md"),
     "record": ("common.ros.record:record_main", "record a running graph to MCAP with ROS 2 schemas"),
     "label": ("common.label.server:main", "label a dataset folder's frames by hand in the browser (docs/label.md)"),

@@ -150,7 +150,8 @@ def make_record(img: np.ndarray, kp, vis, arc, cfg: ModelConfig, rng: np.random.
     """ImageRecord of one BGR image and its ground truth (kp (5,2) or None, vis (5,),
     arc (P,2) or None; full-image pixels). ``arc_seen`` (N,) bool: which of N points equally
     spaced along the arc the render shows (the dataset's ``arc_seen``); without it an arc point
-    counts as seen when its nearest keypoint is. The needle is there (a box, a positive) when
+    counts as seen when its nearest keypoint is. Without ``arc`` the arc goes through the keypoints
+    where all five are placed (seen or hidden: a hand label's). The needle is there (a box, a positive) when
     ``PRESENT_ARC_SHARE`` of the arc is seen (without ``arc_seen``: two keypoints). ``bbox``
     [x0, y0, x1, y1]: the needle's box when no keypoints give one (a record for distillation
     only, ``load_records(boxes_only=True)``). ``jaws`` (n, 2): pixels of the instruments' jaws
@@ -163,8 +164,8 @@ def make_record(img: np.ndarray, kp, vis, arc, cfg: ModelConfig, rng: np.random.
     vis = np.zeros(5, bool) if vis is None else np.asarray(vis, bool).reshape(5)
     inside = lambda p: (p[:, 0] >= -0.5) & (p[:, 0] <= w - 0.5) & (p[:, 1] >= -0.5) & (p[:, 1] <= h - 0.5)
     vis = vis & np.isfinite(kp).all(1) & inside(np.nan_to_num(kp, nan=-1e9))
-    if arc is None and vis.all():
-        arc = _arc_through(kp)
+    if arc is None and (vis.all() or (np.isfinite(kp).all() and vis.sum() >= 2)):
+        arc = _arc_through(kp)      # no pose: through the keypoints (a hand label places hidden ones too)
     if arc is not None:
         arc = np.asarray(arc, float).copy()
         if arc_seen is not None:

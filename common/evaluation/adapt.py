@@ -114,7 +114,7 @@ def main(argv=None) -> int:
     if args.rehearse < 0:
         print(f"needletrack adapt: --rehearse must be >= 0, got {args.rehearse}", file=sys.stderr)
         return 2
-    rehearsal = _rehearsal(out, args.rehearse, not args.quiet)
+    rehearsal = rehearsal_folder(out, args.rehearse, not args.quiet)
     if rehearsal is not None:
         report["rehearsal"] = {"folder": str(rehearsal), "frames": args.rehearse, "seed": REHEARSAL_SEED,
                                "randomise": "train"}
@@ -138,7 +138,7 @@ def main(argv=None) -> int:
     return 0
 
 
-def _rehearsal(out: Path, frames: int, progress: bool) -> Path | None:
+def rehearsal_folder(out: Path, frames: int, progress: bool) -> Path | None:
     """OUT/rehearsal: ``frames`` stereo frames of the built-in scene's train look (pairs of
     endoscope poses), rendered with their truth (resumed by ``generate``); None for 0. The
     labels show only the needles geometry confirmed (at rest, well seen); trained on alone, the
@@ -157,25 +157,32 @@ def _train(args, out: Path, report: dict, stamp, rehearsal: Path | None = None) 
     """Fine-tune on OUT/labels/train (and the ``rehearsal`` folder) into OUT/train (resumable) and
     put the weights at OUT/model.pt."""
     from common.data.dataset import DatasetError
+    teacher = out / "labels" / "teacher"
+    data = [str(out / "labels" / "train")] + ([str(rehearsal)] if rehearsal is not None else [])
+    try:
+        report["train"] = fine_tune(out, data, args.config, args.model, not args.quiet,
+                                    [str(teacher)] if teacher.is_dir() else None)
+    except (DatasetError, ValueError, OSError) as exc:
+        print(f"needletrack adapt: training: {exc}", file=sys.stderr)
+        return 2
+    print(f"{stamp()} fine-tuned: {out / 'model.pt'}")
+    return 0
+
+
+def fine_tune(out: Path, data: list, config, init, progress: bool = True, teacher_dirs=None) -> dict:
+    """``common.detector.train.train`` from ``init`` on the ``data`` folders into OUT/train
+    (resumed from its checkpoint; OUT/train/done.json once finished: then kept), the weights
+    copied to OUT/model.pt; returns the last epoch's metrics. Raises what ``train`` raises."""
     from common.detector.train import train
+    out = Path(out)
     done = out / "train" / "done.json"
     if not done.is_file():
         (out / "model.pt").unlink(missing_ok=True)
-        try:
-            teacher = out / "labels" / "teacher"
-            data = [str(out / "labels" / "train")] + ([str(rehearsal)] if rehearsal is not None else [])
-            last = train(data, out / "train", args.config,
-                         progress=not args.quiet, init=args.model,
-                         teacher_dirs=[str(teacher)] if teacher.is_dir() else None)
-        except (DatasetError, ValueError, OSError) as exc:
-            print(f"needletrack adapt: training: {exc}", file=sys.stderr)
-            return 2
+        last = train(data, out / "train", config, progress=progress, init=init, teacher_dirs=teacher_dirs)
         done.write_text(json.dumps(last or {}, indent=1) + "\n")
-    report["train"] = json.loads(done.read_text())
     if not (out / "model.pt").is_file():
         shutil.copy2(out / "train" / "model.pt", out / "model.pt")
-    print(f"{stamp()} fine-tuned: {out / 'model.pt'}")
-    return 0
+    return json.loads(done.read_text())
 
 
 def _write_report(out: Path, report: dict) -> None:

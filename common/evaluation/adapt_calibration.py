@@ -58,9 +58,12 @@ def safe_scale(X: np.ndarray, y: np.ndarray, coef: np.ndarray, bound: float,
     return 0.0
 
 
-def refit(new_weights, shipped_weights, fit_folder, log=print, progress: bool = True) -> dict:
+def refit(new_weights, shipped_weights, fit_folder, log=print, progress: bool = True,
+          labels: str = "pseudo-labels: the group-agreed tip") -> dict:
     """Write ``familiarity.json`` and ``end_identity.json`` beside ``new_weights`` from the
-    held-out pseudo-labelled ``fit_folder`` (the module docstring); returns what was done."""
+    held-out labelled ``fit_folder`` (a folder or a list of them; the module docstring);
+    ``labels`` says what labelled them (hand labels: ``needletrack finetune``); returns what was
+    done."""
     from common.detector.end_identity import COEF, FEATURES, fit_coefficients
     from common.detector.familiarity import fit_familiarity, save_familiarity
     from common.detector.inference import KeypointDetector
@@ -72,7 +75,9 @@ def refit(new_weights, shipped_weights, fit_folder, log=print, progress: bool = 
     shipped_coef = load_end_coefficients(shipped_weights)
     shipped_coef = COEF if shipped_coef is None else shipped_coef
     done: dict = {}
-    if fit_folder is None or not Path(fit_folder).is_dir():
+    folders = [fit_folder] if isinstance(fit_folder, (str, Path)) else list(fit_folder or [])
+    folders = [str(f) for f in folders if Path(f).is_dir()]
+    if not folders:
         Path(out_end).write_text(json.dumps({"features": list(FEATURES), "coef": [float(c) for c in shipped_coef],
                                              "fitted_on": ["shipped coefficients: no held-out groups"],
                                              "detections": 0}, indent=1) + "\n")
@@ -80,25 +85,27 @@ def refit(new_weights, shipped_weights, fit_folder, log=print, progress: bool = 
             "and state no familiarity")
         return {"end_identity": "shipped", "familiarity": None}
     det = KeypointDetector(str(new_weights), device="cpu", tracking=False, threads=1, familiarity=False)
-    feats = descriptors(str(fit_folder), det, progress=progress)
+    feats = [d for d in (descriptors(f, det, progress=progress) for f in folders) if len(d)]
+    feats = np.vstack(feats) if feats else np.zeros((0, 1))
+    where = ", ".join(Path(f).name for f in folders)
     if len(feats) >= MIN_DETECTIONS:
-        fam = fit_familiarity(feats, fitted_on=[f"{Path(fit_folder).name} (pseudo-labelled, held out)"])
+        fam = fit_familiarity(feats, fitted_on=[f"{where} ({labels.split(':')[0]}, held out)"])
         save_familiarity(fam, out_fam)
         done["familiarity"] = {"detections": int(len(feats))}
     else:
         out_fam.unlink(missing_ok=True)
         done["familiarity"] = None
         log(f"warning: {len(feats)} held-out detections: no familiarity fitted")
-    new = collect(str(fit_folder), det, progress=progress)
-    old = collect(str(fit_folder), KeypointDetector(str(shipped_weights), device="cpu", tracking=False, threads=1),
-                  progress=progress)
+    shipped = KeypointDetector(str(shipped_weights), device="cpu", tracking=False, threads=1)
+    new, old = ({"features": np.vstack([c["features"] for c in cs]), "labels": np.concatenate([c["labels"] for c in cs])}
+                for cs in ([collect(f, d, progress=progress) for f in folders] for d in (det, shipped)))
     X, y = new["features"], new["labels"]
     bound = sure_wrong(old["features"], old["labels"], shipped_coef)
     max_sure = sure_share(old["features"], shipped_coef)
     errors = int(min(np.sum(y == 0), np.sum(y == 1)))
     if len(y) >= MIN_DETECTIONS and errors >= MIN_FIT_ERRORS:
         coef = fit_coefficients(X, y, l2=FIT_L2, weights=np.full(len(y), 1000.0 / len(y)))
-        how = "fitted on the group-agreed tips"
+        how = f"fitted on {labels.split(': ')[-1]}s"
     else:
         coef = np.asarray(shipped_coef, float)
         how = (f"shipped coefficients (too few held-out detections: {len(y)})" if len(y) < MIN_DETECTIONS else
@@ -108,7 +115,7 @@ def refit(new_weights, shipped_weights, fit_folder, log=print, progress: bool = 
     coef = s * coef
     Path(out_end).write_text(json.dumps({
         "features": list(FEATURES), "coef": [float(c) for c in coef],
-        "fitted_on": [f"{Path(fit_folder).name} (pseudo-labels: the group-agreed tip; {how}; scaled {s:g})"],
+        "fitted_on": [f"{where} ({labels}; {how}; scaled {s:g})"],
         "detections": int(len(y))}, indent=1) + "\n")
     done["end_identity"] = {"how": how, "scale": s, "detections": int(len(y)),
                             "sure_wrong_new": sure_wrong(X, y, coef), "sure_wrong_shipped": bound,

@@ -12,7 +12,8 @@ the share within 1 mm and 2 deg), how honest their stated covariance is (NEES me
 is 5.35), the fit's time per frame and the clicks per frame. ``--detector NAME``: frames the
 backend finds in both cameras are accepted as it proposes them (one key, the page's start), the
 others clicked; how many of those proposals were right (every keypoint within 1 px) is counted.
-``--json`` writes the figures.
+``--json`` writes the figures. ``--out DIR`` keeps the labelled copy (a hand-label folder made
+without a person, e.g. for ``needletrack finetune``'s tests and learning curves).
 """
 from __future__ import annotations
 
@@ -26,11 +27,12 @@ from pathlib import Path
 
 def run(dataset: str, end_px: float = 1.0, wire_px: float = 2.0, wire: int = 2, seed: int = 0,
         max_frames: int = 0, snap: bool = True, progress: bool = True, detector: str = "none",
-        params: dict | None = None) -> dict:
+        params: dict | None = None, out: str | None = None) -> dict:
     """The figures (see the module docstring) of ``dataset``'s frames (the first ``max_frames``;
     0: all) labelled by simulated clicks; with a ``detector`` (a backend's name), each frame whose
     proposal finds the needle in both cameras is accepted as proposed instead (one key), and
-    the share of those within 1 px of the truth is counted."""
+    the share of those within 1 px of the truth is counted. ``out``: label a copy there (a new
+    folder) and keep it; None: a temporary copy."""
     import numpy as np
     from tqdm import tqdm
 
@@ -52,7 +54,7 @@ def run(dataset: str, end_px: float = 1.0, wire_px: float = 2.0, wire: int = 2, 
         raise ValueError(f"{dataset}: no frame with T_world_needle and T_world_ecm to label by simulation")
     rng = np.random.default_rng(seed)
     with tempfile.TemporaryDirectory(prefix="label-bench-") as tmp:
-        work = Path(tmp) / "work"
+        work = Path(out) if out else Path(tmp) / "work"
         without_truth(truth.path, str(work))
         store = LabelStore(str(work))
         props = None if detector == "none" else detect_folder(store.ds, detector, dict(params or {}), progress)
@@ -133,11 +135,13 @@ def main(argv=None) -> int:
     p.add_argument("--detector-param", action="append", default=[], metavar="KEY=VALUE")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--json", help="also write the figures here")
+    p.add_argument("--out", metavar="DIR", help="label a copy in this new folder and keep it (a hand-label "
+                                                "folder without a person; --max-frames: the rest unlabelled)")
     p.add_argument("--quiet", action="store_true")
     a = p.parse_args(argv)
     from common.runtime.graph import parse_param
     r = run(a.dataset, a.end_px, a.wire_px, a.wire, a.seed, a.max_frames, not a.no_snap, not a.quiet,
-            a.detector, dict(parse_param(t) for t in a.detector_param))
+            a.detector, dict(parse_param(t) for t in a.detector_param), a.out)
     k, pm, pd = r["keypoint_px"], r["pose_mm"], r["pose_deg"]
     print(f"label bench ({r['dataset']}, {r['frames']} frames; clicks: tip and tail within {a.end_px:g} px, "
           f"{a.wire} wire points within {a.wire_px:g} px, snap {'on' if r['snap'] else 'off'}):")
@@ -153,6 +157,8 @@ def main(argv=None) -> int:
               f"{r['proposals_within_1px']} of them with every keypoint within 1 px of the truth")
     for f in r["failed"]:
         print(f"  not labelled: {f}")
+    if a.out:
+        print(f"  the labelled copy: {a.out}")
     if a.json:
         Path(a.json).write_text(json.dumps(r, indent=1))
     return 0

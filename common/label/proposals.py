@@ -17,31 +17,41 @@ from tqdm import tqdm
 from common.frames import CAMERAS
 
 
+def stereo_detections(ds, backend, frames=None, progress: bool = True, desc: str = "detecting"):
+    """``(frame, {camera: Keypoints} or None)`` for each of ``frames`` (Frames of ``ds``, a
+    ``Dataset``; default all) by ``backend`` (a ``KeypointBackend``), cold (``reset`` before each
+    frame); None where the frame's images cannot be read. A progress bar over the frames."""
+    from common.runtime.messages import Calibration
+    meta = ds.meta
+    calib = Calibration(stamp_ns=0, image_size=np.array(meta.image_size), cameras=meta.rig.to_dict(),
+                        needle=meta.needle.to_dict(), ecm=None if meta.arm is None else meta.arm.to_dict(),
+                        source=f"needletrack {ds.path}")
+    for fr in tqdm(ds.frames if frames is None else frames, desc=desc, unit="frame", disable=not progress):
+        try:
+            images = {c: ds.image(fr, c) for c in CAMERAS}
+        except ValueError:
+            yield fr, None
+            continue
+        backend.reset()
+        yield fr, backend.detect_stereo(images, None, calib, seq=fr.index, stamp_ns=fr.stamp_ns)
+
+
+def proposal_of(kps: dict) -> dict:
+    """A proposal (the module docstring) from ``{camera: Keypoints}``."""
+    return {c: {"found": bool(k.found),
+                "uv": np.asarray(k.uv, float).round(3).tolist() if k.found else None,
+                "confidence": round(float(k.confidence), 4),
+                "end_identity": None if k.end_identity is None else round(float(k.end_identity), 4)}
+            for c, k in kps.items()}
+
+
 def detect_folder(ds, name: str, params: dict, progress: bool = True) -> list:
     """The proposal of every frame of ``ds`` (a ``Dataset``) by backend ``name`` with ``params``
     (None for a frame whose images cannot be read). Raises ``BackendError``."""
     from common.detector.backends import load_backend
-    from common.runtime.messages import Calibration
-    meta = ds.meta
     backend = load_backend(name, params)
-    calib = Calibration(stamp_ns=0, image_size=np.array(meta.image_size), cameras=meta.rig.to_dict(),
-                        needle=meta.needle.to_dict(), ecm=None if meta.arm is None else meta.arm.to_dict(),
-                        source=f"needletrack label {ds.path}")
-    out = []
-    for fr in tqdm(ds.frames, desc=f"proposals ({name})", unit="frame", disable=not progress):
-        try:
-            images = {c: ds.image(fr, c) for c in CAMERAS}
-        except ValueError:
-            out.append(None)
-            continue
-        backend.reset()
-        kps = backend.detect_stereo(images, None, calib, seq=fr.index, stamp_ns=fr.stamp_ns)
-        out.append({c: {"found": bool(k.found),
-                        "uv": np.asarray(k.uv, float).round(3).tolist() if k.found else None,
-                        "confidence": round(float(k.confidence), 4),
-                        "end_identity": None if k.end_identity is None else round(float(k.end_identity), 4)}
-                    for c, k in kps.items()})
-    return out
+    return [None if kps is None else proposal_of(kps)
+            for _fr, kps in stereo_detections(ds, backend, progress=progress, desc=f"proposals ({name})")]
 
 
 def doubt(proposal: Optional[dict]) -> float:
