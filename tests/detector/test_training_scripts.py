@@ -96,3 +96,14 @@ def test_the_pretrained_recipe_keeps_the_held_out_families_out_of_training_and_o
     assert trained and fit_dirs and not fit_dirs & trained
     model = yaml.safe_load((ROOT / "models/real.yaml").read_text())["model"]
     assert model["backbone"] == "efficientnet_lite0" and model["visibility"] is True
+
+
+def test_the_pretrained_recipes_later_stage_starts_from_the_earlier_ones_weights_with_the_same_network():
+    """Stage R2 trains from stage R1's weights (--init), so its network is R1's: the model sections
+    of models/real.yaml and models/real_r2.yaml agree."""
+    import yaml
+    found = calls(ROOT / "models/train_real.sh")
+    r2 = [a for a in found if a[0] == "train" and a[a.index("--config") + 1].endswith("real_r2.yaml")]
+    assert len(r2) == 1 and r2[0][r2[0].index("--init") + 1].endswith("stage_r1/model.pt")
+    r1_model = yaml.safe_load((ROOT / "models/real.yaml").read_text())["model"]
+    assert yaml.safe_load((ROOT / "models/real_r2.yaml").read_text())["model"] == r1_model
