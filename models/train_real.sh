@@ -8,7 +8,7 @@
 #   their hard negatives and held needles in random looks, beside the train look of
 #   models/train_from_scratch.sh (DATA/a, DATA/neg: the same commands, so either script's renders
 #   serve both), and train both networks from the pretrained trunk (models/real.yaml).
-# Stage R2 (OUT/stage_r2/model.pt): fresh renders of the `random` looks (new seeds), 1500 more
+# Stage R2 (OUT/stage_r2/model.pt): fresh renders of the `random` looks (new seeds), 800 more
 #   needle-free frames, trained from stage R1's weights (models/real_r2.yaml: presence weighed
 #   twice, more crops centred on jaws).
 # Stage fit (OUT/familiarity.json, OUT/end_identity.json beside OUT/model.pt): the statements' fits on
@@ -50,14 +50,14 @@ if [ "$STAGE" = all ] || [ "$STAGE" = r2 ]; then
   stamp "stage R2 data: rendering into $DATA"
   (
     needletrack dataset generate-negatives --out "$DATA/neg" --frames 400 --seed 7373 --randomise train --quiet
-    needletrack dataset generate-negatives --out "$R/neg2" --frames 1500 --seed 7483 --randomise random --quiet
-    gen --out "$R/r640b" --sequences 300 --steps 2 --seed 7482 --randomise random --width 640 --height 480
+    needletrack dataset generate-negatives --out "$R/neg2" --frames 800 --seed 7483 --randomise random --quiet
+    gen --out "$R/r640b" --sequences 200 --steps 2 --seed 7482 --randomise random --width 640 --height 480
     needletrack dataset distort "$R/r640b" --out "$R/r640b_dist" --dist=-0.28,0.09,0.0005,-0.0004 --quiet
   ) &
   side=$!
   gen --out "$DATA/a" --sequences 1000 --steps 2 --seed 7171 --randomise train --msaa 0
-  gen --out "$R/r2" --sequences 1000 --steps 2 --seed 7481 --randomise random --msaa 0
-  gen --out "$R/move2" --sequences 24 --motion mixed --take-every 6 --seed 7484 --randomise random --msaa 0
+  gen --out "$R/r2" --sequences 400 --steps 2 --seed 7481 --randomise random --msaa 0
+  gen --out "$R/move2" --sequences 12 --motion mixed --take-every 6 --seed 7484 --randomise random --msaa 0
   wait "$side"
   stamp "stage R2 data done"
   needletrack train --data "$DATA/a" --data "$DATA/neg" --data "$R/r2" --data "$R/r640b" --data "$R/r640b_dist" \
