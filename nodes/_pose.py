@@ -37,6 +37,7 @@ class StereoPoseNode(Node):
     def setup(self):
         self.step = self.make_step(max_wait=self.p.max_wait, ecm_wired=self.wired("ecm"),
                                    no_pose_output="no_pose" in self.OUTPUTS, count=self.count, log=self.log)
+        self.pairer = self.step.pairer      # the stereo pairer, for what deepens it (a lossless graph's nodes)
 
     def make_step(self, **wiring) -> StereoPoseStep:
         raise NotImplementedError

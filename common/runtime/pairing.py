@@ -141,7 +141,7 @@ class Wait:
 class Released:
     """A held item let go by ``FrameJoin.due``: ``missing`` names the waits not in (empty: the
     frame is complete), ``dropped`` whether one of them was needed, ``counters`` the counters
-    its missing inputs declare."""
+    its missing inputs declare (of a dropped item: only the needed ones', why it was dropped)."""
     item: object
     missing: tuple[str, ...] = ()
     dropped: bool = False
@@ -195,8 +195,10 @@ class FrameJoin:
         for item, _complete in self._join.due(ready):
             missing = found[id(item)]
             waits = [w for w in self.waits if w.name in missing]
-            out.append(Released(item, missing, any(w.needed for w in waits),
-                                tuple(w.missing for w in waits if w.missing)))
+            dropped = any(w.needed for w in waits)
+            # a dropped frame counts why (its needed inputs), a used one each input it lacked
+            out.append(Released(item, missing, dropped,
+                                tuple(w.missing for w in waits if w.missing and (w.needed or not dropped))))
         return out
 
     def drop(self, which=lambda seq, item: True) -> list:
