@@ -1,7 +1,7 @@
 """Pipeline I node: the needle pose from the stereo keypoints by PnP (common/geometry/pnp.py),
 ``method`` joint (``pnp_joint``) or average (``pnp_average``, the paper's); residual the
 reprojection RMS in px. A frame that gives no pose counts ``no_pose.<reason>`` and is said on
-``no_pose`` (``NoPoseNotice``, ``nodes/_pose.py``). Inputs, outputs
+``no_pose`` (``NoPoseNotice``; the frame step: ``common/pose/stereo.py``). Inputs, outputs
 and params: ``needletrack describe epnp`` ([docs/nodes.md](../docs/nodes.md)).
 """
 from __future__ import annotations

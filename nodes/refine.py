@@ -1,38 +1,29 @@
 """Dense refinement node: the needle pose fitted to its whole visible arc in both cameras, with
-an uncertainty (common/geometry/refine.py).
+an uncertainty (common/geometry/refine.py); its frame step, gates and end-identity caps are
+``common.pose.refine_step.RefineStep``.
 
 Inputs, outputs and params: ``needletrack describe refine`` (docs/nodes.md). The keypoints'
 ``centreline`` is the dense observation; with ``ecm`` a stereo pair waits (at most ``max_wait``
-frames) for its frame's ECM pose before it is refined (``StereoPoseNode.SOLVE_WITH_ECM``), and its
-pose gets ``T_world_needle``. ``pose``: method ``refined``, ``residual``
-the RMS (px) over the keypoints and centreline points used, ``covariance`` over [rotation vector
-(rad), translation (m)] in the ECM frame, ``ambiguous`` when competing solutions fit nearly as
-well or the arc is seen edge-on (the covariance then spans them), ``arc_seen`` the share of the
-arc the pose was fitted to (``common.geometry.arc_support``): below ``min_arc_seen`` the pose is
-a partial view (the jaws or the tissue hide the rest), flagged ``ambiguous`` and its covariance
-widened (counted ``partial_view``), and states its tip at most ``end_unseen_p_max`` sure
-(counted ``end_identity.partial_view``), as does one fitted to an arc with an end no camera saw
-(counted ``end_identity.end_unseen``; docs/tracking.md#partial-views); one whose keypoints some camera reads end for end (the fit
-rested on a stray keypoint, ``end_identity.camera_readings``) states at most the larger of
-``reading_p_max`` and what the cameras' statements, each about the end at its A, give its tip
-(counted ``end_identity.reading_turned``).
-
-Per frame: the minima of the joint stereo PnP on the keypoints, from the IPPE starts and
-stopped early (``common.geometry.pnp.refine_starts``), are the starting poses; ``DenseRefiner.refine``
-fits them, and their mirror images, to keypoints and centrelines of both cameras together and
-keeps the best. In tracking mode (``common.geometry.refine_tracking``) a frame that follows a
-well-fitted one within ``max_gap_s`` starts from that pose instead and keeps the result only if
-it is as good, else it is refined cold (counted ``warm`` and ``cold``). A camera whose detector
-found nothing is left out. Frames without any centreline are refined on the keypoints alone
-(counted ``keypoints_only``). A frame with fewer than 4 sure keypoints (a needle mostly hidden)
-starts from all its keypoints, both ways round, and is posed only when that fit is unambiguous
-and within ``unsure_max_rms_px`` (``common.geometry.refine_tracking``).
+frames) for its frame's ECM pose before it is refined, and its pose gets ``T_world_needle``.
+``pose``: method ``refined``, ``residual`` the RMS (px) over the keypoints and centreline points
+used, ``covariance`` over [rotation vector (rad), translation (m)] in the ECM frame,
+``ambiguous`` when competing solutions fit nearly as well or the arc is seen edge-on (the
+covariance then spans them), ``arc_seen`` the share of the arc the pose was fitted to
+(``common.geometry.arc_support``): below ``min_arc_seen`` the pose is a partial view (the jaws
+or the tissue hide the rest), flagged ``ambiguous`` and its covariance widened (counted
+``partial_view``), and states its tip at most ``end_unseen_p_max`` sure (counted
+``end_identity.partial_view``), as does one fitted to an arc with an end no camera saw (counted
+``end_identity.end_unseen``; docs/tracking.md#partial-views); one whose keypoints some camera
+reads end for end states at most the larger of ``reading_p_max`` and what the cameras'
+statements, each about the end at its A, give its tip (counted ``end_identity.reading_turned``).
+In tracking mode a frame that follows a well-fitted one starts from that pose (counted ``warm``
+and ``cold``); frames without any centreline are refined on the keypoints alone (counted
+``keypoints_only``).
 
 Params: the node's own (``max_rms_px``, ``max_residual_variance``: a fit whose residuals are
 larger than that many times the stated noise's variance is not posed, counted
-``no_pose.poor_fit``: e.g. a needle's tail in an instrument's jaws, the centreline running along
-the jaw; ``outlier_px``: the joint PnP's outlier rejection), every ``RefineConfig`` field
-(``sigma_kp_px``, ``sigma_curve_px``: for detectors that state no noise, a stated
+``no_pose.poor_fit``; ``outlier_px``: the joint PnP's outlier rejection), every ``RefineConfig``
+field (``sigma_kp_px``, ``sigma_curve_px``: for detectors that state no noise, a stated
 ``keypoint_sigma_px`` / ``centreline_sigma_px`` is used instead) and every ``TrackingConfig``
 field. ``support_normal_world`` (the normal, world frame, of a surface the needle may rest on,
 e.g. ``[0, 0, 1]`` for the simulator's phantom) lets ``common.geometry.rest_prior`` pick between

@@ -1,5 +1,6 @@
 """Tracker node: the needle followed through grasp, handover and tissue
-(``common.geometry.needle_tracker``, docs/tracking.md).
+(``common.geometry.needle_tracker``, docs/tracking.md); its frame step is
+``common.pose.tracker_step.TrackerStep``.
 
 Inputs: ``pose`` (the refine node's ``PoseEstimate``s, with covariance: the measurements),
 ``ecm`` (``EcmPose``: the frame clock and each frame's endoscope pose), ``instruments``

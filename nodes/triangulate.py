@@ -7,7 +7,7 @@ pose, at most ``max_wait`` frames, default 30). Outputs: ``pose`` (PoseEstimate,
 ``triangulation``, residual = registration RMS in m, ``points_ecm`` the triangulated points)
 and ``points`` (Points3D, published for every frame with a valid calibration, NaN rows where a
 keypoint was not triangulated), and ``no_pose`` (``NoPoseNotice``: a frame without a pose,
-``nodes/_pose.py``).
+``common/pose/stereo.py``, the frame step).
 
 Params: ``min_score`` (0.5); ``max_rms_m`` (0.05: a registration worse than this, larger than
 the needle itself, means the points are not a needle and no pose is published; with 1 px
