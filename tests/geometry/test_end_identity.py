@@ -1,5 +1,5 @@
 """Which end is the tip (common/geometry/end_identity.py) and how the pose nodes use a detector's
-statement of it (nodes/_pose.py): turned when sure of the other end, flagged when unsure."""
+statement of it (common/pose/stereo.py): turned when sure of the other end, flagged when unsure."""
 import dataclasses
 
 import numpy as np
