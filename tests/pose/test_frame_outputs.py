@@ -149,7 +149,7 @@ def outputs(name: str) -> dict:
     return {order: run(events, delays) for order, delays in ORDERS.items()}
 
 
-@pytest.mark.parametrize("name", SETS)
+@pytest.mark.parametrize("name", ["frames", pytest.param("take", marks=pytest.mark.slow)])   # take: ~15 s
 def test_the_pose_nodes_give_the_recorded_outputs_frame_by_frame(name):
     got = outputs(name)
     expected = _load(f"{name}_outputs.msgpack")
