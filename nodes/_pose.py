@@ -42,25 +42,21 @@ class StereoPoseNode(Node):
     def make_step(self, **wiring) -> StereoPoseStep:
         raise NotImplementedError
 
-    def _publish_all(self, out: list) -> None:
-        for output, msg in out:
-            self.publish(output, msg)
-
     def on_stream_reset(self):
         """A new source stream: pending halves, ECM poses and waiting poses are of the old one."""
-        self._publish_all(self.step.reset())
+        self.publish_all(self.step.reset())
 
     def on_calib(self, msg: Calibration):
-        self._publish_all(self.step.on_calib(msg))
+        self.publish_all(self.step.on_calib(msg))
 
     def on_ecm(self, msg: EcmPose):
-        self._publish_all(self.step.on_ecm(msg))
+        self.publish_all(self.step.on_ecm(msg))
 
     def on_left(self, msg: Keypoints):
-        self._publish_all(self.step.on_keypoints(msg))
+        self.publish_all(self.step.on_keypoints(msg))
 
     def on_right(self, msg: Keypoints):
-        self._publish_all(self.step.on_keypoints(msg))
+        self.publish_all(self.step.on_keypoints(msg))
 
 
 class PoseMethodInputs:

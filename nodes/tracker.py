@@ -99,33 +99,29 @@ class TrackerNode(Node):
                                 method=p.method, reset_on_sequence=p.reset_on_sequence,
                                 truth_wired=self.wired("truth"), count=self.count)
 
-    def _publish_all(self, out: list) -> None:
-        for output, msg in out:
-            self.publish(output, msg)
-
     def on_stream_reset(self):
-        self._publish_all(self.step.reset())
+        self.publish_all(self.step.reset())
 
     def on_calib(self, msg: Calibration):
-        self._publish_all(self.step.on_calib(msg))
+        self.publish_all(self.step.on_calib(msg))
 
     def on_truth(self, msg: GroundTruth):
-        self._publish_all(self.step.on_truth(msg))
+        self.publish_all(self.step.on_truth(msg))
 
     def on_instruments(self, msg: InstrumentState):
-        self._publish_all(self.step.on_instruments(msg))
+        self.publish_all(self.step.on_instruments(msg))
 
     def on_ecm(self, msg: EcmPose):
-        self._publish_all(self.step.on_ecm(msg))
+        self.publish_all(self.step.on_ecm(msg))
 
     def on_eos(self, msg: EndOfStream):
-        self._publish_all(self.step.on_eos(msg))
+        self.publish_all(self.step.on_eos(msg))
 
     def on_pose(self, msg: PoseEstimate):
-        self._publish_all(self.step.on_pose(msg))
+        self.publish_all(self.step.on_pose(msg))
 
     def on_no_pose(self, msg: NoPoseNotice):
-        self._publish_all(self.step.on_no_pose(msg))
+        self.publish_all(self.step.on_no_pose(msg))
 
 
 NODE = TrackerNode

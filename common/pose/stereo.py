@@ -45,10 +45,6 @@ from common.runtime.messages import Calibration, EcmPose, Keypoints, NoPoseNotic
 from common.runtime.pairing import FrameJoin, SeqCache, StereoPairer, Wait
 
 
-def _no_count(name: str, n: int = 1) -> None:
-    pass
-
-
 class StereoPoseStep:
     """A stereo pose node's frames (module docstring). ``method``: what its poses state
     (``PoseEstimate.method``); ``min_score``: keypoints scoring lower are not used; ``ecm_wired``:
@@ -60,11 +56,11 @@ class StereoPoseStep:
     last world pose): the pair then waits for it (module docstring)."""
 
     def __init__(self, method: str, *, min_score: float = 0.5, max_wait: int = 30, ecm_wired: bool = True,
-                 no_pose_output: bool = True, count: Callable[..., None] = _no_count,
+                 no_pose_output: bool = True, count: Callable[..., None] | None = None,
                  log: logging.Logger | None = None):
         self.method, self.min_score, self.max_wait = method, min_score, max_wait
         self.ecm_wired, self.no_pose_output = ecm_wired, no_pose_output
-        self.count = count
+        self.count = count or (lambda name, n=1: None)    # a counter sink: the node's count
         self.log = log or logging.getLogger(__name__)
         self.calib: Calibration | None = None
         self.rig = self.needle = self.model_points = None

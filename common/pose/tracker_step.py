@@ -59,10 +59,6 @@ from common.runtime.messages import (
 from common.runtime.pairing import FrameJoin, SeqCache, Wait
 
 
-def _no_count(name: str, n: int = 1) -> None:
-    pass
-
-
 @dataclass(frozen=True)
 class FrameInputs:
     """What one frame's step takes: kept to step it again when its pose comes late."""
@@ -118,11 +114,11 @@ class TrackerStep:
 
     def __init__(self, config: TrackerConfig = TrackerConfig(), *, max_wait: int = 1, replay: int = 15,
                  instrument_max_age: int = 5, method: str = "tracked", reset_on_sequence: bool = True,
-                 truth_wired: bool = True, count: Callable[..., None] = _no_count):
+                 truth_wired: bool = True, count: Callable[..., None] | None = None):
         self.config, self.max_wait, self.replay = config, max_wait, replay
         self.instrument_max_age, self.method = instrument_max_age, method
         self.reset_on_sequence, self.truth_wired = reset_on_sequence, truth_wired
-        self.count = count
+        self.count = count or (lambda name, n=1: None)    # a counter sink: the node's count
         self.needle = NeedleModel()
         self.tracker = NeedleTracker(self.needle, config)
         self._clear()
