@@ -1,7 +1,7 @@
 """Pipeline I node: the needle pose from the stereo keypoints by PnP (common/geometry/pnp.py),
 ``method`` joint (``pnp_joint``) or average (``pnp_average``, the paper's); residual the
 reprojection RMS in px. A frame that gives no pose counts ``no_pose.<reason>`` and is said on
-``no_pose`` (``NoPoseNotice``, ``nodes/_pose.py``). Inputs, outputs
+``no_pose`` (``NoPoseNotice``; the frame step: ``common/pose/stereo.py``). Inputs, outputs
 and params: ``needletrack describe epnp`` ([docs/nodes.md](../docs/nodes.md)).
 """
 from __future__ import annotations
@@ -9,17 +9,15 @@ from __future__ import annotations
 from dataclasses import dataclass
 from typing import Literal
 
-from common.geometry.observations import NoPose
-from common.geometry.pnp import pnp_average, pnp_joint
+from common.pose.stereo import PnpStep
 from common.runtime.messages import Calibration, EcmPose, Keypoints
 from common.runtime.node import NodeError, run
 from nodes._pose import StereoPoseNode
 
-METHODS = {"joint": "pnp_joint", "average": "pnp_average"}
-
 
 class EpnpNode(StereoPoseNode):
-    """Pipeline I: PnP per camera (average) or jointly in both cameras -> T_ecm_needle."""
+    """Pipeline I: PnP per camera (average) or jointly in both cameras -> T_ecm_needle
+    (``common.pose.stereo.PnpStep``)."""
 
     INPUTS = {"left": Keypoints, "right": Keypoints, "calib": Calibration, "ecm": EcmPose}
     OUTPUTS = ("pose", "no_pose")
@@ -37,39 +35,15 @@ class EpnpNode(StereoPoseNode):
         # keypoint_sigma_px where larger (the residuals alone miss the errors both cameras share)
         min_sigma_px: float = 0.25
 
-    def setup(self):
-        super().setup()
-        method = self.p.method
-        self.method = method
-        self.pose_method = METHODS[method]
+    def make_step(self, **wiring) -> PnpStep:
+        p = self.p
+        if not p.min_sigma_px > 0:
+            raise NodeError(f"params.min_sigma_px must be a positive number (px), got {p.min_sigma_px!r}")
         # the mean of two camera poses on different branches of the planar ambiguity reprojects
         # badly by construction: the paper's method is published as it is
-        self.max_rms_px = self.p.max_rms_px if method == "joint" or "max_rms_px" in self.params else None
-        self.outlier_px = self.p.outlier_px
-        self.refine = self.p.refine
-        self.min_sigma_px = self.p.min_sigma_px
-        if not self.min_sigma_px > 0:
-            raise NodeError(f"params.min_sigma_px must be a positive number (px), got {self.min_sigma_px!r}")
-
-    def on_pair(self, left, right):
-        uv, sc = self.stereo_arrays(left, right)
-        try:
-            if self.method == "joint":
-                stated = [kp.keypoint_sigma_px for kp in (left, right) if kp.found and kp.keypoint_sigma_px]
-                res = pnp_joint(uv, self.rig, self.model_points, sc, self.min_score,
-                                outlier_px=self.outlier_px, max_rms_px=self.max_rms_px,
-                                min_sigma_px=max([self.min_sigma_px, *stated]))
-            else:
-                res = pnp_average(uv, self.rig, self.model_points, sc, self.min_score,
-                                  refine=self.refine, max_rms_px=self.max_rms_px)
-        except NoPose as exc:
-            self.no_pose(exc.reason, left, exc.detail)
-            return
-        extra = {}
-        if self.method == "joint":
-            extra = {"covariance": res.covariance, "ambiguous": bool(res.ambiguous)}
-        self.publish_pose(self.pose_message(left.seq, left.stamp_ns, self.pose_method,
-                                               res.T_ecm_needle, res.rms_px, "px", **extra))
+        max_rms_px = p.max_rms_px if p.method == "joint" or "max_rms_px" in self.params else None
+        return PnpStep(p.method, max_rms_px=max_rms_px, outlier_px=p.outlier_px, refine=p.refine,
+                       min_sigma_px=p.min_sigma_px, min_score=p.min_score, **wiring)
 
 
 NODE = EpnpNode

@@ -41,7 +41,7 @@ from common.geometry.fusion import MultiViewFusion
 from common.geometry.needle import NeedleModel
 from common.runtime.messages import Calibration, EcmPose, GroundTruth, NoPoseNotice, PoseEstimate
 from common.runtime.node import Node, run
-from common.runtime.pairing import SeqCache, SeqJoin
+from common.runtime.pairing import FrameJoin, SeqCache, Wait
 
 
 class FusionNode(Node):
@@ -77,7 +77,15 @@ class FusionNode(Node):
         self.tracked = -1                                     # the newest frame the tracker stated
         self.after_move = False                               # the last estimate's needle was not at rest
         self.said_no_mode = False
-        self.pending = SeqJoin(p.max_wait, in_order=True)    # views waiting for their ECM pose / truth / mode
+        # views waiting for their ECM pose (dropped without it), truth (its sequence label), mode
+        self.pending = FrameJoin([
+            Wait("ecm", lambda seq, m: m.T_world_ecm is not None or not self.wired("ecm") or seq in self.ecm_poses,
+                 needed=True, missing="no_pose.no_ecm_pose"),
+            Wait("truth", lambda seq, m: not (self.reset_on_sequence and m.sequence is None and self.wired("truth"))
+                 or seq in self.sequences, missing="no_sequence"),
+            Wait("motion", lambda seq, m: not self.wired("motion") or seq in self.modes or self.tracked >= seq,
+                 missing="no_motion"),
+        ], p.max_wait, in_order=True)
 
     def _fusion(self, needle: NeedleModel) -> MultiViewFusion:
         p = self.p
@@ -143,25 +151,12 @@ class FusionNode(Node):
             super().on_command(msg)
 
     # ---------------------------------------------------------------- fusion
-    def _needs(self, msg: PoseEstimate) -> tuple[bool, bool, bool]:
-        """(waiting for the ECM pose, for the truth, for the tracker's mode) of a queued estimate."""
-        ecm = msg.T_world_ecm is None and self.wired("ecm") and msg.seq not in self.ecm_poses
-        truth = (self.reset_on_sequence and msg.sequence is None and self.wired("truth")
-                 and msg.seq not in self.sequences)
-        motion = self.wired("motion") and msg.seq not in self.modes and self.tracked < msg.seq
-        return ecm, truth, motion
-
     def _drain(self):
-        for msg, _ in self.pending.due(lambda seq, m: not any(self._needs(m))):
-            wait_ecm, wait_truth, wait_motion = self._needs(msg)
-            if wait_ecm:
-                self.count("no_pose.no_ecm_pose")
-                continue
-            if wait_truth:
-                self.count("no_sequence")
-            if wait_motion:
-                self.count("no_motion")
-            self._fuse(msg)
+        for r in self.pending.due():
+            for counter in r.counters:
+                self.count(counter)
+            if not r.dropped:
+                self._fuse(r.item)
 
     def _moves(self, seq: int) -> str | None:
         """Why frame ``seq``'s needle is not taken as at rest (its counter), or None: the
@@ -191,7 +186,8 @@ class FusionNode(Node):
         out = self.fusion.add(msg.T_ecm_needle, T_world_ecm, msg.covariance, seq=msg.seq,
                               sequence=sequence if self.reset_on_sequence else None,
                               common_sigma_m=msg.model_sigma_m or 0.0, ambiguous=bool(msg.ambiguous),
-                              common_sigma_rad=msg.model_sigma_rad or 0.0, end_identity=msg.end_identity)
+                              common_sigma_rad=msg.model_sigma_rad or 0.0, end_identity=msg.end_identity,
+                              identity_widened=msg.identity_widened)
         if out.reset:
             self.count("resets")
         self.count("outliers", int(out.n_queued - out.n_views))
@@ -201,7 +197,8 @@ class FusionNode(Node):
             msg.seq, msg.stamp_ns, self.method, out.T_ecm_needle, out.T_world_needle,
             np.asarray(T_world_ecm, dtype=float), out.rms_m, "m", out.n_views, out.covariance,
             ambiguous=out.ambiguous, sequence=sequence, model_sigma_m=out.common_sigma_m or None,
-            model_sigma_rad=out.common_sigma_rad or None, end_identity=out.end_identity))
+            model_sigma_rad=out.common_sigma_rad or None, end_identity=out.end_identity,
+            identity_widened=out.identity_widened))
 
 
 NODE = FusionNode

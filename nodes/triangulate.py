@@ -7,7 +7,7 @@ pose, at most ``max_wait`` frames, default 30). Outputs: ``pose`` (PoseEstimate,
 ``triangulation``, residual = registration RMS in m, ``points_ecm`` the triangulated points)
 and ``points`` (Points3D, published for every frame with a valid calibration, NaN rows where a
 keypoint was not triangulated), and ``no_pose`` (``NoPoseNotice``: a frame without a pose,
-``nodes/_pose.py``).
+``common/pose/stereo.py``, the frame step).
 
 Params: ``min_score`` (0.5); ``max_rms_m`` (0.05: a registration worse than this, larger than
 the needle itself, means the points are not a needle and no pose is published; with 1 px
@@ -17,46 +17,26 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
-import numpy as np
-
-from common.geometry.observations import NoPose
-from common.geometry.triangulation import triangulate_keypoints, triangulation_pose
-from common.runtime.messages import Calibration, EcmPose, Keypoints, Points3D
+from common.pose.stereo import TriangulationStep
+from common.runtime.messages import Calibration, EcmPose, Keypoints
 from common.runtime.node import run
 from nodes._pose import StereoPoseNode
 
 
 class TriangulateNode(StereoPoseNode):
-    """Pipeline II: triangulate A..E, register the needle model onto them -> T_ecm_needle."""
+    """Pipeline II: triangulate A..E, register the needle model onto them -> T_ecm_needle
+    (``common.pose.stereo.TriangulationStep``)."""
 
     INPUTS = {"left": Keypoints, "right": Keypoints, "calib": Calibration, "ecm": EcmPose}
     OUTPUTS = ("pose", "points", "no_pose")
     KEEP_ALL = StereoPoseNode.KEEP_ALL
-    pose_method = "triangulation"
 
     @dataclass
     class Params(StereoPoseNode.Params):
         max_rms_m: float | None = 0.05    # larger Arun residuals give no pose; null: no gate
 
-    def setup(self):
-        super().setup()
-        self.max_rms_m = self.p.max_rms_m
-
-    def on_pair(self, left, right):
-        uv, sc = self.stereo_arrays(left, right)
-        n = len(self.model_points)
-        try:
-            res = triangulation_pose(uv, self.rig, self.model_points, sc, self.min_score, self.max_rms_m)
-            pts, valid = res.points_ecm, res.valid
-        except NoPose as exc:
-            res = None
-            pts, valid, _ = triangulate_keypoints(uv, self.rig, n, sc, self.min_score)
-            self.no_pose(exc.reason, left, exc.detail)
-        self.publish("points", Points3D(left.seq, left.stamp_ns, pts, np.asarray(valid, dtype=bool)))
-        if res is not None:
-            self.publish_pose(self.pose_message(left.seq, left.stamp_ns, self.pose_method,
-                                                   res.T_ecm_needle, res.rms_m, "m",
-                                                   points_ecm=res.points_ecm))
+    def make_step(self, **wiring) -> TriangulationStep:
+        return TriangulationStep(max_rms_m=self.p.max_rms_m, min_score=self.p.min_score, **wiring)
 
 
 NODE = TriangulateNode

@@ -169,7 +169,8 @@ def judge_group(key: str, frames: list, ds: Dataset, outputs: dict, cfg: LabelCo
         fused = fusion.add(p["T_ecm_needle"], p["T_world_ecm"], p.get("covariance"),
                            common_sigma_m=p.get("model_sigma_m") or 0.0,
                            common_sigma_rad=p.get("model_sigma_rad") or 0.0,
-                           ambiguous=bool(p.get("ambiguous")), end_identity=p.get("end_identity"))
+                           ambiguous=bool(p.get("ambiguous")), end_identity=p.get("end_identity"),
+                           identity_widened=p.get("identity_widened"))
     T_world = fused.T_world_needle
     v.T_world_needle = T_world
     sig_mm, sig_deg = _sigmas(fused.covariance)

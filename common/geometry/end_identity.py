@@ -7,12 +7,17 @@ so turning an observation end for end reverses them (and the centreline); the po
 turned observation is ``refine.tip_for_tail`` of the other: a half turn about the arc's axis of
 symmetry, the same origin. Probabilities are in [0, 1]; covariances are 6x6 over
 [rotation vector (rad), translation (m)] in the ECM frame, as the pose solvers give them.
+
+This module is the end-identity policy's one home: its constants (``TIP_SURE``, the track's
+decay and cap, the caps a fitted pose's tip takes), the widening of an unsure pose's covariance
+over the turn (``state``) and its undoing for a consumer that weighs both readings itself
+(``reading_covariance``, from what the pose says it did: ``PoseEstimate.identity_widened``).
 """
 from __future__ import annotations
 
 import math
 from dataclasses import dataclass
-from typing import Iterable, Mapping
+from typing import Iterable, Mapping, NamedTuple
 
 import numpy as np
 
@@ -28,8 +33,8 @@ scaled up by 1 + this, not summed."""
 
 TIP_SURE = 0.95
 """A pose whose tip is at least this probable is posed as is and is sure of it; below it, it is
-flagged ``ambiguous`` with a covariance spanning the turn (``state``). The pose nodes' and the
-fusion's ``min_end_identity`` default, and what the evaluation counts as a sure tip."""
+flagged ``ambiguous`` with a covariance spanning the turn (``state``): the pose nodes', the
+tracker's and the fusion's threshold, and what the evaluation counts as a sure tip."""
 
 
 def logit(p: float) -> float:
@@ -134,16 +139,47 @@ def settle(p_left: float | None, p_right: float | None, *, tracking: bool = Fals
     return Settled(turn, sigmoid(new_track[0]), new_track)
 
 
+class Stated(NamedTuple):
+    """What a pose states about its tip (``state``): ``unsure`` (to be flagged ``ambiguous``) and
+    its ``covariance`` (widened over the turn when unsure; None stays None)."""
+    unsure: bool
+    covariance: np.ndarray | None
+
+    @property
+    def widened(self) -> bool:
+        """Whether the covariance was widened over the turn (``PoseEstimate.identity_widened``)."""
+        return self.unsure and self.covariance is not None
+
+
 def state(T_ecm_needle: np.ndarray, covariance: np.ndarray | None, needle: NeedleModel,
-          p: float | None, min_p: float = TIP_SURE) -> tuple[bool, np.ndarray | None]:
+          p: float | None, min_p: float = TIP_SURE) -> Stated:
     """What a pose whose tip has probability ``p`` states: (unsure, covariance). Below ``min_p``
     the tip is unsure: the pose is to be flagged ``ambiguous`` and its covariance (6x6, [w, v],
     ECM frame; None stays None) spans the end-for-end turn (``identity_covariance``)."""
     if p is None or p >= min_p:
-        return False, covariance
+        return Stated(False, covariance)
     if covariance is not None:
         covariance = identity_covariance(T_ecm_needle, covariance, needle, p)
-    return True, covariance
+    return Stated(True, covariance)
+
+
+def was_widened(p: float | None, widened: bool | None) -> bool:
+    """Whether a pose's covariance spans its turn end for end: what it says it did (``widened``,
+    ``PoseEstimate.identity_widened``); a pose that does not say (a foreign or older source) is
+    taken as this policy would have stated it, widened below ``TIP_SURE``."""
+    if widened is not None:
+        return bool(widened)
+    return p is not None and p < TIP_SURE
+
+
+def reading_covariance(T_ecm_needle: np.ndarray, covariance: np.ndarray, needle: NeedleModel,
+                       p: float | None, widened: bool | None) -> np.ndarray:
+    """A pose's covariance as its reading (``without_identity_covariance`` where it was widened
+    over the turn, ``was_widened``): for a consumer that weighs both readings itself (the
+    tracker, the fusion)."""
+    if p is None or not was_widened(p, widened):
+        return covariance
+    return without_identity_covariance(T_ecm_needle, covariance, needle, p)
 
 
 def turn_observation(uv: np.ndarray, scores: np.ndarray, centreline: np.ndarray | None = None,

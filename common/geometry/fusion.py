@@ -20,13 +20,14 @@ Which end is the tip is decided by evidence, not by a count: views turned end fo
 fused pose (the same origin within ``max_dist_m``, more than ``TURNED_RAD`` off) are never
 averaged with it, but when their stated end identities (log-odds summed) outweigh the inliers'
 the fusion is made of them instead. A view unsure of its tip carries a covariance widened over
-its turn (``common.geometry.end_identity.state``); that widening is taken out before the views
+its turn (``common.geometry.end_identity.state``, which the view says: ``identity_widened``);
+that widening is taken out (``end_identity.reading_covariance``) before the views
 are weighed (it says "or the other end", not "anywhere between": weighed with it, a view's
 loose turn direction, coupled to its position, pulled a fused pose 11 deg off views 1.5 and
 4.7 deg off). The fused pose states the mean of every view's log-odds about it (a turned view's
-counting against it) and, below ``min_end_identity``, is flagged ``ambiguous`` with its
-covariance widened over the turn again, by that probability, as the pose nodes do for one
-frame.
+counting against it) and, below ``TIP_SURE``, is flagged ``ambiguous`` with its covariance
+widened over the turn again, by that probability, as the pose nodes do for one frame
+(``FusedPose.identity_widened``).
 
 A planar arc seen nearly edge-on has a mirror image that fits one view almost as well
 (``common.geometry.refine.mirror_pose``); a pose node flags such a view ``ambiguous``. The
@@ -46,8 +47,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from common.geometry.end_identity import (TIP_SURE, identity_covariance, logit, sigmoid,
-                                          without_identity_covariance)
+from common.geometry.end_identity import TIP_SURE, identity_covariance, logit, reading_covariance, sigmoid, was_widened
 from common.geometry.needle import NeedleModel
 from common.geometry.refine import mirror_covariance, mirror_pose
 from common.geometry.transforms import inv_T, make_T, pose_mean, rotvec_to_R
@@ -68,6 +68,7 @@ class QueuedEstimate:
     common_sigma_rad: float = 0.0
     ambiguous: bool = False          # the view's images could not decide (e.g. which end is the tip)
     end_identity: float | None = None  # probability that the tip is where the pose puts it
+    identity_widened: bool | None = None   # its covariance spans its turn (None: not stated)
 
     @property
     def T_world_needle(self) -> np.ndarray:
@@ -87,7 +88,9 @@ class FusedPose:
     decide does not decide: the covariance is then the inliers' mean one, which spans what each
     left open); ``end_identity`` the probability that the tip is where the pose puts it: the
     mean log-odds of the inliers' and of the views turned end for end from it, which count
-    against it (None when none stated one); ``turned``: how many views were turned end for end.
+    against it (None when none stated one); ``turned``: how many views were turned end for end;
+    ``identity_widened``: whether ``covariance`` spans the turn end for end (widened here below
+    ``TIP_SURE``, or the mean of inliers' covariances that each did).
     """
 
     T_ecm_needle: np.ndarray
@@ -103,6 +106,7 @@ class FusedPose:
     common_sigma_rad: float = 0.0
     end_identity: float | None = None
     turned: int = 0
+    identity_widened: bool = False
 
 
 
@@ -268,8 +272,7 @@ class MultiViewFusion:
 
     def __init__(self, k: int = 5, max_dist_m: float = 0.005, max_angle_rad: float = np.deg2rad(15.0),
                  reset_dist_m: float = 0.010, reset_angle_rad: float = np.deg2rad(45.0),
-                 reset_after: int = 3, use_covariance: bool = True, min_end_identity: float = TIP_SURE,
-                 needle: NeedleModel | None = None):
+                 reset_after: int = 3, use_covariance: bool = True, needle: NeedleModel | None = None):
         if k < 1 or reset_after < 1:
             raise ValueError(f"fusion: k and reset_after must be >= 1, got {k}, {reset_after}")
         self.k = k
@@ -277,7 +280,6 @@ class MultiViewFusion:
         self.reset_dist_m, self.reset_angle_rad = reset_dist_m, reset_angle_rad
         self.reset_after = reset_after
         self.use_covariance = use_covariance
-        self.min_end_identity = min_end_identity
         self.needle = NeedleModel() if needle is None else needle   # its arc's turn and mirror image
         self._centroid = self.needle.sample_arc(64).mean(0)
         self.queue: deque[QueuedEstimate] = deque()
@@ -294,17 +296,19 @@ class MultiViewFusion:
     def add(self, T_ecm_needle, T_world_ecm=None, covariance=None, seq: int | None = None,
             sequence: int | None = None, common_sigma_m: float = 0.0,
             ambiguous: bool = False, common_sigma_rad: float = 0.0,
-            end_identity: float | None = None) -> FusedPose:
+            end_identity: float | None = None, identity_widened: bool | None = None) -> FusedPose:
         """Queue an estimate made at ``T_world_ecm`` (identity when unknown: a still endoscope)
         and return the fused pose in the current ECM frame. ``common_sigma_m``,
         ``common_sigma_rad``: the position and orientation error (m, rad, per axis) inside
         ``covariance`` that every view shares; ``ambiguous``: the estimate was flagged so;
-        ``end_identity``: its probability that the tip is where it puts it."""
+        ``end_identity``: its probability that the tip is where it puts it; ``identity_widened``:
+        whether its covariance spans its turn (``PoseEstimate.identity_widened``; None: not
+        stated, ``end_identity.was_widened``)."""
         T_world_ecm = np.eye(4) if T_world_ecm is None else np.asarray(T_world_ecm, dtype=float)
         est = QueuedEstimate(np.asarray(T_ecm_needle, dtype=float), T_world_ecm,
                              None if covariance is None else np.asarray(covariance, dtype=float), seq,
                              float(common_sigma_m or 0.0), float(common_sigma_rad or 0.0), bool(ambiguous),
-                             None if end_identity is None else float(end_identity))
+                             None if end_identity is None else float(end_identity), identity_widened)
         reset = False
         if sequence is not None and self.sequence is not None and sequence != self.sequence:
             self.queue.clear()
@@ -373,27 +377,28 @@ class MultiViewFusion:
             cov[:3, :3] += common_rad ** 2 * np.eye(3)
             cov[3:, 3:] += common ** 2 * np.eye(3)
         ambiguous = all(e.ambiguous for e, ok in zip(self.queue, inl) if ok)
+        widened = False
         if ambiguous and cov is not None:
             cov = np.mean([C for C, ok in zip(given, inl) if ok], axis=0)
+            widened = all(was_widened(e.end_identity, e.identity_widened) for e, ok in zip(self.queue, inl) if ok)
         said = np.array([e.end_identity is not None for e in self.queue]) & (inl | turned)
         p = None
         if said.any():
             p = sigmoid(np.mean(np.where(inl, z, -z)[said]))
-            if p < self.min_end_identity:                     # the views leave the tip open
+            if p < TIP_SURE:                                  # the views leave the tip open
                 if cov is not None and not ambiguous:         # (else their own covariances span it)
                     cov = identity_covariance(T, cov, self.needle, p)
+                    widened = True
                 ambiguous = True
         d = np.array([Ti[:3, 3] - T[:3, 3] for Ti, ok in zip(Ts, inl) if ok])
         rms = float(np.sqrt(np.mean(np.sum(d * d, axis=1))))
         return FusedPose(T, T_world_ecm_now @ T, int(inl.sum()), len(Ts), inl, cov, reset, rms, common,
-                         ambiguous, common_rad, p, int(turned.sum()))
+                         ambiguous, common_rad, p, int(turned.sum()), widened)
 
     def _as_read(self, e: QueuedEstimate) -> np.ndarray:
         """``e``'s covariance without the widening over its turn that a view unsure of its tip
         states (``end_identity.state``): what its images pin down about its reading."""
-        if e.end_identity is None or e.end_identity >= TIP_SURE:
-            return e.covariance
-        return without_identity_covariance(e.T_ecm_needle, e.covariance, self.needle, e.end_identity)
+        return reading_covariance(e.T_ecm_needle, e.covariance, self.needle, e.end_identity, e.identity_widened)
 
     def _vote(self, Ts, covs, z, T, inl, cov):
         """Which end is the tip, by evidence: the fusion of the views turned end for end from ``T``

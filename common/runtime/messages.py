@@ -228,6 +228,10 @@ class PoseEstimate(Message):
     ``end_identity``: the probability that the needle's tip is where this pose puts it; the other
     answer is the pose turned end for end (``common.geometry.refine.tip_for_tail``, the same arc).
     Absent: the detectors stated nothing (A was taken as the tip).
+    ``identity_widened``: whether ``covariance`` was widened to span the turn end for end (its tip
+    unsure, below ``common.geometry.end_identity.TIP_SURE``: ``C + (1 - end_identity) d d^T``), so
+    that a consumer weighing both readings itself takes exactly that out
+    (``end_identity.reading_covariance``); absent: not stated (a foreign source).
     ``mode``: a tracker's decision at this frame, from what it measures (``TRACK_MODES``):
     ``rest`` the needle at rest in the world, ``held`` in an instrument's jaws, ``free`` moving on
     its own; absent: no tracker decided (docs/tracking.md). The fusion fuses only views at rest.
@@ -255,6 +259,7 @@ class PoseEstimate(Message):
     end_identity: Optional[Number] = None
     mode: Optional[Literal[TRACK_MODES]] = None
     arc_seen: Optional[Share] = None
+    identity_widened: Optional[bool] = None
 
     def validate(self):
         err = pose_invariant_error(self)

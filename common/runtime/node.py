@@ -184,6 +184,12 @@ class Node:
         else:
             self._runtime.publish(output, msg)
 
+    def publish_all(self, out) -> None:
+        """Publish each ``(output, message)`` of ``out`` in turn (what a library frame step
+        returns, e.g. ``common.pose``)."""
+        for output, msg in out:
+            self.publish(output, msg)
+
     def prepare(self, msg) -> Prepared:
         """``msg`` ready to ``publish`` later, its large field (an image) copied now into shared
         memory when the transport uses it (offline: nothing to copy)."""

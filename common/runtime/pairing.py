@@ -1,10 +1,13 @@
 """Joining a node's inputs by frame ``seq``: stereo pairing of per-camera messages
-(``StereoPairer``), messages held until the rest of their frame is in (``SeqJoin``), a bounded
-cache keyed by ``seq`` (``SeqCache``), and the frame clock (``SeqClock``) that tells a node when
-its source restarted or a seq is poison."""
+(``StereoPairer``), messages held until the rest of their frame is in (``SeqJoin``), the same
+declared input by input (``FrameJoin``, ``Wait``: which inputs a frame waits for, which it
+needs, how long), a bounded cache keyed by ``seq`` (``SeqCache``), and the frame clock
+(``SeqClock``) that tells a node when its source restarted or a seq is poison."""
 from __future__ import annotations
 
 from collections import OrderedDict
+from dataclasses import dataclass
+from typing import Callable, Iterable
 
 
 class StereoPairer:
@@ -121,6 +124,96 @@ class SeqJoin:
 
     def __iter__(self):
         return iter(item for _, item in self._held)
+
+
+@dataclass(frozen=True)
+class Wait:
+    """One input a held frame waits for: ``is_in(seq, item)`` says whether it is in for frame
+    ``seq``. ``needed``: a frame released without it (after ``max_wait``) is dropped, not used;
+    ``missing``: the counter a node adds when the frame goes on without it (None: none)."""
+    name: str
+    is_in: Callable[[int, object], bool]
+    needed: bool = False
+    missing: str | None = None
+
+
+@dataclass(frozen=True)
+class Released:
+    """A held item let go by ``FrameJoin.due``: ``missing`` names the waits not in (empty: the
+    frame is complete), ``dropped`` whether one of them was needed, ``counters`` the counters
+    its missing inputs declare (of a dropped item: only the needed ones', why it was dropped)."""
+    item: object
+    missing: tuple[str, ...] = ()
+    dropped: bool = False
+    counters: tuple[str, ...] = ()
+
+    @property
+    def complete(self) -> bool:
+        return not self.missing
+
+
+class FrameJoin:
+    """A node's frame join, declared: items (a stereo pair, a pose, a frame's seq) held until
+    every input in ``waits`` (``Wait``) is in for their frame, at most ``max_wait`` frames behind
+    the stream's newest (then released without them; without a ``needed`` one, dropped).
+
+    ``hold(seq, item)`` holds an item, ``see(seq)`` moves the stream on (a message of frame
+    ``seq`` on another input), ``due()`` takes out the items now due, in ``seq`` order, each a
+    ``Released``. ``in_order``: one not yet due holds back the later ones. With no waits an item
+    is due at once. The same release rule as ``SeqJoin``, with the waits named once."""
+
+    def __init__(self, waits: Iterable[Wait], max_wait: int, in_order: bool = False):
+        self.waits = tuple(waits)
+        self._join = SeqJoin(max_wait, in_order)
+
+    @property
+    def max_wait(self) -> int:
+        return self._join.max_wait
+
+    @property
+    def newest(self) -> int:
+        return self._join.newest
+
+    def see(self, seq: int) -> None:
+        self._join.see(seq)
+
+    def hold(self, seq: int, item) -> None:
+        self._join.hold(seq, item)
+
+    def _missing(self, seq: int, item) -> tuple[str, ...]:
+        return tuple(w.name for w in self.waits if not w.is_in(seq, item))
+
+    def due(self) -> list[Released]:
+        found = {}
+
+        def ready(seq, item):
+            missing = self._missing(seq, item)
+            found[id(item)] = missing
+            return not missing
+
+        out = []
+        for item, _complete in self._join.due(ready):
+            missing = found[id(item)]
+            waits = [w for w in self.waits if w.name in missing]
+            dropped = any(w.needed for w in waits)
+            # a dropped frame counts why (its needed inputs), a used one each input it lacked
+            out.append(Released(item, missing, dropped,
+                                tuple(w.missing for w in waits if w.missing and (w.needed or not dropped))))
+        return out
+
+    def drop(self, which=lambda seq, item: True) -> list:
+        """Take out, unhandled, the items ``which(seq, item)`` selects; returns them."""
+        return self._join.drop(which)
+
+    def reset(self) -> list:
+        """A new stream: every held item is dropped (returned) and the position forgotten."""
+        return self._join.reset()
+
+    def __len__(self) -> int:
+        return len(self._join)
+
+    def __iter__(self):
+        return iter(self._join)
 
 
 class SeqCache(OrderedDict):

@@ -1,5 +1,5 @@
 """Which end is the tip (common/geometry/end_identity.py) and how the pose nodes use a detector's
-statement of it (nodes/_pose.py): turned when sure of the other end, flagged when unsure."""
+statement of it (common/pose/stereo.py): turned when sure of the other end, flagged when unsure."""
 import dataclasses
 
 import numpy as np
@@ -319,3 +319,28 @@ def test_a_second_camera_adds_nothing_on_an_unfamiliar_look():
     alone = stereo_end_identity(0.9, 0.88, news=second_view_news([1.33, 1.32]))
     assert sure > 0.95 > alone > 0.9          # two agreeing views of an unfamiliar look: not sure
     assert stereo_end_identity(0.9, 0.9, news=0.0) == pytest.approx(0.9)
+
+
+def test_what_a_pose_says_of_its_covariance_decides_what_is_taken_out():
+    """reading_covariance: the widening over the turn is taken out where the pose says it was
+    widened; a pose that does not say is read as the policy would have stated it (TIP_SURE)."""
+    from common.geometry.end_identity import (
+        identity_covariance,
+        reading_covariance,
+        state,
+        was_widened,
+    )
+    from common.geometry.transforms import make_T, rotvec_to_R
+    needle = NeedleModel()
+    T = make_T(rotvec_to_R([0.3, -0.2, 0.1]), [0.0, 0.01, 0.1])
+    C = np.diag([1e-4] * 3 + [1e-7] * 3)
+    stated = state(T, C, needle, 0.8)
+    assert stated.unsure and stated.widened and np.allclose(stated.covariance, identity_covariance(T, C, needle, 0.8))
+    assert not state(T, None, needle, 0.8).widened and state(T, None, needle, 0.8).unsure
+    assert not state(T, C, needle, TIP_SURE).widened
+    assert np.allclose(reading_covariance(T, stated.covariance, needle, 0.8, True), C)
+    assert reading_covariance(T, stated.covariance, needle, 0.8, False) is stated.covariance   # said: not widened
+    assert np.allclose(reading_covariance(T, stated.covariance, needle, 0.8, None), C)         # not said: the policy
+    assert reading_covariance(T, C, needle, None, None) is C
+    assert was_widened(0.9, None) and not was_widened(0.99, None) and not was_widened(None, None)
+    assert was_widened(0.99, True) and not was_widened(0.5, False)

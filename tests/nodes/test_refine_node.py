@@ -99,10 +99,10 @@ def test_node_support_normal_is_turned_into_each_frames_ecm_frame():
     node = RefineNode.offline({"tracking": False, "support_normal_world": [0, 0, 2]},
                               wired=["left", "right", "calib", "ecm"])
     node.on_calib(CALIB)
-    assert node.support_normal_ecm(0) is None and node.counters["no_support_prior"] == 1
+    assert node.step.support_normal_ecm(0) is None and node.counters["no_support_prior"] == 1
     T_world_ecm = ARM.T_world_ecm(Q)
     node.on_ecm(EcmPose(0, 0, T_world_ecm))
-    assert np.allclose(T_world_ecm[:3, :3] @ node.support_normal_ecm(7), [0, 0, 1])   # the newest
+    assert np.allclose(T_world_ecm[:3, :3] @ node.step.support_normal_ecm(7), [0, 0, 1])   # the newest
     for T, left, right in frames:
         node.on_ecm(EcmPose(left.seq, left.stamp_ns, T_world_ecm))
         node.on_right(right)
@@ -135,9 +135,9 @@ def test_node_tracks_a_video_as_the_library_does():
 def test_node_params_reach_the_fit():
     node = RefineNode.offline({"sigma_curve_px": 0.3, "min_score": 0.7, "max_rms_px": 5, "max_curve_points": 48,
                                "tracking": False, "cold_every": 7}, wired=["left", "right", "calib"])
-    assert node.config.sigma_curve_px == 0.3 and node.config.min_score == 0.7 and node.config.max_curve_points == 48
-    assert node.max_rms_px == 5 and not node.tracking.enabled and node.tracking.cold_every == 7
-    assert RefineNode.offline({}, wired=["left", "right", "calib"]).config.min_score == 0.5
+    assert node.step.config.sigma_curve_px == 0.3 and node.step.config.min_score == 0.7 and node.step.config.max_curve_points == 48
+    assert node.step.gates.max_rms_px == 5 and not node.step.tracking.enabled and node.step.tracking.cold_every == 7
+    assert RefineNode.offline({}, wired=["left", "right", "calib"]).step.config.min_score == 0.5
     with pytest.raises(ParamError, match=r"sigma_kp_px: must be a positive number, got -1.0"):   # RefineConfig's constraint
         RefineNode.offline({"sigma_kp_px": -1.0})
     with pytest.raises(ParamError, match="max_iter: expected int, got 'many'"):
@@ -283,7 +283,7 @@ def test_end_identity_belongs_to_the_tracked_needle_not_to_a_frame():
     reading; then one sure frame makes it sure."""
     import dataclasses
 
-    from nodes._pose import turn_keypoints
+    from common.pose.stereo import turn_keypoints
     from tests.geometry.test_refine_tracking import FRAME_NS, video
     node = RefineNode.offline({}, wired=["left", "right", "calib"])
     node.on_calib(CALIB)
@@ -318,7 +318,7 @@ def test_a_needle_at_rest_keeps_its_identity_over_the_endoscopes_moves():
     them it stands alone: a sure, turned pose (what the world track prevents)."""
     import dataclasses
 
-    from nodes._pose import turn_keypoints
+    from common.pose.stereo import turn_keypoints
     rng = np.random.default_rng(11)
     T_ecm0 = random_needle_pose(rng, RIG, MODEL)
     qs = [(0.0, 0.0, 0.05, 0.0), (0.04, 0.0, 0.05, 0.0), (0.0, 0.04, 0.05, 0.0),
@@ -499,7 +499,7 @@ def test_the_expected_pose_that_picks_between_minima_is_confirmed_by_the_pose_be
     for seq, q in enumerate(qs):
         T_world_ecm = ARM.T_world_ecm(q)
         node.on_ecm(EcmPose(seq, seq * 2_000_000_000, T_world_ecm))
-        expected.append(node.expected_T_ecm_needle(seq, confirmed=True))
+        expected.append(node.step.expected_T_ecm_needle(seq, confirmed=True))
         T = inv_T(T_world_ecm) @ (moved if seq == 2 else T_world_needle)
         for cam in RIG.cameras:
             uv, sc = oracle.keypoints(cam, T, MODEL, seq)
@@ -510,4 +510,4 @@ def test_the_expected_pose_that_picks_between_minima_is_confirmed_by_the_pose_be
     assert len(out) == 4 and expected[0] is None and expected[1] is None     # one pose: unconfirmed
     assert np.degrees(pose_error(expected[2], inv_T(ARM.T_world_ecm(qs[2])) @ T_world_needle)[1]) < 2.0
     assert expected[3] is None                                                # the needle moved
-    assert node.expected_T_ecm_needle(3) is not None                          # unconfirmed: the last pose
+    assert node.step.expected_T_ecm_needle(3) is not None                          # unconfirmed: the last pose

@@ -90,7 +90,7 @@ def test_a_late_pose_is_dropped_and_a_new_take_starts_a_new_track():
     node.on_ecm(EcmPose(30, 30 * DT_NS, T_world_ecm))
     far = make_T(np.eye(3), [0.05, 0, 0]) @ frames[30].T_world_needle
     node.on_pose(PoseEstimate(30, 30 * DT_NS, "refined", inv_T(T_world_ecm) @ far, covariance=np.eye(6) * 1e-8))
-    assert node.stepped == 29                      # its pose is in; its instruments' states are not
+    assert node.step.stepped == 29                      # its pose is in; its instruments' states are not
     for name, (T, jaw, holds) in frames[30].instruments.items():
         node.on_instruments(InstrumentState(name, 30, 30 * DT_NS, T, jaw, holds))
     assert node.counters["resets.sequence"] == 1
@@ -117,7 +117,7 @@ def test_a_late_pose_is_filtered_in_by_stepping_again_from_its_frame():
         in_time.on_pose(poses[k])
         if k >= 2:
             late.on_pose(poses[k - 2])
-        assert late.stepped == k - 1                   # stepped when the next frame came, no pose yet
+        assert late.step.stepped == k - 1                   # stepped when the next frame came, no pose yet
     for pose in poses[-2:]:
         late.on_pose(pose)
     for node in (in_time, late):
@@ -127,7 +127,7 @@ def test_a_late_pose_is_filtered_in_by_stepping_again_from_its_frame():
     events = {c: {k: v for k, v in n.counters.items() if k.startswith(("events.", "rejected", "turned"))}
               for c, n in (("in_time", in_time), ("late", late))}
     assert events["late"] == events["in_time"]     # what the steps found, counted once
-    a, b = in_time.tracker, late.tracker
+    a, b = in_time.step.tracker, late.step.tracker
     assert (a.mode, a.holder, a.age) == (b.mode, b.holder, b.age)
     assert np.allclose(a.T, b.T) and np.allclose(a.P, b.P) and np.allclose(a.identity, b.identity)
     published = {m.seq: m for o, m in late.published if o == "pose"}
@@ -158,30 +158,30 @@ def test_a_frame_the_refine_node_says_has_no_pose_is_stepped_at_once():
         frame_inputs(node, frames, T_world_ecm, 20)
     notice = decode(encode(NoPoseNotice(20, 20 * DT_NS, "refined", "too_few_points")), NoPoseNotice)
     told.on_no_pose(notice)
-    assert told.stepped == 20 and told.counters["coasted"] == 1    # no later frame needed
-    assert untold.stepped == 19                                    # waits for a later pose
+    assert told.step.stepped == 20 and told.counters["coasted"] == 1    # no later frame needed
+    assert untold.step.stepped == 19                                    # waits for a later pose
     # a notice may come before the frame's other inputs: stepped as soon as they are in
     told.on_no_pose(NoPoseNotice(21, 21 * DT_NS, "refined", "poor_fit"))
-    assert told.stepped == 20
+    assert told.step.stepped == 20
     frame_inputs(told, frames, T_world_ecm, 21)
-    assert told.stepped == 21 and told.counters["coasted"] == 2
+    assert told.step.stepped == 21 and told.counters["coasted"] == 2
     # a frame without a notice still waits for its pose, and a late one (within max_wait) is used
     for k in (22, 23):
         frame_inputs(told, frames, T_world_ecm, k)
-    assert told.stepped == 21
+    assert told.step.stepped == 21
     T_ecm = inv_T(T_world_ecm) @ frames[22].T_world_needle
     told.on_pose(PoseEstimate(22, 22 * DT_NS, "refined", T_ecm, covariance=np.eye(6) * 1e-8))
-    assert told.stepped == 22 and told.counters["coasted"] == 2 and "late_pose" not in told.counters
+    assert told.step.stepped == 22 and told.counters["coasted"] == 2 and "late_pose" not in told.counters
     told.on_no_pose(NoPoseNotice(21, 21 * DT_NS, "refined", "poor_fit"))     # stepped already: nothing
-    assert told.stepped == 22
+    assert told.step.stepped == 22
     poses = [m for o, m in told.published if o == "pose"]
     assert pose_error(poses[-1].T_world_needle, frames[22].T_world_needle)[0] < 1e-3
     # a frame the refine node never saw (the detectors dropped it): a later frame's notice says
     # the refine node is past it
     frame_inputs(told, frames, T_world_ecm, 24)
-    assert told.stepped == 22
+    assert told.step.stepped == 22
     told.on_no_pose(NoPoseNotice(24, 24 * DT_NS, "refined", "too_few_points"))
-    assert told.stepped == 24 and told.counters["coasted"] == 4
+    assert told.step.stepped == 24 and told.counters["coasted"] == 4
     poses = [m for o, m in told.published if o == "pose"]
     assert [m.seq for m in poses] == list(range(25)) and not [m for o, m in told.published if o == "no_pose"]
 
@@ -241,8 +241,8 @@ def test_instruments_that_go_quiet_make_room_and_hold_nothing_up():
         node.on_instruments(InstrumentState(f"junk{i}", 0, 0, T, 0.5))
     assert node.counters["instruments.too_many"] == 0
     feed(node, frames[:40], T_world_ecm, np.random.default_rng(4))
-    assert {"psm1", "psm2"} <= set(node.jaws) and node.counters["instruments.too_many"] > 0
-    assert node.stepped == 39
+    assert {"psm1", "psm2"} <= set(node.step.jaws.states) and node.counters["instruments.too_many"] > 0
+    assert node.step.stepped == 39
 
 
 def test_an_in_hand_pose_that_breaks_its_contract_is_refused_by_field():

@@ -59,9 +59,10 @@ MAY_IMPORT = {
     "sim": {"geometry", "data"},
     "detector": {"geometry", "data", "runtime"},
     "ros": {"geometry", "data", "runtime"},
+    "pose": {"geometry", "data", "runtime"},
     "viewer": {"geometry", "runtime", "evaluation"},
     "label": {"geometry", "runtime", "data", "detector", "viewer"},
-    "evaluation": {"geometry", "runtime", "data", "sim", "detector", "ros", "viewer", "label", "cli"},
+    "evaluation": {"geometry", "runtime", "data", "sim", "detector", "ros", "viewer", "label", "pose", "cli"},
     "cli": {"data"},
 }
 

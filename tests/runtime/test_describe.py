@@ -12,7 +12,7 @@ def test_a_node_is_described_from_its_class():
     assert ("left", "Keypoints") in info["inputs"] and info["outputs"] == ["pose", "no_pose"]
     params = {name: (tp, default, doc) for name, tp, default, doc in info["params"]}
     # the node's own params, the merged RefineConfig's, and the base class's, each with its comment
-    assert params["max_wait"] == ("int", 30, "frames a pose (SOLVE_WITH_ECM: a pair, unsolved) waits for its ECM pose")
+    assert params["max_wait"] == ("int", 30, "frames a pose (or a pair the solver needs the ECM pose for) waits for its ECM pose")
     assert params["sigma_kp_px"][2] == "assumed keypoint noise"
     assert params["min_cameras"][2].startswith("one camera poses the needle")   # the comment above it
     assert "refine" in as_text(info).splitlines()[0]

@@ -46,3 +46,50 @@ def test_seq_cache_keeps_the_newest():
     for s in range(4):
         c.put(s, s * 10)
     assert list(c.items()) == [(2, 20), (3, 30)]
+
+
+def test_a_frame_join_names_what_a_frame_went_on_without():
+    """FrameJoin: the waits declared once; a frame released late says which inputs it lacked,
+    and one that lacked a needed input is dropped, counted only for that."""
+    from common.runtime.pairing import FrameJoin, Wait
+    ecm, truth = set(), set()
+    join = FrameJoin([Wait("ecm", lambda s, _: s in ecm, needed=True, missing="no_ecm"),
+                      Wait("truth", lambda s, _: s in truth, missing="no_truth")], max_wait=2, in_order=True)
+    for seq in (1, 2, 3):
+        join.hold(seq, f"pose{seq}")
+    ecm.update({1, 2})
+    truth.add(1)
+    r = join.due()
+    assert [(x.item, x.complete) for x in r] == [("pose1", True)] and len(join) == 2
+    join.see(4)                            # 2 is 2 frames behind: goes on without its truth
+    (r,) = join.due()
+    assert (r.item, r.missing, r.dropped, r.counters) == ("pose2", ("truth",), False, ("no_truth",))
+    join.see(5)                            # 3 has neither: dropped, counted for the ECM pose alone
+    (r,) = join.due()
+    assert (r.item, r.missing, r.dropped, r.counters) == ("pose3", ("ecm", "truth"), True, ("no_ecm",))
+    free = FrameJoin([], max_wait=2)       # no waits: due at once
+    free.hold(0, "x")
+    assert [x.item for x in free.due()] == ["x"]
+
+
+def test_a_frame_join_releases_as_the_seq_join_does():
+    """The same release rule as SeqJoin, item for item, on a random stream."""
+    import random
+
+    from common.runtime.pairing import FrameJoin, Wait
+    rng = random.Random(3)
+    have = set()
+    old = SeqJoin(max_wait=3, in_order=True)
+    new = FrameJoin([Wait("x", lambda s, _: s in have)], max_wait=3, in_order=True)
+    for _ in range(300):
+        seq = rng.randrange(60)
+        what = rng.random()
+        if what < 0.4:
+            old.hold(seq, seq)
+            new.hold(seq, seq)
+        elif what < 0.7:
+            have.add(seq)
+        else:
+            old.see(seq)
+            new.see(seq)
+        assert old.due(lambda s, _: s in have) == [(r.item, r.complete) for r in new.due()]

@@ -1,0 +1,11 @@
+"""Per-frame pose decisions: what a pose node does with one frame's inputs, as plain classes
+that take messages and return the messages to publish, tested without Zenoh (the nodes in
+``nodes/`` only wire them). Imports ``geometry``, ``runtime`` (messages, the frame joins of
+``pairing``) and ``data`` (the instruments' table size).
+
+``stereo`` (the stereo pose nodes' frame: pairing by ``seq``, the frame's ECM pose, the end
+identity read and stated; ``StereoPoseStep``, ``PnpStep``, ``TriangulationStep``),
+``refine_step`` (the dense refinement's frame: gates, partial views, the tip's caps;
+``RefineStep``), ``tracker_step`` (the tracker's frame: the measurement a pose gives, late
+poses replayed, the instruments' table, the published pose; ``TrackerStep``).
+"""

@@ -1,0 +1,89 @@
+"""The dense refinement's frame step (common/pose/refine_step.py) driven directly: a frame waits
+for its ECM pose before it is solved, in seq order; the gates; a partial view's caps."""
+from dataclasses import replace
+
+import numpy as np
+
+from common.geometry.camera import StereoRig
+from common.geometry.needle import NeedleModel
+from common.geometry.oracle import Oracle, random_needle_pose
+from common.geometry.refine import RefineConfig
+from common.geometry.refine_tracking import TrackingConfig
+from common.geometry.transforms import make_T, pose_error, rotvec_to_R
+from common.pose.refine_step import RefineGates, RefineStep
+from common.runtime.messages import Calibration, EcmPose, Keypoints
+
+RIG = StereoRig.default()
+MODEL = NeedleModel()
+CALIB = Calibration(0, np.array([1920, 1080]), RIG.to_dict(), MODEL.to_dict())
+T_WORLD_ECM = make_T(rotvec_to_R([0.0, 0.0, 0.2]), [0.1, 0.0, 0.3])
+
+
+def frames(n, seed=3):
+    rng, oracle = np.random.default_rng(seed), Oracle(noise_px=0.5, seed=seed)
+    out = []
+    for seq in range(n):
+        T = random_needle_pose(rng, RIG, MODEL)
+        kps = []
+        for cam in RIG.cameras:
+            uv, sc = oracle.keypoints(cam, T, MODEL, seq)
+            c, w = oracle.centreline(cam, T, MODEL, seq)
+            kps.append(Keypoints(cam.name, seq, seq * 1000, True, uv, sc, 1.0, detector="oracle",
+                                 centreline=c, centreline_w=w))
+        out.append((T, *kps))
+    return out
+
+
+def test_a_pair_waits_unsolved_for_its_ecm_pose_and_is_solved_in_seq_order():
+    counts = {}
+    step = RefineStep(tracking=TrackingConfig(enabled=False), max_wait=3,
+                      count=lambda n, k=1: counts.__setitem__(n, counts.get(n, 0) + k))
+    step.on_calib(CALIB)
+    fr = frames(3)
+    for _, left, right in fr:
+        assert step.on_keypoints(right) + step.on_keypoints(left) == []    # no ECM pose yet: not solved
+    assert counts["pairs"] == 3 and "cold" not in counts
+    assert step.on_ecm(EcmPose(1, 1000, T_WORLD_ECM)) == []                 # 1 waits behind 0
+    out = step.on_ecm(EcmPose(0, 0, T_WORLD_ECM))
+    assert [(o, m.seq) for o, m in out] == [("pose", 0), ("pose", 1)] and counts["cold"] == 2
+    for (T, _, _), (_, pose) in zip(fr, out):
+        assert pose.method == "refined" and pose.identity_widened is False and pose.arc_seen > 0.6
+        assert np.allclose(pose.T_world_needle, T_WORLD_ECM @ pose.T_ecm_needle)
+        dt, dr = pose_error(pose.T_ecm_needle, T)
+        assert dt < 5e-3 and np.degrees(dr) < 5.0
+
+
+def test_a_fit_beyond_the_gates_gives_no_pose_and_says_why():
+    counts = {}
+    step = RefineStep(RefineConfig(), TrackingConfig(enabled=False), RefineGates(max_rms_px=1e-3), ecm_wired=False,
+                      count=lambda n, k=1: counts.__setitem__(n, counts.get(n, 0) + k))
+    step.on_calib(CALIB)
+    _, left, right = frames(1)[0]
+    out = step.on_keypoints(left) + step.on_keypoints(right)
+    assert [(o, m.reason, m.method) for o, m in out] == [("no_pose", "high_residual", "refined")]
+    assert counts["no_pose.high_residual"] == 1
+
+
+def test_a_partial_view_is_flagged_and_its_tip_capped():
+    """Most of the arc hidden in both cameras (the centreline past 40 % and keypoint E cut): a partial
+    view, flagged ambiguous, its covariance inflated, its tip at most end_unseen_p_max sure."""
+    counts = {}
+    gates = RefineGates(end_unseen_p_max=0.7)
+    step = RefineStep(tracking=TrackingConfig(enabled=False), gates=gates, ecm_wired=False,
+                      count=lambda n, k=1: counts.__setitem__(n, counts.get(n, 0) + k))
+    step.on_calib(CALIB)
+    _, left, right = frames(2)[1]
+
+    def cut(kp):
+        half = 2 * len(kp.centreline) // 5
+        sc = np.array(kp.scores, float)
+        sc[4:] = 0.0
+        return replace(kp, centreline=kp.centreline[:half], centreline_w=kp.centreline_w[:half], scores=sc,
+                       end_identity=0.99)
+    left, right = cut(left), cut(right)
+    (_, pose), = step.on_keypoints(left) + step.on_keypoints(right)
+    assert counts.get("partial_view") == 1 and pose.ambiguous
+    # capped once: for the end no camera saw (E's end is cut) or, failing that, as a partial view
+    assert pose.end_identity <= 0.7
+    assert counts.get("end_identity.end_unseen", 0) + counts.get("end_identity.partial_view", 0) == 1
+    assert pose.identity_widened and counts["end_identity.unsure"] == 1
