@@ -45,7 +45,6 @@ steps such a frame without waiting for a later pose.
 """
 from __future__ import annotations
 
-import dataclasses
 import math
 from dataclasses import dataclass
 
@@ -68,7 +67,7 @@ from common.geometry.refine_tracking import TrackingConfig, TrackingRefiner
 from common.geometry.transforms import inv_T
 from common.runtime.messages import Calibration, EcmPose, Keypoints
 from common.runtime.node import NodeError, run
-from common.runtime.params import merge_schemas
+from common.runtime.params import config_from, merge_schemas
 from nodes._pose import StereoPoseNode, stated_end_identity, stereo_news, turn_keypoints
 
 
@@ -94,11 +93,6 @@ class _NodeParams(StereoPoseNode.Params):
     reading_p_max: Probability = 0.5
 
 
-def _config(cls, p, rename: dict | None = None):
-    """A ``cls`` dataclass from the typed node params named like its fields."""
-    return cls(**{f.name: getattr(p, (rename or {}).get(f.name, f.name)) for f in dataclasses.fields(cls)})
-
-
 class RefineNode(StereoPoseNode):
     """Keypoints + centrelines of a stereo frame -> refined T_ecm_needle with covariance."""
 
@@ -115,8 +109,8 @@ class RefineNode(StereoPoseNode):
     def setup(self):
         super().setup()
         try:
-            self.config = _config(RefineConfig, self.p)
-            self.tracking = _config(TrackingConfig, self.p, {"enabled": "tracking"})
+            self.config = config_from(RefineConfig, self.p)
+            self.tracking = config_from(TrackingConfig, self.p, {"enabled": "tracking"})
             self.support_normal_world = support_normal(self.p.support_normal_world)
         except ValueError as exc:
             raise NodeError(str(exc)) from None

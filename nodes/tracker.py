@@ -67,7 +67,7 @@ from common.runtime.messages import (
 )
 from common.runtime.node import Node, NodeError, run
 from common.runtime.pairing import SeqCache, SeqJoin
-from common.runtime.params import merge_schemas
+from common.runtime.params import config_from, merge_schemas
 
 
 @dataclass
@@ -106,8 +106,7 @@ class TrackerNode(Node):
 
     def setup(self):
         try:
-            self.config = TrackerConfig(**{f.name: getattr(self.p, f.name)
-                                           for f in dataclasses.fields(TrackerConfig)})
+            self.config = config_from(TrackerConfig, self.p)
         except ValueError as exc:
             raise NodeError(str(exc)) from None
         if not self.wired("ecm"):

@@ -41,6 +41,7 @@ outlier), or when the estimate's ``sequence`` label changes.
 """
 from __future__ import annotations
 
+import dataclasses
 from collections import deque
 from dataclasses import dataclass
 
@@ -48,6 +49,7 @@ import numpy as np
 
 from common.geometry.end_identity import (TIP_SURE, identity_covariance, logit, sigmoid,
                                           without_identity_covariance)
+from common.geometry.config import PositiveNumber, at_least, check_fields
 from common.geometry.needle import NeedleModel
 from common.geometry.refine import mirror_covariance, mirror_pose
 from common.geometry.transforms import inv_T, make_T, pose_mean, rotvec_to_R
@@ -263,20 +265,35 @@ def _clip_to_gate(C: np.ndarray, gate: np.ndarray) -> np.ndarray:
     return Si @ (V * np.minimum(w, 1.0)) @ V.T @ Si
 
 
-class MultiViewFusion:
-    """The fusion queue (see the module docstring). Thresholds in metres and radians."""
+@dataclass(frozen=True)
+class FusionConfig:
+    """The fusion queue's settings (the fusion node's params of the same names); distances in mm,
+    angles in degrees, as a graph states them."""
+    k: at_least(1) = 5                          # estimates fused: the newest k
+    max_dist_mm: PositiveNumber = 5.0           # an estimate farther than this from the fused pose is an outlier ...
+    max_angle_deg: PositiveNumber = 15.0        # ... or turned more than this
+    reset_dist_mm: PositiveNumber = 10.0        # reset_after estimates in a row this far from the fused pose ...
+    reset_angle_deg: PositiveNumber = 45.0      # ... or turned this much mean the needle moved: the queue starts again
+    reset_after: at_least(1) = 3
+    use_covariance: bool = True                 # weigh the estimates by their covariances (else equally)
 
-    def __init__(self, k: int = 5, max_dist_m: float = 0.005, max_angle_rad: float = np.deg2rad(15.0),
-                 reset_dist_m: float = 0.010, reset_angle_rad: float = np.deg2rad(45.0),
-                 reset_after: int = 3, use_covariance: bool = True, min_end_identity: float = TIP_SURE,
-                 needle: NeedleModel | None = None):
-        if k < 1 or reset_after < 1:
-            raise ValueError(f"fusion: k and reset_after must be >= 1, got {k}, {reset_after}")
-        self.k = k
-        self.max_dist_m, self.max_angle_rad = max_dist_m, max_angle_rad
-        self.reset_dist_m, self.reset_angle_rad = reset_dist_m, reset_angle_rad
-        self.reset_after = reset_after
-        self.use_covariance = use_covariance
+    def __post_init__(self):
+        check_fields(self, "fusion: {name} {why}")
+
+
+class MultiViewFusion:
+    """The fusion queue (see the module docstring). ``config``: its settings, ``settings`` any of
+    its fields set anew (``MultiViewFusion(k=3)``); kept as metres and radians (``max_dist_m``,
+    ``max_angle_rad``, ``reset_dist_m``, ``reset_angle_rad``)."""
+
+    def __init__(self, config: FusionConfig | None = None, *, min_end_identity: float = TIP_SURE,
+                 needle: NeedleModel | None = None, **settings):
+        self.config = c = dataclasses.replace(config or FusionConfig(), **settings)
+        self.k = c.k
+        self.max_dist_m, self.max_angle_rad = c.max_dist_mm * 1e-3, float(np.deg2rad(c.max_angle_deg))
+        self.reset_dist_m, self.reset_angle_rad = c.reset_dist_mm * 1e-3, float(np.deg2rad(c.reset_angle_deg))
+        self.reset_after = c.reset_after
+        self.use_covariance = c.use_covariance
         self.min_end_identity = min_end_identity
         self.needle = NeedleModel() if needle is None else needle   # its arc's turn and mirror image
         self._centroid = self.needle.sample_arc(64).mean(0)

@@ -70,15 +70,6 @@ class Oracle:
     def __post_init__(self):
         check_fields(self, "oracle: {name} {why}")
 
-    @classmethod
-    def from_params(cls, params: dict) -> "Oracle":
-        """From a node's params (unknown keys are ignored)."""
-        keys = ("noise_px", "missing_prob", "outlier_prob", "outlier_px", "centreline_noise_px")
-        kw = {k: float(params[k]) for k in keys if params.get(k) is not None}
-        if "seed" in params:
-            kw["seed"] = int(params["seed"])
-        return cls(**kw)
-
     def rng(self, seq: int, camera: str) -> np.random.Generator:
         return np.random.default_rng([abs(int(self.seed)), abs(int(seq)), CAMERA_INDEX.get(camera, 2)])
 

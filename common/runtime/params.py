@@ -150,6 +150,14 @@ def parse_params(schema: type, raw: Mapping | None, where: str = "params"):
         raise ParamError([f"{where}: {exc}"]) from None
 
 
+def config_from(cls: type, params, rename: Mapping | None = None):
+    """The library config ``cls`` (a dataclass whose fields a node's params take on, through
+    ``merge_schemas``) from the typed ``params``: each field from the param of its name, or of
+    ``rename[field]``."""
+    rename = rename or {}
+    return cls(**{f.name: getattr(params, rename.get(f.name, f.name)) for f in dataclasses.fields(cls)})
+
+
 def merge_schemas(name: str, *schemas: type, drop: tuple = ()) -> type:
     """One dataclass with the fields of all ``schemas`` but ``drop`` (later ones win on a shared
     name)."""
