@@ -52,7 +52,7 @@ import numpy as np
 
 from common.frames import CAMERAS
 from common.geometry.arc_support import SUPPORT_PX, arc_support, best_seen, ends_seen, partial_view, shares
-from common.geometry.config import Probability, number_at_least
+from common.constraints import Probability, number_at_least
 from common.geometry.end_identity import camera_readings, pose_tip_probability, settle
 from common.geometry.needle import NeedleModel
 from common.geometry.observations import NoPose

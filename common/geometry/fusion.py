@@ -49,7 +49,7 @@ import numpy as np
 
 from common.geometry.end_identity import (TIP_SURE, identity_covariance, logit, sigmoid,
                                           without_identity_covariance)
-from common.geometry.config import PositiveNumber, at_least, check_fields
+from common.constraints import PositiveNumber, at_least, check_fields
 from common.geometry.needle import NeedleModel
 from common.geometry.refine import mirror_covariance, mirror_pose
 from common.geometry.transforms import inv_T, make_T, pose_mean, rotvec_to_R

@@ -54,7 +54,7 @@ from typing import Optional
 
 import numpy as np
 
-from common.geometry.config import NonNegativeNumber, Probability, check_fields, number_at_least
+from common.constraints import NonNegativeNumber, Probability, check_fields, number_at_least
 from common.geometry.end_identity import end_for_end_delta, sigmoid, track_identity
 from common.geometry.error_state import (  # noqa: F401  (retract: re-exported)
     _rot,

@@ -24,7 +24,7 @@ from typing import Optional
 import numpy as np
 
 from common.geometry.camera import Camera, StereoRig
-from common.geometry.config import NonNegativeNumber, Probability, check_fields
+from common.constraints import NonNegativeNumber, Probability, check_fields
 from common.geometry.needle import NeedleModel
 from common.geometry.transforms import inv_T, make_T, rotvec_to_R, transform_points
 

@@ -44,7 +44,7 @@ from typing import Mapping, Optional, Sequence
 import numpy as np
 
 from common.geometry import lm
-from common.geometry.config import NonNegativeNumber, PositiveNumber, at_least, check_fields, in_range
+from common.constraints import NonNegativeNumber, PositiveNumber, at_least, check_fields, in_range
 from common.geometry.camera import Camera, StereoRig
 from common.geometry.needle import NeedleModel
 from common.geometry.rest_prior import resting_log_prior
@@ -98,7 +98,7 @@ class ArcObservation:
 class RefineConfig:
     """Tuning of the fit. Pixel sigmas set the relative weight of the two terms; the robust
     scale is in units of those sigmas. Each field's constraint is on its type
-    (``common.geometry.config``)."""
+    (``common.constraints``)."""
 
     max_curve_points: at_least(2) = 64      # observed centreline points kept per camera (even in arc length)
     n_samples: at_least(2) = 24             # projected arc samples that start each point's foot search

@@ -32,6 +32,7 @@ from common.runtime.checks import (  # noqa: F401  (re-exported: the messages' A
     pose_invariant_error,
     rigid_error,
 )
+from common.constraints import NonNegativeNumber, Probability
 from common.runtime.codec import _REGISTRY, Message, decode, encode, encode_parts, register  # noqa: F401
 from common.runtime.schema import Array, ArrayNaN, ByCamera, Bytes, Int64, NonNegative, Number, Says, number
 
@@ -42,9 +43,7 @@ ENCODINGS = ("bgr8", "png", "jpeg")
 PositivePx = number("must be positive, got {value}", gt=0)
 """A 1-sigma error in pixels: finite and positive."""
 AtLeastOne = number("must be at least 1, got {value}", ge=1)
-Probability = number("must be a probability in [0, 1], got {value}", ge=0, le=1)
 Share = number("must be a share in [0, 1], got {value}", ge=0, le=1)
-NonNegativeNumber = number("must be a finite number >= 0, got {value}", ge=0)
 Word = Annotated[str, msgspec.Meta(pattern=r"^[A-Za-z0-9_.-]{1,64}$"),
                  Says("must be 1 to 64 letters, digits, '_', '.' or '-', got {value!r}")]
 """A name a node makes up and a counter carries: a method, a reason."""

@@ -16,7 +16,7 @@ msgspec, the schema mechanism of messages too (``common.runtime.schema``): ``int
 (finite; an int is accepted), ``bool``, ``str``, ``dict``, ``list[T]``, ``tuple[T, ...]``,
 ``Literal[...]``, unions (``X | None``), and constraints on the field
 (``Annotated[float, msgspec.Meta(ge=0), Says("must not be negative, got {value}")]``, or the
-words as the ``Meta``'s ``description``: ``common.geometry.config``). No
+words as the ``Meta``'s ``description``: ``common.constraints``). No
 coercion of strings: ``'5'`` is not an int.
 """
 from __future__ import annotations
