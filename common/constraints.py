@@ -32,6 +32,11 @@ Probability = Annotated[float, msgspec.Meta(ge=0, le=1, description="must be a p
 """A number in [0, 1]."""
 
 
+def text_matching(pattern: str, what: str) -> type:
+    """A string matching ``pattern`` (a regular expression), refused as not ``what``."""
+    return Annotated[str, msgspec.Meta(pattern=pattern, description=f"must be {what}, got {{value!r}}")]
+
+
 def at_least(lo: int) -> type:
     """An int >= ``lo``."""
     return Annotated[int, msgspec.Meta(ge=lo, description=f"must be at least {lo}, got {{value}}")]

@@ -9,10 +9,11 @@ from __future__ import annotations
 from dataclasses import dataclass
 from typing import Literal
 
+from common.constraints import PositiveNumber
 from common.geometry.observations import NoPose
 from common.geometry.pnp import pnp_average, pnp_joint
 from common.runtime.messages import Calibration, EcmPose, Keypoints
-from common.runtime.node import NodeError, run
+from common.runtime.node import run
 from nodes._pose import StereoPoseNode
 
 METHODS = {"joint": "pnp_joint", "average": "pnp_average"}
@@ -35,7 +36,7 @@ class EpnpNode(StereoPoseNode):
         refine: bool = True               # average: each camera's EPnP refined by LM (false: raw EPnP, as published)
         # joint: the covariance's keypoint noise is at least this, or the detectors' stated
         # keypoint_sigma_px where larger (the residuals alone miss the errors both cameras share)
-        min_sigma_px: float = 0.25
+        min_sigma_px: PositiveNumber = 0.25
 
     def setup(self):
         super().setup()
@@ -48,8 +49,6 @@ class EpnpNode(StereoPoseNode):
         self.outlier_px = self.p.outlier_px
         self.refine = self.p.refine
         self.min_sigma_px = self.p.min_sigma_px
-        if not self.min_sigma_px > 0:
-            raise NodeError(f"params.min_sigma_px must be a positive number (px), got {self.min_sigma_px!r}")
 
     def on_pair(self, left, right):
         uv, sc = self.stereo_arrays(left, right)

@@ -48,6 +48,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from common.constraints import at_least
 from common.data.instruments import MAX_INSTRUMENTS
 from common.geometry.end_identity import TIP_SURE, state, without_identity_covariance
 from common.geometry.fusion import covariance_to_frame
@@ -72,9 +73,9 @@ from common.runtime.params import config_from, merge_schemas
 
 @dataclass
 class _NodeParams:
-    max_wait: int = 1                 # frames a frame waits for its pose (then it is predicted)
-    replay: int = 15                  # frames back a late pose is still filtered in (stepping again)
-    instrument_max_age: int = 5       # frames an instrument's newest state stands for a later frame
+    max_wait: at_least(1) = 1         # frames a frame waits for its pose (then it is predicted)
+    replay: at_least(0) = 15          # frames back a late pose is still filtered in (stepping again)
+    instrument_max_age: at_least(1) = 5   # frames an instrument's newest state stands for a later frame
     method: str = "tracked"           # the method name of the tracked poses
     reset_on_sequence: bool = True    # a new truth sequence label (a new take) starts a new track
 
@@ -111,11 +112,6 @@ class TrackerNode(Node):
             raise NodeError(str(exc)) from None
         if not self.wired("ecm"):
             raise NodeError("tracker: the ecm input is needed (each frame's endoscope pose, and the frame clock)")
-        for name in ("max_wait", "instrument_max_age"):
-            if getattr(self.p, name) < 1:
-                raise NodeError(f"tracker: params.{name} must be >= 1, got {getattr(self.p, name)}")
-        if self.p.replay < 0:
-            raise NodeError(f"tracker: params.replay must be >= 0, got {self.p.replay}")
         self.needle = NeedleModel()
         self.tracker = NeedleTracker(self.needle, self.config)
         self._clear()
