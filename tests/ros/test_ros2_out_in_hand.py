@@ -13,7 +13,6 @@ from common.ros.cdr import decode
 from common.ros.conventions import pose_to_T, ros_covariance
 from common.ros.live import topic_key
 from common.runtime.messages import InHandPose
-from common.runtime.node import NodeError
 from nodes.ros2_out import Ros2OutNode
 
 T_JN = make_T(rotvec_to_R([0.2, -0.4, 1.1]), [0.001, -0.009, 0.0035])
