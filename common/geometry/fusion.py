@@ -52,7 +52,7 @@ from common.geometry.end_identity import (TIP_SURE, identity_covariance, logit, 
 from common.constraints import PositiveNumber, at_least, check_fields
 from common.geometry.needle import NeedleModel
 from common.geometry.refine import mirror_covariance, mirror_pose
-from common.geometry.transforms import inv_T, make_T, pose_mean, rotvec_to_R
+from common.geometry.transforms import inv_T, make_T, pose_mean, rotvec_to_R, symmetrise
 
 TURNED_RAD = np.deg2rad(150.0)
 """A view this far off in orientation, at the fused pose's origin, is the needle turned end for end."""
@@ -117,7 +117,7 @@ def without_common(cov: np.ndarray, sigma_m: float, sigma_rad: float = 0.0) -> n
     out = np.array(cov, dtype=float)
     out[:3, :3] -= max(sigma_rad, 0.0) ** 2 * np.eye(3)
     out[3:, 3:] -= max(sigma_m, 0.0) ** 2 * np.eye(3)
-    return out if np.linalg.eigvalsh(0.5 * (out + out.T)).min() > 0 else cov
+    return out if np.linalg.eigvalsh(symmetrise(out)).min() > 0 else cov
 
 
 def covariance_to_frame(cov: np.ndarray, R_a_b: np.ndarray) -> np.ndarray:
@@ -181,7 +181,7 @@ def information_mean(Ts, covariances, T0=None, iterations: int = 10):
         T = make_T(rotvec_to_R(delta[:3]) @ T[:3, :3], T[:3, 3] + delta[3:])
         if np.linalg.norm(delta[:3]) < 1e-10 and np.linalg.norm(delta[3:]) < 1e-11:   # 1e-10 rad, 0.01 nm
             break
-    return T, 0.5 * (H_inv + H_inv.T)
+    return T, symmetrise(H_inv)
 
 
 def fuse_poses(Ts, covariances=None, max_dist_m: float = 0.005,
@@ -260,7 +260,7 @@ def mirror_consensus(Ts, mirrors, max_dist_m: float, max_angle_rad: float) -> np
 def _clip_to_gate(C: np.ndarray, gate: np.ndarray) -> np.ndarray:
     """``C`` with its spread in units of ``gate`` (6,) limited to 1 sigma."""
     S = np.diag(1.0 / gate)
-    w, V = np.linalg.eigh(S @ (0.5 * (C + C.T)) @ S)
+    w, V = np.linalg.eigh(S @ symmetrise(C) @ S)
     Si = np.diag(gate)
     return Si @ (V * np.minimum(w, 1.0)) @ V.T @ Si
 

@@ -449,7 +449,7 @@ class Calibration(Message):
         if not (1 <= w <= MAX_IMAGE_SIDE and 1 <= h <= MAX_IMAGE_SIDE and w == int(w) and h == int(h)):
             raise MessageError(f"Calibration.image_size: expected two whole numbers in 1..{MAX_IMAGE_SIDE}, "
                                f"got {self.image_size.tolist()}")
-        for name in ("left", "right"):
+        for name in CAMERAS:
             cam = self.cameras.get(name)
             if not isinstance(cam, dict):
                 raise MessageError(f"Calibration.cameras.{name}: expected a map with K, T_ecm_cam")
@@ -468,7 +468,7 @@ class Calibration(Message):
             for key in ("L_rcc", "L_scopelen"):
                 _finite_array(f"Calibration.ecm.{key}", self.ecm.get(key, 0.0), ())
         # ranges, and what every consumer builds from it (rig, needle, arm), built once here
-        for name in ("left", "right"):
+        for name in CAMERAS:
             K = np.asarray(self.cameras[name]["K"], dtype=float)
             if not (K[0, 0] > 0 and K[1, 1] > 0 and K[1, 0] == 0 and (K[2] == (0.0, 0.0, 1.0)).all()):
                 raise MessageError(f"Calibration.cameras.{name}.K: must be a pinhole matrix [[fx, s, cx], "
