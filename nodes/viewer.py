@@ -77,7 +77,7 @@ class ViewerNode(PoseMethodInputs, Node):
               "truth": GroundTruth, "calib": Calibration, "ecm": EcmPose, "instruments": InstrumentState,
               **{m: PoseEstimate for m in POSE_METHODS}}
     OUTPUTS = ()
-    KEEP_ALL = tuple(k for k in INPUTS if k not in ("left", "right"))
+    KEEP_ALL = tuple(k for k in INPUTS if k not in CAMERAS)
 
     @dataclass
     class Params:
