@@ -18,7 +18,8 @@ class PoseMethod:
     ``output``: the node output that publishes it in the graphs ``needletrack eval`` runs
     (``node/output``); ``colour``: its hex colour in figures and the viewer (``common.palette``: the rest); ``rank``:
     lower leads (the final output is the first present); ``fuses``: the single-frame method a
-    multi-view method fuses (None: a single-frame method); ``always_reported``: in every
+    multi-view method fuses (None: a single-frame method); ``needs``: the other methods whose poses
+    it takes (a filter over time needs what it filters); ``always_reported``: in every
     ``results.json`` (the paper's Table III and ``pnp_joint``), else only when produced;
     ``paper``: the paper's (mean mm, mean deg), Table III, where it has one; ``label``: what it
     is, in a few words, for tables."""
@@ -27,6 +28,7 @@ class PoseMethod:
     colour: str
     rank: int
     fuses: str | None = None
+    needs: tuple[str, ...] = ()
     always_reported: bool = False
     paper: tuple[float, float] | None = None
     label: str = ""
@@ -48,7 +50,7 @@ REGISTRY = (
     PoseMethod("refined", "refine/pose", "#17becf", 1, label="dense arc fit, with a covariance"),
     PoseMethod("multiview_refined", "fusion_refined/pose", "#8c564b", 2, fuses="refined",
                label="fusion of refined poses"),
-    PoseMethod("tracked", "tracker/pose", "#ff00ff", 0,
+    PoseMethod("tracked", "tracker/pose", "#ff00ff", 0, needs=("refined",),
                label="refined poses filtered over time: at rest, in the jaws, free"),
 )
 BY_NAME = {m.name: m for m in REGISTRY}
@@ -64,12 +66,25 @@ FINAL_ORDER = tuple(m.name for m in sorted(REGISTRY, key=lambda m: m.rank))
 """Which method leads: the first of these that is present is the final output."""
 METHOD_COLOURS = {m.name: m.colour for m in REGISTRY}
 POSE_OUTPUTS = {m.name: m.output for m in REGISTRY}
-METHOD_NEEDS = {m.name: (m.fuses,) for m in REGISTRY if m.fuses}
+METHOD_NEEDS = {m.name: ((m.fuses,) if m.fuses else ()) + m.needs for m in REGISTRY if m.fuses or m.needs}
+"""The methods each method takes poses from (what it fuses first), where it takes any."""
 PAPER_POSE = {m.name: m.paper for m in REGISTRY if m.paper}
 
 TRACK_MODES = ("rest", "held", "free")
 """The ``tracked`` method's modes, what its poses state (``PoseEstimate.mode``): the needle at
 rest in the world, held in an instrument's jaws, free and moving (docs/tracking.md)."""
+
+
+def requires(name: str) -> set[str]:
+    """Every method ``name`` takes poses from, directly or through another (``METHOD_NEEDS``)."""
+    found: set[str] = set()
+    todo = list(METHOD_NEEDS.get(name, ()))
+    while todo:
+        m = todo.pop()
+        if m not in found:
+            found.add(m)
+            todo += METHOD_NEEDS.get(m, ())
+    return found
 
 
 def final_method(present) -> str | None:

@@ -8,8 +8,9 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from common.constraints import PositiveNumber
 from common.runtime.messages import EcmJoints
-from common.runtime.node import Node, NodeError, run
+from common.runtime.node import Node, run
 from common.runtime.pacing import Pacer
 
 
@@ -20,13 +21,11 @@ class Counter(Node):
 
     @dataclass
     class Params:
-        rate_hz: float = 20.0
+        rate_hz: PositiveNumber = 20.0
         count: int = 0           # 0: forever
         start_seq: int = 0
 
     def setup(self):
-        if self.p.rate_hz <= 0:
-            raise NodeError(f"params.rate_hz must be > 0, got {self.p.rate_hz}")
         self.count_max = self.p.count
         self.seq = self.p.start_seq
         self.sent = 0

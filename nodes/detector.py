@@ -34,6 +34,7 @@ from dataclasses import dataclass, fields, make_dataclass
 from typing import Literal
 
 from common.detector.backends import BACKEND_PARAMS, BackendError, load_backend
+from common.frames import CAMERAS
 from common.runtime.frame_stride import FrameStride
 from common.runtime.messages import (
     Calibration,
@@ -145,7 +146,7 @@ class DetectorNode(Node):
             self._run(img)
         for seq, _ in due_truths:
             truth = self.truths.get(seq)
-            for cam in ("left", "right"):
+            for cam in CAMERAS:
                 self._detect(cam, seq, truth.stamp_ns if truth else 0, None)
 
     @property

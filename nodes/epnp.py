@@ -9,9 +9,10 @@ from __future__ import annotations
 from dataclasses import dataclass
 from typing import Literal
 
+from common.constraints import PositiveNumber
 from common.pose.stereo import PnpStep
 from common.runtime.messages import Calibration, EcmPose, Keypoints
-from common.runtime.node import NodeError, run
+from common.runtime.node import run
 from nodes._pose import StereoPoseNode
 
 
@@ -33,12 +34,10 @@ class EpnpNode(StereoPoseNode):
         refine: bool = True               # average: each camera's EPnP refined by LM (false: raw EPnP, as published)
         # joint: the covariance's keypoint noise is at least this, or the detectors' stated
         # keypoint_sigma_px where larger (the residuals alone miss the errors both cameras share)
-        min_sigma_px: float = 0.25
+        min_sigma_px: PositiveNumber = 0.25
 
     def make_step(self, **wiring) -> PnpStep:
         p = self.p
-        if not p.min_sigma_px > 0:
-            raise NodeError(f"params.min_sigma_px must be a positive number (px), got {p.min_sigma_px!r}")
         # the mean of two camera poses on different branches of the planar ambiguity reprojects
         # badly by construction: the paper's method is published as it is
         max_rms_px = p.max_rms_px if p.method == "joint" or "max_rms_px" in self.params else None

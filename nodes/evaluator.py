@@ -25,6 +25,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from common.evaluation.collect import Collected
+from common.frames import CAMERAS
 from common.methods import EXTRA_METHODS, POSE_METHODS, REPORTED_METHODS
 from common.runtime.messages import (
     Calibration,
@@ -220,7 +221,7 @@ class EvaluatorNode(PoseMethodInputs, Node):
             return None
 
         def load(seq):
-            return {c: ds.image(seq, c) for c in ("left", "right")}
+            return {c: ds.image(seq, c) for c in CAMERAS}
         return load
 
     def teardown(self):

@@ -11,6 +11,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from common.frames import CAMERAS
 from common.runtime.messages import CameraImage
 from common.runtime.node import Node, run
 from common.runtime.pairing import StereoPairer
@@ -20,7 +21,7 @@ class FrameSink(Node):
     """Consumes stereo frames; reports rate and latency."""
 
     INPUTS = {"left": CameraImage, "right": CameraImage}
-    KEEP_ALL = ("left", "right")
+    KEEP_ALL = CAMERAS
 
     @dataclass
     class Params:

@@ -37,11 +37,19 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from common.geometry.fusion import MultiViewFusion
+from common.geometry.fusion import FusionConfig, MultiViewFusion
 from common.geometry.needle import NeedleModel
 from common.runtime.messages import Calibration, EcmPose, GroundTruth, NoPoseNotice, PoseEstimate
 from common.runtime.node import Node, run
 from common.runtime.pairing import FrameJoin, SeqCache, Wait
+from common.runtime.params import config_from, merge_schemas
+
+
+@dataclass
+class _NodeParams:
+    method: str = "multiview"       # the method name of the fused poses
+    reset_on_sequence: bool = True  # a new truth sequence label starts the queue again
+    max_wait: int = 30              # frames an estimate waits for its ECM pose (else no_pose.no_ecm_pose), truth, mode
 
 
 class FusionNode(Node):
@@ -52,18 +60,8 @@ class FusionNode(Node):
     OUTPUTS = ("pose",)
     KEEP_ALL = ("pose", "ecm", "truth", "motion", "untracked")
 
-    @dataclass
-    class Params:
-        k: int = 5                      # estimates fused: the newest k
-        max_dist_mm: float = 5.0        # an estimate farther than this from the fused pose is an outlier ...
-        max_angle_deg: float = 15.0     # ... or turned more than this
-        reset_dist_mm: float = 10.0     # reset_after estimates in a row this far from the fused pose ...
-        reset_angle_deg: float = 45.0   # ... or turned this much mean the needle moved: the queue starts again
-        reset_after: int = 3
-        use_covariance: bool = True     # weigh the estimates by their covariances (else equally)
-        method: str = "multiview"       # the method name of the fused poses
-        reset_on_sequence: bool = True  # a new truth sequence label starts the queue again
-        max_wait: int = 30              # frames an estimate waits for its ECM pose (else no_pose.no_ecm_pose), truth, mode
+    # every FusionConfig field is a param of the same name, beside the node's own
+    Params = merge_schemas("FusionParams", FusionConfig, _NodeParams)
 
     def setup(self):
         p = self.p
@@ -88,11 +86,7 @@ class FusionNode(Node):
         ], p.max_wait, in_order=True)
 
     def _fusion(self, needle: NeedleModel) -> MultiViewFusion:
-        p = self.p
-        return MultiViewFusion(
-            k=p.k, max_dist_m=p.max_dist_mm * 1e-3, max_angle_rad=np.deg2rad(p.max_angle_deg),
-            reset_dist_m=p.reset_dist_mm * 1e-3, reset_angle_rad=np.deg2rad(p.reset_angle_deg),
-            reset_after=p.reset_after, use_covariance=p.use_covariance, needle=needle)
+        return MultiViewFusion(config_from(FusionConfig, self.p), needle=needle)
 
     def on_stream_reset(self):
         """A new source stream: the window of views and every per-frame cache start again."""

@@ -10,8 +10,9 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from common.constraints import PositiveNumber
 from common.runtime.messages import PoseEstimate
-from common.runtime.node import Node, NodeError, run
+from common.runtime.node import Node, run
 from common.runtime.pacing import Pacer
 
 
@@ -22,14 +23,12 @@ class PoseSource(Node):
 
     @dataclass
     class Params:
-        rate_hz: float = 20.0
+        rate_hz: PositiveNumber = 20.0
         count: int = 0           # 0: forever
         distance_mm: float = 100.0
         method: str = "posesource"
 
     def setup(self):
-        if self.p.rate_hz <= 0:
-            raise NodeError(f"params.rate_hz must be > 0, got {self.p.rate_hz}")
         self.T = np.eye(4)
         self.T[2, 3] = self.p.distance_mm * 1e-3
         self.seq = 0

@@ -36,18 +36,17 @@ steps such a frame without waiting for a later pose.
 """
 from __future__ import annotations
 
-import dataclasses
 from dataclasses import dataclass
 
 import numpy as np
 
-from common.geometry.config import Probability, number_at_least
+from common.constraints import Probability, number_at_least
 from common.geometry.refine import RefineConfig
 from common.geometry.refine_tracking import TrackingConfig
 from common.pose.refine_step import RefineGates, RefineStep
 from common.runtime.messages import Calibration, EcmPose, Keypoints
 from common.runtime.node import NodeError, run
-from common.runtime.params import merge_schemas
+from common.runtime.params import config_from, merge_schemas
 from nodes._pose import StereoPoseNode
 
 
@@ -73,11 +72,6 @@ class _NodeParams(StereoPoseNode.Params):
     reading_p_max: Probability = 0.5
 
 
-def _config(cls, p, rename: dict | None = None):
-    """A ``cls`` dataclass from the typed node params named like its fields."""
-    return cls(**{f.name: getattr(p, (rename or {}).get(f.name, f.name)) for f in dataclasses.fields(cls)})
-
-
 class RefineNode(StereoPoseNode):
     """Keypoints + centrelines of a stereo frame -> refined T_ecm_needle with covariance
     (``common.pose.refine_step.RefineStep``)."""
@@ -92,12 +86,12 @@ class RefineNode(StereoPoseNode):
 
     def make_step(self, **wiring) -> RefineStep:
         try:
-            config = _config(RefineConfig, self.p)
-            tracking = _config(TrackingConfig, self.p, {"enabled": "tracking"})
+            config = config_from(RefineConfig, self.p)
+            tracking = config_from(TrackingConfig, self.p, {"enabled": "tracking"})
             normal = support_normal(self.p.support_normal_world)
         except ValueError as exc:
             raise NodeError(str(exc)) from None
-        return RefineStep(config, tracking, _config(RefineGates, self.p), outlier_px=self.p.outlier_px,
+        return RefineStep(config, tracking, config_from(RefineGates, self.p), outlier_px=self.p.outlier_px,
                           support_normal_world=normal, **wiring)
 
 

@@ -35,6 +35,7 @@ import time
 from dataclasses import dataclass, field
 from typing import Literal
 
+from common.frames import CAMERAS
 from common.runtime.camera_source import CameraSourceNode
 from common.runtime.node import NodeError, run
 
@@ -113,7 +114,7 @@ class Ros2Node(CameraSourceNode):
             raise NodeError("unit: auto needs the cameras' State topics; set unit in the topic map")
         # every alternative topic of every role is subscribed; the first to speak is used
         roles = {}
-        for c in ("left", "right"):
+        for c in CAMERAS:
             for t in candidates(m["images"][c]):
                 roles[t] = ("image", c)
             for t in candidates((m.get("camera_info") or {}).get(c)):

@@ -38,11 +38,15 @@ from typing import Literal
 
 import numpy as np
 
+from common.constraints import text_matching
 from common.ros.conventions import ros_covariance
 from common.runtime.messages import Calibration, InHandPose, PoseEstimate
 from common.runtime.node import Node, NodeError, run
 
 UNITS = {"m": 1.0, "dm": 0.1, "cm": 0.01, "mm": 0.001}
+
+
+RosName = text_matching(r"^/", "an absolute ROS name")
 
 
 class Ros2OutNode(Node):
@@ -54,9 +58,9 @@ class Ros2OutNode(Node):
 
     @dataclass
     class Params:
-        topic: str = "/needletrack/needle_pose"
+        topic: RosName = "/needletrack/needle_pose"
         cov_topic: str = "/needletrack/needle_pose_with_covariance"
-        in_hand_topic: str = "/needletrack/needle_in_jaw"   # the in_hand input's (when wired)
+        in_hand_topic: RosName = "/needletrack/needle_in_jaw"   # the in_hand input's (when wired)
         frame: Literal["ecm", "left", "world"] = "ecm"
         frame_ids: dict = field(default_factory=lambda: {"ecm": "ECM", "left": "left_camera_optical",
                                                          "world": "world"})
@@ -78,8 +82,6 @@ class Ros2OutNode(Node):
         p = self.p
         if p.frame == "left" and not self.wired("calib"):
             raise NodeError("frame: left needs the calib input wired (the left camera's pose in the ECM)")
-        if not p.topic.startswith("/"):
-            raise NodeError(f"topic must be an absolute ROS name, got {p.topic!r}")
         self.scale = UNITS[p.unit]
         self.T_ecm_left = None
         self.pubs = {}
@@ -88,8 +90,6 @@ class Ros2OutNode(Node):
         if p.cov_topic:
             targets.append(("cov", p.cov_topic, "geometry_msgs/msg/PoseWithCovarianceStamped"))
         if self.wired("in_hand"):
-            if not p.in_hand_topic.startswith("/"):
-                raise NodeError(f"in_hand_topic must be an absolute ROS name, got {p.in_hand_topic!r}")
             targets.append(("in_hand", p.in_hand_topic, "geometry_msgs/msg/PoseWithCovarianceStamped"))
         self.sent = {name: 0 for name, _, _ in targets}
         if p.transport == "dds":

@@ -48,7 +48,7 @@ class RosbagNode(CameraSourceNode):
     @dataclass
     class Params:
         path: str = ""
-        preset: str | None = None
+        preset: Literal["ambf", "dvrk"] | None = None
         topics: str | dict | None = None
         rate: float | Literal["recorded", "max"] = "recorded"
         loop: bool = False
@@ -60,8 +60,6 @@ class RosbagNode(CameraSourceNode):
         p = self.p
         if not p.path:
             raise NodeError("param 'path' (a ROS 1 .bag or ROS 2 .db3/.mcap bag) is required")
-        if p.preset not in (None, "ambf", "dvrk"):
-            raise NodeError(f"param 'preset' must be ambf or dvrk, got {p.preset!r}")
         try:
             self.rate = parse_rate(p.rate, "rosbag")
             self._open()

@@ -28,6 +28,7 @@ from typing import Literal
 
 import numpy as np
 
+from common.frames import CAMERAS
 from common.runtime.camera_source import CameraSourceNode
 from common.runtime.messages import (
     Calibration,
@@ -95,7 +96,7 @@ class SimNode(CameraSourceNode):
         self.pacer.wait()
         fr = self.sim.next_frame()
         stamp = time.time_ns()
-        for cam in ("left", "right"):
+        for cam in CAMERAS:
             self.publish(cam, CameraImage.from_bgr(cam, self.seq, stamp, fr.images[cam], self.encoding,
                                                    self.jpeg_quality))
         self.publish("joints", EcmJoints(self.seq, stamp, np.asarray(fr.q, float)))

@@ -13,6 +13,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from common.frames import CAMERAS
 from common.runtime.messages import CameraImage
 from common.runtime.node import Node, run
 from common.runtime.pacing import Pacer
@@ -63,7 +64,7 @@ class TestPattern(Node):
         if self.count_max and self.seq >= self.count_max:
             return False
         self.pacer.wait()
-        for cam in ("left", "right"):
+        for cam in CAMERAS:
             if self.raw is not None:
                 msg = CameraImage(cam, self.seq, time.time_ns(), self.w, self.h, "bgr8", self.raw[cam])
             else:

@@ -44,9 +44,9 @@ Params: every ``TrackerConfig`` field, ``max_wait``, ``replay``, ``instrument_ma
 """
 from __future__ import annotations
 
-import dataclasses
 from dataclasses import dataclass
 
+from common.constraints import at_least
 from common.geometry.needle_tracker import TrackerConfig
 from common.pose.tracker_step import TrackerStep
 from common.runtime.messages import (
@@ -59,14 +59,14 @@ from common.runtime.messages import (
     PoseEstimate,
 )
 from common.runtime.node import Node, NodeError, run
-from common.runtime.params import merge_schemas
+from common.runtime.params import config_from, merge_schemas
 
 
 @dataclass
 class _NodeParams:
-    max_wait: int = 1                 # frames a frame waits for its pose (then it is predicted)
-    replay: int = 15                  # frames back a late pose is still filtered in (stepping again)
-    instrument_max_age: int = 5       # frames an instrument's newest state stands for a later frame
+    max_wait: at_least(1) = 1         # frames a frame waits for its pose (then it is predicted)
+    replay: at_least(0) = 15          # frames back a late pose is still filtered in (stepping again)
+    instrument_max_age: at_least(1) = 5   # frames an instrument's newest state stands for a later frame
     method: str = "tracked"           # the method name of the tracked poses
     reset_on_sequence: bool = True    # a new truth sequence label (a new take) starts a new track
 
@@ -84,16 +84,11 @@ class TrackerNode(Node):
 
     def setup(self):
         try:
-            config = TrackerConfig(**{f.name: getattr(self.p, f.name) for f in dataclasses.fields(TrackerConfig)})
+            config = config_from(TrackerConfig, self.p)
         except ValueError as exc:
             raise NodeError(str(exc)) from None
         if not self.wired("ecm"):
             raise NodeError("tracker: the ecm input is needed (each frame's endoscope pose, and the frame clock)")
-        for name in ("max_wait", "instrument_max_age"):
-            if getattr(self.p, name) < 1:
-                raise NodeError(f"tracker: params.{name} must be >= 1, got {getattr(self.p, name)}")
-        if self.p.replay < 0:
-            raise NodeError(f"tracker: params.replay must be >= 0, got {self.p.replay}")
         p = self.p
         self.step = TrackerStep(config, max_wait=p.max_wait, replay=p.replay, instrument_max_age=p.instrument_max_age,
                                 method=p.method, reset_on_sequence=p.reset_on_sequence,

@@ -23,10 +23,11 @@ from __future__ import annotations
 import collections
 import time
 from dataclasses import dataclass
-from typing import Optional
+from typing import Literal, Optional
 
 import numpy as np
 
+from common.constraints import PositiveNumber, at_least
 from common.evaluation.metrics import true_T_ecm_needle
 from common.frames import CAMERAS
 from common.geometry.camera import StereoRig
@@ -41,7 +42,7 @@ from common.runtime.messages import (
     Keypoints,
     PoseEstimate,
 )
-from common.runtime.node import Node, NodeError, run
+from common.runtime.node import Node, run
 from common.runtime.pairing import SeqCache
 from common.viewer.draw import PoseToDraw, decode_small, instruments_to_draw
 from common.viewer.frame import log_frame, pictures
@@ -76,7 +77,7 @@ class ViewerNode(PoseMethodInputs, Node):
               "truth": GroundTruth, "calib": Calibration, "ecm": EcmPose, "instruments": InstrumentState,
               **{m: PoseEstimate for m in POSE_METHODS}}
     OUTPUTS = ()
-    KEEP_ALL = tuple(k for k in INPUTS if k not in ("left", "right"))
+    KEEP_ALL = tuple(k for k in INPUTS if k not in CAMERAS)
 
     @dataclass
     class Params:
@@ -84,27 +85,23 @@ class ViewerNode(PoseMethodInputs, Node):
         port: int = 9090              # the page's port (0, or taken: any free port)
         allowed_hosts: tuple[str, ...] = ()   # more Host names the page answers (beside localhost,
                                       # the bound host and addresses; "*": any): DNS rebinding
-        max_connections: int = 64     # page connections served at once (then 503)
+        max_connections: at_least(1) = 64     # page connections served at once (then 503)
         rerun: bool = True            # also log to Rerun when rerun-sdk is installed
         web_port: int = 9091          # Rerun's web viewer on 127.0.0.1 (0: none; taken: any free port)
         grpc_port: int = 9876         # Rerun's data server on 127.0.0.1 (0: none; taken: any free port)
         save: Optional[str] = None    # record the Rerun stream to this .rrd file
         history_mb: int = 16          # Rerun's server keeps this much for a web viewer that joins
                                       # late (then drops the oldest): the node's memory is bounded
-        rate_hz: float = 5.0          # pictures per second at most (per camera; docs/viewer.md: cost)
-        width: int = 960              # pictures shrunk to fit width x height (px)
-        height: int = 540
+        rate_hz: PositiveNumber = 5.0          # pictures per second at most (per camera; docs/viewer.md: cost)
+        width: at_least(16) = 960              # pictures shrunk to fit width x height (px)
+        height: at_least(16) = 540
         jpeg_quality: int = 75
-        final: Optional[str] = None   # the method drawn in full (default: first wired of FINAL_ORDER)
+        final: Optional[Literal[POSE_METHODS]] = None   # the method drawn in full (default: first wired of FINAL_ORDER)
         pose_wait_s: float = 0.5      # a sampled frame waits this long for its final pose
 
     def setup(self):
         p = self.p
-        if p.rate_hz <= 0 or p.width < 16 or p.height < 16 or p.max_connections < 1:
-            raise NodeError("viewer: rate_hz must be > 0, width, height at least 16, max_connections at least 1")
         wired = [m for m in POSE_METHODS if self.wired(m)]
-        if p.final is not None and p.final not in POSE_METHODS:
-            raise NodeError(f"viewer.params.final: {p.final!r} is not one of {POSE_METHODS}")
         self.final = p.final or final_method(wired)
         self.images = {c: SeqCache(KEEP) for c in CAMERAS}   # seq -> (img, scale, stamp, t)
         self.keypoints = {c: SeqCache(KEEP) for c in CAMERAS}

@@ -5,6 +5,8 @@ from __future__ import annotations
 
 import sys
 
+from common.frames import CAMERAS
+
 
 def add_parsers(sub) -> dict:
     """The ``check`` and ``show`` subcommands of ``needletrack dataset``; returns their handlers."""
@@ -18,7 +20,7 @@ def add_parsers(sub) -> dict:
     s.add_argument("--out", required=True, help="output PNG")
     s.add_argument("--frames", type=int, default=12, help="number of frames (evenly spaced)")
     s.add_argument("--cols", type=int, default=4)
-    s.add_argument("--camera", default="left", choices=["left", "right"])
+    s.add_argument("--camera", default="left", choices=list(CAMERAS))
     s.add_argument("--tile-width", type=int, default=480)
 
     t = sub.add_parser("strip-truth", help="copy a folder without its ground truth (needle pose, "

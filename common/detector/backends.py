@@ -23,54 +23,32 @@ from typing import Optional
 import numpy as np
 
 from common.errors import NeedletrackError
+from common.detector.config import ClassicalConfig, DetectorConfig
 from common.geometry.camera import StereoRig
 from common.geometry.needle import NeedleModel
+from common.geometry.oracle import Oracle
 from common.runtime.messages import Calibration, GroundTruth, Keypoints
-from common.runtime.params import ParamError, parse_params
+from common.runtime.params import ParamError, config_from, merge_schemas, parse_params
 
 
 @dataclass
-class OracleParams:
-    """Backend ``oracle``: keypoints from the ground truth, with simulated detector errors (px)."""
-    noise_px: float = 0.0
-    missing_prob: float = 0.0
-    outlier_prob: float = 0.0
-    outlier_px: float = 30.0
-    seed: int = 0
-    centreline: bool = True
-    centreline_noise_px: float | None = None      # None: noise_px / 2
+class _OracleCentreline:
+    centreline: bool = True                       # the dense centreline too (with the true poses)
 
 
 @dataclass
-class LearnedParams:
-    """Backend ``learned``: the keypoint network (``common.detector.inference``)."""
+class _LearnedRun:
     weights: str | None = None                    # None: models/keypoint/model.pt
     device: str = "auto"                          # auto | cpu | cuda
-    threshold: float = 0.5
-    tracking: bool = True
     threads: int = 1                              # torch threads
-    refine: bool = True
-    centreline: bool = True
-    subpixel: bool = True
-    min_extent_px: float = 10.0
-    max_ellipse_px: float = 0.25
-    keypoints_only_ellipse_px: float = 1.5        # beyond max_ellipse_px: keypoints, no centreline
-    arc_bcd: bool = True
-    along_arc: bool = False
-    proposals: int = 3
-    proposal_threshold: float = 0.2
-    ridge_ends: bool = True                       # A, E from the centreline's ends when they collapse
-    # a cold frame where no proposal passes is searched again with its hues turned by these
-    # (degrees); null: the detector's RETRY_HUES_DEG (120, 240), []: not searched again
-    retry_hues: list[float] | None = None
 
 
-@dataclass
-class ClassicalParams:
-    """Backend ``classical``: the image-processing baseline (``common.detector.classical``)."""
-    threshold: float = 0.5
-    scale: float = 0.5
-    min_tophat: float = 18.0
+OracleParams = merge_schemas("OracleParams", Oracle, _OracleCentreline)
+"""Backend ``oracle``: keypoints from the ground truth, with simulated detector errors (px)."""
+LearnedParams = merge_schemas("LearnedParams", DetectorConfig, _LearnedRun)
+"""Backend ``learned``: the keypoint network (``common.detector.inference``)."""
+ClassicalParams = ClassicalConfig
+"""Backend ``classical``: the image-processing baseline (``common.detector.classical``)."""
 
 
 @dataclass
@@ -104,9 +82,9 @@ class KeypointBackend:
     def __init__(self, params: Optional[dict] = None):
         self.params = dict(params or {})
         try:
-            self.p = parse_params(BACKEND_PARAMS.get(self.name, _NoParams), self.params, f"{self.name} backend params")
+            self.p = parse_params(BACKEND_PARAMS.get(self.name, _NoParams), self.params)
         except ParamError as exc:
-            raise BackendError(str(exc)) from None
+            raise BackendError(f"{self.name} backend: bad params: {exc}") from None
 
     def detect(self, image: Optional[np.ndarray], camera: str, truth: Optional[GroundTruth],
                calib: Calibration, *, seq: int = 0, stamp_ns: int = 0) -> Keypoints:
@@ -174,9 +152,8 @@ class OracleBackend(KeypointBackend):
 
     def __init__(self, params: Optional[dict] = None):
         super().__init__(params)
-        from common.geometry.oracle import Oracle
         try:
-            self.oracle = Oracle.from_params({k: v for k, v in vars(self.p).items() if v is not None})
+            self.oracle = config_from(Oracle, self.p)
         except (TypeError, ValueError) as exc:
             raise BackendError(f"oracle backend: bad params: {exc}") from exc
 

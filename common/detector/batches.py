@@ -17,6 +17,7 @@ from common.detector.model import (
     crop_side,
     global_size,
 )
+from common.frames import CAMERAS
 
 
 def crop_batch(records, idx, cfg: ModelConfig, aug, rng, hard=None, hard_prob: float = 0.0,
@@ -59,7 +60,7 @@ def mine_hard_negatives(model: KeypointModel, data_dirs, per_image: int, progres
     model.eval()
     cfg = model.cfg
     out = []
-    jobs = [(d, fr, cam) for d in data_dirs for fr in read_dataset(d)[1] for cam in ("left", "right")]
+    jobs = [(d, fr, cam) for d in data_dirs for fr in read_dataset(d)[1] for cam in CAMERAS]
     if 0 < max_images < len(jobs):
         keep = np.random.default_rng(seed).choice(len(jobs), max_images, replace=False)
         jobs = [jobs[i] for i in sorted(keep)]

@@ -19,11 +19,13 @@ The fitted arc is published as the centreline observation (``Keypoints.centrelin
 """
 from __future__ import annotations
 
+import dataclasses
 import logging
 
 import cv2
 import numpy as np
 
+from common.detector.config import ClassicalConfig
 from common.detector.end_identity import polyline_length
 from common.runtime.messages import Keypoints
 
@@ -63,11 +65,12 @@ class ClassicalDetector:
 
     name = "classical"
 
-    def __init__(self, threshold: float = 0.5, scale: float = 0.5, min_tophat: float = 18.0,
-                 centreline_points: int = 48):
-        self.threshold = float(threshold)
-        self.scale = float(scale)
-        self.min_tophat = float(min_tophat)
+    def __init__(self, config: ClassicalConfig | None = None, centreline_points: int = 48, **settings):
+        """``config``: its settings, ``settings`` any of its fields set anew."""
+        self.config = c = dataclasses.replace(config or ClassicalConfig(), **settings)
+        self.threshold = float(c.threshold)
+        self.scale = float(c.scale)
+        self.min_tophat = float(c.min_tophat)
         self.n_line = int(centreline_points)
 
     # ------------------------------------------------------------ segmentation
@@ -216,6 +219,7 @@ class ClassicalDetector:
 # ---------------------------------------------------------------- detector-node backend
 
 from common.detector.backends import BackendError, KeypointBackend  # noqa: E402
+from common.runtime.params import config_from  # noqa: E402
 
 
 class ClassicalBackend(KeypointBackend):
@@ -229,7 +233,7 @@ class ClassicalBackend(KeypointBackend):
         super().__init__(params)
         p = self.p
         try:
-            self.detector = ClassicalDetector(p.threshold, p.scale, p.min_tophat)
+            self.detector = ClassicalDetector(config_from(ClassicalConfig, p))
         except (TypeError, ValueError) as exc:
             raise BackendError(f"classical backend: bad params: {exc}") from exc
 

@@ -21,6 +21,7 @@ file raises ``ModelFileError`` saying how to retrain.
 """
 from __future__ import annotations
 
+import dataclasses
 import logging
 from pathlib import Path
 
@@ -58,25 +59,13 @@ from common.detector.model import (
     invert_affine,
     visibility_logits,
 )
+from common.detector.config import RETRY_HUES_DEG, DetectorConfig
 from common.detector.familiarity import FamiliarityFileError, familiarity_path, load_familiarity
 from common.detector.data import global_input, turn_hue
 from common.detector.ridge_ends import ends_on_ridge
 from common.detector.weights import DEFAULT_WEIGHTS, load_end_coefficients, load_model, pick_device
 from common.runtime.messages import CameraImage, Keypoints, MessageError
 
-# The needle's smallest image extent in any view, its 5.1 mm sagitta seen from the side, is
-# 10 px at 40 cm with this endoscope (f ~ 790 px): keypoints closer together are a collapse.
-MIN_EXTENT_PX = 10.0
-# The perspective image of the needle's circle is an ellipse: the sub-pixel centreline of a
-# needle lies within 0.1 px of one (median; standard test set), a bent thread 0.3-2.7 px.
-MAX_ELLIPSE_PX = 0.25
-# A held needle's centreline lies 0.14 / 0.39 / 0.84 px (quartiles, read right) from its ellipse:
-# the jaws beside the wire and motion blur pull it, and a jaw's edge can pass for a stretch of it.
-# A detection within KEYPOINTS_ONLY_ELLIPSE_PX but not MAX_ELLIPSE_PX is stated with its
-# keypoints only: no centreline (a fit would take the jaw's edge for the wire), and its crop is
-# not tracked (the next frame is searched cold, so a wrong reading is not carried on). Held
-# needles where 30% is seen: found 86.8 -> 95.8%; pale-thread decoys 33 -> 47 of 400 images.
-KEYPOINTS_ONLY_ELLIPSE_PX = 1.5
 MIN_ELLIPSE_SHARE = 0.5      # of the centreline points on that ellipse (a jaw may bend the rest)
 MIN_ELLIPSE_POINTS = 8       # fewer (a needle mostly hidden) are not judged
 # The keypoints' 1-sigma error per image axis as a stereo fit should take it (stated in every
@@ -86,11 +75,6 @@ MIN_ELLIPSE_POINTS = 8       # fewer (a needle mostly hidden) are not judged
 # (its NEES median in needletrack eval's results near chi-square(6)'s 5.35; from its residuals
 # alone about ten times that); the dense fit assumes 1 px as well.
 KEYPOINT_SIGMA_PX = 1.0
-RETRY_HUES_DEG = (120.0, 240.0)
-"""The hue turns (degrees) of a cold frame searched again after no proposal passed stage 2 as
-the image is: the whole circle in thirds. Of all the turns' proposals the one with the highest
-presence is kept, if it reaches ``RETRY_PRESENCE``. Every third image of the silicone pads (held
-out): found 68 -> 96 of 100; of the `wide` set: 92 -> 97."""
 RETRY_EVERY = 5
 """After a cold frame where neither the image nor its turns gave a needle, only every this many-th
 cold frame of that camera that nothing passes as it is is searched turned: the turns triple a
@@ -144,14 +128,11 @@ class KeypointDetector:
 
     name = "learned"
 
-    def __init__(self, weights=None, device: str = "auto", threshold: float = 0.5,
-                 tracking: bool = True, threads: int | None = None, refine: bool = True,
-                 centreline: bool = True, arc_bcd: bool = True, along_arc: bool = False,
-                 proposal_threshold: float = 0.2, proposals: int = 3, subpixel: bool = True,
-                 min_extent_px: float = MIN_EXTENT_PX, max_ellipse_px: float = MAX_ELLIPSE_PX,
-                 keypoints_only_ellipse_px: float = KEYPOINTS_ONLY_ELLIPSE_PX,
-                 ridge_ends: bool = True, familiarity: bool = True,
-                 retry_hues: tuple | None = None):
+    def __init__(self, weights=None, device: str = "auto", threads: int | None = None,
+                 familiarity: bool = True, config: DetectorConfig | None = None, **settings):
+        """``config``: the detector's settings, ``settings`` any of its fields set anew
+        (``KeypointDetector(tracking=False)``); ``threads``: torch's threads."""
+        self.config = c = dataclasses.replace(config or DetectorConfig(), **settings)
         self.device = pick_device(device)
         if threads:
             torch.set_num_threads(int(threads))
@@ -160,21 +141,21 @@ class KeypointDetector:
         self._glob = FrozenForInference(self.model.glob)
         self._crop = FrozenForInference(CropWithFeatures(self.model.crop))
         self.cfg = self.model.cfg
-        self.threshold = float(threshold)
-        self.tracking = bool(tracking)
-        self.refine = bool(refine)
-        self.centreline = bool(centreline)
-        self.arc_bcd = bool(arc_bcd)
-        self.along_arc = bool(along_arc)
-        self.proposal_threshold = float(proposal_threshold)
-        self.proposals = max(1, int(proposals))
-        self.subpixel = bool(subpixel)
-        self.min_extent_px = float(min_extent_px)
-        self.max_ellipse_px = float(max_ellipse_px)
-        self.keypoints_only_ellipse_px = float(keypoints_only_ellipse_px)
-        self.ridge_ends = bool(ridge_ends)
+        self.threshold = float(c.threshold)
+        self.tracking = bool(c.tracking)
+        self.refine = bool(c.refine)
+        self.centreline = bool(c.centreline)
+        self.arc_bcd = bool(c.arc_bcd)
+        self.along_arc = bool(c.along_arc)
+        self.proposal_threshold = float(c.proposal_threshold)
+        self.proposals = max(1, int(c.proposals))
+        self.subpixel = bool(c.subpixel)
+        self.min_extent_px = float(c.min_extent_px)
+        self.max_ellipse_px = float(c.max_ellipse_px)
+        self.keypoints_only_ellipse_px = float(c.keypoints_only_ellipse_px)
+        self.ridge_ends = bool(c.ridge_ends)
         # None: RETRY_HUES_DEG; empty: a cold frame is searched as it is only
-        self.retry_hues = tuple(float(h) % 360.0 for h in (RETRY_HUES_DEG if retry_hues is None else retry_hues))
+        self.retry_hues = tuple(float(h) % 360.0 for h in (RETRY_HUES_DEG if c.retry_hues is None else c.retry_hues))
         self._track: dict[str, tuple] = {}
         self._hue: dict[str, float] = {}    # the hue turn each tracked camera's needle was found at
         self._retry_wait: dict[str, int] = {}   # cold frames each camera searches unturned (_retry)

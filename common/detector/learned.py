@@ -5,9 +5,11 @@ from __future__ import annotations
 import numpy as np
 
 from common.detector.backends import BackendError, KeypointBackend
+from common.detector.config import DetectorConfig
 from common.detector.inference import KeypointDetector
 from common.detector.weights import ModelFileError
 from common.runtime.messages import Keypoints
+from common.runtime.params import config_from
 
 
 class LearnedBackend(KeypointBackend):
@@ -30,13 +32,8 @@ class LearnedBackend(KeypointBackend):
         super().__init__(params)
         p = self.p
         try:
-            self.detector = KeypointDetector(
-                p.weights, device=p.device, threshold=p.threshold, tracking=p.tracking, threads=p.threads,
-                refine=p.refine, centreline=p.centreline, arc_bcd=p.arc_bcd, along_arc=p.along_arc,
-                proposals=p.proposals, proposal_threshold=p.proposal_threshold, subpixel=p.subpixel,
-                min_extent_px=p.min_extent_px, max_ellipse_px=p.max_ellipse_px,
-                keypoints_only_ellipse_px=p.keypoints_only_ellipse_px, ridge_ends=p.ridge_ends,
-                retry_hues=p.retry_hues)
+            self.detector = KeypointDetector(p.weights, device=p.device, threads=p.threads,
+                                             config=config_from(DetectorConfig, p))
         except (ModelFileError, ValueError, TypeError) as exc:
             raise BackendError(f"learned backend: {exc}") from exc
 

@@ -10,6 +10,7 @@ from typing import Optional
 import msgpack
 import numpy as np
 
+from common.frames import CAMERAS
 from common.runtime.messages import (
     Calibration,
     CameraImage,
@@ -68,7 +69,7 @@ class CleanStream:
             f = {"camera/joints": EcmJoints(i, stamp, q),
                  "camera/truth": GroundTruth(i, stamp, sequence=0, step=i, ecm_joints=q, T_world_ecm=T_we,
                                              T_world_needle=T_wn)}
-            for cam in ("left", "right"):
+            for cam in CAMERAS:
                 f[f"camera/{cam}"] = CameraImage(cam, i, stamp, w, h, "jpeg", jpeg)
             f["camera/instruments"] = InstrumentState("psm1", i, stamp, T_wn @ make_T(np.eye(3), [0, 0, 0.01]), 0.06, True)
             for node, key, msg in ((ecm, "joints", f["camera/joints"]), (det, "truth", f["camera/truth"])):

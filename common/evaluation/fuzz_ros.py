@@ -15,6 +15,7 @@ import time
 
 import numpy as np
 
+from common.frames import CAMERAS
 from common.runtime.messages import MessageError, decode, encode
 
 from common.evaluation.fuzz import RECOVERY_LIMIT, InputResult, result_line
@@ -46,7 +47,7 @@ class RosSamples:
 
     def params(self) -> dict:
         """The ``ros2`` node's params for this system (its Zenoh endpoint is never reached)."""
-        reg = {c: self.rig[c].T_ecm_cam.tolist() for c in ("left", "right")}
+        reg = {c: self.rig[c].T_ecm_cam.tolist() for c in CAMERAS}
         return {"preset": "dvrk", "rig": ROS_RIG, "keys": self.keys, "topics": {"registration": reg},
                 "connect": ["tcp/127.0.0.1:9"], "max_queue": 64}
 
@@ -58,13 +59,13 @@ class RosSamples:
         """(topic, message) of one frame: calibration, ECM pose and joints, then the images."""
         b, st = self.build, self.st
         out = [(self.topics["info_" + c], b.camera_info(st, stamp, self.rig[c].K, self.rig[c].dist, self.size))
-               for c in ("left", "right")]
+               for c in CAMERAS]
         out.append((self.topics["pose"], b.make(st, "geometry_msgs/msg/PoseStamped", header=b.header(st, stamp),
                                                 pose=b.pose(st, np.eye(4)))))
         out.append((self.topics["joints"], b.make(st, "sensor_msgs/msg/JointState", header=b.header(st, stamp),
                                                   name=["yaw", "pitch", "insertion", "roll"],
                                                   position=np.array([0.0, 0.1, 0.05, 0.0]))))
-        out += [(self.topics[c], b.image(st, stamp, self.img, "bgr8")) for c in ("left", "right")]
+        out += [(self.topics[c], b.image(st, stamp, self.img, "bgr8")) for c in CAMERAS]
         return out
 
     def frame(self, stamp: int) -> list:
@@ -131,7 +132,7 @@ def ros_poison(s: RosSamples, kind: str, stamp: int, rng: random.Random, np_rng)
         return t, s.key(t, mt), _huge(kind, s)
     bad = rng.choice([float("nan"), float("inf"), -float("inf")])
     if kind == "non_finite_calibration":
-        c = rng.choice(("left", "right"))
+        c = rng.choice(CAMERAS)
         K, D = s.rig[c].K.copy(), np.array(s.rig[c].dist, float).reshape(-1).copy()
         if rng.random() < 0.5:
             K.flat[rng.choice([0, 2, 4, 5])] = bad

@@ -1,10 +1,13 @@
 """The standard pose pipeline as a graph, and running it with its source started last.
 
-``pipeline_graph`` builds, from the repository's node modules::
+``pipeline_graph`` builds, from ``dataflow.yaml``'s wiring with a replay for its camera and the
+evaluation's params::
 
     replay -> detector -> epnp_average, epnp_joint -> triangulate -> ecm -> fusion
-                       -> refine -> fusion_refined        (when nodes/refine.py exists)
+                       -> refine -> fusion_refined, tracker   (when nodes/refine.py exists)
                        -> evaluator / anything passed as ``sinks``
+
+the pose methods' nodes chosen by the registry (``common.methods``: what each method needs).
 
 ``GraphRun`` launches every node but the source through ``common.runtime.launcher``, waits until each
 one is live (its subscriptions are declared before its liveliness token), then starts the
@@ -23,14 +26,21 @@ from typing import Optional
 
 from common.detector.backends import backend_class
 from common.errors import NeedletrackError
-from common.methods import METHOD_NEEDS, POSE_OUTPUTS
-from common.runtime.graph import graph_from_dict, live_key, module_info
+from common.frames import CAMERAS
+from common.methods import BY_NAME, MULTIVIEW_METHODS, POSE_METHODS, POSE_OUTPUTS, requires
+from common.runtime.graph import REPO_ROOT, graph_from_dict, live_key, module_info, parse_yaml
 from common.runtime.messages import Calibration
 from common.runtime.inputs import KEEP_ALL_LIMIT
 from common.runtime.node import node_class
 from common.runtime.pairing import StereoPairer
 
 SOURCE = "replay"
+LIVE_GRAPH = REPO_ROOT / "dataflow.yaml"
+"""The graph whose wiring the evaluation graphs take (``pipeline_graph``)."""
+LIVE_SOURCE = "camera"
+"""Its source's id (the replay stands in for it)."""
+LIVE_PARAMS_KEPT = ("method",)
+"""The live graph's params an evaluation graph keeps: which method a node computes."""
 LOSSLESS_TRACKER_WAIT = 120
 """Frames the lossless graph's tracker waits for a refined pose (the queues may hold it back so
 long); its fusions wait twice that for the tracker's mode (the tracker waits on its pose)."""
@@ -48,6 +58,44 @@ def has_module(name: str) -> bool:
     return info is not None and info["has_node"] and not info["syntax_error"]
 
 
+def live_graph_nodes() -> dict:
+    """``dataflow.yaml``'s nodes by id, as parsed (the wiring every evaluation graph starts from)."""
+    doc = parse_yaml(LIVE_GRAPH.read_text(), str(LIVE_GRAPH))
+    return {n["id"]: n for n in doc["nodes"]}
+
+
+def wanted_methods(methods=None, *, refine: bool = True, tracker: bool = False) -> list:
+    """The pose methods a graph runs, in the registry's order: ``methods`` (default: every one,
+    ``tracked`` only with ``tracker``) and every method they take poses from
+    (``common.methods.requires``); without ``refine``, none that is or needs ``refined``."""
+    wanted = set(POSE_OUTPUTS) if methods is None else set(methods)
+    if methods is None and not tracker:
+        wanted.discard("tracked")
+    unknown = wanted - set(POSE_OUTPUTS)
+    if unknown:
+        raise ValueError(f"unknown pose method(s) {sorted(unknown)}; known: {', '.join(POSE_OUTPUTS)}")
+    if not refine:
+        wanted = {m for m in wanted if m != "refined" and "refined" not in requires(m)}
+    for m in list(wanted):
+        wanted |= requires(m)
+    return [m for m in POSE_METHODS if m in wanted]
+
+
+def method_node(live: dict, method: str) -> dict:
+    """The live graph's node that produces ``method``; a multi-view method the live graph does not
+    run is its other fusion node, fusing ``method``'s single-frame poses."""
+    nid = POSE_OUTPUTS[method].split("/")[0]
+    if nid in live:
+        return live[nid]
+    fuses = BY_NAME[method].fuses
+    template = next((live[o.split("/")[0]] for m, o in POSE_OUTPUTS.items()
+                     if fuses and m in MULTIVIEW_METHODS and o.split("/")[0] in live), None)
+    if template is None:
+        raise ValueError(f"{LIVE_GRAPH.name} has no node {nid!r} for the method {method!r}")
+    return {**template, "id": nid, "params": {**template.get("params", {}), "method": method},
+            "inputs": {**template.get("inputs", {}), "pose": POSE_OUTPUTS[fuses]}}
+
+
 def pipeline_graph(dataset: str, *, detector: str = "learned", detector_params: Optional[dict] = None,
                    rate="max", port: Optional[int] = None, name: str = "needletrack-eval",
                    refine: Optional[bool] = None, loop: bool = False, count: int = 0,
@@ -56,16 +104,24 @@ def pipeline_graph(dataset: str, *, detector: str = "learned", detector_params: 
                    start_delay_s: float = 1.0, decode: bool = False,
                    refine_tracking: bool = True, refine_params: Optional[dict] = None,
                    tracker: bool = False, tracker_params: Optional[dict] = None) -> dict:
-    """The graph document of the whole pipeline on a replayed dataset folder.
+    """The graph document of the whole pipeline on a replayed dataset folder: ``dataflow.yaml``'s
+    wiring (module, inputs, outputs of each node) with these overrides:
 
-    ``refine``: include the refinement node and a fusion over refined poses (default: when
+    - the source is a ``replay`` of ``dataset`` (id ``replay``, for the live graph's ``camera``);
+    - the detector: the live graph's two per-camera nodes (``split_detector``), or one node for
+      both cameras; ``backend: detector`` and ``detector_params`` are its params;
+    - the pose nodes: those of the methods wanted (``wanted_methods``); an input from a node
+      that does not run is left out (the fusions take the tracker's modes only where it runs);
+    - params: the evaluation's, not the live graph's tuning (its scene prior, the detector's
+      tracking): of the live params only ``method`` (which method a node computes) is kept.
+
+    ``refine``: include the refinement node and what takes its poses (default: when
     nodes/refine.py exists). ``methods``: only the nodes these pose methods (names of
     ``POSE_OUTPUTS``) need, e.g. ``["multiview_refined"]`` runs replay, detector, ecm, refine
     and fusion_refined (default: every method). ``sinks``: extra node dicts (e.g. the evaluator), wired by the
     caller with the ids used here. Every node runs with ``restart: never``: a run that loses a
     node is a failed run, not one to patch up silently.
 
-    ``split_detector``: one detector process per camera (``detector_left``, ``detector_right``).
     ``lossless``: every pipeline node runs through ``lossless_command``: each of its inputs
     queues every message instead of keeping the newest (an evaluation scores every frame,
     whatever the machine's load), and the source waits ``start_delay_s`` after joining the
@@ -83,18 +139,8 @@ def pipeline_graph(dataset: str, *, detector: str = "learned", detector_params: 
     """
     if refine is None:
         refine = has_module("refine")
-    wanted = set(POSE_OUTPUTS) if methods is None else set(methods)
-    if methods is None and not tracker:
-        wanted.discard("tracked")
-    unknown = wanted - set(POSE_OUTPUTS)
-    if unknown:
-        raise ValueError(f"unknown pose method(s) {sorted(unknown)}; known: {', '.join(POSE_OUTPUTS)}")
-    if "tracked" in wanted:
-        wanted.add("refined")           # the tracker filters the refined poses
-    if not refine:                      # nor what fuses or filters the refined poses
-        wanted = {m for m in wanted if m not in ("refined", "tracked") and "refined" not in METHOD_NEEDS.get(m, ())}
-    for m in list(wanted):          # a fusion needs the single-frame method it fuses
-        wanted |= set(METHOD_NEEDS.get(m, ()))
+    wanted = wanted_methods(methods, refine=refine, tracker=tracker)
+    live = live_graph_nodes()
     port = port or free_port()
     one = {"OMP_NUM_THREADS": "1"}
     det_params = {"backend": detector, **(detector_params or {})}
@@ -103,73 +149,59 @@ def pipeline_graph(dataset: str, *, detector: str = "learned", detector_params: 
         det_params.setdefault("stride", 1)    # the replay waits for every frame's keypoints
     # only a backend that reads the ground truth (the oracle) gets it: every message costs
     # each receiving process ~0.3 ms of CPU
-    truth = {"truth": "replay/truth"} if backend_class(detector).needs_truth else {}
+    truth = {"truth": f"{SOURCE}/truth"} if backend_class(detector).needs_truth else {}
     if split_detector and detector == "learned":
         det_params.setdefault("threads", 1)   # two processes share the cores, one each
-    nodes = [
-        {"id": SOURCE, "module": "replay",
-         "params": {"path": str(Path(dataset).resolve()), "rate": rate, "loop": bool(loop),
-                    "count": int(count), "decode": bool(decode)},
-         "outputs": ["left", "right", "joints", "measured", "truth", "instruments", "calib", "eos"]}]
-    if split_detector:   # one process per camera: the two images are detected in parallel
-        for cam in ("left", "right"):
-            nodes.append({"id": f"detector_{cam}", "module": "detector", "params": dict(det_params),
-                          "inputs": {cam: f"replay/{cam}", "calib": "replay/calib", **truth},
-                          "outputs": [cam], "env": one})
-    else:
-        nodes.append({"id": "detector", "module": "detector", "params": det_params,
-                      "inputs": {"left": "replay/left", "right": "replay/right",
-                                 "calib": "replay/calib", **truth},
-                      "outputs": ["left", "right"]})
     kp = keypoint_sources(split_detector)
+    live_kp = {keypoint_sources(True)[cam]: kp[cam] for cam in CAMERAS}
+
+    def rename(src: str) -> str:
+        """Where an output of the live graph comes from here."""
+        node, _, out = src.partition("/")
+        return f"{SOURCE}/{out}" if node == LIVE_SOURCE else live_kp.get(src, src)
+
+    def wire(n: dict, params: dict, inputs: Optional[dict] = None, env: Optional[dict] = one) -> dict:
+        ins = {k: rename(src) for k, src in n.get("inputs", {}).items()}
+        ins.update(inputs or {})
+        kept = {k: v for k, v in (n.get("params") or {}).items() if k in LIVE_PARAMS_KEPT}
+        out = {"id": n["id"], "module": n["module"], "params": {**kept, **params}, "inputs": ins,
+               "outputs": list(n["outputs"])}
+        if env:
+            out["env"] = dict(env)
+        return out
+
+    nodes = [{"id": SOURCE, "module": "replay",
+              "params": {"path": str(Path(dataset).resolve()), "rate": rate, "loop": bool(loop),
+                         "count": int(count), "decode": bool(decode)},
+              "outputs": list(module_info("replay")["outputs"])}]
     if paced:
         nodes[0]["inputs"] = {"ack": kp["left"], "ack2": kp["right"]}
-    nodes += [
-        {"id": "ecm", "module": "ecm", "inputs": {"joints": "replay/joints", "calib": "replay/calib",
-                                                  "measured": "replay/measured"},
-         "outputs": ["pose"], "env": one},
-    ]
-    stereo = {**kp, "calib": "replay/calib", "ecm": "ecm/pose"}
+    per_camera = [live[f"detector_{cam}"] for cam in CAMERAS]
+    if split_detector:   # one process per camera: the two images are detected in parallel
+        nodes += [wire(n, dict(det_params), truth) for n in per_camera]
+    else:                # the two per-camera nodes as one
+        joined = {"id": "detector", "module": "detector",
+                  "inputs": {k: v for n in per_camera for k, v in n["inputs"].items()},
+                  "outputs": [o for n in per_camera for o in n["outputs"]]}
+        nodes.append(wire(joined, det_params, truth, env=None))
+    nodes.append(wire(live["ecm"], {}, {"measured": f"{SOURCE}/measured"}))
     # lossless: a pose (refine: a pair) waits for its frame's ECM pose as long as the queues may
-    # hold that back (a starved ecm process falls frames behind the keypoints on a loaded machine)
+    # hold that back (a starved ecm process falls frames behind the keypoints on a loaded machine);
+    # the tracker waits as long for a refined pose, the fusions twice that for the tracker's mode
     pose_wait = {"max_wait": LOSSLESS_TRACKER_WAIT} if lossless else {}
-    for method in ("average", "joint"):
-        if f"pnp_{method}" in wanted:
-            nodes.append({"id": f"epnp_{method}", "module": "epnp", "params": {"method": method, **pose_wait},
-                          "inputs": dict(stereo), "outputs": ["pose"], "env": one})
-    if "triangulation" in wanted:
-        nodes.append({"id": "triangulate", "module": "triangulate", "params": dict(pose_wait),
-                      "inputs": dict(stereo), "outputs": ["pose", "points"], "env": one})
-    # where the tracker runs, it says which frames' needle is at rest: the fusions fuse only those
-    motion = {"motion": POSE_OUTPUTS["tracked"], "untracked": "tracker/no_pose"} if "tracked" in wanted else {}
-    fusion_wait = {"max_wait": (2 if motion else 1) * LOSSLESS_TRACKER_WAIT} if lossless else {}
-    if "multiview" in wanted:
-        nodes.append({"id": "fusion", "module": "fusion", "params": {"method": "multiview", **fusion_wait},
-                      "inputs": {"pose": "epnp_joint/pose", "ecm": "ecm/pose", "truth": "replay/truth",
-                                 "calib": "replay/calib", **motion},
-                      "outputs": ["pose"], "env": one})
-    if "refined" in wanted:
-        nodes.append({"id": "refine", "module": "refine", "inputs": dict(stereo),
-                      "params": {"tracking": bool(refine_tracking), **pose_wait, **(refine_params or {})},
-                      "outputs": ["pose", "no_pose"], "env": one})
-    if "multiview_refined" in wanted:
-        nodes.append({"id": "fusion_refined", "module": "fusion",
-                      "params": {"method": "multiview_refined", **fusion_wait},
-                      "inputs": {"pose": "refine/pose", "ecm": "ecm/pose", "truth": "replay/truth",
-                                 "calib": "replay/calib", **motion},
-                      "outputs": ["pose"], "env": one})
-    if "tracked" in wanted:
-        # lossless: a frame waits for its refined pose as long as the queues may hold it back
-        nodes.append({"id": "tracker", "module": "tracker",
-                      "params": {**({"max_wait": LOSSLESS_TRACKER_WAIT} if lossless else {}), **(tracker_params or {})},
-                      "inputs": {"pose": "refine/pose", "no_pose": "refine/no_pose", "ecm": "ecm/pose",
-                                 "instruments": "replay/instruments", "calib": "replay/calib",
-                                 "truth": "replay/truth", "eos": "replay/eos"},
-                      "outputs": ["pose", "in_hand", "no_pose"], "env": one})
-    for n in nodes:   # wire only what a module declares (optional inputs come and go)
+    fusion_wait = {"max_wait": (2 if "tracked" in wanted else 1) * LOSSLESS_TRACKER_WAIT} if lossless else {}
+    params = {"refined": {"tracking": bool(refine_tracking), **pose_wait, **(refine_params or {})},
+              "tracked": {**pose_wait, **(tracker_params or {})}}
+    for m in wanted:
+        n = method_node(live, m)
+        p = fusion_wait if m in MULTIVIEW_METHODS else params.get(m, pose_wait)
+        nodes.append(wire(n, dict(p), {"eos": f"{SOURCE}/eos"} if m == "tracked" else None))
+    ids = {n["id"] for n in nodes}
+    for n in nodes:   # wire only what a module declares (optional inputs come and go) and what runs
         info = module_info(n["module"])
-        if info and info["inputs"] is not None:
-            n["inputs"] = {k: v for k, v in n.get("inputs", {}).items() if k in info["inputs"]}
+        if "inputs" in n:
+            n["inputs"] = {k: v for k, v in n["inputs"].items()
+                           if v.split("/")[0] in ids and (not info or info["inputs"] is None or k in info["inputs"])}
     wrapped = list(nodes) if lossless else []
     nodes += list(sinks or [])
     # every process of the graph but the source, plus the launcher that hosts them

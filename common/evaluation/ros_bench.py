@@ -26,6 +26,8 @@ from pathlib import Path
 
 import numpy as np
 
+from common.frames import CAMERAS
+
 
 def bag_main(argv: list) -> int:
     ap = argparse.ArgumentParser(prog="needletrack bench ros-bag", description=__doc__,
@@ -76,7 +78,7 @@ class _RosSystem:
             c.insert_json5("listen/endpoints", json.dumps([f"tcp/127.0.0.1:{port}"]))
             self.session = zenoh.open(c)
         self.keys, self.ds, self.rig, self.st = keys, ds, rig, typestore(2)
-        self.images = [{c: ds.image(fr, c) for c in ("left", "right")} for fr in ds.frames]
+        self.images = [{c: ds.image(fr, c) for c in CAMERAS} for fr in ds.frames]
         self.stop = threading.Event()
         self.seq = 0
         self.stamps: list = []  # header stamps of the frames published
@@ -107,14 +109,14 @@ class _RosSystem:
             k = i % len(ds)
             fr = ds.frames[k]
             t = time.time_ns()
-            for c in ("left", "right"):
+            for c in CAMERAS:
                 self._put(f"/{self.rig}/{c}/camera_info", build.camera_info(st, t, ds.rig[c].K, ds.rig[c].dist,
                                                                              ds.meta.image_size))
             self._put("/ECM/measured_cp", build.make(st, "geometry_msgs/msg/PoseStamped", header=build.header(st, t),
                                                      pose=build.pose(st, fr.T_world_ecm)))
             self._put("/needle/measured_cp", build.make(st, "geometry_msgs/msg/PoseStamped",
                                                         header=build.header(st, t), pose=build.pose(st, fr.T_world_needle)))
-            for c in ("left", "right"):
+            for c in CAMERAS:
                 self._put(f"/{self.rig}/{c}/image_raw", build.image(st, t, self.images[k][c], "bgr8"))
             i += 1
             self.stamps.append(t)
@@ -144,7 +146,7 @@ def pose_pipeline(source: dict, out: dict | None = None) -> list:
     nodes = [source,
              {"id": "detector", "module": "detector", "params": {"backend": "oracle"},
               "inputs": {"left": "camera/left", "right": "camera/right", "truth": "camera/truth",
-                         "calib": "camera/calib"}, "outputs": ["left", "right"]},
+                         "calib": "camera/calib"}, "outputs": list(CAMERAS)},
              {"id": "ecm", "module": "ecm", "inputs": {"measured": "camera/measured", "calib": "camera/calib",
                                                        **({"joints": "camera/joints"}
                                                           if "joints" in source["outputs"] else {})},
@@ -207,7 +209,7 @@ def live_main(argv: list) -> int:
             lat_a.append((t - (m.header.stamp.sec * 1_000_000_000 + m.header.stamp.nanosec)) / 1e6)
     sub = ros.subscribe_pose(on_pose)
     tmap = {"preset": "dvrk", "needle_pose": "/needle/measured_cp",
-            "registration": {c: ds.rig[c].T_ecm_cam.tolist() for c in ("left", "right")}}
+            "registration": {c: ds.rig[c].T_ecm_cam.tolist() for c in CAMERAS}}
     link = ({"transport": "dds"} if args.transport == "dds" else
             {"connect": [f"tcp/127.0.0.1:{port}"], "keys": args.keys})
     doc = {"graph": "rosA", "zenoh": {"mode": "peer", "listen": [f"tcp/127.0.0.1:{free_port()}"]},

@@ -333,8 +333,3 @@ def _select_curve(name: str, pts, w, m: int, w_min: float):
     idx = np.minimum(np.searchsorted(s, s[-1] * np.arange(m) / (m - 1)), len(pts) - 1)
     idx = idx[np.concatenate([[True], idx[1:] > idx[:-1]])]
     return pts[idx], w[idx]
-
-
-def _orthonormalise(R):
-    U, _, Vt = np.linalg.svd(R)
-    return U @ Vt

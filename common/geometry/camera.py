@@ -8,6 +8,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from common.frames import CAMERAS
 from common.geometry.transforms import inv_T, transform_points
 
 
@@ -91,7 +92,7 @@ class StereoRig:
     right: Camera
 
     def __getitem__(self, name: str) -> Camera:
-        if name not in ("left", "right"):
+        if name not in CAMERAS:
             raise KeyError(f"camera must be 'left' or 'right', got {name!r}")
         return getattr(self, name)
 
@@ -135,7 +136,7 @@ class StereoRig:
         """From the dataset.yaml ``cameras`` mapping and ``image_size`` [w, h]."""
         w, h = int(image_size[0]), int(image_size[1])
         cams = []
-        for name in ("left", "right"):
+        for name in CAMERAS:
             c = cameras[name]
             cams.append(Camera(name, np.asarray(c["K"], dtype=float),
                                np.asarray(c.get("dist", [0] * 5), dtype=float),

@@ -23,7 +23,7 @@ import numpy as np
 
 from common.frames import CAMERAS
 from common.geometry.needle import NeedleModel
-from common.geometry.transforms import transform_points
+from common.geometry.transforms import symmetrise, transform_points
 
 CAMERA_CORRELATION = 0.5
 """How much of a second camera's evidence is new: the two views see the same needle, so their
@@ -332,7 +332,7 @@ def without_identity_covariance(T_ecm_needle: np.ndarray, covariance: np.ndarray
     out would not leave it positive definite (it was not added)."""
     d = end_for_end_delta(T_ecm_needle, needle)
     C = np.asarray(covariance, float) - (1.0 - p) * np.outer(d, d)
-    C = 0.5 * (C + C.T)
+    C = symmetrise(C)
     return C if np.linalg.eigvalsh(C)[0] > 0 else np.asarray(covariance, float)
 
 

@@ -52,7 +52,3 @@ def _rot(R: np.ndarray, n: int = 6) -> np.ndarray:
     for i in range(0, n, 3):
         A[i:i + 3, i:i + 3] = R
     return A
-
-
-def _sym(P: np.ndarray) -> np.ndarray:
-    return 0.5 * (P + P.T)

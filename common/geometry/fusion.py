@@ -42,15 +42,17 @@ outlier), or when the estimate's ``sequence`` label changes.
 """
 from __future__ import annotations
 
+import dataclasses
 from collections import deque
 from dataclasses import dataclass
 
 import numpy as np
 
+from common.constraints import PositiveNumber, at_least, check_fields
 from common.geometry.end_identity import TIP_SURE, identity_covariance, logit, reading_covariance, sigmoid, was_widened
 from common.geometry.needle import NeedleModel
 from common.geometry.refine import mirror_covariance, mirror_pose
-from common.geometry.transforms import inv_T, make_T, pose_mean, rotvec_to_R
+from common.geometry.transforms import inv_T, make_T, pose_mean, rotvec_to_R, symmetrise
 
 TURNED_RAD = np.deg2rad(150.0)
 """A view this far off in orientation, at the fused pose's origin, is the needle turned end for end."""
@@ -119,7 +121,7 @@ def without_common(cov: np.ndarray, sigma_m: float, sigma_rad: float = 0.0) -> n
     out = np.array(cov, dtype=float)
     out[:3, :3] -= max(sigma_rad, 0.0) ** 2 * np.eye(3)
     out[3:, 3:] -= max(sigma_m, 0.0) ** 2 * np.eye(3)
-    return out if np.linalg.eigvalsh(0.5 * (out + out.T)).min() > 0 else cov
+    return out if np.linalg.eigvalsh(symmetrise(out)).min() > 0 else cov
 
 
 def covariance_to_frame(cov: np.ndarray, R_a_b: np.ndarray) -> np.ndarray:
@@ -183,7 +185,7 @@ def information_mean(Ts, covariances, T0=None, iterations: int = 10):
         T = make_T(rotvec_to_R(delta[:3]) @ T[:3, :3], T[:3, 3] + delta[3:])
         if np.linalg.norm(delta[:3]) < 1e-10 and np.linalg.norm(delta[3:]) < 1e-11:   # 1e-10 rad, 0.01 nm
             break
-    return T, 0.5 * (H_inv + H_inv.T)
+    return T, symmetrise(H_inv)
 
 
 def fuse_poses(Ts, covariances=None, max_dist_m: float = 0.005,
@@ -262,24 +264,39 @@ def mirror_consensus(Ts, mirrors, max_dist_m: float, max_angle_rad: float) -> np
 def _clip_to_gate(C: np.ndarray, gate: np.ndarray) -> np.ndarray:
     """``C`` with its spread in units of ``gate`` (6,) limited to 1 sigma."""
     S = np.diag(1.0 / gate)
-    w, V = np.linalg.eigh(S @ (0.5 * (C + C.T)) @ S)
+    w, V = np.linalg.eigh(S @ symmetrise(C) @ S)
     Si = np.diag(gate)
     return Si @ (V * np.minimum(w, 1.0)) @ V.T @ Si
 
 
-class MultiViewFusion:
-    """The fusion queue (see the module docstring). Thresholds in metres and radians."""
+@dataclass(frozen=True)
+class FusionConfig:
+    """The fusion queue's settings (the fusion node's params of the same names); distances in mm,
+    angles in degrees, as a graph states them."""
+    k: at_least(1) = 5                          # estimates fused: the newest k
+    max_dist_mm: PositiveNumber = 5.0           # an estimate farther than this from the fused pose is an outlier ...
+    max_angle_deg: PositiveNumber = 15.0        # ... or turned more than this
+    reset_dist_mm: PositiveNumber = 10.0        # reset_after estimates in a row this far from the fused pose ...
+    reset_angle_deg: PositiveNumber = 45.0      # ... or turned this much mean the needle moved: the queue starts again
+    reset_after: at_least(1) = 3
+    use_covariance: bool = True                 # weigh the estimates by their covariances (else equally)
 
-    def __init__(self, k: int = 5, max_dist_m: float = 0.005, max_angle_rad: float = np.deg2rad(15.0),
-                 reset_dist_m: float = 0.010, reset_angle_rad: float = np.deg2rad(45.0),
-                 reset_after: int = 3, use_covariance: bool = True, needle: NeedleModel | None = None):
-        if k < 1 or reset_after < 1:
-            raise ValueError(f"fusion: k and reset_after must be >= 1, got {k}, {reset_after}")
-        self.k = k
-        self.max_dist_m, self.max_angle_rad = max_dist_m, max_angle_rad
-        self.reset_dist_m, self.reset_angle_rad = reset_dist_m, reset_angle_rad
-        self.reset_after = reset_after
-        self.use_covariance = use_covariance
+    def __post_init__(self):
+        check_fields(self, "fusion: {name} {why}")
+
+
+class MultiViewFusion:
+    """The fusion queue (see the module docstring). ``config``: its settings, ``settings`` any of
+    its fields set anew (``MultiViewFusion(k=3)``); kept as metres and radians (``max_dist_m``,
+    ``max_angle_rad``, ``reset_dist_m``, ``reset_angle_rad``)."""
+
+    def __init__(self, config: FusionConfig | None = None, *, needle: NeedleModel | None = None, **settings):
+        self.config = c = dataclasses.replace(config or FusionConfig(), **settings)
+        self.k = c.k
+        self.max_dist_m, self.max_angle_rad = c.max_dist_mm * 1e-3, float(np.deg2rad(c.max_angle_deg))
+        self.reset_dist_m, self.reset_angle_rad = c.reset_dist_mm * 1e-3, float(np.deg2rad(c.reset_angle_deg))
+        self.reset_after = c.reset_after
+        self.use_covariance = c.use_covariance
         self.needle = NeedleModel() if needle is None else needle   # its arc's turn and mirror image
         self._centroid = self.needle.sample_arc(64).mean(0)
         self.queue: deque[QueuedEstimate] = deque()

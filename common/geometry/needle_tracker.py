@@ -54,11 +54,10 @@ from typing import Optional
 
 import numpy as np
 
-from common.geometry.config import NonNegativeNumber, Probability, check_fields, number_at_least
+from common.constraints import NonNegativeNumber, Probability, check_fields, number_at_least
 from common.geometry.end_identity import end_for_end_delta, sigmoid, track_identity
 from common.geometry.error_state import (  # noqa: F401  (retract: re-exported)
     _rot,
-    _sym,
     constant_velocity,
     jaw_jacobian,
     nis,
@@ -68,7 +67,7 @@ from common.geometry.error_state import (  # noqa: F401  (retract: re-exported)
 from common.geometry.fusion import covariance_to_frame, without_common
 from common.geometry.needle import NeedleModel
 from common.geometry.refine import _pose_delta as pose_delta
-from common.geometry.transforms import inv_T, transform_points
+from common.geometry.transforms import inv_T, symmetrise, transform_points
 
 CHI2_6_999 = 22.46
 """Chi-square with 6 degrees of freedom exceeds this in 0.1% of the draws."""
@@ -234,7 +233,7 @@ class NeedleTracker:
             return self.T, self.P[:6, :6]
         Tj = jaws[self.holder].T_world_jaw
         Tw = Tj @ self.T
-        return Tw, _sym(covariance_to_frame(self.P, Tj[:3, :3]) + self._jaw_noise(Tj, Tw))
+        return Tw, symmetrise(covariance_to_frame(self.P, Tj[:3, :3]) + self._jaw_noise(Tj, Tw))
 
     def _jaw_noise(self, T_world_jaw: np.ndarray, T_world_needle: np.ndarray) -> np.ndarray:
         """The jaws' measured pose's error as it moves a held needle (6x6, world axes)."""
@@ -248,7 +247,7 @@ class NeedleTracker:
         self.mode, self.holder = mode, holder
         if mode == "held":
             Tj = jaws[holder].T_world_jaw
-            self.T, self.P = inv_T(Tj) @ T_world, _sym(covariance_to_frame(P_world, Tj[:3, :3].T))
+            self.T, self.P = inv_T(Tj) @ T_world, symmetrise(covariance_to_frame(P_world, Tj[:3, :3].T))
         elif mode == "free":
             c = self.cfg
             self.T, self.vel = T_world, np.zeros(6)
@@ -267,7 +266,7 @@ class NeedleTracker:
         if self.mode == "free":
             F, Q = constant_velocity(dt, c.accel_rad_s2, c.accel_m_s2)
             self.T = retract(self.T, dt * self.vel)
-            self.P = _sym(F @ self.P @ F.T + Q)
+            self.P = symmetrise(F @ self.P @ F.T + Q)
         elif self.mode == "held":
             self.P = self.P + random_walk(c.slip_sigma_rad, c.slip_sigma_m, dt)
         else:
@@ -286,7 +285,7 @@ class NeedleTracker:
             R_meas = R_meas + self._jaw_noise(Tj, Tw)
         else:
             H[:, :6] = np.eye(6)
-        return r, _sym(H @ self.P @ H.T + R_meas), H
+        return r, symmetrise(H @ self.P @ H.T + R_meas), H
 
     def _correct(self, r: np.ndarray, S: np.ndarray, H: np.ndarray) -> None:
         K = np.linalg.solve(S, H @ self.P).T
@@ -296,7 +295,7 @@ class NeedleTracker:
             self.vel = self.vel + dx[6:]
         IKH = np.eye(len(self.P)) - K @ H
         S_r = S - H @ self.P @ H.T                 # the measurement's noise (Joseph form)
-        self.P = _sym(IKH @ self.P @ IKH.T + K @ S_r @ K.T)
+        self.P = symmetrise(IKH @ self.P @ IKH.T + K @ S_r @ K.T)
 
     def _read(self, m: Measurement, jaws: dict):
         """How to read ``m`` against the track: (turn it, the track turned, nis, residual, S,
@@ -394,7 +393,7 @@ class NeedleTracker:
         if nis(r, S_alt) <= c.gate_nis:
             K = np.linalg.solve(S_alt, t["P"]).T
             t["T"] = retract(t["T"], K @ r)
-            t["P"] = _sym((np.eye(6) - K) @ t["P"])
+            t["P"] = symmetrise((np.eye(6) - K) @ t["P"])
 
     def _settle_trial(self, jaws: dict) -> Optional[str]:
         """A grasp: sure once the evidence says the needle moves with the jaws; undone (the

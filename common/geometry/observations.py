@@ -15,6 +15,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from common.errors import NeedletrackError
+from common.frames import CAMERAS
 from common.geometry.camera import Camera, StereoRig
 from common.geometry.camera import undistort_pixels as _undistort
 
@@ -100,7 +101,7 @@ def stereo_observations(uv: dict, rig: StereoRig, model_points, scores: dict | N
                         min_score: float = 0.5) -> dict[str, CameraObs]:
     """``{camera: CameraObs}`` for the cameras in ``uv`` (a camera may be absent or None)."""
     out = {}
-    for name in ("left", "right"):
+    for name in CAMERAS:
         if uv.get(name) is None:
             continue
         s = None if scores is None else scores.get(name)

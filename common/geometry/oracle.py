@@ -24,7 +24,7 @@ from typing import Optional
 import numpy as np
 
 from common.geometry.camera import Camera, StereoRig
-from common.geometry.config import NonNegativeNumber, Probability, check_fields
+from common.constraints import NonNegativeNumber, Probability, check_fields
 from common.geometry.needle import NeedleModel
 from common.geometry.transforms import inv_T, make_T, rotvec_to_R, transform_points
 
@@ -69,15 +69,6 @@ class Oracle:
 
     def __post_init__(self):
         check_fields(self, "oracle: {name} {why}")
-
-    @classmethod
-    def from_params(cls, params: dict) -> "Oracle":
-        """From a node's params (unknown keys are ignored)."""
-        keys = ("noise_px", "missing_prob", "outlier_prob", "outlier_px", "centreline_noise_px")
-        kw = {k: float(params[k]) for k in keys if params.get(k) is not None}
-        if "seed" in params:
-            kw["seed"] = int(params["seed"])
-        return cls(**kw)
 
     def rng(self, seq: int, camera: str) -> np.random.Generator:
         return np.random.default_rng([abs(int(self.seed)), abs(int(seq)), CAMERA_INDEX.get(camera, 2)])

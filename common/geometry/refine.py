@@ -44,15 +44,17 @@ from typing import Mapping, Optional, Sequence
 import numpy as np
 
 from common.geometry import lm
-from common.geometry.config import NonNegativeNumber, PositiveNumber, at_least, check_fields, in_range
+from common.constraints import NonNegativeNumber, PositiveNumber, at_least, check_fields, in_range
 from common.geometry.camera import Camera, StereoRig
 from common.geometry.needle import NeedleModel
 from common.geometry.rest_prior import resting_log_prior
-from common.geometry.arc_problem import RefineError, _orthonormalise, _Problem, _Static
+from common.geometry.arc_problem import RefineError, _Problem, _Static
 from common.geometry.transforms import (
     R_to_rotvec,
     make_T,
+    project_to_SO3,
     skew,
+    symmetrise,
     transform_points,
 )
 
@@ -98,7 +100,7 @@ class ArcObservation:
 class RefineConfig:
     """Tuning of the fit. Pixel sigmas set the relative weight of the two terms; the robust
     scale is in units of those sigmas. Each field's constraint is on its type
-    (``common.geometry.config``)."""
+    (``common.constraints``)."""
 
     max_curve_points: at_least(2) = 64      # observed centreline points kept per camera (even in arc length)
     n_samples: at_least(2) = 24             # projected arc samples that start each point's foot search
@@ -321,7 +323,7 @@ class DenseRefiner:
         for T in cands + mirrors:
             if not _near_any(T, starts, cfg.merge_mm, cfg.merge_deg):
                 starts.append(T)
-        R = _orthonormalise(np.stack([T[:3, :3] for T in starts]))
+        R = project_to_SO3(np.stack([T[:3, :3] for T in starts]))
         t = np.stack([T[:3, 3] for T in starts])
 
         s = _lm(prob, lm.Fits(R, t, _linearise(prob, R, t)), cfg, cfg.coarse_iter)
@@ -464,7 +466,7 @@ def _result(prob: _Problem, s, cfg: RefineConfig, log_prior=None, expected=None)
         if a > 1e-12:
             d = _pose_delta(Tj, T0)
             cov = cov + a * np.outer(d, d)
-    cov = 0.5 * (cov + cov.T)
+    cov = symmetrise(cov)
     return RefineResult(
         T_ecm_needle=T0, covariance=cov, rms_px=rms(sq_kp + sq_curve, 2 * prob.n_kp + prob.n_curve),
         rms_kp_px=rms(sq_kp, 2 * prob.n_kp), rms_curve_px=rms(sq_curve, prob.n_curve),

@@ -18,7 +18,7 @@ import numpy as np
 
 from common.geometry import lm
 from common.geometry.observations import CameraObs
-from common.geometry.transforms import make_T, skew
+from common.geometry.transforms import make_T, skew, symmetrise
 
 
 class ReprojectionProblem:
@@ -215,4 +215,4 @@ def pose_covariance(jacobian: np.ndarray, cost: float, min_sigma_px: float = 0.2
         return None
     if not np.all(np.isfinite(cov)):
         return None
-    return 0.5 * (cov + cov.T)
+    return symmetrise(cov)

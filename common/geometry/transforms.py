@@ -99,11 +99,19 @@ def quat_to_R(q: np.ndarray) -> np.ndarray:
     ])
 
 
+def symmetrise(C: np.ndarray) -> np.ndarray:
+    """The symmetric part of a square matrix, ``(C + C^T) / 2``: a covariance that rounding left a
+    little asymmetric, made symmetric again."""
+    return 0.5 * (C + C.T)
+
+
 def project_to_SO3(M: np.ndarray) -> np.ndarray:
-    """Nearest rotation (Frobenius) to a 3x3 matrix."""
+    """Nearest rotation (Frobenius) to a 3x3 matrix, or to each of a stack (..., 3, 3): a
+    determinant of +1, never a reflection."""
     U, _, Vt = np.linalg.svd(M)
-    D = np.diag([1.0, 1.0, np.sign(np.linalg.det(U @ Vt))])
-    return U @ D @ Vt
+    d = np.sign(np.linalg.det(U @ Vt))
+    D = np.stack([np.ones_like(d), np.ones_like(d), d], axis=-1)[..., None, :]
+    return (U * D) @ Vt
 
 
 def rotation_mean(Rs, weights=None) -> np.ndarray:

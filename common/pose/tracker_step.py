@@ -45,7 +45,7 @@ from common.geometry.fusion import covariance_to_frame
 from common.geometry.needle import NeedleModel
 from common.geometry.needle_tracker import Jaw, Measurement, NeedleTracker, TrackerConfig
 from common.geometry.refine import mirror_pose
-from common.geometry.transforms import inv_T
+from common.geometry.transforms import inv_T, symmetrise
 from common.runtime.messages import (
     Calibration,
     EcmPose,
@@ -303,13 +303,13 @@ class TrackerStep:
         cov = stated.covariance
         self._out.append(("pose", PoseEstimate(
             seq, stamp_ns, self.method, T_ecm_needle, out.T_world_needle, T_world_ecm,
-            0.0 if out.nis != out.nis else float(out.nis), "chi2", 1, 0.5 * (cov + cov.T),
+            0.0 if out.nis != out.nis else float(out.nis), "chi2", 1, symmetrise(cov),
             ambiguous=bool(stated.unsure), sequence=sequence, end_identity=out.end_identity, mode=out.mode,
             identity_widened=stated.widened)))
         if out.mode == "held":
             self._out.append(("in_hand", InHandPose(
                 out.holder, seq, stamp_ns, jaw_frame_id(out.holder), out.T_jaw_needle,
-                0.5 * (out.jaw_covariance + out.jaw_covariance.T), out.end_identity)))
+                symmetrise(out.jaw_covariance), out.end_identity)))
 
     def _take(self) -> list:
         out, self._out = self._out, []

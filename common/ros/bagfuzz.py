@@ -17,6 +17,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from common.frames import CAMERAS
+
 MCAP_KINDS = ("truncated", "chunk_bytes", "chunk_crc", "length_4g", "length_huge", "bit_flips", "unfinished")
 ROS1_KINDS = ("truncated", "bit_flips", "length_4g")
 
@@ -28,7 +30,7 @@ def topic_map(rig=None) -> dict:
     return {"images": {"left": "/cam/left/image_raw", "right": "/cam/right/image_raw"},
             "camera_info": {"left": "/cam/left/camera_info", "right": "/cam/right/camera_info"},
             "ecm_pose": "/ecm/pose", "unit": "m",
-            "registration": {c: rig[c].T_ecm_cam.tolist() for c in ("left", "right")}}
+            "registration": {c: rig[c].T_ecm_cam.tolist() for c in CAMERAS}}
 
 
 def synthetic_bag(path: str, frames: int = 6, ros: int = 2, size=(64, 48), seed: int = 0, chunk_every: int = 1,
@@ -59,7 +61,7 @@ def synthetic_bag(path: str, frames: int = 6, ros: int = 2, size=(64, 48), seed:
         extra(out)
     for i in range(frames):
         t = 10**18 + i * 100_000_000
-        for c in ("left", "right"):
+        for c in CAMERAS:
             ww, hh = last_right_size if (c == "right" and i == frames - 1 and last_right_size) else (w, h)
             Ki = K.copy()
             if nan_info_at == i:

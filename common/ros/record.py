@@ -38,6 +38,7 @@ import numpy as np
 import yaml
 
 from common.errors import NeedletrackError
+from common.frames import CAMERAS
 from common.ros import build
 from common.ros.types import KEYPOINTS_MSG, typestore
 
@@ -147,7 +148,7 @@ def ros_messages(base: str, msg) -> list:
                 format=f"bgr8; {fmt} compressed bgr8", data=np.frombuffer(bytes(msg.data), np.uint8))))
     elif isinstance(msg, M.Calibration):
         tfs = []
-        for c in ("left", "right"):
+        for c in CAMERAS:
             cam = msg.cameras[c]
             out.append((f"{base}/{c}/camera_info", build.camera_info(
                 st, msg.stamp_ns, cam["K"], cam.get("dist") or [0.0] * 5, msg.image_size, FRAME_IDS[c])))
@@ -201,7 +202,7 @@ def replay_topic_map(recorded: dict) -> dict | None:
     maps each ``/<node>/<output>`` to its graph message type name and the last Calibration, and
     (``instruments``) each InstrumentState output to the instrument names seen on it."""
     images = {c: [b + "/image_raw" for b, t in recorded["types"].items() if t == "CameraImage" and b.endswith("/" + c)]
-              for c in ("left", "right")}
+              for c in CAMERAS}
     calib = recorded.get("calibration")
     if not images["left"] or not images["right"] or calib is None:
         return None
@@ -209,8 +210,8 @@ def replay_topic_map(recorded: dict) -> dict | None:
     src = left.rsplit("/", 2)[0]
     cal_base = recorded["calibration_topic"]
     m = {"images": {"left": [left, left + "/compressed"], "right": [right, right + "/compressed"]},
-         "camera_info": {c: f"{cal_base}/{c}/camera_info" for c in ("left", "right")},
-         "registration": {c: np.asarray(calib.cameras[c]["T_ecm_cam"], float).tolist() for c in ("left", "right")},
+         "camera_info": {c: f"{cal_base}/{c}/camera_info" for c in CAMERAS},
+         "registration": {c: np.asarray(calib.cameras[c]["T_ecm_cam"], float).tolist() for c in CAMERAS},
          "needle": {"radius_m": float(calib.needle["radius_m"]),
                     "keypoint_angles_deg": [float(a) for a in calib.needle.get("keypoint_angles_deg",
                                                                                 (30, 60, 90, 120, 150))]},

@@ -37,6 +37,7 @@ import numpy as np
 import yaml
 
 from common.errors import NeedletrackError
+from common.frames import CAMERAS
 from common.ros.conventions import AMBF_FOVY_RAD, AMBF_NEEDLE_RADIUS_M, UNITS
 from common.ros.instruments import PRESET_INSTRUMENTS, merge_instruments, validate_instruments
 
@@ -158,7 +159,7 @@ def _validate(m: dict, where: str, base: str) -> None:
         if not isinstance(reg, dict) or not {"left", "right"} <= set(reg):
             raise TopicMapError(f"{where_reg}: expected {{left: 4x4 T_ecm_cam, right: 4x4 T_ecm_cam}} "
                                 f"(OpenCV camera frames in the ECM tip frame)")
-        m["registration"] = {c: _T(reg[c], where_reg, c) for c in ("left", "right")}
+        m["registration"] = {c: _T(reg[c], where_reg, c) for c in CAMERAS}
     if m.get("ecm") is not None and not isinstance(m["ecm"], dict):
         raise TopicMapError(f"{where}: ecm: expected {{T_world_base, L_rcc, L_scopelen}}")
     nd = m.get("needle")

@@ -9,6 +9,7 @@ from typing import TYPE_CHECKING, Optional
 
 import numpy as np
 
+from common.constraints import MAX_NUMBER
 from common.errors import NeedletrackError
 
 if TYPE_CHECKING:
@@ -20,7 +21,7 @@ MAX_IMAGE_SIDE = 16384
 MAX_INT = (1 << 63) - 1
 """Largest ``seq``/``stamp_ns``/``epoch`` (int64): a msgpack uint64 beyond it is refused."""
 
-MAX_COORD = 1e7
+MAX_COORD = MAX_NUMBER
 """Largest magnitude of any array element or float a message may carry (px, m, rad all fit):
 values beyond are refused at decode, so no handler sees an overflow-prone 1e300."""
 

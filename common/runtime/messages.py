@@ -32,6 +32,7 @@ from common.runtime.checks import (  # noqa: F401  (re-exported: the messages' A
     pose_invariant_error,
     rigid_error,
 )
+from common.constraints import NonNegativeNumber, Probability
 from common.runtime.codec import _REGISTRY, Message, decode, encode, encode_parts, register  # noqa: F401
 from common.runtime.schema import Array, ArrayNaN, ByCamera, Bytes, Int64, NonNegative, Number, Says, number
 
@@ -42,9 +43,7 @@ ENCODINGS = ("bgr8", "png", "jpeg")
 PositivePx = number("must be positive, got {value}", gt=0)
 """A 1-sigma error in pixels: finite and positive."""
 AtLeastOne = number("must be at least 1, got {value}", ge=1)
-Probability = number("must be a probability in [0, 1], got {value}", ge=0, le=1)
 Share = number("must be a share in [0, 1], got {value}", ge=0, le=1)
-NonNegativeNumber = number("must be a finite number >= 0, got {value}", ge=0)
 Word = Annotated[str, msgspec.Meta(pattern=r"^[A-Za-z0-9_.-]{1,64}$"),
                  Says("must be 1 to 64 letters, digits, '_', '.' or '-', got {value!r}")]
 """A name a node makes up and a counter carries: a method, a reason."""
@@ -455,7 +454,7 @@ class Calibration(Message):
         if not (1 <= w <= MAX_IMAGE_SIDE and 1 <= h <= MAX_IMAGE_SIDE and w == int(w) and h == int(h)):
             raise MessageError(f"Calibration.image_size: expected two whole numbers in 1..{MAX_IMAGE_SIDE}, "
                                f"got {self.image_size.tolist()}")
-        for name in ("left", "right"):
+        for name in CAMERAS:
             cam = self.cameras.get(name)
             if not isinstance(cam, dict):
                 raise MessageError(f"Calibration.cameras.{name}: expected a map with K, T_ecm_cam")
@@ -474,7 +473,7 @@ class Calibration(Message):
             for key in ("L_rcc", "L_scopelen"):
                 _finite_array(f"Calibration.ecm.{key}", self.ecm.get(key, 0.0), ())
         # ranges, and what every consumer builds from it (rig, needle, arm), built once here
-        for name in ("left", "right"):
+        for name in CAMERAS:
             K = np.asarray(self.cameras[name]["K"], dtype=float)
             if not (K[0, 0] > 0 and K[1, 1] > 0 and K[1, 0] == 0 and (K[2] == (0.0, 0.0, 1.0)).all()):
                 raise MessageError(f"Calibration.cameras.{name}.K: must be a pinhole matrix [[fx, s, cx], "

@@ -9,6 +9,8 @@ from collections import OrderedDict
 from dataclasses import dataclass
 from typing import Callable, Iterable
 
+from common.frames import CAMERAS
+
 
 class StereoPairer:
     """Buffers left/right items by ``seq`` and returns a pair once both halves are in.
@@ -30,7 +32,7 @@ class StereoPairer:
 
     def push(self, camera: str, seq: int, item):
         """Add one half; returns ``(left, right)`` when the frame is complete, else None."""
-        if camera not in ("left", "right"):
+        if camera not in CAMERAS:
             raise ValueError(f"camera must be 'left' or 'right', got {camera!r}")
         other = "right" if camera == "left" else "left"
         if seq <= self._last_paired or (seq < self._newest[other] and seq not in self._pending):

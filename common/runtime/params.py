@@ -16,7 +16,7 @@ msgspec, the schema mechanism of messages too (``common.runtime.schema``): ``int
 (finite; an int is accepted), ``bool``, ``str``, ``dict``, ``list[T]``, ``tuple[T, ...]``,
 ``Literal[...]``, unions (``X | None``), and constraints on the field
 (``Annotated[float, msgspec.Meta(ge=0), Says("must not be negative, got {value}")]``, or the
-words as the ``Meta``'s ``description``: ``common.geometry.config``). No
+words as the ``Meta``'s ``description``: ``common.constraints``). No
 coercion of strings: ``'5'`` is not an int.
 """
 from __future__ import annotations
@@ -148,6 +148,14 @@ def parse_params(schema: type, raw: Mapping | None, where: str = "params"):
         return schema(**kw)
     except (TypeError, ValueError) as exc:      # a dataclass's own __post_init__ checks
         raise ParamError([f"{where}: {exc}"]) from None
+
+
+def config_from(cls: type, params, rename: Mapping | None = None):
+    """The library config ``cls`` (a dataclass whose fields a node's params take on, through
+    ``merge_schemas``) from the typed ``params``: each field from the param of its name, or of
+    ``rename[field]``."""
+    rename = rename or {}
+    return cls(**{f.name: getattr(params, rename.get(f.name, f.name)) for f in dataclasses.fields(cls)})
 
 
 def merge_schemas(name: str, *schemas: type, drop: tuple = ()) -> type:

@@ -210,7 +210,9 @@ def _unwrap(tp):
     while True:
         origin = typing.get_origin(tp)
         if origin is Annotated:
-            says = next((m for m in reversed(tp.__metadata__) if isinstance(m, Says)), says)
+            says = next((m for m in reversed(tp.__metadata__) if isinstance(m, Says)), says) or \
+                next((Says(m.description) for m in tp.__metadata__          # common.constraints' words
+                      if isinstance(m, msgspec.Meta) and m.description), None)
             tp = tp.__origin__
         elif origin is Union and type(None) in typing.get_args(tp):
             optional = True

@@ -14,6 +14,7 @@ from pathlib import Path
 
 import numpy as np
 
+from common.frames import CAMERAS
 from common.geometry.ecm_kinematics import MULTIVIEW_STEP_RAD
 
 FPS = 30.0
@@ -270,6 +271,6 @@ def generate_needle_free(folder, n_frames: int, seed: int = 777, preset: str = "
                                         for k, ins in enumerate(spec.instruments)}
             writer.append(Frame(index=i, stamp_ns=int(i * 33_333_333), left=paths["left"], right=paths["right"],
                                 T_world_ecm=T_world_ecm,
-                                visible={c: np.zeros(5, bool) for c in ("left", "right")},
-                                bbox={c: None for c in ("left", "right")}, **extra))
+                                visible={c: np.zeros(5, bool) for c in CAMERAS},
+                                bbox={c: None for c in CAMERAS}, **extra))
     return folder

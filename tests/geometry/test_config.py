@@ -1,9 +1,9 @@
-"""The geometry configs' constraints, declared on their fields (common/geometry/config.py): a
+"""The geometry configs' constraints, declared on their fields (common/constraints.py): a
 config built in code and a node param refuse the same values in the same words."""
 import numpy as np
 import pytest
 
-from common.geometry.config import check_fields
+from common.constraints import check_fields
 from common.geometry.needle_tracker import TrackerConfig
 from common.geometry.oracle import Oracle
 from common.geometry.refine import RefineConfig
@@ -28,7 +28,7 @@ def test_numpy_scalars_and_the_defaults_pass_and_other_configs_place_their_refus
     check_fields(RefineConfig())
     with pytest.raises(ValueError, match=r"^tracker: slip_sigma_m must be >= 0, got -1$"):
         TrackerConfig(slip_sigma_m=-1)
-    with pytest.raises(ValueError, match=r"^oracle: missing_prob must be in \[0, 1\], got 2$"):
+    with pytest.raises(ValueError, match=r"^oracle: missing_prob must be a probability in \[0, 1\], got 2$"):
         Oracle(missing_prob=2)
     with pytest.raises(ValueError, match=r"^oracle: centreline_noise_px must be >= 0"):
         Oracle(centreline_noise_px=-1.0)

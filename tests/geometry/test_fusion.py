@@ -95,7 +95,7 @@ def test_views_are_mapped_into_the_current_ecm_frame():
     assert np.allclose(out.T_ecm_needle, T_en[-1], atol=1e-12)
     assert np.allclose(out.T_world_needle, T_wn, atol=1e-12)
     # without the ECM poses the views disagree (the endoscope moved 0.05 rad each time)
-    g = MultiViewFusion(k=5, max_dist_m=1.0, max_angle_rad=np.pi)
+    g = MultiViewFusion(k=5, max_dist_mm=1000.0, max_angle_deg=180.0)
     for T_e in T_en:
         bad = g.add(T_e)
     assert pose_error(bad.T_ecm_needle, T_en[-1])[0] > 1e-3

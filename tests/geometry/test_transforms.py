@@ -106,3 +106,19 @@ def test_project_to_so3_gives_a_rotation_and_keeps_one(M):
     assert np.allclose(R @ R.T, np.eye(3), atol=1e-9) and np.linalg.det(R) > 0
     R0 = rotvec_to_R(M[0])
     assert np.allclose(project_to_SO3(R0), R0, atol=1e-9)
+
+
+def test_project_to_SO3_takes_a_stack_and_never_returns_a_reflection():
+    rng = np.random.default_rng(3)
+    Ms = rng.normal(size=(64, 3, 3))
+    Ms[0] = np.diag([1.0, 1.0, -1.0])                 # a reflection: its nearest rotation, not itself
+    Rs = project_to_SO3(Ms)
+    assert np.allclose(np.linalg.det(Rs), 1.0) and np.allclose(Rs @ Rs.transpose(0, 2, 1), np.eye(3), atol=1e-12)
+    for M, R in zip(Ms, Rs):                          # each as it would be alone
+        assert np.array_equal(project_to_SO3(M), R)
+
+
+def test_symmetrise_keeps_the_symmetric_part():
+    from common.geometry.transforms import symmetrise
+    C = np.array([[2.0, 1.0], [0.0, 3.0]])
+    assert np.array_equal(symmetrise(C), [[2.0, 0.5], [0.5, 3.0]])

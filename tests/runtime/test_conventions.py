@@ -49,10 +49,11 @@ def test_the_cameras_are_named_in_one_place():
 
 
 # What each package of common/ may import (docs/architecture.md, "may import"); ``errors``,
-# ``frames`` and ``methods`` import nothing, ``palette`` only ``methods``, and anything may import them.
-LEAVES = {"errors", "frames", "methods", "palette"}
+# ``frames``, ``methods`` and ``constraints`` import nothing, ``palette`` only ``methods``, and
+# anything may import them.
+LEAVES = {"errors", "frames", "methods", "palette", "constraints"}
 MAY_IMPORT = {
-    "errors": set(), "frames": set(), "methods": set(), "palette": {"methods"},
+    "errors": set(), "frames": set(), "methods": set(), "palette": {"methods"}, "constraints": set(),
     "geometry": set(),
     "runtime": set(),
     "data": {"geometry", "runtime"},

@@ -191,3 +191,31 @@ def test_a_node_that_cannot_run_as_configured_stops_the_graph_and_launch_fails(t
     out = res.stdout + res.stderr
     assert "status 2 = bad configuration" in out and "camera cannot run as configured: stopping the graph" in out
     assert "restart #" not in out
+
+
+def test_the_params_constraints_are_seen_by_validate_before_any_node_runs():
+    """What a node's setup once checked by hand is a constraint of its params' fields: the
+    params' check of validate and launch reports it, placed, with no node started."""
+    from common.runtime.graph import graph_from_dict
+    from common.runtime.node import graph_param_errors
+    doc = {"graph": "constrained", "nodes": [
+        {"id": "a", "module": "counter", "params": {"rate_hz": 0}},
+        {"id": "v", "module": "viewer", "params": {"width": 8, "max_connections": 0, "final": "best"}},
+        {"id": "t", "module": "tracker", "params": {"max_wait": 0, "replay": -1}},
+        {"id": "e", "module": "epnp", "params": {"min_sigma_px": -0.5}},
+        {"id": "o", "module": "ros2_out", "params": {"topic": "needle_pose"}},
+        {"id": "b", "module": "rosbag", "params": {"path": "x.bag", "preset": "davinci"}},
+        {"id": "f", "module": "fusion", "params": {"k": 0, "max_dist_mm": -1}}]}
+    errs = "\n".join(graph_param_errors(graph_from_dict(doc)))
+    for text in ("nodes[0].params.rate_hz: must be a positive number, got 0",
+                 "nodes[1].params.width: must be at least 16, got 8",
+                 "nodes[1].params.max_connections: must be at least 1, got 0",
+                 "nodes[1].params.final: expected 'pnp_average' or",
+                 "nodes[2].params.max_wait: must be at least 1, got 0",
+                 "nodes[2].params.replay: must be at least 0, got -1",
+                 "nodes[3].params.min_sigma_px: must be a positive number, got -0.5",
+                 "nodes[4].params.topic: must be an absolute ROS name, got 'needle_pose'",
+                 "nodes[5].params.preset: expected 'ambf' or 'dvrk' or null, got 'davinci'",
+                 "nodes[6].params.k: must be at least 1, got 0",
+                 "nodes[6].params.max_dist_mm: must be a positive number, got -1"):
+        assert text in errs, (text, errs)

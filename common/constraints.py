@@ -1,31 +1,40 @@
-"""Constraints on the fields of the geometry's configs (``RefineConfig``, ``TrackerConfig``,
-``Oracle``), declared once on the field as msgspec ``Meta`` (``Annotated[float, Meta(gt=0)]``)
-with the words of the refusal as its ``description`` (``{value}``: the value refused).
+"""The constraint vocabulary of every declared field: the library's configs (``RefineConfig``,
+``TrackerConfig``, ``FusionConfig``, ``Oracle``), the messages (``common.runtime.messages``) and
+the nodes' params. Each is a msgspec ``Meta`` on the field (``Annotated[float, Meta(gt=0)]``)
+with the words of the refusal as its ``description`` (``{value}``: the value refused); a number
+is finite and within ``MAX_NUMBER`` (the messages' range, ``common.runtime.checks.MAX_COORD``).
 
-The runtime's params read the same annotations (``common.runtime.params``): a node param that
-breaks one is refused where the graph sets it, in the same words. ``check_fields`` refuses a
-config built in code. The geometry does not import the runtime; both speak msgspec.
+The runtime reads the same annotations (``common.runtime.schema``, ``common.runtime.params``): a
+message field, or a node param, that breaks one is refused in the same words, a param where the
+graph sets it (``needletrack validate``). ``check_fields`` refuses a config built in code. Imports
+nothing of ``common``, so the geometry and the runtime share it without importing each other.
 """
 from __future__ import annotations
 
 import dataclasses
 import functools
-import sys
 import types
 import typing
 from typing import Annotated
 
 import msgspec
 
-_MAX = sys.float_info.max
+MAX_NUMBER = 1e7
+"""The largest magnitude of a number any field takes (finite: NaN and inf are beyond it)."""
 
-PositiveNumber = Annotated[float, msgspec.Meta(gt=0, le=_MAX, description="must be a positive number, got {value}")]
+PositiveNumber = Annotated[float, msgspec.Meta(gt=0, le=MAX_NUMBER, description="must be a positive number, got {value}")]
 """A finite number > 0."""
 
-NonNegativeNumber = Annotated[float, msgspec.Meta(ge=0, le=_MAX, description="must be >= 0, got {value}")]
+NonNegativeNumber = Annotated[float, msgspec.Meta(ge=0, le=MAX_NUMBER, description="must be >= 0, got {value}")]
 """A finite number >= 0."""
 
-Probability = Annotated[float, msgspec.Meta(ge=0, le=1, description="must be in [0, 1], got {value}")]
+Probability = Annotated[float, msgspec.Meta(ge=0, le=1, description="must be a probability in [0, 1], got {value}")]
+"""A number in [0, 1]."""
+
+
+def text_matching(pattern: str, what: str) -> type:
+    """A string matching ``pattern`` (a regular expression), refused as not ``what``."""
+    return Annotated[str, msgspec.Meta(pattern=pattern, description=f"must be {what}, got {{value!r}}")]
 
 
 def at_least(lo: int) -> type:
@@ -35,7 +44,7 @@ def at_least(lo: int) -> type:
 
 def number_at_least(lo: float) -> type:
     """A finite number >= ``lo``."""
-    return Annotated[float, msgspec.Meta(ge=lo, le=_MAX, description=f"must be at least {lo:g}, got {{value}}")]
+    return Annotated[float, msgspec.Meta(ge=lo, le=MAX_NUMBER, description=f"must be at least {lo:g}, got {{value}}")]
 
 
 def in_range(lo: float, below: float) -> type:
