@@ -257,8 +257,8 @@ def _clear_outputs(out: Path) -> None:
 
 
 def _bench(args, dataset: str, out: Path, res: dict) -> int:
-    """Measure the live graph (``common.evaluation.graph_bench``) and add it to results.json/report.md."""
-    from common.evaluation.graph_bench import measure, report
+    """Measure the live graph (``common.evaluation.graph_speed``) and add it to results.json/report.md."""
+    from common.evaluation.graph_speed import measure, report
     from common.evaluation.pipeline_graph import GraphRunError
     from common.evaluation.results import to_jsonable
     bargs = argparse.Namespace(detector=args.detector, model=args.model, rate="30",

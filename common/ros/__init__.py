@@ -4,5 +4,5 @@ from text, ``images`` decodes sensor images, ``roles`` says what a message must 
 dVRK presets and their frames, ``instruments`` the arms' topics and jaw
 frames, ``synth`` writes the project's renders as bags (tests,
 figures). Imports ``geometry``, ``data`` and ``runtime``; its benchmarks are
-``common.evaluation.ros_bench``.
+``common.bench.ros_bench``.
 """

@@ -439,7 +439,7 @@ def test_config_is_checked():
 
 
 def test_bench_reports_errors_and_times():
-    from common.evaluation.refine_bench import run, table
+    from common.bench.refine_bench import run, table
     rows = run([0.0, 0.5], frames=4, progress=False)
     assert [r["noise_px"] for r in rows] == [0.0, 0.5] and all(r["failed"] == 0 for r in rows)
     assert rows[0]["refined"]["position_mm"]["mean"] < 1e-4

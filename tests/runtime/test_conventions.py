@@ -62,6 +62,11 @@ MAY_IMPORT = {
     "viewer": {"geometry", "runtime", "evaluation"},
     "label": {"geometry", "runtime", "data", "detector", "viewer"},
     "evaluation": {"geometry", "runtime", "data", "sim", "detector", "ros", "viewer", "label", "cli"},
+    "bench": {"geometry", "runtime", "data", "sim", "detector", "ros", "viewer", "label", "cli", "evaluation"},
+    "robustness": {"geometry", "runtime", "data", "sim", "detector", "ros", "viewer", "label", "cli",
+                   "evaluation", "bench"},
+    "adapt": {"geometry", "runtime", "data", "sim", "detector", "ros", "viewer", "label", "cli",
+              "evaluation", "bench"},
     "cli": {"data"},
 }
 

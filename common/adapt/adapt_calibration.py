@@ -34,7 +34,7 @@ MIN_DETECTIONS = 20
 
 def sure_wrong(X: np.ndarray, y: np.ndarray, coef: np.ndarray) -> float:
     """Share of detections whose stated tip is sure (``TIP_SURE``) and against the label."""
-    from common.evaluation.end_identity_bench import summary
+    from common.bench.end_identity_bench import summary
     return summary("", {"features": X, "labels": y, "images": len(y)}, coef)["sure_wrong"] if len(y) else 0.0
 
 
@@ -68,8 +68,8 @@ def refit(new_weights, shipped_weights, fit_folder, log=print, progress: bool = 
     from common.detector.familiarity import fit_familiarity, save_familiarity
     from common.detector.inference import KeypointDetector
     from common.detector.weights import load_end_coefficients
-    from common.evaluation.end_identity_bench import FIT_L2, MIN_FIT_ERRORS, collect
-    from common.evaluation.familiarity_bench import descriptors
+    from common.bench.end_identity_bench import FIT_L2, MIN_FIT_ERRORS, collect
+    from common.bench.familiarity_bench import descriptors
     new_weights = Path(new_weights)
     out_end, out_fam = new_weights.parent / "end_identity.json", new_weights.parent / "familiarity.json"
     shipped_coef = load_end_coefficients(shipped_weights)

@@ -4,7 +4,7 @@ process, the way the runtime hands them over (``decode`` with the input's type, 
 
 For each node of the graph (default: dataflow.yaml; the ``sim`` camera is a source whose only
 input is its command key) and each of its inputs (and its ``cmd`` key; a viewer's page too,
-``@http``: poison HTTP requests over sockets to 127.0.0.1, ``common.evaluation.http_fuzz``), a fresh offline node gets
+``@http``: poison HTTP requests over sockets to 127.0.0.1, ``common.robustness.http_fuzz``), a fresh offline node gets
 a clean warm-up stream, then ``--per-input`` poison payloads, one clean frame after every
 ``--clean-every`` of them, then clean frames until it publishes again. Payload kinds: random
 bytes, truncated and bit-flipped valid payloads, type-confused fields, missing/extra fields,
@@ -21,8 +21,8 @@ read through the bag reader (``common/ros/bagfuzz.py``).
 The clean stream is the oracle's: a still needle seen by the default rig while the ECM yaws,
 through the ecm, detector (oracle keypoints; an image backend gets a 1080p JPEG) and pose nodes.
 
-The ROS 2 way in (``--node ros2``, included by default): ``common.evaluation.fuzz_ros``. The
-clean stream and the poison payloads: ``common.evaluation.fuzz_payloads``.
+The ROS 2 way in (``--node ros2``, included by default): ``common.robustness.fuzz_ros``. The
+clean stream and the poison payloads: ``common.robustness.fuzz_payloads``.
 """
 from __future__ import annotations
 
@@ -38,7 +38,7 @@ from typing import Optional
 
 import numpy as np
 
-from common.evaluation.fuzz_payloads import FRAME_HZ, KINDS, CleanStream, poison
+from common.robustness.fuzz_payloads import FRAME_HZ, KINDS, CleanStream, poison
 from common.runtime.messages import (
     Command,
     MessageError,
@@ -113,8 +113,8 @@ def _check_published(node, start: int) -> int:
 
 def fuzz_http(spec, cls, n: int, seed: int) -> InputResult:
     """The viewer's page (``@http``): ``n`` poison requests over sockets to 127.0.0.1
-    (``common.evaluation.http_fuzz``), the node's own server with its params."""
-    from common.evaluation.http_fuzz import fuzz_page
+    (``common.robustness.http_fuzz``), the node's own server with its params."""
+    from common.robustness.http_fuzz import fuzz_page
     node = cls.offline({**spec.params, "port": 0, "rerun": False}, wired=spec.inputs.keys(), node_id=spec.id)
     try:
         r = fuzz_page(node.page, n, seed)
@@ -239,9 +239,9 @@ def live_check(args) -> int:
 
     import zenoh  # noqa: F401
 
-    from common.evaluation.graph_bench import ensure_dataset
+    from common.evaluation.graph_speed import ensure_dataset
     from common.evaluation.pipeline_graph import GraphRun
-    from common.evaluation.soak import soak_graph
+    from common.robustness.soak import soak_graph
     from common.runtime.graph import graph_from_dict, output_key
 
     doc = soak_graph(ensure_dataset(args.dataset), 30.0)
@@ -320,12 +320,12 @@ def main(argv=None) -> int:
     ap.add_argument("--after-s", type=float, default=8.0, help="--live: seconds watched after the poison")
     ap.add_argument("--intruder", action="store_true",
                     help="instead: a process without the run's credentials sends fake poses, handovers and "
-                         "a swap to the default graph (common/evaluation/intruder.py)")
+                         "a swap to the default graph (common/robustness/intruder.py)")
     ap.add_argument("--uid", type=int, help="--intruder: the intruder runs as this user (needs root)")
     ap.add_argument("--open", action="store_true", help="--intruder: the graph with zenoh.open: true")
     args = ap.parse_args(argv)
     if args.intruder:
-        from common.evaluation.intruder import intruder_check
+        from common.robustness.intruder import intruder_check
         return intruder_check(args.graph, args.clean_s, args.poison_s, args.uid, args.open)
     if args.live:
         return live_check(args)
@@ -338,7 +338,7 @@ def main(argv=None) -> int:
     print(f"fuzz: {args.graph}, {args.per_input} poison payloads per input (kinds: {', '.join(KINDS)})")
     results = run_fuzz(graph, args.per_input, args.seed, args.node)
     if not args.node or "ros2" in args.node:    # the ROS 2 way in (not in dataflow.yaml)
-        from common.evaluation.fuzz_ros import run_fuzz_ros2
+        from common.robustness.fuzz_ros import run_fuzz_ros2
         results += run_fuzz_ros2(args.per_input, args.seed)
     s = summary(results)
     print(f"fuzz: {s['payloads']} payloads into {s['inputs']} inputs of {len({r.node for r in results})} nodes "

@@ -7,7 +7,7 @@ import cv2
 import numpy as np
 import pytest
 
-from common.evaluation.detect_files import main
+from common.adapt.detect_files import main
 from common.detector.detections_file import DetectionRecord, DetectionsFileError, read_detections
 from common.runtime.messages import Keypoints
 

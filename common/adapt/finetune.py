@@ -137,9 +137,9 @@ def main(argv=None) -> int:
     args = _parser().parse_args(argv)
     from common.data.dataset import Dataset, DatasetError
     from common.detector.weights import ModelFileError
-    from common.evaluation.adapt import fine_tune, rehearsal_folder
-    from common.evaluation.adapt_calibration import refit
-    from common.evaluation.finetune_report import write_report
+    from common.adapt.adapt import fine_tune, rehearsal_folder
+    from common.adapt.adapt_calibration import refit
+    from common.adapt.finetune_report import write_report
     from common.label.targets import LabelsError
     out = Path(args.out)
     err = lambda msg: print(f"needletrack finetune: {msg}", file=sys.stderr)

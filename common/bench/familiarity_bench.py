@@ -16,7 +16,7 @@ from pathlib import Path
 
 import numpy as np
 
-from common.evaluation.folder_detections import cold_detections
+from common.bench.folder_detections import cold_detections
 
 
 def descriptors(folder: str, detector, step: int = 1, progress: bool = True) -> np.ndarray:

@@ -23,7 +23,7 @@ import numpy as np
 
 from common.detector.data import turn_hue
 from common.detector.end_identity import FEATURES
-from common.evaluation.folder_detections import cold_detections
+from common.bench.folder_detections import cold_detections
 from common.geometry.end_identity import TIP_SURE as SURE
 
 MIN_FIT_ERRORS = 5      # fewer detections read end for end (or as said) than this: warn at --fit

@@ -4,7 +4,7 @@ import json
 import numpy as np
 import pytest
 
-from common.evaluation.held_bench import (
+from common.bench.held_bench import (
     RING_BGR,
     format_report,
     hidden_sure_by_keypoint,

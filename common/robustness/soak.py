@@ -128,7 +128,7 @@ def account(seqs: dict, stats: dict) -> dict:
 
 
 def run_soak(args, log) -> dict:
-    from common.evaluation.graph_bench import Recorder, _check_alive, ensure_dataset
+    from common.evaluation.graph_speed import Recorder, check_alive, ensure_dataset
     from common.evaluation.pipeline_graph import GraphRun
     from common.runtime.graph import output_key, stats_key
     from common.runtime.messages import GroundTruth, Keypoints, NodeStats, PoseEstimate
@@ -152,7 +152,7 @@ def run_soak(args, log) -> dict:
         t0 = time.monotonic()
         next_print = t0 + 30
         while time.monotonic() - t0 < args.duration:
-            _check_alive(run)
+            check_alive(run)
             with rec.lock:
                 stats = dict(rec.stats)
             now = time.monotonic() - t0

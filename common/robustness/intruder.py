@@ -1,7 +1,7 @@
 """An intruder on a running graph: a local process without the run's credentials, optionally
 of another user (``--uid``), that tries to steer it (issue 32's probe).
 
-``python -m common.evaluation.intruder GRAPH.yaml [--uid N] [--duration S] [--keys K,...]``
+``python -m common.robustness.intruder GRAPH.yaml [--uid N] [--duration S] [--keys K,...]``
 prints one JSON line of what it got: the peers it reached with each of its sessions (plain TCP
 to the graph's endpoint; TLS trusting the run's CA when it can read it, with no certificate),
 whether it could read the run's credentials, the fake ``PoseEstimate``s it sent (copies of the
@@ -161,7 +161,7 @@ def intruder_check(graph_path: str = "dataflow.yaml", clean_s: float = 20.0, dur
     import numpy as np
     import zenoh
 
-    from common.evaluation.restart_bench import bench_graph
+    from common.bench.restart_bench import bench_graph
     from common.runtime.graph import REPO_ROOT
     from common.runtime.zenoh_session import zenoh_config
     from common.runtime.launcher import Launcher
@@ -203,7 +203,7 @@ def intruder_check(graph_path: str = "dataflow.yaml", clean_s: float = 20.0, dur
         with tempfile.TemporaryDirectory() as tmp:
             path = graph.dump(Path(tmp) / "graph.yaml")          # the graph as its user wrote it
             os.chmod(tmp, 0o755)
-            argv = [sys.executable, "-m", "common.evaluation.intruder", str(path), "--duration", str(duration),
+            argv = [sys.executable, "-m", "common.robustness.intruder", str(path), "--duration", str(duration),
                     "--offset-mm", str(offset_mm)] + ([] if uid is None else ["--uid", str(uid)])
             t0 = time.monotonic()
             res = subprocess.run(argv, cwd=REPO_ROOT, capture_output=True, text=True, timeout=duration + 120,
@@ -253,7 +253,7 @@ def drop_to(uid: int) -> None:
 
 
 def main(argv=None) -> int:
-    ap = argparse.ArgumentParser(prog="python -m common.evaluation.intruder", description=__doc__.split("\n\n")[0])
+    ap = argparse.ArgumentParser(prog="python -m common.robustness.intruder", description=__doc__.split("\n\n")[0])
     ap.add_argument("graph", help="the graph's YAML (as launched)")
     ap.add_argument("--uid", type=int, help="run as this user (needs root; e.g. 65534, nobody)")
     ap.add_argument("--duration", type=float, default=5.0, help="seconds of fake poses")

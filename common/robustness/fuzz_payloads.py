@@ -1,4 +1,4 @@
-"""What ``needletrack bench fuzz`` sends (``common.evaluation.fuzz``): the clean stream (the
+"""What ``needletrack bench fuzz`` sends (``common.robustness.fuzz``): the clean stream (the
 oracle's still needle seen by the default rig while the ECM yaws, through the library's nodes
 offline) and the poison payloads made from its messages (``KINDS``)."""
 from __future__ import annotations

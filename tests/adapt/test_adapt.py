@@ -12,9 +12,9 @@ from common.cli import dataset_main
 from common.data.check import check_dataset
 from common.data.dataset import Dataset
 from common.data.writer import TRUTH_FIELDS, without_truth
-from common.evaluation.adapt_calibration import safe_scale, sure_share, sure_wrong
-from common.evaluation.adapt_run import FrameOutputs, read_recording, recording_complete
-from common.evaluation.pseudo_labels import LabelConfig, keypoint_sigma_px, score_against_truth, write_labels
+from common.adapt.adapt_calibration import safe_scale, sure_share, sure_wrong
+from common.adapt.adapt_run import FrameOutputs, read_recording, recording_complete
+from common.adapt.pseudo_labels import LabelConfig, keypoint_sigma_px, score_against_truth, write_labels
 from common.frames import CAMERAS
 from common.geometry.refine import tip_for_tail
 from common.geometry.transforms import inv_T, make_T, rotvec_to_R, transform_points
@@ -168,7 +168,7 @@ def test_the_end_identity_is_never_surer_than_the_shipped_weights_allow():
 
 
 def test_an_unfinished_recording_is_refused(tmp_path):
-    from common.evaluation.adapt_run import RecordingError
+    from common.adapt.adapt_run import RecordingError
     p = tmp_path / "r.jsonl"
     p.write_text('{"kind":"keypoints","seq":0,"camera":"left","found":false}\n')
     assert not recording_complete(p)
@@ -179,7 +179,7 @@ def test_an_unfinished_recording_is_refused(tmp_path):
 @pytest.mark.slow
 @pytest.mark.graph
 def test_adapt_runs_the_pipeline_labels_trains_and_resumes(tmp_path):
-    from common.evaluation.adapt import main
+    from common.adapt.adapt import main
     truth = _generate(tmp_path / "truth", 960, 540, sequences=3, steps=4, seed=6)
     bare = tmp_path / "bare"
     without_truth(str(truth), str(bare))

@@ -8,7 +8,7 @@ one estimate per view, the fused pose scored at the last view.
 
     needletrack bench geometry [--poses 200] [--noise 0 0.25 0.5 1 2] [--seed 0]
 
-(or ``python -m common.evaluation.geometry_bench``) prints two Markdown tables: the CPU time per stereo frame
+(or ``python -m common.bench.geometry_bench``) prints two Markdown tables: the CPU time per stereo frame
 of each method (``--speed-only``: just that), then mean and median errors, frames without a
 pose, and the median wall-clock time per frame (per fused frame for fusion, excluding the PnP it
 fuses; wall-clock times suffer from other processes' load, the CPU times much less).

@@ -62,8 +62,8 @@ def _parser() -> argparse.ArgumentParser:
 def main(argv=None) -> int:
     args = _parser().parse_args(argv)
     from common.data.dataset import Dataset, DatasetError
-    from common.evaluation.adapt_run import RecordingError, read_recording, record_pipeline
-    from common.evaluation.pseudo_labels import score_against_truth, summary_lines, write_labels
+    from common.adapt.adapt_run import RecordingError, read_recording, record_pipeline
+    from common.adapt.pseudo_labels import score_against_truth, summary_lines, write_labels
     out = Path(args.out)
     if args.truth and len(args.truth) != len(args.data):
         print(f"needletrack adapt: --truth: give one per --data ({len(args.data)}), got {len(args.truth)}",
@@ -122,7 +122,7 @@ def main(argv=None) -> int:
     rc = _train(args, out, report, stamp, rehearsal)
     if rc:
         return rc
-    from common.evaluation.adapt_calibration import refit
+    from common.adapt.adapt_calibration import refit
     fit = out / "labels" / "fit"
     earlier = json.loads((out / "adapt.json").read_text()) if (out / "adapt.json").is_file() else {}
     if earlier.get("calibration") and (out / "end_identity.json").is_file():

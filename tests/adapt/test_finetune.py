@@ -25,7 +25,7 @@ def labelled(tmp_path_factory):
     truth = root / "truth"
     assert dataset_main(["generate", "--out", str(truth), "--sequences", "3", "--steps", "2", "--width", "960",
                          "--height", "540", "--seed", "7", "--randomise", "silicone", "--jobs", "1", "--quiet"]) == 0
-    from common.evaluation.label_bench import run
+    from common.bench.label_bench import run
     r = run(str(truth), end_px=2.0, max_frames=5, progress=False, out=str(root / "labelled"))
     assert not r["failed"]
     return root
@@ -41,7 +41,7 @@ def _config(path, epochs, steps):
 
 
 def test_finetune_writes_weights_the_detector_loads_and_a_report(labelled, tmp_path):
-    from common.evaluation.finetune import main
+    from common.adapt.finetune import main
     out = tmp_path / "out"
     args = ["--labels", str(labelled / "labelled"), "--out", str(out), "--config",
             str(_config(tmp_path / "tiny.yaml", 1, 2)), "--rehearse", "2", "--hold-out", "0.34", "--quiet"]

@@ -29,7 +29,7 @@ import sys
 import numpy as np
 
 from common.data.dataset import Dataset, DatasetError
-from common.evaluation.detector_bench import SURE_SCORE, make_detector
+from common.bench.detector_bench import SURE_SCORE, make_detector
 from common.evaluation.metrics import VISIBLE_BINS, visible_fraction
 from common.evaluation.overlays import TRUTH_BGR
 from common.frames import CAMERAS

@@ -4,7 +4,7 @@ import json
 import numpy as np
 
 from common.detector.synthetic import write_synthetic_dataset
-from common.evaluation.detector_bench import SURE_SCORE, main, run
+from common.bench.detector_bench import SURE_SCORE, main, run
 
 
 def test_bench_reports_accuracy_speed_and_false_detections(tmp_path, capsys):

@@ -1,4 +1,4 @@
-"""The fuzz's ROS 2 way in (``needletrack bench fuzz --node ros2``, ``common.evaluation.fuzz``).
+"""The fuzz's ROS 2 way in (``needletrack bench fuzz --node ros2``, ``common.robustness.fuzz``).
 
 CDR samples into an offline ``ros2``
 source on bridge and rmw_zenoh keys, through its own queue and ``step``, between clean frames
@@ -17,8 +17,8 @@ import numpy as np
 
 from common.runtime.messages import MessageError, decode, encode
 
-from common.evaluation.fuzz import RECOVERY_LIMIT, InputResult, result_line
-from common.evaluation.fuzz_payloads import FRAME_HZ
+from common.robustness.fuzz import RECOVERY_LIMIT, InputResult, result_line
+from common.robustness.fuzz_payloads import FRAME_HZ
 
 
 # ====================================================================== ROS 2 samples (the ros2 source)

@@ -5,7 +5,7 @@ come again (the full count, 10,000 per input, is the bench command; docs/robustn
 import pytest
 import logging
 
-from common.evaluation.fuzz import KINDS, RECOVERY_LIMIT, run_fuzz, summary
+from common.robustness.fuzz import KINDS, RECOVERY_LIMIT, run_fuzz, summary
 from common.runtime.graph import REPO_ROOT, load_graph
 
 
