@@ -27,7 +27,7 @@ from typing import Optional
 
 import numpy as np
 
-from common.evaluation.metrics import true_T_ecm_needle
+from common.data.truth import true_T_ecm_needle
 from common.frames import CAMERAS
 from common.geometry.camera import StereoRig
 from common.geometry.ecm_kinematics import EcmArm

@@ -31,9 +31,9 @@ import numpy as np
 from common.data.dataset import Dataset, DatasetError
 from common.bench.detector_bench import SURE_SCORE, make_detector
 from common.evaluation.metrics import VISIBLE_BINS, visible_fraction
-from common.evaluation.overlays import TRUTH_BGR
 from common.frames import CAMERAS
 from common.geometry.needle import KEYPOINT_NAMES
+from common.viewer.draw import TRUTH_BGR
 
 PLACED_RIGHT_PX = 3.0
 """A hidden keypoint stated sure within this distance of the truth is placed right (px)."""

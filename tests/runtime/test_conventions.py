@@ -59,7 +59,7 @@ MAY_IMPORT = {
     "sim": {"geometry", "data"},
     "detector": {"geometry", "data", "runtime"},
     "ros": {"geometry", "data", "runtime"},
-    "viewer": {"geometry", "runtime", "evaluation"},
+    "viewer": {"geometry", "runtime", "data"},
     "label": {"geometry", "runtime", "data", "detector", "viewer"},
     "evaluation": {"geometry", "runtime", "data", "sim", "detector", "ros", "viewer", "label", "cli"},
     "bench": {"geometry", "runtime", "data", "sim", "detector", "ros", "viewer", "label", "cli", "evaluation"},
