@@ -22,6 +22,8 @@ import sys
 import time
 from pathlib import Path
 
+from common.cli_options import add_quiet, vector3
+
 
 REHEARSAL_FRAMES = 0
 """Stereo frames of the built-in scene rehearsed beside the pseudo-labels by default
@@ -33,7 +35,6 @@ REHEARSAL_SEED = 8901
 
 def _parser() -> argparse.ArgumentParser:
     from common.detector.weights import DEFAULT_WEIGHTS
-    from common.evaluation.cli import _vector3
     here = Path(__file__).resolve().parents[2]
     p = argparse.ArgumentParser(prog="needletrack adapt", description=__doc__,
                                 formatter_class=argparse.RawDescriptionHelpFormatter)
@@ -44,7 +45,7 @@ def _parser() -> argparse.ArgumentParser:
     p.add_argument("--model", default=str(DEFAULT_WEIGHTS), help="the weights to start from (default: shipped)")
     p.add_argument("--config", default=str(here / "models" / "finetune.yaml"),
                    help="fine-tuning YAML (default models/finetune.yaml)")
-    p.add_argument("--support-normal", metavar="X,Y,Z", type=_vector3,
+    p.add_argument("--support-normal", metavar="X,Y,Z", type=vector3,
                    help="the refinement's resting prior (as `needletrack eval --support-normal`)")
     p.add_argument("--truth", action="append", default=[], metavar="DIR",
                    help="the --data folders with their ground truth, in the same order: only to "
@@ -55,7 +56,7 @@ def _parser() -> argparse.ArgumentParser:
                         f"labels, so that what the labels do not show is not forgotten, e.g. 200 "
                         f"(default {REHEARSAL_FRAMES}: none; docs/adapt.md)")
     p.add_argument("--labels-only", action="store_true", help="stop after the pseudo-labels")
-    p.add_argument("--quiet", action="store_true", help="no progress bars")
+    add_quiet(p)
     return p
 
 

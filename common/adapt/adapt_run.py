@@ -15,6 +15,7 @@ from pathlib import Path
 import numpy as np
 
 from common.errors import NeedletrackError
+from common.evaluation.replay_progress import wait_with_progress
 
 
 class RecordingError(NeedletrackError, RuntimeError):
@@ -83,7 +84,6 @@ def record_pipeline(folder, out_file, *, model: str | None = None, support_norma
     refined poses and detections to ``out_file``; returns it. Skips the run when ``out_file``
     is complete already."""
     from common.data.dataset import Dataset
-    from common.evaluation.cli import _wait_with_progress
     from common.evaluation.pipeline_graph import (
         GraphRun,
         GraphRunError,
@@ -112,7 +112,7 @@ def record_pipeline(folder, out_file, *, model: str | None = None, support_norma
         try:
             with GraphRun(doc, log) as run:
                 run.start()
-                _wait_with_progress(run, n, timeout, quiet=not progress, until=("recorder",))
+                wait_with_progress(run, n, timeout, show=progress, until=("recorder",))
         except GraphRunError as exc:
             raise RecordingError(f"{folder}: the pipeline failed: {exc}; see {log_path}") from None
     if not recording_complete(partial):

@@ -18,6 +18,8 @@ import time
 from pathlib import Path
 from typing import Optional
 
+from common.cli_options import add_quiet, add_weights
+
 DETECTIONS_FILE = "detections.jsonl"
 OVERLAYS_DIR = "overlays"
 
@@ -33,7 +35,7 @@ def _parser() -> argparse.ArgumentParser:
                         "dataset folders (docs/dataset.md)")
     p.add_argument("--out", required=True, help="output folder (made if missing; detections.jsonl is replaced)")
     p.add_argument("--backend", default="learned", help="detector backend: learned (default) or classical")
-    p.add_argument("--weights", help="the learned backend's weights (default models/keypoint/model.pt)")
+    add_weights(p)
     p.add_argument("--threshold", type=float, help="presence threshold (the backend's default: 0.5)")
     p.add_argument("--param", action="append", default=[], metavar="KEY=VALUE",
                    help="another backend param (YAML value), e.g. threads=4; `needletrack describe detector`")
@@ -44,7 +46,7 @@ def _parser() -> argparse.ArgumentParser:
     p.add_argument("--tracking", action="store_true",
                    help="track along each video (the backend's tracking mode) instead of reading each frame cold")
     p.add_argument("--no-overlays", action="store_true", help="write no overlay PNGs")
-    p.add_argument("--quiet", action="store_true", help="no progress bar")
+    add_quiet(p)
     return p
 
 
@@ -144,7 +146,7 @@ def detect_files(paths, out, backend: str = "learned", params: Optional[dict] = 
     ``MediaError`` / ``DatasetError`` / ``BackendError`` (all ``NeedletrackError``) before any
     image for bad paths or params."""
     import cv2
-    from tqdm import tqdm
+    from common.progress import progress_bar
 
     from common.data.media import input_images, open_sources, planned_images
     from common.detector.backends import BackendError, backend_class, load_backend
@@ -160,8 +162,8 @@ def detect_files(paths, out, backend: str = "learned", params: Optional[dict] = 
     (out / OVERLAYS_DIR).mkdir(parents=True, exist_ok=True)
     summary = Summary()
     stream = None
-    bar = tqdm(total=planned_images(sources, every, max_frames, split_stereo), desc="detect", unit="img",
-               disable=not progress)
+    bar = progress_bar(total=planned_images(sources, every, max_frames, split_stereo), desc="detect", unit="img",
+               show=progress)
     with open(out / DETECTIONS_FILE, "wb") as f:
         try:
             for i, item in enumerate(input_images(sources, every, max_frames, split_stereo)):

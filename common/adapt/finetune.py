@@ -30,6 +30,7 @@ from pathlib import Path
 
 import yaml
 
+from common.cli_options import add_quiet
 HOLD_OUT = 0.25
 """Share of the labelled frames held out (whole takes) for the calibrations and the report."""
 REHEARSAL_FRAMES = 40
@@ -64,7 +65,7 @@ def _parser() -> argparse.ArgumentParser:
                    help=f"stereo frames of the built-in scene rendered and trained on beside the labels "
                         f"(default {REHEARSAL_FRAMES}; 0: none)")
     p.add_argument("--seed", type=int, default=0, help="the held-out split's seed")
-    p.add_argument("--quiet", action="store_true", help="no progress bars")
+    add_quiet(p)
     return p
 
 

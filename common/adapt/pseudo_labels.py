@@ -231,7 +231,7 @@ def write_labels(sources: list, out, cfg: LabelConfig = LabelConfig(), progress:
     frames as two dataset folders, ``out/train`` and ``out/fit`` (every ``fit_every``-th kept
     group), and ``out/labels.json`` (the verdicts, the counts per reason); returns that report.
     A complete ``out`` (its labels.json) is kept as it is (resumable)."""
-    from tqdm import tqdm
+    from common.progress import progress_bar
     out = Path(out)
     if (out / LABELS_FILE).is_file():
         return json.loads((out / LABELS_FILE).read_text())
@@ -240,8 +240,8 @@ def write_labels(sources: list, out, cfg: LabelConfig = LabelConfig(), progress:
         outputs_of[str(folder)] = outputs
         ds = Dataset(str(folder))
         groups = groups_of(ds, outputs)
-        for key, frames in tqdm(groups.items(), desc=f"label {Path(folder).name}", unit="group",
-                                disable=not progress, leave=False):
+        for key, frames in progress_bar(groups.items(), desc=f"label {Path(folder).name}", unit="group",
+                                show=progress, leave=False):
             verdicts.append((folder, ds, judge_group(key, frames, ds, outputs, cfg)))
     kept = [x for x in verdicts if x[2].kept]
     split = {id(v): ("fit" if cfg.fit_every and len(kept) > 1 and k % cfg.fit_every == cfg.fit_every - 1

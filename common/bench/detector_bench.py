@@ -22,7 +22,8 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from common.detector.data import DatasetError, _arc_pixels, read_dataset
+from common.cli_options import add_weights
+from common.detector.data import DatasetError, read_dataset, true_arc_pixels
 from common.frames import CAMERAS
 from common.geometry.camera import StereoRig
 from common.geometry.needle import NeedleModel
@@ -48,7 +49,7 @@ def test_images(folder, n_frames: int):
             out.append((folder / fr[cam], cam,
                         None if kp is None else np.asarray(kp, float),
                         np.zeros(5, bool) if vis is None else np.asarray(vis, bool),
-                        _arc_pixels(rig, needle, cam, fr)))
+                        true_arc_pixels(rig, needle, cam, fr)))
     return out
 
 
@@ -74,7 +75,7 @@ def make_detector(backend: str, weights=None, threads=None, device="auto"):
 
 def run(data, backend="learned", weights=None, n_frames=30, negatives=None, threads=None,
         repeat=5, picture=None, device="auto", progress=True) -> dict:
-    from tqdm import tqdm
+    from common.progress import progress_bar
     det = make_detector(backend, weights, threads, device)
     items = test_images(data, n_frames)
     if not items:
@@ -90,8 +91,8 @@ def run(data, backend="learned", weights=None, n_frames=30, negatives=None, thre
         reset()
         det.detect(img, "left")
     errs, sure, cl_err, found, n_pos, cold_ms, track_ms, results = [], [], [], 0, 0, [], [], []
-    for (path, cam, kp, vis, arc), img in tqdm(list(zip(items, imgs)), desc=f"bench {backend}",
-                                                disable=not progress, unit="img"):
+    for (path, cam, kp, vis, arc), img in progress_bar(list(zip(items, imgs)), desc=f"bench {backend}",
+                                                show=progress, unit="img"):
         reset()
         t0 = time.perf_counter()
         k = det.detect(img, cam)
@@ -207,7 +208,7 @@ def main(argv=None) -> int:
                                  formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--data", required=True, help="test dataset folder (e.g. data/test)")
     ap.add_argument("--backend", default="learned", choices=["learned", "classical"])
-    ap.add_argument("--weights", default=None, help="weights file (default models/keypoint/model.pt)")
+    add_weights(ap)
     ap.add_argument("--frames", type=int, default=30, help="needle poses to test (x2 cameras)")
     ap.add_argument("--negatives", default=None, help="folder of needle-free frames")
     ap.add_argument("--make-negatives", type=int, default=0, metavar="N",

@@ -21,9 +21,10 @@ from pathlib import Path
 import cv2
 import numpy as np
 
+from common.bench.folder_detections import cold_detections
+from common.cli_options import add_weights
 from common.detector.data import turn_hue
 from common.detector.end_identity import FEATURES
-from common.bench.folder_detections import cold_detections
 from common.geometry.end_identity import TIP_SURE as SURE
 
 MIN_FIT_ERRORS = 5      # fewer detections read end for end (or as said) than this: warn at --fit
@@ -91,7 +92,7 @@ def main(argv=None) -> int:
     ap = argparse.ArgumentParser(prog="needletrack bench end-identity", description=__doc__,
                                  formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--data", action="append", default=[], help="dataset folder with ground truth (repeatable)")
-    ap.add_argument("--weights", default=str(DEFAULT_WEIGHTS))
+    add_weights(ap)
     ap.add_argument("--step", type=int, default=1, help="every step-th frame (default 1)")
     ap.add_argument("--fit", metavar="FILE", help="fit the coefficients on these folders and write them here")
     ap.add_argument("--json", help="write the figures here")
@@ -102,6 +103,7 @@ def main(argv=None) -> int:
     ap.add_argument("--grey-data", action="append", default=[], metavar="DIR",
                     help="a folder read without colour (repeatable): a look family no training renders")
     args = ap.parse_args(argv)
+    args.weights = args.weights or str(DEFAULT_WEIGHTS)
     if not (args.data or args.hue_data or args.grey_data):
         ap.error("give at least one folder: --data, --hue-data or --grey-data")
     det = KeypointDetector(args.weights, device="cpu", tracking=False, threads=1)

@@ -17,6 +17,7 @@ from pathlib import Path
 import numpy as np
 
 from common.bench.folder_detections import cold_detections
+from common.cli_options import add_weights
 
 
 def descriptors(folder: str, detector, step: int = 1, progress: bool = True) -> np.ndarray:
@@ -33,11 +34,12 @@ def main(argv=None) -> int:
     ap = argparse.ArgumentParser(prog="needletrack bench familiarity", description=__doc__,
                                  formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--data", action="append", required=True, help="dataset folder (repeatable)")
-    ap.add_argument("--weights", default=str(DEFAULT_WEIGHTS))
+    add_weights(ap)
     ap.add_argument("--step", type=int, default=1, help="every step-th frame (default 1)")
     ap.add_argument("--fit", metavar="FILE", help="fit the reference on these folders and write it here")
     ap.add_argument("--json", help="write the figures here")
     args = ap.parse_args(argv)
+    args.weights = args.weights or str(DEFAULT_WEIGHTS)
     det = KeypointDetector(args.weights, device="cpu", tracking=False, threads=1, familiarity=not args.fit)
     feats = {d: descriptors(d, det, args.step) for d in args.data}
     if args.fit:

@@ -9,9 +9,9 @@ from pathlib import Path
 from typing import Callable, Iterator, Optional
 
 import cv2
-from tqdm import tqdm
 
 from common.frames import CAMERAS
+from common.progress import progress_bar
 
 
 def cold_detections(folder: str, detector, step: int = 1, only: Optional[Callable] = None,
@@ -26,8 +26,8 @@ def cold_detections(folder: str, detector, step: int = 1, only: Optional[Callabl
     item is asked for. ``progress``: a progress bar over the frames."""
     from common.data.dataset import Dataset
     ds = Dataset(folder)
-    for fr in tqdm(ds.frames[::step], desc=Path(folder).name, unit="frame", leave=False,
-                   disable=not progress):
+    for fr in progress_bar(ds.frames[::step], desc=Path(folder).name, unit="frame", leave=False,
+                   show=progress):
         change = look(fr) if look is not None else None
         if only is not None and not only(fr):
             continue

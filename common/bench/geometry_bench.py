@@ -78,7 +78,7 @@ def _timed(f, *a):
 
 
 def single_view(noise_px: float, n_poses: int, seed: int = 0, methods=None, rig=None,
-                model=None, progress=None) -> dict[str, Errors]:
+                model=None, bar=None) -> dict[str, Errors]:
     """Errors of each single-frame method over ``n_poses`` random poses at ``noise_px``."""
     rig = rig or StereoRig.default()
     model = model or NeedleModel()
@@ -93,8 +93,8 @@ def single_view(noise_px: float, n_poses: int, seed: int = 0, methods=None, rig=
         for name, f in methods.items():
             res, dt = _timed(f, uv, sc, rig, P)
             out[name].add(None if res is None else res.T_ecm_needle, T, dt)
-        if progress is not None:
-            progress.update(1)
+        if bar is not None:
+            bar.update(1)
     return out
 
 
@@ -117,7 +117,7 @@ def multiview_scenario(rng: np.random.Generator, rig: StereoRig, model: NeedleMo
 
 
 def multi_view(noise_px: float, n_scenes: int, seed: int = 0, n_views: int = 5, rig=None,
-               model=None, use_covariance: bool = True, progress=None) -> dict[str, Errors]:
+               model=None, use_covariance: bool = True, bar=None) -> dict[str, Errors]:
     """Fusion of ``pnp_joint`` over ``n_views`` against ``pnp_joint`` on the last view alone."""
     rig = rig or StereoRig.default()
     model = model or NeedleModel()
@@ -143,8 +143,8 @@ def multi_view(noise_px: float, n_scenes: int, seed: int = 0, n_views: int = 5, 
                                          T_true[-1], last[1])
         ok = fused is not None and last[0] is not None
         out[f"multiview ({n_views} views)"].add(fused.T_ecm_needle if ok else None, T_true[-1], t_fuse)
-        if progress is not None:
-            progress.update(1)
+        if bar is not None:
+            bar.update(1)
     return out
 
 
@@ -197,12 +197,12 @@ def main(argv=None) -> int:
         print(f"| {name} | {ms:.2f} |")
     if args.speed_only:
         return 0
-    from tqdm import tqdm
+    from common.progress import progress_bar
     rows = []
-    with tqdm(total=2 * args.poses * len(args.noise), desc="geometry eval", unit="pose") as bar:
+    with progress_bar(total=2 * args.poses * len(args.noise), desc="geometry eval", unit="pose") as bar:
         for s in args.noise:
-            res = single_view(s, args.poses, args.seed, progress=bar)
-            res.update(multi_view(s, args.poses, args.seed, progress=bar))
+            res = single_view(s, args.poses, args.seed, bar=bar)
+            res.update(multi_view(s, args.poses, args.seed, bar=bar))
             rows += [(s, name, e.summary()) for name, e in res.items()]
     print(f"\n{args.poses} random poses per noise level, seed {args.seed}; errors in the ECM frame\n")
     print("| noise (px) | method | mean mm | median mm | mean deg | median deg | no pose | ms/frame |")

@@ -38,15 +38,16 @@ from pathlib import Path
 
 import numpy as np
 
+from common.cli_options import add_dataset, add_weights
 from common.evaluation.graph_speed import ensure_dataset, measure, report
 
 
 def _parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog="needletrack bench graph", description=__doc__,
                                 formatter_class=argparse.RawDescriptionHelpFormatter)
-    p.add_argument("--dataset", help="dataset folder to loop over (default data/test, else data/bench)")
+    add_dataset(p, looped=True)
     p.add_argument("--detector", default="learned", choices=("learned", "classical", "oracle"))
-    p.add_argument("--model", help="learned only: weights file (default: the shipped model)")
+    add_weights(p, "--model", learned_only=True)
     p.add_argument("--param", action="append", default=[], metavar="KEY=VALUE",
                    help="a detector parameter (repeatable), e.g. --param stride=1")
     p.add_argument("--rate", default="max",

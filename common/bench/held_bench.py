@@ -28,8 +28,9 @@ import sys
 
 import numpy as np
 
-from common.data.dataset import Dataset, DatasetError
 from common.bench.detector_bench import SURE_SCORE, make_detector
+from common.cli_options import add_quiet, add_weights
+from common.data.dataset import Dataset, DatasetError
 from common.evaluation.metrics import VISIBLE_BINS, visible_fraction
 from common.frames import CAMERAS
 from common.geometry.needle import KEYPOINT_NAMES
@@ -123,7 +124,7 @@ def run(data, weights=None, takes: int | None = None, threads=None, device="auto
         gallery_too: bool = False) -> dict:
     """The bench's figures (module docstring); ``gallery_too``: also ``gallery``, per keypoint
     the pictures (``hidden_sure_crop``) of up to ``GALLERY_PER_KEYPOINT`` hidden points stated sure."""
-    from tqdm import tqdm
+    from common.progress import progress_bar
     ds = Dataset(str(data))
     moving = [f for f in ds if not f.at_rest and f.keypoints is not None and f.visible is not None]
     if not moving:
@@ -133,7 +134,7 @@ def run(data, weights=None, takes: int | None = None, threads=None, device="auto
     det = make_detector("learned", weights, threads, device)
     records, last_seq = [], None
     gallery = {name: [] for name in KEYPOINT_NAMES}
-    for f in tqdm(frames, desc="bench held", unit="frame", disable=not progress):
+    for f in progress_bar(frames, desc="bench held", unit="frame", show=progress):
         if f.sequence != last_seq:
             det.reset()
             last_seq = f.sequence
@@ -235,7 +236,7 @@ def save_hidden_sure_picture(path, r: dict) -> None:
 def main(argv=None) -> int:
     p = argparse.ArgumentParser(prog="needletrack bench held", description=__doc__.split("\n\n")[0])
     p.add_argument("--data", required=True, help="a dataset folder of moving takes (dataset generate --motion ...)")
-    p.add_argument("--weights", default=None, help="detector weights (default: the shipped models/keypoint/model.pt)")
+    add_weights(p)
     p.add_argument("--takes", type=int, default=None, help="only the first N takes")
     p.add_argument("--threads", type=int, default=None)
     p.add_argument("--device", default="auto")
@@ -243,7 +244,7 @@ def main(argv=None) -> int:
     p.add_argument("--picture", default=None, help="write found share and error against visible fraction (PNG)")
     p.add_argument("--hidden-sure-picture", default=None,
                    help="write pictures of hidden keypoints stated sure, per keypoint (PNG)")
-    p.add_argument("--quiet", action="store_true")
+    add_quiet(p)
     a = p.parse_args(argv)
     try:
         r = run(a.data, a.weights, a.takes, a.threads, a.device, not a.quiet, bool(a.hidden_sure_picture))

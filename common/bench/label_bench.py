@@ -24,6 +24,8 @@ import tempfile
 import time
 from pathlib import Path
 
+from common.cli_options import add_dataset, add_quiet
+
 
 def run(dataset: str, end_px: float = 1.0, wire_px: float = 2.0, wire: int = 2, seed: int = 0,
         max_frames: int = 0, snap: bool = True, progress: bool = True, detector: str = "none",
@@ -34,8 +36,6 @@ def run(dataset: str, end_px: float = 1.0, wire_px: float = 2.0, wire: int = 2, 
     the share of those within 1 px of the truth is counted. ``out``: label a copy there (a new
     folder) and keep it; None: a temporary copy."""
     import numpy as np
-    from tqdm import tqdm
-
     from common.data.dataset import Dataset
     from common.data.writer import without_truth
     from common.frames import CAMERAS
@@ -45,6 +45,7 @@ def run(dataset: str, end_px: float = 1.0, wire_px: float = 2.0, wire: int = 2, 
     from common.label.server import LabelApp
     from common.label.simulate import simulated_clicks
     from common.label.store import LabelStore
+    from common.progress import progress_bar
 
     truth = Dataset(dataset)
     frames = [fr for fr in truth.frames if fr.T_ecm_needle is not None]
@@ -60,7 +61,7 @@ def run(dataset: str, end_px: float = 1.0, wire_px: float = 2.0, wire: int = 2, 
         props = None if detector == "none" else detect_folder(store.ds, detector, dict(params or {}), progress)
         app = LabelApp(store, props)
         times, clicks_n, failed, accepted = [], [], [], set()
-        for fr in tqdm(frames, desc="labelling", unit="frame", disable=not progress):
+        for fr in progress_bar(frames, desc="labelling", unit="frame", show=progress):
             prop = props[fr.index] if props else None
             start = "none"
             if prop and all(prop[c]["found"] for c in CAMERAS):
@@ -123,7 +124,7 @@ def run(dataset: str, end_px: float = 1.0, wire_px: float = 2.0, wire: int = 2, 
 def main(argv=None) -> int:
     p = argparse.ArgumentParser(prog="needletrack bench label", description=__doc__,
                                 formatter_class=argparse.RawDescriptionHelpFormatter)
-    p.add_argument("--dataset", required=True, help="a folder with ground truth (docs/dataset.md)")
+    add_dataset(p)
     p.add_argument("--end-px", type=float, default=1.0, help="tip and tail clicks within this of the truth (px)")
     p.add_argument("--wire-px", type=float, default=2.0, help="wire clicks within this of the true arc (px)")
     p.add_argument("--wire", type=int, default=2, help="wire clicks per camera (default 2)")
@@ -137,7 +138,7 @@ def main(argv=None) -> int:
     p.add_argument("--json", help="also write the figures here")
     p.add_argument("--out", metavar="DIR", help="label a copy in this new folder and keep it (a hand-label "
                                                 "folder without a person; --max-frames: the rest unlabelled)")
-    p.add_argument("--quiet", action="store_true")
+    add_quiet(p)
     a = p.parse_args(argv)
     from common.runtime.graph import parse_param
     r = run(a.dataset, a.end_px, a.wire_px, a.wire, a.seed, a.max_frames, not a.no_snap, not a.quiet,

@@ -31,7 +31,6 @@ def run(noise_levels, frames: int = 100, curve_ratio: float = 0.5, seed: int = 0
     With ``repeat`` > 1 every pass sees the same frames and each frame's time is its least
     over the passes (as ``timeit``): the code's cost without the machine's slow spells."""
     import numpy as np
-    from tqdm import tqdm
 
     from common.evaluation.metrics import NEES_99PCT
     from common.geometry.camera import StereoRig
@@ -49,7 +48,7 @@ def run(noise_levels, frames: int = 100, curve_ratio: float = 0.5, seed: int = 0
         p = None
         for rep in range(repeat):
             q = _pass(noise, frames, curve_ratio, seed, max_tilt_deg, motion_mm, motion_deg, rig, model,
-                      refiner, tracker, tqdm, f"noise {noise:g} px" + (f" ({rep + 1}/{repeat})" if repeat > 1 else ""),
+                      refiner, tracker, f"noise {noise:g} px" + (f" ({rep + 1}/{repeat})" if repeat > 1 else ""),
                       progress)
             if p is None:
                 p = q
@@ -79,7 +78,7 @@ def run(noise_levels, frames: int = 100, curve_ratio: float = 0.5, seed: int = 0
 
 
 def _pass(noise, frames, curve_ratio, seed, max_tilt_deg, motion_mm, motion_deg, rig, model, refiner,
-          tracker, tqdm, desc, progress) -> dict:
+          tracker, desc, progress) -> dict:
     """One pass over the frames of a noise level: per-frame errors and times (s)."""
     import numpy as np
 
@@ -89,6 +88,7 @@ def _pass(noise, frames, curve_ratio, seed, max_tilt_deg, motion_mm, motion_deg,
     from common.geometry.pnp import pnp_joint, refine_starts
     from common.geometry.refine import RefineError
     from common.geometry.transforms import pose_error
+    from common.progress import progress_bar
 
     rng = np.random.default_rng(seed)
     motion_rng = np.random.default_rng(seed + 1)   # its own stream: the poses stay those of rng
@@ -96,7 +96,7 @@ def _pass(noise, frames, curve_ratio, seed, max_tilt_deg, motion_mm, motion_deg,
     p = {k: [] for k in ("err", "err_kp", "amb", "nees", "wall", "cpu", "starts_cpu", "node",
                          "err_trk", "trk_cpu", "warm")}
     p["failed"] = 0
-    for seq in tqdm(range(frames), desc=desc, disable=not progress, leave=False):
+    for seq in progress_bar(range(frames), desc=desc, show=progress, leave=False):
         T = random_needle_pose(rng, rig, model, max_tilt_rad=np.deg2rad(max_tilt_deg))
         uv, sc, obs = oracle.stereo_arcs(rig, T, model, seq)
         try:

@@ -38,6 +38,7 @@ from typing import Optional
 
 import numpy as np
 
+from common.cli_options import add_dataset
 from common.robustness.fuzz_payloads import FRAME_HZ, KINDS, CleanStream, poison
 from common.runtime.messages import (
     Command,
@@ -313,7 +314,7 @@ def main(argv=None) -> int:
                     help="damaged bag files per base bag (MCAP, ROS 1) read through the bag reader (200; 0: none)")
     ap.add_argument("--live", action="store_true",
                     help="instead: poison the default graph in processes (see live_check)")
-    ap.add_argument("--dataset", help="--live: the replay's folder (default data/test, else data/bench)")
+    add_dataset(ap, looped=True, what="--live: the replay's folder")
     ap.add_argument("--clean-s", type=float, default=25.0, help="--live: seconds before the poison")
     ap.add_argument("--poison-s", type=float, default=10.0, help="--live: seconds of poison")
     ap.add_argument("--poison-hz", type=float, default=200.0, help="--live: poison payloads per second")

@@ -28,6 +28,8 @@ import tempfile
 import time
 from pathlib import Path
 
+from common.cli_options import add_dataset
+
 STEREO_POSE_NODES = ("epnp_average", "epnp_joint", "triangulate", "refine")
 RSS_TOLERANCE = 0.05
 
@@ -271,7 +273,7 @@ def main(argv=None) -> int:
                                  formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--duration", type=float, default=600.0, help="seconds (default 600)")
     ap.add_argument("--rate", type=float, default=30.0, help="replay rate, Hz (default 30)")
-    ap.add_argument("--dataset", help="dataset folder to loop over (default data/test, else data/bench)")
+    add_dataset(ap, looped=True)
     ap.add_argument("--sample-s", type=float, default=2.0, help="RSS sampling period (s)")
     ap.add_argument("--drain-s", type=float, default=6.0, help="seconds for the graph to drain at the end")
     ap.add_argument("--json", help="also write the figures here")
