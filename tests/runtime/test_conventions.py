@@ -2,6 +2,8 @@
 import ast
 from pathlib import Path
 
+from common import layout
+
 REPO = Path(__file__).resolve().parents[2]
 
 
@@ -48,29 +50,9 @@ def test_the_cameras_are_named_in_one_place():
     assert found == ["common/frames.py:7"], found
 
 
-# What each package of common/ may import (docs/architecture.md, "may import"); ``errors``,
-# ``frames``, ``methods``, ``progress`` and ``cli_options`` import nothing, ``palette`` only
-# ``methods``, and anything may import them.
-LEAVES = {"errors", "frames", "methods", "palette", "progress", "cli_options"}
-MAY_IMPORT = {
-    "errors": set(), "frames": set(), "methods": set(), "palette": {"methods"},
-    "progress": set(), "cli_options": set(),
-    "geometry": set(),
-    "runtime": set(),
-    "data": {"geometry", "runtime"},
-    "sim": {"geometry", "data"},
-    "detector": {"geometry", "data", "runtime"},
-    "ros": {"geometry", "data", "runtime"},
-    "viewer": {"geometry", "runtime", "data"},
-    "label": {"geometry", "runtime", "data", "detector", "viewer"},
-    "evaluation": {"geometry", "runtime", "data", "sim", "detector", "ros", "viewer", "label", "cli"},
-    "bench": {"geometry", "runtime", "data", "sim", "detector", "ros", "viewer", "label", "cli", "evaluation"},
-    "robustness": {"geometry", "runtime", "data", "sim", "detector", "ros", "viewer", "label", "cli",
-                   "evaluation", "bench"},
-    "adapt": {"geometry", "runtime", "data", "sim", "detector", "ros", "viewer", "label", "cli",
-              "evaluation", "bench"},
-    "cli": {"data"},
-}
+# What each package of common/ may import: the layers of common/layout.py (docs/architecture.md).
+LEAVES = set(layout.LEAVES)
+MAY_IMPORT = {name: set(deps) for name, deps in layout.MAY_IMPORT.items()}
 
 
 def _imports(path: Path, root: Path = REPO):
@@ -121,18 +103,22 @@ def test_the_layering_check_sees_what_it_guards(tmp_path):
                      ("common.sim", 5)], found
 
 
-def test_the_packages_re_export_their_entry_points():
-    """``from common.runtime import Node`` and the like: every name a package's ``__init__``
-    re-exports is the one its module defines; an unknown name is an AttributeError."""
-    import importlib
+def test_the_package_docs_are_written_from_the_code():
+    """Each package's ``__init__`` docstring lists its modules and docs/architecture.md's package
+    table lists every package and module, as ``python -m common.layout`` writes them."""
+    stale = [f"common/{p}/__init__.py" for p in layout.packages()
+             if ast.get_docstring(ast.parse((REPO / "common" / p / "__init__.py").read_text()))
+             != layout.init_docstring(p).strip()]
+    page = (REPO / "docs" / "architecture.md").read_text()
+    if layout.architecture_page(page) != page:
+        stale.append("docs/architecture.md")
+    assert not stale, f"stale: {stale}: run python -m common.layout"
 
-    import pytest
-    for pkg in ("common.runtime", "common.geometry"):
-        p = importlib.import_module(pkg)
-        for name, mod in p._EXPORTS.items():
-            assert getattr(p, name) is getattr(importlib.import_module(f"{pkg}.{mod}"), name), (pkg, name)
-        with pytest.raises(AttributeError, match="no attribute 'nope'"):
-            p.nope
+
+def test_a_module_summary_is_its_docstrings_first_sentence():
+    assert layout.summary("Poses, e.g. T_a_b, in metres. More.\n\nDetails.") == "Poses, e.g. T_a_b, in metres."
+    assert layout.summary("A usage line\nwithout a stop\n\nthen more.") == "A usage line without a stop"
+    assert layout.summary(None) == ""
 
 
 # Private names imported across modules that other work in flight removes (issue 57: the files
