@@ -20,7 +20,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from common.evaluation.metrics import true_T_ecm_needle
+from common.data.truth import true_T_ecm_needle
 from common.geometry.end_identity import TIP_SURE
 from common.geometry.ecm_kinematics import EcmArm
 from common.geometry.transforms import R_to_rotvec, pose_error

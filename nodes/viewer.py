@@ -28,7 +28,7 @@ from typing import Literal, Optional
 import numpy as np
 
 from common.constraints import PositiveNumber, at_least
-from common.evaluation.metrics import true_T_ecm_needle
+from common.data.truth import true_T_ecm_needle
 from common.frames import CAMERAS
 from common.geometry.camera import StereoRig
 from common.geometry.ecm_kinematics import EcmArm

@@ -120,8 +120,8 @@ def check_dataset(ds: Dataset, tol_px: float = 0.1, images: bool = True, progres
     reprojs = []
     it = ds.frames
     if progress:
-        from tqdm import tqdm
-        it = tqdm(it, desc="check", unit="frame")
+        from common.progress import progress_bar
+        it = progress_bar(it, desc="check", unit="frame")
     seq_first: dict = {}
     prev: dict = {}
     for fr in it:

@@ -33,10 +33,18 @@ from common.data.meta import (  # noqa: F401  (re-exported: the reader's API)
     VERSION,
     DatasetError,
     DatasetMeta,
-    _where,
+    file_place,
     parse_meta,
 )
-from common.data.values import _Bad, _bools, _int, _matrix, _num, _rigid, _vector  # noqa: F401
+from common.data.values import (
+    BadValue,
+    parse_bools,
+    parse_int,
+    parse_matrix,
+    parse_number,
+    parse_rigid,
+    parse_vector,
+)
 from common.runtime.limits import InputLimitError, describe_path, inside, read_image_file
 
 
@@ -44,82 +52,82 @@ from common.runtime.limits import InputLimitError, describe_path, inside, read_i
 
 def _relpath(v) -> str:
     if not isinstance(v, str) or not v:
-        raise _Bad(f"expected an image path string, got {v!r}"[:120])
+        raise BadValue(f"expected an image path string, got {v!r}"[:120])
     if os.path.isabs(v) or v.startswith(("/", "\\")):
-        raise _Bad(f"must be relative to the folder, got {v!r}")
+        raise BadValue(f"must be relative to the folder, got {v!r}")
     if ".." in v.replace("\\", "/").split("/"):
-        raise _Bad(f"must stay inside the folder, got {v!r}")
+        raise BadValue(f"must stay inside the folder, got {v!r}")
     if not v.lower().endswith(IMAGE_EXTS):
-        raise _Bad(f"must be a PNG or JPEG file (.png, .jpg, .jpeg), got {v!r}")
+        raise BadValue(f"must be a PNG or JPEG file (.png, .jpg, .jpeg), got {v!r}")
     return v
 
 
 def _per_camera(v, fn, *args, nullable: bool = False) -> dict:
     if not isinstance(v, dict):
-        raise _Bad(f"expected {{\"left\": ..., \"right\": ...}}, got {type(v).__name__}")
+        raise BadValue(f"expected {{\"left\": ..., \"right\": ...}}, got {type(v).__name__}")
     extra = set(v) - set(CAMERAS)
     if extra:
-        raise _Bad(f"unknown camera {sorted(extra)[0]!r} (expected left and right)")
+        raise BadValue(f"unknown camera {sorted(extra)[0]!r} (expected left and right)")
     out = {}
     for c in CAMERAS:
         if c not in v:
-            raise _Bad(f"{c}: missing")
+            raise BadValue(f"{c}: missing")
         if v[c] is None and nullable:
             out[c] = None
             continue
         try:
             out[c] = fn(v[c], *args)
-        except _Bad as exc:
-            raise _Bad(f"{c}: {exc}") from None
+        except BadValue as exc:
+            raise BadValue(f"{c}: {exc}") from None
     return out
 
 
 def _bbox(v) -> list:
-    b = _vector(v, 4)
+    b = parse_vector(v, 4)
     if b[2] < b[0] or b[3] < b[1]:
-        raise _Bad(f"expected [x0, y0, x1, y1] with x0 <= x1 and y0 <= y1, got {b.tolist()}")
+        raise BadValue(f"expected [x0, y0, x1, y1] with x0 <= x1 and y0 <= y1, got {b.tolist()}")
     return b.tolist()
 
 
 def _share(v) -> float:
-    x = _num(v)
+    x = parse_number(v)
     if not 0.0 <= x <= 1.0:
-        raise _Bad(f"expected a share in [0, 1], got {x:g}")
+        raise BadValue(f"expected a share in [0, 1], got {x:g}")
     return x
 
 
 def _arc_samples(v) -> np.ndarray:
     if not isinstance(v, (list, tuple)) or len(v) < 2 or not all(isinstance(b, bool) for b in v):
-        raise _Bad(f"expected a list of at least 2 booleans, got {v!r}"[:120])
+        raise BadValue(f"expected a list of at least 2 booleans, got {v!r}"[:120])
     return np.array(v, dtype=bool)
 
 
 def _flag(v) -> bool:
     if not isinstance(v, bool):
-        raise _Bad(f"expected true or false, got {v!r}"[:120])
+        raise BadValue(f"expected true or false, got {v!r}"[:120])
     return v
 
 
 def _count(v) -> int:
-    n = _int(v)
+    n = parse_int(v)
     if n < 0:
-        raise _Bad(f"must be >= 0, got {n}")
+        raise BadValue(f"must be >= 0, got {n}")
     return n
 
 
 def _hand_label(v) -> dict:
     """needletrack's ``label`` field (docs/datasets.md): the frame was labelled by hand."""
     if not isinstance(v, dict):
-        raise _Bad(f"expected an object, got {type(v).__name__}")
+        raise BadValue(f"expected an object, got {type(v).__name__}")
     if not isinstance(v.get("no_needle"), bool):
-        raise _Bad(f"no_needle: expected true or false, got {v.get('no_needle')!r}"[:120])
-    for key, parse in (("T_ecm_needle", _rigid), ("covariance", lambda x: _matrix(x, 6, 6)),
-                       ("keypoint_sigma_px", lambda x: _per_camera(x, _vector, 5))):
+        raise BadValue(f"no_needle: expected true or false, got {v.get('no_needle')!r}"[:120])
+    for key, parse in (("T_ecm_needle", parse_rigid), ("covariance", lambda x: parse_matrix(x, 6, 6)),
+                       ("keypoint_sigma_px", lambda x: _per_camera(x, parse_vector, 5))):
         if v.get(key) is not None:
             try:
                 parse(v[key])
-            except _Bad as exc:
-                raise _Bad(f"{key}: {exc}") from None
+            except BadValue as exc:
+                raise BadValue(f"{key}: {exc}") from None
     return dict(v)
 
 
@@ -127,7 +135,7 @@ _NO_DEFAULT = object()
 
 
 def _line(parse, default=_NO_DEFAULT, extension: bool = False):
-    """A field of a frames.jsonl line: ``parse`` its value's parser (``_Bad`` with the reason);
+    """A field of a frames.jsonl line: ``parse`` its value's parser (``BadValue`` with the reason);
     no ``default``: required; ``extension``: needletrack's own field (``EXTENSION_FIELDS``)."""
     meta = {"parse": parse, "extension": extension}
     return field(metadata=meta) if default is _NO_DEFAULT else field(default=default, metadata=meta)
@@ -148,16 +156,16 @@ class Frame:
     """
 
     index: int = _line(_count)
-    stamp_ns: int = _line(_int)
+    stamp_ns: int = _line(parse_int)
     left: str = _line(_relpath)
     right: str = _line(_relpath)
-    sequence: Optional[int] = _line(_int, None)
+    sequence: Optional[int] = _line(parse_int, None)
     step: Optional[int] = _line(_count, None)
-    ecm_joints: Optional[np.ndarray] = _line(lambda v: _vector(v, 4), None)
-    T_world_ecm: Optional[np.ndarray] = _line(_rigid, None)
-    T_world_needle: Optional[np.ndarray] = _line(_rigid, None)
-    keypoints: Optional[dict] = _line(lambda v: _per_camera(v, _matrix, 5, 2), None)
-    visible: Optional[dict] = _line(lambda v: _per_camera(v, _bools, 5), None)
+    ecm_joints: Optional[np.ndarray] = _line(lambda v: parse_vector(v, 4), None)
+    T_world_ecm: Optional[np.ndarray] = _line(parse_rigid, None)
+    T_world_needle: Optional[np.ndarray] = _line(parse_rigid, None)
+    keypoints: Optional[dict] = _line(lambda v: _per_camera(v, parse_matrix, 5, 2), None)
+    visible: Optional[dict] = _line(lambda v: _per_camera(v, parse_bools, 5), None)
     bbox: Optional[dict] = _line(lambda v: _per_camera(v, _bbox, nullable=True), None)
     needle_at_rest: Optional[bool] = _line(_flag, None)
     instruments: Optional[dict] = _line(parse_instruments, None)
@@ -231,7 +239,7 @@ def parse_frame(obj, line: Optional[int] = None, file: str = FRAMES_FILE) -> Fra
     """Validate one decoded frames.jsonl object: the required fields first, then each field with
     its parser, in the order ``Frame`` declares them."""
     def fail(name, msg):
-        raise DatasetError(_where(file, line, f"{name}: {msg}"))
+        raise DatasetError(file_place(file, line, f"{name}: {msg}"))
 
     if not isinstance(obj, dict):
         fail("(line)", f"expected a JSON object, got {type(obj).__name__}")
@@ -246,7 +254,7 @@ def parse_frame(obj, line: Optional[int] = None, file: str = FRAMES_FILE) -> Fra
             continue
         try:
             vals[f.name] = f.metadata["parse"](v)
-        except _Bad as exc:
+        except BadValue as exc:
             fail(f.name if exc.sub is None else f"{f.name}.{exc.sub}", str(exc))
     return Frame(line=line, **vals)
 
@@ -255,7 +263,7 @@ def read_frames(folder: str) -> list[Frame]:
     """Parse and validate frames.jsonl: JSON per line, fields, index order, time order."""
     path = os.path.join(folder, FRAMES_FILE)
     if not os.path.isfile(path):
-        raise DatasetError(_where(FRAMES_FILE, None, f"file missing in {folder}"))
+        raise DatasetError(file_place(FRAMES_FILE, None, f"file missing in {folder}"))
     frames = []
     with open(path, "r", encoding="utf-8-sig") as f:
         for lineno, text in enumerate(f, start=1):
@@ -264,12 +272,12 @@ def read_frames(folder: str) -> list[Frame]:
             try:
                 obj = json.loads(text)
             except json.JSONDecodeError as exc:
-                raise DatasetError(_where(FRAMES_FILE, lineno, f"(line): not valid JSON ({exc.msg} at column {exc.colno})")) from None
+                raise DatasetError(file_place(FRAMES_FILE, lineno, f"(line): not valid JSON ({exc.msg} at column {exc.colno})")) from None
             fr = parse_frame(obj, lineno)
             if fr.index != len(frames):
-                raise DatasetError(_where(FRAMES_FILE, lineno, f"index: expected {len(frames)} (file order), got {fr.index}"))
+                raise DatasetError(file_place(FRAMES_FILE, lineno, f"index: expected {len(frames)} (file order), got {fr.index}"))
             if frames and fr.stamp_ns < frames[-1].stamp_ns:
-                raise DatasetError(_where(FRAMES_FILE, lineno, f"stamp_ns: {fr.stamp_ns} is before the previous frame's "
+                raise DatasetError(file_place(FRAMES_FILE, lineno, f"stamp_ns: {fr.stamp_ns} is before the previous frame's "
                                           f"{frames[-1].stamp_ns} (frames must be in time order)"))
             frames.append(fr)
     return frames
@@ -292,9 +300,9 @@ class Dataset:
         mpath = os.path.join(self.path, META_FILE)
         if not os.path.isfile(mpath):
             what = "missing" if not os.path.lexists(mpath) else describe_path(mpath)
-            raise DatasetError(_where(META_FILE, None, f"file {what} in {self.path}"))
+            raise DatasetError(file_place(META_FILE, None, f"file {what} in {self.path}"))
         if os.path.getsize(mpath) > MAX_META_BYTES:
-            raise DatasetError(_where(META_FILE, None, f"{os.path.getsize(mpath)} bytes, over the limit of {MAX_META_BYTES}"))
+            raise DatasetError(file_place(META_FILE, None, f"{os.path.getsize(mpath)} bytes, over the limit of {MAX_META_BYTES}"))
         with open(mpath, "r", encoding="utf-8-sig") as f:
             self.meta = parse_meta(f.read())
         self.frames = read_frames(self.path)
@@ -304,9 +312,9 @@ class Dataset:
                     try:
                         path = inside(self.path, fr.image(c))
                     except InputLimitError as exc:
-                        raise DatasetError(_where(FRAMES_FILE, fr.line, f"{c}: {exc}")) from None
+                        raise DatasetError(file_place(FRAMES_FILE, fr.line, f"{c}: {exc}")) from None
                     if not os.path.isfile(path):
-                        raise DatasetError(_where(FRAMES_FILE, fr.line, f"{c}: image file {fr.image(c)!r} "
+                        raise DatasetError(file_place(FRAMES_FILE, fr.line, f"{c}: image file {fr.image(c)!r} "
                                                   f"{describe_path(path)}"))
 
     @property
@@ -355,7 +363,7 @@ class Dataset:
         try:
             return read_image_file(self.path, fr.image(camera), tuple(self.meta.image_size))
         except InputLimitError as exc:
-            raise DatasetError(_where(FRAMES_FILE, fr.line, f"{camera}: {exc}")) from None
+            raise DatasetError(file_place(FRAMES_FILE, fr.line, f"{camera}: {exc}")) from None
 
     def sequences(self) -> dict:
         """Frames grouped by ``sequence`` (frames without one are left out), in file order: the

@@ -4,7 +4,7 @@
 pivot, z along the closed jaws towards their tips, y the axis they open about), its opening
 ``jaw_rad`` (0 closed), both as the robot reports them, and, as optional ground truth,
 ``holds_needle`` and the true ``T_world_jaw_truth`` and ``jaw_rad_truth`` (absent: the reported
-ones are exact). ``parse_instruments`` validates the frames.jsonl field (a ``_Bad`` names the
+ones are exact). ``parse_instruments`` validates the frames.jsonl field (a ``BadValue`` names the
 instrument and its field); ``T_jaw_needle`` is the grasp, constant while the jaws hold the needle
 (in the true jaw frame; a reported one moves with the arm's kinematic error).
 """
@@ -17,7 +17,7 @@ from typing import Optional
 
 import numpy as np
 
-from common.data.values import _Bad, _num, _rigid
+from common.data.values import BadValue, parse_number, parse_rigid
 from common.geometry.transforms import inv_T
 
 NAME_RE = re.compile(r"^[A-Za-z][A-Za-z0-9_\-]{0,31}$")
@@ -55,52 +55,52 @@ class InstrumentPose:
 
 def parse_instrument(v) -> InstrumentPose:
     if not isinstance(v, dict):
-        raise _Bad(f"expected a map with T_world_jaw and jaw_rad, got {type(v).__name__}")
+        raise BadValue(f"expected a map with T_world_jaw and jaw_rad, got {type(v).__name__}")
     for k in ("T_world_jaw", "jaw_rad"):
         if v.get(k) is None:
-            raise _Bad("required field missing", k)
+            raise BadValue("required field missing", k)
     try:
-        T = _rigid(v["T_world_jaw"])
-    except _Bad as exc:
-        raise _Bad(str(exc), "T_world_jaw") from None
+        T = parse_rigid(v["T_world_jaw"])
+    except BadValue as exc:
+        raise BadValue(str(exc), "T_world_jaw") from None
     jaw = _opening(v["jaw_rad"], "jaw_rad")
     holds = v.get("holds_needle")
     if holds is not None and not isinstance(holds, bool):
-        raise _Bad(f"expected true or false, got {holds!r}"[:120], "holds_needle")
+        raise BadValue(f"expected true or false, got {holds!r}"[:120], "holds_needle")
     T_truth = None
     if v.get("T_world_jaw_truth") is not None:
         try:
-            T_truth = _rigid(v["T_world_jaw_truth"])
-        except _Bad as exc:
-            raise _Bad(str(exc), "T_world_jaw_truth") from None
+            T_truth = parse_rigid(v["T_world_jaw_truth"])
+        except BadValue as exc:
+            raise BadValue(str(exc), "T_world_jaw_truth") from None
     jaw_truth = None if v.get("jaw_rad_truth") is None else _opening(v["jaw_rad_truth"], "jaw_rad_truth")
     return InstrumentPose(T, jaw, holds, T_truth, jaw_truth)
 
 
 def _opening(value, field: str) -> float:
     try:
-        jaw = _num(value)
-    except _Bad as exc:
-        raise _Bad(str(exc), field) from None
+        jaw = parse_number(value)
+    except BadValue as exc:
+        raise BadValue(str(exc), field) from None
     if not 0.0 <= jaw <= MAX_JAW_RAD:
-        raise _Bad(f"must be an opening angle in [0, pi] rad, got {jaw:g}", field)
+        raise BadValue(f"must be an opening angle in [0, pi] rad, got {jaw:g}", field)
     return jaw
 
 
 def parse_instruments(v) -> dict:
     """``{name: InstrumentPose}`` from the frames.jsonl ``instruments`` value."""
     if not isinstance(v, dict):
-        raise _Bad(f"expected a map {{NAME: {{T_world_jaw, jaw_rad}}}}, got {type(v).__name__}")
+        raise BadValue(f"expected a map {{NAME: {{T_world_jaw, jaw_rad}}}}, got {type(v).__name__}")
     if len(v) > MAX_INSTRUMENTS:
-        raise _Bad(f"{len(v)} instruments, more than the {MAX_INSTRUMENTS} a frame may list")
+        raise BadValue(f"{len(v)} instruments, more than the {MAX_INSTRUMENTS} a frame may list")
     out = {}
     for name, entry in v.items():
         if not isinstance(name, str) or not NAME_RE.match(name):
-            raise _Bad("not an instrument name (a letter, then letters, digits, _ or -)", repr(str(name)[:40]))
+            raise BadValue("not an instrument name (a letter, then letters, digits, _ or -)", repr(str(name)[:40]))
         try:
             out[name] = parse_instrument(entry)
-        except _Bad as exc:
-            raise _Bad(str(exc), name if exc.sub is None else f"{name}.{exc.sub}") from None
+        except BadValue as exc:
+            raise BadValue(str(exc), name if exc.sub is None else f"{name}.{exc.sub}") from None
     return out
 
 

@@ -15,7 +15,7 @@ from common.frames import CAMERAS
 from common.geometry.camera import StereoRig
 from common.geometry.ecm_kinematics import EcmArm
 from common.geometry.needle import NeedleModel
-from common.data.values import FileValue, _Bad, _matrix, _num, _rigid, _vector
+from common.data.values import BadValue, FileValue, parse_matrix, parse_number, parse_rigid, parse_vector
 from common.runtime.limits import InputLimitError, compose_yaml, load_yaml
 from common.runtime.schema import fields_of
 
@@ -33,7 +33,7 @@ class DatasetError(NeedletrackError, ValueError):
     """A folder that breaks the dataset spec; the message names file, line and field."""
 
 
-def _where(file: str, line: Optional[int], fieldname: str) -> str:
+def file_place(file: str, line: Optional[int], fieldname: str) -> str:
     return f"{file}:{line}: {fieldname}" if line is not None else f"{file}: {fieldname}"
 
 
@@ -93,7 +93,7 @@ class _Format(FileValue):
     @staticmethod
     def parse(v):
         if v != FORMAT:
-            raise _Bad(f"must be {FORMAT!r}, got {v!r}")
+            raise BadValue(f"must be {FORMAT!r}, got {v!r}")
         return v
 
 
@@ -101,58 +101,58 @@ class _Version(FileValue):
     @staticmethod
     def parse(v):
         if isinstance(v, bool) or v != VERSION:
-            raise _Bad(f"unknown version {v!r} (this reader knows version {VERSION})")
+            raise BadValue(f"unknown version {v!r} (this reader knows version {VERSION})")
         return VERSION
 
 
 class _ImageSize(FileValue):
     @staticmethod
     def parse(v):
-        size = _vector(v, 2)
+        size = parse_vector(v, 2)
         if np.any(size <= 0) or np.any(size != np.round(size)):
-            raise _Bad(f"must be two positive integers [width, height], got {size.tolist()}")
+            raise BadValue(f"must be two positive integers [width, height], got {size.tolist()}")
         return int(size[0]), int(size[1])
 
 
 class _CameraMatrix(FileValue):
     @staticmethod
     def parse(v):
-        K = _matrix(v, 3, 3)
+        K = parse_matrix(v, 3, 3)
         if K[0, 0] <= 0 or K[1, 1] <= 0 or not np.allclose(K[2], [0, 0, 1]) or K[1, 0] != 0:
-            raise _Bad(f"not a camera matrix [[fx,s,cx],[0,fy,cy],[0,0,1]]: {K.tolist()}")
+            raise BadValue(f"not a camera matrix [[fx,s,cx],[0,fy,cy],[0,0,1]]: {K.tolist()}")
         return K
 
 
 class _Distortion(FileValue):
     @staticmethod
     def parse(v):
-        dist = _vector(v, None)
+        dist = parse_vector(v, None)
         if len(dist) not in _DIST_LENGTHS:
-            raise _Bad(f"OpenCV distortion needs 4, 5, 8, 12 or 14 numbers, got {len(dist)}")
+            raise BadValue(f"OpenCV distortion needs 4, 5, 8, 12 or 14 numbers, got {len(dist)}")
         return dist if len(dist) else np.zeros(5)
 
 
 class _Rigid(FileValue):
-    parse = staticmethod(_rigid)
+    parse = staticmethod(parse_rigid)
 
 
 class _Number(FileValue):
-    parse = staticmethod(_num)
+    parse = staticmethod(parse_number)
 
 
 class _Radius(FileValue):
     @staticmethod
     def parse(v):
-        r = _num(v)
+        r = parse_number(v)
         if r <= 0:
-            raise _Bad(f"must be positive, got {r}")
+            raise BadValue(f"must be positive, got {r}")
         return r
 
 
 class _Angles(FileValue):
     @staticmethod
     def parse(v):
-        return tuple(_vector(v, 5))
+        return tuple(parse_vector(v, 5))
 
 
 @dataclass
@@ -204,7 +204,7 @@ def parse_meta(text: str, file: str = META_FILE) -> DatasetMeta:
     except yaml.YAMLError as exc:
         mark = getattr(exc, "problem_mark", None)
         line = mark.line + 1 if mark is not None else None
-        raise DatasetError(_where(file, line, f"not valid YAML ({getattr(exc, 'problem', exc)})")) from None
+        raise DatasetError(file_place(file, line, f"not valid YAML ({getattr(exc, 'problem', exc)})")) from None
     lines = _yaml_lines(text)
 
     def fail(path: tuple, msg: str):
@@ -214,7 +214,7 @@ def parse_meta(text: str, file: str = META_FILE) -> DatasetMeta:
                 line = lines[path[:k]]
                 break
         name = ".".join(str(p) for p in path) or "(document)"
-        raise DatasetError(_where(file, line, f"{name}: {msg}"))
+        raise DatasetError(file_place(file, line, f"{name}: {msg}"))
 
     def section(path: tuple, cls, mapping) -> dict:
         if not isinstance(mapping, dict):

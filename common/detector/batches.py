@@ -53,9 +53,9 @@ def mine_hard_negatives(model: KeypointModel, data_dirs, per_image: int, progres
     a seeded random subset of ``max_images`` frames' cameras):
     [(region uint8, origin (2,), box (cx, cy, w, h))], regions cut at full resolution."""
     import cv2
-    from tqdm import tqdm
+    from common.progress import progress_bar
 
-    from common.detector.data import _cut, read_dataset
+    from common.detector.data import cut_square, read_dataset
     from common.detector.model import decode_global_topk
     model.eval()
     cfg = model.cfg
@@ -64,7 +64,7 @@ def mine_hard_negatives(model: KeypointModel, data_dirs, per_image: int, progres
     if 0 < max_images < len(jobs):
         keep = np.random.default_rng(seed).choice(len(jobs), max_images, replace=False)
         jobs = [jobs[i] for i in sorted(keep)]
-    for d, fr, cam in tqdm(jobs, desc="mining hard negatives", disable=not progress, unit="image"):
+    for d, fr, cam in progress_bar(jobs, desc="mining hard negatives", show=progress, unit="image"):
         img = cv2.imread(str(Path(d) / fr[cam]), cv2.IMREAD_COLOR)
         if img is None:
             continue
@@ -80,7 +80,7 @@ def mine_hard_negatives(model: KeypointModel, data_dirs, per_image: int, progres
                 if near < 0.6 * max(bw, bh, np.ptp(kp, 0).max()):
                     continue
             side = int(2.6 * max(bw, bh) + 48)
-            region, origin = _cut(img, int(cx - side / 2), int(cy - side / 2), side)
+            region, origin = cut_square(img, int(cx - side / 2), int(cy - side / 2), side)
             if region.size:
                 out.append((region, origin, (cx, cy, bw, bh)))
                 n_img += 1

@@ -146,12 +146,12 @@ class ClassicalDetector:
 
     # ------------------------------------------------------------ public
     def detect(self, image, camera: str = "left", seq: int = 0, stamp_ns: int = 0) -> Keypoints:
-        from common.detector.inference import _as_bgr, image_problem
+        from common.detector.inference import as_bgr, image_problem
         problem = image_problem(image)
         if problem:
             log.warning("camera %s seq %d: bad image: %s", camera, seq, problem)
             return Keypoints.not_found(camera, seq, stamp_ns, self.name, f"bad image: {problem}")
-        img = _as_bgr(image)
+        img = as_bgr(image)
         mask, th = self.segment(img)
         n, labels, stats, _ = cv2.connectedComponentsWithStats(mask, connectivity=8)
         best = None

@@ -100,7 +100,9 @@ def read_dataset(folder) -> tuple[dict, list[dict]]:
     return meta, frames
 
 
-def _arc_pixels(rig: StereoRig, needle: NeedleModel, cam: str, fr: dict) -> np.ndarray | None:
+def true_arc_pixels(rig: StereoRig, needle: NeedleModel, cam: str, fr: dict) -> np.ndarray | None:
+    """The true arc (``ARC_SAMPLES`` points) in camera ``cam``'s image, px, from the frame's
+    true poses; None when the frame has none or the arc is behind the camera."""
     if fr.get("T_world_needle") is None or fr.get("T_world_ecm") is None:
         return None
     T_cam_needle = (inv_T(rig[cam].T_ecm_cam) @ inv_T(np.asarray(fr["T_world_ecm"], float))
@@ -194,7 +196,7 @@ def make_record(img: np.ndarray, kp, vis, arc, cfg: ModelConfig, rng: np.random.
         x0, y0 = int(round(box[0] - side / 2)), int(round(box[1] - side / 2))
     else:
         side, x0, y0 = 0, 0, 0
-    region, origin = _cut(img, x0, y0, side)
+    region, origin = cut_square(img, x0, y0, side)
     # negative region: a random square away from the needle's box (or one on a jaw, jaw_share)
     nside = int(rng.uniform(96, 320))
 
@@ -222,7 +224,7 @@ def make_record(img: np.ndarray, kp, vis, arc, cfg: ModelConfig, rng: np.random.
                 break
         else:
             nside = 0
-    neg, neg_origin = _cut(img, nx0, ny0, nside)
+    neg, neg_origin = cut_square(img, nx0, ny0, nside)
     return ImageRecord(small, region, origin, neg, neg_origin, kp, vis, arc.astype(np.float32),
                        box, (w, h), frame, camera)
 
@@ -239,7 +241,7 @@ def _arc_present(seen: np.ndarray) -> bool:
     return n >= 2 and n >= PRESENT_ARC_SHARE * len(seen)
 
 
-def _cut(img, x0, y0, side):
+def cut_square(img, x0, y0, side):
     """Sub-image [x0, x0+side) x [y0, y0+side) clipped to the image; (pixels, top-left)."""
     h, w = img.shape[:2]
     xa, ya = max(0, x0), max(0, y0)
@@ -255,7 +257,7 @@ def load_records(folder, cfg: ModelConfig, seed: int = 0, max_frames: int | None
     ``jaw_share``: of the negative regions, the share centred on an instrument's jaws (``make_record``).
     ``boxes_only``: the images whose frame gives a ``bbox`` for the camera, with that box and no
     keypoints: inputs for distillation (``train``'s teacher), never targets."""
-    from tqdm import tqdm
+    from common.progress import progress_bar
     folder = Path(folder)
     meta, frames = read_dataset(folder)
     try:
@@ -267,7 +269,7 @@ def load_records(folder, cfg: ModelConfig, seed: int = 0, max_frames: int | None
         frames = frames[:max_frames]
     rng = np.random.default_rng(seed)
     out = []
-    for fr in tqdm(frames, desc=f"reading {folder.name}", unit="frame", disable=not progress):
+    for fr in progress_bar(frames, desc=f"reading {folder.name}", unit="frame", show=progress):
         for cam in CAMERAS:
             box = (fr.get("bbox") or {}).get(cam)
             if boxes_only and box is None:
@@ -288,7 +290,7 @@ def load_records(folder, cfg: ModelConfig, seed: int = 0, max_frames: int | None
             viss = (fr.get("visible") or {}).get(cam)
             if kps is not None and viss is None:
                 viss = [True] * 5
-            arc = _arc_pixels(rig, needle, cam, fr)
+            arc = true_arc_pixels(rig, needle, cam, fr)
             seen = (fr.get("arc_seen") or {}).get(cam)
             try:
                 jaws = jaw_pixels(rig, cam, fr) if jaw_share > 0 else None

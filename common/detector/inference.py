@@ -105,7 +105,8 @@ def image_problem(img) -> str | None:
     return None
 
 
-def _as_bgr(img: np.ndarray) -> np.ndarray:
+def as_bgr(img: np.ndarray) -> np.ndarray:
+    """A grey, one-channel or BGRA image as 3-channel BGR (a BGR image as it is)."""
     if img.ndim == 2:
         return cv2.cvtColor(img, cv2.COLOR_GRAY2BGR)
     if img.shape[2] == 1:
@@ -395,7 +396,7 @@ class KeypointDetector:
             self.reset(camera)
             log.warning("camera %s seq %d: bad image: %s", camera, seq, problem)
             return Keypoints.not_found(camera, seq, stamp_ns, self.name, f"bad image: {problem}")
-        img = _as_bgr(image)
+        img = as_bgr(image)
         res, conf = None, 0.0
         box = self._track.get(camera) if self.tracking else None
         if box is not None:

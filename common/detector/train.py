@@ -441,7 +441,7 @@ def train(data_dirs, out, config_path=None, log=print, progress=True, init=None,
     if mpath.is_file() and start_epoch:
         metrics = [json.loads(l) for l in mpath.read_text().splitlines() if l.strip()][:start_epoch]
 
-    from tqdm import tqdm
+    from common.progress import progress_bar
     w = tcfg["loss_weights"]
     last = {}
     model.train()
@@ -454,7 +454,7 @@ def train(data_dirs, out, config_path=None, log=print, progress=True, init=None,
         torch.manual_seed(seed * 1000 + epoch)
         order = rng.permutation(np.resize(rng.permutation(len(tr)), steps_per_epoch * int(tcfg["batch"])))
         running = None
-        bar = tqdm(range(steps_per_epoch), desc=f"epoch {epoch + 1}/{tcfg['epochs']}", disable=not progress,
+        bar = progress_bar(range(steps_per_epoch), desc=f"epoch {epoch + 1}/{tcfg['epochs']}", show=progress,
                    unit="step", dynamic_ncols=True)
         for step in bar:
             frac = progress_of(step_count, elapsed + time.time() - t0)

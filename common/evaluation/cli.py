@@ -20,19 +20,22 @@ from pathlib import Path
 
 import yaml
 
+from common.cli_options import add_dataset, add_quiet, add_weights, vector3
+from common.evaluation.replay_progress import wait_with_progress
+
 DETECTORS = ("learned", "classical", "oracle")
 
 
 def _parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog="needletrack eval", description=__doc__,
                                 formatter_class=argparse.RawDescriptionHelpFormatter)
-    p.add_argument("--dataset", required=True, help="dataset folder (docs/dataset.md) with ground truth")
+    add_dataset(p)
     p.add_argument("--detector", default="learned", choices=DETECTORS, help="keypoint backend (default learned)")
     p.add_argument("--out", default="results", help="output folder (default results/)")
     p.add_argument("--noise-px", type=float, default=0.0,
                    help="oracle only: Gaussian keypoint noise per coordinate (px)")
     p.add_argument("--seed", type=int, default=0, help="oracle only: noise seed")
-    p.add_argument("--model", help="learned only: weights file (default: the detector's shipped model)")
+    add_weights(p, "--model", learned_only=True)
     p.add_argument("--param", action="append", default=[], metavar="KEY=VALUE",
                    help="a detector parameter (repeatable), e.g. --param tracking=false")
     p.add_argument("--rate", default=None,
@@ -40,7 +43,7 @@ def _parser() -> argparse.ArgumentParser:
                         "frame is scored whatever the rate (the nodes queue their inputs here); "
                         "`needletrack bench` measures speed")
     p.add_argument("--no-refine", action="store_true", help="leave out the refinement node")
-    p.add_argument("--support-normal", metavar="X,Y,Z", type=_vector3,
+    p.add_argument("--support-normal", metavar="X,Y,Z", type=vector3,
                    help="the refinement's prior that the needle may rest on a surface with this "
                         "normal (world frame), e.g. 0,0,1 for the simulator's phantom (common/geometry/rest_prior.py; "
                         "default: no prior)")
@@ -52,18 +55,8 @@ def _parser() -> argparse.ArgumentParser:
                    help="also write the frames (Fig. 1 pictures), every method's pose and the errors "
                         "as a Rerun recording, to scrub frame by frame: `needletrack view FILE` "
                         "(needs the viewer extra)")
-    p.add_argument("--quiet", action="store_true", help="no progress bar")
+    add_quiet(p)
     return p
-
-
-def _vector3(text: str) -> list:
-    try:
-        v = [float(x) for x in text.split(",")]
-    except ValueError:
-        v = []
-    if len(v) != 3 or not any(v):
-        raise argparse.ArgumentTypeError(f"expected three numbers X,Y,Z not all zero, got {text!r}")
-    return v
 
 
 def check_folder(path: str, progress: bool = True):
@@ -216,7 +209,7 @@ def main(argv=None) -> int:
         try:
             with GraphRun(doc, log) as run:
                 run.start()
-                _wait_with_progress(run, n, timeout, quiet=args.quiet)
+                wait_with_progress(run, n, timeout, show=not args.quiet)
         except GraphRunError as exc:
             log.flush()
             print(f"needletrack eval: the graph failed: {exc}", file=sys.stderr)
@@ -257,8 +250,8 @@ def _clear_outputs(out: Path) -> None:
 
 
 def _bench(args, dataset: str, out: Path, res: dict) -> int:
-    """Measure the live graph (``common.evaluation.graph_bench``) and add it to results.json/report.md."""
-    from common.evaluation.graph_bench import measure, report
+    """Measure the live graph (``common.evaluation.graph_speed``) and add it to results.json/report.md."""
+    from common.evaluation.graph_speed import measure, report
     from common.evaluation.pipeline_graph import GraphRunError
     from common.evaluation.results import to_jsonable
     bargs = argparse.Namespace(detector=args.detector, model=args.model, rate="30",
@@ -278,51 +271,3 @@ def _bench(args, dataset: str, out: Path, res: dict) -> int:
         f.write("\n## Live graph speed (`needletrack bench`)\n\n```\n" + text + "\n```\n")
     print(text)
     return 0
-
-
-def _wait_with_progress(run, n_frames: int, timeout: float, quiet: bool, until=("evaluator",)) -> None:
-    """Wait for the ``until`` nodes (the evaluator), showing frames replayed (from the replay's
-    stats) as a bar."""
-    import threading
-
-    from tqdm import tqdm
-    done = threading.Event()
-    err: list = []
-
-    def waiter():
-        try:
-            run.wait(list(until), timeout)
-        except Exception as exc:
-            err.append(exc)
-        done.set()
-    threading.Thread(target=waiter, daemon=True).start()
-    bar = None if quiet else tqdm(total=n_frames, desc="eval", unit="frame")
-    sub = None
-    if bar is not None:
-        from common.runtime.graph import stats_key
-        from common.runtime.messages import NodeStats, decode
-        state = {"n": 0}
-
-        def on_stats(sample):
-            try:
-                st = decode(sample.payload.to_bytes(), NodeStats)
-            except Exception:
-                return
-            if st.node == "replay":
-                state["n"] = int(st.counters.get("out.left", 0))
-        try:
-            sub = run.client_session().declare_subscriber(stats_key(run.graph.name, "replay"), on_stats)
-        except Exception:
-            sub = None
-    while not done.wait(0.25):
-        if bar is not None and sub is not None and min(n_frames, state["n"]) != bar.n:
-            bar.n = min(n_frames, state["n"])
-            bar.refresh()
-    if bar is not None:
-        if not err:
-            bar.n = n_frames
-        bar.close()
-    if sub is not None:
-        sub.undeclare()
-    if err:
-        raise err[0]

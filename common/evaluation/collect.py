@@ -14,7 +14,7 @@ from common.evaluation.metrics import (
     RIGHT_DEG,
     RIGHT_MM,
     SWAP_DEG,
-    _needle_visible,
+    needle_visible,
     counted_seqs,
     keypoint_errors_2d,
     mean_std,
@@ -23,8 +23,8 @@ from common.evaluation.metrics import (
     pose_error_table,
     reliability_table,
     summary,
-    true_T_ecm_needle,
 )
+from common.data.truth import true_T_ecm_needle
 from common.frames import CAMERAS
 from common.geometry.ecm_kinematics import EcmArm
 from common.geometry.end_identity import TIP_SURE
@@ -184,7 +184,7 @@ def evaluate(col: Collected, methods=None) -> Evaluation:
             images += 1
             found = kp is not None and kp.found
             detected += found
-            if _needle_visible(gt, cam) is False:
+            if needle_visible(gt, cam) is False:
                 empty += 1
                 false_det += found
             uv = gt.keypoints.get(cam) if gt.keypoints else None

@@ -1,4 +1,4 @@
-"""Errors against ground truth: statistics, the true pose of a frame, which frames count, pose,
+"""Errors against ground truth: statistics, which frames count, pose,
 NEES, keypoint and 3D-point errors. Pure functions.
 
 Units: poses and points in metres inside, reported in mm / deg / px as the result keys say. A
@@ -20,7 +20,7 @@ import numpy as np
 
 from common.geometry.needle import NeedleModel
 from common.geometry.refine import tip_for_tail
-from common.geometry.transforms import R_to_rotvec, inv_T, pose_error
+from common.geometry.transforms import R_to_rotvec, pose_error
 from common.methods import MULTIVIEW_METHODS
 from common.runtime.messages import GroundTruth, Keypoints, Points3D, PoseEstimate
 
@@ -70,28 +70,7 @@ def _finite(values) -> np.ndarray:
     return v[np.isfinite(v)]
 
 
-# ---------------------------------------------------------------- ground truth
-
-def true_T_world_ecm(gt: GroundTruth, arm=None) -> Optional[np.ndarray]:
-    """The true endoscope pose of a frame: the truth's ``T_world_ecm``, else ``arm`` (an
-    ``EcmArm``) at the truth's joints; None when neither is known."""
-    if gt.T_world_ecm is not None:
-        return np.asarray(gt.T_world_ecm, float)
-    if arm is not None and gt.ecm_joints is not None:
-        return np.asarray(arm.T_world_ecm(gt.ecm_joints), float)
-    return None
-
-
-def true_T_ecm_needle(gt: GroundTruth, arm=None) -> Optional[np.ndarray]:
-    """The true needle pose in the ECM frame of a frame, or None when the truth lacks it
-    (``T_world_ecm``: ``true_T_world_ecm``)."""
-    if gt.T_world_needle is None:
-        return None
-    T_world_ecm = true_T_world_ecm(gt, arm)
-    if T_world_ecm is None:
-        return None
-    return inv_T(np.asarray(T_world_ecm, float)) @ np.asarray(gt.T_world_needle, float)
-
+# ---------------------------------------------------------------- which frames count
 
 def last_steps(truths: dict) -> list[int]:
     """Seqs of the last step of every sequence (largest ``step``, then largest seq).
@@ -228,7 +207,7 @@ def point_errors_3d(p3: Optional[Points3D], T_true: np.ndarray, needle: NeedleMo
     return err
 
 
-def _needle_visible(gt: GroundTruth, camera: str) -> Optional[bool]:
+def needle_visible(gt: GroundTruth, camera: str) -> Optional[bool]:
     """Whether the truth says the needle is seen in a camera (None when it does not say)."""
     if gt.visible is not None and gt.visible.get(camera) is not None:
         return bool(np.any(np.asarray(gt.visible[camera], bool)))

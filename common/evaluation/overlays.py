@@ -16,10 +16,7 @@ from common.geometry.needle import KEYPOINT_NAMES, NeedleModel
 from common.geometry.transforms import transform_points
 from common import palette
 from common.methods import FINAL_ORDER, MULTIVIEW_METHODS
-
-TRUTH_BGR = palette.bgr(palette.TRUTH)
-DETECTION_BGR = palette.bgr(palette.DETECTION)
-
+from common.viewer.draw import DETECTION_BGR, TRUTH_BGR, crop_box
 
 def select_overlay_frames(ev: Evaluation, k_worst: int = 3) -> list[tuple[int, str]]:
     """Frames worth looking at: the worst ``k_worst`` of the best-scored single-frame method and
@@ -50,22 +47,6 @@ def select_overlay_frames(ev: Evaluation, k_worst: int = 3) -> list[tuple[int, s
             pick(m)
             break
     return sorted(chosen.items(), key=lambda kv: kv[0])
-
-
-def crop_box(uv_list, w, h, min_size=40, margin=0.2):
-    """(x0, y0, x1, y1) px of a square crop of a ``w x h`` image around the finite points of
-    ``uv_list`` (arrays (N, 2) or None): their extent (at least ``min_size``) widened by
-    ``margin`` on each side, clipped to the image; the whole image when there is no point."""
-    pts = np.concatenate([u for u in uv_list if u is not None and len(u)], axis=0)
-    pts = pts[np.all(np.isfinite(pts), axis=1)]
-    if not len(pts):
-        return 0, 0, w, h
-    (x0, y0), (x1, y1) = pts.min(0), pts.max(0)
-    size = max(x1 - x0, y1 - y0, min_size) * (1 + 2 * margin)
-    cx, cy = (x0 + x1) / 2, (y0 + y1) / 2
-    x0, y0 = int(max(0, cx - size / 2)), int(max(0, cy - size / 2))
-    x1, y1 = int(min(w, cx + size / 2)), int(min(h, cy + size / 2))
-    return x0, y0, max(x1, x0 + 2), max(y1, y0 + 2)
 
 
 def draw_overlay(images: dict, rig, needle: NeedleModel, T_true, estimates: dict,

@@ -19,7 +19,7 @@ from typing import Callable, Optional
 import numpy as np
 
 from common.errors import NeedletrackError
-from common.evaluation.metrics import true_T_world_ecm
+from common.data.truth import true_T_world_ecm
 from common.evaluation.moving import method_errors, shown_take
 
 FOURCC = "mp4v"

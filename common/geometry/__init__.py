@@ -1,36 +1,49 @@
-"""Geometry: from keypoints to needle poses. Imports nothing of the rest of ``common``.
+"""Geometry: from keypoints to needle poses, pure NumPy/OpenCV. Imports nothing of the rest of
+``common``.
 
 Conventions: 4x4 ``T_a_b`` maps frame b to frame a (``p_a = T_a_b @ p_b``), metres and radians
 (degrees only in names ending ``_deg``); OpenCV cameras (x right, y down, z forward). Frames:
 ``world``, ``ecm``, ``left``, ``right``, ``needle`` (docs/dataset.md).
 
-``transforms`` (rigid transforms, rotations, means, errors), ``camera`` (pinhole + distortion,
-the stereo rig), ``needle`` (the arc model and keypoints A..E), ``ecm_kinematics`` (the
-endoscope arm), ``observations`` (usable keypoints, ``NoPose``), ``lm`` (the batched Levenberg-Marquardt of
-the PnP and the dense fit), ``reprojection`` (the PnP's cost and fit), ``pnp`` (EPnP per camera and
-the joint stereo PnP, Pipeline I), ``triangulation`` (DLT + Arun, Pipeline II), ``fusion``
-(multi-view), ``refine`` and ``refine_tracking`` (the dense arc fit, cold and warm),
-``rest_prior`` (the needle resting on a surface), ``oracle`` (true keypoints with simulated
-detector errors).
+Modules (``python -m common.layout`` writes this list from their docstrings):
 
-The entry points are re-exported here (``from common.geometry import pnp_joint``), each
-imported when first used.
+- ``arc_problem``: The dense fit's residuals, precomputed per rig and needle: the projected model
+  arc in both cameras, each observed centreline point's foot on it (Newton steps along the exact
+  projected circle), the keypoint and curve residuals with their analytic Jacobians over ``[w, v]``
+  (a rotation vector left-multiplied in the ECM frame, a translation in the ECM frame), and the
+  robust (Cauchy) loss.
+- ``arc_support``: How much of a fitted arc the images saw: the share of the needle's arc, at a
+  pose, that an observed centreline point or keypoint lies near in a camera.
+- ``camera``: Pinhole cameras and the stereo endoscope rig (OpenCV conventions).
+- ``ecm_kinematics``: Forward kinematics of the da Vinci endoscope arm (ECM), as the dataset spec
+  defines it.
+- ``end_identity``: Which end of the needle is the tip: combining the cameras' evidence, turning
+  observations end for end, and a covariance that spans both answers when the images cannot decide.
+- ``error_state``: The error-state pieces of the needle tracker (``common.geometry.needle_tracker``)
+  on SE(3): a pose's error ``[w, v]`` (rad, m) with ``R = exp([w]x) R_hat``, ``t = t_hat + v``; the
+  motion models' process noise, the jaws' lever arm, the Mahalanobis distance.
+- ``fusion``: Multi-view fusion: the needle pose from the last k estimates made while the endoscope
+  moves.
+- ``lm``: Batched Levenberg-Marquardt over rigid poses: the one loop of the PnP's reprojection fit
+  (``reprojection``) and the dense arc fit (``refine``).
+- ``needle``: The needle model: a circular arc in the needle frame's x-y plane.
+- ``needle_tracker``: The needle tracked over time: at rest, held in an instrument's jaws, or free
+  and moving.
+- ``observations``: Keypoint observations for the pose solvers, and the error they raise when no
+  pose exists.
+- ``oracle``: The oracle detector: keypoints from ground truth, with configurable, seeded
+  imperfections.
+- ``pnp``: Pipeline I: the needle pose ``T_ecm_needle`` from its keypoints by Perspective-n-Point.
+- ``refine``: Dense pose refinement: fit the whole projected needle arc in both cameras at once.
+- ``refine_tracking``: Frame-to-frame dense refinement: in a video, start each frame from the last
+  frame's solutions.
+- ``reprojection``: The weighted reprojection error of a needle pose in one or more cameras, its
+  analytic Jacobian, its batched Levenberg-Marquardt over many starting poses (``lm``), and the pose
+  covariance.
+- ``rest_prior``: Prior over the needle's orientation: a needle at rest lies flat on the surface
+  beneath it.
+- ``transforms``: Rigid transforms: 4x4 homogeneous ``T_a_b`` mapping frame b to frame a (metres,
+  radians).
+- ``triangulation``: Pipeline II: DLT stereo triangulation of the keypoints and Arun's registration
+  of the needle model onto them -> ``T_ecm_needle`` (ECM frame, m).
 """
-from __future__ import annotations
-
-import importlib
-
-_EXPORTS = {
-    "make_T": "transforms", "inv_T": "transforms", "transform_points": "transforms",
-    "pose_error": "transforms", "Camera": "camera", "StereoRig": "camera", "NeedleModel": "needle",
-    "EcmArm": "ecm_kinematics", "NoPose": "observations", "pnp_average": "pnp", "pnp_joint": "pnp",
-    "triangulation_pose": "triangulation", "DenseRefiner": "refine", "refine_pose": "refine",
-    "RefineConfig": "refine",
-}
-__all__ = sorted(_EXPORTS)
-
-
-def __getattr__(name: str):
-    if name in _EXPORTS:
-        return getattr(importlib.import_module(f"{__name__}.{_EXPORTS[name]}"), name)
-    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")

@@ -29,7 +29,7 @@ class RefineError(NeedletrackError, ValueError):
         self.reason = reason
 
 
-class _Static:
+class ArcStatic:
     """What does not change between frames: cameras and needle model, shaped to broadcast over
     (P poses, C = 2 cameras, N points)."""
 
@@ -63,7 +63,7 @@ class _Static:
         self._end_cs = np.array([[np.cos(self.half), -np.sin(self.half)],
                                  [np.cos(self.half), np.sin(self.half)]])  # A, E
         self._perp = np.array([-1.0, 1.0])           # (cos, sin)[::-1] * perp = d/d angle
-        # Jacobian rows (see _Problem.evaluate): for a point at W (camera frame, from the needle
+        # Jacobian rows (see ArcProblem.evaluate): for a point at W (camera frame, from the needle
         # origin) with pixel offset (du, dv) from the principal point and 1/depth iz,
         #   d u / d[dr_c, dt_c] = iz (Ku(W) - du m(W)),  d v / d[dr_c, dt_c] = iz (Kv(W) - dv m(W)),
         #   Ku = [-sk W2, fx W2, sk W0 - fx W1, fx, sk, 0], Kv = [-fy W2, 0, fy W0, 0, fy, 0],
@@ -93,11 +93,11 @@ class _Static:
         self.is_kp = np.concatenate([np.ones((C, 10), bool), np.zeros((C, 2 * M), bool)], axis=1).ravel()
 
 
-class _Problem:
+class ArcProblem:
     """Observations of one stereo frame, arranged for batched evaluation: per camera 5 keypoints
     and M centreline points (zero weight where absent or left out)."""
 
-    def __init__(self, st: _Static, obs: Mapping[str, ArcObservation]):
+    def __init__(self, st: ArcStatic, obs: Mapping[str, ArcObservation]):
         self.__dict__.update(st.__dict__)
         cfg, C, M = st.cfg, st.C, st.M
         U, wU = np.zeros((C, 5, 2)), np.zeros((C, 5))
@@ -279,7 +279,7 @@ class _Problem:
         if not jacobian:
             return r, None, valid
 
-        # d(u, v)/d[dr, dt] of every point (see _Static: Ku, Kv, m), in the ECM frame
+        # d(u, v)/d[dr, dt] of every point (see ArcStatic: Ku, Kv, m), in the ECM frame
         Q = W @ self._L + self._L1                                          # (P, C, N, 18)
         izc = iz[..., None]
         Gu = (Q[..., :6] - (u - self._cx)[..., None] * Q[..., 12:]) * izc

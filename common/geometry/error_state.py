@@ -46,7 +46,7 @@ def nis(r: np.ndarray, S: np.ndarray) -> float:
         return float("inf")
 
 
-def _rot(R: np.ndarray, n: int = 6) -> np.ndarray:
+def block_rotation(R: np.ndarray, n: int = 6) -> np.ndarray:
     """blkdiag(R, R[, ...]) of size n: a [w, v(, ...)] error from one frame's axes to another's."""
     A = np.zeros((n, n))
     for i in range(0, n, 3):

@@ -57,7 +57,7 @@ import numpy as np
 from common.constraints import NonNegativeNumber, Probability, check_fields, number_at_least
 from common.geometry.end_identity import end_for_end_delta, sigmoid, track_identity
 from common.geometry.error_state import (  # noqa: F401  (retract: re-exported)
-    _rot,
+    block_rotation,
     constant_velocity,
     jaw_jacobian,
     nis,
@@ -66,8 +66,7 @@ from common.geometry.error_state import (  # noqa: F401  (retract: re-exported)
 )
 from common.geometry.fusion import covariance_to_frame, without_common
 from common.geometry.needle import NeedleModel
-from common.geometry.refine import _pose_delta as pose_delta
-from common.geometry.transforms import inv_T, symmetrise, transform_points
+from common.geometry.transforms import inv_T, pose_delta, symmetrise, transform_points
 
 CHI2_6_999 = 22.46
 """Chi-square with 6 degrees of freedom exceeds this in 0.1% of the draws."""
@@ -281,7 +280,7 @@ class NeedleTracker:
         H = np.zeros((6, n))
         if self.mode == "held":
             Tj = jaws[self.holder].T_world_jaw
-            H[:, :6] = _rot(Tj[:3, :3])
+            H[:, :6] = block_rotation(Tj[:3, :3])
             R_meas = R_meas + self._jaw_noise(Tj, Tw)
         else:
             H[:, :6] = np.eye(6)

@@ -48,10 +48,10 @@ from common.constraints import NonNegativeNumber, PositiveNumber, at_least, chec
 from common.geometry.camera import Camera, StereoRig
 from common.geometry.needle import NeedleModel
 from common.geometry.rest_prior import resting_log_prior
-from common.geometry.arc_problem import RefineError, _Problem, _Static
+from common.geometry.arc_problem import ArcProblem, ArcStatic, RefineError
 from common.geometry.transforms import (
-    R_to_rotvec,
     make_T,
+    pose_delta,
     project_to_SO3,
     skew,
     symmetrise,
@@ -249,21 +249,9 @@ def mirror_covariance(T_ecm_needle: np.ndarray, covariance: np.ndarray, needle: 
     return J @ np.asarray(covariance, float) @ J.T
 
 
-def _pose_delta(T, T_ref):
-    """[rotation vector of R R_ref^T, t - t_ref]: T as a left increment of T_ref (ECM frame)."""
-    dR = T[:3, :3] @ T_ref[:3, :3].T
-    c = (dR[0, 0] + dR[1, 1] + dR[2, 2] - 1.0) / 2.0
-    if -0.99 < c < 1.0 - 1e-12:            # away from 0 and pi: the log map directly
-        a = math.acos(c)
-        w = np.array([dR[2, 1] - dR[1, 2], dR[0, 2] - dR[2, 0], dR[1, 0] - dR[0, 1]]) * (a / (2 * math.sin(a)))
-    else:
-        w = R_to_rotvec(dR)
-    return np.concatenate([w, T[:3, 3] - T_ref[:3, 3]])
-
-
 # ------------------------------------------------------------------ the solver
 
-def _linearise(prob: _Problem, R, t, prev=None):
+def _linearise(prob: ArcProblem, R, t, prev=None):
     """``lm.run``'s view of the fit: residuals, Jacobians, IRLS weights, robust costs (inf for
     an invalid pose) and the observed points' feet, carried over from ``prev`` when given."""
     r, J, cs, valid = prob.linearise(R, t, None if prev is None else prev["cs"])
@@ -273,7 +261,7 @@ def _linearise(prob: _Problem, R, t, prev=None):
     return r, J, wr, cost, {"cs": cs}
 
 
-def _lm(prob: _Problem, fits: lm.Fits, cfg: RefineConfig, n_iter: int) -> lm.Fits:
+def _lm(prob: ArcProblem, fits: lm.Fits, cfg: RefineConfig, n_iter: int) -> lm.Fits:
     """The batched Levenberg-Marquardt (``lm.run``) on K poses.
 
     A pose is done when the step on offer is far inside its own uncertainty (the step's cost
@@ -299,7 +287,7 @@ class DenseRefiner:
     def __init__(self, rig: StereoRig, needle: NeedleModel, config: RefineConfig | None = None):
         self.config = config or RefineConfig()
         self.rig, self.needle = rig, needle
-        self._static = _Static(rig, needle, self.config)
+        self._static = ArcStatic(rig, needle, self.config)
 
     def refine(self, observations: Mapping[str, ArcObservation],
                candidates: Sequence[np.ndarray], mirrors: bool | None = None,
@@ -313,7 +301,7 @@ class DenseRefiner:
                  if T is not None and np.shape(T) == (4, 4) and np.all(np.isfinite(T))]
         if not cands:
             raise RefineError("no_candidates", "no finite 4x4 initial pose given")
-        prob = _Problem(st, observations)
+        prob = ArcProblem(st, observations)
 
         # Starts closer than merge_mm / merge_deg would converge to the same minimum: keep one.
         starts: list[np.ndarray] = []
@@ -376,7 +364,7 @@ def _dedupe(s, idx, mm, deg):
     return np.array(kept, int)
 
 
-def _residual_variance(prob: _Problem, r, wr, cfg: RefineConfig) -> float:
+def _residual_variance(prob: ArcProblem, r, wr, cfg: RefineConfig) -> float:
     """Residual variance at an optimum, in units of the assumed sigmas (~1 when they hold). An
     exact fit does not claim infinite certainty: at least min_sigma_ratio of the sigmas."""
     return max(float((wr * r ** 2).sum() / max(prob.n_res - 6, 1)), cfg.min_sigma_ratio ** 2)
@@ -387,7 +375,7 @@ def near_expected(T_ecm_needle: np.ndarray, expected: np.ndarray, cfg: RefineCon
     return _near_any(T_ecm_needle, [expected], cfg.expected_mm, cfg.expected_deg)
 
 
-def _expected_minimum(prob: _Problem, s, order: np.ndarray, s2: float, cfg: RefineConfig,
+def _expected_minimum(prob: ArcProblem, s, order: np.ndarray, s2: float, cfg: RefineConfig,
                       expected: np.ndarray) -> int:
     """Position in ``order`` of the one minimum near-equal to the best (within ambiguity_chi2
     residual variances, edge_on_chi2 when the best is seen edge-on) that lies within
@@ -404,7 +392,7 @@ def _expected_minimum(prob: _Problem, s, order: np.ndarray, s2: float, cfg: Refi
     return hits[0] if same else 0
 
 
-def _promote(prob: _Problem, s, order: np.ndarray, k: int, cfg: RefineConfig):
+def _promote(prob: ArcProblem, s, order: np.ndarray, k: int, cfg: RefineConfig):
     """``order`` with its ``k``-th minimum first, and that minimum's index, residuals, robust
     weights and residual variance: (order, b, r, wr, s2)."""
     if k:
@@ -415,7 +403,7 @@ def _promote(prob: _Problem, s, order: np.ndarray, k: int, cfg: RefineConfig):
     return order, b, r, wr, _residual_variance(prob, r, wr, cfg)
 
 
-def _result(prob: _Problem, s, cfg: RefineConfig, log_prior=None, expected=None) -> RefineResult:
+def _result(prob: ArcProblem, s, cfg: RefineConfig, log_prior=None, expected=None) -> RefineResult:
     """The best minimum: the lowest cost, or with ``log_prior`` (K,) the lowest cost in residual
     variances less twice the log prior; then, with ``expected`` (4x4), the near-equal minimum
     alone near it (``_expected_minimum``). Competitors, the ambiguity and the covariance's
@@ -464,7 +452,7 @@ def _result(prob: _Problem, s, cfg: RefineConfig, log_prior=None, expected=None)
     for Tj, dchi in competitors:
         a = 1.0 if dchi < full else float(np.exp(-0.5 * dchi))
         if a > 1e-12:
-            d = _pose_delta(Tj, T0)
+            d = pose_delta(Tj, T0)
             cov = cov + a * np.outer(d, d)
     cov = symmetrise(cov)
     return RefineResult(
@@ -495,7 +483,7 @@ def _inv_psd(H):
     return (V / w) @ V.T / dd
 
 
-def _view_angle_deg(prob: _Problem, T) -> float:
+def _view_angle_deg(prob: ArcProblem, T) -> float:
     """Smallest angle (deg) between the arc's plane and a camera's line of sight to the arc."""
     v = (T[:3, :3] @ prob.arc_centroid + T[:3, 3]) - prob.cam_centres
     s = np.abs(v @ T[:3, 2]) / np.sqrt((v * v).sum(axis=1))

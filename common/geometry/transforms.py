@@ -136,6 +136,19 @@ def rotation_angle(R: np.ndarray) -> float:
     return float(np.arctan2(s, c))
 
 
+def pose_delta(T: np.ndarray, T_ref: np.ndarray) -> np.ndarray:
+    """[rotation vector of R R_ref^T (rad), t - t_ref (m)]: T as a left increment of T_ref, in the
+    axes both are expressed in (the order of ``PoseEstimate.covariance``: [w, v])."""
+    dR = T[:3, :3] @ T_ref[:3, :3].T
+    c = (dR[0, 0] + dR[1, 1] + dR[2, 2] - 1.0) / 2.0
+    if -0.99 < c < 1.0 - 1e-12:            # away from 0 and pi: the log map directly
+        a = math.acos(c)
+        w = np.array([dR[2, 1] - dR[1, 2], dR[0, 2] - dR[2, 0], dR[1, 0] - dR[0, 1]]) * (a / (2 * math.sin(a)))
+    else:
+        w = R_to_rotvec(dR)
+    return np.concatenate([w, T[:3, 3] - T_ref[:3, 3]])
+
+
 def pose_error(T_est: np.ndarray, T_true: np.ndarray) -> tuple[float, float]:
     """(position error m, orientation error rad): origin distance and angle of R_est^T R_true."""
     dt = float(np.linalg.norm(T_est[:3, 3] - T_true[:3, 3]))

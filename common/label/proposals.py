@@ -12,9 +12,9 @@ from __future__ import annotations
 from typing import Optional
 
 import numpy as np
-from tqdm import tqdm
 
 from common.frames import CAMERAS
+from common.progress import progress_bar
 
 
 def stereo_detections(ds, backend, frames=None, progress: bool = True, desc: str = "detecting"):
@@ -26,7 +26,7 @@ def stereo_detections(ds, backend, frames=None, progress: bool = True, desc: str
     calib = Calibration(stamp_ns=0, image_size=np.array(meta.image_size), cameras=meta.rig.to_dict(),
                         needle=meta.needle.to_dict(), ecm=None if meta.arm is None else meta.arm.to_dict(),
                         source=f"needletrack {ds.path}")
-    for fr in tqdm(ds.frames if frames is None else frames, desc=desc, unit="frame", disable=not progress):
+    for fr in progress_bar(ds.frames if frames is None else frames, desc=desc, unit="frame", show=progress):
         try:
             images = {c: ds.image(fr, c) for c in CAMERAS}
         except ValueError:

@@ -21,6 +21,7 @@ from typing import Optional
 
 import numpy as np
 
+from common.cli_options import add_quiet
 from common.data.dataset import DatasetError
 from common.frames import CAMERAS
 from common.geometry.oracle import true_keypoints
@@ -294,7 +295,7 @@ def main(argv=None) -> int:
     p.add_argument("--click-sigma", type=float, default=CLICK_SIGMA_PX,
                    help=f"the stated 1-sigma error of a click per axis, px (default {CLICK_SIGMA_PX:g})")
     p.add_argument("--duration", type=float, help="stop after this many seconds")
-    p.add_argument("--quiet", action="store_true", help="no progress bar")
+    add_quiet(p)
     a = p.parse_args(argv)
     from common.detector.backends import BackendError
     from common.runtime.graph import parse_param

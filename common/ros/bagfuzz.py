@@ -52,8 +52,8 @@ def synthetic_bag(path: str, frames: int = 6, ros: int = 2, size=(64, 48), seed:
         out = McapRos2Writer(path)
         put = out.write
     else:
-        from common.ros.synth import _Out
-        out = _Out(path, 1, "")
+        from common.ros.synth import BagWriter
+        out = BagWriter(path, 1, "")
 
         def put(topic, msg, t):
             out.write(topic, msg, t)

@@ -4,6 +4,8 @@ from __future__ import annotations
 
 import sys
 
+from common.cli_options import add_quiet
+
 
 def add_parsers(sub) -> dict:
     """The ROS subcommands of ``needletrack dataset``; returns their handlers."""
@@ -18,7 +20,7 @@ def add_parsers(sub) -> dict:
     fb.add_argument("--format", default="png", choices=["jpg", "png"], help="image files (default png)")
     fb.add_argument("--max-frames", type=int, default=0, help="stop after this many frames (0: all)")
     fb.add_argument("--stride", type=int, default=1, help="keep every Nth stereo frame")
-    fb.add_argument("--quiet", action="store_true", help="no progress bar")
+    add_quiet(fb)
     tb = sub.add_parser("to-bag", help="write a dataset folder as a bag in the AMBF or dVRK conventions",
                         description="ambf: ROS 1 .bag, rgb8, ambf_msgs states, decimetres (2021-22 challenge); "
                                     "dvrk: ROS 2 MCAP with camera_info, /ECM topics, a registration file and a topic "
@@ -36,7 +38,7 @@ def add_parsers(sub) -> dict:
     di.add_argument("--out", required=True)
     di.add_argument("--dist", required=True, metavar="K1,K2,P1,P2[,K3]", help="OpenCV distortion coefficients")
     di.add_argument("--format", default="png", choices=["jpg", "png"])
-    di.add_argument("--quiet", action="store_true")
+    add_quiet(di)
     return {name: _ros for name in ("from-bag", "to-bag", "distort")}
 
 

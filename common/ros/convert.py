@@ -109,8 +109,8 @@ def from_bag(bag: str, out: str, preset: str | None = None, topics=None, image_f
         hint = src.frame_count_hint()
         bar = None
         if progress:
-            from tqdm import tqdm
-            bar = tqdm(total=hint, desc="from-bag", unit="frame")
+            from common.progress import progress_bar
+            bar = progress_bar(total=hint, desc="from-bag", unit="frame")
         try:
             for s in src:
                 if bar is not None:

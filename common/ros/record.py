@@ -344,7 +344,7 @@ def record_main(argv: list) -> int:
                                                                  "SIGTERM, SIGHUP or the source's end of stream)")
     ap.add_argument("--no-eos-stop", action="store_true", help="keep recording after an EndOfStream")
     args = ap.parse_args(argv)
-    from common.runtime.tools import _load_or_report
+    from common.runtime.tools import load_or_report
     if not args.out.endswith(".mcap"):
         print("error: --out must name a .mcap file", file=sys.stderr)
         return 2
@@ -355,7 +355,7 @@ def record_main(argv: list) -> int:
     if not os.path.isdir(folder):
         print(f"error: --out {args.out}: no folder {folder} (create it first)", file=sys.stderr)
         return 2
-    graph = _load_or_report(args.graph)
+    graph = load_or_report(args.graph)
     if graph is None:
         return 2
     stop = threading.Event()

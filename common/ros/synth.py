@@ -68,7 +68,7 @@ def _jaw_state(store, stamp, jaw_rad: float):
                       position=np.array([float(jaw_rad)]), velocity=np.zeros(1), effort=np.zeros(1))
 
 
-class _Out:
+class BagWriter:
     """One writer API over rosbags' ROS 1 and ROS 2 writers."""
 
     def __init__(self, path: str, ros: int, storage: str):
@@ -112,7 +112,7 @@ def dataset_to_bag(dataset: str, out: str, convention: str, *, unit: str | None 
         raise ValueError(f"{out} exists; writers only create new bags")
     if convention == "ambf" and (np.any(rig.left.dist) or np.any(rig.right.dist)):
         raise ValueError(f"{dataset}: AMBF has no lens distortion and no camera_info: use a pinhole dataset")
-    bag = _Out(out, ros, storage)
+    bag = BagWriter(out, ros, storage)
     store = bag.store
     frames = ds.frames[:max_frames] if max_frames else ds.frames
     enc = encoding or ("rgb8" if convention == "ambf" else "bgr8")
@@ -236,8 +236,8 @@ def distort_dataset(src: str, out: str, dist, image_format: str = "png", progres
     maps = {c: distortion_maps(rig[c].K, rig[c].dist, ds.meta.image_size) for c in CAMERAS}
     it = ds.frames
     if progress:
-        from tqdm import tqdm
-        it = tqdm(it, desc="distort", unit="frame")
+        from common.progress import progress_bar
+        it = progress_bar(it, desc="distort", unit="frame")
     with DatasetWriter(out, meta, image_format=image_format) as w:
         for fr in it:
             imgs = {c: cv2.remap(ds.image(fr, c), *maps[c], cv2.INTER_CUBIC, borderMode=cv2.BORDER_REPLICATE)

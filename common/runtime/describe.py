@@ -17,7 +17,7 @@ import sys
 from pathlib import Path
 
 from common.runtime.graph import available_modules
-from common.runtime.params import _describe, _hints
+from common.runtime.params import describe_type, field_types
 
 PAGE = Path(__file__).resolve().parents[2] / "docs" / "nodes.md"
 
@@ -65,11 +65,11 @@ def describe(module: str) -> dict:
     schema = cls.param_schema({}) if hasattr(cls, "param_schema") else getattr(cls, "Params", None)
     params = []
     if schema is not None:
-        hints, docs = _hints(schema), field_docs(schema)
+        hints, docs = field_types(schema), field_docs(schema)
         for f in dataclasses.fields(schema):
             default = (f.default_factory() if f.default_factory is not dataclasses.MISSING
                        else None if f.default is dataclasses.MISSING else f.default)
-            params.append((f.name, _describe(hints[f.name]), default, docs.get(f.name, "")))
+            params.append((f.name, describe_type(hints[f.name]), default, docs.get(f.name, "")))
     return {"module": module, "summary": summary,
             "inputs": [(k, _type_name(v)) for k, v in getattr(cls, "INPUTS", {}).items()],
             "outputs": list(getattr(cls, "OUTPUTS", ())), "params": params}

@@ -49,10 +49,10 @@ NODES_DIR = Path(__file__).resolve().parents[2] / "nodes"
 REPO_ROOT = NODES_DIR.parent
 
 _NAME = r"^[A-Za-z0-9_][A-Za-z0-9_.-]*$"
-_NAME_RE = re.compile(_NAME)
+NAME_RE = re.compile(_NAME)
 _MODULE = r"^[A-Za-z_][A-Za-z0-9_]*(\.[A-Za-z_][A-Za-z0-9_]*)*$"
 _MODULE_RE = re.compile(_MODULE)
-_ENDPOINT_RE = re.compile(r"^(tcp|udp|tls|quic|ws|unixsock-stream)/\S+$")
+ENDPOINT_RE = re.compile(r"^(tcp|udp|tls|quic|ws|unixsock-stream)/\S+$")
 LAUNCHER_IDENTITY = "launcher"     # the TLS identity of launchers and CLI tools (the operator)
 
 # the graph file's fields (common/runtime/schema.py): a field is declared once below, its type and
@@ -76,7 +76,7 @@ class GraphError(NeedletrackError, ValueError):
         super().__init__(f"{source}: {len(self.errors)} error(s)\n" + "\n".join(f"  {e}" for e in self.errors))
 
 
-_FEEDBACK = "expected a list of this node's input names, got {value!r}"
+FEEDBACK_ERROR = "expected a list of this node's input names, got {value!r}"
 
 
 @dataclass
@@ -130,7 +130,7 @@ class NodeSpec:
     spare: Flag = False            # a warm spare process takes over when the node's process exits
     env: Annotated[Optional[dict], Says("expected a map of NAME: value, got {kind}", types=True)] = field(
         default_factory=dict)
-    feedback: Annotated[Optional[list[str]], Says(_FEEDBACK, types=True)] = field(
+    feedback: Annotated[Optional[list[str]], Says(FEEDBACK_ERROR, types=True)] = field(
         default_factory=list)    # inputs that close a declared cycle (acks)
 
     def to_dict(self) -> dict:

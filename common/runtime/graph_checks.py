@@ -6,19 +6,19 @@ import re
 from typing import Any, Optional
 
 from common.runtime.graph import (
-    available_modules,
-    _ENDPOINT_RE,
-    Graph,
+    ENDPOINT_RE,
+    FEEDBACK_ERROR,
     LAUNCHER_IDENTITY,
-    module_info,
-    _FEEDBACK,
-    _NAME_RE,
+    NAME_RE,
+    Graph,
     NodeSpec,
     TlsSettings,
     ZenohSettings,
+    available_modules,
+    module_info,
 )
 from common.runtime.schema import kind_name, section_errors, unknown_key_errors
-from common.runtime.zenoh_session import _endpoint_host, _is_loopback
+from common.runtime.zenoh_session import endpoint_host, is_loopback
 
 
 def validate_graph(data: Any) -> list:
@@ -35,7 +35,7 @@ def validate_graph(data: Any) -> list:
             wrong = section_errors("zenoh.", ZenohSettings, z, (k,))
             errs += wrong
             for i, e in enumerate(z[k] if k in z and not wrong else ()):
-                if not isinstance(e, str) or not _ENDPOINT_RE.match(e):
+                if not isinstance(e, str) or not ENDPOINT_RE.match(e):
                     errs.append(f"zenoh.{k}[{i}]: not an endpoint like 'tcp/127.0.0.1:7447': {e!r}")
                 elif e.startswith("tls/") and "tls" not in z:
                     errs.append(f"zenoh.{k}[{i}]: {e!r} is a TLS endpoint: configure zenoh.tls "
@@ -70,7 +70,7 @@ def validate_graph(data: Any) -> list:
         if not isinstance(n, dict):
             continue
         nid = n.get("id")
-        if isinstance(nid, str) and _NAME_RE.match(nid):
+        if isinstance(nid, str) and NAME_RE.match(nid):
             if nid in ids:
                 errs.append(f"nodes[{i}].id: duplicate id {nid!r} (also nodes[{ids[nid]}])")
             else:
@@ -132,13 +132,13 @@ def _node_errors(at: str, n: dict, tls: bool, ids: dict, outputs: dict) -> list:
     wrong = section_errors(f"{at}.", NodeSpec, n, ("feedback",))
     ins = n.get("inputs")
     if not wrong and not set(n.get("feedback") or ()) <= set(ins if isinstance(ins, (dict, list)) else ()):
-        wrong = [f"{at}.feedback: " + _FEEDBACK.format(value=n["feedback"])]
+        wrong = [f"{at}.feedback: " + FEEDBACK_ERROR.format(value=n["feedback"])]
     errs += wrong
     wrong = section_errors(f"{at}.", NodeSpec, n, ("outputs",))
     errs += wrong
     seen = set()
     for j, o in enumerate(n.get("outputs") or () if not wrong else ()):
-        if not isinstance(o, str) or not _NAME_RE.match(o) or o == "cmd":
+        if not isinstance(o, str) or not NAME_RE.match(o) or o == "cmd":
             errs.append(f"{at}.outputs[{j}]: bad output name {o!r}")
         elif o in seen:
             errs.append(f"{at}.outputs[{j}]: duplicate output {o!r}")
@@ -150,7 +150,7 @@ def _node_errors(at: str, n: dict, tls: bool, ids: dict, outputs: dict) -> list:
     errs += wrong
     for name, src in (ins or {}).items() if not wrong else ():
         where = f"{at}.inputs.{name}"
-        if not isinstance(name, str) or not _NAME_RE.match(name):
+        if not isinstance(name, str) or not NAME_RE.match(name):
             errs.append(f"{where}: bad input name")
             continue
         if info and info["inputs"] is not None and name not in info["inputs"]:
@@ -226,8 +226,8 @@ def graph_warnings(graph: "Graph") -> list:
     warns = ["zenoh.open: true: the graph runs without credentials: any local process can publish poses, "
              "send commands, swap and hand over nodes (for interop set-ups only; docs/runtime.md)"]
     for i, e in enumerate(graph.zenoh.listen):
-        host = _endpoint_host(e)
-        if not e.startswith("tls/") and host is not None and not _is_loopback(host):
+        host = endpoint_host(e)
+        if not e.startswith("tls/") and host is not None and not is_loopback(host):
             warns.append(f"zenoh.listen[{i}]: {e!r} listens beyond this host without TLS: any process "
                          f"that reaches it can publish poses and send commands (use tls/ and zenoh.tls; "
                          f"docs/multi-host.md)")

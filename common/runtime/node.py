@@ -135,7 +135,7 @@ class Node:
         frame clock (see ``SeqClock``); returns False if the clock dropped it. The runtime calls
         this for every message; offline tests and the fuzzer may too."""
         handler = self.on_command if name == "@cmd" else getattr(self, f"on_{name}")
-        seq = _seq_of(msg)
+        seq = seq_of(msg)
         if seq is not None:
             verdict = self.frame_clock.observe(seq, getattr(msg, "epoch", None))
             if verdict in ("outlier", "stale"):
@@ -247,7 +247,8 @@ class RateLimitedLog:
 
 
 
-def _seq_of(msg) -> Optional[int]:
+def seq_of(msg) -> Optional[int]:
+    """A message's integer ``seq`` (its frame), or None when it has none."""
     seq = getattr(msg, "seq", None)
     return seq if isinstance(seq, int) else None
 

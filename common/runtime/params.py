@@ -43,14 +43,15 @@ class ParamError(NeedletrackError, ValueError):
         self.errors = list(errors)
 
 
-def _describe(tp) -> str:
+def describe_type(tp) -> str:
+    """A field type in words, as ``needletrack describe`` prints it."""
     origin = typing.get_origin(tp)
     if origin in (Union, types.UnionType):
-        return " or ".join(_describe(a) for a in typing.get_args(tp))
+        return " or ".join(describe_type(a) for a in typing.get_args(tp))
     if origin is Literal:
         return " or ".join(repr(a) for a in typing.get_args(tp))
     if origin in (list, tuple):
-        return f"list of {_describe(typing.get_args(tp)[0])}"
+        return f"list of {describe_type(typing.get_args(tp)[0])}"
     if tp is type(None):
         return "null"
     return {float: "number", dict: "map", str: "string"}.get(tp, getattr(tp, "__name__", str(tp)))
@@ -87,14 +88,14 @@ def _convert(tp, value):
                                                  if isinstance(m, msgspec.Meta) and m.description), None)
             detail = str(exc)
             return None, words.format(value=value) if words else f"{detail[:1].lower()}{detail[1:]}, got {value!r}"
-        return None, f"expected {_describe(_bare(tp))}, got {value!r}"
+        return None, f"expected {describe_type(_bare(tp))}, got {value!r}"
 
 
 def _bare(tp):
     return tp.__origin__ if typing.get_origin(tp) is Annotated else tp
 
 
-def _hints(schema: type) -> dict:
+def field_types(schema: type) -> dict:
     """The field types, without their constraints (for describing them)."""
     return typing.get_type_hints(schema, include_extras=False)
 

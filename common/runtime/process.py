@@ -44,7 +44,7 @@ from typing import Optional
 
 from common.runtime.inputs import InputQueue
 from common.runtime.messages import Command, MessageError, NodeStats, decode, encode, encode_parts
-from common.runtime.node import POSE_VOLUME_M, Node, NodeError, Prepared, RateLimitedLog, _seq_of, node_class
+from common.runtime.node import POSE_VOLUME_M, Node, NodeError, Prepared, RateLimitedLog, seq_of, node_class
 from common.runtime.params import ParamError
 from common.runtime.shm import ShmWriter
 from common.runtime.swap import STANDBY_BUFFER, SwapControl
@@ -227,7 +227,7 @@ class Runtime(SwapControl):
         return b"".join((head, tail))
 
     def publish(self, output: str, msg) -> None:
-        seq = _seq_of(msg.msg if isinstance(msg, Prepared) else msg)
+        seq = seq_of(msg.msg if isinstance(msg, Prepared) else msg)
         self._publishes += 1
         with self._pub_lock:
             self._produced = True

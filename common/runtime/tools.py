@@ -38,7 +38,7 @@ def _load(path: str):
     return load_graph(p)
 
 
-def _load_or_report(path: str):
+def load_or_report(path: str):
     """The graph, or None after printing why it cannot be loaded (the caller exits 2)."""
     try:
         return _load(path)
@@ -173,7 +173,7 @@ def ps_main(argv: list) -> int:
     _graph_arg(ap)
     ap.add_argument("--json", action="store_true", help="print JSON rows")
     args = ap.parse_args(argv)
-    graph = _load_or_report(args.graph)
+    graph = load_or_report(args.graph)
     if graph is None:
         return 2
     session = open_session(graph)
@@ -228,7 +228,7 @@ def echo_main(argv: list) -> int:
     ap.add_argument("--timeout", type=float, default=0, help="exit after this many seconds")
     args = ap.parse_args(argv)
     from common.runtime.messages import MessageError, decode
-    graph = _load_or_report(args.graph)
+    graph = load_or_report(args.graph)
     if graph is None:
         return 2
     key = graph.resolve_key(args.key)
@@ -296,7 +296,7 @@ def hz_main(argv: list) -> int:
     ap.add_argument("--duration", type=float, default=0, help="exit after this many seconds")
     ap.add_argument("--window", type=int, default=300, help="messages in the sliding window")
     args = ap.parse_args(argv)
-    graph = _load_or_report(args.graph)
+    graph = load_or_report(args.graph)
     if graph is None:
         return 2
     meter = RateMeter(args.window)
@@ -337,7 +337,7 @@ def swap_main(argv: list) -> int:
                     help="remove a param (e.g. the old backend's when the detector's backend changes); repeatable")
     ap.add_argument("--timeout", type=float, default=150.0)
     args = ap.parse_args(argv)
-    graph = _load_or_report(args.graph)
+    graph = load_or_report(args.graph)
     if graph is None:
         return 2
     try:

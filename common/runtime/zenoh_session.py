@@ -22,12 +22,15 @@ from common.runtime.graph import (
 )
 
 
-def _endpoint_host(endpoint: str) -> Optional[str]:
+def endpoint_host(endpoint: str) -> Optional[str]:
+    """The host of an endpoint like ``tcp/127.0.0.1:7447`` (brackets of an IPv6 address off);
+    None when it names no host and port."""
     m = re.match(r"^[a-z-]+/(\[[^\]]*\]|[^:/#?]*):\d+", endpoint)
     return m.group(1).strip("[]") if m else None
 
 
-def _is_loopback(host: str) -> bool:
+def is_loopback(host: str) -> bool:
+    """Whether ``host`` (``localhost`` or an IP address) is loopback only."""
     if host == "localhost":
         return True
     try:
@@ -195,7 +198,7 @@ def _local_like(endpoint: str) -> str:
         return "tcp/127.0.0.1:0"
     proto, host, port = m.group(1), m.group(2), int(m.group(3))
     bare = host.strip("[]")
-    if _is_loopback(bare) or bare in ("0.0.0.0", "::"):
+    if is_loopback(bare) or bare in ("0.0.0.0", "::"):
         return f"{proto}/{host}:0"
     try:
         family = socket.AF_INET6 if ":" in bare else socket.AF_INET

@@ -357,7 +357,7 @@ def render_alt_sequence(renderer: AltRenderer, cfg: AltGenerateConfig, sequence:
 
 def generate_alt(folder: str, cfg: AltGenerateConfig, progress: bool = True, overwrite: bool = False) -> int:
     """Generate (or resume, or extend) a folder; returns the number of frames in it."""
-    from tqdm import tqdm
+    from common.progress import progress_bar
 
     from common.data.dataset import Frame
     from common.data.writer import DatasetWriter, resume_generation
@@ -370,8 +370,8 @@ def generate_alt(folder: str, cfg: AltGenerateConfig, progress: bool = True, ove
     meta = alt_meta(cfg.width, cfg.height, source)
     writer = DatasetWriter(folder, meta, cfg.image_format, cfg.jpeg_quality, resume=resume)
     renderer = AltRenderer(meta.rig, cfg.supersample)
-    bar = tqdm(total=cfg.sequences * cfg.steps, initial=done * cfg.steps, unit="frame", desc="generate-alt",
-               disable=not progress, smoothing=0.1)
+    bar = progress_bar(total=cfg.sequences * cfg.steps, initial=done * cfg.steps, unit="frame", desc="generate-alt",
+               show=progress, smoothing=0.1)
     try:
         for s in range(done, cfg.sequences):
             for images, fields in render_alt_sequence(renderer, cfg, s):

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import argparse
 
+from common.cli_options import add_quiet
 from common.geometry.ecm_kinematics import MULTIVIEW_STEP_RAD
 
 PRESET_NAMES = ["none", "test", "train", "wide", "silicone", "liver", "random", "unseen"]   # common.sim.randomise.PRESETS (not imported: fast start)
@@ -26,7 +27,7 @@ def _generate_args(p: argparse.ArgumentParser) -> None:
     p.add_argument("--thread", default="random", choices=["random", "none"],
                    help="suture thread: as the scene draws it (default), or none (a threadless twin of the same scenes)")
     p.add_argument("--overwrite", action="store_true", help="start over in a folder made with other settings")
-    p.add_argument("--quiet", action="store_true", help="no progress bar")
+    add_quiet(p)
 
 
 def add_parsers(sub) -> dict:
@@ -78,7 +79,7 @@ def add_parsers(sub) -> dict:
     n.add_argument("--height", type=int, default=1080)
     n.add_argument("--pale-thread", type=float, default=None, metavar="SHARE",
                    help="share of frames with the undyed, needle-pale thread (default: the preset's 1 in 5)")
-    n.add_argument("--quiet", action="store_true", help="no progress bar")
+    add_quiet(n)
     return {"generate": _generate, "generate-alt": _generate_alt, "generate-negatives": _generate_negatives}
 
 

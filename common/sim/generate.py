@@ -161,7 +161,7 @@ def generate(folder: str, cfg: GenerateConfig, jobs: int = 2, progress: bool = T
     import multiprocessing as mp
 
     import mujoco
-    from tqdm import tqdm
+    from common.progress import progress_bar
 
     from common.data.writer import DatasetWriter, resume_generation
     # settings added later default to their old behaviour
@@ -176,8 +176,8 @@ def generate(folder: str, cfg: GenerateConfig, jobs: int = 2, progress: bool = T
     meta = scene_meta(cfg.width, cfg.height, source)
     writer = DatasetWriter(folder, meta, cfg.image_format, cfg.jpeg_quality, resume=resume)
     todo = list(range(done, cfg.sequences))
-    bar = tqdm(total=offsets[-1], initial=offsets[done], unit="frame",
-               desc="generate", disable=not progress, smoothing=0.1)
+    bar = progress_bar(total=offsets[-1], initial=offsets[done], unit="frame",
+               desc="generate", show=progress, smoothing=0.1)
     try:
         if jobs <= 1 or len(todo) <= 1:
             _init_worker(cfg, folder, offsets)
@@ -244,7 +244,7 @@ def generate_needle_free(folder, n_frames: int, seed: int = 777, preset: str = "
     trainer can centre crops on the jaws."""
     from dataclasses import replace
 
-    from tqdm import tqdm
+    from common.progress import progress_bar
 
     from common.data.dataset import Frame
     from common.data.instruments import InstrumentPose
@@ -258,7 +258,7 @@ def generate_needle_free(folder, n_frames: int, seed: int = 777, preset: str = "
         pre = replace(pre, p_near=0.6, p_streaks=0.8, near_over_needle=True)
     renderer = SceneRenderer()
     with DatasetWriter(str(folder), meta, "jpg", 95) as writer:
-        for i in tqdm(range(n_frames), desc="needle-free frames", unit="frame", disable=not progress):
+        for i in progress_bar(range(n_frames), desc="needle-free frames", unit="frame", show=progress):
             spec, T_world_ecm = needle_free_scene(seed, i, pre, meta, pale_thread)
             renderer.load(spec)
             renders = renderer.render(T_world_ecm)

@@ -20,8 +20,8 @@ from common.geometry.transforms import R_to_quat, make_T
 from common.sim.scene_meshes import (
     PHANTOM_SIZE,
     PHANTOM_TOP,
-    _perp,
     needle_mesh,
+    perpendicular,
     phantom_mesh,
     sweep_tube,
     thread_path,
@@ -103,7 +103,7 @@ class Instrument:
         """The instrument whose jaw frame is ``T_world_jaw`` (4x4, world), opened ``jaw_rad``."""
         T_wb = np.asarray(T_world_jaw, float) @ np.linalg.inv(T_BODY_JAW)
         z = T_wb[:3, 2]
-        x0 = _perp(z)
+        x0 = perpendicular(z)
         y0 = np.cross(z, x0)
         x = T_wb[:3, 0]
         return cls(tuple(T_wb[:3, 3]), tuple(z), float(np.arctan2(x @ y0, x @ x0)), float(jaw_rad))
@@ -137,7 +137,7 @@ def _frame_from_z(z: np.ndarray, roll: float = 0.0) -> np.ndarray:
     """Rotation of a frame whose z axis is ``z`` (unit), rolled about it."""
     z = np.asarray(z, dtype=float)
     z = z / np.linalg.norm(z)
-    x = _perp(z)
+    x = perpendicular(z)
     y = np.cross(z, x)
     c, s = np.cos(roll), np.sin(roll)
     x, y = c * x + s * y, -s * x + c * y

@@ -24,7 +24,8 @@ def phantom_height(x, y) -> np.ndarray:
             + PHANTOM_BUMP * 0.4 * np.sin(x * 23.0 - y * 31.0 + 0.8))
 
 
-def _perp(v: np.ndarray) -> np.ndarray:
+def perpendicular(v: np.ndarray) -> np.ndarray:
+    """A unit vector perpendicular to ``v`` (3,)."""
     a = np.array([1.0, 0, 0]) if abs(v[0]) < 0.9 else np.array([0, 1.0, 0])
     p = np.cross(v, a)
     return p / np.linalg.norm(p)
@@ -43,7 +44,7 @@ def sweep_tube(points: np.ndarray, radii: np.ndarray, n_ring: int = 16,
     T = np.gradient(P, axis=0)
     T /= np.linalg.norm(T, axis=1, keepdims=True)
     N = np.empty_like(P)
-    N[0] = _perp(T[0])
+    N[0] = perpendicular(T[0])
     for i in range(1, n):  # parallel transport of the normal
         v = N[i - 1] - np.dot(N[i - 1], T[i]) * T[i]
         N[i] = v / np.linalg.norm(v)

@@ -12,7 +12,7 @@ from typing import Callable, Optional
 
 import numpy as np
 
-from common.evaluation.metrics import true_T_ecm_needle, true_T_world_ecm
+from common.data.truth import true_T_ecm_needle, true_T_world_ecm
 from common.geometry.transforms import pose_error
 from common.methods import in_final_order
 from common.viewer.draw import PoseToDraw, downscale

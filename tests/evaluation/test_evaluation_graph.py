@@ -7,7 +7,7 @@ import yaml
 
 from common.cli import dataset_main
 from common.evaluation.cli import main as eval_main
-from common.evaluation.graph_bench import main as bench_main
+from common.bench.graph_bench import main as bench_main
 from common.evaluation.results import check_results
 
 pytestmark = pytest.mark.graph

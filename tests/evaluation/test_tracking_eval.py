@@ -93,7 +93,7 @@ def test_eval_tracks_a_pickup_take_with_the_oracle(pickup_take, tmp_path):
 def test_the_live_bench_runs_the_tracker_on_a_moving_take(pickup_take, tmp_path, capsys):
     """``needletrack bench graph`` on moving takes: the tracker's poses are the final ones; the
     figures printed, none asserted on time."""
-    from common.evaluation.graph_bench import main as bench_main
+    from common.bench.graph_bench import main as bench_main
     out = tmp_path / "bench.json"
     assert bench_main(["graph", "--dataset", str(pickup_take), "--detector", "oracle", "--rate", "30",
                        "--duration", "3", "--warmup", "1.5", "--json", str(out)]) == 0

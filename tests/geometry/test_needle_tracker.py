@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 
 from common.evaluation.metrics import pose_nees
-from common.evaluation.tracker_bench import stated_covariance
+from common.bench.tracker_bench import stated_covariance
 from common.geometry.needle import NeedleModel
 from common.geometry.needle_tracker import (
     Jaw,
@@ -263,7 +263,7 @@ def test_the_error_every_measurement_shares_is_not_averaged_away():
 def test_the_bench_prints_its_figures(tmp_path, capsys):
     import json
 
-    from common.evaluation.tracker_bench import main
+    from common.bench.tracker_bench import main
     assert main(["--takes", "4", "--json", str(tmp_path / "t.json")]) == 0
     res = json.loads((tmp_path / "t.json").read_text())
     for run in ("seen", "hidden"):

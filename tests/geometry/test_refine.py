@@ -310,11 +310,11 @@ def test_analytic_jacobian_matches_finite_differences():
     the arc are the residuals' exact derivatives (at a foot the distance needs no foot
     derivative); past an end the (normal, overshoot) pair leaves out the turn of the end's
     tangent, which cancels in the gradient of their squares: the cost's gradient is exact."""
-    from common.geometry.refine import _Problem
+    from common.geometry.arc_problem import ArcProblem
     rng = np.random.default_rng(21)
     T = random_pose(rng)
     obs = observe(T, rng, kp_px=1.0, curve_px=0.5)
-    prob = _Problem(REFINER._static, obs)
+    prob = ArcProblem(REFINER._static, obs)
     T0 = perturb(T, rng, deg=0.5, mm=0.3)
     R0, t0 = T0[None, :3, :3], T0[None, :3, 3]
     cs = prob.feet(R0, t0)
@@ -439,7 +439,7 @@ def test_config_is_checked():
 
 
 def test_bench_reports_errors_and_times():
-    from common.evaluation.refine_bench import run, table
+    from common.bench.refine_bench import run, table
     rows = run([0.0, 0.5], frames=4, progress=False)
     assert [r["noise_px"] for r in rows] == [0.0, 0.5] and all(r["failed"] == 0 for r in rows)
     assert rows[0]["refined"]["position_mm"]["mean"] < 1e-4

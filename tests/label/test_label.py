@@ -329,7 +329,7 @@ def test_the_command_prints_its_url_and_says_what_is_wrong_with_a_folder(tmp_pat
 
 
 def test_simulated_clicks_label_a_folder_through_the_pages_path(tmp_path):
-    from common.evaluation.label_bench import run
+    from common.bench.label_bench import run
     from common.label.simulate import simulated_clicks
     rng = np.random.default_rng(0)
     clicks = simulated_clicks(RIG, NEEDLE, T_NEEDLE, rng, end_px=1.0, wire_px=2.0, wire=3)

@@ -123,7 +123,7 @@ def test_a_folder_without_labels_is_refused_clearly(tmp_path, capsys):
     msg = str(exc.value)
     assert str(folder) in msg and "3 frames, 0 labelled" in msg and "needletrack label" in msg
     assert "1 with ground truth not made by needletrack label" in msg
-    from common.evaluation.finetune import main
+    from common.adapt.finetune import main
     assert main(["--labels", str(folder), "--out", str(tmp_path / "out"), "--quiet"]) == 2
     err = capsys.readouterr().err
     assert "no hand-labelled frame" in err and str(folder) in err
@@ -133,7 +133,7 @@ def test_a_folder_without_labels_is_refused_clearly(tmp_path, capsys):
 
 
 def test_a_fine_tune_keeps_its_split_and_refuses_changed_labels(tmp_path):
-    from common.evaluation.finetune import prepare_labels
+    from common.adapt.finetune import prepare_labels
     folder = _labelled(tmp_path / "ds")
     out = tmp_path / "out"
     first = prepare_labels([str(folder)], out, 0.25, 0)

@@ -4,7 +4,7 @@ the tracker the truth's take of a moving needle decides, as before (docs/trackin
 import numpy as np
 import pytest
 
-from common.evaluation.geometry_bench import multiview_scenario
+from common.bench.geometry_bench import multiview_scenario
 from common.geometry.camera import StereoRig
 from common.geometry.ecm_kinematics import EcmArm
 from common.geometry.needle import NeedleModel

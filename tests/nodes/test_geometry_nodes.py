@@ -3,7 +3,7 @@ message out, matching the library functions; bad input counted, never a wrong po
 import numpy as np
 import pytest
 
-from common.evaluation.geometry_bench import multiview_scenario
+from common.bench.geometry_bench import multiview_scenario
 from common.geometry.camera import StereoRig
 from common.geometry.ecm_kinematics import EcmArm
 from common.geometry.needle import NeedleModel

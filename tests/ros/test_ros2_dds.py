@@ -21,7 +21,7 @@ from rospeer import ENV, PEER, LoopbackNamespace, need_rclpy
 from common.cli import dataset_main
 from common.data.dataset import Dataset
 from common.geometry.transforms import inv_T, pose_error
-from common.evaluation.ros_bench import pose_pipeline
+from common.bench.ros_bench import pose_pipeline
 from common.ros.conventions import pose_to_T, ros_covariance
 
 RIG = "jhu_daVinci"

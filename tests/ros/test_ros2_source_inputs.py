@@ -2,7 +2,7 @@
 malformed CDR, a type that does not fit the topic, a 20000x20000 PNG, a JointState of 10^6 names,
 NaN calibration and poses. Each is refused where it is decoded, counted, logged at most once a
 second per topic, and the good frames around it go through: the node's own path (its queue, then
-``step``) on an offline node, samples made by ``common/evaluation/fuzz_ros.py``."""
+``step``) on an offline node, samples made by ``common/robustness/fuzz_ros.py``."""
 import logging
 import random
 import time
@@ -10,7 +10,7 @@ import time
 import numpy as np
 import pytest
 
-from common.evaluation.fuzz_ros import RosSamples, _huge, fuzz_ros2, ros_poison
+from common.robustness.fuzz_ros import RosSamples, _huge, fuzz_ros2, ros_poison
 from common.ros import bag as rosbag_mod
 from common.ros import roles as ros_roles
 from common.ros.cdr import encode
@@ -167,7 +167,7 @@ def test_padded_samples_as_ros_2_writes_them_are_accepted(src):
 def test_every_ros_poison_kind_on_both_key_forms(keys):
     """A small run of ``needletrack bench fuzz``'s ROS part: no crash, nothing invalid published,
     a stereo pair again after one clean frame."""
-    from common.evaluation.fuzz_ros import ROS_KINDS
+    from common.robustness.fuzz_ros import ROS_KINDS
     for i, kind in enumerate(ROS_KINDS):
         r = fuzz_ros2(keys, kind, 6, seed=i)
         assert r.crashes == 0, r.first_crash

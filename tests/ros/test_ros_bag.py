@@ -167,8 +167,8 @@ def _as_rclpy_wrote_it(bag_in, bag_out, poison=()):
     from common.ros import build
     from common.ros.bag import open_reader
     from common.ros.cdr import encode, fastcdr_estimate
-    from common.ros.synth import _Out
-    r, out = open_reader(bag_in), _Out(str(bag_out), 2, "mcap")
+    from common.ros.synth import BagWriter
+    r, out = open_reader(bag_in), BagWriter(str(bag_out), 2, "mcap")
     conns, padded, poisoned = {}, 0, set()
     try:
         for c, t, raw in r.messages():
@@ -259,9 +259,9 @@ def test_bag_without_the_topics_is_refused_naming_them(ds640, tmp_path, capsys):
 def test_pairs_need_stamps_within_the_tolerance(ds640, tmp_path):
     """Right images 20 ms after the left: no pair at the default 5 ms, all pairs at 30 ms."""
     from common.ros import build
-    from common.ros.synth import _Out
+    from common.ros.synth import BagWriter
     src = Dataset(ds640)
-    out = _Out(str(tmp_path / "late"), 2, "mcap")
+    out = BagWriter(str(tmp_path / "late"), 2, "mcap")
     for i, fr in enumerate(src.frames[:2]):
         t = 10**18 + i * 100_000_000
         for c, dt in (("left", 0), ("right", 20_000_000)):

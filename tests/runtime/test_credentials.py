@@ -4,7 +4,7 @@ Issue 32: on the default graph a foreign local process moved fused poses with fa
 ``PoseEstimate``s, and one handover query silenced a node for good. Now ``launch`` runs every
 graph without ``zenoh.tls`` on mutual TLS with certificates made for the run (0600 files in a
 0700 directory), with access control by identity; a handover needs the process's control token.
-The intruder is ``common/evaluation/intruder.py`` (a process without the credentials; as
+The intruder is ``common/robustness/intruder.py`` (a process without the credentials; as
 another user, ``nobody``, when the tests run as root).
 """
 import json
@@ -33,7 +33,7 @@ GRAPH = {"nodes": [
 
 
 def _intrude(path, uid=None, duration=3.0) -> dict:
-    args = [sys.executable, "-m", "common.evaluation.intruder", str(path), "--duration", str(duration),
+    args = [sys.executable, "-m", "common.robustness.intruder", str(path), "--duration", str(duration),
             "--keys", "epnp_joint/pose"] + ([] if uid is None else ["--uid", str(uid)])
     res = subprocess.run(args, cwd=REPO, env=dict(os.environ, PYTHONPATH=str(REPO)), capture_output=True,
                          text=True, timeout=120)

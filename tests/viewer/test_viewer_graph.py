@@ -125,7 +125,7 @@ def test_eval_rrd_records_every_frame_with_poses_and_errors(tiny_dataset, tmp_pa
 @pytest.mark.graph
 def test_bench_viewer_prints_what_the_viewer_costs(tiny_dataset, tmp_path, capsys):
     """``needletrack bench --viewer`` runs (its figures are printed, not asserted)."""
-    from common.evaluation.graph_bench import main as bench_main
+    from common.bench.graph_bench import main as bench_main
     out = tmp_path / "bench.json"
     assert bench_main(["graph", "--dataset", str(tiny_dataset), "--detector", "oracle", "--rate", "10",
                        "--duration", "3", "--warmup", "1", "--no-refine", "--viewer",

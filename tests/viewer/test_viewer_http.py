@@ -12,7 +12,7 @@ import time
 import pytest
 from graphtools import REPO
 
-from common.evaluation.http_fuzz import (
+from common.robustness.http_fuzz import (
     CLEAN,
     ServerProcess,
     burst,

@@ -1,0 +1,122 @@
+"""The shipped pipeline over a folder without ground truth, its outputs kept for ``needletrack adapt``.
+
+``record_pipeline`` runs ``pipeline_graph`` (replay -> a detector per camera -> ecm -> refine, every
+input queued as ``needletrack eval`` does, the refinement a single-frame method) with the
+``recorder`` node as the sink, which writes each refined pose and each detection as a JSON line.
+``read_recording`` reads that file back per frame. A recording that ends with its ``end`` line is
+complete: a rerun keeps it (resumable).
+"""
+from __future__ import annotations
+
+import json
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from common.errors import NeedletrackError
+from common.evaluation.replay_progress import wait_with_progress
+
+
+class RecordingError(NeedletrackError, RuntimeError):
+    """A pipeline run that left no complete recording."""
+
+
+@dataclass
+class FrameOutputs:
+    """What the pipeline gave for one frame ``seq``: the refined ``pose`` (a dict of
+    ``PoseEstimate`` fields, arrays as numpy; None: no pose) and each camera's detection
+    (dicts of ``Keypoints`` fields)."""
+
+    seq: int
+    pose: dict | None = None
+    keypoints: dict = field(default_factory=dict)
+
+
+def recording_complete(path) -> bool:
+    """Whether the file ends with the recorder's ``end`` line."""
+    path = Path(path)
+    if not path.is_file() or path.stat().st_size == 0:
+        return False
+    with open(path, "rb") as f:
+        f.seek(max(0, path.stat().st_size - 200))
+        tail = f.read().decode("utf-8", "replace").strip().splitlines()
+    try:
+        return bool(tail) and json.loads(tail[-1]).get("kind") == "end"
+    except json.JSONDecodeError:
+        return False
+
+
+def _array(v):
+    return None if v is None else np.array(v, dtype=float)
+
+
+def read_recording(path) -> dict:
+    """``{seq: FrameOutputs}`` from a recorder file; raises RecordingError when it is unfinished."""
+    if not recording_complete(path):
+        raise RecordingError(f"{path}: no end line: the pipeline run did not finish")
+    out: dict = {}
+    with open(path, encoding="utf-8") as f:
+        for ln, line in enumerate(f, 1):
+            try:
+                rec = json.loads(line)
+            except json.JSONDecodeError as exc:
+                raise RecordingError(f"{path}:{ln}: not valid JSON: {exc}") from None
+            kind = rec.pop("kind", None)
+            if kind == "end":
+                break
+            seq = int(rec["seq"])
+            fo = out.setdefault(seq, FrameOutputs(seq))
+            for k in ("T_ecm_needle", "T_world_needle", "T_world_ecm", "covariance", "uv", "scores",
+                      "centreline"):
+                if k in rec:
+                    rec[k] = _array(rec[k])
+            if kind == "pose":
+                fo.pose = rec
+            elif kind == "keypoints":
+                fo.keypoints[rec["camera"]] = rec
+    return out
+
+
+def record_pipeline(folder, out_file, *, model: str | None = None, support_normal=None,
+                    log_file=None, progress: bool = True, timeout: float | None = None) -> Path:
+    """Run the pipeline over ``folder`` (a dataset folder, ground truth or not) and write its
+    refined poses and detections to ``out_file``; returns it. Skips the run when ``out_file``
+    is complete already."""
+    from common.data.dataset import Dataset
+    from common.evaluation.pipeline_graph import (
+        GraphRun,
+        GraphRunError,
+        keypoint_sources,
+        pipeline_graph,
+    )
+    out_file = Path(out_file)
+    if recording_complete(out_file):
+        return out_file
+    n = len(Dataset(str(folder)))
+    out_file.parent.mkdir(parents=True, exist_ok=True)
+    partial = out_file.with_suffix(out_file.suffix + ".part")
+    det = {"weights": str(Path(model).resolve())} if model else {}
+    doc = pipeline_graph(str(folder), detector="learned", detector_params=det, rate=10.0,
+                         methods=["refined"], lossless=True, split_detector=True,
+                         refine_tracking=False,
+                         refine_params={"support_normal_world": list(support_normal)}
+                         if support_normal is not None else None,
+                         name="needletrack-adapt")
+    doc["nodes"].append({"id": "recorder", "module": "recorder", "params": {"out": str(partial.resolve())},
+                         "inputs": {"pose": "refine/pose", "eos": "replay/eos", **keypoint_sources(True)},
+                         "restart": "never"})
+    log_path = Path(log_file) if log_file else out_file.with_suffix(".log")
+    timeout = timeout or (180 + 2.0 * n)      # generous: the detectors pace the run, not the replay
+    with open(log_path, "w") as log:
+        try:
+            with GraphRun(doc, log) as run:
+                run.start()
+                wait_with_progress(run, n, timeout, show=progress, until=("recorder",))
+        except GraphRunError as exc:
+            raise RecordingError(f"{folder}: the pipeline failed: {exc}; see {log_path}") from None
+    if not recording_complete(partial):
+        raise RecordingError(f"{folder}: the recorder wrote no complete {partial}; see {log_path}")
+    partial.replace(out_file)
+    return out_file
+
