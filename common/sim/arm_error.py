@@ -85,7 +85,7 @@ ARM_ERRORS = {
     "exact": ArmErrorConfig(),
     # 2-5 mm / 2-4 deg at the tool in all: docs/datasets.md, "Instruments as a dVRK reports them"
     "dvrk": ArmErrorConfig(registration_mm=4.5, registration_deg=3.5, drift_mm=1.5, drift_deg=1.5,
-                           drift_length_m=0.015, drift_turn_deg=20.0, jaw_offset_deg=5.0, noise_mm=0.1,
+                           drift_length_m=0.015, drift_turn_deg=45.0, jaw_offset_deg=5.0, noise_mm=0.1,
                            noise_deg=0.1, jaw_noise_deg=0.5),
 }
 
