@@ -14,7 +14,9 @@ is slower; 0 = as fast as possible), ``randomise`` (none|test|train, default tes
 the instruments move the needle, one take after another, docs/datasets.md; default sweep),
 ``steps`` (5) and ``hold_frames`` (15) of the
 multi-view protocol, ``sweep_period_s`` (8), ``sweep_amplitude_rad`` (0.06), ``msaa`` (anti-aliasing
-samples, 4; 0 renders ~2.5x faster), ``encoding``
+samples, 4; 0 renders ~2.5x faster), ``arm_error`` (how the arms report the jaws: ``exact``, default,
+or ``dvrk``, a few mm and degrees of error, with optional overrides: ``common.sim.arm_error``,
+docs/datasets.md; the truth travels in ``T_world_jaw_truth`` / ``jaw_rad_truth``), ``encoding``
 (jpeg|png|bgr8, default jpeg), ``jpeg_quality`` (95), ``count`` (stop after this many frames;
 0 = never).
 
@@ -64,6 +66,7 @@ class SimNode(CameraSourceNode):
         sweep_period_s: float = 8.0
         sweep_amplitude_rad: float = 0.06
         msaa: int = 4
+        arm_error: str = "exact"
 
     def setup(self):
         import common.sim.render  # noqa: F401  (headless GL before mujoco)
@@ -77,7 +80,7 @@ class SimNode(CameraSourceNode):
             self.sim = LiveSim(width=p.width, height=p.height, randomise=p.randomise, seed=p.seed,
                                motion=p.motion, steps=p.steps, hold_frames=p.hold_frames,
                                sweep_period_s=p.sweep_period_s, sweep_amplitude_rad=p.sweep_amplitude_rad,
-                               rate_hz=rate, msaa=p.msaa)
+                               rate_hz=rate, msaa=p.msaa, arm_error=p.arm_error)
         except (KeyError, ValueError) as exc:
             raise NodeError(f"bad simulator params: {exc}") from None
         self.sim.warm_up()        # a (re)started camera's first frame then comes at its usual pace

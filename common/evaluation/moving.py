@@ -5,7 +5,8 @@ The share of the arc seen in a stereo frame is the smaller of the two cameras' (
 else the share of visible keypoints: ``common.evaluation.metrics.visible_fraction``): a frame
 counts as seen from ``SEEN`` (30%) when both cameras see that much. The in-hand pose is scored
 from the ``IN_HAND_FROM``-th frame (10th) of each run of frames one instrument holds the needle
-(the truth's ``holds_needle``), against ``inv(T_world_jaw) @ T_world_needle``; a frame where the
+(the truth's ``holds_needle``), against ``inv(T_world_jaw) @ T_world_needle`` in the true jaw frame
+(``T_world_jaw_truth`` where the arm reports its jaws with an error); a frame where the
 tracker names no holder, or another, counts as ``wrong_holder``. A method's lag behind the truth:
 the shift in frames that brings its world poses nearest the truth (``lag_frames``).
 """
@@ -83,7 +84,7 @@ def in_hand_table(truths: dict, instruments: dict, in_hand: dict, seqs) -> dict:
         if est is None or est.name != holder:
             wrong += 1
             continue
-        T_true = inv_T(np.asarray(instruments[s][holder].T_world_jaw, float)) @ np.asarray(truths[s].T_world_needle, float)
+        T_true = inv_T(np.asarray(instruments[s][holder].T_world_jaw_true, float)) @ np.asarray(truths[s].T_world_needle, float)
         dt, dr = pose_error(np.asarray(est.T_jaw_needle, float), T_true)
         pos.append(dt)
         rot.append(dr)

@@ -360,8 +360,10 @@ class InstrumentState(Message):
     """A patient-side instrument's measured state, as a dVRK PSM reports it: ``name`` (``psm1``,
     ``psm2``), ``T_world_jaw`` the jaw frame in world (m; origin at the jaws' pivot, z along the
     closed jaws towards their tips, y the axis they open about: ``docs/dataset.md``), ``jaw_rad``
-    the opening (rad, 0 closed). ``seq`` is the camera frame it belongs to; ``stamp_ns`` the
-    measurement's time. ``holds_needle``: ground truth, from a simulator or a labelled dataset."""
+    the opening (rad, 0 closed), both as the arm reports them (with its kinematic error).
+    ``seq`` is the camera frame it belongs to; ``stamp_ns`` the measurement's time. Ground truth,
+    from a simulator or a labelled dataset: ``holds_needle``, and ``T_world_jaw_truth`` /
+    ``jaw_rad_truth`` where the report differs from the truth (absent: the report is exact)."""
 
     SCHEMA = "needletrack.InstrumentState"
     name: str
@@ -371,20 +373,33 @@ class InstrumentState(Message):
     jaw_rad: Number
     holds_needle: Optional[bool] = None
     epoch: Optional[NonNegative] = None
+    T_world_jaw_truth: Optional[Array[4, 4]] = None
+    jaw_rad_truth: Optional[Number] = None
 
     def validate(self):
         if not 1 <= len(self.name) <= 32 or not self.name.isprintable():
             raise MessageError(f"InstrumentState.name: 1 to 32 printable characters, got {self.name[:40]!r}")
         _rigid(self.T_world_jaw, "InstrumentState.T_world_jaw")
-        if not 0.0 <= self.jaw_rad <= np.pi:
-            raise MessageError(f"InstrumentState.jaw_rad: an opening angle in [0, pi] rad, got {self.jaw_rad:g}")
+        if self.T_world_jaw_truth is not None:
+            _rigid(self.T_world_jaw_truth, "InstrumentState.T_world_jaw_truth")
+        for field, jaw in (("jaw_rad", self.jaw_rad), ("jaw_rad_truth", self.jaw_rad_truth)):
+            if jaw is not None and not 0.0 <= jaw <= np.pi:
+                raise MessageError(f"InstrumentState.{field}: an opening angle in [0, pi] rad, got {jaw:g}")
+
+    @property
+    def T_world_jaw_true(self) -> np.ndarray:
+        """The true jaw pose: ``T_world_jaw_truth`` where given, else the reported one (then exact)."""
+        return self.T_world_jaw if self.T_world_jaw_truth is None else self.T_world_jaw_truth
 
     @classmethod
     def from_pose(cls, name: str, pose, seq: int, stamp_ns: int) -> "InstrumentState":
         """From a dataset frame's instrument (anything with ``T_world_jaw``, ``jaw_rad``,
-        ``holds_needle``: ``common.data.instruments.InstrumentPose``)."""
+        ``holds_needle``, ``T_world_jaw_truth``, ``jaw_rad_truth``:
+        ``common.data.instruments.InstrumentPose``)."""
+        T_truth, jaw_truth = pose.T_world_jaw_truth, pose.jaw_rad_truth
         return cls(name, seq, stamp_ns, np.asarray(pose.T_world_jaw, float), float(pose.jaw_rad),
-                   pose.holds_needle)
+                   pose.holds_needle, T_world_jaw_truth=None if T_truth is None else np.asarray(T_truth, float),
+                   jaw_rad_truth=None if jaw_truth is None else float(jaw_truth))
 
 
 @register

@@ -48,6 +48,11 @@ def add_parsers(sub) -> dict:
     g.add_argument("--take-every", type=int, default=1, metavar="K",
                    help="with --motion: keep every K-th frame of each take (default 1: all, at 30 Hz); "
                         "for training sets, more takes for the same rendering time")
+    g.add_argument("--arm-error", default="exact", metavar="SPEC",
+                   help="with --motion: how the arms report the jaws: exact (default: as rendered) or dvrk "
+                        "(a few mm and degrees: registration, a drift with the configuration, a jaw offset, "
+                        "noise; the truth in T_world_jaw_truth), optionally with overrides, e.g. "
+                        "dvrk:registration_mm=5,noise_mm=0.2 (docs/datasets.md)")
     g.add_argument("--jobs", type=int, default=2, help="render processes (default 2)")
     g.add_argument("--msaa", type=int, default=4, choices=[0, 2, 4, 8],
                    help="anti-aliasing samples (default 4; 0 renders ~2.5x faster with jagged thin wires)")
@@ -87,10 +92,12 @@ def _generate(args) -> int:
     import time
 
     import common.sim.render  # noqa: F401  (selects the headless GL backend first)
+    from common.sim.arm_error import arm_error_config
     from common.sim.generate import GenerateConfig, generate
+    arm_error = arm_error_config(args.arm_error).spec()      # a bad spec: a ValueError naming the field
     cfg = GenerateConfig(args.sequences, args.steps, args.seed, args.randomise, args.width, args.height,
                          args.format, args.quality, args.msaa, args.step_rad, args.thread, args.motion,
-                         args.take_every)
+                         args.take_every, arm_error)
     t0 = time.time()
     n = generate(args.out, cfg, jobs=args.jobs, progress=not args.quiet, overwrite=args.overwrite)
     shape = f"{args.steps} steps" if args.motion == "none" else f"{args.motion} takes"

@@ -36,6 +36,7 @@ class GenerateConfig:
     thread: str = "random"                 # "none": no suture thread drawn (a threadless twin)
     motion: str = "none"                   # "none": the multi-view protocol; else a take's script
     take_every: int = 1                    # keep every k-th frame of a take (training sets: more takes per hour)
+    arm_error: str = "exact"               # how a take's arms report the jaws (common.sim.arm_error spec)
 
     def stable(self) -> dict:
         """What must match for a folder to be resumed or extended."""
@@ -47,12 +48,15 @@ class GenerateConfig:
             d.pop("motion")
         if d["take_every"] == 1:
             d.pop("take_every")
+        if d["arm_error"] == "exact":
+            d.pop("arm_error")
         return d
 
     def take_plan(self, take: int, meta, preset, tex: int = 1024):
+        from common.sim.arm_error import arm_error_config
         from common.sim.takes import plan_take
         return plan_take(self.seed, take, self.motion, preset, meta.rig, meta.needle, meta.arm, tex, self.msaa,
-                         thread=self.thread != "none")
+                         thread=self.thread != "none", arm_error=arm_error_config(self.arm_error))
 
 
 def scene_meta(width: int, height: int, source: str):
@@ -158,6 +162,13 @@ def generate(folder: str, cfg: GenerateConfig, jobs: int = 2, progress: bool = T
         raise ValueError(f"dataset generate: --take-every must be >= 1 and needs --motion, got {cfg.take_every}")
     if cfg.motion != "none" and cfg.motion not in TAKE_MOTIONS:
         raise ValueError(f"dataset generate: --motion must be none or one of {TAKE_MOTIONS}, got {cfg.motion!r}")
+    from common.sim.arm_error import arm_error_config
+    arm_error = arm_error_config(cfg.arm_error)              # a bad spec fails here, before any work
+    if cfg.motion == "none" and not arm_error.exact:
+        raise ValueError("dataset generate: --arm-error needs --motion (a multi-view folder states no instruments)")
+    if cfg.arm_error != arm_error.spec():
+        raise ValueError(f"dataset generate: arm_error {cfg.arm_error!r} is not canonical; "
+                         f"use arm_error_config(...).spec(): {arm_error.spec()!r}")
     import multiprocessing as mp
 
     import mujoco
@@ -169,7 +180,7 @@ def generate(folder: str, cfg: GenerateConfig, jobs: int = 2, progress: bool = T
     resume, done = resume_generation(folder, GENERATE_FILE, cfg.stable(), cfg.sequences, cfg.steps,
                                      "dataset generate", overwrite, GenerateConfig(1, 1).stable(), lengths)
     what = (f"steps={cfg.steps} step_rad={cfg.step_rad:g}" if cfg.motion == "none" else
-            f"motion={cfg.motion} (moving takes)")
+            f"motion={cfg.motion} (moving takes)" + ("" if arm_error.exact else f" arm_error={cfg.arm_error}"))
     source = (f"needletrack dataset generate (MuJoCo {mujoco.__version__} built-in suturing scene): "
               f"randomise={cfg.randomise} seed={cfg.seed} {what}")
     offsets = [int(x) for x in np.concatenate([[0], np.cumsum(lengths)])]

@@ -10,7 +10,9 @@ Motion scripts (``MOTIONS``):
   (``common.sim.motion``), one take after another, each a new ``sequence`` with
   ``needle_at_rest`` false (``common.sim.takes``).
 
-Every frame carries the instruments (``SimFrame.instruments``: name -> ``InstrumentPose``).
+Every frame carries the instruments (``SimFrame.instruments``: name -> ``InstrumentPose``), as
+their arms report them (``arm_error``: ``common.sim.arm_error``, exact by default; the jaws are
+rendered where they truly are, the truth in ``T_world_jaw_truth`` / ``jaw_rad_truth``).
 """
 from __future__ import annotations
 
@@ -21,6 +23,8 @@ import numpy as np
 from common.geometry.camera import StereoRig
 from common.geometry.needle import NeedleModel
 from common.geometry.transforms import transform_points
+from common.sim.arm_error import arm_error_config, draw_arm_errors
+from common.sim.motion import INSTRUMENTS
 from common.sim.motion import MOTIONS as INSTRUMENT_MOTIONS
 from common.sim.randomise import (
     aim_joints,
@@ -74,9 +78,10 @@ class LiveSim:
     def __init__(self, width: int = 1920, height: int = 1080, randomise: str = "test", seed: int = 0,
                  motion: str = "sweep", steps: int = 5, hold_frames: int = 15, sweep_period_s: float = 8.0,
                  sweep_amplitude_rad: float = 0.06, rate_hz: float = 30.0, texture_size: int = 1024,
-                 msaa: int = 4):
+                 msaa: int = 4, arm_error: str = "exact"):
         if motion not in MOTIONS:
             raise ValueError(f"sim: motion must be one of {MOTIONS}, got {motion!r}")
+        self.arm_error = arm_error_config(arm_error)
         self.rig = StereoRig.default(width, height)
         self.needle = NeedleModel()
         self.arm = default_arm()
@@ -120,13 +125,15 @@ class LiveSim:
                                            q0, self.steps)
         self.renderer.load(plan.spec)
         self.plan = plan
+        self.arm_errors = draw_arm_errors(self.arm_error, (self.seed, key),
+                                          {n: ins.T_world_jaw for n, ins in zip(INSTRUMENTS, plan.spec.instruments)})
         self.frame_in_sequence = 0
         self._img_rng = np.random.default_rng(plan.image_seed)
 
     def _start_take(self, key: int) -> None:
         from common.sim.takes import plan_take
         self.take = plan_take(self.seed, key, self.motion, self.preset, self.rig, self.needle, self.arm,
-                              self.texture_size, self.msaa)
+                              self.texture_size, self.msaa, arm_error=self.arm_error)
         self.plan = self.take
         self.renderer.load(self.take.spec)
         self.frame_in_sequence = 0
@@ -163,11 +170,12 @@ class LiveSim:
             from common.sim.takes import frame_instruments, take_spec
             sf = self.take.script.frames[step]
             self.renderer.load(take_spec(self.take, sf))
-            T_world_needle, instruments, at_rest = sf.T_world_needle.copy(), frame_instruments(sf), False
+            T_world_needle, at_rest = sf.T_world_needle.copy(), False
+            instruments = frame_instruments(sf, self.take.arm_errors, step)
         else:
             from common.sim.takes import scene_instruments
             T_world_needle, at_rest = self.plan.spec.T_world_needle.copy(), None
-            instruments = scene_instruments(self.plan.spec.instruments)
+            instruments = scene_instruments(self.plan.spec.instruments, self.arm_errors, self.frame_in_sequence)
         renders = self.renderer.render(T_world_ecm)
         truth = self.renderer.ground_truth(T_world_ecm, renders)
         images = degrade_stereo({c: r.bgr for c, r in renders.items()}, self._img_rng, self.preset,

@@ -4,19 +4,22 @@ an endoscope that stays still or drifts, rendered frame by frame with its ground
 Take ``s`` of a run seeded ``seed`` depends only on (seed, s, motion, preset, image size), like a
 multi-view sequence (``common.sim.randomise.plan_sequence``). Each frame's fields follow
 ``docs/dataset.md``: ``needle_at_rest: false``, ``instruments`` with ``holds_needle``, and
-``visible``/``bbox`` from the render, so the jaws and the tissue hide what they cover.
+``visible``/``bbox`` from the render, so the jaws and the tissue hide what they cover. The jaws
+are rendered where the script puts them; ``instruments`` reports them as the take's arms do
+(``TakePlan.arm_errors``, ``common.sim.arm_error``: exact unless an arm error is asked for), with
+the truth in ``T_world_jaw_truth`` / ``jaw_rad_truth`` where the report differs from it.
 """
 from __future__ import annotations
 
-from dataclasses import dataclass, replace
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 
-from common.data.instruments import InstrumentPose
 from common.geometry.camera import StereoRig
 from common.geometry.ecm_kinematics import EcmArm
 from common.geometry.needle import NeedleModel
 from common.geometry.transforms import transform_points
+from common.sim.arm_error import ArmErrorConfig, draw_arm_errors, reported
 from common.sim.motion import FPS, INSTRUMENTS, MOTIONS, ScriptedTake, script_take
 from common.sim.random_looks import with_graspers
 from common.sim.randomise import Preset, aim_joints, sample_appearance
@@ -41,14 +44,18 @@ class TakePlan:
     joints: list
     image_seed: int
     motion: str = ""                   # what it was planned for (``mixed`` plays the others)
+    arm_errors: dict = field(default_factory=dict)   # name -> ArmError; empty: reported exactly
 
     def __len__(self) -> int:
         return len(self.script.frames)
 
 
 def plan_take(seed: int, take: int, motion: str, preset: Preset, rig: StereoRig, needle: NeedleModel,
-              arm: EcmArm, texture_size: int = 1024, msaa: int = 4, thread: bool = True) -> TakePlan:
-    """Deterministic plan of take ``take``; ``thread=False`` the same take with no thread drawn."""
+              arm: EcmArm, texture_size: int = 1024, msaa: int = 4, thread: bool = True,
+              arm_error: ArmErrorConfig | None = None) -> TakePlan:
+    """Deterministic plan of take ``take``; ``thread=False`` the same take with no thread drawn;
+    ``arm_error``: how the arms report the jaws (None: exactly), drawn from its own seed, so the
+    rendered take is the same whatever it is."""
     rng = np.random.default_rng([seed, take, 34])
     ap = sample_appearance(rng, preset)
     if preset.pool:                      # the random looks: both instruments can hold the needle
@@ -71,7 +78,9 @@ def plan_take(seed: int, take: int, motion: str, preset: Preset, rig: StereoRig,
     spec = SceneSpec(rig=rig, needle=needle, T_world_needle=script.frames[0].T_world_needle, appearance=ap,
                      instruments=_instruments(script.frames[0]), thread_seed=int(rng.integers(1 << 30)),
                      texture_size=texture_size, msaa=msaa)
-    return TakePlan(spec, script, joints, int(rng.integers(1 << 30)), motion)
+    first = {name: T for name, (T, _, _) in script.frames[0].instruments.items()}
+    return TakePlan(spec, script, joints, int(rng.integers(1 << 30)), motion,
+                    draw_arm_errors(arm_error, (seed, take), first))
 
 
 def _instruments(frame) -> list:
@@ -79,15 +88,18 @@ def _instruments(frame) -> list:
     return [Instrument.from_jaw(T, jaw) for T, jaw, _ in frame.instruments.values()]
 
 
-def frame_instruments(frame) -> dict:
-    """The ``instruments`` field of a script frame: name -> ``InstrumentPose``."""
-    return {name: InstrumentPose(T.copy(), jaw, bool(holds)) for name, (T, jaw, holds) in frame.instruments.items()}
+def frame_instruments(frame, arm_errors: dict | None = None, step: int = 0) -> dict:
+    """The ``instruments`` field of script frame ``step``: name -> ``InstrumentPose``, as the arms
+    of ``arm_errors`` (name -> ``ArmError``) report them (the others: exactly)."""
+    return {name: reported(arm_errors or {}, name, T, jaw, bool(holds), step)
+            for name, (T, jaw, holds) in frame.instruments.items()}
 
 
-def scene_instruments(instruments: list) -> dict:
-    """The instruments of a scene at rest (``SceneSpec.instruments``), named in order; whether
-    one holds the needle is not stated."""
-    return {name: InstrumentPose(ins.T_world_jaw, float(ins.jaw_open)) for name, ins in zip(INSTRUMENTS, instruments)}
+def scene_instruments(instruments: list, arm_errors: dict | None = None, step: int = 0) -> dict:
+    """The instruments of a scene at rest (``SceneSpec.instruments``), named in order, as the arms
+    of ``arm_errors`` report them in frame ``step``; whether one holds the needle is not stated."""
+    return {name: reported(arm_errors or {}, name, ins.T_world_jaw, float(ins.jaw_open), None, step)
+            for name, ins in zip(INSTRUMENTS, instruments)}
 
 
 def take_spec(plan: TakePlan, frame) -> SceneSpec:
@@ -112,4 +124,4 @@ def render_take(renderer, plan: TakePlan, arm: EcmArm, degrade=None, every: int 
         yield images, {"step": step, "ecm_joints": np.asarray(q, float), "T_world_ecm": T_world_ecm,
                        "T_world_needle": fr.T_world_needle, "keypoints": gt["keypoints"], "visible": gt["visible"],
                        "bbox": gt["bbox"], "arc_visible": gt["arc_visible"], "arc_seen": gt["arc_seen"], "needle_at_rest": False,
-                       "instruments": frame_instruments(fr)}
+                       "instruments": frame_instruments(fr, plan.arm_errors, step)}

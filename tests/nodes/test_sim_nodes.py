@@ -22,6 +22,7 @@ from common.runtime.messages import (
     encode,
 )
 from common.sim.randomise import default_arm
+from common.runtime.node import NodeError
 from common.runtime.pacing import parse_rate
 from nodes.replay import ReplayNode
 from nodes.sim import SimNode
@@ -233,6 +234,32 @@ def test_sim_node_in_a_take_publishes_the_instruments_and_the_held_needle_with_t
         assert t.needle_at_rest is None and [m.holds_needle for o, m in node.published if o == "instruments"] == []
     finally:
         node.teardown()
+
+
+def test_sim_node_with_an_arm_error_reports_the_jaws_off_the_truth_and_renders_the_same_frames():
+    from common.geometry.transforms import pose_error
+    out = {}
+    for arm_error in ("exact", "dvrk"):
+        node = SimNode.offline(params={"width": 160, "height": 120, "rate_hz": 0, "count": 2, "motion": "handover",
+                                       "randomise": "none", "encoding": "png", "msaa": 0, "arm_error": arm_error})
+        try:
+            assert _run(node)
+            out[arm_error] = [(o, _roundtrip(m)) for o, m in node.published]
+        finally:
+            node.teardown()
+    images = {k: [bytes(m.data) for o, m in v if o in ("left", "right")] for k, v in out.items()}
+    assert images["exact"] == images["dvrk"] and len(images["exact"]) == 4
+    exact = {(m.seq, m.name): m for o, m in out["exact"] if o == "instruments"}
+    for o, m in out["dvrk"]:
+        if o != "instruments":
+            continue
+        e = exact[(m.seq, m.name)]
+        assert e.T_world_jaw_truth is None and e.jaw_rad_truth is None
+        assert np.array_equal(m.T_world_jaw_truth, e.T_world_jaw) and m.jaw_rad_truth == e.jaw_rad
+        dt, da = pose_error(m.T_world_jaw, m.T_world_jaw_truth)
+        assert 1e-3 < dt < 8e-3 and np.deg2rad(0.5) < da < np.deg2rad(6)
+    with pytest.raises(NodeError, match="arm error"):
+        SimNode.offline(params={"width": 160, "height": 120, "arm_error": "dvrk:noise=1"})
 
 
 def test_replay_publishes_the_instruments_a_folder_lists(tmp_path):
