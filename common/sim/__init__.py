@@ -14,6 +14,8 @@ Modules (``python -m common.layout`` writes this list from their docstrings):
 - ``alt_render``: A second, independent renderer of stereo needle scenes: numpy/OpenCV, no MuJoCo,
   no GL.
 - ``alt_tissue``: The second renderer's tissue: an analytic height field ``z = sum a sin(k .
+- ``arm_error``: An arm's kinematic error: instruments reported as a dVRK reports them
+  (docs/datasets.md).
 - ``cli``: ``needletrack dataset generate|generate-alt|generate-negatives``: render dataset folders
   from the built-in scene or the second renderer (the other ``dataset`` subcommands:
   ``common.data.cli``, ``common.ros.cli``; the command itself: ``common.cli.dataset_main``).
