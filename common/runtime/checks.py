@@ -54,7 +54,8 @@ def rigid_error(T, where: str) -> Optional[str]:
     return None
 
 
-def _rigid(T, where: str) -> None:
+def require_rigid(T, where: str) -> None:
+    """``T`` (when not None) a rigid 4x4 transform, else MessageError naming ``where``."""
     if T is not None:
         err = rigid_error(T, where)
         if err:
@@ -135,7 +136,7 @@ def pose_invariant_error(msg: "PoseEstimate", max_range_m: Optional[float] = Non
     return None
 
 
-def _finite_array(where: str, value, shape) -> np.ndarray:
+def finite_array(where: str, value, shape) -> np.ndarray:
     """``value`` as a finite float array of ``shape`` (None: any 1-D length), or MessageError."""
     try:
         a = np.asarray(value, dtype=float)

@@ -116,6 +116,11 @@ def register(cls):
     return cls
 
 
+def registered_types() -> dict[str, type]:
+    """Every registered message type by its schema name (a copy)."""
+    return dict(_REGISTRY)
+
+
 class _Envelope(msgspec.Struct):
     schema: Any = msgspec.UNSET
     version: Any = None

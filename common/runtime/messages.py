@@ -25,15 +25,15 @@ from common.runtime.checks import (  # noqa: F401  (re-exported: the messages' A
     MAX_INT,
     RIGID_TOL,
     MessageError,
-    _finite_array,
-    _rigid,
+    finite_array,
+    require_rigid,
     covariance_error,
     image_header_size,
     pose_invariant_error,
     rigid_error,
 )
 from common.constraints import NonNegativeNumber, Probability
-from common.runtime.codec import _REGISTRY, Message, decode, encode, encode_parts, register  # noqa: F401
+from common.runtime.codec import Message, decode, encode, encode_parts, register, registered_types  # noqa: F401
 from common.runtime.schema import Array, ArrayNaN, ByCamera, Bytes, Int64, NonNegative, Number, Says, number
 
 # ---------------------------------------------------------------- the messages
@@ -157,7 +157,7 @@ class EcmPose(Message):
 
     def validate(self):
         for name in ("T_world_ecm", "T_world_left", "T_world_right"):
-            _rigid(getattr(self, name), f"EcmPose.{name}")
+            require_rigid(getattr(self, name), f"EcmPose.{name}")
 
 
 @register
@@ -325,7 +325,7 @@ class GroundTruth(Message):
 
     def validate(self):
         for name in ("T_world_ecm", "T_world_needle"):
-            _rigid(getattr(self, name), f"GroundTruth.{name}")
+            require_rigid(getattr(self, name), f"GroundTruth.{name}")
 
     @property
     def multiview_group(self) -> Optional[int]:
@@ -379,9 +379,9 @@ class InstrumentState(Message):
     def validate(self):
         if not 1 <= len(self.name) <= 32 or not self.name.isprintable():
             raise MessageError(f"InstrumentState.name: 1 to 32 printable characters, got {self.name[:40]!r}")
-        _rigid(self.T_world_jaw, "InstrumentState.T_world_jaw")
+        require_rigid(self.T_world_jaw, "InstrumentState.T_world_jaw")
         if self.T_world_jaw_truth is not None:
-            _rigid(self.T_world_jaw_truth, "InstrumentState.T_world_jaw_truth")
+            require_rigid(self.T_world_jaw_truth, "InstrumentState.T_world_jaw_truth")
         for field, jaw in (("jaw_rad", self.jaw_rad), ("jaw_rad_truth", self.jaw_rad_truth)):
             if jaw is not None and not 0.0 <= jaw <= np.pi:
                 raise MessageError(f"InstrumentState.{field}: an opening angle in [0, pi] rad, got {jaw:g}")
@@ -476,36 +476,36 @@ class Calibration(Message):
             for key, shape in (("K", (3, 3)), ("T_ecm_cam", (4, 4)), ("dist", None)):
                 if key == "dist" and cam.get(key) is None:
                     continue
-                a = _finite_array(f"Calibration.cameras.{name}.{key}", cam.get(key), shape)
+                a = finite_array(f"Calibration.cameras.{name}.{key}", cam.get(key), shape)
                 if key == "dist" and len(a) not in (4, 5, 8, 12, 14):
                     raise MessageError(f"Calibration.cameras.{name}.dist: OpenCV takes 4, 5, 8, 12 or 14 "
                                        f"coefficients, got {len(a)}")
-        _finite_array("Calibration.needle.radius_m", self.needle.get("radius_m", 0.01), ())
+        finite_array("Calibration.needle.radius_m", self.needle.get("radius_m", 0.01), ())
         if "keypoint_angles_deg" in self.needle:
-            _finite_array("Calibration.needle.keypoint_angles_deg", self.needle["keypoint_angles_deg"], (5,))
+            finite_array("Calibration.needle.keypoint_angles_deg", self.needle["keypoint_angles_deg"], (5,))
         if self.ecm is not None:
-            _finite_array("Calibration.ecm.T_world_base", self.ecm.get("T_world_base", np.eye(4)), (4, 4))
+            finite_array("Calibration.ecm.T_world_base", self.ecm.get("T_world_base", np.eye(4)), (4, 4))
             for key in ("L_rcc", "L_scopelen"):
-                _finite_array(f"Calibration.ecm.{key}", self.ecm.get(key, 0.0), ())
+                finite_array(f"Calibration.ecm.{key}", self.ecm.get(key, 0.0), ())
         # ranges, and what every consumer builds from it (rig, needle, arm), built once here
         for name in CAMERAS:
             K = np.asarray(self.cameras[name]["K"], dtype=float)
             if not (K[0, 0] > 0 and K[1, 1] > 0 and K[1, 0] == 0 and (K[2] == (0.0, 0.0, 1.0)).all()):
                 raise MessageError(f"Calibration.cameras.{name}.K: must be a pinhole matrix [[fx, s, cx], "
                                    f"[0, fy, cy], [0, 0, 1]] with positive focal lengths, got {K.tolist()}"[:300])
-            _rigid(self.cameras[name]["T_ecm_cam"], f"Calibration.cameras.{name}.T_ecm_cam")
+            require_rigid(self.cameras[name]["T_ecm_cam"], f"Calibration.cameras.{name}.T_ecm_cam")
         r = float(np.asarray(self.needle.get("radius_m", 0.01), dtype=float))
         if not 0 < r < 1:
             raise MessageError(f"Calibration.needle.radius_m: must be in (0, 1) m, got {r:g}")
         if self.ecm is not None:
-            _rigid(self.ecm.get("T_world_base", np.eye(4)), "Calibration.ecm.T_world_base")
+            require_rigid(self.ecm.get("T_world_base", np.eye(4)), "Calibration.ecm.T_world_base")
             for key in ("L_rcc", "L_scopelen"):
                 v = float(np.asarray(self.ecm.get(key, 0.0), dtype=float))
                 if not abs(v) <= 10:
                     raise MessageError(f"Calibration.ecm.{key}: must be within 10 m, got {v:g}")
         # the rest of what consumers build from it (the runtime builds no geometry itself)
         if "wire_diameter_m" in self.needle:
-            w = _finite_array("Calibration.needle.wire_diameter_m", self.needle["wire_diameter_m"], ())
+            w = finite_array("Calibration.needle.wire_diameter_m", self.needle["wire_diameter_m"], ())
             if not 0 < float(w) < 0.01:
                 raise MessageError(f"Calibration.needle.wire_diameter_m: must be in (0, 0.01) m, got {float(w):g}")
 
@@ -534,7 +534,7 @@ class InHandPose(Message):
         for label, text in (("name", self.name), ("frame_id", self.frame_id)):
             if not 1 <= len(text) <= 64 or not text.isprintable():
                 raise MessageError(f"InHandPose.{label}: 1 to 64 printable characters, got {text[:40]!r}")
-        _rigid(self.T_jaw_needle, "InHandPose.T_jaw_needle")
+        require_rigid(self.T_jaw_needle, "InHandPose.T_jaw_needle")
         err = covariance_error(self.covariance, "InHandPose.covariance")
         if err:
             raise MessageError(err)
@@ -542,4 +542,4 @@ class InHandPose(Message):
             raise MessageError(f"InHandPose.end_identity: a probability in [0, 1], got {self.end_identity}")
 
 
-MESSAGE_TYPES = dict(_REGISTRY)
+MESSAGE_TYPES = registered_types()

@@ -121,15 +121,6 @@ def test_a_module_summary_is_its_docstrings_first_sentence():
     assert layout.summary(None) == ""
 
 
-# Private names imported across modules that other work in flight removes (issue 57: the files
-# of section 1 and the helpers section 2 replaces); nothing else may join this list.
-PRIVATE_IMPORTS_PENDING = {
-    "common/runtime/messages.py": {"_finite_array", "_rigid", "_REGISTRY"},   # section 1's file
-    "common/geometry/needle_tracker.py": {"_sym"},                             # section 2: symmetrise
-    "common/geometry/refine.py": {"_orthonormalise"},                          # section 2: project_to_SO3
-}
-
-
 def _private_imports(path: Path):
     """(line, name) of every private name (``_x``, not ``__x__``) that ``path`` imports: a name
     from another module (``from m import _x``) or a private module itself (``import a._m``)."""
@@ -150,9 +141,7 @@ def test_no_private_name_is_imported_across_modules():
     bad = []
     for path in sorted([*REPO.glob("common/**/*.py"), *REPO.glob("nodes/*.py")]):
         rel = str(path.relative_to(REPO))
-        for line, name in _private_imports(path):
-            if name not in PRIVATE_IMPORTS_PENDING.get(rel, ()):
-                bad.append(f"{rel}:{line}: imports {name}")
+        bad += [f"{rel}:{line}: imports {name}" for line, name in _private_imports(path)]
     assert not bad, "\n".join(bad)
 
 
