@@ -37,6 +37,35 @@ def text_matching(pattern: str, what: str) -> type:
     return Annotated[str, msgspec.Meta(pattern=pattern, description=f"must be {what}, got {{value!r}}")]
 
 
+class Required:
+    """The mark of a param that a graph must set (``required``): its default (empty) stands for
+    "not given", and a graph without it is refused where it declares the node."""
+
+    def __init__(self, what: str):
+        self.what = what
+
+    def __repr__(self) -> str:
+        return f"Required({self.what!r})"
+
+
+def required(what: str) -> type:
+    """A non-empty string that must be given (``what`` it is, for the refusal)."""
+    return Annotated[str, msgspec.Meta(min_length=1, description=f"is required ({what})"), Required(what)]
+
+
+def required_fields(cls) -> dict:
+    """``{name: what}`` of the dataclass ``cls``'s fields marked ``required``."""
+    hints = typing.get_type_hints(cls, include_extras=True)
+    out = {}
+    for f in dataclasses.fields(cls):
+        tp = hints[f.name]
+        if typing.get_origin(tp) is Annotated:
+            mark = next((m for m in tp.__metadata__ if isinstance(m, Required)), None)
+            if mark is not None:
+                out[f.name] = mark.what
+    return out
+
+
 def at_least(lo: int) -> type:
     """An int >= ``lo``."""
     return Annotated[int, msgspec.Meta(ge=lo, description=f"must be at least {lo}, got {{value}}")]

@@ -27,6 +27,7 @@ from pathlib import Path
 from common.evaluation.collect import Collected
 from common.frames import CAMERAS
 from common.methods import EXTRA_METHODS, POSE_METHODS, REPORTED_METHODS
+from common.constraints import required
 from common.runtime.messages import (
     Calibration,
     EndOfStream,
@@ -40,7 +41,7 @@ from common.runtime.messages import (
     PoseEstimate,
     decode,
 )
-from common.runtime.node import Node, NodeError, run
+from common.runtime.node import Node, run
 from nodes._pose import PoseMethodInputs
 
 
@@ -56,7 +57,7 @@ class EvaluatorNode(PoseMethodInputs, Node):
 
     @dataclass
     class Params:
-        out: str = ""                     # the output folder (required)
+        out: required("the output folder") = ""
         dataset: str | None = None
         detector: str = "unknown"
         drain_s: float = 3.0
@@ -65,8 +66,6 @@ class EvaluatorNode(PoseMethodInputs, Node):
         rrd: str | None = None            # also write the frames, poses and errors as a Rerun recording
 
     def setup(self):
-        if not self.p.out:
-            raise NodeError("params.out (the output folder) is required")
         self.out = Path(self.p.out)
         self.dataset_path = self.p.dataset
         self.detector = self.p.detector

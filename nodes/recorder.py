@@ -15,6 +15,7 @@ import time
 from dataclasses import dataclass, fields
 
 from common.evaluation.results import to_jsonable
+from common.constraints import required
 from common.runtime.messages import EndOfStream, Keypoints, PoseEstimate
 from common.runtime.node import Node, NodeError, run
 
@@ -33,12 +34,10 @@ class RecorderNode(Node):
 
     @dataclass
     class Params:
-        out: str = ""            # the JSON-lines file (required)
+        out: required("the JSON-lines file") = ""
         drain_s: float = 3.0
 
     def setup(self):
-        if not self.p.out:
-            raise NodeError("params.out (the JSON-lines file) is required")
         try:
             self.file = open(self.p.out, "w", encoding="utf-8")
         except OSError as exc:

@@ -32,6 +32,7 @@ import numpy as np
 
 from common.data.dataset import DatasetError
 from common.frames import CAMERAS
+from common.constraints import required
 from common.runtime.camera_source import CameraSourceNode
 from common.runtime.messages import (
     Calibration,
@@ -59,7 +60,7 @@ class ReplayNode(CameraSourceNode):
 
     @dataclass
     class Params:
-        path: str = ""                        # the dataset folder (required)
+        path: required("a dataset folder") = ""
         rate: float | Literal["recorded", "max", "paced"] = "recorded"
         loop: bool = False
         start: int = 0
@@ -71,8 +72,6 @@ class ReplayNode(CameraSourceNode):
     def setup(self):
         from common.data.dataset import Dataset, DatasetError
         p = self.p
-        if not p.path:
-            raise NodeError("param 'path' (a dataset folder) is required")
         try:
             self.ds = Dataset(p.path)
             self.rate = parse_rate(p.rate)

@@ -32,7 +32,7 @@ import time
 from dataclasses import dataclass
 from typing import Literal
 
-from common.frames import CAMERAS
+from common.constraints import required
 from common.runtime.camera_source import CameraSourceNode
 from common.runtime.messages import EndOfStream
 from common.runtime.node import NodeError, run
@@ -47,7 +47,7 @@ class RosbagNode(CameraSourceNode):
 
     @dataclass
     class Params:
-        path: str = ""
+        path: required("a ROS 1 .bag or ROS 2 .db3/.mcap bag") = ""
         preset: Literal["ambf", "dvrk"] | None = None
         topics: str | dict | None = None
         rate: float | Literal["recorded", "max"] = "recorded"
@@ -58,8 +58,6 @@ class RosbagNode(CameraSourceNode):
     def setup(self):
         from common.ros.bag import BagError
         p = self.p
-        if not p.path:
-            raise NodeError("param 'path' (a ROS 1 .bag or ROS 2 .db3/.mcap bag) is required")
         try:
             self.rate = parse_rate(p.rate, "rosbag")
             self._open()

@@ -31,6 +31,7 @@ from typing import Annotated, Literal, Mapping, Union
 
 import msgspec
 
+from common.constraints import required_fields
 from common.errors import NeedletrackError
 from common.runtime.schema import Says, dec_hook
 
@@ -115,11 +116,9 @@ def did_you_mean(name, names: list) -> str:
 
 def param_errors(schema: type, raw: Mapping | None, where: str = "params") -> list[str]:
     """Every problem of ``raw`` against the dataclass ``schema``, each prefixed with its place."""
-    if raw is None:
-        return []
-    if not isinstance(raw, Mapping):
+    if raw is not None and not isinstance(raw, Mapping):
         return [f"{where}: expected a map, got {type(raw).__name__}"]
-    return _converted(schema, raw, where)[1]
+    return _converted(schema, raw or {}, where)[1]
 
 
 def _converted(schema: type, raw: Mapping, where: str) -> tuple:
@@ -134,6 +133,8 @@ def _converted(schema: type, raw: Mapping, where: str) -> tuple:
         kw[key], why = _convert(hints[key], value)
         if why:
             errors.append(f"{where}.{key}: {why}")
+    errors += [f"{where}.{name}: is required ({what})" for name, what in required_fields(schema).items()
+               if name not in raw]
     return kw, errors
 
 

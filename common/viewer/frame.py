@@ -9,7 +9,6 @@ from typing import Optional
 
 import numpy as np
 
-from common.frames import CAMERAS
 from common.viewer.draw import encode_jpeg, fig1_with_zoom
 
 

@@ -16,7 +16,8 @@ from common.data.truth import true_T_ecm_needle, true_T_world_ecm
 from common.geometry.transforms import pose_error
 from common.methods import in_final_order
 from common.viewer.draw import PoseToDraw, downscale
-from common.viewer.frame import CAMERAS, log_frame, pictures
+from common.frames import CAMERAS
+from common.viewer.frame import log_frame, pictures
 
 RRD_MAGIC = (b"RRF0", b"RRF1", b"RRF2")
 """The first bytes of a Rerun recording (.rrd), by format version."""
