@@ -72,19 +72,22 @@ def configuration_change(T_from: np.ndarray, T_to: np.ndarray, length_m: float, 
                  + rotation_angle(T_from[:3, :3].T @ T_to[:3, :3]) / turn_rad)
 
 
-def grasp_constraint(T_jaw_needle: np.ndarray, needle: NeedleModel, jaw_length_m: float, n_arc: int = 129):
+def grasp_constraint(T_jaw_needle: np.ndarray, needle: NeedleModel, jaw_length_m: float, n_arc: int = 65):
     """The grasp's geometry (module docstring) at ``T_jaw_needle``: (residual (2,), H (2, 6)):
     what ``[x, tangent x]`` of the arc's point nearest the jaws' axis (pivot to ``jaw_length_m``
     along z) must be (0) less what they are, and their derivative by the pose's error ``[w, v]``
     in jaw axes."""
-    q = needle.sample_arc(n_arc)
     R, t = T_jaw_needle[:3, :3], T_jaw_needle[:3, 3]
-    p = q @ R.T + t
-    z = np.clip(p[:, 2], 0.0, jaw_length_m)
-    i = int(np.argmin(p[:, 0] ** 2 + p[:, 1] ** 2 + (p[:, 2] - z) ** 2))
-    j0, j1 = max(i - 1, 0), min(i + 1, n_arc - 1)
-    tangent = p[j1] - p[j0]
-    tangent /= np.linalg.norm(tangent)
+    a0, a1 = needle.arc_span_rad
+    lo, hi = a0, a1
+    for _ in range(2):                         # the nearest sample, then finer about it
+        a = np.linspace(lo, hi, n_arc)
+        p = needle.arc_points(a) @ R.T + t
+        z = np.clip(p[:, 2], 0.0, jaw_length_m)
+        i = int(np.argmin(p[:, 0] ** 2 + p[:, 1] ** 2 + (p[:, 2] - z) ** 2))
+        step = a[1] - a[0]
+        lo, hi = max(a[i] - step, a0), min(a[i] + step, a1)
+    tangent = R @ np.array([-np.sin(a[i]), np.cos(a[i]), 0.0])
     H = np.zeros((2, 6))
     H[0, :3] = -skew(p[i] - t)[0]              # d p = w x (R q) + v
     H[0, 3] = 1.0
