@@ -100,16 +100,16 @@ class TrackerConfig:
     grasp_llr: float = 4.6                  # log likelihood ratio that settles a trial (100:1): grasp, rest
     max_coast_s: float = 0.5                # a free needle unseen this long is lost
     # each arm's kinematic error, estimated online (common.geometry.arm_correction; off: the reports as exact)
-    arm_correction: bool = False
-    arm_prior_m: NonNegativeNumber = 3.0e-3             # 1 sigma per axis of a correction before any news
-    arm_prior_rad: NonNegativeNumber = math.radians(2.5)
-    arm_walk_m: NonNegativeNumber = 0.05e-3             # its random walk per sqrt(s)
-    arm_walk_rad: NonNegativeNumber = math.radians(0.05)
-    arm_drift_m: NonNegativeNumber = 1.0e-3             # ... and per sqrt of the arm's configuration change,
-    arm_drift_rad: NonNegativeNumber = math.radians(1.0)
-    arm_drift_length_m: number_at_least(1e-6) = 0.015   # counted in this much travel of the jaws
-    arm_drift_turn_rad: number_at_least(1e-6) = math.radians(45.0)   # plus this much turn
-    grasp_sigma_m: number_at_least(1e-6) = 0.3e-3       # the grasp's geometry: the wire off the jaw faces' middle
+    arm_correction: bool = False            # estimate each arm's error (docs/tracking.md); off: the reports as exact
+    arm_prior_m: NonNegativeNumber = 3.0e-3             # a correction's shift before any news: 1 sigma per axis
+    arm_prior_rad: NonNegativeNumber = math.radians(2.5)   # ... its turn
+    arm_walk_m: NonNegativeNumber = 0.05e-3             # a correction's random walk in time, per sqrt(s): shift
+    arm_walk_rad: NonNegativeNumber = math.radians(0.05)   # ... turn
+    arm_drift_m: NonNegativeNumber = 1.0e-3             # ... and per sqrt of the arm's configuration change: shift
+    arm_drift_rad: NonNegativeNumber = math.radians(1.0)   # ... turn
+    arm_drift_length_m: number_at_least(1e-6) = 0.015   # a configuration change of 1: this much travel of the jaws
+    arm_drift_turn_rad: number_at_least(1e-6) = math.radians(45.0)   # ... or this much turn
+    grasp_sigma_m: number_at_least(1e-6) = 0.3e-3       # a sure grasp's geometry: the wire off the jaw faces' middle
     grasp_sigma_rad: number_at_least(1e-6) = math.radians(5.0)   # ... its tangent off the jaw faces
 
     def __post_init__(self):
