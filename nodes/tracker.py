@@ -36,7 +36,10 @@ only views of a needle at rest. ``in_hand``: while an instrument holds the needl
 ``InHandPose`` (``T_jaw_needle`` and its covariance in the jaw frame ``<name>_jaw``). ``no_pose``:
 a frame stepped without a track (none yet, or lost), ``NoPoseNotice`` (method ``params.method``,
 reason ``no_track``, counted ``no_pose.no_track``): the fusion's ``untracked`` input, so that it
-does not wait for that frame's mode. Counters: ``rejected`` (gated out), ``turned``
+does not wait for that frame's mode. ``arm_correction`` (with the param ``arm_correction``; off:
+the arms' reports taken as exact, nothing said): each arm's estimated kinematic error per frame
+(``ArmCorrection``: the correction, the corrected jaw pose and its covariance); the held needle
+is then carried by the corrected jaws and ``in_hand`` is in the corrected jaw frame. Counters: ``rejected`` (gated out), ``turned``
 (read end for end), ``events.<event>`` (``grasp``, ``handover``, ``release``, ``ungrasp``,
 ``rest``, ``restart``, ``flip``), ``no_covariance`` (a pose without one is no measurement).
 Params: every ``TrackerConfig`` field, ``max_wait``, ``replay``, ``instrument_max_age``, ``method``:
@@ -77,7 +80,7 @@ class TrackerNode(Node):
 
     INPUTS = {"pose": PoseEstimate, "ecm": EcmPose, "instruments": InstrumentState,
               "calib": Calibration, "truth": GroundTruth, "eos": EndOfStream, "no_pose": NoPoseNotice}
-    OUTPUTS = ("pose", "in_hand", "no_pose")
+    OUTPUTS = ("pose", "in_hand", "no_pose", "arm_correction")
     KEEP_ALL = ("pose", "ecm", "instruments", "calib", "truth", "eos", "no_pose")
 
     Params = merge_schemas("TrackerParams", TrackerConfig, _NodeParams)

@@ -38,6 +38,8 @@ def _parser() -> argparse.ArgumentParser:
     add_weights(p, "--model", learned_only=True)
     p.add_argument("--param", action="append", default=[], metavar="KEY=VALUE",
                    help="a detector parameter (repeatable), e.g. --param tracking=false")
+    p.add_argument("--tracker-param", action="append", default=[], metavar="KEY=VALUE",
+                   help="a tracker parameter on moving takes (repeatable), e.g. --tracker-param arm_correction=true")
     p.add_argument("--rate", default=None,
                    help="replay rate in Hz, or 'max' (default: 30 for the oracle, 10 otherwise). Every "
                         "frame is scored whatever the rate (the nodes queue their inputs here); "
@@ -170,6 +172,7 @@ def main(argv=None) -> int:
     from common.runtime.graph import parse_param
     try:
         det_params.update(dict(parse_param(p) for p in args.param))
+        tracker_params = dict(parse_param(p) for p in args.tracker_param) or None
     except ValueError as exc:
         print(f"needletrack eval: {exc}", file=sys.stderr)
         return 2
@@ -179,7 +182,8 @@ def main(argv=None) -> int:
                          refine=False if args.no_refine else None, lossless=True,
                          split_detector=split, refine_tracking=False,   # refined: a single-frame method
                          refine_params={"support_normal_world": args.support_normal} if args.support_normal else None,
-                         tracker=any(fr.needle_at_rest is False for fr in ds.frames))   # moving takes
+                         tracker=any(fr.needle_at_rest is False for fr in ds.frames),   # moving takes
+                         tracker_params=tracker_params)
     evaluator = {"id": "evaluator", "module": "evaluator",
                  "params": {"out": str(out.resolve()), "dataset": str(Path(dataset).resolve()),
                             "detector": args.detector, "noise_px": args.noise_px,

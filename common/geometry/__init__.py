@@ -14,6 +14,8 @@ Modules (``python -m common.layout`` writes this list from their docstrings):
   robust (Cauchy) loss.
 - ``arc_support``: How much of a fitted arc the images saw: the share of the needle's arc, at a
   pose, that an observed centreline point or keypoint lies near in a camera.
+- ``arm_correction``: An arm's kinematic error, as the tracker estimates it: a lumped correction of
+  the reported jaw pose.
 - ``camera``: Pinhole cameras and the stereo endoscope rig (OpenCV conventions).
 - ``ecm_kinematics``: Forward kinematics of the da Vinci endoscope arm (ECM), as the dataset spec
   defines it.

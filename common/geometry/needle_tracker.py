@@ -55,6 +55,7 @@ from typing import Optional
 import numpy as np
 
 from common.constraints import NonNegativeNumber, Probability, check_fields, number_at_least
+from common.geometry.arm_correction import ArmCorrection, configuration_change, grasp_constraint, lever
 from common.geometry.end_identity import end_for_end_delta, sigmoid, track_identity
 from common.geometry.error_state import (  # noqa: F401  (retract: re-exported)
     block_rotation,
@@ -98,6 +99,18 @@ class TrackerConfig:
     jaw_length_m: float = 0.009             # the jaws' axis: from the pivot this far along z
     grasp_llr: float = 4.6                  # log likelihood ratio that settles a trial (100:1): grasp, rest
     max_coast_s: float = 0.5                # a free needle unseen this long is lost
+    # each arm's kinematic error, estimated online (common.geometry.arm_correction; off: the reports as exact)
+    arm_correction: bool = False            # estimate each arm's error (docs/tracking.md); off: the reports as exact
+    arm_prior_m: NonNegativeNumber = 3.0e-3             # a correction's shift before any news: 1 sigma per axis
+    arm_prior_rad: NonNegativeNumber = math.radians(2.5)   # ... its turn
+    arm_walk_m: NonNegativeNumber = 0.05e-3             # a correction's random walk in time, per sqrt(s): shift
+    arm_walk_rad: NonNegativeNumber = math.radians(0.05)   # ... turn
+    arm_drift_m: NonNegativeNumber = 1.0e-3             # ... and per sqrt of the arm's configuration change: shift
+    arm_drift_rad: NonNegativeNumber = math.radians(1.0)   # ... turn
+    arm_drift_length_m: number_at_least(1e-6) = 0.015   # a configuration change of 1: this much travel of the jaws
+    arm_drift_turn_rad: number_at_least(1e-6) = math.radians(45.0)   # ... or this much turn
+    grasp_sigma_m: number_at_least(1e-6) = 0.3e-3       # a sure grasp's geometry: the wire off the jaw faces' middle
+    grasp_sigma_rad: number_at_least(1e-6) = math.radians(5.0)   # ... its tangent off the jaw faces
 
     def __post_init__(self):
         if not (self.gate_nis > 0 and min(self.reset_after, self.reset_after_held) >= 1 and self.grasp_llr > 0
@@ -164,6 +177,7 @@ class Tracked:
     turned: bool = False
     nis: float = float("nan")
     event: Optional[str] = None
+    corrections: Optional[dict] = None      # arm_correction: {name: (K 4x4, 6x6)} (NeedleTracker.corrections)
 
 
 # ---------------------------------------------------------------- small pieces
@@ -174,15 +188,16 @@ def turned_end_for_end(T: np.ndarray, needle: NeedleModel) -> np.ndarray:
 
 
 def jaw_holds(jaw: Jaw, T_world_needle: np.ndarray, needle: NeedleModel, cfg: TrackerConfig,
-              n_arc: int = 33) -> bool:
+              n_arc: int = 33, reach_m: Optional[float] = None) -> bool:
     """Whether ``jaw``'s jaws are closed on the arc at ``T_world_needle``: closed, and some point
-    of the arc within ``grasp_reach_m`` of the jaws' axis (pivot to ``jaw_length_m`` along z)."""
+    of the arc within ``reach_m`` (default ``grasp_reach_m``) of the jaws' axis (pivot to
+    ``jaw_length_m`` along z)."""
     if not jaw.jaw_rad <= cfg.closed_rad:
         return False
     p = transform_points(inv_T(jaw.T_world_jaw) @ T_world_needle, needle.sample_arc(n_arc))
     z = np.clip(p[:, 2], 0.0, cfg.jaw_length_m)
     d = np.sqrt(p[:, 0] ** 2 + p[:, 1] ** 2 + (p[:, 2] - z) ** 2)
-    return bool(d.min() <= cfg.grasp_reach_m)
+    return bool(d.min() <= (cfg.grasp_reach_m if reach_m is None else reach_m))
 
 
 # ---------------------------------------------------------------- the filter
@@ -194,12 +209,18 @@ class NeedleTracker:
         self.needle, self.cfg = needle, config
         self.reset()
 
-    def reset(self) -> None:
-        """Forget the track."""
+    def reset(self, keep_arms: bool = False) -> None:
+        """Forget the track (``keep_arms``: but not the arms' corrections, which are the arms')."""
+        arms = (self.arms, self.P[self.n:, self.n:]) if keep_arms and getattr(self, "arms", None) else None
         self.mode: Optional[str] = None
         self.holder: Optional[str] = None
         self.T = None                  # T_world_needle (rest, free) or T_jaw_needle (held)
-        self.P = None                  # 6x6 (rest, held) or 12x12 (free)
+        self.P = None                  # 6x6 (rest, held) or 12x12 (free), then 6 per arm (arm_correction)
+        self.n = 0                     # the needle's states in P (0: no track)
+        self.arms: dict = {}           # name -> ArmCorrection, in P's order after the needle's states
+        self.arms_stamp_ns: Optional[int] = None
+        if arms is not None:
+            self.arms, self.P = arms
         self.vel = np.zeros(6)         # free: [omega, u]
         self.stamp_ns: Optional[int] = None
         self.last_seen_ns: Optional[int] = None
@@ -230,9 +251,109 @@ class NeedleTracker:
         """(T_world_needle, 6x6 covariance in world axes) of the current state."""
         if self.mode != "held":
             return self.T, self.P[:6, :6]
-        Tj = jaws[self.holder].T_world_jaw
+        Tj = self.jaw_pose(jaws, self.holder)
         Tw = Tj @ self.T
+        if self.arms:
+            W = self._world_jacobian(jaws)
+            return Tw, symmetrise(W @ self.P @ W.T + self._jaw_noise(Tj, Tw))
         return Tw, symmetrise(covariance_to_frame(self.P, Tj[:3, :3]) + self._jaw_noise(Tj, Tw))
+
+    # -- the arms' corrections (arm_correction; common.geometry.arm_correction)
+    def jaw_pose(self, jaws: dict, name: str) -> np.ndarray:
+        """Instrument ``name``'s jaw pose: as reported, corrected where its arm's error is estimated."""
+        arm = self.arms.get(name)
+        T = jaws[name].T_world_jaw
+        return T if arm is None else arm.corrected(T)
+
+    def corrected_jaws(self, jaws: dict) -> dict:
+        """``jaws`` with each pose corrected (the same dict when no arm's error is estimated)."""
+        if not self.arms:
+            return jaws
+        return {n: Jaw(self.jaw_pose(jaws, n), j.jaw_rad) for n, j in jaws.items()}
+
+    def _arm_cols(self, name: str) -> slice:
+        i = self.n + 6 * list(self.arms).index(name)
+        return slice(i, i + 6)
+
+    def _world_jacobian(self, jaws: dict) -> np.ndarray:
+        """W (6 x all states): the world pose's error of the needle as the state's error maps to it."""
+        W = np.zeros((6, len(self.P)))
+        if self.mode != "held":
+            W[:, :6] = np.eye(6)
+            return W
+        Tj = self.jaw_pose(jaws, self.holder)
+        W[:, :6] = block_rotation(Tj[:3, :3])
+        arm = self.arms.get(self.holder)
+        if arm is not None:
+            W[:, self._arm_cols(self.holder)] = lever((Tj @ self.T)[:3, 3], arm.centre)
+        return W
+
+    def _world_cross(self, jaws: dict) -> Optional[np.ndarray]:
+        """The world pose's error's covariance with the arms' (6 x 6 per arm); None without arms."""
+        if not self.arms:
+            return None
+        return self._world_jacobian(jaws) @ self.P[:, self.n:]
+
+    def _arms_step(self, stamp_ns: int, jaws: dict) -> None:
+        """Each arm heard from gets a correction (none yet, its prior's covariance); each drifts:
+        a random walk in time and in the arm's configuration change since the last frame."""
+        c = self.cfg
+        for name in sorted(jaws):
+            if name not in self.arms:
+                self.arms[name] = ArmCorrection.at(jaws[name].T_world_jaw)
+                prior = np.diag([c.arm_prior_rad ** 2] * 3 + [c.arm_prior_m ** 2] * 3)
+                N = 0 if self.P is None else len(self.P)
+                P = np.zeros((N + 6, N + 6))
+                if N:
+                    P[:N, :N] = self.P
+                P[N:, N:] = prior
+                self.P = P
+        dt = 0.0 if self.arms_stamp_ns is None else max(0.0, (stamp_ns - self.arms_stamp_ns) * 1e-9)
+        self.arms_stamp_ns = stamp_ns
+        for name, arm in self.arms.items():
+            s = 0.0
+            if name in jaws:
+                s = configuration_change(arm.last, jaws[name].T_world_jaw, c.arm_drift_length_m, c.arm_drift_turn_rad)
+                arm.last = np.asarray(jaws[name].T_world_jaw, float).copy()
+            cols = self._arm_cols(name)
+            self.P[cols, cols] += random_walk(c.arm_walk_rad, c.arm_walk_m, dt) \
+                + random_walk(c.arm_drift_rad, c.arm_drift_m, s)
+
+    def corrections(self, jaws: dict) -> dict:
+        """``{name: (K, covariance)}`` per arm: the correction (4x4, world: ``K @ T_world_jaw``
+        corrects the report) and the covariance of the corrected jaw pose (6x6, [w, v], world
+        axes, about the jaws' pivot where the arm reports them now, else where it last did)."""
+        out = {}
+        for name, arm in self.arms.items():
+            T = arm.corrected(jaws[name].T_world_jaw if name in jaws else arm.last)
+            J = lever(T[:3, 3], arm.centre)
+            cols = self._arm_cols(name)
+            out[name] = (arm.K, symmetrise(J @ self.P[cols, cols] @ J.T))
+        return out
+
+    def holds(self, jaws: dict, name: str, T_world_needle: np.ndarray) -> bool:
+        """``jaw_holds`` with ``name``'s jaws as corrected, the reach widened by 2 sigma of where
+        the correction puts their pivot (an arm not yet corrected is millimetres off)."""
+        arm = self.arms.get(name)
+        if arm is None:
+            return jaw_holds(jaws[name], T_world_needle, self.needle, self.cfg)
+        T = arm.corrected(jaws[name].T_world_jaw)
+        J = lever(T[:3, 3], arm.centre)[3:]
+        cols = self._arm_cols(name)
+        sigma = math.sqrt(max(np.linalg.eigvalsh(J @ self.P[cols, cols] @ J.T).max(), 0.0))
+        return jaw_holds(Jaw(T, jaws[name].jaw_rad), T_world_needle, self.needle, self.cfg,
+                         reach_m=self.cfg.grasp_reach_m + 2.0 * sigma)
+
+    def _grasp_geometry(self, jaws: dict) -> None:
+        """A grasp found sure: the needle's pose in the (corrected) jaws weighed once against the
+        grasp's geometry (``arm_correction.grasp_constraint``): what tells the holder's correction
+        from the grasp where the product of the two is all the images see."""
+        c = self.cfg
+        r, Hg = grasp_constraint(self.T, self.needle, c.jaw_length_m)
+        H = np.zeros((2, len(self.P)))
+        H[:, :6] = Hg
+        R = np.diag([c.grasp_sigma_m ** 2, c.grasp_sigma_rad ** 2])
+        self._correct(r, symmetrise(H @ self.P @ H.T + R), H)
 
     def _jaw_noise(self, T_world_jaw: np.ndarray, T_world_needle: np.ndarray) -> np.ndarray:
         """The jaws' measured pose's error as it moves a held needle (6x6, world axes)."""
@@ -240,9 +361,13 @@ class NeedleTracker:
         return J @ np.diag([self.cfg.jaw_sigma_rad ** 2] * 3 + [self.cfg.jaw_sigma_m ** 2] * 3) @ J.T
 
     def _set_world(self, mode: str, T_world: np.ndarray, P_world: np.ndarray, jaws: dict,
-                   holder: Optional[str] = None) -> None:
+                   holder: Optional[str] = None, cross: Optional[np.ndarray] = None) -> None:
         """Put the state in ``mode`` from a world pose and its covariance (a free needle starts
-        with no known velocity: 0, 1 sigma ``free_speed_m_s``, ``free_turn_rad_s``)."""
+        with no known velocity: 0, 1 sigma ``free_speed_m_s``, ``free_turn_rad_s``); ``cross``:
+        the world pose's error's covariance with the arms' corrections (None: independent)."""
+        if self.arms:
+            return self._set_world_with_arms(mode, T_world, P_world, jaws, holder, cross)
+        self.n = 12 if mode == "free" else 6
         self.mode, self.holder = mode, holder
         if mode == "held":
             Tj = jaws[holder].T_world_jaw
@@ -256,12 +381,42 @@ class NeedleTracker:
         else:
             self.T, self.P = T_world, P_world
 
+    def _set_world_with_arms(self, mode, T_world, P_world, jaws, holder, cross) -> None:
+        """``_set_world`` beside the arms' corrections: the needle's new states and their
+        covariance with the corrections, the corrections' own kept."""
+        c = self.cfg
+        A = self.P[self.n:, self.n:]
+        X = np.zeros((6, len(A))) if cross is None else cross
+        P_world = np.asarray(P_world, float)
+        self.mode, self.holder = mode, holder
+        if mode == "held":
+            Tj = self.jaw_pose(jaws, holder)
+            self.T = inv_T(Tj) @ T_world
+            B = block_rotation(Tj[:3, :3].T)          # the world error into jaw axes, less the correction's part
+            cols = slice(6 * list(self.arms).index(holder), 6 * list(self.arms).index(holder) + 6)
+            Hc = lever(T_world[:3, 3], self.arms[holder].centre)
+            Xb = X[:, cols]
+            Pn = B @ (P_world - Xb @ Hc.T - Hc @ Xb.T + Hc @ A[cols, cols] @ Hc.T) @ B.T
+            Xn = B @ (X - Hc @ A[cols, :])
+        elif mode == "free":
+            self.T, self.vel = T_world, np.zeros(6)
+            Pn = np.zeros((12, 12))
+            Pn[:6, :6] = P_world
+            Pn[6:, 6:] = np.diag([c.free_turn_rad_s ** 2] * 3 + [c.free_speed_m_s ** 2] * 3)
+            Xn = np.vstack([X, np.zeros((6, len(A)))])
+        else:
+            self.T, Pn, Xn = T_world, P_world, X
+        self.n = len(Pn)
+        self.P = symmetrise(np.block([[Pn, Xn], [Xn.T, A]]))
+
     # -- predict
     def predict(self, stamp_ns: int) -> None:
         """The state carried to ``stamp_ns`` by its mode's motion model."""
         dt = max(0.0, (stamp_ns - self.stamp_ns) * 1e-9)
         self.stamp_ns = stamp_ns
         c = self.cfg
+        if self.arms:
+            return self._predict_with_arms(dt)
         if self.mode == "free":
             F, Q = constant_velocity(dt, c.accel_rad_s2, c.accel_m_s2)
             self.T = retract(self.T, dt * self.vel)
@@ -271,11 +426,31 @@ class NeedleTracker:
         else:
             self.P = self.P + random_walk(c.rest_sigma_rad, c.rest_sigma_m, dt)
 
+    def _predict_with_arms(self, dt: float) -> None:
+        c, n = self.cfg, self.n
+        if self.mode == "free":
+            F, Q = constant_velocity(dt, c.accel_rad_s2, c.accel_m_s2)
+            self.T = retract(self.T, dt * self.vel)
+            Fa = np.eye(len(self.P))
+            Fa[:n, :n] = F
+            self.P = Fa @ self.P @ Fa.T
+            self.P[:n, :n] += Q
+            self.P = symmetrise(self.P)
+        elif self.mode == "held":
+            self.P[:n, :n] += random_walk(c.slip_sigma_rad, c.slip_sigma_m, dt)
+        else:
+            self.P[:n, :n] += random_walk(c.rest_sigma_rad, c.rest_sigma_m, dt)
+
     # -- update
     def _innovation(self, T_meas: np.ndarray, R_meas: np.ndarray, jaws: dict):
         """(residual, S, H) of a measured world pose against the state."""
         Tw, _ = self.world(jaws)
         r = pose_delta(T_meas, Tw)
+        if self.arms:
+            if self.mode == "held":
+                R_meas = R_meas + self._jaw_noise(self.jaw_pose(jaws, self.holder), Tw)
+            H = self._world_jacobian(jaws)
+            return r, symmetrise(H @ self.P @ H.T + R_meas), H
         n = len(self.P)
         H = np.zeros((6, n))
         if self.mode == "held":
@@ -291,7 +466,9 @@ class NeedleTracker:
         dx = K @ r
         self.T = retract(self.T, dx[:6])
         if self.mode == "free":
-            self.vel = self.vel + dx[6:]
+            self.vel = self.vel + dx[6:self.n]
+        for i, arm in enumerate(self.arms.values()):
+            arm.inner = retract(arm.inner, dx[self.n + 6 * i:self.n + 6 * i + 6])
         IKH = np.eye(len(self.P)) - K @ H
         S_r = S - H @ self.P @ H.T                 # the measurement's noise (Joseph form)
         self.P = symmetrise(IKH @ self.P @ IKH.T + K @ S_r @ K.T)
@@ -331,8 +508,7 @@ class NeedleTracker:
             turn, self.identity = track_identity(m.end_identity, None, None)
             if turn:
                 T = turned_end_for_end(T, self.needle)
-        holder = next((n for n in sorted(jaws) if n not in self.refused
-                       and jaw_holds(jaws[n], T, self.needle, self.cfg)), None)
+        holder = next((n for n in sorted(jaws) if n not in self.refused and self.holds(jaws, n, T)), None)
         self._set_world("held" if holder else "rest", T, P, jaws, holder)
         if holder is not None:          # on trial, as every grasp
             self._arm_trial(T, P)
@@ -341,23 +517,22 @@ class NeedleTracker:
         """Grasp, handover, release and rest decided from the jaws and the track; the event."""
         c = self.cfg
         Tw, Pw = self.world(jaws)
+        X = self._world_cross(jaws)
         if self.mode == "held":
             if jaws[self.holder].jaw_rad < c.open_rad:
                 return None
-            other = next((n for n in sorted(jaws) if n != self.holder
-                          and jaw_holds(jaws[n], Tw, self.needle, c)), None)
+            other = next((n for n in sorted(jaws) if n != self.holder and self.holds(jaws, n, Tw)), None)
             if other is not None:
-                self._set_world("held", Tw, Pw, jaws, other)
+                self._set_world("held", Tw, Pw, jaws, other, X)
                 self._arm_trial(Tw, Pw)          # the new grasp is on trial too
                 return f"handover:{other}"
             self.trial = None              # let go where something holds it: tissue, the pad
-            self._set_world("rest", Tw, Pw, jaws)
+            self._set_world("rest", Tw, Pw, jaws, cross=X)
             return "release"
-        holder = next((n for n in sorted(jaws) if n not in self.refused
-                       and jaw_holds(jaws[n], Tw, self.needle, c)), None)
+        holder = next((n for n in sorted(jaws) if n not in self.refused and self.holds(jaws, n, Tw)), None)
         if holder is not None:
             self._arm_trial(Tw, Pw)
-            self._set_world("held", Tw, Pw, jaws, holder)
+            self._set_world("held", Tw, Pw, jaws, holder, X)
             return f"grasp:{holder}"
         if self.mode == "free" and self.trial is None:
             self._arm_trial(self.T, self.P[:6, :6])
@@ -403,13 +578,15 @@ class NeedleTracker:
         if self.mode == "free":
             if t["llr"] >= c.grasp_llr:
                 self.trial = None
-                self._set_world("rest", self.T, self.P[:6, :6], jaws)
+                self._set_world("rest", self.T, self.P[:6, :6], jaws, cross=self._world_cross(jaws))
                 return "rest"
             if t["llr"] <= -c.grasp_llr:
                 self.trial = None
             return None
         if t["llr"] <= -c.grasp_llr:
             self.trial = None
+            if self.holder in self.arms:         # the grasp is sure: its geometry tells the arm's error
+                self._grasp_geometry(jaws)
         elif t["llr"] >= c.grasp_llr:
             self.trial = None
             self.refused.add(self.holder)
@@ -422,17 +599,19 @@ class NeedleTracker:
         """The track at ``stamp_ns`` given the instruments' states (``{name: Jaw}``) and the
         frame's measurement (None: no pose this frame). None while there is no track."""
         event = None
+        if self.cfg.arm_correction:
+            self._arms_step(stamp_ns, jaws)
         self.refused = {n for n in self.refused if n in jaws and jaws[n].jaw_rad < self.cfg.open_rad}
         if self.active and self.mode == "held" and self.holder not in jaws:
             Tw, Pw = self.world(self._last_jaws)      # the holder's state did not come: let it go
-            self._set_world("free", Tw, Pw, jaws)
+            self._set_world("free", Tw, Pw, jaws, cross=self._world_cross(self._last_jaws))
             event = "release"
         if self.active:
             self.predict(stamp_ns)
             self.age += 1
             if self.mode == "free" and measurement is None and \
                     (stamp_ns - self.last_seen_ns) * 1e-9 > self.cfg.max_coast_s:
-                self.reset()
+                self.reset(keep_arms=True)
                 return None
         if not self.active and (measurement is None or not measurement.starts(self.cfg)):
             return self._from_partial(stamp_ns, jaws, measurement)
@@ -461,7 +640,7 @@ class NeedleTracker:
                 if self.rejected >= (self.cfg.reset_after_held if settled else self.cfg.reset_after) \
                         and measurement.starts(self.cfg):
                     refused = self.refused
-                    self.reset()
+                    self.reset(keep_arms=True)
                     self.refused = refused
                     self._start(measurement, jaws)
                     self.stamp_ns = self.last_seen_ns = stamp_ns
@@ -488,9 +667,12 @@ class NeedleTracker:
             return None
         if self.candidate is None:
             self.candidate = NeedleTracker(self.needle, replace(self.cfg, start_arc_seen=0.0, start_run=0))
+            if self.arms:                           # it starts from the arms' corrections as they are
+                self.candidate.arms, self.candidate.P = copy.deepcopy(self.arms), self.P[self.n:, self.n:].copy()
+                self.candidate.arms_stamp_ns = self.arms_stamp_ns
         out = self.candidate.step(stamp_ns, jaws, m)
         if out is None or not out.used or out.event == "restart":
-            self.candidate.reset()
+            self.candidate.reset(keep_arms=True)
             out = self.candidate.step(stamp_ns, jaws, m)
             self.run = 1
         else:
@@ -505,6 +687,7 @@ class NeedleTracker:
         Pw = Pw + np.diag(self.common)              # isotropic: the same in every frame's axes
         held = self.mode == "held"
         p = None if self.identity is None else sigmoid(self.identity[0])
-        return Tracked(Tw.copy(), Pw, self.mode, self.holder,
-                       self.T.copy() if held else None, self.P + np.diag(self.common) if held else None,
-                       p, used, turned, d, event)
+        corrections = self.corrections(jaws) if self.cfg.arm_correction else None
+        P_jaw = (self.P[:6, :6] if self.arms else self.P) + np.diag(self.common) if held else None
+        return Tracked(Tw.copy(), Pw, self.mode, self.holder, self.T.copy() if held else None, P_jaw,
+                       p, used, turned, d, event, corrections)

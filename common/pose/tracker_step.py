@@ -28,8 +28,10 @@ Each public method returns the ``(output, message)`` pairs to publish: ``pose`` 
 ``T_ecm_needle`` with the world pose, the covariance in ECM axes, ``residual`` the measurement's
 Mahalanobis^2, unit ``chi2``; the track's ``end_identity`` and ``mode``, below ``TIP_SURE``
 flagged ``ambiguous`` with the covariance spanning the turn), ``in_hand`` (``InHandPose`` while
-an instrument holds the needle) and ``no_pose`` (a frame stepped without a track, reason
-``no_track``). Counters go to ``count(name, n)``: ``rejected``, ``turned``, ``events.<event>``.
+an instrument holds the needle), ``no_pose`` (a frame stepped without a track, reason
+``no_track``) and, with ``arm_correction``, ``arm_correction`` (``ArmCorrection``: each arm's
+estimated error, per frame the arm reports its jaws in, with or without a track; the needle in the
+jaws is then in the corrected jaw frame). Counters go to ``count(name, n)``: ``rejected``, ``turned``, ``events.<event>``.
 """
 from __future__ import annotations
 
@@ -47,6 +49,7 @@ from common.geometry.needle_tracker import Jaw, Measurement, NeedleTracker, Trac
 from common.geometry.refine import mirror_pose
 from common.geometry.transforms import inv_T, symmetrise
 from common.runtime.messages import (
+    ArmCorrection,
     Calibration,
     EcmPose,
     EndOfStream,
@@ -245,11 +248,21 @@ class TrackerStep:
         counted = self._count_outcome(out, ())
         if self.replay:
             self.history.put(seq, [state_before, inputs, counted])
+        self._publish_corrections(seq, inputs)
         if out is None:
             self.count("no_pose.no_track")
             self._out.append(("no_pose", NoPoseNotice(seq, inputs.stamp_ns, self.method, "no_track")))
             return
         self._publish(seq, inputs.stamp_ns, T_world_ecm, out, inputs.sequence)
+
+    def _publish_corrections(self, seq: int, inputs: FrameInputs):
+        """Each arm's estimated error, for the arms that report their jaws in this frame."""
+        if not self.config.arm_correction:
+            return
+        for name, (K, cov) in self.tracker.corrections(inputs.jaws).items():
+            if name in inputs.jaws:
+                self._out.append(("arm_correction", ArmCorrection(
+                    name, seq, inputs.stamp_ns, K, K @ inputs.jaws[name].T_world_jaw, cov)))
 
     def _advance(self, inputs: FrameInputs, count: bool):
         """The filter stepped over one frame (a new take first starts a new track)."""

@@ -542,4 +542,33 @@ class InHandPose(Message):
             raise MessageError(f"InHandPose.end_identity: a probability in [0, 1], got {self.end_identity}")
 
 
+@register
+@dataclass
+class ArmCorrection(Message):
+    """An arm's kinematic error as the tracker estimates it (docs/tracking.md): ``T_correction``
+    (4x4, world) corrects the arm's reported jaw pose, ``T_world_jaw_corrected = T_correction @
+    T_world_jaw``; ``T_world_jaw`` that corrected pose in this frame (the arm's newest report);
+    ``covariance`` (6, 6) of the corrected jaw pose over [rotation vector (rad), translation (m)]
+    in world axes about the jaws' pivot (``R = exp([w]x) R0``, ``t = t0 + v``). ``name`` the
+    instrument (``psm1``); ``seq``, ``stamp_ns``: the camera frame's."""
+
+    SCHEMA = "needletrack.ArmCorrection"
+    name: str
+    seq: NonNegative
+    stamp_ns: NonNegative
+    T_correction: Array[4, 4]
+    T_world_jaw: Array[4, 4]
+    covariance: Array[6, 6]
+    epoch: Optional[NonNegative] = None
+
+    def validate(self):
+        if not 1 <= len(self.name) <= 64 or not self.name.isprintable():
+            raise MessageError(f"ArmCorrection.name: 1 to 64 printable characters, got {self.name[:40]!r}")
+        require_rigid(self.T_correction, "ArmCorrection.T_correction")
+        require_rigid(self.T_world_jaw, "ArmCorrection.T_world_jaw")
+        err = covariance_error(self.covariance, "ArmCorrection.covariance")
+        if err:
+            raise MessageError(err)
+
+
 MESSAGE_TYPES = registered_types()

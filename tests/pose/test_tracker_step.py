@@ -4,10 +4,11 @@ import numpy as np
 
 from common.geometry.end_identity import identity_covariance
 from common.geometry.needle import NeedleModel
-from common.geometry.needle_tracker import retract
-from common.geometry.transforms import inv_T, make_T
+from common.geometry.needle_tracker import TrackerConfig, retract
+from common.geometry.transforms import inv_T, make_T, pose_error
 from common.pose.tracker_step import InstrumentTable, TrackerStep
 from common.runtime.messages import EcmPose, EndOfStream, GroundTruth, InstrumentState, NoPoseNotice, PoseEstimate
+from common.sim.arm_error import ARM_ERRORS, draw_arm_errors
 from common.sim.motion import FPS, script_take
 
 NEEDLE = NeedleModel()
@@ -104,3 +105,35 @@ def test_the_instrument_table_holds_a_bounded_set_of_live_names():
     assert table.put(state("extra", 6))                                     # one quiet 6 frames makes room
     assert "extra" in table.states and len(table.states) == MAX_INSTRUMENTS
     assert set(table.at(6)) == {"extra"} and sorted(table.heard()) == [0] * (MAX_INSTRUMENTS - 1) + [6]
+
+
+def test_with_arm_correction_each_arm_s_error_is_said_and_the_needle_is_in_the_corrected_jaws():
+    frames, T_world_ecm = handover()
+    errs = draw_arm_errors(ARM_ERRORS["dvrk"], (3, 0), {n: T for n, (T, _, _) in frames[0].instruments.items()})
+    poses = measured(frames, T_world_ecm, np.random.default_rng(2))
+    step, out = TrackerStep(TrackerConfig(arm_correction=True), max_wait=1), []
+    for k in range(60):
+        out += step.on_truth(GroundTruth(k, k * DT_NS, sequence=0, needle_at_rest=False))
+        for name, (T, jaw, holds) in frames[k].instruments.items():
+            T_rep, jaw_rep = errs[name].report(T, jaw, k)
+            out += step.on_instruments(InstrumentState(name, k, k * DT_NS, T_rep, jaw_rep, holds))
+        out += step.on_ecm(EcmPose(k, k * DT_NS, T_world_ecm)) + step.on_pose(poses[k])
+    said = [m for o, m in out if o == "arm_correction"]
+    assert {(m.seq, m.name) for m in said} == {(k, n) for k in range(60) for n in ("psm1", "psm2")}
+    for m in said:     # the corrected jaws are the correction applied to the report
+        T_rep = errs[m.name].report(frames[m.seq].instruments[m.name][0], 0.0, m.seq)[0]
+        assert np.allclose(m.T_world_jaw, m.T_correction @ T_rep)
+    # the held needle is stated in the corrected jaw frame: with the tracked pose, it gives the
+    # corrected jaws of that frame
+    held = {m.seq: m for o, m in out if o == "in_hand"}
+    tracked = {m.seq: m for o, m in out if o == "pose"}
+    corrected = {(m.seq, m.name): m.T_world_jaw for m in said}
+    for seq, m in held.items():
+        T_jaw = tracked[seq].T_world_needle @ inv_T(m.T_jaw_needle)
+        assert max(pose_error(T_jaw, corrected[(seq, m.name)])) < 1e-9
+    # off: the reports as exact, nothing said on arm_correction
+    step = TrackerStep(max_wait=1)
+    out = []
+    for k in range(5):
+        out += frame_inputs(step, frames, T_world_ecm, k) + step.on_pose(poses[k])
+    assert not [o for o, _ in out if o == "arm_correction"]

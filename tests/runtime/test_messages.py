@@ -18,6 +18,7 @@ from common.runtime.messages import (
     EndOfStream,
     GroundTruth,
     InHandPose,
+    ArmCorrection,
     InstrumentState,
     Keypoints,
     MessageError,
@@ -64,6 +65,7 @@ def examples():
         NodeStats("det", "detector", 42, 1, 2.5, {"in.left": 3, "state": "active"}, {"in.left": 29.9}, 1.0, 2.0),
         EndOfStream(frames=30, stamp_ns=9),
         InHandPose("psm1", 5, 6, "psm1_jaw", T, np.eye(6) * 1e-8, 0.9),
+        ArmCorrection("psm1", 5, 6, T, T, np.eye(6) * 1e-6),
     ]
 
 
@@ -95,7 +97,7 @@ def test_calibration_round_trips():
 def test_all_message_types_are_registered():
     assert {c.__name__ for c in MESSAGE_TYPES.values()} >= {
         "CameraImage", "EcmJoints", "EcmPose", "Keypoints", "PoseEstimate", "Points3D", "GroundTruth",
-        "Calibration", "Command", "NodeStats", "EndOfStream", "InstrumentState", "InHandPose", "NoPoseNotice"}
+        "Calibration", "Command", "NodeStats", "EndOfStream", "InstrumentState", "InHandPose", "NoPoseNotice", "ArmCorrection"}
     # every registered type is in the round trips and the corruption tests below (Calibration: its own)
     assert {type(m) for m in examples()} | {Calibration} == set(MESSAGE_TYPES.values())
 
