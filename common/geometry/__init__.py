@@ -15,6 +15,9 @@ Modules (``python -m common.layout`` writes this list from their docstrings):
 - ``arc_support``: How much of a fitted arc the images saw: the share of the needle's arc, at a
   pose, that an observed centreline point or keypoint lies near in a camera.
 - ``camera``: Pinhole cameras and the stereo endoscope rig (OpenCV conventions).
+- ``covariance_bound``: The widest a needle pose's covariance may honestly be: no direction of its
+  error spread more than knowing nothing of the needle's orientation (``MAX_SIGMA_RAD``) and nothing
+  of its position within the working volume (``MAX_SIGMA_M``), 1 sigma.
 - ``ecm_kinematics``: Forward kinematics of the da Vinci endoscope arm (ECM), as the dataset spec
   defines it.
 - ``end_identity``: Which end of the needle is the tip: combining the cameras' evidence, turning

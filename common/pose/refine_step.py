@@ -13,7 +13,12 @@ whose residuals exceed ``max_residual_variance`` times the stated noise's varian
 (``no_pose.poor_fit``: e.g. a needle's tail in the jaws, the centreline running along the jaw)
 gives no pose and restarts the tracking. A pose fitted to less of its arc than ``min_arc_seen``
 (``arc_seen``, ``common.geometry.arc_support``) is a partial view: flagged ``ambiguous``, its
-covariance times ``partial_view_inflation`` (counted ``partial_view``). Its tip
+covariance times ``partial_view_inflation`` (counted ``partial_view``). A fit whose images
+leave a direction of the pose unfixed (a short stretch of arc, its keypoints placed on it rather
+than seen) states the widest honest covariance there (``common.geometry.covariance_bound``:
+nothing known of the orientation, the position within the working volume), flagged
+``ambiguous`` (counted ``unobservable``): every covariance a pose states is one a message may
+carry. Its tip
 (``end_identity.pose_tip_probability``): at most ``end_unseen_p_max`` sure when an end of the
 fitted arc no camera saw or a partial view (``end_identity.end_unseen``,
 ``end_identity.partial_view``), at most the larger of ``reading_p_max`` and what the cameras'
@@ -147,6 +152,8 @@ class RefineStep(StereoPoseStep):
             return
         if res.ambiguous:
             self.count("ambiguous")
+        if "unobservable" in res.reasons:
+            self.count("unobservable")         # a direction at the covariance's bound
         support = arc_support(self.rig, self.needle, res.T_ecm_needle, obs, SUPPORT_PX,
                               self.config.min_centreline_w, self.config.min_score)
         seen = best_seen(shares(support))
