@@ -45,6 +45,10 @@ Modules (``python -m common.layout`` writes this list from their docstrings):
   covariance.
 - ``rest_prior``: Prior over the needle's orientation: a needle at rest lies flat on the surface
   beneath it.
+- ``stereo_agreement``: Whether a stereo frame's two detections are of one needle, and the track's:
+  a detector that tracks a crop from frame to frame (one camera each) can stay locked on a
+  distractor (a red marker) for a whole take while the other camera and the track see the needle
+  elsewhere.
 - ``transforms``: Rigid transforms: 4x4 homogeneous ``T_a_b`` mapping frame b to frame a (metres,
   radians).
 - ``triangulation``: Pipeline II: DLT stereo triangulation of the keypoints and Arun's registration
