@@ -31,8 +31,8 @@ from common.geometry.triangulation import triangulate_dlt
 MAX_DEPTH_M = 2.0
 """A keypoint pair that triangulates farther than this from a camera is no match (the dense
 refinement's ``max_depth_m``)."""
-MIN_PAIRS = 3
-"""Fewer keypoints usable in both cameras tell nothing."""
+MIN_PAIRS = 2
+"""Fewer keypoints usable in both cameras tell nothing (two, the needle's ends, place it)."""
 
 
 def epipolar_px(rig: StereoRig, uv: Mapping[str, np.ndarray], scores: Mapping[str, np.ndarray],

@@ -122,3 +122,35 @@ def test_a_fit_that_leaves_a_direction_unfixed_states_the_widest_honest_covarian
         assert np.diag(C)[:3].max() <= 1.5 * MAX_SIGMA_RAD ** 2 + 1e-9       # the bound, and half a turn
         assert np.diag(C)[3:].max() <= MAX_SIGMA_M ** 2 + 1e-9
     assert posed >= 2
+
+
+def test_a_camera_that_the_other_and_the_tracker_disagree_with_is_said_a_wrong_lock():
+    """Issue 56: the right detector stuck on a distractor from the first frame, so the step has no
+    pose of its own; the tracker's pose (fed back on ``track``) places the needle. Two frames in a
+    row: a ``LockRejected`` for the right camera on ``lock``, with its box; the frames that agree
+    say nothing."""
+    from common.geometry.transforms import inv_T
+    from common.runtime.messages import PoseEstimate
+    counts = {}
+    step = RefineStep(tracking=TrackingConfig(enabled=False), max_wait=3,
+                      count=lambda n, k=1: counts.__setitem__(n, counts.get(n, 0) + k))
+    step.on_calib(CALIB)
+    T, left, right = frames(1, 5)[0]
+    T_world_needle = T_WORLD_ECM @ T
+    step.on_track(PoseEstimate(0, 0, "tracked", inv_T(T_WORLD_ECM) @ T_world_needle, T_world_needle, T_WORLD_ECM,
+                               0.0, "px"))
+    blob = right.uv.mean(axis=0) + [-300.0, 160.0] + np.array([[-6, 0], [-3, 3], [0, 4], [3, 3], [6, 0]], float)
+    stuck = replace(right, uv=blob, centreline=None, centreline_w=None, bbox=np.r_[blob.min(0), blob.max(0)])
+    locks = []
+    for seq in (1, 2, 3):
+        step.on_ecm(EcmPose(seq, seq * 1000, T_WORLD_ECM))
+        out = step.on_keypoints(replace(left, seq=seq, stamp_ns=seq * 1000))
+        out += step.on_keypoints(replace(stuck, seq=seq, stamp_ns=seq * 1000))
+        locks += [(m.seq, m.camera, m.reason) for o, m in out if o == "lock"]
+    assert locks == [(2, "right", "wrong_lock")] and counts["lock_rejected.right"] == 1
+    # both cameras on the needle: nothing said, whatever the track
+    for seq in (4, 5, 6):
+        step.on_ecm(EcmPose(seq, seq * 1000, T_WORLD_ECM))
+        out = step.on_keypoints(replace(left, seq=seq, stamp_ns=seq * 1000))
+        out += step.on_keypoints(replace(right, seq=seq, stamp_ns=seq * 1000))
+        assert not [m for o, m in out if o == "lock"] and any(o == "pose" for o, _ in out)
