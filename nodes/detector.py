@@ -24,7 +24,10 @@ the first calibration wait for it, within the same ``max_wait`` frames (a detect
 running graph hears the source's beacon within a second); when the image input keeps only the
 newest message, so does the wait (the older image is dropped and counted ``superseded``); after
 that they count ``no_calibration``. A corrupt image gives ``Keypoints.not_found`` and counts
-``bad_image``. What a backend notes of a detection is counted and said once (``last_notes``:
+``bad_image``. A ``LockRejected`` on ``lock`` (a feedback input: the refine node's ``lock``, when
+the other camera and the track disagree with a camera's detections) makes the backend drop that
+camera's tracked crop and search it cold, away from the rejected box first (counted
+``lock_rejected.<camera>``; a camera the node does not detect is ignored). What a backend notes of a detection is counted and said once (``last_notes``:
 the learned backend's ``found_turned``, a needle found only with the image's hues turned).
 """
 from __future__ import annotations
@@ -41,6 +44,7 @@ from common.runtime.messages import (
     CameraImage,
     GroundTruth,
     Keypoints,
+    LockRejected,
     MessageError,
 )
 from common.runtime.node import Node, NodeError, run
@@ -51,9 +55,11 @@ from common.runtime.params import merge_schemas
 class DetectorNode(Node):
     """Runs a keypoint backend on each camera image (or on the ground truth alone)."""
 
-    INPUTS = {"left": CameraImage, "right": CameraImage, "truth": GroundTruth, "calib": Calibration}
+    INPUTS = {"left": CameraImage, "right": CameraImage, "truth": GroundTruth, "calib": Calibration,
+              "lock": LockRejected}
     OUTPUTS = ("left", "right")
-    KEEP_ALL = ("truth", "calib")
+    KEEP_ALL = ("truth", "calib", "lock")
+    FEEDBACK = ("lock",)
 
     @dataclass
     class Params:
@@ -113,6 +119,15 @@ class DetectorNode(Node):
         if not (self.wired("left") or self.wired("right")):
             self.waiting_truths.hold(msg.seq, msg.seq)
         self._release()
+
+    def on_lock(self, msg: LockRejected):
+        """A pose node rejects a camera's detections (the other camera and the track disagree
+        with them): the backend drops that camera's tracked crop (``KeypointBackend.reject``).
+        A camera this node does not detect is not its business."""
+        if not self.wired(msg.camera) and (self.wired("left") or self.wired("right")):
+            return
+        self.count(f"lock_rejected.{msg.camera}")
+        self.backend.reject(msg.camera, msg.bbox)
 
     def on_left(self, msg: CameraImage):
         self._image(msg)

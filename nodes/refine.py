@@ -33,6 +33,14 @@ PnP's reasons, or the refinement's: ``too_few_points``, ``no_valid_candidate``,
 ``bad_centreline``, ``bad_keypoints``, ``high_residual``, ``poor_fit``, ``unsure_keypoints``), and
 said on ``no_pose`` (``NoPoseNotice``, method ``refined``, that reason) at once: the tracker
 steps such a frame without waiting for a later pose.
+
+Wrong locks (``lock_check``, default on): a camera whose keypoints the other camera's disagree with
+and that lie off the track while the other camera's lie on it, two frames in a row, is said on
+``lock`` (``LockRejected`` with its box, counted ``lock_rejected.<camera>``); wired to the
+detectors' ``lock`` input, the detector drops that camera's tracked crop and searches it cold
+(``common.geometry.stereo_agreement``). The track is the node's own last pose, else the tracker's
+pose fed back on ``track`` (a feedback input: the tracker carries a held needle when no pose is
+refined).
 """
 from __future__ import annotations
 
@@ -44,7 +52,8 @@ from common.constraints import Probability, number_at_least
 from common.geometry.refine import RefineConfig
 from common.geometry.refine_tracking import TrackingConfig
 from common.pose.refine_step import RefineGates, RefineStep
-from common.runtime.messages import Calibration, EcmPose, Keypoints
+from common.geometry.stereo_agreement import LockCheckConfig
+from common.runtime.messages import Calibration, EcmPose, Keypoints, PoseEstimate
 from common.runtime.node import NodeError, run
 from common.runtime.params import config_from, merge_schemas
 from nodes._pose import StereoPoseNode
@@ -70,15 +79,19 @@ class _NodeParams(StereoPoseNode.Params):
     # a pose whose keypoints some camera reads end for end states its tip at most this sure
     # (counted end_identity.reading_turned): the stated probability was the keypoints', not its
     reading_p_max: Probability = 0.5
+    # a camera whose detections the other camera's and the track disagree with is said on lock
+    # (LockRejected, counted lock_rejected.<camera>) for its detector to search it cold
+    lock_check: bool = True
 
 
 class RefineNode(StereoPoseNode):
     """Keypoints + centrelines of a stereo frame -> refined T_ecm_needle with covariance
     (``common.pose.refine_step.RefineStep``)."""
 
-    INPUTS = {"left": Keypoints, "right": Keypoints, "calib": Calibration, "ecm": EcmPose}
-    OUTPUTS = ("pose", "no_pose")
+    INPUTS = {"left": Keypoints, "right": Keypoints, "calib": Calibration, "ecm": EcmPose, "track": PoseEstimate}
+    OUTPUTS = ("pose", "no_pose", "lock")
     KEEP_ALL = StereoPoseNode.KEEP_ALL
+    FEEDBACK = ("track",)
 
     # every RefineConfig and TrackingConfig field is a param of the same name (``tracking`` for
     # TrackingConfig.enabled), beside the node's own
@@ -92,7 +105,12 @@ class RefineNode(StereoPoseNode):
         except ValueError as exc:
             raise NodeError(str(exc)) from None
         return RefineStep(config, tracking, config_from(RefineGates, self.p), outlier_px=self.p.outlier_px,
-                          support_normal_world=normal, **wiring)
+                          support_normal_world=normal,
+                          lock_check=LockCheckConfig(min_score=self.p.min_score) if self.p.lock_check else None,
+                          **wiring)
+
+    def on_track(self, msg: PoseEstimate):
+        self.publish_all(self.step.on_track(msg))
 
 
 def support_normal(value) -> np.ndarray | None:

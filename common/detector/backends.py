@@ -93,6 +93,12 @@ class KeypointBackend:
     def reset(self) -> None:
         """A new source stream: forget any state carried from frame to frame (none here)."""
 
+    def reject(self, camera: str, bbox=None) -> None:
+        """Camera ``camera``'s last detections are a wrong lock (``LockRejected``: the other
+        camera and the track disagree with them; ``bbox`` [x0, y0, x1, y1] px, the rejected
+        box, or None): drop what is tracked of that camera and search it cold (nothing here: a
+        backend that keeps no state from frame to frame)."""
+
     def last_notes(self) -> dict[str, str]:
         """What the last ``detect`` did that the node should count and say once: {counter name:
         the sentence to log the first time} (none here)."""

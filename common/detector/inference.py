@@ -14,7 +14,10 @@ the paper) the result is "no needle" (``Keypoints.not_found``) with a reason; po
 guessed. A cold frame where no proposal passes is searched again with the image's hues turned
 (``RETRY_HUES_DEG``): the networks read tissue of a colour no render has (a silicone pad, blue or
 green) best turned towards the colours they were trained on; a needle found so must be surer
-(``RETRY_PRESENCE``), and the turn that found it is kept for the camera's tracking frames.
+(``RETRY_PRESENCE``), and the turn that found it is kept for the camera's tracking frames. A camera's
+tracked crop that a stereo pose node rejects (``reject``: the other camera and the track disagree
+with it, ``common.geometry.stereo_agreement``) is dropped and searched cold, away from the
+rejected box first (``AVOID_FRAMES``).
 
 Weights are loaded with ``torch.load(..., weights_only=True)``; a missing, corrupt or mismatched
 file raises ``ModelFileError`` saying how to retrain.
@@ -85,6 +88,11 @@ threshold): on 80 needle-free renders of the test look (``needletrack bench dete
 --make-negatives 40``) the turned searches' best presences were under it in all but one image,
 and the turns added no false detection (12 of 80 as they are); at the detection threshold (0.5),
 9 of the first 20 gave a needle, against 2 as they are."""
+AVOID_FRAMES = 30
+"""After a camera's tracked crop is rejected (``reject``: the other camera and the track disagree
+with it), its cold searches try stage 1's proposals away from the rejected box first for this
+many frames (1 s at 30 Hz): a distractor that stage 1 ranks above the needle is not taken again
+at once; with nothing else passing, the rejected box may still be found."""
 log = logging.getLogger("needletrack.keypoint_detector")
 
 
@@ -114,6 +122,11 @@ def as_bgr(img: np.ndarray) -> np.ndarray:
     if img.shape[2] == 4:
         return cv2.cvtColor(img, cv2.COLOR_BGRA2BGR)
     return img
+
+
+def _centred_in(cx: float, cy: float, box) -> bool:
+    """Whether the point (cx, cy) lies in the box [x0, y0, x1, y1]."""
+    return bool(box[0] <= cx <= box[2] and box[1] <= cy <= box[3])
 
 
 def _moved(box, new_box, tol: float = 0.1) -> bool:
@@ -160,6 +173,7 @@ class KeypointDetector:
         self._track: dict[str, tuple] = {}
         self._hue: dict[str, float] = {}    # the hue turn each tracked camera's needle was found at
         self._retry_wait: dict[str, int] = {}   # cold frames each camera searches unturned (_retry)
+        self._avoid: dict[str, list] = {}       # camera -> [rejected box (x0, y0, x1, y1), frames left]
         self.last_mode = ""
         self.last_turn = 0.0    # the hue turn (deg) the last detection was found at; 0: as it is
         self.end_coef = load_end_coefficients(self.weights)
@@ -179,9 +193,31 @@ class KeypointDetector:
             self._track.clear()
             self._hue.clear()
             self._retry_wait.clear()
+            self._avoid.clear()
         else:
             self._track.pop(camera, None)
             self._hue.pop(camera, None)
+
+    def reject(self, camera: str, bbox=None) -> None:
+        """Camera ``camera``'s tracked crop is a wrong lock (the other camera and the track
+        disagree with it): dropped, and for ``AVOID_FRAMES`` frames its cold searches try the
+        proposals away from ``bbox`` ([x0, y0, x1, y1] px, the rejected detection's; None:
+        anywhere) first."""
+        self.reset(camera)
+        if bbox is not None:
+            b = np.asarray(bbox, float).reshape(-1)
+            if b.shape == (4,) and np.isfinite(b).all():
+                self._avoid[camera] = [b, AVOID_FRAMES]
+
+    def _avoided(self, camera: str):
+        """The box this camera's cold searches avoid this frame (None: none); counts the frame."""
+        a = self._avoid.get(camera)
+        if a is None:
+            return None
+        a[1] -= 1
+        if a[1] <= 0:
+            del self._avoid[camera]
+        return a[0]
 
     # ------------------------------------------------------------ stages
     def _tensor(self, arr: np.ndarray) -> torch.Tensor:
@@ -227,7 +263,7 @@ class KeypointDetector:
             res["visibility"] = torch.sigmoid(visibility_logits(heat))[0].numpy().astype(np.float64)
         return res
 
-    def _retry(self, img: np.ndarray, camera: str, best):
+    def _retry(self, img: np.ndarray, camera: str, best, avoid=None):
         """A cold frame that ``best`` (``_search``'s, or None) did not find searched with its hues
         turned (``retry_hues``): the turned result with the highest presence if it reaches
         ``RETRY_PRESENCE``, else ``best``. After a frame where the turns found nothing either, the
@@ -239,7 +275,7 @@ class KeypointDetector:
             return best
         turned = None
         for hue in self.retry_hues:
-            r = self._search(img, hue, first=False)
+            r = self._search(img, hue, first=False, avoid=avoid)
             if r is not None and r[0]["presence"] >= max(self.threshold, RETRY_PRESENCE) \
                     and (turned is None or r[0]["presence"] > turned[0]["presence"]):
                 turned = r
@@ -247,18 +283,27 @@ class KeypointDetector:
             self._retry_wait[camera] = RETRY_EVERY - 1
         return best if turned is None else turned
 
-    def _search(self, img: np.ndarray, hue_deg: float, first: bool):
+    def _search(self, img: np.ndarray, hue_deg: float, first: bool, avoid=None):
         """Stage 2 on each of stage 1's proposals, the image's hues turned by ``hue_deg``: (the
         result with the highest presence, its proposal's confidence), or None without a proposal.
-        ``first``: stop at the first proposal whose presence passes the threshold."""
-        best = None
-        for c1, cx, cy, bw, bh in self._stage1(img, hue_deg):
+        ``first``: stop at the first proposal whose presence passes the threshold. ``avoid``
+        (a rejected box [x0, y0, x1, y1], ``reject``): proposals centred in it are tried last,
+        and a result centred in it is taken only when none away from it passes."""
+        best, best_key = None, None
+        props = self._stage1(img, hue_deg)
+        if avoid is not None:
+            props = sorted(props, key=lambda p: _centred_in(p[1], p[2], avoid))    # stable
+        for c1, cx, cy, bw, bh in props:
             r = self._stage2(img, (cx, cy, bw, bh), self.ridge_ends, hue_deg)
             if self.refine and r["presence"] >= self.proposal_threshold:
                 r = self._stage2(img, self._box_of(r), self.ridge_ends, hue_deg)
-            if best is None or r["presence"] > best[0]["presence"]:
-                best = (r, c1)
-            if first and r["presence"] >= self.threshold:
+            passes = r["presence"] >= self.threshold
+            if avoid is not None and passes:
+                passes = not _centred_in(*self._box_of(r)[:2], avoid)
+            key = (passes, r["presence"])
+            if best is None or key > best_key:
+                best, best_key = (r, c1), key
+            if first and passes:
                 break
         return best
 
@@ -411,9 +456,10 @@ class KeypointDetector:
             self.last_mode = "cold"
             # stage 1 proposes (Keypoint R-CNN's RPN role, a low threshold); stage 2's presence
             # on the re-centred crop decides, against the detection threshold
-            best = self._search(img, 0.0, first=True)
+            avoid = self._avoided(camera)
+            best = self._search(img, 0.0, first=True, avoid=avoid)
             if best is None or best[0]["presence"] < self.threshold:
-                best = self._retry(img, camera, best)
+                best = self._retry(img, camera, best, avoid)
             if best is None:
                 self.reset(camera)
                 return Keypoints.not_found(camera, seq, stamp_ns, self.name,

@@ -43,6 +43,9 @@ class LearnedBackend(KeypointBackend):
     def reset(self) -> None:
         self.detector.reset()
 
+    def reject(self, camera: str, bbox=None) -> None:
+        self.detector.reject(camera, bbox)
+
     def last_notes(self) -> dict[str, str]:
         turn = self.detector.last_turn
         if not turn:

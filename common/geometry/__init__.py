@@ -17,6 +17,9 @@ Modules (``python -m common.layout`` writes this list from their docstrings):
 - ``arm_correction``: An arm's kinematic error, as the tracker estimates it: a lumped correction of
   the reported jaw pose.
 - ``camera``: Pinhole cameras and the stereo endoscope rig (OpenCV conventions).
+- ``covariance_bound``: The widest a needle pose's covariance may honestly be: no direction of its
+  error spread more than knowing nothing of the needle's orientation (``MAX_SIGMA_RAD``) and nothing
+  of its position within the working volume (``MAX_SIGMA_M``), 1 sigma.
 - ``ecm_kinematics``: Forward kinematics of the da Vinci endoscope arm (ECM), as the dataset spec
   defines it.
 - ``end_identity``: Which end of the needle is the tip: combining the cameras' evidence, turning
@@ -44,6 +47,10 @@ Modules (``python -m common.layout`` writes this list from their docstrings):
   covariance.
 - ``rest_prior``: Prior over the needle's orientation: a needle at rest lies flat on the surface
   beneath it.
+- ``stereo_agreement``: Whether a stereo frame's two detections are of one needle, and the track's:
+  a detector that tracks a crop from frame to frame (one camera each) can stay locked on a
+  distractor (a red marker) for a whole take while the other camera and the track see the needle
+  elsewhere.
 - ``transforms``: Rigid transforms: 4x4 homogeneous ``T_a_b`` mapping frame b to frame a (metres,
   radians).
 - ``triangulation``: Pipeline II: DLT stereo triangulation of the keypoints and Arun's registration

@@ -14,6 +14,7 @@ from typing import Mapping, Optional
 import numpy as np
 
 from common.geometry.camera import StereoRig
+from common.geometry.covariance_bound import bounded_covariance
 from common.geometry.needle import NeedleModel
 from common.geometry.transforms import transform_points
 
@@ -107,7 +108,8 @@ def partial_view(covariance: Optional[np.ndarray], seen: Optional[float], min_se
     """What a pose fitted to the share ``seen`` of its arc states: ``(partial, covariance)``.
     Below ``min_seen`` the pose is a partial view, to be flagged ``ambiguous``, its covariance
     (6x6, [w, v]; None stays None) times ``inflation``: the part seen may fix it to the
-    residuals' precision and still leave it millimetres and degrees off (the module docstring)."""
+    residuals' precision and still leave it millimetres and degrees off (the module docstring)),
+    no wider than ``covariance_bound.bounded_covariance`` allows."""
     if seen is None or seen >= min_seen:
         return False, covariance
-    return True, None if covariance is None else np.asarray(covariance, float) * inflation
+    return True, None if covariance is None else bounded_covariance(np.asarray(covariance, float) * inflation)[0]

@@ -168,7 +168,8 @@ class PnpResult:
     ``candidates``: for ``pnp_joint`` every distinct local minimum sorted by cost (best first,
     ``candidates[0]`` is the pose); for ``pnp_average`` each camera's own solution.
     ``jacobian``/``covariance``: weighted residual Jacobian (2n, 6) and covariance (6, 6) of
-    [w, v] at the pose (joint only). ``ambiguous``: another distinct minimum is nearly as good.
+    [w, v] at the pose (joint only). ``ambiguous``: another distinct minimum is nearly as good,
+    or the keypoints leave a direction of the pose unfixed (``pose_covariance``).
     ``used``: camera -> indices (into A..E) of the keypoints used.
     """
 
@@ -354,7 +355,8 @@ def pnp_joint(uv: dict, rig: StereoRig, model_points, scores: dict | None = None
     start from); the other camera's usable keypoints all join the fit. ``outlier_px``: while the
     worst point's residual exceeds it and more than 6 points remain, that point is dropped and
     the fit redone from the previous minima. ``max_rms_px``: a larger RMS raises NoPose
-    ("high_residual"). Covariance: ``pose_covariance`` with ``min_sigma_px``. ``max_iter`` and
+    ("high_residual"). Covariance: ``pose_covariance`` with ``min_sigma_px`` (a direction it
+    leaves unfixed flags the pose ``ambiguous``). ``max_iter`` and
     ``rel_tol``: the fits' stopping rule (``ReprojectionProblem.refine_many``). ``epnp_starts``
     False: start from the IPPE solutions alone (EPnP only where IPPE gives none). EPnP on the
     coplanar keypoints starts far off and its fits crawl for many iterations to minima the IPPE
@@ -367,9 +369,9 @@ def pnp_joint(uv: dict, rig: StereoRig, model_points, scores: dict | None = None
     best = cands[0]
     _residual_check(best.rms_px, max_rms_px)
     n_pts = sum(o.n for o in obs.values())
-    return PnpResult(best.T_ecm_needle, best.rms_px, "pnp_joint", cands, best.jacobian,
-                     pose_covariance(best.jacobian, best.cost, min_sigma_px),
-                     _is_ambiguous(cands, n_pts), used={n: o.index for n, o in obs.items()})
+    cov, unfixed = pose_covariance(best.jacobian, best.cost, min_sigma_px)
+    return PnpResult(best.T_ecm_needle, best.rms_px, "pnp_joint", cands, best.jacobian, cov,
+                     unfixed or _is_ambiguous(cands, n_pts), used={n: o.index for n, o in obs.items()})
 
 
 def _joint_minima(obs: dict[str, CameraObs], outlier_px: float | None, epnp: bool = True, **lm):

@@ -28,7 +28,11 @@ A planar arc has a two-fold ambiguity (seen edge-on, whether it bulges towards o
 camera); every candidate's mirror image about the line of sight is added and refined too. When
 other candidates end nearly as good as the best, or the arc is seen nearly edge-on, the result
 is flagged ``ambiguous`` and its covariance inflated by the spread of the competitors, so that a
-pose that may be wrong is never reported as a confident one. Given the normal of a surface the
+pose that may be wrong is never reported as a confident one. A direction of the pose that the
+images leave unfixed (a short stretch of arc, no keypoint observed: the normal matrix nearly
+singular), or a spread of competitors beyond knowing nothing, is given the widest honest
+variance (``common.geometry.covariance_bound``) and flagged ``ambiguous`` (``unobservable``),
+never an arbitrarily large one. Given the normal of a surface the
 needle may rest on, a prior (``common.geometry.rest_prior``) picks between minima the images leave nearly
 equal; the flag and the covariance stay as the images say.
 
@@ -46,6 +50,7 @@ import numpy as np
 from common.geometry import lm
 from common.constraints import NonNegativeNumber, PositiveNumber, at_least, check_fields, in_range
 from common.geometry.camera import Camera, StereoRig
+from common.geometry.covariance_bound import bounded_covariance, bounded_inverse, within_bound
 from common.geometry.needle import NeedleModel
 from common.geometry.rest_prior import resting_log_prior
 from common.geometry.arc_problem import ArcProblem, ArcStatic, RefineError
@@ -162,9 +167,11 @@ class RefineResult:
     """The refined pose ``T_ecm_needle`` (4x4, m) and what the fit says about it.
 
     ``covariance`` (6, 6) over [rotation vector (rad), translation (m)] in the ECM frame (inflated
-    when ambiguous); ``rms_px`` the RMS of all residuals (px) at the optimum, ``rms_kp_px`` and
+    when ambiguous, and no wider than ``common.geometry.covariance_bound``'s bound);
+    ``rms_px`` the RMS of all residuals (px) at the optimum, ``rms_kp_px`` and
     ``rms_curve_px`` per term (NaN when the term is empty); ``ambiguous`` with ``reasons``
-    (``competing_candidates``, ``edge_on``); ``view_angle_deg`` the smallest angle between the arc's
+    (``competing_candidates``, ``edge_on``, ``unobservable``: some direction of the pose spread
+    to the bound, which the images do not fix); ``view_angle_deg`` the smallest angle between the arc's
     plane and a camera's line of sight (0 = edge-on, 90 = face-on); ``candidates`` every distinct
     converged solution as ``(T_ecm_needle, cost)``, best first; ``competitor_chi2`` how much
     the cost of the nearest of the others differs, in residual variances (inf: no other
@@ -421,6 +428,10 @@ def _result(prob: ArcProblem, s, cfg: RefineConfig, log_prior=None, expected=Non
     n_res = prob.n_res
     H = J.T @ ((wr * prob.cov_scale)[:, None] * J)
     cov = s2 * _inv_psd(H)
+    # a direction the images leave unfixed: the bound's variance, not an arbitrarily large one
+    unobservable = not within_bound(cov)
+    if unobservable:
+        cov = bounded_inverse(H / s2)
     cov[:3, :3] += math.radians(cfg.model_sigma_deg) ** 2 * np.eye(3)
     cov[3:, 3:] += (cfg.model_sigma_mm * 1e-3) ** 2 * np.eye(3)
     # RMS per keypoint coordinate and per curve point (its two residuals, normal and
@@ -454,7 +465,9 @@ def _result(prob: ArcProblem, s, cfg: RefineConfig, log_prior=None, expected=Non
         if a > 1e-12:
             d = pose_delta(Tj, T0)
             cov = cov + a * np.outer(d, d)
-    cov = symmetrise(cov)
+    cov, spread = bounded_covariance(symmetrise(cov))
+    if unobservable or spread:
+        reasons.append("unobservable")
     return RefineResult(
         T_ecm_needle=T0, covariance=cov, rms_px=rms(sq_kp + sq_curve, 2 * prob.n_kp + prob.n_curve),
         rms_kp_px=rms(sq_kp, 2 * prob.n_kp), rms_curve_px=rms(sq_curve, prob.n_curve),

@@ -17,6 +17,7 @@ from typing import Sequence
 import numpy as np
 
 from common.geometry import lm
+from common.geometry.covariance_bound import bounded_inverse, within_bound
 from common.geometry.observations import CameraObs
 from common.geometry.transforms import make_T, skew, symmetrise
 
@@ -200,19 +201,24 @@ def refine_pose_lm(T0: np.ndarray, observations: Sequence[CameraObs], max_iter: 
     return ReprojectionProblem(observations).refine(T0, max_iter=max_iter, tol_m=tol_m, rel_tol=rel_tol)
 
 
-def pose_covariance(jacobian: np.ndarray, cost: float, min_sigma_px: float = 0.25) -> np.ndarray | None:
-    """(6, 6) covariance of [w, v] from the weighted Jacobian at the optimum.
+def pose_covariance(jacobian: np.ndarray, cost: float, min_sigma_px: float = 0.25) -> tuple[np.ndarray, bool]:
+    """(6, 6) covariance of [w, v] from the weighted Jacobian at the optimum, and whether the fit
+    left a direction unfixed.
 
     ``sigma^2 (J^T J)^-1`` with sigma^2 the residual variance ``cost / (2n - 6)``, floored at
-    ``min_sigma_px^2`` so an exact (noise-free) fit does not claim infinite certainty.
+    ``min_sigma_px^2`` so an exact (noise-free) fit does not claim infinite certainty. A
+    direction the keypoints do not fix (``J^T J`` singular or nearly) gets the widest honest
+    variance (``covariance_bound.bounded_inverse``; then the flag is True), never an arbitrarily
+    large one.
     """
     m = jacobian.shape[0]
     dof = m - 6
     s2 = max(cost / dof if dof > 0 else 0.0, min_sigma_px ** 2)
+    H = jacobian.T @ jacobian
     try:
-        cov = s2 * np.linalg.inv(jacobian.T @ jacobian)
+        cov = s2 * np.linalg.inv(H)
     except np.linalg.LinAlgError:
-        return None
-    if not np.all(np.isfinite(cov)):
-        return None
-    return symmetrise(cov)
+        cov = None
+    if cov is None or not within_bound(cov):
+        return bounded_inverse(H / s2), True
+    return symmetrise(cov), False

@@ -13,7 +13,12 @@ whose residuals exceed ``max_residual_variance`` times the stated noise's varian
 (``no_pose.poor_fit``: e.g. a needle's tail in the jaws, the centreline running along the jaw)
 gives no pose and restarts the tracking. A pose fitted to less of its arc than ``min_arc_seen``
 (``arc_seen``, ``common.geometry.arc_support``) is a partial view: flagged ``ambiguous``, its
-covariance times ``partial_view_inflation`` (counted ``partial_view``). Its tip
+covariance times ``partial_view_inflation`` (counted ``partial_view``). A fit whose images
+leave a direction of the pose unfixed (a short stretch of arc, its keypoints placed on it rather
+than seen) states the widest honest covariance there (``common.geometry.covariance_bound``:
+nothing known of the orientation, the position within the working volume), flagged
+``ambiguous`` (counted ``unobservable``): every covariance a pose states is one a message may
+carry. Its tip
 (``end_identity.pose_tip_probability``): at most ``end_unseen_p_max`` sure when an end of the
 fitted arc no camera saw or a partial view (``end_identity.end_unseen``,
 ``end_identity.partial_view``), at most the larger of ``reading_p_max`` and what the cameras'
@@ -27,6 +32,13 @@ tracked pose (``same_as_track``). A frame's pose waits for its ECM pose before i
 surface the needle may rest on, e.g. the phantom's ``[0, 0, 1]``: ``common.geometry.rest_prior``)
 and the needle's last world pose (``expected_T_ecm_needle``, which picks between an ambiguous
 frame's minima) are in world axes.
+
+Wrong locks (``check_locks``, ``common.geometry.stereo_agreement``): a detector tracks a crop per
+camera and can stay locked on a distractor (a red marker) while the other camera sees the needle.
+A camera whose keypoints the other camera's disagree with (epipolar) and that lie off the track
+while the other camera's lie on it, ``LockCheckConfig.frames`` frames in a row, is said on
+``lock`` (``LockRejected``, counted ``lock_rejected.<camera>``): its detector drops the crop and
+searches cold. The track: this step's own last pose, else the tracker's (``on_track``, fed back).
 """
 from __future__ import annotations
 
@@ -41,9 +53,14 @@ from common.geometry.end_identity import camera_readings, pose_tip_probability, 
 from common.geometry.observations import NoPose
 from common.geometry.refine import ArcObservation, DenseRefiner, RefineConfig, RefineError, near_expected
 from common.geometry.refine_tracking import TrackingConfig, TrackingRefiner
+from common.geometry.stereo_agreement import LockCheck, LockCheckConfig
 from common.geometry.transforms import inv_T
 from common.pose.stereo import StereoPoseStep, stated_end_identity, stereo_arrays, stereo_news, turn_keypoints
-from common.runtime.messages import Keypoints
+from common.runtime.messages import Keypoints, LockRejected, PoseEstimate
+
+
+TRACKED_MAX_AGE = 30
+"""The tracker's pose stands for the track (``RefineStep.track_pose``) at most this many frames on."""
 
 
 @dataclass(frozen=True)
@@ -67,7 +84,8 @@ class RefineStep(StereoPoseStep):
 
     def __init__(self, config: RefineConfig = RefineConfig(), tracking: TrackingConfig = TrackingConfig(),
                  gates: RefineGates = RefineGates(), *, outlier_px: float | None = 10.0,
-                 support_normal_world: np.ndarray | None = None, **kw):
+                 support_normal_world: np.ndarray | None = None,
+                 lock_check: LockCheckConfig | None = LockCheckConfig(), **kw):
         kw["min_score"] = config.min_score
         super().__init__("refined", **kw)
         self.config, self.tracking, self.gates = config, tracking, gates
@@ -78,6 +96,8 @@ class RefineStep(StereoPoseStep):
         self._T_world_needle: np.ndarray | None = None    # the tracked needle's last pose in world
         self._T_world_needle_before: np.ndarray | None = None   # ... the one before it
         self._last_flagged = True                                 # whether the last pose was flagged
+        self.locks = None if lock_check is None else LockCheck(lock_check)
+        self._tracked: tuple[int, np.ndarray] | None = None      # (seq, T_world_needle) of the tracker's last pose
 
     def calibrated(self) -> None:
         self.tracker = TrackingRefiner(DenseRefiner(self.rig, self.needle, self.config),
@@ -90,7 +110,46 @@ class RefineStep(StereoPoseStep):
         self._track = None
         self._T_world_needle = self._T_world_needle_before = None
         self._last_flagged = True
+        self._tracked = None
+        if self.locks is not None:
+            self.locks.reset()
         return out
+
+    def on_track(self, msg: PoseEstimate) -> list:
+        """The tracker's pose of a frame (``tracked``, fed back): where the track is when this
+        step has no pose of its own to go by (``track_pose``)."""
+        if msg.T_world_needle is not None and (self._tracked is None or msg.seq >= self._tracked[0]):
+            self._tracked = (msg.seq, np.asarray(msg.T_world_needle, float))
+        return self._take()
+
+    def track_pose(self, seq: int, stamp_ns: int) -> np.ndarray | None:
+        """The tracked needle in frame ``seq``'s ECM frame: this step's own (``expected_T_ecm_needle``,
+        else its last frame's pose), else the tracker's latest pose (``on_track``) at most
+        ``TRACKED_MAX_AGE`` frames old, seen from this frame's endoscope pose; None: no track."""
+        T = self.expected_T_ecm_needle(seq)
+        if T is None and self.tracker is not None:
+            T = self.tracker.track(stamp_ns)
+        T_world_ecm = self.ecm_poses.get(seq)
+        if T is None and self._tracked is not None and T_world_ecm is not None \
+                and 0 <= seq - self._tracked[0] <= TRACKED_MAX_AGE:
+            T = inv_T(T_world_ecm) @ self._tracked[1]
+        return T
+
+    def check_locks(self, left: Keypoints, right: Keypoints) -> None:
+        """A camera whose detection the other camera and the track disagree with, frames in a
+        row (``stereo_agreement.LockCheck``), is a wrong lock: said on ``lock`` (``LockRejected``,
+        its box) for the detector to search it cold; counted ``lock_rejected.<camera>``."""
+        if self.locks is None or self.rig is None:
+            return
+        uv, sc = stereo_arrays(left, right)
+        verdict = self.locks.check(self.rig, self.needle, uv, sc, self.track_pose(left.seq, left.stamp_ns))
+        for kp in (left, right):
+            if kp.camera in verdict.drop:
+                self.count(f"lock_rejected.{kp.camera}")
+                self.log.info("seq %d: %s camera's detection is a wrong lock (%.0f px off the other camera's, "
+                              "%.0f px off the track)", kp.seq, kp.camera, verdict.epipolar_px,
+                              verdict.track_px[kp.camera])
+                self.emit("lock", LockRejected(kp.seq, kp.stamp_ns, kp.camera, "wrong_lock", bbox=kp.bbox))
 
     def settle_end_identity(self, left: Keypoints, right: Keypoints) -> tuple[Keypoints, Keypoints]:
         """The frame's end identity read against the tracked needle's (``end_identity.settle``
@@ -122,6 +181,7 @@ class RefineStep(StereoPoseStep):
 
     def solve(self, left: Keypoints, right: Keypoints) -> None:
         g = self.gates
+        self.check_locks(left, right)
         uv, sc = stereo_arrays(left, right)
         obs = {kp.camera: ArcObservation.from_keypoints(kp) for kp in (left, right) if kp.found}
         if not any(o.centreline is not None and len(o.centreline) for o in obs.values()):
@@ -147,6 +207,8 @@ class RefineStep(StereoPoseStep):
             return
         if res.ambiguous:
             self.count("ambiguous")
+        if "unobservable" in res.reasons:
+            self.count("unobservable")         # a direction at the covariance's bound
         support = arc_support(self.rig, self.needle, res.T_ecm_needle, obs, SUPPORT_PX,
                               self.config.min_centreline_w, self.config.min_score)
         seen = best_seen(shares(support))

@@ -288,6 +288,27 @@ class NoPoseNotice(Message):
 
 @register
 @dataclass
+class LockRejected(Message):
+    """A pose node's word to a detector that camera ``camera``'s detection in frame ``seq`` is a
+    wrong lock: the other camera's detection and the track disagree with it
+    (``common.geometry.stereo_agreement``). The detector drops that camera's tracked crop and
+    searches it cold, trying elsewhere than ``bbox`` ([x0, y0, x1, y1] px, the rejected
+    detection's box; absent: anywhere) first. ``reason``: why, as the node counts it."""
+
+    SCHEMA = "needletrack.LockRejected"
+    seq: NonNegative
+    stamp_ns: NonNegative
+    camera: Literal[CAMERAS]
+    reason: Word
+    bbox: Optional[Array[4]] = None
+    epoch: Optional[NonNegative] = None
+
+    def validate(self):
+        pass
+
+
+@register
+@dataclass
 class Points3D(Message):
     """Triangulated keypoints A..E in the ECM frame (m); NaN rows where a point is missing."""
 

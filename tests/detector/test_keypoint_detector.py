@@ -361,3 +361,74 @@ def test_a_familiarity_file_for_other_weights_is_refused(tmp_path):
         KeypointDetector(tmp_path / "model.pt", device="cpu")
     (tmp_path / "familiarity.json").unlink()
     assert KeypointDetector(tmp_path / "model.pt", device="cpu").familiarity is None
+
+
+def test_a_lock_on_a_distractor_that_the_other_camera_and_the_track_disagree_with_is_dropped(rendered):
+    """Issue 56 (the right camera locked on a red marker for a whole take): a distractor that stage 1
+    ranks first and stage 2 passes as a needle (the real network's result, moved 300 px), and the
+    right camera's tracking state pointing at it. Each frame the two cameras' detections and the
+    track (the true pose) are checked (``stereo_agreement.LockCheck``); a rejected camera is
+    ``reject``-ed with its box. The right camera is dropped, searched cold away from the distractor
+    and back on the needle within a few frames; the left camera, and a right lock, are kept."""
+    from common.geometry.camera import StereoRig
+    from common.geometry.needle import NeedleModel
+    from common.geometry.stereo_agreement import LockCheck
+    from common.geometry.transforms import inv_T
+    images, fields = rendered
+    rig, needle = StereoRig.default(), NeedleModel()
+    T_track = inv_T(np.asarray(fields["T_world_ecm"], float)) @ np.asarray(fields["T_world_needle"], float)
+    truth = {c: np.asarray(fields["keypoints"][c], float) for c in ("left", "right")}
+    shift = np.array([-300.0, 150.0])
+
+    def with_distractor(det, cam):
+        """``det``'s stages see a distractor in ``cam``'s image, ``shift`` from the needle."""
+        needle_box = det._box_of({"uv": det.detect(images[cam], cam).uv})
+        det.reset()
+        real1, real2 = det._stage1, det._stage2
+        dx, dy = needle_box[0] + shift[0], needle_box[1] + shift[1]
+        half = max(needle_box[2], needle_box[3]) / 2
+
+        def on_distractor(box):
+            return abs(box[0] - dx) < half and abs(box[1] - dy) < half
+
+        def stage1(img, hue_deg=0.0):
+            real = list(real1(img, hue_deg))
+            return ([(0.99, dx, dy, needle_box[2], needle_box[3])] if img is images[cam] else []) + real
+
+        def stage2(img, box, ridge=False, hue_deg=0.0):
+            if img is not images[cam] or not on_distractor(box):
+                return real2(img, box, ridge, hue_deg)
+            back = (box[0] - shift[0], box[1] - shift[1], box[2], box[3])
+            res = real2(img, back, ridge, hue_deg)
+            return {**res, "uv": res["uv"] + shift, "presence": max(res["presence"], 0.95)}
+        det._stage1, det._stage2 = stage1, stage2
+        return (dx, dy, needle_box[2], needle_box[3]), needle_box
+
+    def run(det, frames=8):
+        check, on_needle, rejected = LockCheck(), [], []
+        for seq in range(frames):
+            kps = {c: det.detect(images[c], c, seq=seq) for c in ("left", "right")}
+            uv = {c: k.uv for c, k in kps.items() if k.found}
+            sc = {c: k.scores for c, k in kps.items() if k.found}
+            for cam in check.check(rig, needle, uv, sc, T_track).drop:
+                rejected.append((seq, cam))
+                det.reject(cam, kps[cam].bbox)
+            on_needle.append({c: bool(k.found and np.median(np.linalg.norm(k.uv - truth[c], axis=1)) < 10.0)
+                              for c, k in kps.items()})
+        return on_needle, rejected
+
+    # arc_bcd and the centreline off: the distractor's keypoints are the network's, moved whole
+    det = KeypointDetector(device="cpu", tracking=True, arc_bcd=False, centreline=False)
+    det._track["right"] = with_distractor(det, "right")[0]         # locked on it from the start
+    on_needle, rejected = run(det)
+    assert not on_needle[0]["right"] and on_needle[0]["left"]
+    assert rejected and all(cam == "right" for _, cam in rejected) and rejected[0][0] <= 2
+    back = next(i for i, f in enumerate(on_needle) if f["right"])
+    assert back <= 4 and all(f["right"] and f["left"] for f in on_needle[back:]), on_needle
+    assert len(rejected) == 1
+
+    # a right lock is kept: the same distractor, the right camera tracking the needle
+    det = KeypointDetector(device="cpu", tracking=True, arc_bcd=False, centreline=False)
+    det._track["right"] = with_distractor(det, "right")[1]
+    on_needle, rejected = run(det, 5)
+    assert rejected == [] and all(f["left"] and f["right"] for f in on_needle)

@@ -176,10 +176,10 @@ def test_lm_optimum_has_zero_gradient_and_consistent_covariance():
     assert fit.converged
     g = fit.jacobian.T @ fit.residuals
     assert np.linalg.norm(g) < 1e-6 * np.linalg.norm(fit.jacobian) * max(np.linalg.norm(fit.residuals), 1)
-    cov = pose_covariance(fit.jacobian, fit.cost)
-    assert cov.shape == (6, 6) and np.allclose(cov, cov.T)
+    cov, unfixed = pose_covariance(fit.jacobian, fit.cost)
+    assert cov.shape == (6, 6) and np.allclose(cov, cov.T) and not unfixed
     # the floor: an exact fit still reports a finite, positive covariance
-    cov0 = pose_covariance(fit.jacobian, 0.0, min_sigma_px=0.25)
+    cov0, _ = pose_covariance(fit.jacobian, 0.0, min_sigma_px=0.25)
     assert np.all(np.linalg.eigvalsh(cov0) > 0)
 
 

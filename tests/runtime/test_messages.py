@@ -21,6 +21,7 @@ from common.runtime.messages import (
     ArmCorrection,
     InstrumentState,
     Keypoints,
+    LockRejected,
     MessageError,
     NodeStats,
     NoPoseNotice,
@@ -54,6 +55,8 @@ def examples():
                      points_ecm=np.zeros((5, 3)), sequence=1, end_identity=0.8),
         NoPoseNotice(seq=4, stamp_ns=12, method="refined", reason="too_few_points"),
         NoPoseNotice(seq=5, stamp_ns=13, method="tracked", reason="no_track", epoch=77),
+        LockRejected(seq=6, stamp_ns=14, camera="right", reason="wrong_lock", bbox=np.array([1.0, 2.0, 30.0, 40.0])),
+        LockRejected(seq=7, stamp_ns=15, camera="left", reason="wrong_lock"),
         Points3D(seq=1, stamp_ns=2, points_ecm=np.full((5, 3), np.nan), valid=np.zeros(5, dtype=bool)),
         GroundTruth(seq=1, stamp_ns=2, sequence=0, step=1, ecm_joints=np.zeros(4), T_world_ecm=T,
                     T_world_needle=T, keypoints={"left": np.zeros((5, 2)), "right": np.ones((5, 2))},
@@ -97,7 +100,8 @@ def test_calibration_round_trips():
 def test_all_message_types_are_registered():
     assert {c.__name__ for c in MESSAGE_TYPES.values()} >= {
         "CameraImage", "EcmJoints", "EcmPose", "Keypoints", "PoseEstimate", "Points3D", "GroundTruth",
-        "Calibration", "Command", "NodeStats", "EndOfStream", "InstrumentState", "InHandPose", "NoPoseNotice", "ArmCorrection"}
+        "Calibration", "Command", "NodeStats", "EndOfStream", "InstrumentState", "InHandPose", "NoPoseNotice",
+        "ArmCorrection", "LockRejected"}
     # every registered type is in the round trips and the corruption tests below (Calibration: its own)
     assert {type(m) for m in examples()} | {Calibration} == set(MESSAGE_TYPES.values())
 
