@@ -132,13 +132,16 @@ def test_replay_paced_sends_the_next_frame_once_both_acks_are_in(tmp_path):
     node.on_ack2(ack("right", 0))
     node.step()
     assert seqs() == [0, 1]
-    # two in flight; an unanswered frame stops counting after ack_timeout
+    # two in flight; an unanswered frame stops counting after ack_timeout (the window's clock
+    # moved on by hand: no race with a loaded machine)
+    import time
     node = ReplayNode.offline(params={"path": str(tmp_path), "rate": "paced", "in_flight": 2,
-                                      "ack_timeout": 0.01}, wired=["ack"])
+                                      "ack_timeout": 60}, wired=["ack"])
+    later = [0.0]
+    node.acks.clock = lambda: time.monotonic() + later[0]
     node.step(), node.step(), node.step()
     assert seqs() == [0, 1]
-    import time
-    time.sleep(0.02)
+    later[0] = 120.0
     node.step()
     assert seqs() == [0, 1, 2] and node.counters["ack_timeouts"] >= 1
     with pytest.raises(ValueError, match="paced"):
