@@ -15,10 +15,11 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
+from common.frames import CAMERAS
 from common.methods import POSE_METHODS
 from common.pose.stereo import StereoPoseStep
 from common.runtime.messages import Calibration, EcmPose, Keypoints, PoseEstimate
-from common.runtime.node import Node
+from common.runtime.node import Node, NodeError
 
 
 class StereoPoseNode(Node):
@@ -35,8 +36,12 @@ class StereoPoseNode(Node):
         max_wait: int = 30         # frames a pose (or a pair the solver needs the ECM pose for) waits for its ECM pose
 
     def setup(self):
+        cameras = tuple(c for c in CAMERAS if self.wired(c))
+        if not cameras:
+            raise NodeError(f"{self.node_id}: wire a camera's keypoints (left, right or both)")
         self.step = self.make_step(max_wait=self.p.max_wait, ecm_wired=self.wired("ecm"),
-                                   no_pose_output="no_pose" in self.OUTPUTS, count=self.count, log=self.log)
+                                   no_pose_output="no_pose" in self.OUTPUTS, cameras=cameras,
+                                   count=self.count, log=self.log)
         self.pairer = self.step.pairer      # the stereo pairer, for what deepens it (a lossless graph's nodes)
 
     def make_step(self, **wiring) -> StereoPoseStep:

@@ -41,6 +41,15 @@ detectors' ``lock`` input, the detector drops that camera's tracked crop and sea
 (``common.geometry.stereo_agreement``). The track is the node's own last pose, else the tracker's
 pose fed back on ``track`` (a feedback input: the tracker carries a held needle when no pose is
 refined).
+
+One camera (``one_camera``, default on): a frame whose needle one camera alone sees (the other
+blocked, or its detector lost it) is fitted to that camera from the track (the tracker's pose fed
+back, or the node's last pose) and said on ``one_camera`` (method ``refined_one_camera``, flagged
+``ambiguous``, its covariance wide along the depth one view leaves; counted ``one_camera``) for the
+tracker; ``pose`` gives that frame none (``no_pose.one_camera``; without a track
+``no_pose.one_camera_untracked``). Wire only ``left`` (or only ``right``) for a monocular
+endoscope (graphs/monocular.yaml): every frame is fitted so, cold from its PnP minima while there
+is no track.
 """
 from __future__ import annotations
 
@@ -82,6 +91,10 @@ class _NodeParams(StereoPoseNode.Params):
     # a camera whose detections the other camera's and the track disagree with is said on lock
     # (LockRejected, counted lock_rejected.<camera>) for its detector to search it cold
     lock_check: bool = True
+    # a frame whose needle one camera alone sees is fitted to that camera from the track and said on
+    # one_camera (method refined_one_camera, its covariance wide in depth) for the tracker;
+    # one camera wired (a monocular endoscope): every frame so (common.pose.refine_step)
+    one_camera: bool = True
 
 
 class RefineNode(StereoPoseNode):
@@ -89,7 +102,7 @@ class RefineNode(StereoPoseNode):
     (``common.pose.refine_step.RefineStep``)."""
 
     INPUTS = {"left": Keypoints, "right": Keypoints, "calib": Calibration, "ecm": EcmPose, "track": PoseEstimate}
-    OUTPUTS = ("pose", "no_pose", "lock")
+    OUTPUTS = ("pose", "no_pose", "lock", "one_camera")
     KEEP_ALL = StereoPoseNode.KEEP_ALL
     FEEDBACK = ("track",)
 
@@ -107,7 +120,7 @@ class RefineNode(StereoPoseNode):
         return RefineStep(config, tracking, config_from(RefineGates, self.p), outlier_px=self.p.outlier_px,
                           support_normal_world=normal,
                           lock_check=LockCheckConfig(min_score=self.p.min_score) if self.p.lock_check else None,
-                          **wiring)
+                          one_camera=self.p.one_camera, **wiring)
 
     def on_track(self, msg: PoseEstimate):
         self.publish_all(self.step.on_track(msg))

@@ -22,7 +22,10 @@ send the files' bytes; true: decode every frame once at start-up, hold the image
 the consumers then pay no image decoding, which is the storage format's cost, not the
 pipeline's; at most ``MAX_DECODED_BYTES``, use ``count`` for longer folders).
 A frame whose image file cannot be read (or decoded) is logged, counted (``image_errors``)
-and skipped.
+and skipped. ``withhold`` (``left`` or ``right``; default none) with ``withhold_share`` (0.3)
+and ``withhold_seed``: that camera's image is sent black in one window of each take
+(``common.data.withhold``: a lens covered by an instrument), counted ``withheld``; the truth is
+sent as it is.
 """
 import time
 from dataclasses import dataclass
@@ -31,6 +34,7 @@ from typing import Literal
 import numpy as np
 
 from common.data.dataset import DatasetError
+from common.data.withhold import withheld_frames
 from common.frames import CAMERAS
 from common.constraints import required
 from common.runtime.camera_source import CameraSourceNode
@@ -68,6 +72,9 @@ class ReplayNode(CameraSourceNode):
         decode: bool = False
         ack_timeout: float = 1.0
         in_flight: int = 1
+        withhold: Literal["left", "right"] | None = None   # this camera's images sent black ...
+        withhold_share: float = 0.3                        # ... for this share of each take
+        withhold_seed: int = 0
 
     def setup(self):
         from common.data.dataset import Dataset, DatasetError
@@ -87,6 +94,12 @@ class ReplayNode(CameraSourceNode):
         self.calib = Calibration(stamp_ns=0, image_size=np.array(meta.image_size), cameras=meta.rig.to_dict(),
                                  needle=meta.needle.to_dict(), ecm=None if meta.arm is None else meta.arm.to_dict(),
                                  source=f"replay {self.ds.path}" + (f" ({meta.source})" if meta.source else ""))
+        try:
+            self.withheld = (withheld_frames([fr.sequence for fr in self.frames], p.withhold_share, p.withhold_seed)
+                             if p.withhold else None)
+        except ValueError as exc:
+            raise NodeError(f"replay: params.withhold_share: {exc}") from None
+        self._black = None                 # the withheld camera's black image, encoded once
         self.decoded = self._decode_all() if p.decode else None
         self.pos = 0
         self.loops = 0
@@ -187,6 +200,9 @@ class ReplayNode(CameraSourceNode):
         if msgs is None:     # counted and logged
             self.pos += 1
             return True
+        if self.withheld is not None and self.withheld[self.pos]:
+            msgs = [self._blacked(seq, stamp) if cam == self.p.withhold else m for cam, m in zip(CAMERAS, msgs)]
+            self.count("withheld")
         for cam, msg in zip(CAMERAS, msgs):
             if isinstance(msg, Prepared):
                 msg.msg.stamp_ns = stamp
@@ -207,6 +223,13 @@ class ReplayNode(CameraSourceNode):
         self._publish_calib()
         self._prepare_next()
         return True
+
+    def _blacked(self, seq: int, stamp: int) -> CameraImage:
+        """The withheld camera's image: black, the frame's size (a PNG of a few kB)."""
+        if self._black is None:
+            w, h = self.ds.meta.image_size
+            self._black = CameraImage.from_bgr(self.p.withhold, 0, 0, np.zeros((h, w, 3), np.uint8), "png")
+        return CameraImage(self.p.withhold, seq, stamp, self._black.width, self._black.height, "png", self._black.data)
 
     def _seq(self, pos: int, loops: int) -> int:
         """``seq`` of frame ``pos`` on pass ``loops`` over the folder."""

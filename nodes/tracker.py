@@ -25,7 +25,10 @@ old (at most ``MAX_INSTRUMENTS`` names are followed, one quiet that long making 
 counted ``instruments.too_many``).
 
 An ``ambiguous`` pose is read with its mirror image (``refine.mirror_pose``) as the alternative
-the track may explain better.
+the track may explain better. ``one_camera`` (the refine node's poses fitted to one camera's view,
+its covariance wide in depth): a measurement as the others, but one that starts no track unless
+``start_one_camera`` (a monocular endoscope, graphs/monocular.yaml); a ``no_pose`` notice of
+reason ``one_camera`` then leaves the frame waiting for that pose.
 
 Outputs: ``pose``, method ``params.method`` (``tracked``): ``T_ecm_needle`` with
 ``T_world_needle``, ``T_world_ecm`` and the covariance (ECM axes); ``residual`` the
@@ -79,9 +82,10 @@ class TrackerNode(Node):
     (``common.pose.tracker_step.TrackerStep``)."""
 
     INPUTS = {"pose": PoseEstimate, "ecm": EcmPose, "instruments": InstrumentState,
-              "calib": Calibration, "truth": GroundTruth, "eos": EndOfStream, "no_pose": NoPoseNotice}
+              "calib": Calibration, "truth": GroundTruth, "eos": EndOfStream, "no_pose": NoPoseNotice,
+              "one_camera": PoseEstimate}
     OUTPUTS = ("pose", "in_hand", "no_pose", "arm_correction")
-    KEEP_ALL = ("pose", "ecm", "instruments", "calib", "truth", "eos", "no_pose")
+    KEEP_ALL = ("pose", "ecm", "instruments", "calib", "truth", "eos", "no_pose", "one_camera")
 
     Params = merge_schemas("TrackerParams", TrackerConfig, _NodeParams)
 
@@ -95,7 +99,8 @@ class TrackerNode(Node):
         p = self.p
         self.step = TrackerStep(config, max_wait=p.max_wait, replay=p.replay, instrument_max_age=p.instrument_max_age,
                                 method=p.method, reset_on_sequence=p.reset_on_sequence,
-                                truth_wired=self.wired("truth"), count=self.count)
+                                truth_wired=self.wired("truth"), one_camera_wired=self.wired("one_camera"),
+                                count=self.count)
 
     def on_stream_reset(self):
         self.publish_all(self.step.reset())
@@ -120,6 +125,9 @@ class TrackerNode(Node):
 
     def on_no_pose(self, msg: NoPoseNotice):
         self.publish_all(self.step.on_no_pose(msg))
+
+    def on_one_camera(self, msg: PoseEstimate):
+        self.publish_all(self.step.on_pose(msg, one_camera=True))
 
 
 NODE = TrackerNode

@@ -23,6 +23,8 @@ Modules (``python -m common.layout`` writes this list from their docstrings):
 - ``values``: The value parsers of the dataset reader: each takes a decoded JSON/YAML value and
   returns it checked and converted, or raises ``BadValue`` with the reason (the caller adds the
   file, line and field, see ``common.data.dataset.DatasetError``).
+- ``withhold``: One camera's images withheld for a share of each take: a lens covered by an
+  instrument, smoke, a camera lost (issue 56's "one camera is enough").
 - ``writer``: Writing needle dataset folders (``docs/dataset.md``): ``DatasetWriter``, a folder
   staged and moved into place, a file replaced atomically, a copy without the ground truth, and
   resuming a generation cut short.

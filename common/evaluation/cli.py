@@ -21,6 +21,8 @@ from pathlib import Path
 import yaml
 
 from common.cli_options import add_dataset, add_quiet, add_weights, vector3
+from common.data.withhold import withhold_params
+from common.frames import CAMERAS
 from common.evaluation.replay_progress import wait_with_progress
 
 DETECTORS = ("learned", "classical", "oracle")
@@ -45,6 +47,12 @@ def _parser() -> argparse.ArgumentParser:
                         "frame is scored whatever the rate (the nodes queue their inputs here); "
                         "`needletrack bench` measures speed")
     p.add_argument("--no-refine", action="store_true", help="leave out the refinement node")
+    p.add_argument("--withhold", metavar="CAMERA[:SHARE]",
+                   help="send CAMERA's (left or right) images black for SHARE (default 0.3) of each take, "
+                        "one window per take: a lens an instrument covers (common/data/withhold.py)")
+    p.add_argument("--cameras", choices=["left", "right"], default=None,
+                   help="a monocular endoscope: only this camera's images, the refinement on them alone "
+                        "and the tracker (tracked only; docs/tracking.md#one-camera)")
     p.add_argument("--support-normal", metavar="X,Y,Z", type=vector3,
                    help="the refinement's prior that the needle may rest on a surface with this "
                         "normal (world frame), e.g. 0,0,1 for the simulator's phantom (common/geometry/rest_prior.py; "
@@ -176,6 +184,12 @@ def main(argv=None) -> int:
     except ValueError as exc:
         print(f"needletrack eval: {exc}", file=sys.stderr)
         return 2
+    try:
+        replay_params = withhold_params(args.withhold)
+    except ValueError as exc:
+        print(f"needletrack eval: --withhold: {exc}", file=sys.stderr)
+        return 2
+    cameras = (args.cameras,) if args.cameras else CAMERAS
     rate = args.rate or (30 if args.detector == "oracle" else 10)
     rate = rate if str(rate) == "max" else float(rate)
     doc = pipeline_graph(dataset, detector=args.detector, detector_params=det_params, rate=rate,
@@ -183,15 +197,18 @@ def main(argv=None) -> int:
                          split_detector=split, refine_tracking=False,   # refined: a single-frame method
                          refine_params={"support_normal_world": args.support_normal} if args.support_normal else None,
                          tracker=any(fr.needle_at_rest is False for fr in ds.frames),   # moving takes
-                         tracker_params=tracker_params)
+                         tracker_params=tracker_params, replay_params=replay_params, cameras=cameras)
     evaluator = {"id": "evaluator", "module": "evaluator",
                  "params": {"out": str(out.resolve()), "dataset": str(Path(dataset).resolve()),
                             "detector": args.detector, "noise_px": args.noise_px,
                             "support_normal_world": args.support_normal,
                             "rrd": str(Path(args.rrd).resolve()) if args.rrd else None},
                  "inputs": {"truth": "replay/truth", "calib": "replay/calib", "eos": "replay/eos",
-                            **keypoint_sources(split),
-                            "points3d": "triangulate/points", **pose_inputs(doc),
+                            **{c: src for c, src in keypoint_sources(split or len(cameras) == 1).items()
+                               if c in cameras},
+                            "points3d": "triangulate/points",
+                            **{m: src for m, src in pose_inputs(doc).items()
+                               if len(cameras) == 2 or m == "tracked"},   # monocular: refine/pose is empty
                             **({"instruments": "replay/instruments", "in_hand": "tracker/in_hand"}
                                if any(n["id"] == "tracker" for n in doc["nodes"]) else {})},
                  "restart": "never"}

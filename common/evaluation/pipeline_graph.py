@@ -41,9 +41,11 @@ LIVE_SOURCE = "camera"
 """Its source's id (the replay stands in for it)."""
 LIVE_PARAMS_KEPT = ("method",)
 """The live graph's params an evaluation graph keeps: which method a node computes."""
-LOSSLESS_TRACKER_WAIT = 120
+LOSSLESS_TRACKER_WAIT = 900
 """Frames the lossless graph's tracker waits for a refined pose (the queues may hold it back so
-long); its fusions wait twice that for the tracker's mode (the tracker waits on its pose)."""
+long: the ECM poses run ahead of the refinement, 120 frames were passed on a machine shared with
+a training, 71 of 391 poses then came too late); its fusions wait twice that for the tracker's
+mode (the tracker waits on its pose). A frame the refinement answers sooner goes at once."""
 
 
 def free_port() -> int:
@@ -103,7 +105,8 @@ def pipeline_graph(dataset: str, *, detector: str = "learned", detector_params: 
                    split_detector: bool = False, methods=None,
                    start_delay_s: float = 1.0, decode: bool = False,
                    refine_tracking: bool = True, refine_params: Optional[dict] = None,
-                   tracker: bool = False, tracker_params: Optional[dict] = None) -> dict:
+                   tracker: bool = False, tracker_params: Optional[dict] = None,
+                   replay_params: Optional[dict] = None, cameras: tuple = CAMERAS) -> dict:
     """The graph document of the whole pipeline on a replayed dataset folder: ``dataflow.yaml``'s
     wiring (module, inputs, outputs of each node) with these overrides:
 
@@ -124,7 +127,8 @@ def pipeline_graph(dataset: str, *, detector: str = "learned", detector_params: 
 
     ``lossless``: every pipeline node runs through ``lossless_command``: each of its inputs
     queues every message instead of keeping the newest (an evaluation scores every frame,
-    whatever the machine's load), and the source waits ``start_delay_s`` after joining the
+    whatever the machine's load; the tracker then waits for every frame's refined answer, not
+    for the source's end of stream, which comes tens of seconds earlier on a loaded machine), and the source waits ``start_delay_s`` after joining the
     graph before its first frame, so that its links to every consumer are up. ``decode``: the
     replay decodes the images once at start-up and sends them raw, as a live camera would.
     ``refine_tracking``: the refinement starts a frame from the last one's pose when it can
@@ -136,7 +140,20 @@ def pipeline_graph(dataset: str, *, detector: str = "learned", detector_params: 
     its poses (``motion``): they fuse only the frames whose needle it says is at rest.
     ``rate="paced"``: the replay sends the next frame once both cameras' keypoints of the last
     one are out (closed loop, as fast as the graph goes); the detectors then take every frame.
+    ``replay_params``: more params of the replay (e.g. ``withhold``: one camera's images black for
+    a share of each take). ``cameras``: one camera (``("left",)``) is a monocular endoscope: only
+    its detector, the refinement on its images alone and the tracker (``start_one_camera``): the
+    methods ``refined`` (which then poses nothing: its poses are on ``refine/one_camera``) and
+    ``tracked`` only.
     """
+    cameras = tuple(c for c in CAMERAS if c in cameras)
+    if not cameras:
+        raise ValueError(f"cameras: some of {CAMERAS}")
+    monocular = len(cameras) == 1
+    if monocular:
+        tracker = True
+        methods = ["tracked"]
+        split_detector = True
     if refine is None:
         refine = has_module("refine")
     wanted = wanted_methods(methods, refine=refine, tracker=tracker)
@@ -172,11 +189,11 @@ def pipeline_graph(dataset: str, *, detector: str = "learned", detector_params: 
 
     nodes = [{"id": SOURCE, "module": "replay",
               "params": {"path": str(Path(dataset).resolve()), "rate": rate, "loop": bool(loop),
-                         "count": int(count), "decode": bool(decode)},
+                         "count": int(count), "decode": bool(decode), **(replay_params or {})},
               "outputs": list(module_info("replay")["outputs"])}]
     if paced:
         nodes[0]["inputs"] = {"ack": kp["left"], "ack2": kp["right"]}
-    per_camera = [live[f"detector_{cam}"] for cam in CAMERAS]
+    per_camera = [live[f"detector_{cam}"] for cam in cameras]
     if split_detector:   # one process per camera: the two images are detected in parallel
         nodes += [wire(n, dict(det_params), truth) for n in per_camera]
     else:                # the two per-camera nodes as one
@@ -191,11 +208,13 @@ def pipeline_graph(dataset: str, *, detector: str = "learned", detector_params: 
     pose_wait = {"max_wait": LOSSLESS_TRACKER_WAIT} if lossless else {}
     fusion_wait = {"max_wait": (2 if "tracked" in wanted else 1) * LOSSLESS_TRACKER_WAIT} if lossless else {}
     params = {"refined": {"tracking": bool(refine_tracking), **pose_wait, **(refine_params or {})},
-              "tracked": {**pose_wait, **(tracker_params or {})}}
+              "tracked": {**pose_wait, **({"start_one_camera": True} if monocular else {}), **(tracker_params or {})}}
     for m in wanted:
         n = method_node(live, m)
         p = fusion_wait if m in MULTIVIEW_METHODS else params.get(m, pose_wait)
-        nodes.append(wire(n, dict(p), {"eos": f"{SOURCE}/eos"} if m == "tracked" else None))
+        # the tracker steps the frames still waiting at the source's end of stream; not in a lossless
+        # graph, where the refinement answers every frame but may lag the source by tens of seconds
+        nodes.append(wire(n, dict(p), {"eos": f"{SOURCE}/eos"} if m == "tracked" and not lossless else None))
     ids = {n["id"] for n in nodes}
     for n in nodes:   # wire only what a module declares (optional inputs come and go) and what runs
         info = module_info(n["module"])

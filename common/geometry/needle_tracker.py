@@ -99,6 +99,7 @@ class TrackerConfig:
     jaw_length_m: float = 0.009             # the jaws' axis: from the pivot this far along z
     grasp_llr: float = 4.6                  # log likelihood ratio that settles a trial (100:1): grasp, rest
     max_coast_s: float = 0.5                # a free needle unseen this long is lost
+    start_one_camera: bool = False          # a pose fitted to one camera's view may start a track (monocular)
     # each arm's kinematic error, estimated online (common.geometry.arm_correction; off: the reports as exact)
     arm_correction: bool = False            # estimate each arm's error (docs/tracking.md); off: the reports as exact
     arm_prior_m: NonNegativeNumber = 3.0e-3             # a correction's shift before any news: 1 sigma per axis
@@ -145,16 +146,26 @@ class Measurement:
     common_sigma_rad: float = 0.0
     alternatives: tuple = ()
     arc_seen: Optional[float] = None        # the share of the arc it was fitted to (None: not said)
+    one_camera: bool = False                # fitted to one camera's view (its depth as wide as that leaves it)
 
     def own(self, corr_frames: float = 1.0) -> "Measurement":
         """The measurement with its covariance less the shared part, times ``corr_frames``."""
         C = without_common(self.covariance, self.common_sigma_m, self.common_sigma_rad) * corr_frames
         return Measurement(self.T_world_needle, C, self.end_identity, alternatives=self.alternatives,
-                           arc_seen=self.arc_seen)
+                           arc_seen=self.arc_seen, one_camera=self.one_camera)
 
     def starts(self, cfg: "TrackerConfig") -> bool:
-        """Whether a track may start (or restart) from it: fitted to ``start_arc_seen`` of its arc."""
+        """Whether a track may start (or restart) from it: fitted to ``start_arc_seen`` of its arc,
+        and to both cameras' views unless ``start_one_camera``."""
+        if self.one_camera and not cfg.start_one_camera:
+            return False
         return self.arc_seen is None or self.arc_seen >= cfg.start_arc_seen
+
+    def may_run(self, cfg: "TrackerConfig") -> bool:
+        """Whether it may join a run of partial views that starts a track (``_from_partial``)."""
+        if self.one_camera and not cfg.start_one_camera:
+            return False
+        return self.arc_seen is not None and self.arc_seen >= cfg.start_run_arc_seen
 
 
 @dataclass(frozen=True)
@@ -663,7 +674,7 @@ class NeedleTracker:
             if self.candidate is not None and self.candidate.step(stamp_ns, jaws, None) is None:
                 self.candidate, self.run = None, 0
             return None
-        if self.cfg.start_run <= 0 or m.arc_seen is None or m.arc_seen < self.cfg.start_run_arc_seen:
+        if self.cfg.start_run <= 0 or not m.may_run(self.cfg):
             return None
         if self.candidate is None:
             self.candidate = NeedleTracker(self.needle, replace(self.cfg, start_arc_seen=0.0, start_run=0))

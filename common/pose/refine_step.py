@@ -39,11 +39,24 @@ A camera whose keypoints the other camera's disagree with (epipolar) and that li
 while the other camera's lie on it, ``LockCheckConfig.frames`` frames in a row, is said on
 ``lock`` (``LockRejected``, counted ``lock_rejected.<camera>``): its detector drops the crop and
 searches cold. The track: this step's own last pose, else the tracker's (``on_track``, fed back).
+
+One camera (``one_camera``, default on): a frame whose needle one camera alone sees (the other
+blocked by an instrument, or its detector lost it) is fitted to that camera alone
+(``RefineConfig.min_cameras`` 1), from the track only (the tracker's pose fed back, at most
+``TRACKED_MAX_AGE`` frames old, and this step's last pose within ``TrackingConfig.max_gap_s``),
+never cold: one view fixes the needle's depth only through its arc's apparent size and shape,
+and cold fits of such frames were centimetres off (docs/design-decisions.md). Its pose goes out
+on ``one_camera`` (method ``refined_one_camera``, flagged ``ambiguous``, its covariance the fit's:
+wide along the depth one view leaves) for the tracker to update the track with; ``pose`` gives
+that frame no pose (``no_pose.one_camera``), so that ``refined`` stays a stereo method. Without a
+track such a frame has no pose (``no_pose.one_camera_untracked``). A monocular endoscope (one
+camera wired, ``cameras``) fits every frame so, cold from that camera's PnP minima when there is
+no track.
 """
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 
@@ -51,6 +64,7 @@ from common.frames import CAMERAS
 from common.geometry.arc_support import SUPPORT_PX, arc_support, best_seen, ends_seen, partial_view, shares
 from common.geometry.end_identity import camera_readings, pose_tip_probability, settle
 from common.geometry.observations import NoPose
+from common.geometry.pnp import refine_starts
 from common.geometry.refine import ArcObservation, DenseRefiner, RefineConfig, RefineError, near_expected
 from common.geometry.refine_tracking import TrackingConfig, TrackingRefiner
 from common.geometry.stereo_agreement import LockCheck, LockCheckConfig
@@ -61,6 +75,9 @@ from common.runtime.messages import Keypoints, LockRejected, PoseEstimate
 
 TRACKED_MAX_AGE = 30
 """The tracker's pose stands for the track (``RefineStep.track_pose``) at most this many frames on."""
+
+ONE_CAMERA_METHOD = "refined_one_camera"
+"""The method of a pose fitted to one camera's view (module docstring), on output ``one_camera``."""
 
 
 @dataclass(frozen=True)
@@ -85,7 +102,7 @@ class RefineStep(StereoPoseStep):
     def __init__(self, config: RefineConfig = RefineConfig(), tracking: TrackingConfig = TrackingConfig(),
                  gates: RefineGates = RefineGates(), *, outlier_px: float | None = 10.0,
                  support_normal_world: np.ndarray | None = None,
-                 lock_check: LockCheckConfig | None = LockCheckConfig(), **kw):
+                 lock_check: LockCheckConfig | None = LockCheckConfig(), one_camera: bool = True, **kw):
         kw["min_score"] = config.min_score
         super().__init__("refined", **kw)
         self.config, self.tracking, self.gates = config, tracking, gates
@@ -98,10 +115,13 @@ class RefineStep(StereoPoseStep):
         self._last_flagged = True                                 # whether the last pose was flagged
         self.locks = None if lock_check is None else LockCheck(lock_check)
         self._tracked: tuple[int, np.ndarray] | None = None      # (seq, T_world_needle) of the tracker's last pose
+        self.one_camera = one_camera or self.monocular
+        self.one_camera_refiner: DenseRefiner | None = None
 
     def calibrated(self) -> None:
         self.tracker = TrackingRefiner(DenseRefiner(self.rig, self.needle, self.config),
                                        self.model_points, self.min_score, self.outlier_px, self.tracking)
+        self.one_camera_refiner = DenseRefiner(self.rig, self.needle, replace(self.config, min_cameras=1))
 
     def reset(self) -> list:
         out = super().reset()
@@ -184,26 +204,29 @@ class RefineStep(StereoPoseStep):
         self.check_locks(left, right)
         uv, sc = stereo_arrays(left, right)
         obs = {kp.camera: ArcObservation.from_keypoints(kp) for kp in (left, right) if kp.found}
-        if not any(o.centreline is not None and len(o.centreline) for o in obs.values()):
-            self.count("keypoints_only")
-        try:
-            res = self.tracker.refine(uv, sc, obs, left.stamp_ns, self.support_normal_ecm(left.seq),
-                                      expected=self.expected_T_ecm_needle(left.seq, confirmed=True))
-        except NoPose as exc:
-            self.no_pose(exc.reason, left, exc.detail)
-            return
-        except RefineError as exc:
-            self.no_pose(exc.reason, left, str(exc))
-            return
-        self.count("warm" if self.tracker.last_warm else "cold")
-        if g.max_rms_px is not None and not res.rms_px <= g.max_rms_px:
-            self.tracker.reset()
-            self.no_pose("high_residual", left, f"RMS {res.rms_px:.2f} px > {g.max_rms_px} px")
-            return
-        if g.max_residual_variance is not None and not res.residual_variance <= g.max_residual_variance:
-            self.tracker.reset()
-            self.no_pose("poor_fit", left, f"residual variance {res.residual_variance:.2f} > "
-                                           f"{g.max_residual_variance} (the images are not the needle model's)")
+        one = len(obs) == 1 and self.one_camera
+        if one:
+            res = self.fit_one_camera(left if left.found else right, uv, sc, obs)
+            if res is None:
+                return
+        else:
+            if not any(o.centreline is not None and len(o.centreline) for o in obs.values()):
+                self.count("keypoints_only")
+            try:
+                res = self.tracker.refine(uv, sc, obs, left.stamp_ns, self.support_normal_ecm(left.seq),
+                                          expected=self.expected_T_ecm_needle(left.seq, confirmed=True))
+            except NoPose as exc:
+                self.no_pose(exc.reason, left, exc.detail)
+                return
+            except RefineError as exc:
+                self.no_pose(exc.reason, left, str(exc))
+                return
+            self.count("warm" if self.tracker.last_warm else "cold")
+        fails = self.gate(res)
+        if fails is not None:
+            if not one:
+                self.tracker.reset()
+            self.no_pose(fails[0], left, fails[1])
             return
         if res.ambiguous:
             self.count("ambiguous")
@@ -228,13 +251,60 @@ class RefineStep(StereoPoseStep):
             self.identity.put(left.seq, stated)
         pose = self.pose_message(left.seq, left.stamp_ns, res.T_ecm_needle,
                                  res.rms_px, "px", covariance=covariance,
-                                 ambiguous=bool(res.ambiguous or partial), arc_seen=seen,
+                                 ambiguous=bool(res.ambiguous or partial or one), arc_seen=seen,
                                  model_sigma_m=self.config.model_sigma_mm * 1e-3 or None,
                                  model_sigma_rad=math.radians(self.config.model_sigma_deg) or None)
+        if one:
+            pose.method = ONE_CAMERA_METHOD
+            self.count("one_camera")
+            self.publish_pose(pose, "one_camera")
+            self.no_pose("one_camera", left, "one camera sees the needle: its pose is on one_camera")
+            return
         self._T_world_needle_before = self._T_world_needle
         self._T_world_needle = pose.T_world_needle    # None until the frame's ECM pose is known
         self.publish_pose(pose)                       # (which flags an unsure tip)
         self._last_flagged = pose.ambiguous
+
+    def gate(self, res) -> tuple[str, str] | None:
+        """(reason, detail) when a fit may not be posed (``RefineGates``: its RMS, its residuals
+        against the stated noise), else None."""
+        g = self.gates
+        if g.max_rms_px is not None and not res.rms_px <= g.max_rms_px:
+            return "high_residual", f"RMS {res.rms_px:.2f} px > {g.max_rms_px} px"
+        if g.max_residual_variance is not None and not res.residual_variance <= g.max_residual_variance:
+            return "poor_fit", (f"residual variance {res.residual_variance:.2f} > {g.max_residual_variance} "
+                                f"(the images are not the needle model's)")
+        return None
+
+    def one_camera_starts(self, seq: int, stamp_ns: int) -> list[np.ndarray]:
+        """Where a one-camera fit of frame ``seq`` starts (module docstring): the tracker's pose
+        at most ``TRACKED_MAX_AGE`` frames old and this step's last pose within ``max_gap_s``,
+        in this frame's ECM frame; [] without a track."""
+        starts = []
+        T_world_ecm = self.ecm_poses.get(seq)
+        if self._tracked is not None and T_world_ecm is not None and 0 <= seq - self._tracked[0] <= TRACKED_MAX_AGE:
+            starts.append(inv_T(T_world_ecm) @ self._tracked[1])
+        own = None if self.tracker is None else self.tracker.track(stamp_ns)
+        if own is not None:
+            starts.append(own)
+        return starts
+
+    def fit_one_camera(self, kp: Keypoints, uv: dict, sc: dict, obs: dict):
+        """The fit of a frame one camera alone sees (module docstring); None after ``no_pose``."""
+        starts = self.one_camera_starts(kp.seq, kp.stamp_ns)
+        if not starts and not self.monocular:
+            self.no_pose("one_camera_untracked", kp, "one camera sees the needle and there is no track to fit it from")
+            return None
+        try:
+            if not starts:          # a monocular endoscope's first frame: that camera's PnP minima
+                starts = refine_starts(uv, self.rig, self.model_points, sc, self.min_score, self.outlier_px)
+            return self.one_camera_refiner.refine(obs, starts, support_normal=self.support_normal_ecm(kp.seq),
+                                                  expected=starts[0])
+        except NoPose as exc:
+            self.no_pose(exc.reason, kp, exc.detail)
+        except RefineError as exc:
+            self.no_pose(exc.reason, kp, str(exc))
+        return None
 
     def expected_T_ecm_needle(self, seq: int, confirmed: bool = False) -> np.ndarray | None:
         """Where the tracked needle is in frame ``seq``'s ECM frame if it has not moved: its last

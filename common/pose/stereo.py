@@ -23,6 +23,9 @@ that the pose is the likelier answer; every pose states its probability
 a covariance that spans the turned answer (``end_identity.unsure``,
 ``PoseEstimate.identity_widened``). Without a statement, A is taken as said.
 
+A monocular endoscope (``cameras``: the one camera wired): each of its keypoints is a frame, the
+other camera's half said not found (``Keypoints.not_found``, reason ``not_wired``).
+
 Each public method returns the ``(output, message)`` pairs to publish, in order; counters go to
 ``count(name, n)``.
 """
@@ -56,8 +59,11 @@ class StereoPoseStep:
     last world pose): the pair then waits for it (module docstring)."""
 
     def __init__(self, method: str, *, min_score: float = 0.5, max_wait: int = 30, ecm_wired: bool = True,
-                 no_pose_output: bool = True, count: Callable[..., None] | None = None,
+                 no_pose_output: bool = True, cameras: tuple = CAMERAS, count: Callable[..., None] | None = None,
                  log: logging.Logger | None = None):
+        if not cameras or not set(cameras) <= set(CAMERAS):
+            raise ValueError(f"a stereo pose step's cameras are some of {CAMERAS}, got {cameras!r}")
+        self.cameras = tuple(c for c in CAMERAS if c in cameras)
         self.method, self.min_score, self.max_wait = method, min_score, max_wait
         self.ecm_wired, self.no_pose_output = ecm_wired, no_pose_output
         self.count = count or (lambda name, n=1: None)    # a counter sink: the node's count
@@ -94,6 +100,11 @@ class StereoPoseStep:
         self.calib = msg
         return self._take()
 
+    @property
+    def monocular(self) -> bool:
+        """Whether one camera alone is wired (module docstring)."""
+        return len(self.cameras) == 1
+
     def calibrated(self) -> None:
         """A new rig or needle is in (``self.rig``, ``self.needle``): what depends on it is rebuilt."""
 
@@ -105,13 +116,17 @@ class StereoPoseStep:
 
     def on_keypoints(self, msg: Keypoints) -> list:
         """One camera's keypoints; a frame whose two halves are in is solved (or held)."""
-        if msg.camera not in CAMERAS:
+        if msg.camera not in self.cameras:
             self.count("bad_input")
             return self._take()
-        dropped = self.pairer.dropped
-        pair = self.pairer.push(msg.camera, msg.seq, msg)
-        if self.pairer.dropped > dropped:
-            self.count("unpaired", self.pairer.dropped - dropped)
+        if self.monocular:
+            pair = tuple(msg if c == msg.camera else Keypoints.not_found(c, msg.seq, msg.stamp_ns, "", "not_wired")
+                         for c in CAMERAS)
+        else:
+            dropped = self.pairer.dropped
+            pair = self.pairer.push(msg.camera, msg.seq, msg)
+            if self.pairer.dropped > dropped:
+                self.count("unpaired", self.pairer.dropped - dropped)
         self.waiting.see(msg.seq)
         self.solving.see(msg.seq)
         self._release()

@@ -22,7 +22,11 @@ A pose is a measurement (``measurement``) in world axes: its covariance as its r
 (``end_identity.reading_covariance``: the widening over the turn it says it has taken out, the
 track weighs both ends itself); an ``ambiguous`` pose is read with its mirror image
 (``refine.mirror_pose``) as the alternative the track may explain better; a pose without a
-covariance is no measurement (``no_covariance``).
+covariance is no measurement (``no_covariance``). A pose fitted to one camera's view
+(``on_pose(..., one_camera=True)``, the refine node's ``one_camera``) is a measurement that starts
+no track unless ``TrackerConfig.start_one_camera`` (``Measurement.one_camera``); with
+``one_camera_wired``, a frame said to have no pose for that reason (``NoPoseNotice`` reason
+``one_camera``) waits for its one-camera pose instead of being stepped without one.
 
 Each public method returns the ``(output, message)`` pairs to publish: ``pose`` (``method``:
 ``T_ecm_needle`` with the world pose, the covariance in ECM axes, ``residual`` the measurement's
@@ -117,8 +121,10 @@ class TrackerStep:
 
     def __init__(self, config: TrackerConfig = TrackerConfig(), *, max_wait: int = 1, replay: int = 15,
                  instrument_max_age: int = 5, method: str = "tracked", reset_on_sequence: bool = True,
-                 truth_wired: bool = True, count: Callable[..., None] | None = None):
+                 truth_wired: bool = True, one_camera_wired: bool = False,
+                 count: Callable[..., None] | None = None):
         self.config, self.max_wait, self.replay = config, max_wait, replay
+        self.one_camera_wired = one_camera_wired
         self.instrument_max_age, self.method = instrument_max_age, method
         self.reset_on_sequence, self.truth_wired = reset_on_sequence, truth_wired
         self.count = count or (lambda name, n=1: None)    # a counter sink: the node's count
@@ -130,6 +136,7 @@ class TrackerStep:
     def _clear(self):
         size = 2 * self.max_wait + 64
         self.poses = SeqCache(size)
+        self.one_camera = SeqCache(size)   # seqs whose pose was fitted to one camera's view
         self.posed_none = SeqCache(size)   # seqs the refine node said it gives no pose
         self.ecm = SeqCache(size)          # seq -> EcmPose
         self.sequences = SeqCache(size)
@@ -190,10 +197,13 @@ class TrackerStep:
                 self._step(seq)
         return self._take()
 
-    def on_pose(self, msg: PoseEstimate) -> list:
+    def on_pose(self, msg: PoseEstimate, one_camera: bool = False) -> list:
+        """A frame's pose; ``one_camera``: fitted to one camera's view (module docstring)."""
         if msg.seq <= self.stepped:
-            self._late(msg)
+            self._late(msg, one_camera)
             return self._take()
+        if one_camera:
+            self.one_camera.put(msg.seq, True)
         self.poses.put(msg.seq, msg)
         self.newest_said = max(self.newest_said, msg.seq)
         self.frames.see(msg.seq)
@@ -204,6 +214,8 @@ class TrackerStep:
         """The refine node gives frame ``msg.seq`` no pose: it waits for nothing more of it."""
         if msg.seq <= self.stepped:
             return self._take()
+        if self.one_camera_wired and msg.reason == "one_camera":
+            return self._take()           # its pose comes on one_camera
         self.posed_none.put(msg.seq, msg.reason)
         self.newest_said = max(self.newest_said, msg.seq)
         self.frames.see(msg.seq)
@@ -216,7 +228,8 @@ class TrackerStep:
             if r.item > self.stepped:
                 self._step(r.item)
 
-    def measurement(self, pose: PoseEstimate | None, T_world_ecm: np.ndarray) -> Measurement | None:
+    def measurement(self, pose: PoseEstimate | None, T_world_ecm: np.ndarray,
+                    one_camera: bool = False) -> Measurement | None:
         """The measurement a pose gives (module docstring); None: coasted, or no covariance."""
         if pose is None:
             self.count("coasted")
@@ -233,16 +246,19 @@ class TrackerStep:
         return Measurement(T_world_ecm @ T_ecm_needle,
                            covariance_to_frame(covariance, T_world_ecm[:3, :3]),
                            pose.end_identity, pose.model_sigma_m or 0.0, pose.model_sigma_rad or 0.0, mirror,
-                           pose.arc_seen)
+                           pose.arc_seen, one_camera)
 
     def _step(self, seq: int):
         self.stepped = seq
         ecm = self.ecm.get(seq)
         pose = self.poses.pop(seq, None)
+        one_camera = bool(self.one_camera.pop(seq, False))
+        if one_camera and pose is not None:
+            self.count("one_camera")
         self.posed_none.pop(seq, None)
         T_world_ecm = np.asarray(ecm.T_world_ecm, float)
         inputs = FrameInputs(int(ecm.stamp_ns), T_world_ecm, self.jaws.at(seq),
-                             self.measurement(pose, T_world_ecm), self.sequences.get(seq))
+                             self.measurement(pose, T_world_ecm, one_camera), self.sequences.get(seq))
         state_before = self._state() if self.replay else None
         out = self._advance(inputs, count=True)
         counted = self._count_outcome(out, ())
@@ -287,7 +303,7 @@ class TrackerStep:
     def _state(self):
         return self.tracker.snapshot(), self.sequence
 
-    def _late(self, msg: PoseEstimate):
+    def _late(self, msg: PoseEstimate, one_camera: bool = False):
         """A pose for a frame already stepped without it (predicted): within ``replay`` frames,
         the filter goes back to that frame and steps again to the newest with it (``replayed``);
         the frames published meanwhile stay as they were, the next ones carry it. Older, or for a
@@ -296,7 +312,7 @@ class TrackerStep:
         if entry is None or entry[1].measurement is not None:
             self.count("late_pose")
             return
-        measurement = self.measurement(msg, entry[1].T_world_ecm)
+        measurement = self.measurement(msg, entry[1].T_world_ecm, one_camera)
         if measurement is None:
             return
         (snapshot, self.sequence) = entry[0]

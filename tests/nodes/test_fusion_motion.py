@@ -212,3 +212,16 @@ def test_the_evaluation_graph_wires_the_tracker_s_modes_to_the_fusions_where_it_
                                                     lossless=True)["nodes"]}
     assert lossless["fusion"]["params"]["max_wait"] == 2 * LOSSLESS_TRACKER_WAIT
     assert lossless["tracker"]["params"]["max_wait"] == LOSSLESS_TRACKER_WAIT
+    # the refinement answers every frame of a lossless graph, tens of seconds after the source ends
+    assert "eos" in by_id["tracker"]["inputs"] and "eos" not in lossless["tracker"]["inputs"]
+    assert by_id["tracker"]["inputs"]["one_camera"] == "refine/one_camera"
+
+
+def test_a_monocular_evaluation_graph_runs_one_camera_s_detector_refinement_and_tracker():
+    from common.evaluation.pipeline_graph import pipeline_graph
+    doc = pipeline_graph("dataset", detector="learned", cameras=("left",), replay_params={"withhold": "left"})
+    by_id = {n["id"]: n for n in doc["nodes"]}
+    assert set(by_id) == {"replay", "detector_left", "ecm", "refine", "tracker"}
+    assert set(by_id["refine"]["inputs"]) >= {"left", "calib", "ecm"} and "right" not in by_id["refine"]["inputs"]
+    assert by_id["tracker"]["params"]["start_one_camera"] is True
+    assert by_id["replay"]["params"]["withhold"] == "left"

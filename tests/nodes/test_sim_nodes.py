@@ -58,6 +58,18 @@ def _roundtrip(msg):
     return decode(encode(msg), type(msg))
 
 
+def test_replay_sends_a_withheld_camera_s_images_black_in_one_window(tmp_path):
+    _dataset(tmp_path, 10)
+    node = ReplayNode.offline(params={"path": str(tmp_path), "rate": "max", "withhold": "right",
+                                      "withhold_share": 0.3, "withhold_seed": 2})
+    assert _run(node)
+    msgs = [(o, _roundtrip(m)) for o, m in node.published]
+    black = [m.seq for o, m in msgs if o == "right" and not m.to_bgr().any()]
+    assert len(black) == 3 and black == list(range(black[0], black[0] + 3))
+    assert all(m.to_bgr().any() for o, m in msgs if o == "left")              # the other camera as it is
+    assert node.counters["withheld"] == 3 and sum(o == "truth" for o, _ in msgs) == 10
+
+
 def test_replay_publishes_calib_frames_truth_and_eos(tmp_path):
     meta = _dataset(tmp_path, 3)
     node = ReplayNode.offline(params={"path": str(tmp_path), "rate": "max"})

@@ -1,5 +1,6 @@
 """The dense refinement's frame step (common/pose/refine_step.py) driven directly: a frame waits
-for its ECM pose before it is solved, in seq order; the gates; a partial view's caps."""
+for its ECM pose before it is solved, in seq order; the gates; a partial view's caps; a needle one
+camera alone sees, and a monocular endoscope."""
 from dataclasses import replace
 
 import numpy as np
@@ -11,12 +12,17 @@ from common.geometry.refine import RefineConfig
 from common.geometry.refine_tracking import TrackingConfig
 from common.geometry.transforms import make_T, pose_error, rotvec_to_R
 from common.pose.refine_step import RefineGates, RefineStep
-from common.runtime.messages import Calibration, EcmPose, Keypoints
+from common.runtime.messages import Calibration, EcmPose, Keypoints, PoseEstimate
 
 RIG = StereoRig.default()
 MODEL = NeedleModel()
 CALIB = Calibration(0, np.array([1920, 1080]), RIG.to_dict(), MODEL.to_dict())
 T_WORLD_ECM = make_T(rotvec_to_R([0.0, 0.0, 0.2]), [0.1, 0.0, 0.3])
+
+
+def perturb(T, mm=1.0, deg=2.0):
+    """T moved ``mm`` along x and turned ``deg`` about y (its own axes)."""
+    return T @ make_T(rotvec_to_R([0.0, np.radians(deg), 0.0]), [mm * 1e-3, 0.0, 0.0])
 
 
 def frames(n, seed=3):
@@ -154,3 +160,84 @@ def test_a_camera_that_the_other_and_the_tracker_disagree_with_is_said_a_wrong_l
         out = step.on_keypoints(replace(left, seq=seq, stamp_ns=seq * 1000))
         out += step.on_keypoints(replace(right, seq=seq, stamp_ns=seq * 1000))
         assert not [m for o, m in out if o == "lock"] and any(o == "pose" for o, _ in out)
+
+
+def one_camera_step(counts, **kw):
+    step = RefineStep(tracking=TrackingConfig(enabled=False), max_wait=3,
+                      count=lambda n, k=1: counts.__setitem__(n, counts.get(n, 0) + k), **kw)
+    step.on_calib(CALIB)
+    return step
+
+
+def depth_sigma_m(pose) -> float:
+    """1 sigma of the pose's position along the left camera's viewing ray (m)."""
+    C = np.asarray(pose.covariance)[3:, 3:]
+    ray = pose.T_ecm_needle[:3, 3] - RIG["left"].T_ecm_cam[:3, 3]
+    ray = ray / np.linalg.norm(ray)
+    return float(np.sqrt(ray @ C @ ray))
+
+
+def lateral_sigma_m(pose) -> float:
+    return float(np.sqrt(np.linalg.eigvalsh(np.asarray(pose.covariance)[3:, 3:])[0]))
+
+
+def test_a_needle_one_camera_sees_is_fitted_from_the_track_and_said_on_one_camera():
+    """The right camera lost it: the left camera's view, fitted from the tracker's pose, goes out
+    on one_camera (flagged, its covariance wide along the left camera's ray), and ``pose`` says no
+    pose for that frame; the stereo frame before it is posed as always."""
+    counts = {}
+    step = one_camera_step(counts)
+    T, left, right = frames(1)[0]
+    tracked = PoseEstimate(0, 0, "tracked", T, T_WORLD_ECM @ perturb(T), T_WORLD_ECM)
+    step.on_track(tracked)
+    step.on_ecm(EcmPose(0, 0, T_WORLD_ECM))
+    blocked = Keypoints.not_found("right", 0, 0, "oracle", "no_needle")
+    out = step.on_keypoints(left) + step.on_keypoints(blocked)
+    assert [(o, getattr(m, "method", None)) for o, m in out] == [("one_camera", "refined_one_camera"),
+                                                                ("no_pose", "refined")]
+    pose, notice = out[0][1], out[1][1]
+    assert notice.reason == "one_camera" and counts["one_camera"] == 1
+    assert pose.ambiguous and pose.T_world_needle is not None
+    dt, dr = pose_error(pose.T_ecm_needle, T)
+    assert dt < 5e-3 and np.degrees(dr) < 5.0
+    assert depth_sigma_m(pose) > 3 * lateral_sigma_m(pose)    # one view leaves the depth open
+
+
+def test_without_a_track_a_one_camera_frame_has_no_pose():
+    counts = {}
+    step = one_camera_step(counts)
+    _, left, _ = frames(1)[0]
+    step.on_ecm(EcmPose(0, 0, T_WORLD_ECM))
+    out = step.on_keypoints(left) + step.on_keypoints(Keypoints.not_found("right", 0, 0, "oracle", "no_needle"))
+    assert [(o, m.reason) for o, m in out] == [("no_pose", "one_camera_untracked")]
+
+
+def test_one_camera_off_gives_the_stereo_step_s_no_pose():
+    counts = {}
+    step = one_camera_step(counts, one_camera=False)
+    T, left, _ = frames(1)[0]
+    step.on_track(PoseEstimate(0, 0, "tracked", T, T_WORLD_ECM @ T, T_WORLD_ECM))
+    step.on_ecm(EcmPose(0, 0, T_WORLD_ECM))
+    out = step.on_keypoints(left) + step.on_keypoints(Keypoints.not_found("right", 0, 0, "oracle", "no_needle"))
+    assert [o for o, _ in out] == ["no_pose"] and out[0][1].reason != "one_camera"
+
+
+def test_a_monocular_step_poses_every_frame_of_its_one_camera_cold_then_warm():
+    """Only the left camera wired: each of its frames is a frame, the first fitted cold from the
+    left camera's PnP minima (no track yet), the next from the tracked pose."""
+    counts = {}
+    step = one_camera_step(counts, cameras=("left",))
+    assert step.monocular
+    fr = frames(2)
+    step.on_ecm(EcmPose(0, 0, T_WORLD_ECM))
+    step.on_ecm(EcmPose(1, 1000, T_WORLD_ECM))
+    out = step.on_keypoints(fr[0][1])
+    assert [o for o, _ in out] == ["one_camera", "no_pose"]
+    assert step.on_keypoints(fr[0][2]) == [] and counts["bad_input"] == 1     # the right camera is not wired
+    dt, _ = pose_error(out[0][1].T_ecm_needle, fr[0][0])
+    assert dt < 0.02                              # depth from the arc's apparent size alone
+    step.on_track(PoseEstimate(0, 0, "tracked", fr[1][0], T_WORLD_ECM @ fr[1][0], T_WORLD_ECM))
+    out = step.on_keypoints(fr[1][1])
+    assert out[0][0] == "one_camera"
+    dt, dr = pose_error(out[0][1].T_ecm_needle, fr[1][0])
+    assert dt < 5e-3 and np.degrees(dr) < 5.0

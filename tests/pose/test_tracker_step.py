@@ -137,3 +137,51 @@ def test_with_arm_correction_each_arm_s_error_is_said_and_the_needle_is_in_the_c
     for k in range(5):
         out += frame_inputs(step, frames, T_world_ecm, k) + step.on_pose(poses[k])
     assert not [o for o, _ in out if o == "arm_correction"]
+
+
+def one_camera_poses(frames, T_world_ecm, rng):
+    """Poses as one camera gives them: 20x the stereo position error along the view (ECM z)."""
+    wide = C.copy()
+    wide[5, 5] *= 400.0
+    return [PoseEstimate(k, k * DT_NS, "refined_one_camera", retract(inv_T(T_world_ecm) @ fr.T_world_needle,
+                                                                     rng.multivariate_normal(np.zeros(6), wide)),
+                         covariance=wide, end_identity=0.99, ambiguous=True) for k, fr in enumerate(frames)]
+
+
+def test_a_one_camera_pose_starts_no_track_but_keeps_one_going():
+    """The held needle tracked on stereo poses, then 20 frames on one camera's: each updates the
+    track (none is rejected, none coasts) and the track stays within the stereo measurement's
+    error; a one-camera pose alone starts no track (unless start_one_camera: a monocular scope)."""
+    frames, T_world_ecm = handover()
+    rng = np.random.default_rng(4)
+    stereo, one = measured(frames, T_world_ecm, rng), one_camera_poses(frames, T_world_ecm, rng)
+    counts = {}
+    step = TrackerStep(one_camera_wired=True, count=lambda n, k=1: counts.__setitem__(n, counts.get(n, 0) + k))
+    tracked = []
+    for k in range(40):
+        frame_inputs(step, frames, T_world_ecm, k)
+        if k < 20:
+            out = step.on_pose(stereo[k])
+        else:     # the refine node's order: the one-camera pose, then its notice (or the notice first)
+            notice = NoPoseNotice(k, k * DT_NS, "refined", "one_camera")
+            out = step.on_no_pose(notice) if k % 2 else []
+            assert step.stepped == k - 1                     # the notice does not step the frame
+            out += step.on_pose(one[k], one_camera=True) + ([] if k % 2 else step.on_no_pose(notice))
+        tracked += [m for o, m in out if o == "pose"]
+    assert [m.seq for m in tracked] == list(range(40))
+    assert counts["one_camera"] == 20 and "coasted" not in counts and "rejected" not in counts
+    for m in tracked[20:]:
+        dt, dr = pose_error(m.T_world_needle, frames[m.seq].T_world_needle)
+        assert dt < 2e-3 and np.degrees(dr) < 3.0
+
+    def depth_share(m):       # the position's variance along the view (ECM z) against across it
+        P = np.asarray(m.covariance)
+        return P[5, 5] / P[3, 3]
+    assert depth_share(tracked[39]) > 1.2 * depth_share(tracked[19])     # one view leaves the depth open
+
+    alone = TrackerStep(one_camera_wired=True)
+    out = frame_inputs(alone, frames, T_world_ecm, 0) + alone.on_pose(one[0], one_camera=True)
+    assert [(o, m.reason) for o, m in out] == [("no_pose", "no_track")]
+    mono = TrackerStep(TrackerConfig(start_one_camera=True), one_camera_wired=True)
+    out = frame_inputs(mono, frames, T_world_ecm, 0) + mono.on_pose(one[0], one_camera=True)
+    assert [o for o, _ in out][0] == "pose"

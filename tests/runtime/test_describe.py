@@ -9,7 +9,7 @@ def test_the_committed_node_reference_is_current():
 
 def test_a_node_is_described_from_its_class():
     info = describe("refine")
-    assert ("left", "Keypoints") in info["inputs"] and info["outputs"] == ["pose", "no_pose", "lock"]
+    assert ("left", "Keypoints") in info["inputs"] and info["outputs"] == ["pose", "no_pose", "lock", "one_camera"]
     params = {name: (tp, default, doc) for name, tp, default, doc in info["params"]}
     # the node's own params, the merged RefineConfig's, and the base class's, each with its comment
     assert params["max_wait"] == ("int", 30, "frames a pose (or a pair the solver needs the ECM pose for) waits for its ECM pose")

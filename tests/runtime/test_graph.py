@@ -219,3 +219,9 @@ def test_the_params_constraints_are_seen_by_validate_before_any_node_runs():
                  "nodes[6].params.k: must be at least 1, got 0",
                  "nodes[6].params.max_dist_mm: must be a positive number, got -1"):
         assert text in errs, (text, errs)
+
+
+@pytest.mark.parametrize("path", sorted((REPO / "graphs").glob("*.yaml")), ids=lambda p: p.name)
+def test_every_shipped_graph_validates(path):
+    ok = cli("validate", path)
+    assert ok.returncode == 0, ok.stderr
