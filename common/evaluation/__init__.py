@@ -37,4 +37,6 @@ Modules (``python -m common.layout`` writes this list from their docstrings):
   (docs/tracking.md#evaluation).
 - ``timing``: Timing of a run: latency and throughput of the final method, per-node times, and the
   CPU time of processes (Linux ``/proc``).
+- ``withheld``: The frames whose one camera was withheld (``needletrack eval --withhold``): the
+  tracked pose there, against the frames both cameras saw (docs/tracking.md#one-camera).
 """

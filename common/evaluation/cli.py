@@ -206,7 +206,8 @@ def main(argv=None) -> int:
                  "inputs": {"truth": "replay/truth", "calib": "replay/calib", "eos": "replay/eos",
                             **{c: src for c, src in keypoint_sources(split or len(cameras) == 1).items()
                                if c in cameras},
-                            "points3d": "triangulate/points",
+                            **({"points3d": "triangulate/points"}
+                               if any(n["id"] == "triangulate" for n in doc["nodes"]) else {}),
                             **{m: src for m, src in pose_inputs(doc).items()
                                if len(cameras) == 2 or m == "tracked"},   # monocular: refine/pose is empty
                             **({"instruments": "replay/instruments", "in_hand": "tracker/in_hand"}
@@ -250,6 +251,8 @@ def main(argv=None) -> int:
         if rc:
             return rc
     print_summary(res)
+    if replay_params:
+        _withheld(ds, out, res, replay_params)
     moving = ", tracking.png, tracking.mp4" if (out / "tracking.mp4").is_file() else ""
     print(f"wrote {out}/results.json, report.md, error_vs_distance.png, per_frame.csv, overlays/{moving} "
           f"({time.monotonic() - t0:.0f} s)")
@@ -259,6 +262,21 @@ def main(argv=None) -> int:
             return 1
         print(f"wrote {args.rrd}: needletrack view {args.rrd}")
     return 0
+
+
+def _withheld(ds, out: Path, res: dict, replay_params: dict) -> None:
+    """The tracked pose on the frames one camera was withheld from, against the others: printed,
+    in results.json (``withheld``) and report.md (``common.evaluation.withheld``)."""
+    from common.evaluation.withheld import withheld_markdown, withheld_summary
+    methods = [m for m in ("refined", "tracked") if m in res.get("pose", {})]
+    table = withheld_summary(ds, out / "per_frame.csv", replay_params["withhold_share"], methods=methods or ("tracked",))
+    res["withheld"] = {"camera": replay_params["withhold"], "share": replay_params["withhold_share"], **table}
+    (out / "results.json").write_text(json.dumps(res, indent=2, allow_nan=False) + "\n")
+    lines = withheld_markdown(table)
+    with open(out / "report.md", "a") as f:
+        f.write(f"\n## The {replay_params['withhold']} camera withheld for {replay_params['withhold_share']:.0%} "
+                f"of each take (`--withhold`)\n\n" + "\n".join(lines) + "\n")
+    print(f"{replay_params['withhold']} camera withheld:\n" + "\n".join(lines))
 
 
 def _clear_outputs(out: Path) -> None:

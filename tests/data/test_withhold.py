@@ -27,3 +27,24 @@ def test_the_command_line_s_camera_and_share():
     for bad in ("middle:0.3", "left:x", "left:2"):
         with pytest.raises(ValueError):
             withhold_params(bad)
+
+
+def test_the_evaluation_splits_the_withheld_frames_from_the_others(tmp_path):
+    from types import SimpleNamespace
+
+    from common.evaluation.withheld import withheld_markdown, withheld_summary
+    frames = [SimpleNamespace(index=i, sequence=0, arc_visible={"left": 0.8, "right": 0.8 if i % 5 else 0.1})
+              for i in range(20)]
+    mask = withheld_frames([f.sequence for f in frames], 0.3, seed=1)
+    rows = ["seq,tracked_mm,tracked_deg,tracked_nees"]
+    rows += [f"{i},{2.0 if mask[i] else 1.0},{3.0 if mask[i] else 1.0},{'' if i == 0 else 4.0}" for i in range(20)]
+    rows[1 + 3] = "3,,,"                                   # frame 3 not posed
+    (tmp_path / "per_frame.csv").write_text("\n".join(rows) + "\n")
+    t = withheld_summary(SimpleNamespace(frames=frames), tmp_path / "per_frame.csv", 0.3, seed=1)["tracked"]
+    held = [i for i in range(20) if mask[i] and i % 5]
+    w = t["withheld, >= 30% seen"]
+    assert w["n"] == len(held) and w["position_mm"]["mean"] == 2.0 and w["orientation_deg"]["median"] == 3.0
+    both = t["both_cameras, >= 30% seen"]
+    assert both["position_mm"]["mean"] == 1.0 and both["posed_share"] < 1.0 and both["nees_median"] == 4.0
+    assert sum(s["n"] for s in t.values()) == 20
+    assert len(withheld_markdown({"tracked": t})) == 2 + 4
