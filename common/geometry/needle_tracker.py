@@ -40,6 +40,13 @@ Which end is the tip belongs to the track: a measurement is read as it is or tur
 identity is evidence for or against the track's (``end_identity.track_identity``), never a new
 truth on its own.
 
+One camera: a measurement fitted to one camera's view (``Measurement.one_camera``) updates a
+track as any other but starts none unless ``start_one_camera`` (a monocular endoscope). One view
+cannot tell a planar arc from its mirror image (``refine.mirror_pose``: the same image curve):
+a track started from such a view has its mirror open (``Tracked.mirror_open``) until a stereo
+measurement updates it; its poses are then stated with the mirror (the tracker step widens the
+covariance to span it and flags them).
+
 A track starts from a measurement fitted to ``start_arc_seen`` of the arc, or from a run of
 ``start_run`` partial views (each fitted to ``start_run_arc_seen``) that agree with each other:
 a short part of the arc can fit a pose tens of degrees off, but rarely the same wrong pose many
@@ -189,6 +196,7 @@ class Tracked:
     nis: float = float("nan")
     event: Optional[str] = None
     corrections: Optional[dict] = None      # arm_correction: {name: (K 4x4, 6x6)} (NeedleTracker.corrections)
+    mirror_open: bool = False               # started from one camera's view, no stereo view since (module docstring)
 
 
 # ---------------------------------------------------------------- small pieces
@@ -241,6 +249,7 @@ class NeedleTracker:
         self.refused: set = set()                  # jaws whose grasp was undone, until they open
         self._last_jaws: dict = {}
         self.common = np.zeros(6)                  # the shared error's variances, the newest measurement's
+        self.mirror_open = False                   # the track rests on one camera's views alone
         self.candidate: Optional["NeedleTracker"] = None   # a track of partial views only (_from_partial)
         self.run = 0                               # the partial views in a row it took
 
@@ -515,6 +524,7 @@ class NeedleTracker:
         """A new track from ``m``: held when some jaws hold it, else at rest."""
         T, P = m.T_world_needle, np.asarray(m.covariance, float)
         self.identity, self.trial = None, None
+        self.mirror_open = bool(m.one_camera)
         if m.end_identity is not None:
             turn, self.identity = track_identity(m.end_identity, None, None)
             if turn:
@@ -644,6 +654,8 @@ class NeedleTracker:
                 turned, flipped, d, r, S, H = read
                 self._correct(r, S, H)
                 self.rejected, self.last_seen_ns = 0, stamp_ns
+                if not measurement.one_camera:
+                    self.mirror_open = False         # a stereo view tells the arc from its mirror image
                 event = "flip" if flipped else event
             else:
                 self.rejected += 1
@@ -701,4 +713,4 @@ class NeedleTracker:
         corrections = self.corrections(jaws) if self.cfg.arm_correction else None
         P_jaw = (self.P[:6, :6] if self.arms else self.P) + np.diag(self.common) if held else None
         return Tracked(Tw.copy(), Pw, self.mode, self.holder, self.T.copy() if held else None, P_jaw,
-                       p, used, turned, d, event, corrections)
+                       p, used, turned, d, event, corrections, self.mirror_open)

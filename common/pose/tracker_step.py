@@ -22,7 +22,10 @@ A pose is a measurement (``measurement``) in world axes: its covariance as its r
 (``end_identity.reading_covariance``: the widening over the turn it says it has taken out, the
 track weighs both ends itself); an ``ambiguous`` pose is read with its mirror image
 (``refine.mirror_pose``) as the alternative the track may explain better; a pose without a
-covariance is no measurement (``no_covariance``). A pose fitted to one camera's view
+covariance is no measurement (``no_covariance``). A track whose mirror is open
+(``Tracked.mirror_open``: started from one camera's view, no stereo view since) is said flagged
+``ambiguous``, its covariance widened to span the mirror image (``MIRROR_SHARE``; counted
+``mirror_open``). A pose fitted to one camera's view
 (``on_pose(..., one_camera=True)``, the refine node's ``one_camera``) is a measurement that starts
 no track unless ``TrackerConfig.start_one_camera`` (``Measurement.one_camera``); with
 ``one_camera_wired``, a frame said to have no pose for that reason (``NoPoseNotice`` reason
@@ -51,7 +54,7 @@ from common.geometry.fusion import covariance_to_frame
 from common.geometry.needle import NeedleModel
 from common.geometry.needle_tracker import Jaw, Measurement, NeedleTracker, TrackerConfig
 from common.geometry.refine import mirror_pose
-from common.geometry.transforms import inv_T, symmetrise
+from common.geometry.transforms import inv_T, pose_delta, symmetrise
 from common.runtime.messages import (
     ArmCorrection,
     Calibration,
@@ -64,6 +67,11 @@ from common.runtime.messages import (
     PoseEstimate,
 )
 from common.runtime.pairing import FrameJoin, SeqCache, Wait
+
+
+MIRROR_SHARE = 0.5
+"""A track whose mirror is open states its covariance widened by this share of the mirror's offset
+(``C + 0.5 d d^T``: the two readings equally likely, as ``end_identity`` widens an unsure tip)."""
 
 
 @dataclass(frozen=True)
@@ -328,12 +336,17 @@ class TrackerStep:
     def _publish(self, seq, stamp_ns, T_world_ecm, out, sequence):
         T_ecm_needle = inv_T(T_world_ecm) @ out.T_world_needle
         cov = covariance_to_frame(out.covariance, T_world_ecm[:3, :3].T)
+        if out.mirror_open:       # one view: the arc's mirror image fits as well (needle_tracker docstring)
+            d = pose_delta(mirror_pose(T_ecm_needle, self.needle), T_ecm_needle)
+            cov = cov + MIRROR_SHARE * np.outer(d, d)
+            self.count("mirror_open")
         stated = state(T_ecm_needle, cov, self.needle, out.end_identity)
         cov = stated.covariance
         self._out.append(("pose", PoseEstimate(
             seq, stamp_ns, self.method, T_ecm_needle, out.T_world_needle, T_world_ecm,
             0.0 if out.nis != out.nis else float(out.nis), "chi2", 1, symmetrise(cov),
-            ambiguous=bool(stated.unsure), sequence=sequence, end_identity=out.end_identity, mode=out.mode,
+            ambiguous=bool(stated.unsure or out.mirror_open), sequence=sequence, end_identity=out.end_identity,
+            mode=out.mode,
             identity_widened=stated.widened)))
         if out.mode == "held":
             self._out.append(("in_hand", InHandPose(

@@ -5,7 +5,8 @@ import numpy as np
 from common.geometry.end_identity import identity_covariance
 from common.geometry.needle import NeedleModel
 from common.geometry.needle_tracker import TrackerConfig, retract
-from common.geometry.transforms import inv_T, make_T, pose_error
+from common.geometry.refine import mirror_pose
+from common.geometry.transforms import inv_T, make_T, pose_delta, pose_error
 from common.pose.tracker_step import InstrumentTable, TrackerStep
 from common.runtime.messages import EcmPose, EndOfStream, GroundTruth, InstrumentState, NoPoseNotice, PoseEstimate
 from common.sim.arm_error import ARM_ERRORS, draw_arm_errors
@@ -184,4 +185,10 @@ def test_a_one_camera_pose_starts_no_track_but_keeps_one_going():
     assert [(o, m.reason) for o, m in out] == [("no_pose", "no_track")]
     mono = TrackerStep(TrackerConfig(start_one_camera=True), one_camera_wired=True)
     out = frame_inputs(mono, frames, T_world_ecm, 0) + mono.on_pose(one[0], one_camera=True)
-    assert [o for o, _ in out][0] == "pose"
+    first = [m for o, m in out if o == "pose"][0]
+    # one view cannot tell the arc from its mirror image: flagged, the covariance spans the mirror
+    assert first.ambiguous
+    d = pose_delta(mirror_pose(first.T_ecm_needle, NEEDLE), first.T_ecm_needle)
+    assert d @ np.linalg.solve(np.asarray(first.covariance), d) < 4.0
+    out = frame_inputs(mono, frames, T_world_ecm, 1) + mono.on_pose(stereo[1])
+    assert not [m for o, m in out if o == "pose"][0].ambiguous               # a stereo view settles it
