@@ -29,6 +29,7 @@ from common.frames import CAMERAS
 from common.methods import EXTRA_METHODS, POSE_METHODS, REPORTED_METHODS
 from common.constraints import required
 from common.runtime.messages import (
+    ArmCorrection,
     Calibration,
     EndOfStream,
     GroundTruth,
@@ -51,6 +52,7 @@ class EvaluatorNode(PoseMethodInputs, Node):
 
     INPUTS = {"truth": GroundTruth, "left": Keypoints, "right": Keypoints, "points3d": Points3D,
               "calib": Calibration, "eos": EndOfStream, "instruments": InstrumentState, "in_hand": InHandPose,
+              "arm_correction": ArmCorrection,
               **{m: PoseEstimate for m in POSE_METHODS}}
     OUTPUTS = ()
     KEEP_ALL = tuple(INPUTS)
@@ -131,6 +133,9 @@ class EvaluatorNode(PoseMethodInputs, Node):
 
     def on_in_hand(self, msg):
         self.col.add_in_hand(msg, self._seen())
+
+    def on_arm_correction(self, msg):
+        self.col.add_arm_correction(msg, self._seen())
 
     def on_eos(self, msg):
         self._seen()

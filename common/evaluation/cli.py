@@ -210,7 +210,8 @@ def main(argv=None) -> int:
                                if any(n["id"] == "triangulate" for n in doc["nodes"]) else {}),
                             **{m: src for m, src in pose_inputs(doc).items()
                                if len(cameras) == 2 or m == "tracked"},   # monocular: refine/pose is empty
-                            **({"instruments": "replay/instruments", "in_hand": "tracker/in_hand"}
+                            **({"instruments": "replay/instruments", "in_hand": "tracker/in_hand",
+                                "arm_correction": "tracker/arm_correction"}
                                if any(n["id"] == "tracker" for n in doc["nodes"]) else {})},
                  "restart": "never"}
     doc["nodes"].append(evaluator)

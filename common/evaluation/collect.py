@@ -65,6 +65,7 @@ class Collected:
     node_cpu_ms: dict = field(default_factory=dict)      # node -> CPU ms per frame over the run
     node_counters: dict = field(default_factory=dict)
     instruments: dict = field(default_factory=dict)      # seq -> {name: InstrumentState}
+    arm_corrections: dict = field(default_factory=dict)  # seq -> {name: ArmCorrection} (the tracker's)
     in_hand: dict = field(default_factory=dict)          # seq -> InHandPose (the tracker's)
     first_arrival_ns: Optional[int] = None
     last_arrival_ns: Optional[int] = None
@@ -96,6 +97,11 @@ class Collected:
 
     def add_instrument(self, msg: InstrumentState):
         self.instruments.setdefault(msg.seq, {})[msg.name] = msg
+
+    def add_arm_correction(self, msg, now_ns: int):
+        """The tracker's estimate of an arm's error (``ArmCorrection``) in a frame."""
+        self.arm_corrections.setdefault(msg.seq, {})[msg.name] = msg
+        self._touch(now_ns)
 
     def add_in_hand(self, msg: InHandPose, now_ns: int):
         self.in_hand[msg.seq] = msg

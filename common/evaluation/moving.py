@@ -8,7 +8,11 @@ from the ``IN_HAND_FROM``-th frame (10th) of each run of frames one instrument h
 (the truth's ``holds_needle``), against ``inv(T_world_jaw) @ T_world_needle`` in the true jaw frame
 (``T_world_jaw_truth`` where the arm reports its jaws with an error); a frame where the
 tracker names no holder, or another, counts as ``wrong_holder``. A method's lag behind the truth:
-the shift in frames that brings its world poses nearest the truth (``lag_frames``).
+the shift in frames that brings its world poses nearest the truth (``lag_frames``). Each arm's
+estimated error (the tracker's ``ArmCorrection``, with ``arm_correction``): its corrected jaw pose
+against the true jaws from ``CORRECTION_AFTER`` frames (3 s at 30 Hz) after that arm is first seen
+holding the needle in the take, beside the arm's report against the same truth
+(``correction_table``).
 """
 from __future__ import annotations
 
@@ -18,10 +22,12 @@ import numpy as np
 
 from common.evaluation.metrics import SWAP_DEG, VISIBLE_BINS, summary, visible_fraction
 from common.frames import CAMERAS
-from common.geometry.transforms import inv_T, pose_error
+from common.geometry.transforms import inv_T, pose_delta, pose_error
 
 SEEN = 0.3
 IN_HAND_FROM = 10
+CORRECTION_AFTER = 90
+"""Frames (3 s at 30 Hz) after an arm first holds the needle from which its correction is scored."""
 
 
 def stereo_visible(frame) -> Optional[float]:
@@ -92,6 +98,43 @@ def in_hand_table(truths: dict, instruments: dict, in_hand: dict, seqs) -> dict:
             "position_mm": summary(np.array(pos) * 1e3), "orientation_deg": summary(np.degrees(rot))}
 
 
+def correction_table(truths: dict, instruments: dict, corrections: dict, seqs) -> dict:
+    """The corrected jaw poses (``ArmCorrection.T_world_jaw``) and the reports against the true jaws
+    (``InstrumentState.T_world_jaw_true``), per arm and frame from ``CORRECTION_AFTER`` frames after
+    the arm first holds the needle in its take (the truth's ``holds_needle``): position (mm),
+    orientation (deg), the share within 1 mm and 1 deg, the NEES of the stated covariance; frames
+    with no correction said are counted ``missing``."""
+    first: dict = {}
+    for s in sorted(seqs):
+        for name, m in instruments.get(s, {}).items():
+            if m.holds_needle:
+                first.setdefault((truths[s].sequence, name), s)
+    est, reported, nees, missing = [], [], [], 0
+    for s in sorted(seqs):
+        for name, m in instruments.get(s, {}).items():
+            f = first.get((truths[s].sequence, name))
+            if f is None or s - f < CORRECTION_AFTER:
+                continue
+            T_true = np.asarray(m.T_world_jaw_true, float)
+            reported.append(pose_error(np.asarray(m.T_world_jaw, float), T_true))
+            c = corrections.get(s, {}).get(name)
+            if c is None:
+                missing += 1
+                continue
+            T = np.asarray(c.T_world_jaw, float)
+            est.append(pose_error(T, T_true))
+            r = pose_delta(T_true, T)
+            nees.append(float(r @ np.linalg.solve(np.asarray(c.covariance, float), r)))
+
+    def table(errs):
+        e = np.array(errs, float).reshape(-1, 2)
+        within = (e[:, 0] <= 1e-3) & (e[:, 1] <= np.radians(1.0))
+        return {"n": len(e), "position_mm": summary(e[:, 0] * 1e3), "orientation_deg": summary(np.degrees(e[:, 1])),
+                "within_1mm_1deg": float(within.mean()) if len(e) else None}
+    return {"from_frame": CORRECTION_AFTER, "missing": missing, "corrected": {**table(est), "nees_median":
+            float(np.median(nees)) if nees else None}, "reported": table(reported)}
+
+
 def holder_events(truths: dict, instruments: dict, seqs) -> list:
     """``(seq, kind)`` of each change of the needle's holder within a take, per the truth: kind
     ``grasp`` (none to one), ``handover`` (one to another), ``release`` (one to none)."""
@@ -147,12 +190,12 @@ def lag_frames(poses: dict, truths: dict, seqs, max_lag: int = 8) -> Optional[in
 
 
 def moving_summary(ev, truths: dict, instruments: dict, in_hand: dict, visible: dict, methods,
-                   poses: Optional[dict] = None) -> Optional[dict]:
+                   poses: Optional[dict] = None, corrections: Optional[dict] = None) -> Optional[dict]:
     """The ``moving`` section of results.json (None: no moving frame). ``ev``: the run's
     ``Evaluation``; ``instruments``: {seq: {name: InstrumentState}}; ``in_hand``: {seq:
     InHandPose}; ``visible``: {seq: share of the arc seen}; ``methods``: those to score;
     ``poses``: {method: {seq: PoseEstimate}}, for each method's lag behind the truth (``lag_ms``:
-    ``lag_frames`` at 30 Hz)."""
+    ``lag_frames`` at 30 Hz); ``corrections``: {seq: {name: ArmCorrection}} (``correction_table``)."""
     seqs = set(moving_seqs(truths))
     if not seqs:
         return None
@@ -172,6 +215,8 @@ def moving_summary(ev, truths: dict, instruments: dict, in_hand: dict, visible: 
             out["methods"][m]["lag_ms"] = lag * 1e3 / 30.0
     if instruments:
         out["in_hand"] = in_hand_table(truths, instruments, in_hand, sorted(seqs))
+    if instruments and corrections:
+        out["arm_correction"] = correction_table(truths, instruments, corrections, seqs)
     return out
 
 
@@ -211,6 +256,15 @@ def moving_markdown(moving: dict) -> list:
               f"{h['posed']} of {h['frames']} frames scored, {h['wrong_holder']} with no or another holder; "
               f"{_fmt(h['position_mm']['mean'])} mm / {_fmt(h['orientation_deg']['mean'])} deg mean, "
               f"{_fmt(h['position_mm']['median'])} mm / {_fmt(h['orientation_deg']['median'])} deg median."]
+    c = moving.get("arm_correction")
+    if c:
+        est, rep = c["corrected"], c["reported"]
+        within = "n/a" if est["within_1mm_1deg"] is None else f"{100 * est['within_1mm_1deg']:.0f}%"
+        L += ["", f"Each arm's estimated error (the corrected jaws against the true ones, from {c['from_frame']} "
+              f"frames after the arm first holds the needle): {est['n']} frames ({c['missing']} without a "
+              f"correction), {_fmt(est['position_mm']['mean'])} mm / {_fmt(est['orientation_deg']['mean'])} deg "
+              f"mean, {within} within 1 mm and 1 deg, NEES median {_fmt(est['nees_median'])}; the reports: "
+              f"{_fmt(rep['position_mm']['mean'])} mm / {_fmt(rep['orientation_deg']['mean'])} deg mean."]
     return L + [""]
 
 

@@ -328,7 +328,8 @@ def write_outputs(outdir, col: Collected, *, dataset: str, detector: str,
     outdir.mkdir(parents=True, exist_ok=True)
     ev = evaluate(col, methods)
     res = to_jsonable(build_results(col, dataset=dataset, detector=detector, ev=ev, extra=extra))
-    moving = moving_summary(ev, col.truths, col.instruments, col.in_hand, visible or {}, list(ev.pose), col.poses)
+    moving = moving_summary(ev, col.truths, col.instruments, col.in_hand, visible or {}, list(ev.pose), col.poses,
+                            col.arm_corrections)
     if moving is not None:
         res["moving"] = to_jsonable(moving)
     problems = check_results(res)

@@ -7,9 +7,17 @@ from types import SimpleNamespace
 import numpy as np
 import pytest
 
-from common.evaluation.moving import by_visible, held_runs, in_hand_table, stereo_visible
+from common.evaluation.moving import (
+    CORRECTION_AFTER,
+    by_visible,
+    correction_table,
+    held_runs,
+    in_hand_table,
+    moving_markdown,
+    stereo_visible,
+)
 from common.geometry.transforms import make_T
-from common.runtime.messages import GroundTruth, InHandPose, InstrumentState
+from common.runtime.messages import ArmCorrection, GroundTruth, InHandPose, InstrumentState
 
 
 def _truth(seq, sequence=0):
@@ -42,6 +50,27 @@ def test_the_in_hand_pose_is_scored_from_the_10th_held_frame():
     assert t["frames"] == 40 - 14 and t["wrong_holder"] == 2     # held from 5: scored from 14; 38, 39 missing
     assert t["posed"] == 24 and t["position_mm"]["max"] == pytest.approx(1.0)
     assert t["position_mm"]["mean"] == pytest.approx(8 / 24)
+
+
+def test_each_arm_s_correction_is_scored_against_its_true_jaws_from_3_s_after_it_first_holds():
+    """The arm reports its jaws 3 mm off; the correction puts them 0.5 mm off (stated 0.5 mm per
+    axis) from frame 100 on, 2 mm off before; it holds the needle from frame 10 (scored from 100)."""
+    n = 10 + CORRECTION_AFTER + 30
+    truths = {s: _truth(s) for s in range(n)}
+    T_true = make_T(np.eye(3), [0.0, 0.0, 0.095])
+    inst = {s: {"psm1": InstrumentState("psm1", s, s, make_T(np.eye(3), [0.003, 0.0, 0.095]), 0.06, s >= 10,
+                                        T_world_jaw_truth=T_true)} for s in range(n)}
+    cov = np.diag([1e-4] * 3 + [0.5e-3 ** 2] * 3)
+    corr = {s: {"psm1": ArmCorrection("psm1", s, s, np.eye(4), make_T(np.eye(3), [0.0005 if s >= 100 else 0.002,
+                                                                                0.0, 0.095]), cov)}
+            for s in range(n) if s != n - 1}
+    t = correction_table(truths, inst, corr, set(truths))
+    assert t["corrected"]["n"] == 29 and t["missing"] == 1 and t["reported"]["n"] == 30
+    assert t["corrected"]["position_mm"]["max"] == pytest.approx(0.5)
+    assert t["corrected"]["within_1mm_1deg"] == 1.0 and t["corrected"]["nees_median"] == pytest.approx(1.0)
+    assert t["reported"]["position_mm"]["mean"] == pytest.approx(3.0)
+    lines = moving_markdown({"frames": n, "seen_from": 0.3, "methods": {}, "arm_correction": t})
+    assert any("within 1 mm and 1 deg" in line for line in lines)
 
 
 def test_the_visible_share_is_the_smaller_cameras_and_bins_count_unposed_frames():
