@@ -668,7 +668,7 @@ class NeedleTracker:
                     self._start(measurement, jaws)
                     self.stamp_ns = self.last_seen_ns = stamp_ns
                     if self.mode == "rest":       # it moved: free until it settles
-                        self._set_world("free", self.T, self.P, jaws)
+                        self._set_world("free", self.T, self.P[:6, :6], jaws, cross=self._world_cross(jaws))
                     used, event = True, "restart"
             if self.trial is not None and event != "restart":
                 event = self._settle_trial(jaws) or event

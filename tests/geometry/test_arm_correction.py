@@ -148,3 +148,22 @@ def test_the_grasp_geometry_and_the_lever():
     moved = ArmCorrection(retract(arm.inner, d), arm.p, arm.last).corrected(T)
     assert np.allclose(pose_delta(moved, arm.corrected(T)), lever(arm.corrected(T)[:3, 3], arm.centre) @ d, atol=1e-10)
     assert np.allclose(inv_T(arm.K) @ arm.K, np.eye(4))
+
+
+def test_a_needle_at_rest_that_jumps_restarts_free_beside_the_arms_corrections():
+    """With arm_correction, a track at rest whose measurements jump away (rejected ``reset_after``
+    times) restarts free from the newest: the needle's states and the arms' stay apart (a run on
+    the moving test set raised here: the whole covariance taken for the needle's)."""
+    tracker = NeedleTracker(NEEDLE, TrackerConfig(arm_correction=True))
+    jaws = {"psm1": Jaw(make_T(np.eye(3), [0.03, 0.0, 0.1]), 0.8)}        # open, far from the needle
+    C = np.diag([np.radians(0.5) ** 2] * 3 + [0.2e-3 ** 2] * 3)
+    T0 = make_T(np.eye(3), [0.0, 0.0, 0.1])
+    dt = int(1e9 / FPS)
+    for k in range(5):
+        assert tracker.step(k * dt, jaws, Measurement(T0, C, 0.99)).mode == "rest"
+    T1 = make_T(rotvec_to_R([0.0, 0.3, 0.0]), [0.01, 0.0, 0.1])           # 1 cm away, turned
+    events = [tracker.step((5 + k) * dt, jaws, Measurement(T1, C, 0.99)).event for k in range(4)]
+    assert "restart" in events
+    assert tracker.mode == "free" and tracker.n == 12 and len(tracker.P) == 12 + 6
+    out = tracker.step(10 * dt, jaws, Measurement(T1, C, 0.99))
+    assert pose_error(out.T_world_needle, T1)[0] < 1e-3
