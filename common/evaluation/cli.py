@@ -200,6 +200,7 @@ def main(argv=None) -> int:
                          tracker_params=tracker_params, replay_params=replay_params, cameras=cameras)
     evaluator = {"id": "evaluator", "module": "evaluator",
                  "params": {"out": str(out.resolve()), "dataset": str(Path(dataset).resolve()),
+                            "drain_s": EVAL_DRAIN_S,
                             "detector": args.detector, "noise_px": args.noise_px,
                             "support_normal_world": args.support_normal,
                             "rrd": str(Path(args.rrd).resolve()) if args.rrd else None},
@@ -263,6 +264,13 @@ def main(argv=None) -> int:
             return 1
         print(f"wrote {args.rrd}: needletrack view {args.rrd}")
     return 0
+
+
+EVAL_DRAIN_S = 20.0
+"""How long the evaluator waits for the outputs still in flight after the source's end, without a
+message (it ends at once when every method has answered every frame). The lossless graph's
+refinement can lag the source by tens of seconds on a loaded machine and go quiet for seconds on
+one slow frame: with 3 s a run on a machine shared with the tests stopped two takes early."""
 
 
 def _withheld(ds, out: Path, res: dict, replay_params: dict) -> None:
