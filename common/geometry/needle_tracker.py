@@ -45,7 +45,9 @@ track as any other but starts none unless ``start_one_camera`` (a monocular endo
 cannot tell a planar arc from its mirror image (``refine.mirror_pose``: the same image curve):
 a track started from such a view has its mirror open (``Tracked.mirror_open``) until a stereo
 measurement updates it; its poses are then stated with the mirror (the tracker step widens the
-covariance to span it and flags them).
+covariance to span it and flags them). A one-camera measurement weighs no grasp trial: the depth it
+leaves open is where a needle carried and one left behind differ (on the arm set a window of one
+camera's views undid a true grasp, and the needle left "at rest" was 21 mm off, sure of itself).
 
 A track starts from a measurement fitted to ``start_arc_seen`` of the arc, or from a run of
 ``start_run`` partial views (each fitted to ``start_run_arc_seen``) that agree with each other:
@@ -646,8 +648,8 @@ class NeedleTracker:
             self.stamp_ns = self.last_seen_ns = stamp_ns
             used, event = True, "start"
         elif measurement is not None:
-            if self.trial is not None:
-                self._weigh_trial(measurement, jaws, stamp_ns)
+            if self.trial is not None and not measurement.one_camera:
+                self._weigh_trial(measurement, jaws, stamp_ns)   # one view cannot tell near from far
             read = self._read(measurement, jaws)
             used = read is not None
             if used:

@@ -1,6 +1,7 @@
 """The needle tracker (common/geometry/needle_tracker.py) on exact synthetic takes: the motion
 scripts of common/sim/motion.py give the needle's and the jaws' true poses frame by frame; the
 measurements are those poses with drawn noise of a stated covariance."""
+import dataclasses
 import math
 
 import numpy as np
@@ -358,3 +359,20 @@ def test_fits_that_err_together_over_frames_are_stated_honestly_with_corr_frames
             out.append(tr.step(k * DT_NS, jaws_of(fr), Measurement(T, 1.2 * C)))
         medians[corr] = float(np.median(nees(frames, out)[20:]))
     assert medians[5.0] < medians[1.0] and medians[5.0] < 9.0, medians
+
+
+def test_one_camera_s_views_weigh_no_grasp_trial():
+    """The same jaws that leave the needle behind, seen by one camera only: its views update the
+    track but never undo (or settle) the grasp: one view cannot tell near from far."""
+    T_needle = make_T(np.eye(3), [0.0, 0.0, 0.1])
+    p = T_needle[:3, 3] + NEEDLE.radius_m * np.array([0.0, 1.0, 0.0])
+    T_jaw0 = make_T(np.eye(3), p - [0.0, 0.0, 0.003])
+    rng = np.random.default_rng(11)
+    C = stated_covariance(rng)
+    tr = NeedleTracker(NEEDLE)
+    events = [tr.step(0, {"psm1": Jaw(T_jaw0, 0.06)}, measure(rng, T_needle, C)).event]
+    for k in range(1, 40):
+        lift = make_T(np.eye(3), [0.0, 0.0, 0.0004 * max(0, k - 10)])
+        m = dataclasses.replace(measure(rng, T_needle, C), one_camera=True)
+        events.append(tr.step(k * DT_NS, {"psm1": Jaw(lift @ T_jaw0, 0.06)}, m).event)
+    assert events[0] == "start" and "ungrasp" not in events and tr.trial is not None and tr.mode == "held"
