@@ -49,6 +49,12 @@ covariance to span it and flags them). A one-camera measurement weighs no grasp 
 leaves open is where a needle carried and one left behind differ (on the arm set a window of one
 camera's views undid a true grasp, and the needle left "at rest" was 21 mm off, sure of itself).
 
+A track whose measurements are rejected ``reset_after`` times in a row is disputed
+(``Tracked.disputed``) until one is taken again: its covariance grows by the newest rejected
+measurement's offset (``C + d d^T``) and it is said flagged. A settled track restarts only after
+``reset_after_held`` rejections and only from a measurement that may start one: meanwhile it must
+not state itself sure (on the arm set a track left 21 mm off sat there, NEES in the thousands).
+
 A track starts from a measurement fitted to ``start_arc_seen`` of the arc, or from a run of
 ``start_run`` partial views (each fitted to ``start_run_arc_seen``) that agree with each other:
 a short part of the arc can fit a pose tens of degrees off, but rarely the same wrong pose many
@@ -199,6 +205,7 @@ class Tracked:
     event: Optional[str] = None
     corrections: Optional[dict] = None      # arm_correction: {name: (K 4x4, 6x6)} (NeedleTracker.corrections)
     mirror_open: bool = False               # started from one camera's view, no stereo view since (module docstring)
+    disputed: bool = False                  # reset_after measurements in a row rejected: covariance spans the newest
 
 
 # ---------------------------------------------------------------- small pieces
@@ -252,6 +259,7 @@ class NeedleTracker:
         self._last_jaws: dict = {}
         self.common = np.zeros(6)                  # the shared error's variances, the newest measurement's
         self.mirror_open = False                   # the track rests on one camera's views alone
+        self.disputed: Optional[np.ndarray] = None  # the newest rejected measurement's offset (world [w, v])
         self.candidate: Optional["NeedleTracker"] = None   # a track of partial views only (_from_partial)
         self.run = 0                               # the partial views in a row it took
 
@@ -655,12 +663,13 @@ class NeedleTracker:
             if used:
                 turned, flipped, d, r, S, H = read
                 self._correct(r, S, H)
-                self.rejected, self.last_seen_ns = 0, stamp_ns
+                self.rejected, self.last_seen_ns, self.disputed = 0, stamp_ns, None
                 if not measurement.one_camera:
                     self.mirror_open = False         # a stereo view tells the arc from its mirror image
                 event = "flip" if flipped else event
             else:
                 self.rejected += 1
+                self.disputed = self._offset(measurement, jaws)
                 settled = self.mode != "free" and self.age >= self.cfg.reset_after_held
                 if self.rejected >= (self.cfg.reset_after_held if settled else self.cfg.reset_after) \
                         and measurement.starts(self.cfg):
@@ -707,12 +716,22 @@ class NeedleTracker:
         self.restore(self.candidate.snapshot())     # its own candidate and run are none
         return replace(out, event="start")
 
+    def _offset(self, m: Measurement, jaws: dict) -> np.ndarray:
+        """The measurement's offset from the track (world [w, v]), read as it is or turned end for
+        end, whichever turns less."""
+        Tw, _ = self.world(jaws)
+        return min((pose_delta(T, Tw) for T in (m.T_world_needle, turned_end_for_end(m.T_world_needle, self.needle))),
+                   key=lambda r: float(np.linalg.norm(r[:3])))
+
     def _output(self, jaws, used, turned, d, event) -> Tracked:
         Tw, Pw = self.world(jaws)
         Pw = Pw + np.diag(self.common)              # isotropic: the same in every frame's axes
+        disputed = self.disputed is not None and self.rejected >= self.cfg.reset_after
+        if disputed:                                # the images disagree with the track: say how far
+            Pw = Pw + np.outer(self.disputed, self.disputed)
         held = self.mode == "held"
         p = None if self.identity is None else sigmoid(self.identity[0])
         corrections = self.corrections(jaws) if self.cfg.arm_correction else None
         P_jaw = (self.P[:6, :6] if self.arms else self.P) + np.diag(self.common) if held else None
         return Tracked(Tw.copy(), Pw, self.mode, self.holder, self.T.copy() if held else None, P_jaw,
-                       p, used, turned, d, event, corrections, self.mirror_open)
+                       p, used, turned, d, event, corrections, self.mirror_open, disputed)

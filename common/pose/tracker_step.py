@@ -25,7 +25,9 @@ track weighs both ends itself); an ``ambiguous`` pose is read with its mirror im
 covariance is no measurement (``no_covariance``). A track whose mirror is open
 (``Tracked.mirror_open``: started from one camera's view, no stereo view since) is said flagged
 ``ambiguous``, its covariance widened to span the mirror image (``MIRROR_SHARE``; counted
-``mirror_open``). A pose fitted to one camera's view
+``mirror_open``); a disputed track (``Tracked.disputed``: its measurements rejected ``reset_after``
+times in a row, the covariance widened to the newest) is said flagged too (counted ``disputed``).
+A pose fitted to one camera's view
 (``on_pose(..., one_camera=True)``, the refine node's ``one_camera``) is a measurement that starts
 no track unless ``TrackerConfig.start_one_camera`` (``Measurement.one_camera``); with
 ``one_camera_wired``, a frame said to have no pose for that reason (``NoPoseNotice`` reason
@@ -336,6 +338,8 @@ class TrackerStep:
     def _publish(self, seq, stamp_ns, T_world_ecm, out, sequence):
         T_ecm_needle = inv_T(T_world_ecm) @ out.T_world_needle
         cov = covariance_to_frame(out.covariance, T_world_ecm[:3, :3].T)
+        if out.disputed:
+            self.count("disputed")
         if out.mirror_open:       # one view: the arc's mirror image fits as well (needle_tracker docstring)
             d = pose_delta(mirror_pose(T_ecm_needle, self.needle), T_ecm_needle)
             cov = cov + MIRROR_SHARE * np.outer(d, d)
@@ -345,7 +349,8 @@ class TrackerStep:
         self._out.append(("pose", PoseEstimate(
             seq, stamp_ns, self.method, T_ecm_needle, out.T_world_needle, T_world_ecm,
             0.0 if out.nis != out.nis else float(out.nis), "chi2", 1, symmetrise(cov),
-            ambiguous=bool(stated.unsure or out.mirror_open), sequence=sequence, end_identity=out.end_identity,
+            ambiguous=bool(stated.unsure or out.mirror_open or out.disputed), sequence=sequence,
+            end_identity=out.end_identity,
             mode=out.mode,
             identity_widened=stated.widened)))
         if out.mode == "held":

@@ -376,3 +376,20 @@ def test_one_camera_s_views_weigh_no_grasp_trial():
         m = dataclasses.replace(measure(rng, T_needle, C), one_camera=True)
         events.append(tr.step(k * DT_NS, {"psm1": Jaw(lift @ T_jaw0, 0.06)}, m).event)
     assert events[0] == "start" and "ungrasp" not in events and tr.trial is not None and tr.mode == "held"
+
+
+def test_a_track_its_measurements_disagree_with_says_so():
+    """A needle at rest, then measured 5 mm away in partial views (which may not restart the track):
+    from the reset_after-th rejection on the track is disputed, flagged with a covariance that spans
+    the measurements, until one is taken again."""
+    rng = np.random.default_rng(3)
+    C = stated_covariance(rng)
+    tr = NeedleTracker(NEEDLE)
+    T0 = make_T(np.eye(3), [0.0, 0.0, 0.1])
+    for k in range(40):
+        assert not tr.step(k * DT_NS, {}, Measurement(T0, C, 0.99)).disputed
+    T1 = make_T(np.eye(3), [0.005, 0.0, 0.1])
+    outs = [tr.step((40 + k) * DT_NS, {}, Measurement(T1, C, 0.99, arc_seen=0.4)) for k in range(5)]
+    assert [o.used for o in outs] == [False] * 5 and [o.disputed for o in outs] == [False, False, True, True, True]
+    assert pose_nees(outs[-1].T_world_needle, outs[-1].covariance, T1) < 2.0      # spans the measured pose
+    assert not tr.step(45 * DT_NS, {}, Measurement(T0, C, 0.99)).disputed          # taken again: settled
