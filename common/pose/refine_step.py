@@ -76,6 +76,11 @@ from common.runtime.messages import Keypoints, LockRejected, PoseEstimate
 TRACKED_MAX_AGE = 30
 """The tracker's pose stands for the track (``RefineStep.track_pose``) at most this many frames on."""
 
+ONE_CAMERA_DEPTH_SIGMA = 0.05
+"""A one-camera pose's depth is stated at least this share of its distance uncertain (1 sigma):
+one view's depth follows the arc's apparent size, which the detector misreads by a few per cent
+in every frame of a take alike (cold one-camera fits were 3-4 mm off at 10-25 cm, median)."""
+
 ONE_CAMERA_METHOD = "refined_one_camera"
 """The method of a pose fitted to one camera's view (module docstring), on output ``one_camera``."""
 
@@ -236,6 +241,8 @@ class RefineStep(StereoPoseStep):
                               self.config.min_centreline_w, self.config.min_score)
         seen = best_seen(shares(support))
         partial, covariance = partial_view(res.covariance, seen, g.min_arc_seen, g.partial_view_inflation)
+        if one:
+            covariance = self.one_camera_depth(covariance, res.T_ecm_needle, next(iter(obs)))
         if partial:
             self.count("partial_view")
         p = self.identity.get(left.seq)
@@ -275,6 +282,19 @@ class RefineStep(StereoPoseStep):
             return "poor_fit", (f"residual variance {res.residual_variance:.2f} > {g.max_residual_variance} "
                                 f"(the images are not the needle model's)")
         return None
+
+    def one_camera_depth(self, covariance: np.ndarray, T_ecm_needle: np.ndarray, camera: str) -> np.ndarray:
+        """A one-camera fit's covariance with its depth at least ``ONE_CAMERA_DEPTH_SIGMA`` of the
+        distance, 1 sigma along the camera's ray to the needle (ECM axes): the fit's own covariance
+        counts the pixels' noise, not the detector's error of the arc's apparent size, which its
+        depth follows and which every frame of a take shares."""
+        centre = T_ecm_needle[:3, 3]
+        ray = centre - self.rig[camera].T_ecm_cam[:3, 3]
+        dist = float(np.linalg.norm(ray))
+        ray = ray / dist
+        out = np.array(covariance, float)
+        out[3:, 3:] += (ONE_CAMERA_DEPTH_SIGMA * dist) ** 2 * np.outer(ray, ray)
+        return out
 
     def one_camera_starts(self, seq: int, stamp_ns: int) -> list[np.ndarray]:
         """Where a one-camera fit of frame ``seq`` starts (module docstring): the tracker's pose

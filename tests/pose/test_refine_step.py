@@ -11,7 +11,7 @@ from common.geometry.oracle import Oracle, random_needle_pose
 from common.geometry.refine import RefineConfig
 from common.geometry.refine_tracking import TrackingConfig
 from common.geometry.transforms import make_T, pose_error, rotvec_to_R
-from common.pose.refine_step import RefineGates, RefineStep
+from common.pose.refine_step import ONE_CAMERA_DEPTH_SIGMA, RefineGates, RefineStep
 from common.runtime.messages import Calibration, EcmPose, Keypoints, PoseEstimate
 
 RIG = StereoRig.default()
@@ -201,6 +201,8 @@ def test_a_needle_one_camera_sees_is_fitted_from_the_track_and_said_on_one_camer
     dt, dr = pose_error(pose.T_ecm_needle, T)
     assert dt < 5e-3 and np.degrees(dr) < 5.0
     assert depth_sigma_m(pose) > 3 * lateral_sigma_m(pose)    # one view leaves the depth open
+    dist = np.linalg.norm(pose.T_ecm_needle[:3, 3] - RIG["left"].T_ecm_cam[:3, 3])
+    assert depth_sigma_m(pose) >= ONE_CAMERA_DEPTH_SIGMA * dist   # the arc's apparent size misread alike
 
 
 def test_without_a_track_a_one_camera_frame_has_no_pose():
