@@ -40,6 +40,8 @@ def _parser() -> argparse.ArgumentParser:
     add_weights(p, "--model", learned_only=True)
     p.add_argument("--param", action="append", default=[], metavar="KEY=VALUE",
                    help="a detector parameter (repeatable), e.g. --param tracking=false")
+    p.add_argument("--refine-param", action="append", default=[], metavar="KEY=VALUE",
+                   help="a refinement parameter (repeatable), e.g. --refine-param one_camera=false")
     p.add_argument("--tracker-param", action="append", default=[], metavar="KEY=VALUE",
                    help="a tracker parameter on moving takes (repeatable), e.g. --tracker-param arm_correction=true")
     p.add_argument("--rate", default=None,
@@ -181,6 +183,7 @@ def main(argv=None) -> int:
     try:
         det_params.update(dict(parse_param(p) for p in args.param))
         tracker_params = dict(parse_param(p) for p in args.tracker_param) or None
+        refine_params = dict(parse_param(p) for p in args.refine_param)
     except ValueError as exc:
         print(f"needletrack eval: {exc}", file=sys.stderr)
         return 2
@@ -195,7 +198,8 @@ def main(argv=None) -> int:
     doc = pipeline_graph(dataset, detector=args.detector, detector_params=det_params, rate=rate,
                          refine=False if args.no_refine else None, lossless=True,
                          split_detector=split, refine_tracking=False,   # refined: a single-frame method
-                         refine_params={"support_normal_world": args.support_normal} if args.support_normal else None,
+                         refine_params={**refine_params, **({"support_normal_world": args.support_normal}
+                                                            if args.support_normal else {})} or None,
                          tracker=any(fr.needle_at_rest is False for fr in ds.frames),   # moving takes
                          tracker_params=tracker_params, replay_params=replay_params, cameras=cameras)
     evaluator = {"id": "evaluator", "module": "evaluator",

@@ -54,12 +54,14 @@ def test_oracle_without_noise_gives_zero_errors(small_dataset, tmp_path):
 
 
 def test_oracle_with_noise_gives_errors_of_the_expected_size(small_dataset, tmp_path):
-    res = run_eval(small_dataset, tmp_path, "--noise-px", "1.0", "--seed", "7", "--support-normal", "0,0,1")
+    res = run_eval(small_dataset, tmp_path, "--noise-px", "1.0", "--seed", "7", "--support-normal", "0,0,1",
+                   "--refine-param", "one_camera=false")
     assert check_results(res) == []
-    # the resting prior reaches the refine node and is reported
+    # the resting prior and the refine params reach the refine node; the prior is reported
     assert res["support_normal_world"] == [0.0, 0.0, 1.0]
     graph = yaml.safe_load((tmp_path / "graph.yaml").read_text())
-    assert next(n for n in graph["nodes"] if n["id"] == "refine")["params"]["support_normal_world"] == [0, 0, 1]
+    refine = next(n for n in graph["nodes"] if n["id"] == "refine")["params"]
+    assert refine["support_normal_world"] == [0, 0, 1] and refine["one_camera"] is False
     assert "resting prior" in (tmp_path / "report.md").read_text()
     with pytest.raises(SystemExit):
         eval_main(["--dataset", str(small_dataset), "--support-normal", "0,0"])
