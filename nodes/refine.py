@@ -42,7 +42,7 @@ detectors' ``lock`` input, the detector drops that camera's tracked crop and sea
 pose fed back on ``track`` (a feedback input: the tracker carries a held needle when no pose is
 refined).
 
-One camera (``one_camera``, default on): a frame whose needle one camera alone sees (the other
+One camera (``one_camera``, default off; docs/tracking.md#one-camera): a frame whose needle one camera alone sees (the other
 blocked, or its detector lost it) is fitted to that camera from the track (the tracker's pose fed
 back, or the node's last pose) and said on ``one_camera`` (method ``refined_one_camera``, flagged
 ``ambiguous``, its covariance wide along the depth one view leaves; counted ``one_camera``) for the
@@ -92,9 +92,10 @@ class _NodeParams(StereoPoseNode.Params):
     # (LockRejected, counted lock_rejected.<camera>) for its detector to search it cold
     lock_check: bool = True
     # a frame whose needle one camera alone sees is fitted to that camera from the track and said on
-    # one_camera (method refined_one_camera, its covariance wide in depth) for the tracker;
-    # one camera wired (a monocular endoscope): every frame so (common.pose.refine_step)
-    one_camera: bool = True
+    # one_camera (method refined_one_camera, its covariance wide in depth) for the tracker; off by
+    # default (on the arm set it confirmed tracks already off: docs/tracking.md#one-camera);
+    # one camera wired (a monocular endoscope): every frame so, whatever this says
+    one_camera: bool = False
 
 
 class RefineNode(StereoPoseNode):

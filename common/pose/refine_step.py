@@ -40,7 +40,7 @@ while the other camera's lie on it, ``LockCheckConfig.frames`` frames in a row, 
 ``lock`` (``LockRejected``, counted ``lock_rejected.<camera>``): its detector drops the crop and
 searches cold. The track: this step's own last pose, else the tracker's (``on_track``, fed back).
 
-One camera (``one_camera``, default on): a frame whose needle one camera alone sees (the other
+One camera (``one_camera``, default off: measured, docs/tracking.md#one-camera): a frame whose needle one camera alone sees (the other
 blocked by an instrument, or its detector lost it) is fitted to that camera alone
 (``RefineConfig.min_cameras`` 1), from the track only (the tracker's pose fed back, at most
 ``TRACKED_MAX_AGE`` frames old, and this step's last pose within ``TrackingConfig.max_gap_s``),
@@ -107,7 +107,7 @@ class RefineStep(StereoPoseStep):
     def __init__(self, config: RefineConfig = RefineConfig(), tracking: TrackingConfig = TrackingConfig(),
                  gates: RefineGates = RefineGates(), *, outlier_px: float | None = 10.0,
                  support_normal_world: np.ndarray | None = None,
-                 lock_check: LockCheckConfig | None = LockCheckConfig(), one_camera: bool = True, **kw):
+                 lock_check: LockCheckConfig | None = LockCheckConfig(), one_camera: bool = False, **kw):
         kw["min_score"] = config.min_score
         super().__init__("refined", **kw)
         self.config, self.tracking, self.gates = config, tracking, gates

@@ -163,6 +163,7 @@ def test_a_camera_that_the_other_and_the_tracker_disagree_with_is_said_a_wrong_l
 
 
 def one_camera_step(counts, **kw):
+    kw.setdefault("one_camera", True)
     step = RefineStep(tracking=TrackingConfig(enabled=False), max_wait=3,
                       count=lambda n, k=1: counts.__setitem__(n, counts.get(n, 0) + k), **kw)
     step.on_calib(CALIB)
