@@ -1,6 +1,7 @@
 #!/usr/bin/env bash
 # Adapt the shipped detector to your scene: fine-tune it on your own dataset folder(s), then score
-# the shipped and the fine-tuned weights on a test folder of the same look that training never saw.
+# the shipped and the fine-tuned weights on a test folder of the same look that training never saw
+# (a score already in OUT/eval_before or OUT/eval_after is kept).
 #   bash models/finetune.sh OUT TEST_DIR TRAIN_DIR [TRAIN_DIR ...]
 # e.g. 400 stereo frames recorded in your simulator (needletrack dataset from-bag ...) in TRAIN_DIR
 # and other sequences in TEST_DIR. Takes at most ~20 min on 2 CPU cores (models/finetune.yaml:
@@ -35,5 +36,6 @@ fi
 extra=(); [ -n "$NORMAL" ] && extra=(--support-normal "$NORMAL")
 for w in before:"$INIT" after:"$OUT/model.pt"; do
   echo "== ${w%%:*}: ${w#*:}"
+  [ -f "$OUT/eval_${w%%:*}/results.json" ] && continue   # scored by an earlier run
   needletrack eval --dataset "$TEST" --model "${w#*:}" --out "$OUT/eval_${w%%:*}" --quiet "${extra[@]}"
 done

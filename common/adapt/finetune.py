@@ -65,6 +65,8 @@ def _parser() -> argparse.ArgumentParser:
                    help=f"stereo frames of the built-in scene rendered and trained on beside the labels "
                         f"(default {REHEARSAL_FRAMES}; 0: none)")
     p.add_argument("--seed", type=int, default=0, help="the held-out split's seed")
+    p.add_argument("--threads", type=int, default=None,
+                   help="CPU threads for training (default: the config's; 1 for two fine-tunes side by side)")
     add_quiet(p)
     return p
 
@@ -107,9 +109,10 @@ def prepare_labels(label_dirs: list[str], out: Path, hold_out: float, seed: int)
     return split
 
 
-def write_config(config: str, init: str, minutes: float, out: Path, keep_keypoints: bool = False) -> Path:
+def write_config(config: str, init: str, minutes: float, out: Path, keep_keypoints: bool = False,
+                 threads: int | None = None) -> Path:
     """OUT/finetune.yaml: ``config`` with the ``init`` weights' model section, ``time_budget_min``
-    ``minutes``, no validation split (the held-out labels are scored instead) and epochs of at
+    ``minutes``, ``threads`` CPU threads (None: the config's), no validation split (the held-out labels are scored instead) and epochs of at
     most ``CHECKPOINT_STEPS`` steps (the same number of steps in all); ``keep_keypoints``: the
     init weights' keypoint heatmaps kept on the rehearsal frames too (``distill_keypoints``)."""
     import torch
@@ -123,6 +126,8 @@ def write_config(config: str, init: str, minutes: float, out: Path, keep_keypoin
     cfg["model"] = ModelConfig.from_dict(dict(blob["config"])).to_dict()
     cfg["train"]["time_budget_min"] = float(minutes)
     cfg["train"]["val_fraction"] = 0.0
+    if threads is not None:
+        cfg["train"]["threads"] = int(threads)
     t = cfg["train"]
     if keep_keypoints:
         t["distill_keypoints"] = True
@@ -147,15 +152,17 @@ def main(argv=None) -> int:
     t0 = time.monotonic()
     stamp = lambda: f"[{time.monotonic() - t0:.0f} s]"
     progress = not args.quiet
-    if args.minutes <= 0 or args.rehearse < 0:
-        err(f"--minutes must be > 0 and --rehearse >= 0, got {args.minutes:g} and {args.rehearse}")
+    if args.minutes <= 0 or args.rehearse < 0 or (args.threads is not None and args.threads < 1):
+        err(f"--minutes must be > 0, --rehearse >= 0 and --threads >= 1, got {args.minutes:g}, {args.rehearse} "
+            f"and {args.threads}")
         return 2
     try:
         for d in args.labels:
             Dataset(d)
         out.mkdir(parents=True, exist_ok=True)
         split = prepare_labels(args.labels, out, args.hold_out, args.seed)
-        config = write_config(args.config, args.init, args.minutes, out, keep_keypoints=args.rehearse > 0)
+        config = write_config(args.config, args.init, args.minutes, out, keep_keypoints=args.rehearse > 0,
+                              threads=args.threads)
     except (LabelsError, DatasetError, ModelFileError, ValueError, OSError) as exc:
         err(str(exc))
         return 2
