@@ -56,13 +56,19 @@ def by_visible(errors: dict, visible: dict) -> list:
     return rows
 
 
-def _summary(errors: dict, seqs) -> dict:
-    e = np.array([errors[s] for s in seqs], float).reshape(-1, 3)
+def error_summary(e) -> dict:
+    """Frames' errors, rows of (position m, orientation rad, NEES), NaN where the frame was not
+    posed (NEES NaN: no covariance), summarised: frames, posed, mm and deg, NEES median."""
+    e = np.asarray(e, float).reshape(-1, 3)
     posed = np.isfinite(e[:, 0])
     nees = e[posed, 2][np.isfinite(e[posed, 2])]
-    return {"n": len(seqs), "posed": int(posed.sum()), "posed_share": float(posed.mean()) if len(seqs) else None,
+    return {"n": len(e), "posed": int(posed.sum()), "posed_share": float(posed.mean()) if len(e) else None,
             "position_mm": summary(e[posed, 0] * 1e3), "orientation_deg": summary(np.degrees(e[posed, 1])),
             "nees_median": float(np.median(nees)) if len(nees) else None}
+
+
+def _summary(errors: dict, seqs) -> dict:
+    return error_summary([errors[s] for s in seqs])
 
 
 def held_runs(truths: dict, instruments: dict, seqs) -> dict:

@@ -9,13 +9,12 @@ by the share of the arc seen as the moving takes' evaluation splits them
 from __future__ import annotations
 
 import csv
+import math
 from pathlib import Path
 
-import numpy as np
 
 from common.data.withhold import withheld_frames
-from common.evaluation.metrics import summary
-from common.evaluation.moving import SEEN, stereo_visible
+from common.evaluation.moving import SEEN, error_summary, stereo_visible
 
 
 def withheld_summary(ds, per_frame: Path, share: float, seed: int = 0, methods=("tracked",)) -> dict:
@@ -43,13 +42,8 @@ def _float(text: str) -> float:
 
 
 def _summary(rows: list, method: str) -> dict:
-    e = np.array([[_float(r.get(f"{method}_mm")), _float(r.get(f"{method}_deg")), _float(r.get(f"{method}_nees"))]
-                  for r in rows], float).reshape(-1, 3)
-    posed = np.isfinite(e[:, 0])
-    nees = e[posed, 2][np.isfinite(e[posed, 2])]
-    return {"n": len(rows), "posed_share": float(posed.mean()) if len(rows) else None,
-            "position_mm": summary(e[posed, 0]), "orientation_deg": summary(e[posed, 1]),
-            "nees_median": float(np.median(nees)) if len(nees) else None}
+    return error_summary([[_float(r.get(f"{method}_mm")) / 1e3, math.radians(_float(r.get(f"{method}_deg"))),
+                           _float(r.get(f"{method}_nees"))] for r in rows])
 
 
 def withheld_markdown(table: dict) -> list[str]:
