@@ -47,6 +47,7 @@ BENCHES = {
     "refine": ("common.bench.refine_bench:main", "dense pose refinement speed and accuracy (synthetic)"),
     "end-identity": ("common.bench.end_identity_bench:main", "tip vs tail: the detector's end identity on dataset folders"),
     "familiarity": ("common.bench.familiarity_bench:main", "how unlike the training looks each folder's images are (--fit: the reference)"),
+    "presence": ("common.bench.presence_bench:main", "needles reported where there is none or in the wrong place (--fit: the presence gate)"),
     "fuzz": ("common.robustness.fuzz:main", "poison payloads into every input of every node (in process)"),
     "viewer-http": ("common.robustness.http_fuzz:main", "the viewer page's server against floods, bursts, resets, idle clients"),
     "soak": ("common.robustness.soak:main", "the default graph from a replay for a long run: accounting, RSS, restarts"),

@@ -36,7 +36,7 @@ def _parser() -> argparse.ArgumentParser:
     p.add_argument("--out", required=True, help="output folder (made if missing; detections.jsonl is replaced)")
     p.add_argument("--backend", default="learned", help="detector backend: learned (default) or classical")
     add_weights(p)
-    p.add_argument("--threshold", type=float, help="presence threshold (the backend's default: 0.5)")
+    p.add_argument("--threshold", type=float, help="presence threshold (default: the weights' fitted gate, presence_gate.json beside them, else 0.5)")
     p.add_argument("--param", action="append", default=[], metavar="KEY=VALUE",
                    help="another backend param (YAML value), e.g. threads=4; `needletrack describe detector`")
     p.add_argument("--every", type=int, default=1, metavar="N", help="every N-th frame of a video or folder")

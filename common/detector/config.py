@@ -30,7 +30,9 @@ out): found 68 -> 96 of 100; of the `wide` set: 92 -> 97."""
 @dataclass(frozen=True)
 class DetectorConfig:
     """The learned detector's settings (``KeypointDetector``); pixels of the full image."""
-    threshold: float = 0.5                        # stage 2's presence: below it, no needle
+    # stage 2's presence: below it, no needle; null: the weights' fitted gate
+    # (presence_gate.json beside them: common.detector.presence_gate), else 0.5
+    threshold: float | None = None
     tracking: bool = True                         # the next frame searched in the last one's crop
     refine: bool = True
     centreline: bool = True

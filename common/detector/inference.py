@@ -67,6 +67,7 @@ from common.detector.familiarity import FamiliarityFileError, familiarity_path, 
 from common.detector.data import global_input, turn_hue
 from common.detector.ridge_ends import ends_on_ridge
 from common.detector.weights import DEFAULT_WEIGHTS, load_end_coefficients, load_model, pick_device
+from common.detector.presence_gate import DEFAULT_THRESHOLD, load_presence_gate
 from common.runtime.messages import CameraImage, Keypoints, MessageError
 
 MIN_ELLIPSE_SHARE = 0.5      # of the centreline points on that ellipse (a jaw may bend the rest)
@@ -155,7 +156,9 @@ class KeypointDetector:
         self._glob = FrozenForInference(self.model.glob)
         self._crop = FrozenForInference(CropWithFeatures(self.model.crop))
         self.cfg = self.model.cfg
-        self.threshold = float(c.threshold)
+        self.presence_gate = load_presence_gate(self.weights) if c.threshold is None else None
+        self.threshold = float(c.threshold if c.threshold is not None else
+                               self.presence_gate.threshold if self.presence_gate else DEFAULT_THRESHOLD)
         self.tracking = bool(c.tracking)
         self.refine = bool(c.refine)
         self.centreline = bool(c.centreline)

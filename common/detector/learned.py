@@ -14,7 +14,8 @@ from common.runtime.params import config_from
 
 class LearnedBackend(KeypointBackend):
     """Backend ``learned`` of the detector node. Params: ``weights`` (default
-    models/keypoint/model.pt), ``device`` (auto | cpu | cuda), ``threshold`` (0.5), ``tracking``
+    models/keypoint/model.pt), ``device`` (auto | cpu | cuda), ``threshold`` (null: the weights' fitted
+    presence gate, ``presence_gate.json`` beside them, else 0.5), ``tracking``
     (true), ``threads`` (torch threads, default 1: in a graph the other nodes share the cores, and
     torch's threads then wait on each other; run one detector per camera for parallelism),
     ``refine`` (true), ``centreline`` (true), ``subpixel`` (true: the centreline refined in the
