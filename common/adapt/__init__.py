@@ -19,6 +19,8 @@ Modules (``python -m common.layout`` writes this list from their docstrings):
   (``needletrack finetune``'s report, docs/adapt.md): the weights run cold on each held-out image
   through the detector backend's public API (``learned``, whatever network the weights hold), scored
   against the labels:
+- ``learning_curve``: The hand-label learning curve: what 10, 30 and 100 labelled stereo frames buy
+  on a look.
 - ``pseudo_labels``: Pseudo-labels without ground truth: the world pose of a static needle that the
   pipeline's views agree on, projected back into every image of the group as its training labels.
 """

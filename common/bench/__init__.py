@@ -20,6 +20,9 @@ Modules (``python -m common.layout`` writes this list from their docstrings):
   the needle is seen.
 - ``label_bench``: ``needletrack bench label --dataset DIR``: how good hand labels are, by simulated
   clicks on a folder with ground truth.
+- ``presence_bench``: ``needletrack bench presence``: where the detector reports a needle that is
+  not there, and (``--fit FILE``) the presence gate that keeps those reports under a share
+  (``common.detector.presence_gate``).
 - ``refine_bench``: ``needletrack bench refine``: speed and accuracy of the dense refinement on
   synthetic frames.
 - ``restart_bench``: ``needletrack bench restart``: how long the graph is without poses after ``kill

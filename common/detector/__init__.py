@@ -35,6 +35,9 @@ Modules (``python -m common.layout`` writes this list from their docstrings):
   distortion.
 - ``model``: The learned needle detector's two networks, their losses, and decoding to sub-pixel
   keypoints.
+- ``presence_gate``: The presence gate fitted for a weights file: the stage-2 presence a needle must
+  reach to be reported, chosen on looks the weights never trained on (``presence_gate.json`` beside
+  them; ``needletrack bench presence --fit``).
 - ``ridge_ends``: The needle's two ends from the centreline heatmap, when the tip and tail heatmaps
   lose one.
 - ``synthetic``: A small needle dataset drawn with OpenCV, in the format of docs/dataset.md: an arc
