@@ -68,6 +68,7 @@ def main(argv=None) -> int:
                     help=f"--fit: the share of needle-free images, and of images read in the wrong place, "
                          f"the gate allows (default {MAX_FALSE})")
     ap.add_argument("--json", help="write the figures here")
+    ap.add_argument("--plot", metavar="PNG", help="draw the trade-off (right reads against false ones by threshold)")
     ap.add_argument("--quiet", action="store_true", help="no progress bars")
     args = ap.parse_args(argv)
     if not args.data and not args.negatives:
@@ -91,6 +92,7 @@ def main(argv=None) -> int:
     else:
         gate = load_presence_gate(weights)
     t_gate = None if gate is None else gate.threshold
+    thresholds = TRADE_OFF if t_gate is None else TRADE_OFF + (t_gate,)
     rows = []
     print(f"{'set':<28} {'images':>6} {'kind':>10} {'at 0.5':>8} {'at gate':>8}")
     for d, r in res.items():
@@ -107,10 +109,58 @@ def main(argv=None) -> int:
     for row in rows:
         print(f"{Path(row['set']).name:<28} {row['images']:>6} {row['kind']:>10} {pct(row['at_default']):>8} "
               f"{pct(row['at_gate']):>8}")
+    curve = trade_off(res, neg, thresholds)
+    print(f"all folders: {'threshold':>9} {'needle-free reported':>21} {'wrong place':>12} {'right place':>12}")
+    for c in curve:
+        print(f"{'':12} {c['threshold']:>9.4f} {pct(c['false']):>21} {pct(c['wrong']):>12} {pct(c['right']):>12}")
+    if args.plot:
+        plot_trade_off(curve, t_gate, args.plot, Path(weights).parent.name)
     if args.json:
         Path(args.json).write_text(json.dumps({"weights": weights, "gate": None if gate is None else gate.to_dict(),
-                                               "rows": rows}, indent=1) + "\n")
+                                               "rows": rows, "trade_off": curve}, indent=1) + "\n")
     return 0
+
+
+TRADE_OFF = (0.5, 0.7, 0.8, 0.9, 0.95, 0.98, 0.99, 0.995, 0.999)
+"""The thresholds of the printed trade-off (the gate's own is added)."""
+
+
+def trade_off(res: dict, neg: dict, thresholds=TRADE_OFF) -> list[dict]:
+    """Over all folders, per threshold: the shares of needle-free images reporting a needle
+    (``false``; None without needle-free folders) and of images with a needle read in the wrong
+    and in the right place."""
+    free = np.concatenate([r["presence"] for r in neg.values()] or [np.zeros(0)])
+    parts = [_split(r) for r in res.values()]
+    right = np.concatenate([p[0] for p in parts] or [np.zeros(0)])
+    wrong = np.concatenate([p[1] for p in parts] or [np.zeros(0)])
+    n = sum(len(r["presence"]) for r in res.values())
+    share = lambda a, t, total: None if total == 0 else float((a >= t).sum() / total)
+    return [{"threshold": float(t), "false": share(free, t, len(free)), "wrong": share(wrong, t, n),
+             "right": share(right, t, n)} for t in sorted(set(thresholds))]
+
+
+def plot_trade_off(curve: list[dict], gate, path, title: str) -> None:
+    """Right-place reads against needle-free and wrong-place reports, by threshold (a point each)."""
+    import matplotlib
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    fig, ax = plt.subplots(figsize=(6, 4.5))
+    t = [c["threshold"] for c in curve]
+    for key, label in (("false", "needle-free images reporting a needle"), ("wrong", "images with a needle read in the wrong place")):
+        pts = [(c[key], c["right"]) for c in curve if c[key] is not None and c["right"] is not None]
+        if pts:
+            x, y = zip(*pts)
+            ax.plot(np.array(x) * 100, np.array(y) * 100, "o-", label=label)
+            for xi, yi, ti in zip(x, y, t):
+                ax.annotate(f"{ti:g}", (xi * 100, yi * 100), fontsize=7, xytext=(3, 3), textcoords="offset points")
+    ax.set_xlabel("false statements (% of images)")
+    ax.set_ylabel("images with a needle read in the right place (%)")
+    ax.set_title(f"presence threshold trade-off: {title}" + ("" if gate is None else f" (gate {gate:.4f})"), fontsize=9)
+    ax.grid(True, alpha=0.3)
+    ax.legend(fontsize=8)
+    fig.tight_layout()
+    fig.savefig(path, dpi=90)
+    plt.close(fig)
 
 
 if __name__ == "__main__":

@@ -67,7 +67,8 @@ def test_bench_presence_fits_a_gate_on_folders(tmp_path, capsys):
                          "--height", "480", "--seed", "4", "--quiet"]) == 0
     gate_file, js = tmp_path / "presence_gate.json", tmp_path / "figures.json"
     assert main(["--data", str(pos), "--negatives", str(neg), "--fit", str(gate_file), "--json", str(js),
-                 "--max-false", "0", "--quiet"]) == 0
+                 "--max-false", "0", "--plot", str(tmp_path / "t.png"), "--quiet"]) == 0
+    assert (tmp_path / "t.png").read_bytes()[:4] == b"\x89PNG"
     g = json.loads(gate_file.read_text())
     assert g["false_share"] == 0 and g["wrong_share"] == 0 and g["fitted_on"] == ["pos", "neg"]
     assert g["needle_free_images"] == 4 and g["images_with_needle"] == 4
@@ -75,5 +76,8 @@ def test_bench_presence_fits_a_gate_on_folders(tmp_path, capsys):
     assert {r["kind"] for r in rows} == {"right", "wrong", "false"}
     assert all(r["at_gate"] <= r["at_default"] for r in rows)
     assert "threshold" in capsys.readouterr().out
+    curve = json.loads(js.read_text())["trade_off"]
+    assert [c["threshold"] for c in curve] == sorted(c["threshold"] for c in curve)
+    assert all(a["right"] >= b["right"] and a["false"] >= b["false"] for a, b in zip(curve, curve[1:]))
     with pytest.raises(SystemExit):
         main(["--data", str(pos), "--fit", str(gate_file)])
