@@ -151,11 +151,11 @@ def plot_trade_off(curve: list[dict], gate, path, title: str) -> None:
         if pts:
             x, y = zip(*pts)
             ax.plot(np.array(x) * 100, np.array(y) * 100, "o-", label=label)
-            for xi, yi, ti in zip(x, y, t):
-                ax.annotate(f"{ti:g}", (xi * 100, yi * 100), fontsize=7, xytext=(3, 3), textcoords="offset points")
+            for xi, yi, ti in zip(x, y, t) if key == "false" else ():
+                ax.annotate(f"{ti:.4g}", (xi * 100, yi * 100), fontsize=7, xytext=(3, 3), textcoords="offset points")
     ax.set_xlabel("false statements (% of images)")
     ax.set_ylabel("images with a needle read in the right place (%)")
-    ax.set_title(f"presence threshold trade-off: {title}" + ("" if gate is None else f" (gate {gate:.4f})"), fontsize=9)
+    ax.set_title(f"presence threshold (labels) trade-off: {title}" + ("" if gate is None else f" (gate {gate:.4f})"), fontsize=9)
     ax.grid(True, alpha=0.3)
     ax.legend(fontsize=8)
     fig.tight_layout()
