@@ -11,8 +11,9 @@
 # Stage R2 (OUT/stage_r2/model.pt): fresh renders of the `random` looks (new seeds), 800 more
 #   needle-free frames, trained from stage R1's weights (models/real_r2.yaml: presence weighed
 #   twice, more crops centred on jaws).
-# Stage fit (OUT/familiarity.json, OUT/end_identity.json beside OUT/model.pt): the statements' fits on
-#   folders no stage trains on; the held-out families (`unseen`, `silicone`, the second renderer's
+# Stage fit (OUT/familiarity.json, OUT/end_identity.json, OUT/presence_gate.json beside OUT/model.pt):
+#   the statements' fits on folders no stage trains on (the presence gate on `liver` and `wide` and
+#   their needle-free frames); the held-out families (`unseen`, `silicone`, the second renderer's
 #   threadless needles) are never rendered here.
 # Prints the wall-clock of each step.
 set -euo pipefail
@@ -80,6 +81,8 @@ if [ "$STAGE" = all ] || [ "$STAGE" = fit ]; then
   gen --out "$C/wide_none" --sequences 40 --steps 2 --seed 8202 --randomise wide --msaa 4 --thread none
   gen --out "$C/640" --sequences 40 --steps 2 --seed 9642 --randomise wide --msaa 4 --width 640 --height 480
   gen --out "$C/random" --sequences 40 --steps 2 --seed 9643 --randomise random --msaa 4
+  needletrack dataset generate-negatives --out "$C/liver_neg" --frames 100 --seed 8311 --randomise liver --quiet
+  needletrack dataset generate-negatives --out "$C/wide_neg" --frames 100 --seed 8211 --randomise wide --quiet
   stamp "fit data done"
   needletrack bench familiarity --weights "$OUT/model.pt" --data "$C/std" --data "$C/test" --data "$C/wide" \
       --data "$C/wide_none" --data "$C/640" --data "$C/random" --fit "$OUT/familiarity.json"
@@ -87,5 +90,7 @@ if [ "$STAGE" = all ] || [ "$STAGE" = fit ]; then
       --data "$C/wide_none" --data "$C/640" --data "$C/random" --data "$C/liver" --data "$C/liver_none" \
       --hue-data "$C/liver" --hue-data "$C/liver_none" --grey-data "$C/liver" --grey-data "$C/liver_none" \
       --fit "$OUT/end_identity.json"
-  stamp "statements fitted: $OUT/familiarity.json, $OUT/end_identity.json"
+  needletrack bench presence --weights "$OUT/model.pt" --data "$C/liver" --data "$C/wide" --negatives "$C/liver_neg" \
+      --negatives "$C/wide_neg" --fit "$OUT/presence_gate.json" --quiet
+  stamp "statements fitted: $OUT/familiarity.json, $OUT/end_identity.json, $OUT/presence_gate.json"
 fi

@@ -82,7 +82,8 @@ def test_the_from_scratch_script_fits_familiarity_on_training_looks_and_the_end_
 
 def test_the_pretrained_recipe_keeps_the_held_out_families_out_of_training_and_of_every_fit():
     """models/train_real.sh: no render of the held-out families (`unseen`, `silicone`, the second
-    renderer's threadless needles) anywhere; the statements' fits on folders no stage trains on;
+    renderer's threadless needles) anywhere; the statements' fits (familiarity, end identity, the
+    presence gate) on folders no stage trains on;
     the trainer starts from models/real.yaml's pretrained trunk, with visibility."""
     import yaml
     found = calls(ROOT / "models/train_real.sh")
@@ -91,8 +92,9 @@ def test_the_pretrained_recipe_keeps_the_held_out_families_out_of_training_and_o
     assert not any(a[:2] == ["dataset", "generate-alt"] for a in found)
     trained = {a[i + 1] for a in found if a[0] == "train" for i, x in enumerate(a) if x == "--data"}
     fits = [a for a in found if a[0] == "bench" and "--fit" in a]
-    assert len(fits) == 2
-    fit_dirs = {a[i + 1] for a in fits for i, x in enumerate(a) if x in ("--data", "--hue-data", "--grey-data")}
+    assert sorted(a[1] for a in fits) == ["end-identity", "familiarity", "presence"]
+    fit_dirs = {a[i + 1] for a in fits for i, x in enumerate(a)
+                if x in ("--data", "--hue-data", "--grey-data", "--negatives")}
     assert trained and fit_dirs and not fit_dirs & trained
     model = yaml.safe_load((ROOT / "models/real.yaml").read_text())["model"]
     assert model["backbone"] == "efficientnet_lite0" and model["visibility"] is True
