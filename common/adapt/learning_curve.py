@@ -107,8 +107,9 @@ def plot(works: list[str | Path], path: str | Path) -> None:
     import matplotlib
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
+    import matplotlib.ticker
     panels = (("keypoints_px", "keypoints, mean (px)", TARGETS["keypoints_px"], 1.0, True),
-              ("refined_mm", "`refined` position, mean (mm)", None, 1.0, True),
+              ("refined_mm", "refined position, mean (mm)", None, 1.0, False),
               ("found", "found (%)", TARGETS["found"], 100.0, False),
               ("sure_and_right", "sure and right (%)", TARGETS["sure_and_right"], 100.0, False))
     fig, axes = plt.subplots(2, 2, figsize=(10, 7))
@@ -129,6 +130,8 @@ def plot(works: list[str | Path], path: str | Path) -> None:
         ax.set_xticklabels(["10", "30", "100"])
         if log_y:
             ax.set_yscale("log")
+            ax.yaxis.set_major_formatter(matplotlib.ticker.FormatStrFormatter("%g"))
+            ax.yaxis.set_minor_formatter(matplotlib.ticker.FormatStrFormatter("%g"))
         ax.set_xlabel("labelled stereo frames")
         ax.set_ylabel(label)
         ax.grid(True, alpha=0.3)
