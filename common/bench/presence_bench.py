@@ -45,9 +45,9 @@ def presences(folder: str, detector, needle: bool, step: int = 1, progress: bool
 def _split(r: dict) -> tuple[np.ndarray, np.ndarray]:
     """(presences read in the right place, in the wrong place) of a folder with a needle."""
     from common.detector.presence_gate import WRONG_PX
-    found = r["presence"] > 0
-    wrong = found & (r["misplaced_px"] > WRONG_PX)
-    return r["presence"][found & ~wrong], r["presence"][wrong]
+    found = r["presence"] > 0          # a detection without truth to score (NaN) is neither
+    return (r["presence"][found & (r["misplaced_px"] <= WRONG_PX)],
+            r["presence"][found & (r["misplaced_px"] > WRONG_PX)])
 
 
 def main(argv=None) -> int:
