@@ -6,7 +6,11 @@ folder has ``ecm_joints``), ``measured`` (``EcmPose`` of a frame with ``T_world_
 joints, e.g. a converted bag: wire it to the ``ecm`` node's ``measured`` input), ``truth`` (when it has any ground truth),
 ``instruments`` (``InstrumentState`` per instrument of a frame that lists ``instruments``), ``calib`` (before the first
 frame, then once a second), and ``eos`` (``EndOfStream``) after the last frame when not looping.
-``stamp_ns`` is the wall-clock time of publishing (the recorded stamps set the pace).
+``stamp_ns`` is the wall-clock time of publishing (the recorded stamps set the pace), or with
+``stamps: recorded`` the frame's recorded time, shifted so that the first frame is stamped when it
+is published: the takes' own timing whatever the pace, so that what keeps time from the stamps
+(the tracker's motion models) sees 1/30 s between frames of a 30 Hz take replayed at 10 Hz
+(``needletrack eval``); each loop goes on from the last, one frame interval later.
 
 params: ``path`` (the folder, required), ``rate`` (``recorded``: the folder's own timing;
 ``max``: as fast as possible; ``paced``: as fast as the graph takes frames, closed loop: at
@@ -75,6 +79,7 @@ class ReplayNode(CameraSourceNode):
         withhold: Literal["left", "right"] | None = None   # this camera's images sent black ...
         withhold_share: float = 0.3                        # ... for this share of each take
         withhold_seed: int = 0
+        stamps: Literal["wall", "recorded"] = "wall"       # the time of publishing, or the recorded one
 
     def setup(self):
         from common.data.dataset import Dataset, DatasetError
@@ -107,6 +112,9 @@ class ReplayNode(CameraSourceNode):
         self.published_frames = 0
         self.last_calib = None
         self.clock = SourceClock(self.rate)
+        self.stamp_origin = None           # stamps: recorded: wall-clock time of the first frame less its stamp
+        recorded = [fr.stamp_ns for fr in self.frames]
+        self.loop_ns = (recorded[-1] - recorded[0]) + (int(np.median(np.diff(recorded))) if len(recorded) > 1 else 0)
         self.acks = AckWindow([name for name in ACKS if self.wired(name)], p.in_flight, p.ack_timeout)
         if self.rate == PACED and not self.acks.acked:
             raise NodeError("replay: rate 'paced' needs an 'ack' input wired (e.g. a detector's keypoints)")
@@ -178,6 +186,15 @@ class ReplayNode(CameraSourceNode):
             self.clock.restart()          # the recorded timing starts again with each pass
         sleep_in_slices(self.clock.delay(fr.stamp_ns), lambda: self.running, self._publish_calib)
 
+    def _frame_stamp(self, fr) -> int:
+        """The frame's ``stamp_ns`` (``stamps``: module docstring)."""
+        now = time.time_ns()
+        if self.p.stamps == "wall":
+            return now
+        if self.stamp_origin is None:
+            self.stamp_origin = now - fr.stamp_ns
+        return int(fr.stamp_ns + self.stamp_origin + self.loops * self.loop_ns)
+
     def step(self):
         if self.pos >= len(self.frames):
             if not self.loop:
@@ -194,7 +211,7 @@ class ReplayNode(CameraSourceNode):
         fr = self.frames[self.pos]
         self._pace(fr)
         seq = self._seq(self.pos, self.loops)
-        stamp = time.time_ns()
+        stamp = self._frame_stamp(fr)
         ready, self.next_images = self.next_images, None
         msgs = ready[1] if ready is not None and ready[0] == seq else self._images(self.pos, seq, stamp)
         if msgs is None:     # counted and logged

@@ -16,6 +16,13 @@ arm with that error reports them (``T_jaw_needle`` scored in the true jaw frame)
 ``--arm-correction`` the tracker estimates each arm's error (``TrackerConfig.arm_correction``),
 and the corrected jaws are scored against the true ones where the needle is held, from 3 s after
 it is first held (``correction``).
+
+    needletrack bench tracker --replay RECORDING --dataset DIR [--tracker-param KEY=VALUE ...]
+
+The tracker replayed on a run's refined poses (``needletrack eval --record RECORDING``, on the
+same folder; ``common.evaluation.tracker_replay``): the moving takes' table of ``needletrack
+eval`` for ``tracked`` in seconds, with the tracker's params as given (default: the node's). For changing the tracker; the
+documented figures come from ``needletrack eval``.
 """
 from __future__ import annotations
 
@@ -91,6 +98,35 @@ def summarise(rows: list) -> dict:
     return out
 
 
+def _replay(args) -> int:
+    """``--replay``: the tracker on a recording (module docstring)."""
+    from common.adapt.adapt_run import RecordingError
+    from common.data.dataset import DatasetError
+    from common.evaluation.moving import moving_markdown
+    from common.evaluation.tracker_replay import replay_summary, replay_tracker
+    from common.runtime.graph import parse_param
+    from common.runtime.params import parse_params
+    if not (args.replay and args.dataset):
+        print("needletrack bench tracker: --replay and --dataset go together", file=sys.stderr)
+        return 2
+    try:
+        raw = dict(parse_param(p) for p in args.tracker_param)
+        config = parse_params(TrackerConfig, raw, "--tracker-param")
+        col = replay_tracker(args.dataset, args.replay, config)
+    except (ValueError, RecordingError, DatasetError, OSError) as exc:
+        print(f"needletrack bench tracker: {exc}", file=sys.stderr)
+        return 2
+    summary = replay_summary(args.dataset, col)
+    if summary is None:
+        print(f"needletrack bench tracker: {args.dataset} has no moving take", file=sys.stderr)
+        return 2
+    print("\n".join(moving_markdown(summary)))
+    if args.json:
+        with open(args.json, "w") as f:
+            json.dump(summary, f, indent=2, default=float)
+    return 0
+
+
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(prog="needletrack bench tracker", description=__doc__,
                                  formatter_class=argparse.RawDescriptionHelpFormatter)
@@ -102,7 +138,14 @@ def main(argv=None) -> int:
                     "(common.sim.arm_error: exact, dvrk, dvrk:field=value,...)")
     ap.add_argument("--arm-correction", action="store_true", help="the tracker estimates each arm's error")
     ap.add_argument("--json", help="also write the figures here")
+    ap.add_argument("--replay", metavar="RECORDING", help="a recording of a run's refined poses "
+                    "(needletrack eval --record): the tracker replayed on them (needs --dataset)")
+    ap.add_argument("--dataset", metavar="DIR", help="with --replay: the folder the run was on")
+    ap.add_argument("--tracker-param", action="append", default=[], metavar="KEY=VALUE",
+                    help="with --replay: a tracker param (repeatable), e.g. arm_correction=true")
     args = ap.parse_args(argv)
+    if args.replay or args.dataset or args.tracker_param:
+        return _replay(args)
     if args.takes < 1 or min(args.pos_mm) <= 0 or min(args.rot_deg) <= 0:
         print("needletrack bench tracker: --takes must be >= 1 and the sigmas positive", file=sys.stderr)
         return 2

@@ -37,6 +37,8 @@ Modules (``python -m common.layout`` writes this list from their docstrings):
   (docs/tracking.md#evaluation).
 - ``timing``: Timing of a run: latency and throughput of the final method, per-node times, and the
   CPU time of processes (Linux ``/proc``).
+- ``tracker_replay``: The tracker replayed offline on a run's refined poses: tracker work without
+  the detectors.
 - ``withheld``: The frames whose one camera was withheld (``needletrack eval --withhold``): the
   tracked pose there, against the frames both cameras saw (docs/tracking.md#one-camera).
 """

@@ -67,6 +67,10 @@ def _parser() -> argparse.ArgumentParser:
                    help="also write the frames (Fig. 1 pictures), every method's pose and the errors "
                         "as a Rerun recording, to scrub frame by frame: `needletrack view FILE` "
                         "(needs the viewer extra)")
+    p.add_argument("--record", metavar="FILE",
+                   help="also write each refined pose and each camera's keypoints as JSON lines (the "
+                        "`recorder` node's file, as `needletrack adapt` reads it): the tracker replayed "
+                        "on them offline (`needletrack bench tracker --replay`) needs no detector run")
     add_quiet(p)
     return p
 
@@ -220,6 +224,13 @@ def main(argv=None) -> int:
                                if any(n["id"] == "tracker" for n in doc["nodes"]) else {})},
                  "restart": "never"}
     doc["nodes"].append(evaluator)
+    if args.record:
+        doc["nodes"].append({"id": "recorder", "module": "recorder", "params": {"out": str(Path(args.record).resolve())},
+                             "inputs": {"eos": "replay/eos", **({"pose": "refine/pose"} if len(cameras) == 2 and any(
+                                 n["id"] == "refine" for n in doc["nodes"]) else {}),
+                                        **{c: src for c, src in keypoint_sources(split or len(cameras) == 1).items()
+                                           if c in cameras}},
+                             "restart": "never"})
     log_path = out / "graph.log"
     try:
         (out / "graph.yaml").write_text(yaml.safe_dump(doc, sort_keys=False))
@@ -237,7 +248,8 @@ def main(argv=None) -> int:
         try:
             with GraphRun(doc, log) as run:
                 run.start()
-                wait_with_progress(run, n, timeout, show=not args.quiet)
+                wait_with_progress(run, n, timeout, show=not args.quiet,
+                                   until=("evaluator", "recorder") if args.record else ("evaluator",))
         except GraphRunError as exc:
             log.flush()
             print(f"needletrack eval: the graph failed: {exc}", file=sys.stderr)

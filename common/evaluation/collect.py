@@ -50,6 +50,8 @@ class Collected:
     """Everything the evaluator gathered from the graph, keyed by frame ``seq``.
 
     ``arrivals_ns[method][seq]``: wall-clock time (ns) the pose reached the evaluator;
+    ``truth_arrivals_ns[seq]``: the frame's truth's (the source sends it with the images: when the
+    frame was published, whatever its stamp says);
     ``node_ms[node]``: each node's median handler time (ms) from its stats (over every message
     it handled); ``node_cpu_ms[node]``: its CPU time per frame (ms) over the run.
     """
@@ -59,6 +61,7 @@ class Collected:
     points3d: dict = field(default_factory=dict)         # seq -> Points3D
     poses: dict = field(default_factory=dict)            # method -> seq -> PoseEstimate
     arrivals_ns: dict = field(default_factory=dict)      # method -> seq -> ns
+    truth_arrivals_ns: dict = field(default_factory=dict)  # seq -> ns
     calib: Optional[Calibration] = None
     eos_frames: Optional[int] = None
     node_ms: dict = field(default_factory=dict)
@@ -78,6 +81,7 @@ class Collected:
 
     def add_truth(self, msg: GroundTruth, now_ns: int):
         self.truths[msg.seq] = msg
+        self.truth_arrivals_ns[msg.seq] = now_ns
         self._touch(now_ns)
 
     def add_keypoints(self, msg: Keypoints, now_ns: int):

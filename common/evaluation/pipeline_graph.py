@@ -128,8 +128,10 @@ def pipeline_graph(dataset: str, *, detector: str = "learned", detector_params: 
     ``lossless``: every pipeline node runs through ``lossless_command``: each of its inputs
     queues every message instead of keeping the newest (an evaluation scores every frame,
     whatever the machine's load; the tracker then waits for every frame's refined answer, not
-    for the source's end of stream, which comes tens of seconds earlier on a loaded machine), and the source waits ``start_delay_s`` after joining the
-    graph before its first frame, so that its links to every consumer are up. ``decode``: the
+    for the source's end of stream, which comes tens of seconds earlier on a loaded machine), the source waits ``start_delay_s`` after joining the
+    graph before its first frame, so that its links to every consumer are up, and stamps the
+    frames with their recorded timing (the replay's ``stamps: recorded``): the tracker's motion
+    models see the takes' own time, not the replay's pace. ``decode``: the
     replay decodes the images once at start-up and sends them raw, as a live camera would.
     ``refine_tracking``: the refinement starts a frame from the last one's pose when it can
     (``common.geometry.refine_tracking``; false: every frame on its own, a single-frame method);
@@ -189,7 +191,8 @@ def pipeline_graph(dataset: str, *, detector: str = "learned", detector_params: 
 
     nodes = [{"id": SOURCE, "module": "replay",
               "params": {"path": str(Path(dataset).resolve()), "rate": rate, "loop": bool(loop),
-                         "count": int(count), "decode": bool(decode), **(replay_params or {})},
+                         "count": int(count), "decode": bool(decode),
+                         **({"stamps": "recorded"} if lossless else {}), **(replay_params or {})},
               "outputs": list(module_info("replay")["outputs"])}]
     if paced:
         nodes[0]["inputs"] = {"ack": kp["left"], "ack2": kp["right"]}

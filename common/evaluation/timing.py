@@ -38,8 +38,9 @@ def cpu_steal_seconds() -> Optional[float]:
 def timing_summary(col: Collected, final_method: Optional[str] = None) -> dict:
     """``{"throughput_hz", "latency_ms": {"p50", "p99"}, "per_node_ms": {node: p50}}``.
 
-    Latency: wall-clock arrival of the ``final_method`` pose at the evaluator minus the frame's
-    ``stamp_ns`` (the time the source published the frame). Throughput: poses of the final
+    Latency: wall-clock arrival of the ``final_method`` pose at the evaluator minus the time the
+    source published the frame: its truth's arrival where it came (an evaluation's replay stamps
+    frames with their recorded timing), else its ``stamp_ns``. Throughput: poses of the final
     method per second, from the first published frame to the last pose.
     """
     if final_method is None:
@@ -47,8 +48,9 @@ def timing_summary(col: Collected, final_method: Optional[str] = None) -> dict:
     lat, thr = [], None
     if final_method is not None:
         poses, arr = col.poses[final_method], col.arrivals_ns[final_method]
-        lat = [(arr[s] - p.stamp_ns) / 1e6 for s, p in poses.items()]
-        first = min(p.stamp_ns for p in poses.values())
+        sent = {s: col.truth_arrivals_ns.get(s, p.stamp_ns) for s, p in poses.items()}
+        lat = [(arr[s] - sent[s]) / 1e6 for s in poses]
+        first = min(sent.values())
         span = (max(arr.values()) - first) / 1e9
         thr = len(poses) / span if span > 0 else None
     return {"throughput_hz": thr,

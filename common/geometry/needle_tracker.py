@@ -69,7 +69,7 @@ from typing import Optional
 
 import numpy as np
 
-from common.constraints import NonNegativeNumber, Probability, check_fields, number_at_least
+from common.constraints import NonNegativeNumber, PositiveNumber, Probability, check_fields, number_at_least
 from common.geometry.arm_correction import ArmCorrection, configuration_change, grasp_constraint, lever
 from common.geometry.end_identity import end_for_end_delta, sigmoid, track_identity
 from common.geometry.error_state import (  # noqa: F401  (retract: re-exported)
@@ -113,6 +113,8 @@ class TrackerConfig:
     grasp_reach_m: float = 0.002            # the arc this near the jaws' axis lies between them
     jaw_length_m: float = 0.009             # the jaws' axis: from the pivot this far along z
     grasp_llr: float = 4.6                  # log likelihood ratio that settles a trial (100:1): grasp, rest
+    trial_frame_llr: PositiveNumber = 1.5   # one frame's evidence in a trial at most this: no one view settles it
+    regrasp_travel_m: PositiveNumber = 0.002   # refused jaws try again once they moved this far (pivot or tip)
     max_coast_s: float = 0.5                # a free needle unseen this long is lost
     start_one_camera: bool = False          # a pose fitted to one camera's view may start a track (monocular)
     # each arm's kinematic error, estimated online (common.geometry.arm_correction; off: the reports as exact)
@@ -228,6 +230,13 @@ def jaw_holds(jaw: Jaw, T_world_needle: np.ndarray, needle: NeedleModel, cfg: Tr
     return bool(d.min() <= (cfg.grasp_reach_m if reach_m is None else reach_m))
 
 
+def jaw_travel(T_from: np.ndarray, T_to: np.ndarray, jaw_length_m: float) -> float:
+    """How far jaws moved between two poses: the larger travel of their pivot and their tip
+    (``jaw_length_m`` along z), m."""
+    tip = np.array([0.0, 0.0, jaw_length_m, 1.0])
+    return float(max(np.linalg.norm(T_to[:3, 3] - T_from[:3, 3]), np.linalg.norm((T_to @ tip - T_from @ tip)[:3])))
+
+
 # ---------------------------------------------------------------- the filter
 
 class NeedleTracker:
@@ -255,7 +264,7 @@ class NeedleTracker:
         self.identity: Optional[tuple] = None      # end_identity.track_identity's state
         self.rejected, self.age = 0, 0             # rejected in a row; frames since the track started
         self.trial: Optional[dict] = None          # the alternative: the needle stayed (_arm_trial)
-        self.refused: set = set()                  # jaws whose grasp was undone, until they open
+        self.refused: dict = {}                    # jaws whose grasp was undone: their reported pose then
         self._last_jaws: dict = {}
         self.common = np.zeros(6)                  # the shared error's variances, the newest measurement's
         self.mirror_open = False                   # the track rests on one camera's views alone
@@ -592,7 +601,8 @@ class NeedleTracker:
         def dist(T_pred):
             return min(min(nis(pose_delta(T, T_pred), S) for T in readings), c.gate_nis)
         if nis(pose_delta(Tw, t["T"]), S) >= 1.0:      # only where the two tell different stories
-            t["llr"] += 0.5 * (dist(Tw) - dist(t["T"]))
+            cap = c.trial_frame_llr
+            t["llr"] += float(np.clip(0.5 * (dist(Tw) - dist(t["T"])), -cap, cap))
         S_alt = t["P"] + m.covariance
         r = min((pose_delta(T, t["T"]) for T in readings), key=lambda r: nis(r, S_alt))
         if nis(r, S_alt) <= c.gate_nis:
@@ -620,7 +630,7 @@ class NeedleTracker:
                 self._grasp_geometry(jaws)
         elif t["llr"] >= c.grasp_llr:
             self.trial = None
-            self.refused.add(self.holder)
+            self.refused[self.holder] = jaws[self.holder].T_world_jaw.copy()
             self._set_world("rest", t["T"], t["P"], jaws)
             return "ungrasp"
         return None
@@ -632,7 +642,8 @@ class NeedleTracker:
         event = None
         if self.cfg.arm_correction:
             self._arms_step(stamp_ns, jaws)
-        self.refused = {n for n in self.refused if n in jaws and jaws[n].jaw_rad < self.cfg.open_rad}
+        self.refused = {n: T for n, T in self.refused.items() if n in jaws and jaws[n].jaw_rad < self.cfg.open_rad
+                        and jaw_travel(T, jaws[n].T_world_jaw, self.cfg.jaw_length_m) < self.cfg.regrasp_travel_m}
         if self.active and self.mode == "held" and self.holder not in jaws:
             Tw, Pw = self.world(self._last_jaws)      # the holder's state did not come: let it go
             self._set_world("free", Tw, Pw, jaws, cross=self._world_cross(self._last_jaws))

@@ -76,7 +76,7 @@ def synthetic(n_seq=4, steps=3, pos_err=0.001, ang_err=np.radians(2.0), px_noise
                 kps[cam] = RIG[cam].project_from_ecm(transform_points(T_ecm_needle, NEEDLE.keypoints()))
                 vis[cam] = np.ones(5, bool)
             gt = GroundTruth(seq, 1000 + seq, sq, st, None, T_world_ecm, T_world_needle, kps, vis)
-            col.add_truth(decode(encode(gt), GroundTruth), 0)
+            col.add_truth(decode(encode(gt), GroundTruth), gt.stamp_ns)   # the truth comes when the frame is sent
             for cam in ("left", "right"):
                 d = rng.normal(size=(5, 2))
                 d = d / np.linalg.norm(d, axis=1, keepdims=True) * px_noise

@@ -100,8 +100,9 @@ def test_eval_tracks_a_pickup_take_with_the_oracle(pickup_take, tmp_path):
     from common.evaluation.cli import main as eval_main
     ds = pickup_take
     out = tmp_path / "out"
+    rec = tmp_path / "refined.jsonl"
     assert eval_main(["--dataset", str(ds), "--detector", "oracle", "--out", str(out), "--quiet",
-                      "--timeout", "300"]) == 0
+                      "--timeout", "300", "--record", str(rec)]) == 0
     res = json.loads((out / "results.json").read_text())
     t = res["pose"]["tracked"]
     assert t["n"] >= 0.95 * t["expected"] and t["position_mm"]["mean"] < 0.1 and t["orientation_deg"]["mean"] < 0.3
@@ -116,6 +117,12 @@ def test_eval_tracks_a_pickup_take_with_the_oracle(pickup_take, tmp_path):
     from test_take_video import read_video      # the take's video: a frame per frame at 320x240
     frames, fps = read_video(out / "tracking.mp4")
     assert len(frames) == res["frames"] and {f.shape for f in frames} == {(240, 320, 3)} and fps == pytest.approx(30.0)
+    # the tracker replayed on the run's refined poses (needletrack bench tracker --replay) gives its figures
+    from common.evaluation.tracker_replay import replay_summary, replay_tracker
+    replayed = replay_summary(ds, replay_tracker(ds, rec))["methods"]["tracked"]["seen"]
+    assert abs(replayed["posed"] - seen["posed"]) <= 1
+    assert replayed["position_mm"]["mean"] == pytest.approx(seen["position_mm"]["mean"], abs=0.01)
+    assert replayed["orientation_deg"]["mean"] == pytest.approx(seen["orientation_deg"]["mean"], abs=0.03)
 
 
 @pytest.mark.graph

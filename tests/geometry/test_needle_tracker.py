@@ -239,6 +239,47 @@ def test_jaws_that_close_but_leave_the_needle_behind_do_not_hold_it():
     assert pose_error(o.T_world_needle, T_needle)[0] < 0.3e-3
 
 
+def test_a_grasp_undone_too_early_is_tried_again_as_the_jaws_carry_the_needle():
+    """Jaws reported closed while they still close in on the wire (a real arm's jaw angle is
+    degrees off): the needle stays while they move, the grasp is undone; once they have moved
+    ``regrasp_travel_m`` from there they are tried again, and as they lift it the needle is held."""
+    T_needle = make_T(np.eye(3), [0.0, 0.0, 0.1])
+    p = T_needle[:3, 3] + NEEDLE.radius_m * np.array([0.0, 1.0, 0.0])
+    T_jaw0 = make_T(np.eye(3), p - [0.0, 0.0, 0.003])
+    rng = np.random.default_rng(12)
+    C = stated_covariance(rng)
+    tr = NeedleTracker(NEEDLE)
+    events, err = [], []
+    for k in range(110):
+        side = max(0.0, 0.0018 * (1 - k / 18))            # 1.8 mm beside the wire, closing in over 18 frames
+        lift = 0.0004 * max(0, k - 30)                     # on the wire from 18, lifting it from 30
+        T_true = make_T(np.eye(3), [0.0, 0.0, lift]) @ T_needle
+        o = tr.step(k * DT_NS, {"psm1": Jaw(make_T(np.eye(3), [side, 0.0, lift]) @ T_jaw0, 0.06)},
+                    measure(rng, T_true, C))
+        events.append(o.event)
+        err.append(pose_error(o.T_world_needle, T_true)[0])
+    assert "ungrasp" in events[:30] and "grasp:psm1" in events[30:40]
+    assert o.mode == "held" and o.holder == "psm1" and max(err[-10:]) < 0.6e-3
+    # with the jaws refused until they open (the old rule), the needle was left 13 mm behind
+
+
+def test_one_view_does_not_settle_a_grasp_trial():
+    """A grasp on trial and one view that fits the needle left behind: no single frame's
+    evidence settles the trial (``trial_frame_llr``); the views after it do."""
+    T_needle = make_T(np.eye(3), [0.0, 0.0, 0.1])
+    p = T_needle[:3, 3] + NEEDLE.radius_m * np.array([0.0, 1.0, 0.0])
+    T_jaw0 = make_T(np.eye(3), p - [0.0, 0.0, 0.003])
+    rng = np.random.default_rng(13)
+    C = stated_covariance(rng)
+    tr = NeedleTracker(NEEDLE)
+    for k in range(12):
+        lift = make_T(np.eye(3), [0.0, 0.0, 0.0004 * k])
+        m = Measurement(T_needle, C) if k == 4 else measure(rng, lift @ T_needle, C)   # frame 4: the old place
+        o = tr.step(k * DT_NS, {"psm1": Jaw(lift @ T_jaw0, 0.06)}, m)
+        assert o.mode == "held" and o.event != "ungrasp", k
+    assert tr.trial is None                    # settled: the needle moves with the jaws
+
+
 def test_config_refuses_nonsense():
     with pytest.raises(ValueError, match="closed_rad"):
         TrackerConfig(closed_rad=0.5, open_rad=0.4)
@@ -271,6 +312,20 @@ def test_the_bench_prints_its_figures(tmp_path, capsys):
         r = res[run]
         assert r["swaps"] == 0 and r["in_hand"]["wrong_holder"] == 0 and r["position_mm"] < 0.5
     assert "T_jaw_needle from the 10th held frame" in capsys.readouterr().out
+
+
+def test_the_bench_s_replay_refuses_what_it_cannot_use(tmp_path, capsys):
+    """``--replay`` needs ``--dataset``; a recording that did not finish, a folder that is not a
+    dataset and a param the tracker does not have are clear errors."""
+    from common.bench.tracker_bench import main
+    rec = tmp_path / "rec.jsonl"
+    rec.write_text('{"kind": "pose", "seq": 0}\n')                      # no end line: unfinished
+    assert main(["--replay", str(rec)]) == 2
+    assert "go together" in capsys.readouterr().err
+    assert main(["--replay", str(rec), "--dataset", str(tmp_path)]) == 2
+    assert "dataset.yaml: file missing" in capsys.readouterr().err
+    assert main(["--replay", str(rec), "--dataset", str(tmp_path), "--tracker-param", "no_such=1"]) == 2
+    assert "no_such" in capsys.readouterr().err
 
 
 def test_a_settled_track_outlasts_a_run_of_biased_fits_and_restarts_only_after_reset_after_held():

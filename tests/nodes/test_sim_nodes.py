@@ -2,6 +2,8 @@
 import os
 
 import cv2
+import time
+
 import numpy as np
 import pytest
 
@@ -100,6 +102,22 @@ def test_replay_loop_and_no_truth(tmp_path):
     seqs = [m.seq for o, m in node.published if o == "left"]
     assert seqs == [0, 1, 2, 3, 4]
     assert not any(o in ("truth", "joints", "eos") for o, _ in node.published)
+
+
+def test_replay_stamps_the_recorded_timing_whatever_its_pace(tmp_path):
+    """``stamps: recorded``: the frames 10 ms apart as recorded, played as fast as it goes and
+    looped (the next pass one interval after the last frame); ``wall``: the time of sending."""
+    _dataset(tmp_path, 3)
+    node = ReplayNode.offline(params={"path": str(tmp_path), "rate": "max", "loop": True, "stamps": "recorded"})
+    _run(node, 6)
+    stamps = [m.stamp_ns for o, m in node.published if o == "left"]
+    assert np.diff(stamps).tolist() == [10_000_000] * 5
+    t0 = time.time_ns()
+    truth = [m.stamp_ns for o, m in node.published if o == "truth"]
+    assert truth == stamps and abs(stamps[0] - t0) < 60e9      # anchored at the first frame's sending
+    node = ReplayNode.offline(params={"path": str(tmp_path), "rate": "max"})
+    _run(node)
+    assert np.diff([m.stamp_ns for o, m in node.published if o == "left"]).max() < 10_000_000
 
 
 def test_replay_skips_an_unreadable_frame(tmp_path):
