@@ -63,7 +63,8 @@ def _parser() -> argparse.ArgumentParser:
 def main(argv=None) -> int:
     args = _parser().parse_args(argv)
     from common.data.dataset import Dataset, DatasetError
-    from common.adapt.adapt_run import RecordingError, read_recording, record_pipeline
+    from common.adapt.adapt_run import record_pipeline
+    from common.evaluation.recording import RecordingError, read_recording
     from common.adapt.pseudo_labels import score_against_truth, summary_lines, write_labels
     out = Path(args.out)
     if args.truth and len(args.truth) != len(args.data):

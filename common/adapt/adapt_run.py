@@ -3,79 +3,15 @@
 ``record_pipeline`` runs ``pipeline_graph`` (replay -> a detector per camera -> ecm -> refine, every
 input queued as ``needletrack eval`` does, the refinement a single-frame method) with the
 ``recorder`` node as the sink, which writes each refined pose and each detection as a JSON line.
-``read_recording`` reads that file back per frame. A recording that ends with its ``end`` line is
+``common.evaluation.recording.read_recording`` reads that file back per frame. A recording that ends with its ``end`` line is
 complete: a rerun keeps it (resumable).
 """
 from __future__ import annotations
 
-import json
-from dataclasses import dataclass, field
 from pathlib import Path
 
-import numpy as np
-
-from common.errors import NeedletrackError
+from common.evaluation.recording import RecordingError, recording_complete
 from common.evaluation.replay_progress import wait_with_progress
-
-
-class RecordingError(NeedletrackError, RuntimeError):
-    """A pipeline run that left no complete recording."""
-
-
-@dataclass
-class FrameOutputs:
-    """What the pipeline gave for one frame ``seq``: the refined ``pose`` (a dict of
-    ``PoseEstimate`` fields, arrays as numpy; None: no pose) and each camera's detection
-    (dicts of ``Keypoints`` fields)."""
-
-    seq: int
-    pose: dict | None = None
-    keypoints: dict = field(default_factory=dict)
-
-
-def recording_complete(path) -> bool:
-    """Whether the file ends with the recorder's ``end`` line."""
-    path = Path(path)
-    if not path.is_file() or path.stat().st_size == 0:
-        return False
-    with open(path, "rb") as f:
-        f.seek(max(0, path.stat().st_size - 200))
-        tail = f.read().decode("utf-8", "replace").strip().splitlines()
-    try:
-        return bool(tail) and json.loads(tail[-1]).get("kind") == "end"
-    except json.JSONDecodeError:
-        return False
-
-
-def _array(v):
-    return None if v is None else np.array(v, dtype=float)
-
-
-def read_recording(path) -> dict:
-    """``{seq: FrameOutputs}`` from a recorder file; raises RecordingError when it is unfinished."""
-    if not recording_complete(path):
-        raise RecordingError(f"{path}: no end line: the pipeline run did not finish")
-    out: dict = {}
-    with open(path, encoding="utf-8") as f:
-        for ln, line in enumerate(f, 1):
-            try:
-                rec = json.loads(line)
-            except json.JSONDecodeError as exc:
-                raise RecordingError(f"{path}:{ln}: not valid JSON: {exc}") from None
-            kind = rec.pop("kind", None)
-            if kind == "end":
-                break
-            seq = int(rec["seq"])
-            fo = out.setdefault(seq, FrameOutputs(seq))
-            for k in ("T_ecm_needle", "T_world_needle", "T_world_ecm", "covariance", "uv", "scores",
-                      "centreline"):
-                if k in rec:
-                    rec[k] = _array(rec[k])
-            if kind == "pose":
-                fo.pose = rec
-            elif kind == "keypoints":
-                fo.keypoints[rec["camera"]] = rec
-    return out
 
 
 def record_pipeline(folder, out_file, *, model: str | None = None, support_normal=None,

@@ -100,7 +100,7 @@ def summarise(rows: list) -> dict:
 
 def _replay(args) -> int:
     """``--replay``: the tracker on a recording (module docstring)."""
-    from common.adapt.adapt_run import RecordingError
+    from common.evaluation.recording import RecordingError
     from common.data.dataset import DatasetError
     from common.evaluation.moving import moving_markdown
     from common.evaluation.tracker_replay import replay_summary, replay_tracker

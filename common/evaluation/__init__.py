@@ -22,6 +22,7 @@ Modules (``python -m common.layout`` writes this list from their docstrings):
   method's estimated arc in its colour, and the detector's keypoints as circles.
 - ``pipeline_graph``: The standard pose pipeline as a graph, and running it with its source started
   last.
+- ``recording``: The ``recorder`` node's file read back: each frame's refined pose and detections.
 - ``replay_progress``: A graph run waited on while its replay's frames are shown as a bar:
   ``needletrack eval``'s and ``needletrack adapt``'s wait for their evaluator or recorder.
 - ``report``: What people look at after an evaluation: ``report.md``, ``error_vs_distance.png``,

@@ -1,7 +1,7 @@
 """The tracker replayed offline on a run's refined poses: tracker work without the detectors.
 
 ``needletrack eval --record FILE`` keeps each refined pose of a run (the ``recorder`` node's
-file, ``common.adapt.adapt_run.read_recording``). ``replay_tracker`` steps the tracker's frame
+file, ``common.evaluation.recording.read_recording``). ``replay_tracker`` steps the tracker's frame
 step (``common.pose.tracker_step.TrackerStep``, the node's own) over the dataset's frames with
 those poses, the frames' ECM poses, instruments and truth, at the frames' recorded time, and
 gathers what it publishes as the evaluator would (``Collected``), so that
@@ -17,7 +17,7 @@ from dataclasses import fields
 
 import numpy as np
 
-from common.adapt.adapt_run import read_recording
+from common.evaluation.recording import read_recording
 from common.data.dataset import Dataset
 from common.evaluation.collect import Collected
 from common.evaluation.moving import moving_summary, stereo_visible

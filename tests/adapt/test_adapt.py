@@ -13,7 +13,7 @@ from common.data.check import check_dataset
 from common.data.dataset import Dataset
 from common.data.writer import TRUTH_FIELDS, without_truth
 from common.adapt.adapt_calibration import safe_scale, sure_share, sure_wrong
-from common.adapt.adapt_run import FrameOutputs, read_recording, recording_complete
+from common.evaluation.recording import FrameOutputs, read_recording, recording_complete
 from common.adapt.pseudo_labels import LabelConfig, keypoint_sigma_px, score_against_truth, write_labels
 from common.frames import CAMERAS
 from common.geometry.refine import tip_for_tail
@@ -168,7 +168,7 @@ def test_the_end_identity_is_never_surer_than_the_shipped_weights_allow():
 
 
 def test_an_unfinished_recording_is_refused(tmp_path):
-    from common.adapt.adapt_run import RecordingError
+    from common.evaluation.recording import RecordingError
     p = tmp_path / "r.jsonl"
     p.write_text('{"kind":"keypoints","seq":0,"camera":"left","found":false}\n')
     assert not recording_complete(p)
