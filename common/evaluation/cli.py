@@ -269,6 +269,15 @@ def main(argv=None) -> int:
         if rc:
             return rc
     print_summary(res)
+    short = unanswered(res)
+    if short:
+        warning = ("needletrack eval: warning: the run ended before the graph answered every frame ("
+                   + ", ".join(f"{n} {k} of {res['frames']}" for n, k in short.items())
+                   + f"; the evaluator waits {EVAL_DRAIN_S:.0f} s without a message after the source's end): "
+                   "the figures are of the frames answered; rerun on a less loaded machine")
+        print(warning, file=sys.stderr)
+        with open(out / "report.md", "a") as f:
+            f.write(f"\n**Incomplete run.** {warning.split('warning: ', 1)[1]}.\n")
     if replay_params:
         _withheld(ds, out, res, replay_params)
     moving = ", tracking.png, tracking.mp4" if (out / "tracking.mp4").is_file() else ""
@@ -280,6 +289,18 @@ def main(argv=None) -> int:
             return 1
         print(f"wrote {args.rrd}: needletrack view {args.rrd}")
     return 0
+
+
+def unanswered(res: dict) -> dict:
+    """{node: frames answered} of the frame-by-frame pose nodes (a pose or a notice that there is
+    none, per frame) that answered fewer than the run's frames: a run the evaluator ended early."""
+    out = {}
+    for node, c in (res.get("node_counters") or {}).items():
+        if node in ("refine", "tracker", "triangulate") or node.startswith("epnp"):
+            answered = int(c.get("out.pose", 0)) + int(c.get("out.no_pose", 0))
+            if 0 < answered < int(res.get("frames") or 0):
+                out[node] = answered
+    return out
 
 
 EVAL_DRAIN_S = 20.0

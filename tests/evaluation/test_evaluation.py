@@ -342,3 +342,17 @@ def test_the_calibration_bound_and_bins():
     assert within_calibration_bound(0.0, 0.02)
     rows = reliability_table(np.array([1.0, 0.995, 0.5]), np.array([False, False, True]))
     assert [(r["p_from"], r["n"]) for r in rows] == [(0.5, 1), (0.99, 2)]
+
+
+def test_a_run_ended_before_the_graph_answered_every_frame_is_named():
+    """``needletrack eval`` warns when a pose node answered fewer frames than the run had (the
+    evaluator's drain ended it on a loaded machine: seen on a 2,467-frame run cut at 1,869)."""
+    from common.evaluation.cli import unanswered
+    res = {"frames": 2467, "node_counters": {
+        "refine": {"out.pose": 648, "out.no_pose": 1221}, "tracker": {"out.pose": 1854, "out.no_pose": 15},
+        "epnp_joint": {"out.pose": 552, "out.no_pose": 1915}, "detector_left": {"out.left": 2467},
+        "fusion": {"out.pose": 468}}}
+    assert unanswered(res) == {"refine": 1869, "tracker": 1869}
+    res["node_counters"]["refine"]["out.no_pose"] = 1819
+    res["node_counters"]["tracker"]["out.no_pose"] = 613
+    assert unanswered(res) == {}
