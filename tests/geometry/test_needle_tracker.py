@@ -220,11 +220,16 @@ def test_strong_evidence_turns_the_track():
     assert "flip" in events and pose_error(o.T_world_needle, frames[39].T_world_needle)[1] < math.radians(5)
 
 
-def test_jaws_that_close_but_leave_the_needle_behind_do_not_hold_it():
-    """The jaws close by the needle and move off without it: the grasp is undone."""
+def needle_between_jaws():
+    """A needle at rest and jaws whose axis (world z) crosses its arc 3 mm from the pivot."""
     T_needle = make_T(np.eye(3), [0.0, 0.0, 0.1])
     p = T_needle[:3, 3] + NEEDLE.radius_m * np.array([0.0, 1.0, 0.0])       # a point of the arc
-    T_jaw0 = make_T(np.eye(3), p - [0.0, 0.0, 0.003])                       # it lies 3 mm along z
+    return T_needle, make_T(np.eye(3), p - [0.0, 0.0, 0.003])
+
+
+def test_jaws_that_close_but_leave_the_needle_behind_do_not_hold_it():
+    """The jaws close by the needle and move off without it: the grasp is undone."""
+    T_needle, T_jaw0 = needle_between_jaws()
     rng = np.random.default_rng(11)
     C = stated_covariance(rng)
     tr = NeedleTracker(NEEDLE)
@@ -243,9 +248,7 @@ def test_a_grasp_undone_too_early_is_tried_again_as_the_jaws_carry_the_needle():
     """Jaws reported closed while they still close in on the wire (a real arm's jaw angle is
     degrees off): the needle stays while they move, the grasp is undone; once they have moved
     ``regrasp_travel_m`` from there they are tried again, and as they lift it the needle is held."""
-    T_needle = make_T(np.eye(3), [0.0, 0.0, 0.1])
-    p = T_needle[:3, 3] + NEEDLE.radius_m * np.array([0.0, 1.0, 0.0])
-    T_jaw0 = make_T(np.eye(3), p - [0.0, 0.0, 0.003])
+    T_needle, T_jaw0 = needle_between_jaws()
     rng = np.random.default_rng(12)
     C = stated_covariance(rng)
     tr = NeedleTracker(NEEDLE)
@@ -266,9 +269,7 @@ def test_a_grasp_undone_too_early_is_tried_again_as_the_jaws_carry_the_needle():
 def test_one_view_does_not_settle_a_grasp_trial():
     """A grasp on trial and one view that fits the needle left behind: no single frame's
     evidence settles the trial (``trial_frame_llr``); the views after it do."""
-    T_needle = make_T(np.eye(3), [0.0, 0.0, 0.1])
-    p = T_needle[:3, 3] + NEEDLE.radius_m * np.array([0.0, 1.0, 0.0])
-    T_jaw0 = make_T(np.eye(3), p - [0.0, 0.0, 0.003])
+    T_needle, T_jaw0 = needle_between_jaws()
     rng = np.random.default_rng(13)
     C = stated_covariance(rng)
     tr = NeedleTracker(NEEDLE)
@@ -419,9 +420,7 @@ def test_fits_that_err_together_over_frames_are_stated_honestly_with_corr_frames
 def test_one_camera_s_views_weigh_no_grasp_trial():
     """The same jaws that leave the needle behind, seen by one camera only: its views update the
     track but never undo (or settle) the grasp: one view cannot tell near from far."""
-    T_needle = make_T(np.eye(3), [0.0, 0.0, 0.1])
-    p = T_needle[:3, 3] + NEEDLE.radius_m * np.array([0.0, 1.0, 0.0])
-    T_jaw0 = make_T(np.eye(3), p - [0.0, 0.0, 0.003])
+    T_needle, T_jaw0 = needle_between_jaws()
     rng = np.random.default_rng(11)
     C = stated_covariance(rng)
     tr = NeedleTracker(NEEDLE)
