@@ -23,8 +23,8 @@ def record_pipeline(folder, out_file, *, model: str | None = None, support_norma
     from common.evaluation.pipeline_graph import (
         GraphRun,
         GraphRunError,
-        keypoint_sources,
         pipeline_graph,
+        recorder_node,
     )
     out_file = Path(out_file)
     if recording_complete(out_file):
@@ -39,9 +39,7 @@ def record_pipeline(folder, out_file, *, model: str | None = None, support_norma
                          refine_params={"support_normal_world": list(support_normal)}
                          if support_normal is not None else None,
                          name="needletrack-adapt")
-    doc["nodes"].append({"id": "recorder", "module": "recorder", "params": {"out": str(partial.resolve())},
-                         "inputs": {"pose": "refine/pose", "eos": "replay/eos", **keypoint_sources(True)},
-                         "restart": "never"})
+    doc["nodes"].append(recorder_node(doc, partial, split_detector=True))
     log_path = Path(log_file) if log_file else out_file.with_suffix(".log")
     timeout = timeout or (180 + 2.0 * n)      # generous: the detectors pace the run, not the replay
     with open(log_path, "w") as log:

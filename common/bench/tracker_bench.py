@@ -101,7 +101,7 @@ def summarise(rows: list) -> dict:
 def _replay(args) -> int:
     """``--replay``: the tracker on a recording (module docstring)."""
     from common.evaluation.recording import RecordingError
-    from common.data.dataset import DatasetError
+    from common.data.dataset import Dataset, DatasetError
     from common.evaluation.moving import moving_markdown
     from common.evaluation.tracker_replay import replay_summary, replay_tracker
     from common.runtime.graph import parse_param
@@ -112,11 +112,12 @@ def _replay(args) -> int:
     try:
         raw = dict(parse_param(p) for p in args.tracker_param)
         config = parse_params(TrackerConfig, raw, "--tracker-param")
-        col = replay_tracker(args.dataset, args.replay, config)
+        ds = Dataset(args.dataset, check_files=False)
+        col = replay_tracker(ds, args.replay, config)
     except (ValueError, RecordingError, DatasetError, OSError) as exc:
         print(f"needletrack bench tracker: {exc}", file=sys.stderr)
         return 2
-    summary = replay_summary(args.dataset, col)
+    summary = replay_summary(ds, col)
     if summary is None:
         print(f"needletrack bench tracker: {args.dataset} has no moving take", file=sys.stderr)
         return 2

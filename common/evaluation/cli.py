@@ -144,6 +144,7 @@ def main(argv=None) -> int:
         keypoint_sources,
         pipeline_graph,
         pose_inputs,
+        recorder_node,
     )
 
     if args.rrd:
@@ -225,12 +226,7 @@ def main(argv=None) -> int:
                  "restart": "never"}
     doc["nodes"].append(evaluator)
     if args.record:
-        doc["nodes"].append({"id": "recorder", "module": "recorder", "params": {"out": str(Path(args.record).resolve())},
-                             "inputs": {"eos": "replay/eos", **({"pose": "refine/pose"} if len(cameras) == 2 and any(
-                                 n["id"] == "refine" for n in doc["nodes"]) else {}),
-                                        **{c: src for c, src in keypoint_sources(split or len(cameras) == 1).items()
-                                           if c in cameras}},
-                             "restart": "never"})
+        doc["nodes"].append(recorder_node(doc, args.record, split or len(cameras) == 1, cameras))
     log_path = out / "graph.log"
     try:
         (out / "graph.yaml").write_text(yaml.safe_dump(doc, sort_keys=False))

@@ -34,10 +34,9 @@ def recorded_pose(rec: dict) -> PoseEstimate:
     return PoseEstimate(**{k: v for k, v in rec.items() if k in names})
 
 
-def replay_tracker(dataset: str, recording: str, config: TrackerConfig = TrackerConfig()) -> Collected:
-    """The tracker over ``dataset``'s frames with the refined poses of ``recording`` (module
+def replay_tracker(ds: Dataset, recording: str, config: TrackerConfig = TrackerConfig()) -> Collected:
+    """The tracker over the folder ``ds``'s frames with the refined poses of ``recording`` (module
     docstring): what it publishes, with the frames' truth and instruments, as a ``Collected``."""
-    ds = Dataset(str(dataset), check_files=False)
     outputs = read_recording(recording)
     col = Collected()
     meta = ds.meta
@@ -76,10 +75,10 @@ def replay_tracker(dataset: str, recording: str, config: TrackerConfig = Tracker
     return col
 
 
-def replay_summary(dataset: str, col: Collected) -> dict:
-    """``common.evaluation.moving``'s figures of the replayed track (``moving_summary``)."""
+def replay_summary(ds: Dataset, col: Collected) -> dict:
+    """``common.evaluation.moving``'s figures of the replayed track (``moving_summary``) over the
+    folder ``ds`` it was replayed on."""
     from common.evaluation.collect import evaluate
-    ds = Dataset(str(dataset), check_files=False)
     visible = {seq: stereo_visible(fr) for seq, fr in enumerate(ds.frames)}
     ev = evaluate(col, [METHOD])
     return moving_summary(ev, col.truths, col.instruments, col.in_hand, visible, [METHOD], col.poses,

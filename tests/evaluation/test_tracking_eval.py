@@ -118,8 +118,10 @@ def test_eval_tracks_a_pickup_take_with_the_oracle(pickup_take, tmp_path):
     frames, fps = read_video(out / "tracking.mp4")
     assert len(frames) == res["frames"] and {f.shape for f in frames} == {(240, 320, 3)} and fps == pytest.approx(30.0)
     # the tracker replayed on the run's refined poses (needletrack bench tracker --replay) gives its figures
+    from common.data.dataset import Dataset
     from common.evaluation.tracker_replay import replay_summary, replay_tracker
-    replayed = replay_summary(ds, replay_tracker(ds, rec))["methods"]["tracked"]["seen"]
+    folder = Dataset(str(ds), check_files=False)
+    replayed = replay_summary(folder, replay_tracker(folder, rec))["methods"]["tracked"]["seen"]
     assert abs(replayed["posed"] - seen["posed"]) <= 1
     assert replayed["position_mm"]["mean"] == pytest.approx(seen["position_mm"]["mean"], abs=0.01)
     assert replayed["orientation_deg"]["mean"] == pytest.approx(seen["orientation_deg"]["mean"], abs=0.03)
