@@ -200,12 +200,15 @@ def main(argv=None) -> int:
     cameras = (args.cameras,) if args.cameras else CAMERAS
     rate = args.rate or (30 if args.detector == "oracle" else 10)
     rate = rate if str(rate) == "max" else float(rate)
+    # moving takes: the graph as deployed, the refinement warm from frame to frame (what the tracker
+    # gets live); views of a needle at rest: the refinement a single-frame method, each view on its own
+    moving = any(fr.needle_at_rest is False for fr in ds.frames)
     doc = pipeline_graph(dataset, detector=args.detector, detector_params=det_params, rate=rate,
                          refine=False if args.no_refine else None, lossless=True,
-                         split_detector=split, refine_tracking=False,   # refined: a single-frame method
+                         split_detector=split, refine_tracking=moving,
                          refine_params={**refine_params, **({"support_normal_world": args.support_normal}
                                                             if args.support_normal else {})} or None,
-                         tracker=any(fr.needle_at_rest is False for fr in ds.frames),   # moving takes
+                         tracker=moving,
                          tracker_params=tracker_params, replay_params=replay_params, cameras=cameras)
     evaluator = {"id": "evaluator", "module": "evaluator",
                  "params": {"out": str(out.resolve()), "dataset": str(Path(dataset).resolve()),

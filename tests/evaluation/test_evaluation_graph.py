@@ -62,6 +62,7 @@ def test_oracle_with_noise_gives_errors_of_the_expected_size(small_dataset, tmp_
     graph = yaml.safe_load((tmp_path / "graph.yaml").read_text())
     refine = next(n for n in graph["nodes"] if n["id"] == "refine")["params"]
     assert refine["support_normal_world"] == [0, 0, 1] and refine["one_camera"] is False
+    assert refine["tracking"] is False          # views of a needle at rest: each on its own
     assert "resting prior" in (tmp_path / "report.md").read_text()
     with pytest.raises(SystemExit):
         eval_main(["--dataset", str(small_dataset), "--support-normal", "0,0"])

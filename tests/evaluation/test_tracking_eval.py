@@ -6,6 +6,7 @@ from types import SimpleNamespace
 
 import numpy as np
 import pytest
+import yaml
 
 from common.evaluation.moving import (
     CORRECTION_AFTER,
@@ -114,6 +115,9 @@ def test_eval_tracks_a_pickup_take_with_the_oracle(pickup_take, tmp_path):
     assert h["frames"] > 10 and h["posed"] >= 0.9 * h["frames"] and h["position_mm"]["mean"] < 0.1
     assert res["node_counters"]["tracker"].get("events.grasp") == 1
     assert "## Moving takes" in (out / "report.md").read_text()
+    # moving takes: the refinement as deployed, warm from frame to frame (what the tracker gets live)
+    graph = yaml.safe_load((out / "graph.yaml").read_text())
+    assert next(n for n in graph["nodes"] if n["id"] == "refine")["params"]["tracking"] is True
     from test_take_video import read_video      # the take's video: a frame per frame at 320x240
     frames, fps = read_video(out / "tracking.mp4")
     assert len(frames) == res["frames"] and {f.shape for f in frames} == {(240, 320, 3)} and fps == pytest.approx(30.0)
