@@ -1,7 +1,8 @@
 """Recorder: writes the poses and keypoints a graph produces to a JSON-lines file, for a later
 step that reads them without the graph (``needletrack adapt``'s pseudo-labels).
 
-Each line is one message: ``{"kind": "pose", ...PoseEstimate fields}`` or
+Each line is one message: ``{"kind": "pose", ...PoseEstimate fields}``, ``{"kind": "one_camera",
+...}`` (a pose fitted to one camera's view: the refine node's ``one_camera`` output) or
 ``{"kind": "keypoints", ...Keypoints fields}`` (arrays as nested lists, NaN as null). After the
 source's EndOfStream and ``drain_s`` seconds without a message it writes
 ``{"kind": "end", "frames": N}`` and exits 0; a file without that line is an unfinished run.
@@ -28,7 +29,8 @@ def message_record(kind: str, msg) -> dict:
 class RecorderNode(Node):
     """Poses and keypoints in, one JSON line each out to ``params.out``."""
 
-    INPUTS = {"pose": PoseEstimate, "left": Keypoints, "right": Keypoints, "eos": EndOfStream}
+    INPUTS = {"pose": PoseEstimate, "one_camera": PoseEstimate, "left": Keypoints, "right": Keypoints,
+              "eos": EndOfStream}
     OUTPUTS = ()
     KEEP_ALL = tuple(INPUTS)
 
@@ -51,6 +53,9 @@ class RecorderNode(Node):
 
     def on_pose(self, msg: PoseEstimate):
         self._write("pose", msg)
+
+    def on_one_camera(self, msg: PoseEstimate):
+        self._write("one_camera", msg)
 
     def on_left(self, msg: Keypoints):
         self._write("keypoints", msg)

@@ -254,11 +254,12 @@ def keypoint_sources(split_detector: bool) -> dict:
 
 def recorder_node(doc: dict, out_file, split_detector: bool, cameras: tuple = CAMERAS) -> dict:
     """The ``recorder`` node (nodes/recorder.py) for graph ``doc``: each refined pose (where the
-    graph refines both cameras' views) and each camera's keypoints to ``out_file`` as JSON lines
-    (``common.evaluation.recording``)."""
-    refine = len(cameras) == 2 and any(n["id"] == "refine" for n in doc["nodes"])
+    graph refines both cameras' views), each pose fitted to one camera's view and each camera's
+    keypoints to ``out_file`` as JSON lines (``common.evaluation.recording``)."""
+    refine = any(n["id"] == "refine" for n in doc["nodes"])
+    poses = {"one_camera": "refine/one_camera", **({"pose": "refine/pose"} if len(cameras) == 2 else {})}
     return {"id": "recorder", "module": "recorder", "params": {"out": str(Path(out_file).resolve())},
-            "inputs": {"eos": f"{SOURCE}/eos", **({"pose": "refine/pose"} if refine else {}),
+            "inputs": {"eos": f"{SOURCE}/eos", **(poses if refine else {}),
                        **{c: src for c, src in keypoint_sources(split_detector).items() if c in cameras}},
             "restart": "never"}
 

@@ -22,11 +22,13 @@ class RecordingError(NeedletrackError, RuntimeError):
 @dataclass
 class FrameOutputs:
     """What the pipeline gave for one frame ``seq``: the refined ``pose`` (a dict of
-    ``PoseEstimate`` fields, arrays as numpy; None: no pose) and each camera's detection
-    (dicts of ``Keypoints`` fields)."""
+    ``PoseEstimate`` fields, arrays as numpy; None: no pose), ``one_camera`` (a pose fitted to
+    one camera's view, the same way; None: none) and each camera's detection (dicts of
+    ``Keypoints`` fields)."""
 
     seq: int
     pose: dict | None = None
+    one_camera: dict | None = None
     keypoints: dict = field(default_factory=dict)
 
 
@@ -70,6 +72,8 @@ def read_recording(path) -> dict:
                     rec[k] = _array(rec[k])
             if kind == "pose":
                 fo.pose = rec
+            elif kind == "one_camera":
+                fo.one_camera = rec
             elif kind == "keypoints":
                 fo.keypoints[rec["camera"]] = rec
     return out

@@ -1,6 +1,7 @@
 """The tracker replayed offline on a run's refined poses: tracker work without the detectors.
 
-``needletrack eval --record FILE`` keeps each refined pose of a run (the ``recorder`` node's
+``needletrack eval --record FILE`` keeps each refined pose of a run, and each pose fitted to one
+camera's view (the ``recorder`` node's
 file, ``common.evaluation.recording.read_recording``). ``replay_tracker`` steps the tracker's frame
 step (``common.pose.tracker_step.TrackerStep``, the node's own) over the dataset's frames with
 those poses, the frames' ECM poses, instruments and truth, at the frames' recorded time, and
@@ -42,7 +43,7 @@ def replay_tracker(ds: Dataset, recording: str, config: TrackerConfig = TrackerC
     meta = ds.meta
     col.calib = Calibration(stamp_ns=0, image_size=np.array(meta.image_size), cameras=meta.rig.to_dict(),
                             needle=meta.needle.to_dict(), ecm=None if meta.arm is None else meta.arm.to_dict())
-    step = TrackerStep(config, max_wait=1)
+    step = TrackerStep(config, max_wait=1, one_camera_wired=True)
     taken = step.on_calib(col.calib)
 
     def take(msgs):
@@ -66,10 +67,11 @@ def replay_tracker(ds: Dataset, recording: str, config: TrackerConfig = TrackerC
             take(step.on_instruments(msg))
         take(step.on_ecm(EcmPose(seq, stamp, np.asarray(fr.T_world_ecm, float))))
         rec = outputs.get(seq)
-        if rec is not None and rec.pose is not None:
-            pose = recorded_pose(rec.pose)
+        given = None if rec is None else rec.pose if rec.pose is not None else rec.one_camera
+        if given is not None:
+            pose = recorded_pose(given)
             pose.stamp_ns = stamp
-            take(step.on_pose(pose))
+            take(step.on_pose(pose, one_camera=rec.pose is None))
         else:
             take(step.on_no_pose(NoPoseNotice(seq, stamp, "refined", "not_recorded")))
     return col

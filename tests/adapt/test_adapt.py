@@ -174,6 +174,13 @@ def test_an_unfinished_recording_is_refused(tmp_path):
     assert not recording_complete(p)
     with pytest.raises(RecordingError, match="did not finish"):
         read_recording(p)
+    # finished: each frame's pose, one-camera pose and keypoints
+    p.write_text('{"kind":"keypoints","seq":0,"camera":"left","found":false}\n'
+                 '{"kind":"one_camera","seq":0,"method":"refined_one_camera","T_ecm_needle":[[1,0,0,0],[0,1,0,0],[0,0,1,0.1],[0,0,0,1]]}\n'
+                 '{"kind":"pose","seq":1,"method":"refined"}\n{"kind":"end","frames":2}\n')
+    rec = read_recording(p)
+    assert rec[0].pose is None and rec[0].one_camera["T_ecm_needle"][2, 3] == 0.1 and "left" in rec[0].keypoints
+    assert rec[1].pose["method"] == "refined" and rec[1].one_camera is None
 
 
 @pytest.mark.slow

@@ -225,3 +225,8 @@ def test_a_monocular_evaluation_graph_runs_one_camera_s_detector_refinement_and_
     assert set(by_id["refine"]["inputs"]) >= {"left", "calib", "ecm"} and "right" not in by_id["refine"]["inputs"]
     assert by_id["tracker"]["params"]["start_one_camera"] is True
     assert by_id["replay"]["params"]["withhold"] == "left"
+    # its recorder (eval --record) keeps the one-camera poses, the only ones such a graph gives
+    from common.evaluation.pipeline_graph import recorder_node
+    rec = recorder_node(doc, "r.jsonl", split_detector=True, cameras=("left",))
+    assert rec["inputs"]["one_camera"] == "refine/one_camera" and "pose" not in rec["inputs"]
+    assert recorder_node(pipeline_graph("dataset", detector="learned"), "r.jsonl", True)["inputs"]["pose"] == "refine/pose"
