@@ -139,6 +139,7 @@ def main(argv=None) -> int:
     args = _parser().parse_args(argv)
     from common.data.dataset import DatasetError
     from common.evaluation.pipeline_graph import (
+        LOSSLESS_TRACKER_WAIT,
         GraphRun,
         GraphRunError,
         keypoint_sources,
@@ -202,13 +203,13 @@ def main(argv=None) -> int:
     rate = rate if str(rate) == "max" else float(rate)
     # moving takes: the graph as deployed, the refinement warm from frame to frame (what the tracker
     # gets live); views of a needle at rest: the refinement a single-frame method, each view on its own
-    moving = any(fr.needle_at_rest is False for fr in ds.frames)
+    moving_takes = any(fr.needle_at_rest is False for fr in ds.frames)
     doc = pipeline_graph(dataset, detector=args.detector, detector_params=det_params, rate=rate,
                          refine=False if args.no_refine else None, lossless=True,
-                         split_detector=split, refine_tracking=moving,
+                         split_detector=split, refine_tracking=moving_takes,
                          refine_params={**refine_params, **({"support_normal_world": args.support_normal}
                                                             if args.support_normal else {})} or None,
-                         tracker=moving,
+                         tracker=moving_takes,
                          tracker_params=tracker_params, replay_params=replay_params, cameras=cameras)
     evaluator = {"id": "evaluator", "module": "evaluator",
                  "params": {"out": str(out.resolve()), "dataset": str(Path(dataset).resolve()),
@@ -272,7 +273,8 @@ def main(argv=None) -> int:
     if short:
         warning = ("needletrack eval: warning: the run ended before the graph answered every frame ("
                    + ", ".join(f"{n} {k} of {res['frames']}" for n, k in short.items())
-                   + f"; the evaluator waits {EVAL_DRAIN_S:.0f} s without a message after the source's end): "
+                   + f"; a node fell further behind than the lossless graph waits, {LOSSLESS_TRACKER_WAIT} frames, "
+                   f"or the evaluator's {EVAL_DRAIN_S:.0f} s of silence after the source's end): "
                    "the figures are of the frames answered; rerun on a less loaded machine")
         print(warning, file=sys.stderr)
         with open(out / "report.md", "a") as f:
@@ -292,7 +294,7 @@ def main(argv=None) -> int:
 
 def unanswered(res: dict) -> dict:
     """{node: frames answered} of the frame-by-frame pose nodes (a pose or a notice that there is
-    none, per frame) that answered fewer than the run's frames: a run the evaluator ended early."""
+    none, per frame) that answered fewer than the run's frames: a run cut short."""
     out = {}
     for node, c in (res.get("node_counters") or {}).items():
         if node in ("refine", "tracker", "triangulate") or node.startswith("epnp"):
